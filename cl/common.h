@@ -1,0 +1,59 @@
+/* common.h: shared types, named constants, safe math and the float atomic add.
+ *
+ * Every helper here has a float64 twin of the same name in clrf/reference.py.
+ *
+ * Defines read (all optional, each with its default):
+ *   CLRF_NATIVE_FLOAT_ATOMICS  1 if the device reports cl_ext_float_atomics (set by the host)
+ */
+#ifndef CLRF_COMMON_H
+#define CLRF_COMMON_H
+
+#ifndef CLRF_NATIVE_FLOAT_ATOMICS
+#define CLRF_NATIVE_FLOAT_ATOMICS 0  /* 1: use atomic_fetch_add on floats (OpenCL C 2.0+) */
+#endif
+
+/* Largest exponent fed to exp(): exp(80) = 5.5e34 stays finite in float32 (max 3.4e38). */
+#define CLRF_EXP_CLAMP 80.0f
+
+/* exp(x) with the argument clamped so the result is finite. */
+inline float safe_exp(float x) { return exp(fmin(x, CLRF_EXP_CLAMP)); }
+
+/* a / b, 0 when b == 0 (used where the numerator is also 0 in the limit). */
+inline float safe_div(float a, float b) { return b != 0.0f ? a / b : 0.0f; }
+
+/* Opacity of a segment with optical depth tau >= 0: 1 - exp(-tau), exact for tiny tau. */
+inline float alpha_from_tau(float tau) { return -expm1(-tau); }
+
+/* Kahan-compensated running sum: s + c is the sum, c the lost low-order part. */
+typedef struct { float s; float c; } ksum_t;
+inline void ksum_add(ksum_t *k, float x) {
+    float y = x - k->c;
+    float t = k->s + y;
+    k->c = (t - k->s) - y;
+    k->s = t;
+}
+
+/* Atomic float add on global memory. Native where the device has it, else a
+ * compare-and-swap loop on the bit pattern (portable to every OpenCL 1.2 device). */
+inline void atomic_add_f(volatile __global float *p, float v) {
+#if CLRF_NATIVE_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
+    atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
+                              memory_scope_device);
+#else
+    union { unsigned int u; float f; } old, upd;
+    old.f = *p;
+    do {
+        upd.f = old.f + v;
+        unsigned int seen = atomic_cmpxchg((volatile __global unsigned int *)p, old.u, upd.u);
+        if (seen == old.u) break;
+        old.u = seen;
+    } while (1);
+#endif
+}
+
+/* Atomic max for non-negative floats: their bit patterns order like signed ints. */
+inline void atomic_max_nonneg_f(volatile __global float *p, float v) {
+    atomic_max((volatile __global int *)p, as_int(fmax(v, 0.0f)));
+}
+
+#endif /* CLRF_COMMON_H */

@@ -1,0 +1,356 @@
+/* grid_render.cl: forward and backward volume rendering of a sparse SH voxel grid.
+ *
+ * Memory layout
+ *   links   int32 [RX, RY, RZ], C order: links[(x*RY + y)*RZ + z] = row k >= 0, or < 0 = empty
+ *   density float [N]                 raw density of row k (ReLU applied after interpolation)
+ *   sh      float [N, SH_DIM]         sh[k*SH_DIM + ch*SH_BASIS + b], channel-major
+ *   origins, dirs  float [n_rays, 3]  world space; dirs need not be unit length
+ *
+ * Geometry. The grid fills the world box [bmin, bmin + reso/scale]. In "box units" p = (x -
+ * bmin)*scale the box is [0, reso] and voxel i's value sits at its centre i + 0.5. Trilinear
+ * interpolation clamps to the outermost centres (constant extension over the last half voxel),
+ * so a 1x1x1 grid is a constant and a homogeneous grid is homogeneous up to the box faces.
+ *
+ * Marching. A ray o + t*d/|d| enters the box at t0 and leaves at t1 (length len = t1 - t0).
+ * Step `step` is in box units (voxels) along the ray, i.e. dt = step/|d*scale| in world units.
+ * Segment k covers s in [k dt, min((k+1) dt, len)] measured from the entry, so the segments
+ * add up to len exactly; its sample sits at the segment midpoint (midpoint quadrature).
+ *
+ * Compositing, with sigma_k = max(trilerp(density), 0), tau_k = sigma_k delta_k:
+ *   alpha_k = 1 - exp(-tau_k) = -expm1(-tau_k),  T_k = exp(-sum_{j<k} tau_j)  (log space)
+ *   w_k = T_k alpha_k,  rgb = sum_k w_k c_k + T_end * bg,  acc = sum_k w_k,
+ *   depth = sum_k w_k t_k (t_k the world distance of sample k; not divided by acc),
+ *   c_k = max(0, sum_b sh_{ch,b}(x_k) Y_b(d) + 0.5)  (svox2's colour activation).
+ * The march stops after the sample at which T falls below T_STOP; what is left is T_end.
+ *
+ * Backward (dL/drgb = g given, or g = 2 (rgb - target) * loss_scale for GRAD_MODE 1):
+ *   dL/dsigma_k = delta_k (T_{k+1} (g.c_k) - R_k),   R_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg)
+ *   dL/dsh_{ch,b}(x_k) = w_k g_ch [pre_ch > 0] Y_b
+ * R_k is the remaining radiance: g.rgb minus the (Kahan-summed) prefix, so the ray is marched
+ * twice (forward for rgb, then backward) and nothing is stored per sample. Corner gradients of
+ * consecutive samples in the same cell are merged in registers and scattered with one atomic
+ * add per corner value when the march leaves the cell.
+ *
+ * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
+ * sample before the cell's exit. Those samples have sigma = 0, so the result is unchanged.
+ *
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, TRACK_TOUCHED, CLRF_HAS_FP64 (ray.h).
+ */
+#include "common.h"
+#include "sh.h"
+#include "ray.h"
+
+#ifndef T_STOP
+#define T_STOP 1e-4f  /* early termination: stop once transmittance < T_STOP (error <= T_STOP) */
+#endif
+#ifndef GRAD_MODE
+#define GRAD_MODE 0   /* 0: ray_in holds dL/drgb; 1: ray_in holds target rgb, loss = MSE */
+#endif
+#ifndef TRACK_TOUCHED
+#define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
+#endif
+#define COLOR_OFFSET 0.5f /* SH colour is offset so that all-zero coefficients give grey */
+
+typedef struct {
+    float3 p0;   /* entry point, box units */
+    float3 dg;   /* unit world direction in box units per world unit */
+    float3 dir;  /* unit world direction (for SH) */
+    float t0;    /* world distance from the origin to the entry */
+    float len;   /* world length inside the box */
+    float dt;    /* world length of one step */
+    int nsteps;  /* number of segments, the last one clipped to len */
+} march_t;
+
+typedef struct {
+    int idx[8];   /* rows of the 8 corners (< 0: empty); corner c = (cx << 2) | (cy << 1) | cz */
+    float w[8];   /* trilinear weights */
+    int cell;     /* linear index of the lower corner: identifies the cell */
+    int3 lo;      /* lower corner */
+} lerp_t;
+
+/* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
+inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
+                       march_t *m) {
+    real3 dd = REAL3(d);
+    real_t mx = fmax(fabs(dd.x), fmax(fabs(dd.y), fabs(dd.z)));
+    if (!(mx > 0) || !isfinite(mx)) return 0;
+    dd /= mx;                       /* scale first: |d| may under/overflow when squared */
+    dd /= sqrt(dot(dd, dd));
+    real3 sc = (real3)(scale.x, scale.y, scale.z);
+    real3 og = (REAL3(o) - (real3)(bmin.x, bmin.y, bmin.z)) * sc;
+    real3 dg = dd * sc;
+    real3 hi = (real3)(reso.x, reso.y, reso.z);
+    real_t t0, t1;
+    if (!ray_box(og, dg, (real3)(0, 0, 0), hi, &t0, &t1)) return 0;
+    real_t dt = (real_t)step / sqrt(dot(dg, dg));
+    real_t len = t1 - t0;
+    real3 p0 = clamp(og + t0 * dg, (real3)(0, 0, 0), hi);
+    m->p0 = (float3)(p0.x, p0.y, p0.z);
+    m->dg = (float3)(dg.x, dg.y, dg.z);
+    m->dir = (float3)(dd.x, dd.y, dd.z);
+    m->t0 = (float)t0;
+    m->len = (float)len;
+    m->dt = (float)dt;
+    m->nsteps = (int)ceil(len / dt);
+    return m->nsteps > 0;
+}
+
+/* Segment k: midpoint distance from the entry and length. */
+inline void march_segment(const march_t *m, int k, float *mid, float *delta) {
+    float s0 = (float)k * m->dt;
+    float s1 = fmin((float)(k + 1) * m->dt, m->len);
+    *mid = 0.5f * (s0 + s1);
+    *delta = s1 - s0;
+}
+
+/* One axis of the interpolation set-up: position in box units -> lower index, fraction. */
+inline void lerp_axis(float p, int r, int *i0, int *i1, float *f) {
+    float u = clamp(p - 0.5f, 0.0f, (float)(r - 1));
+    int i = min((int)u, max(r - 2, 0));
+    *i0 = i;
+    *i1 = min(i + 1, r - 1);
+    *f = u - (float)i;
+}
+
+/* Find the 8 corners and weights of point p (box units). Returns 1 if any corner is allocated. */
+inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L) {
+    int x0, x1, y0, y1, z0, z1;
+    float fx, fy, fz;
+    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
+    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
+    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
+    L->lo = (int3)(x0, y0, z0);
+    L->cell = (x0 * reso.y + y0) * reso.z + z0;
+    const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+    const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy}, wz[2] = {1.0f - fz, fz};
+    int any = 0;
+    for (int c = 0; c < 8; ++c) {
+        int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
+        int k = links[(xs[cx] * reso.y + ys[cy]) * reso.z + zs[cz]];
+        L->idx[c] = k;
+        L->w[c] = wx[cx] * wy[cy] * wz[cz];
+        any |= (k >= 0);
+    }
+    return any;
+}
+
+/* Distance (from the entry) at which the ray leaves the region of points that interpolate
+ * from the cell with lower corner lo. Unbounded sides (the clamped outer half voxels) are
+ * +-inf, so the region is convex and contains the current point. */
+inline float cell_exit(const march_t *m, int3 lo, int4 reso) {
+    float s = INFINITY;
+    const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
+    const int l[3] = {lo.x, lo.y, lo.z}, r[3] = {reso.x, reso.y, reso.z};
+    for (int a = 0; a < 3; ++a) {
+        float bound_lo = l[a] == 0 ? -INFINITY : (float)l[a] + 0.5f;
+        float bound_hi = l[a] >= r[a] - 2 ? INFINITY : (float)l[a] + 1.5f;
+        if (d[a] > 0.0f) s = fmin(s, (bound_hi - p[a]) / d[a]);
+        else if (d[a] < 0.0f) s = fmin(s, (bound_lo - p[a]) / d[a]);
+    }
+    return s;
+}
+
+/* Index of the next segment to evaluate after segment k found its cell empty: the last one
+ * whose midpoint is still inside the cell (so a skipped sample is never outside it). */
+inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
+    float s = cell_exit(m, lo, reso);
+    float j = fmin(ceil(s / m->dt - 0.5f) - 1.0f, (float)m->nsteps);
+    return max(k + 1, (int)j);
+}
+
+inline float lerp_density(const lerp_t *L, __global const float *density) {
+    float s = 0.0f;
+    for (int c = 0; c < 8; ++c)
+        if (L->idx[c] >= 0) s += L->w[c] * density[L->idx[c]];
+    return s;
+}
+
+/* Interpolated SH coefficients -> pre-activation colour per channel. */
+inline float3 lerp_color_pre(const lerp_t *L, __global const float *sh, const float *Y) {
+    float co[SH_DIM];
+    for (int j = 0; j < SH_DIM; ++j) co[j] = 0.0f;
+    for (int c = 0; c < 8; ++c) {
+        if (L->idx[c] < 0) continue;
+        __global const float *row = sh + (size_t)L->idx[c] * SH_DIM;
+        const float w = L->w[c];
+        for (int j = 0; j < SH_DIM; ++j) co[j] += w * row[j];
+    }
+    float pre[3];
+    for (int ch = 0; ch < 3; ++ch) {
+        float v = COLOR_OFFSET;
+        for (int b = 0; b < SH_BASIS; ++b) v += co[ch * SH_BASIS + b] * Y[b];
+        pre[ch] = v;
+    }
+    return (float3)(pre[0], pre[1], pre[2]);
+}
+
+typedef struct {
+    float3 rgb;  /* foreground radiance, without background */
+    float acc;   /* sum of weights */
+    float depth; /* sum of weights times distance from the entry */
+    float logT;  /* log transmittance at the end of the march */
+} fwd_t;
+
+/* The forward march shared by every kernel. */
+inline void march_forward(const march_t *m, int4 reso, __global const int *links,
+                          __global const float *density, __global const float *sh,
+                          const float *Y, fwd_t *out) {
+    ksum_t logT = {0.0f, 0.0f};
+    float3 rgb = (float3)(0.0f);
+    float acc = 0.0f, depth = 0.0f;
+    for (int k = 0; k < m->nsteps; ++k) {
+        float mid, delta;
+        march_segment(m, k, &mid, &delta);
+        lerp_t L;
+        if (!lerp_setup(m->p0 + mid * m->dg, reso, links, &L)) {
+            k = skip_empty(m, k, L.lo, reso) - 1;
+            continue;
+        }
+        float sigma = lerp_density(&L, density);
+        if (!(sigma > 0.0f)) continue;
+        float tau = sigma * delta;
+        float w = exp(logT.s) * alpha_from_tau(tau);
+        float3 c = fmax(lerp_color_pre(&L, sh, Y), 0.0f);
+        rgb += w * c;
+        acc += w;
+        depth += w * mid;
+        ksum_add(&logT, -tau);
+        if (exp(logT.s) < T_STOP) break;
+    }
+    out->rgb = rgb;
+    out->acc = acc;
+    out->depth = depth;
+    out->logT = logT.s;
+}
+
+inline float3 load3(__global const float *a, int i) {
+    return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
+}
+
+__kernel void render_forward(const int n_rays, __global const float *origins,
+                             __global const float *dirs, __global const int *links,
+                             __global const float *density, __global const float *sh,
+                             const int4 reso, const float4 bmin, const float4 scale,
+                             const float step, const float4 bg, __global float *out_rgb,
+                             __global float *out_depth, __global float *out_acc) {
+    const int i = get_global_id(0);
+    if (i >= n_rays) return;
+    march_t m;
+    fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+    float t0 = 0.0f;
+    if (march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) {
+        float Y[SH_BASIS];
+        sh_basis(m.dir, Y);
+        march_forward(&m, reso, links, density, sh, Y, &f);
+        t0 = m.t0;
+    }
+    float3 rgb = f.rgb + exp(f.logT) * bg.xyz;
+    out_rgb[3 * i] = rgb.x;
+    out_rgb[3 * i + 1] = rgb.y;
+    out_rgb[3 * i + 2] = rgb.z;
+    out_depth[i] = t0 * f.acc + f.depth;
+    out_acc[i] = f.acc;
+}
+
+/* Scatter the merged corner gradients of one cell. */
+inline void flush_cell(const int *idx, float *gsig, float *gsh, __global float *grad_density,
+                       __global float *grad_sh, __global uchar *touched) {
+    for (int c = 0; c < 8; ++c) {
+        const int k = idx[c];
+        if (k >= 0) {
+            if (gsig[c] != 0.0f) atomic_add_f(grad_density + k, gsig[c]);
+            __global float *row = grad_sh + (size_t)k * SH_DIM;
+            for (int j = 0; j < SH_DIM; ++j)
+                if (gsh[c * SH_DIM + j] != 0.0f) atomic_add_f(row + j, gsh[c * SH_DIM + j]);
+#if TRACK_TOUCHED
+            touched[k] = 1;
+#endif
+        }
+        gsig[c] = 0.0f;
+        for (int j = 0; j < SH_DIM; ++j) gsh[c * SH_DIM + j] = 0.0f;
+    }
+}
+
+/* Backward pass. GRAD_MODE 0: ray_in = dL/drgb [n,3]. GRAD_MODE 1: ray_in = target rgb [n,3],
+ * g = 2 (rgb - target) * loss_scale, and ray_out[i] = |rgb - target|^2 (summed over channels).
+ * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM]. */
+__kernel void render_backward(const int n_rays, __global const float *origins,
+                              __global const float *dirs, __global const int *links,
+                              __global const float *density, __global const float *sh,
+                              const int4 reso, const float4 bmin, const float4 scale,
+                              const float step, const float4 bg, __global const float *ray_in,
+                              __global float *ray_out, const float loss_scale,
+                              __global float *grad_density, __global float *grad_sh,
+                              __global uchar *touched) {
+    const int i = get_global_id(0);
+    if (i >= n_rays) return;
+    march_t m;
+    const int hit = march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m);
+    float Y[SH_BASIS];
+    fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+    if (hit) {
+        sh_basis(m.dir, Y);
+        march_forward(&m, reso, links, density, sh, Y, &f);
+    }
+    const float3 rgb = f.rgb + exp(f.logT) * bg.xyz;
+#if GRAD_MODE == 1
+    const float3 diff = rgb - load3(ray_in, i);
+    ray_out[i] = dot(diff, diff);
+    const float3 g = 2.0f * loss_scale * diff;
+#else
+    const float3 g = load3(ray_in, i);
+#endif
+    if (!hit) return;
+    const float total = dot(g, rgb);
+
+    float gsig[8];
+    float gsh[8 * SH_DIM];
+    for (int c = 0; c < 8; ++c) gsig[c] = 0.0f;
+    for (int j = 0; j < 8 * SH_DIM; ++j) gsh[j] = 0.0f;
+    int cur_idx[8];
+    int cur_cell = -1;
+
+    ksum_t logT = {0.0f, 0.0f};
+    ksum_t prefix = {0.0f, 0.0f};
+    for (int k = 0; k < m.nsteps; ++k) {
+        float mid, delta;
+        march_segment(&m, k, &mid, &delta);
+        lerp_t L;
+        if (!lerp_setup(m.p0 + mid * m.dg, reso, links, &L)) {
+            k = skip_empty(&m, k, L.lo, reso) - 1;
+            continue;
+        }
+        float sigma = lerp_density(&L, density);
+        if (!(sigma > 0.0f)) continue;
+        if (L.cell != cur_cell) {
+            if (cur_cell >= 0) flush_cell(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+            cur_cell = L.cell;
+            for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
+        }
+        const float tau = sigma * delta;
+        const float T = exp(logT.s);
+        const float w = T * alpha_from_tau(tau);
+        const float3 pre = lerp_color_pre(&L, sh, Y);
+        const float3 c = fmax(pre, 0.0f);
+        const float gc = dot(g, c);
+        ksum_add(&prefix, w * gc);
+        ksum_add(&logT, -tau);
+        const float Tnext = exp(logT.s);
+        const float remaining = total - prefix.s;
+        const float dsig = delta * (Tnext * gc - remaining);
+        const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+        const float dch[3] = {dpre.x, dpre.y, dpre.z};
+        for (int cc = 0; cc < 8; ++cc) {
+            const float wc = L.w[cc];
+            if (L.idx[cc] < 0 || wc == 0.0f) continue;
+            gsig[cc] += wc * dsig;
+            for (int ch = 0; ch < 3; ++ch) {
+                const float s = wc * dch[ch];
+                for (int b = 0; b < SH_BASIS; ++b)
+                    gsh[cc * SH_DIM + ch * SH_BASIS + b] += s * Y[b];
+            }
+        }
+        if (Tnext < T_STOP) break;
+    }
+    if (cur_cell >= 0) flush_cell(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+}

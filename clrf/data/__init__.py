@@ -1,0 +1,1 @@
+"""Dataset loaders: Blender synthetic, tiny .npz, LLFF, instant-ngp transforms.json, procedural."""

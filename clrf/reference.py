@@ -1,0 +1,225 @@
+"""Float64 numpy references of the kernels: the oracle for tests. Not on any runtime path.
+
+Same conventions as the OpenCL C sources (see the header of cl/grid_render.cl), written
+independently and vectorised over rays: dense arrays instead of links (an empty voxel is a
+zero), explicit suffix sums instead of the remaining-radiance accumulator, np.add.at instead
+of atomics.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+T_STOP = 1e-4
+COLOR_OFFSET = 0.5
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+         0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+# ---- safe math (twins of cl/common.h) ----------------------------------------------------
+def safe_exp(x):
+    return np.exp(np.minimum(x, 80.0))
+
+
+def alpha_from_tau(tau):
+    return -np.expm1(-tau)
+
+
+def sh_basis(dirs, degree: int):
+    """Real SH basis [n, (degree+1)^2] at unit directions [n, 3] (cl/sh.h)."""
+    d = np.asarray(dirs, np.float64)
+    x, y, z = d[:, 0], d[:, 1], d[:, 2]
+    out = [np.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy),
+                SH_C2[3] * x * z, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z,
+                SH_C3[2] * y * (4 * zz - xx - yy), SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3 * yy)]
+    return np.stack(out, axis=1)
+
+
+def ray_box(o, d, lo, hi):
+    """Slab intersection of o + t d (t >= 0) with [lo, hi]: (t0, t1, hit), arrays [n]."""
+    n = o.shape[0]
+    t0 = np.zeros(n)
+    t1 = np.full(n, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for a in range(3):
+            da, oa = d[:, a], o[:, a]
+            zero = da == 0
+            outside = (oa < lo[a]) | (oa > hi[a])
+            ta = np.where(zero, -np.inf, (lo[a] - oa) / np.where(zero, 1, da))
+            tb = np.where(zero, np.inf, (hi[a] - oa) / np.where(zero, 1, da))
+            t0 = np.maximum(t0, np.minimum(ta, tb))
+            t1 = np.minimum(t1, np.maximum(ta, tb))
+            t0 = np.where(zero & outside, np.inf, t0)
+            t1 = np.where(zero & outside, -np.inf, t1)
+    return t0, t1, t1 > t0
+
+
+def march_setup(origins, dirs, reso, bbox, step):
+    """Per-ray march parameters in float64 (cl/grid_render.cl march_setup)."""
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(dirs, np.float64)
+    bbox = np.asarray(bbox, np.float64)
+    reso = np.asarray(reso, np.float64)
+    mx = np.max(np.abs(d), axis=1)
+    ok = mx > 0
+    d = d / np.where(ok, mx, 1)[:, None]
+    d = d / np.where(ok, np.linalg.norm(d, axis=1), 1)[:, None]
+    scale = reso / (bbox[1] - bbox[0])
+    og = (o - bbox[0]) * scale
+    dg = d * scale
+    t0, t1, hit = ray_box(og, dg, np.zeros(3), reso)
+    hit &= ok
+    dt = step / np.linalg.norm(dg, axis=1)
+    length = np.where(hit, t1 - t0, 0.0)
+    t0 = np.where(hit, t0, 0.0)
+    p0 = np.clip(og + t0[:, None] * dg, 0, reso)
+    nsteps = np.where(hit, np.ceil(length / dt), 0).astype(np.int64)
+    return dict(p0=p0, dg=dg, dir=d, t0=t0, len=length, dt=dt, nsteps=nsteps, hit=hit & (nsteps > 0))
+
+
+def trilerp_corners(p, reso):
+    """Corner indices [n, 8, 3] and weights [n, 8] of points p (box units), clamped at the edges."""
+    reso = np.asarray(reso)
+    u = np.clip(p - 0.5, 0, reso - 1)
+    i0 = np.minimum(np.floor(u).astype(np.int64), np.maximum(reso - 2, 0))
+    i1 = np.minimum(i0 + 1, reso - 1)
+    f = u - i0
+    idx = np.empty(p.shape[:1] + (8, 3), np.int64)
+    w = np.empty(p.shape[:1] + (8,))
+    for c in range(8):
+        bits = ((c >> 2) & 1, (c >> 1) & 1, c & 1)
+        wc = np.ones(p.shape[0])
+        for a in range(3):
+            idx[:, c, a] = np.where(bits[a], i1[:, a], i0[:, a])
+            wc = wc * np.where(bits[a], f[:, a], 1 - f[:, a])
+        w[:, c] = wc
+    return idx, w
+
+
+def _samples(density, sh, m, k, rays):
+    """Values at segment k of the given rays."""
+    s0 = k * m["dt"][rays]
+    s1 = np.minimum((k + 1) * m["dt"][rays], m["len"][rays])
+    mid = 0.5 * (s0 + s1)
+    delta = s1 - s0
+    p = m["p0"][rays] + mid[:, None] * m["dg"][rays]
+    idx, w = trilerp_corners(p, density.shape)
+    dens_c = density[idx[..., 0], idx[..., 1], idx[..., 2]]            # [n, 8]
+    sh_c = sh[idx[..., 0], idx[..., 1], idx[..., 2]]                   # [n, 8, C]
+    sigma_raw = np.sum(w * dens_c, axis=1)
+    co = np.einsum("nc,ncj->nj", w, sh_c)
+    return mid, delta, idx, w, sigma_raw, co
+
+
+def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1, 1),
+                   t_stop=T_STOP, record=False):
+    """Float64 render of dense density [X,Y,Z] and sh [X,Y,Z,3B]. Returns rgb, depth, acc.
+
+    With record=True also returns the per-sample arrays the backward reference needs.
+    """
+    density = np.asarray(density, np.float64)
+    sh = np.asarray(sh, np.float64)
+    B = sh.shape[-1] // 3
+    degree = int(round(np.sqrt(B))) - 1
+    m = march_setup(origins, dirs, density.shape, bbox, step)
+    n = m["p0"].shape[0]
+    Y = sh_basis(m["dir"], degree)
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    rgb = np.zeros((n, 3))
+    acc = np.zeros(n)
+    depth = np.zeros(n)
+    logT = np.zeros(n)
+    alive = m["hit"].copy()
+    kmax = int(m["nsteps"].max(initial=0))
+    rec = []
+    for k in range(kmax):
+        rays = np.nonzero(alive & (k < m["nsteps"]))[0]
+        if rays.size == 0:
+            break
+        mid, delta, idx, w, sigma_raw, co = _samples(density, sh, m, k, rays)
+        sigma = np.maximum(sigma_raw, 0.0)
+        tau = sigma * delta
+        pre = np.einsum("ncb,nb->nc", co.reshape(-1, 3, B), Y[rays]) + COLOR_OFFSET
+        c = np.maximum(pre, 0.0)
+        wgt = np.exp(logT[rays]) * alpha_from_tau(tau)
+        rgb[rays] += wgt[:, None] * c
+        acc[rays] += wgt
+        depth[rays] += wgt * (m["t0"][rays] + mid)
+        logT[rays] -= tau
+        if record:
+            rec.append(dict(rays=rays, delta=delta, idx=idx, w=w, sigma_raw=sigma_raw,
+                            pre=pre, c=c, wgt=wgt, Tnext=np.exp(logT[rays])))
+        stop = rays[np.exp(logT[rays]) < t_stop]
+        alive[stop] = False
+    T_end = np.exp(logT)
+    rgb = rgb + T_end[:, None] * bg
+    out = dict(rgb=rgb, depth=depth, acc=acc)
+    if record:
+        out.update(_rec=rec, _Y=Y, _T_end=T_end, _bg=bg)
+    return out
+
+
+def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, background=(1, 1, 1),
+                    t_stop=T_STOP, mask=None):
+    """Analytic gradient of sum(grad_rgb * rgb) w.r.t. dense density and sh (float64).
+
+    Uses explicit suffix sums S_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg). ``mask`` [X,Y,Z]
+    marks the allocated voxels (default: where any value is non-zero, as SparseGrid.from_dense
+    allocates); the others are constants and get no gradient.
+    """
+    density = np.asarray(density, np.float64)
+    sh = np.asarray(sh, np.float64)
+    B = sh.shape[-1] // 3
+    g = np.asarray(grad_rgb, np.float64)
+    f = render_forward(density, sh, bbox, origins, dirs, step, background, t_stop, record=True)
+    rec, Y, T_end, bg = f["_rec"], f["_Y"], f["_T_end"], f["_bg"]
+    n = g.shape[0]
+    K = len(rec)
+    # per-ray, per-step contributions w_k (g.c_k), laid out [n, K] to take suffix sums
+    wgc = np.zeros((n, K))
+    for k, r in enumerate(rec):
+        wgc[r["rays"], k] = r["wgt"] * np.sum(g[r["rays"]] * r["c"], axis=1)
+    suffix = np.cumsum(wgc[:, ::-1], axis=1)[:, ::-1]           # sum_{j>=k}
+    after = suffix - wgc                                        # sum_{j>k}
+    bgterm = T_end * (g @ bg)
+    gd = np.zeros_like(density)
+    gs = np.zeros_like(sh)
+    for k, r in enumerate(rec):
+        rays = r["rays"]
+        gc = np.sum(g[rays] * r["c"], axis=1)
+        S = after[rays, k] + bgterm[rays]
+        dsig = r["delta"] * (r["Tnext"] * gc - S) * (r["sigma_raw"] > 0)
+        idx, w = r["idx"], r["w"]
+        np.add.at(gd, (idx[..., 0], idx[..., 1], idx[..., 2]), w * dsig[:, None])
+        dpre = r["wgt"][:, None] * g[rays] * (r["pre"] > 0) * (r["sigma_raw"] > 0)[:, None]
+        dco = (dpre[:, :, None] * Y[rays][:, None, :]).reshape(len(rays), 3 * B)
+        np.add.at(gs, (idx[..., 0], idx[..., 1], idx[..., 2]), w[..., None] * dco[:, None, :])
+    if mask is None:
+        mask = (density != 0) | np.any(sh != 0, axis=-1)
+    return dict(density=gd * mask, sh=gs * mask[..., None])
+
+
+def finite_difference(density, sh, bbox, origins, dirs, grad_rgb, which, index, eps=1e-4,
+                      **kw):
+    """Central difference of sum(grad_rgb * rgb) w.r.t. one dense entry (float64)."""
+    arrs = {"density": np.array(density, np.float64), "sh": np.array(sh, np.float64)}
+
+    def loss(delta):
+        a = {k: v.copy() for k, v in arrs.items()}
+        a[which][index] += delta
+        out = render_forward(a["density"], a["sh"], bbox, origins, dirs, **kw)
+        return float(np.sum(np.asarray(grad_rgb, np.float64) * out["rgb"]))
+
+    return (loss(eps) - loss(-eps)) / (2 * eps)

@@ -1,0 +1,107 @@
+"""Host wrappers of cl/grid_render.cl: the public ``render_rays`` / ``render_rays_backward``.
+
+Both take numpy float32 rays and return numpy results; the device-side variants (``*_device``)
+take and return pyopencl arrays and are what training uses (no host copies per batch).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from .programs import launch
+from .validate import check_array, check_positive, check_rays
+
+T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
+LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
+
+
+def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP):
+    return grid.device.program("grid_render.cl", {
+        "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
+        "TRACK_TOUCHED": int(track_touched)})
+
+
+def _bg4(background):
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    if not np.all(np.isfinite(bg)):
+        raise ValueError("background: must be finite")
+    return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+
+
+def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
+    """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n]."""
+    dev = grid.device
+    n = origins_d.shape[0]
+    q = dev.queue
+    if out is None:
+        out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
+               "acc": cla.empty(q, n, np.float32)}
+    k = grid_program(grid).kernel("render_forward")
+    launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
+                       grid.density.data, grid.sh.data, *grid.geometry_args(),
+                       np.float32(step), _bg4(background), out["rgb"].data, out["depth"].data,
+                       out["acc"].data), LOCAL_SIZE)
+    return out
+
+
+def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
+                           grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None):
+    """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
+
+    grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
+    is ``loss_scale * sum |rgb - target|^2`` and ray_out receives the per-ray squared error.
+    touched (uint8 [N]) gets 1 for every row that received a gradient, if given.
+    """
+    dev = grid.device
+    n = origins_d.shape[0]
+    prg = grid_program(grid, grad_mode, touched is not None)
+    dummy = ray_out if ray_out is not None else ray_in_d
+    tch = touched if touched is not None else grid.links
+    launch(dev, prg.kernel("render_backward"), n,
+           (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+            grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
+            ray_in_d.data, dummy.data, np.float32(loss_scale), grad_density.data, grad_sh.data,
+            tch.data), LOCAL_SIZE)
+
+
+def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
+    """Render rays through a SparseGrid.
+
+    origins, dirs: float32 [n, 3] (dirs need not be unit length). step: voxels per sample.
+    Returns numpy ``rgb`` [n,3], ``depth`` [n] (sum of weight x distance, background at 0) and
+    ``acc`` [n] (opacity, sum of weights); rgb includes ``(1 - acc) * background``.
+
+    >>> out = clrf.render_rays(grid, np.zeros((1, 3)), np.array([[0, 0, 1.0]]))
+    >>> sorted(out)
+    ['acc', 'depth', 'rgb']
+    """
+    o, d = check_rays(origins, dirs)
+    step = check_positive("step", step)
+    q = grid.device.queue
+    n = o.shape[0]
+    if n == 0:
+        return {"rgb": np.zeros((0, 3), np.float32), "depth": np.zeros(0, np.float32),
+                "acc": np.zeros(0, np.float32)}
+    out = render_forward_device(grid, cla.to_device(q, o), cla.to_device(q, d), step, background)
+    return {k: v.get() for k, v in out.items()}
+
+
+def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.0, 1.0, 1.0)):
+    """Gradient of ``sum(grad_rgb * rgb)`` with respect to the grid's values.
+
+    Returns dense numpy ``density`` [X,Y,Z] and ``sh`` [X,Y,Z,C] (zeros at empty voxels).
+    """
+    o, d = check_rays(origins, dirs)
+    g = check_array("grad_rgb", grad_rgb, ndim=2, shape_tail=(3,))
+    if g.shape[0] != o.shape[0]:
+        raise ValueError(f"grad_rgb has {g.shape[0]} rows for {o.shape[0]} rays")
+    step = check_positive("step", step)
+    q = grid.device.queue
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    if o.shape[0]:
+        render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
+                               cla.to_device(q, g), step, background, gd, gs)
+    dens, sh = grid.rows_to_dense(gd.get(), gs.get())
+    return {"density": dens, "sh": sh}
