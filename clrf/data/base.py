@@ -1,0 +1,41 @@
+"""The in-memory dataset every loader returns, and the error type for bad input."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class DataError(ValueError):
+    """A dataset file is missing or malformed. The message names the file, the field and the fix."""
+
+
+@dataclass
+class Dataset:
+    """Posed images of one scene.
+
+    Conventions: poses are camera-to-world 4x4 matrices in OpenGL/Blender axes (camera x right,
+    y up, looking down -z); images are float32 RGB in [0, 1], already composited on
+    ``background``; ``intrinsics`` = (fx, fy, cx, cy) in pixels, shared by all images.
+    """
+
+    name: str
+    images: np.ndarray                 # float32 [N, H, W, 3]
+    poses: np.ndarray                  # float32 [N, 4, 4]
+    intrinsics: np.ndarray             # float64 [4]: fx, fy, cx, cy
+    split: dict                        # "train" / "test" (/ "val") -> int index arrays into images
+    background: tuple = (1.0, 1.0, 1.0)
+    bbox: np.ndarray = field(default_factory=lambda: np.array([[-1.5] * 3, [1.5] * 3]))  # [2, 3]
+    near: float = 0.0
+    far: float = 1e10
+    ndc: bool = False                  # forward-facing scenes: rays in normalised device coords
+    distortion: np.ndarray | None = None  # OpenCV k1, k2, p1, p2 (instant-ngp captures)
+    preset: str = "synthetic"          # scene preset name (clrf.config)
+
+    @property
+    def hw(self):
+        return self.images.shape[1:3]
+
+    def subset(self, split: str):
+        idx = self.split[split]
+        return self.images[idx], self.poses[idx]
