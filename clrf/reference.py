@@ -211,6 +211,19 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
     return dict(density=gd * mask, sh=gs * mask[..., None])
 
 
+def max_weight(density, bbox, origins, dirs, step=0.5, t_stop=T_STOP):
+    """Dense [X,Y,Z]: max over rays and samples of w_sample * w_corner (render_max_weight)."""
+    density = np.asarray(density, np.float64)
+    sh = np.zeros(density.shape + (3,))
+    f = render_forward(density, sh, bbox, origins, dirs, step, (0, 0, 0), t_stop, record=True)
+    out = np.zeros_like(density)
+    for r in f["_rec"]:
+        idx, w = r["idx"], r["w"]
+        vals = w * (r["wgt"] * (r["sigma_raw"] > 0))[:, None]
+        np.maximum.at(out, (idx[..., 0], idx[..., 1], idx[..., 2]), vals)
+    return out
+
+
 def finite_difference(density, sh, bbox, origins, dirs, grad_rgb, which, index, eps=1e-4,
                       **kw):
     """Central difference of sum(grad_rgb * rgb) w.r.t. one dense entry (float64)."""

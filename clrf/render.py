@@ -105,3 +105,12 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
                                cla.to_device(q, g), step, background, gd, gs)
     dens, sh = grid.rows_to_dense(gd.get(), gs.get())
     return {"density": dens, "sh": sh}
+
+
+def render_max_weight_device(grid, origins_d, dirs_d, step, maxw):
+    """maxw[k] = max(maxw[k], max over samples of w_sample * w_corner) for rows k (device)."""
+    dev = grid.device
+    n = origins_d.shape[0]
+    launch(dev, grid_program(grid).kernel("render_max_weight"), n,
+           (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+            *grid.geometry_args(), np.float32(step), maxw.data), LOCAL_SIZE)
