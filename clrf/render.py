@@ -56,7 +56,11 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     dev = grid.device
     n = origins_d.shape[0]
     prg = grid_program(grid, grad_mode, touched is not None)
-    dummy = ray_out if ray_out is not None else ray_in_d
+    if ray_out is None:
+        # GRAD_MODE 1 writes the per-ray loss: never alias it onto ray_in (the targets), which
+        # other work-items may still be reading.
+        ray_out = cla.empty(dev.queue, max(n, 1), np.float32) if grad_mode == 1 else ray_in_d
+    dummy = ray_out
     tch = touched if touched is not None else grid.links
     launch(dev, prg.kernel("render_backward"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,

@@ -1,0 +1,79 @@
+"""Smoke test of tools/bench.py: every benchmark spec runs at tiny sizes, nothing is timed.
+
+The grid-render cases at these sizes check the kernel against the float64 reference before
+running; here we also check forward and backward (both gradient modes) of each distinct grid
+configuration the benchmarks use against clrf.reference, with tests/tolerances.py margins.
+"""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
+import bench  # noqa: E402
+import bench_scenes as scenes  # noqa: E402
+from clrf import reference  # noqa: E402
+from clrf.render import render_backward_device, render_rays  # noqa: E402
+from tolerances import (DEPTH_ATOL, DEPTH_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL,  # noqa: E402
+                        RENDER_RTOL)
+
+
+def _smoke_specs():
+    return [s for s in bench._peak_specs() + bench.SPECS
+            if not s.kind.startswith("peer.") or s.kind == "peer.numpy_ref"]
+
+
+@pytest.mark.parametrize("spec", _smoke_specs(), ids=lambda s: s.name)
+def test_spec_smoke(device, spec):
+    class A:
+        pass
+    ctx = bench.Context(device, quick=True)
+    rec = bench.run_spec(ctx, spec, A())
+    assert "failed" not in rec, rec
+    assert "skipped" not in rec, rec
+    if rec.get("check") is not None:
+        assert rec["check"]["ok"], rec["check"]
+
+
+CONFIGS = sorted({(s.params["degree"], s.params["occupancy"], s.params["rays"])
+                  for s in bench.SPECS if s.kind == "grid.render"})
+
+
+@pytest.mark.parametrize("degree,occupancy,rays", CONFIGS)
+@pytest.mark.parametrize("grad_mode", [0, 1])
+def test_bench_configs_match_reference(device, degree, occupancy, rays, grad_mode):
+    import clrf
+    links, dens, sh = scenes.make_grid_rows(12, degree, occupancy if occupancy >= 1 else 0.2)
+    grid = clrf.SparseGrid.from_arrays(device, links, dens, sh, scenes.BBOX)
+    o, d = scenes.make_rays(rays, 100)
+    dn, shd = scenes.dense_from_rows(links, dens, sh)
+    ref = reference.render_forward(dn, shd, scenes.BBOX, o, d, 0.5, (1, 1, 1))
+    got = render_rays(grid, o, d, 0.5, (1, 1, 1))
+    np.testing.assert_allclose(got["rgb"], ref["rgb"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    np.testing.assert_allclose(got["acc"], ref["acc"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    np.testing.assert_allclose(got["depth"], ref["depth"], atol=DEPTH_ATOL, rtol=DEPTH_RTOL)
+
+    rng = np.random.default_rng(5)
+    q = device.queue
+    n = o.shape[0]
+    ray_in = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    scale = 1.0   # gradients O(1) like grad_mode 0, so the absolute GRAD_ATOL applies as is
+    if grad_mode == 1:
+        g = 2.0 * scale * (ref["rgb"] - ray_in)
+    else:
+        g = ray_in.astype(np.float64)
+    rb = reference.render_backward(dn, shd, scenes.BBOX, o, d, g, 0.5, (1, 1, 1), mask=links >= 0)
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    loss = cla.empty(q, n, np.float32)
+    render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, ray_in),
+                           0.5, (1, 1, 1), gd, gs, grad_mode=grad_mode, loss_scale=scale,
+                           ray_out=loss)
+    gdd, gsd = grid.rows_to_dense(gd.get(), gs.get())
+    np.testing.assert_allclose(gdd, rb["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(gsd, rb["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    if grad_mode == 1:
+        np.testing.assert_allclose(loss.get(), np.sum((ref["rgb"] - ray_in) ** 2, axis=1),
+                                   atol=10 * RENDER_ATOL, rtol=RENDER_RTOL)
