@@ -34,12 +34,25 @@
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
  * sample before the cell's exit. Those samples have sigma = 0, so the result is unchanged.
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, TRACK_TOUCHED, CLRF_HAS_FP64 (ray.h).
+ * Gradient accumulation: atomics (GRAD_SLOTS 0, any device) or, on CPU devices, private copies
+ * per running work-item without atomics, added into the caller's buffers by grad_slots_reduce
+ * (GRAD_SLOTS > 0; see render_backward). Both add the same values; only the order of the
+ * float additions differs.
+ *
+ * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
+ * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
+ *
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, TRACK_TOUCHED,
+ * CLRF_HAS_FP64 (ray.h).
  */
 #include "march.h"
 
 #ifndef GRAD_MODE
 #define GRAD_MODE 0   /* 0: ray_in holds dL/drgb; 1: ray_in holds target rgb, loss = MSE */
+#endif
+#ifndef GRAD_SLOTS
+#define GRAD_SLOTS 0     /* > 0: private gradient copies per running work-item (CPU devices),
+                            reduced by grad_slots_reduce; 0: float atomics into the buffers */
 #endif
 #ifndef TRACK_TOUCHED
 #define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
@@ -70,28 +83,53 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
     out_acc[i] = f.acc;
 }
 
-/* Scatter the merged corner gradients of one cell. */
-inline void flush_cell(const int *idx, float *gsig, float *gsh, __global float *grad_density,
-                       __global float *grad_sh, __global uchar *touched) {
+/* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
+ * one float atomic add per non-zero value. */
+inline void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
+                              __global float *grad_density, __global float *grad_sh,
+                              __global uchar *touched) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
-        if (k >= 0) {
-            if (gsig[c] != 0.0f) atomic_add_f(grad_density + k, gsig[c]);
-            __global float *row = grad_sh + (size_t)k * SH_DIM;
-            for (int j = 0; j < SH_DIM; ++j)
-                if (gsh[c * SH_DIM + j] != 0.0f) atomic_add_f(row + j, gsh[c * SH_DIM + j]);
+        if (k < 0) continue;
+        if (gsig[c] != 0.0f) atomic_add_f(grad_density + k, gsig[c]);
+        float v[SH_DIM];
+        shv_store_private(gsh[c], v);
+        __global float *row = grad_sh + (size_t)k * SH_DIM;
+        for (int j = 0; j < SH_DIM; ++j)
+            if (v[j] != 0.0f) atomic_add_f(row + j, v[j]);
 #if TRACK_TOUCHED
-            touched[k] = 1;
+        touched[k] = 1;
 #endif
-        }
-        gsig[c] = 0.0f;
-        for (int j = 0; j < SH_DIM; ++j) gsh[c * SH_DIM + j] = 0.0f;
+    }
+}
+
+/* Scatter into a gradient copy that this work-item holds alone (GRAD_SLOTS): plain vector
+ * read-modify-write, and mark the row for grad_slots_reduce. */
+inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
+                               __global float *slot_density, __global float *slot_sh,
+                               __global uchar *slot_touched) {
+    for (int c = 0; c < 8; ++c) {
+        const int k = idx[c];
+        if (k < 0) continue;
+        slot_density[k] += gsig[c];
+        __global float *row = slot_sh + (size_t)k * SH_DIM;
+        shv_store(shv_add(shv_load(row), gsh[c]), row);
+        slot_touched[k] = 1;
     }
 }
 
 /* Backward pass. GRAD_MODE 0: ray_in = dL/drgb [n,3]. GRAD_MODE 1: ray_in = target rgb [n,3],
  * g = 2 (rgb - target) * loss_scale, and ray_out[i] = |rgb - target|^2 (summed over channels).
- * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM]. */
+ * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM].
+ *
+ * GRAD_SLOTS > 0 (CPU devices): each work-item first tries to take one of GRAD_SLOTS private
+ * gradient copies (slot_lock[s] 0 -> 1 by compare-and-swap) and, holding it, adds with plain
+ * stores into slot_density [GRAD_SLOTS, n_rows] / slot_sh [GRAD_SLOTS, n_rows, SH_DIM],
+ * marking slot_touched [GRAD_SLOTS, n_rows]; grad_slots_reduce then adds the marked rows into
+ * grad_density / grad_sh and clears them. With as many slots as concurrently running
+ * work-items (PoCL runs one work-item at a time per compute unit) no atomics are needed; a
+ * work-item that finds every slot taken falls back to the atomic path, so the result is
+ * correct under any scheduling. */
 __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global const float *dirs, __global const int *links,
                               __global const float *density, __global const float *sh,
@@ -99,7 +137,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               const float step, const float4 bg, __global const float *ray_in,
                               __global float *ray_out, const float loss_scale,
                               __global float *grad_density, __global float *grad_sh,
-                              __global uchar *touched) {
+                              __global uchar *touched, const int n_rows,
+                              __global float *slot_density, __global float *slot_sh,
+                              __global uchar *slot_touched, __global volatile int *slot_lock) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
@@ -120,35 +160,53 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
     if (!hit) return;
     const float total = dot(g, rgb);
+    shy_t S;
+    shy_setup(Y, &S);
+
+    int slot = -1;
+#if GRAD_SLOTS > 0
+    for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
+        if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
+    __global float *my_density = slot_density + (size_t)max(slot, 0) * n_rows;
+    __global float *my_sh = slot_sh + (size_t)max(slot, 0) * n_rows * SH_DIM;
+    __global uchar *my_touched = slot_touched + (size_t)max(slot, 0) * n_rows;
+#endif
 
     float gsig[8];
-    float gsh[8 * SH_DIM];
-    for (int c = 0; c < 8; ++c) gsig[c] = 0.0f;
-    for (int j = 0; j < 8 * SH_DIM; ++j) gsh[j] = 0.0f;
+    shv_t gsh[8];
+    for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
     int cur_idx[8];
     int cur_cell = -1;
+    lerp_t L;
+    L.cell = -1;
 
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
+    float T = 1.0f;
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
-        lerp_t L;
-        if (!lerp_setup(m.p0 + mid * m.dg, reso, links, &L)) {
+        if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
         }
-        float sigma = lerp_density(&L, density);
+        const float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
         if (L.cell != cur_cell) {
-            if (cur_cell >= 0) flush_cell(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+            if (cur_cell >= 0) {
+#if GRAD_SLOTS > 0
+                if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, my_density, my_sh, my_touched);
+                else
+#endif
+                flush_cell_atomic(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+                for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
+            }
             cur_cell = L.cell;
             for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
         }
         const float tau = sigma * delta;
-        const float T = exp(logT.s);
         const float w = T * alpha_from_tau(tau);
-        const float3 pre = lerp_color_pre(&L, sh, Y);
+        const float3 pre = color_pre(lerp_sh(&L, sh), &S);
         const float3 c = fmax(pre, 0.0f);
         const float gc = dot(g, c);
         ksum_add(&prefix, w * gc);
@@ -157,20 +215,58 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         const float remaining = total - prefix.s;
         const float dsig = delta * (Tnext * gc - remaining);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
-        const float dch[3] = {dpre.x, dpre.y, dpre.z};
+        /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
+        shv_t dco = shv_scale(S.ych[0], dpre.x);
+        shv_axpy(&dco, dpre.y, S.ych[1]);
+        shv_axpy(&dco, dpre.z, S.ych[2]);
         for (int cc = 0; cc < 8; ++cc) {
             const float wc = L.w[cc];
-            if (L.idx[cc] < 0 || wc == 0.0f) continue;
             gsig[cc] += wc * dsig;
-            for (int ch = 0; ch < 3; ++ch) {
-                const float s = wc * dch[ch];
-                for (int b = 0; b < SH_BASIS; ++b)
-                    gsh[cc * SH_DIM + ch * SH_BASIS + b] += s * Y[b];
-            }
+            shv_axpy(&gsh[cc], wc, dco);
         }
+        T = Tnext;
         if (Tnext < T_STOP) break;
     }
-    if (cur_cell >= 0) flush_cell(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+    if (cur_cell >= 0) {
+#if GRAD_SLOTS > 0
+        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, my_density, my_sh, my_touched);
+        else
+#endif
+        flush_cell_atomic(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+    }
+#if GRAD_SLOTS > 0
+    if (slot >= 0) {
+        mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
+        atomic_xchg(slot_lock + slot, 0);
+    }
+#endif
+}
+
+/* After render_backward with GRAD_SLOTS > 0: for every row k marked in a slot, add the slot's
+ * gradient into grad_density / grad_sh, zero it and clear the mark (so the slots are zero
+ * again for the next call), and set touched[k] (TRACK_TOUCHED). One work-item per row. */
+__kernel void grad_slots_reduce(const int n_rows, __global float *slot_density,
+                                __global float *slot_sh, __global uchar *slot_touched,
+                                __global float *grad_density, __global float *grad_sh,
+                                __global uchar *touched) {
+    const int k = get_global_id(0);
+    if (k >= n_rows) return;
+#if GRAD_SLOTS > 0
+    for (int s = 0; s < GRAD_SLOTS; ++s) {
+        const size_t r = (size_t)s * n_rows + k;
+        if (!slot_touched[r]) continue;
+        grad_density[k] += slot_density[r];
+        slot_density[r] = 0.0f;
+        __global float *src = slot_sh + r * SH_DIM;
+        __global float *dst = grad_sh + (size_t)k * SH_DIM;
+        shv_store(shv_add(shv_load(dst), shv_load(src)), dst);
+        shv_store(shv_zero(), src);
+        slot_touched[r] = 0;
+#if TRACK_TOUCHED
+        touched[k] = 1;
+#endif
+    }
+#endif
 }
 
 /* Pruning weights: maxw[k] = max over rays and samples of w_sample * w_corner for every row k
@@ -186,11 +282,12 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
     march_t m;
     if (!march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) return;
     ksum_t logT = {0.0f, 0.0f};
+    lerp_t L;
+    L.cell = -1;
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
-        lerp_t L;
-        if (!lerp_setup(m.p0 + mid * m.dg, reso, links, &L)) {
+        if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
         }

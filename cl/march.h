@@ -128,23 +128,113 @@ inline float lerp_density(const lerp_t *L, __global const float *density) {
     return s;
 }
 
-/* Interpolated SH coefficients -> pre-activation colour per channel. */
-inline float3 lerp_color_pre(const lerp_t *L, __global const float *sh, const float *Y) {
-    float co[SH_DIM];
-    for (int j = 0; j < SH_DIM; ++j) co[j] = 0.0f;
-    for (int c = 0; c < 8; ++c) {
-        if (L->idx[c] < 0) continue;
-        __global const float *row = sh + (size_t)L->idx[c] * SH_DIM;
-        const float w = L->w[c];
-        for (int j = 0; j < SH_DIM; ++j) co[j] += w * row[j];
+/* ---- one SH row in vector registers -------------------------------------------------------
+ * PoCL runs a work-item's own loops one lane wide (docs/perf-notes.md), so a row of SH_DIM
+ * floats is held as explicit vectors: SH_DIM = 3 -> float3; 12 -> float8 + float4;
+ * 27 -> float16 + float8 + float3; 48 -> 3 x float16. SHV_MAP(OP) applies OP(field, width,
+ * offset) to each part. Rows start at any float offset: vloadn/vstoren need only float
+ * alignment. */
+#if SH_DEGREE == 0
+typedef struct { float3 a; } shv_t;
+#define SHV_MAP(OP) OP(a, 3, 0)
+#elif SH_DEGREE == 1
+typedef struct { float8 a; float4 b; } shv_t;
+#define SHV_MAP(OP) OP(a, 8, 0) OP(b, 4, 8)
+#elif SH_DEGREE == 2
+typedef struct { float16 a; float8 b; float3 c; } shv_t;
+#define SHV_MAP(OP) OP(a, 16, 0) OP(b, 8, 16) OP(c, 3, 24)
+#else
+typedef struct { float16 a; float16 b; float16 c; } shv_t;
+#define SHV_MAP(OP) OP(a, 16, 0) OP(b, 16, 16) OP(c, 16, 32)
+#endif
+
+#define SHV_ZERO_(f, n, o) r.f = (float##n)(0.0f);
+inline shv_t shv_zero(void) { shv_t r; SHV_MAP(SHV_ZERO_) return r; }
+#define SHV_LOAD_(f, n, o) r.f = vload##n(0, p + (o));
+inline shv_t shv_load(__global const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
+inline shv_t shv_load_private(const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
+#define SHV_STORE_(f, n, o) vstore##n(v.f, 0, p + (o));
+inline void shv_store(shv_t v, __global float *p) { SHV_MAP(SHV_STORE_) }
+inline void shv_store_private(shv_t v, float *p) { SHV_MAP(SHV_STORE_) }
+/* acc += w * x */
+#define SHV_AXPY_(f, n, o) acc->f += w * x.f;
+inline void shv_axpy(shv_t *acc, float w, shv_t x) { SHV_MAP(SHV_AXPY_) }
+#define SHV_ADD_(f, n, o) r.f = x.f + y.f;
+inline shv_t shv_add(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_ADD_) return r; }
+#define SHV_MUL_(f, n, o) r.f = x.f * y.f;
+inline shv_t shv_mul(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_MUL_) return r; }
+#define SHV_SCALE_(f, n, o) r.f = s * x.f;
+inline shv_t shv_scale(shv_t x, float s) { shv_t r; SHV_MAP(SHV_SCALE_) return r; }
+
+/* Per-ray SH factors: Ych[ch] holds Y_b at positions ch*SH_BASIS + b and 0 elsewhere, so
+ * that dot(coefficients, Ych[ch]) is channel ch's SH value and sum_ch d_ch Ych[ch] is the
+ * gradient of sum_ch d_ch * value_ch with respect to the coefficients. */
+typedef struct { shv_t ych[3]; shv_t yall; } shy_t;
+inline void shy_setup(const float *Y, shy_t *S) {
+    float tmp[SH_DIM];
+    for (int ch = 0; ch < 3; ++ch) {
+        for (int j = 0; j < SH_DIM; ++j) tmp[j] = 0.0f;
+        for (int b = 0; b < SH_BASIS; ++b) tmp[ch * SH_BASIS + b] = Y[b];
+        S->ych[ch] = shv_load_private(tmp);
     }
+    for (int j = 0; j < SH_DIM; ++j) tmp[j] = Y[j % SH_BASIS];
+    S->yall = shv_load_private(tmp);
+}
+
+/* Interpolated SH coefficients of the sample (8 corner rows, vector loads). */
+inline shv_t lerp_sh(const lerp_t *L, __global const float *sh) {
+    shv_t co = shv_zero();
+    for (int c = 0; c < 8; ++c)
+        if (L->idx[c] >= 0) shv_axpy(&co, L->w[c], shv_load(sh + (size_t)L->idx[c] * SH_DIM));
+    return co;
+}
+
+/* Pre-activation colour from interpolated coefficients: per channel sum_b co Y + offset. */
+inline float3 color_pre(shv_t co, const shy_t *S) {
+    float t[SH_DIM];
+    shv_store_private(shv_mul(co, S->yall), t);
     float pre[3];
     for (int ch = 0; ch < 3; ++ch) {
-        float v = COLOR_OFFSET;
-        for (int b = 0; b < SH_BASIS; ++b) v += co[ch * SH_BASIS + b] * Y[b];
-        pre[ch] = v;
+        float v = 0.0f;
+        for (int b = 0; b < SH_BASIS; ++b) v += t[ch * SH_BASIS + b];
+        pre[ch] = v + COLOR_OFFSET;
     }
     return (float3)(pre[0], pre[1], pre[2]);
+}
+
+/* Interpolated SH coefficients -> pre-activation colour per channel (scalar Y array). */
+inline float3 lerp_color_pre(const lerp_t *L, __global const float *sh, const float *Y) {
+    shy_t S;
+    shy_setup(Y, &S);
+    return color_pre(lerp_sh(L, sh), &S);
+}
+
+/* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
+ * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
+inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, lerp_t *L) {
+    int x0, x1, y0, y1, z0, z1;
+    float fx, fy, fz;
+    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
+    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
+    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
+    const int cell = (x0 * reso.y + y0) * reso.z + z0;
+    const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy}, wz[2] = {1.0f - fz, fz};
+    int any = 0;
+    if (cell != L->cell) {
+        L->cell = cell;
+        L->lo = (int3)(x0, y0, z0);
+        const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+        for (int c = 0; c < 8; ++c) {
+            int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
+            L->idx[c] = links[(xs[cx] * reso.y + ys[cy]) * reso.z + zs[cz]];
+        }
+    }
+    for (int c = 0; c < 8; ++c) {
+        int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
+        L->w[c] = wx[cx] * wy[cy] * wz[cz];
+        any |= (L->idx[c] >= 0);
+    }
+    return any;
 }
 
 typedef struct {
@@ -158,27 +248,32 @@ typedef struct {
 inline void march_forward(const march_t *m, int4 reso, __global const int *links,
                           __global const float *density, __global const float *sh,
                           const float *Y, fwd_t *out) {
+    shy_t S;
+    shy_setup(Y, &S);
     ksum_t logT = {0.0f, 0.0f};
+    float T = 1.0f;
     float3 rgb = (float3)(0.0f);
     float acc = 0.0f, depth = 0.0f;
+    lerp_t L;
+    L.cell = -1;
     for (int k = 0; k < m->nsteps; ++k) {
         float mid, delta;
         march_segment(m, k, &mid, &delta);
-        lerp_t L;
-        if (!lerp_setup(m->p0 + mid * m->dg, reso, links, &L)) {
+        if (!lerp_setup_cached(m->p0 + mid * m->dg, reso, links, &L)) {
             k = skip_empty(m, k, L.lo, reso) - 1;
             continue;
         }
         float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
         float tau = sigma * delta;
-        float w = exp(logT.s) * alpha_from_tau(tau);
-        float3 c = fmax(lerp_color_pre(&L, sh, Y), 0.0f);
+        float w = T * alpha_from_tau(tau);
+        float3 c = fmax(color_pre(lerp_sh(&L, sh), &S), 0.0f);
         rgb += w * c;
         acc += w;
         depth += w * mid;
         ksum_add(&logT, -tau);
-        if (exp(logT.s) < T_STOP) break;
+        T = exp(logT.s);
+        if (T < T_STOP) break;
     }
     out->rgb = rgb;
     out->acc = acc;

@@ -5,6 +5,8 @@ take and return pyopencl arrays and are what training uses (no host copies per b
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
@@ -14,12 +16,14 @@ from .validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
+REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
 
 
-def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP):
+def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
+                 slots: int = 0):
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
-        "TRACK_TOUCHED": int(track_touched)})
+        "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots)})
 
 
 def _bg4(background):
@@ -27,6 +31,37 @@ def _bg4(background):
     if not np.all(np.isfinite(bg)):
         raise ValueError("background: must be finite")
     return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+
+
+def grad_slots(grid) -> int:
+    """Private gradient copies for render_backward (GRAD_SLOTS): one per compute unit on CPU
+    devices (PoCL runs one work-item at a time per compute unit, so no atomics are needed),
+    0 (float atomics) on other devices or when the copies would not fit in a quarter of the
+    device memory. ``CLRF_GRAD_SLOTS`` overrides the count."""
+    caps = grid.device.caps
+    env = os.environ.get("CLRF_GRAD_SLOTS")
+    if env is not None and env.strip() != "":
+        s = int(env)
+    else:
+        s = caps.compute_units if grid.device.is_cpu else 0
+    row_bytes = 4 * (1 + grid.sh_dim) + 1
+    if s > 0 and s * grid.density.shape[0] * row_bytes > caps.global_mem_size // 4:
+        s = 0
+    return max(0, s)
+
+
+def _slot_buffers(grid, slots):
+    """Zeroed slot buffers (allocated once per grid and row count; the kernels leave them zero)."""
+    n = grid.density.shape[0]
+    key = (slots, n, grid.sh_dim)
+    cache = grid.__dict__.setdefault("_grad_slot_buffers", {})
+    if key not in cache:
+        cache.clear()
+        q = grid.device.queue
+        cache[key] = (cla.zeros(q, slots * n, np.float32),
+                      cla.zeros(q, slots * n * grid.sh_dim, np.float32),
+                      cla.zeros(q, slots * n, np.uint8), cla.zeros(q, slots, np.int32))
+    return cache[key]
 
 
 def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
@@ -55,18 +90,30 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     """
     dev = grid.device
     n = origins_d.shape[0]
-    prg = grid_program(grid, grad_mode, touched is not None)
+    if n == 0:
+        return
+    slots = grad_slots(grid)
+    prg = grid_program(grid, grad_mode, touched is not None, slots=slots)
     if ray_out is None:
         # GRAD_MODE 1 writes the per-ray loss: never alias it onto ray_in (the targets), which
         # other work-items may still be reading.
         ray_out = cla.empty(dev.queue, max(n, 1), np.float32) if grad_mode == 1 else ray_in_d
     dummy = ray_out
     tch = touched if touched is not None else grid.links
+    n_rows = grid.density.shape[0]
+    if slots:
+        sd, ss, st, lock = _slot_buffers(grid, slots)
+    else:
+        sd, ss, st, lock = grad_density, grad_sh, tch, grid.links   # unused by the kernel
     launch(dev, prg.kernel("render_backward"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
             ray_in_d.data, dummy.data, np.float32(loss_scale), grad_density.data, grad_sh.data,
-            tch.data), LOCAL_SIZE)
+            tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data), LOCAL_SIZE)
+    if slots:
+        launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
+               (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
+                tch.data), REDUCE_LOCAL_SIZE)
 
 
 def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
