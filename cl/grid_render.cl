@@ -84,37 +84,35 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
 }
 
 /* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
- * one float atomic add per non-zero value. */
+ * one float atomic add per non-zero value; mark[k] = 1 if do_mark. */
 inline void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
-                              __global float *grad_density, __global float *grad_sh,
-                              __global uchar *touched) {
+                              __global float *gdens, __global float *gsh_rows,
+                              __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
-        if (gsig[c] != 0.0f) atomic_add_f(grad_density + k, gsig[c]);
+        if (gsig[c] != 0.0f) atomic_add_f(gdens + k, gsig[c]);
         float v[SH_DIM];
         shv_store_private(gsh[c], v);
-        __global float *row = grad_sh + (size_t)k * SH_DIM;
+        __global float *row = gsh_rows + (size_t)k * SH_DIM;
         for (int j = 0; j < SH_DIM; ++j)
             if (v[j] != 0.0f) atomic_add_f(row + j, v[j]);
-#if TRACK_TOUCHED
-        touched[k] = 1;
-#endif
+        if (do_mark) mark[k] = 1;
     }
 }
 
 /* Scatter into a gradient copy that this work-item holds alone (GRAD_SLOTS): plain vector
- * read-modify-write, and mark the row for grad_slots_reduce. */
+ * read-modify-write; mark[k] = 1 if do_mark. */
 inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
-                               __global float *slot_density, __global float *slot_sh,
-                               __global uchar *slot_touched) {
+                               __global float *gdens, __global float *gsh_rows,
+                               __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
-        slot_density[k] += gsig[c];
-        __global float *row = slot_sh + (size_t)k * SH_DIM;
+        gdens[k] += gsig[c];
+        __global float *row = gsh_rows + (size_t)k * SH_DIM;
         shv_store(shv_add(shv_load(row), gsh[c]), row);
-        slot_touched[k] = 1;
+        if (do_mark) mark[k] = 1;
     }
 }
 
@@ -122,14 +120,15 @@ inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *g
  * g = 2 (rgb - target) * loss_scale, and ray_out[i] = |rgb - target|^2 (summed over channels).
  * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM].
  *
- * GRAD_SLOTS > 0 (CPU devices): each work-item first tries to take one of GRAD_SLOTS private
- * gradient copies (slot_lock[s] 0 -> 1 by compare-and-swap) and, holding it, adds with plain
- * stores into slot_density [GRAD_SLOTS, n_rows] / slot_sh [GRAD_SLOTS, n_rows, SH_DIM],
- * marking slot_touched [GRAD_SLOTS, n_rows]; grad_slots_reduce then adds the marked rows into
- * grad_density / grad_sh and clears them. With as many slots as concurrently running
- * work-items (PoCL runs one work-item at a time per compute unit) no atomics are needed; a
- * work-item that finds every slot taken falls back to the atomic path, so the result is
- * correct under any scheduling. */
+ * GRAD_SLOTS = S > 0 (CPU devices): S gradient copies that a work-item can hold alone; copy 0
+ * is the caller's grad_density / grad_sh, copies 1..S-1 are scratch slot_density
+ * [S, n_rows] / slot_sh [S, n_rows, SH_DIM] entries 0..S-2. Each work-item first tries to
+ * take a copy (slot_lock[s] 0 -> 1 by compare-and-swap) and, holding it, adds with plain
+ * vector stores. A work-item that finds every copy taken adds with float atomics into scratch
+ * entry S-1. Scratch rows that received anything are marked in slot_touched [S, n_rows];
+ * grad_slots_reduce then adds them into grad_density / grad_sh and zeroes them. PoCL runs one
+ * work-item at a time per compute unit, so with S = compute units no atomics are used in
+ * practice, and the result is correct under any scheduling. */
 __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global const float *dirs, __global const int *links,
                               __global const float *density, __global const float *sh,
@@ -163,13 +162,22 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     shy_t S;
     shy_setup(Y, &S);
 
+    /* where this work-item's gradients go */
+    __global float *dst_d = grad_density;
+    __global float *dst_s = grad_sh;
+    __global uchar *mark = touched;
+    int do_mark = TRACK_TOUCHED;
     int slot = -1;
 #if GRAD_SLOTS > 0
     for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
         if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
-    __global float *my_density = slot_density + (size_t)max(slot, 0) * n_rows;
-    __global float *my_sh = slot_sh + (size_t)max(slot, 0) * n_rows * SH_DIM;
-    __global uchar *my_touched = slot_touched + (size_t)max(slot, 0) * n_rows;
+    if (slot != 0) {   /* a scratch entry: its own (slot - 1), or the shared atomic one */
+        const size_t e = slot > 0 ? (size_t)(slot - 1) : (size_t)(GRAD_SLOTS - 1);
+        dst_d = slot_density + e * n_rows;
+        dst_s = slot_sh + e * n_rows * SH_DIM;
+        mark = slot_touched + e * n_rows;
+        do_mark = 1;
+    }
 #endif
 
     float gsig[8];
@@ -179,6 +187,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     int cur_cell = -1;
     lerp_t L;
     L.cell = -1;
+    int pf_cell = -1;
 
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
@@ -186,6 +195,11 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
+#if CLRF_PREFETCH
+        if (k + PREFETCH_AHEAD < m.nsteps)
+            prefetch_cell(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density, sh,
+                          &pf_cell);
+#endif
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
@@ -194,11 +208,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         if (!(sigma > 0.0f)) continue;
         if (L.cell != cur_cell) {
             if (cur_cell >= 0) {
-#if GRAD_SLOTS > 0
-                if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, my_density, my_sh, my_touched);
-                else
-#endif
-                flush_cell_atomic(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+                if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
+                else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
                 for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
             }
             cur_cell = L.cell;
@@ -228,11 +239,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         if (Tnext < T_STOP) break;
     }
     if (cur_cell >= 0) {
-#if GRAD_SLOTS > 0
-        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, my_density, my_sh, my_touched);
-        else
-#endif
-        flush_cell_atomic(cur_idx, gsig, gsh, grad_density, grad_sh, touched);
+        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
+        else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
     }
 #if GRAD_SLOTS > 0
     if (slot >= 0) {

@@ -13,6 +13,18 @@
 #define T_STOP 1e-4f  /* early termination: stop once transmittance < T_STOP (error <= T_STOP) */
 #endif
 #define COLOR_OFFSET 0.5f /* SH colour is offset so that all-zero coefficients give grey */
+#ifndef CLRF_PREFETCH
+#define CLRF_PREFETCH 0  /* 1: software-prefetch the rows of the cell PREFETCH_AHEAD samples
+                            ahead with __builtin_prefetch (clang-based CPU compilers: PoCL) */
+#endif
+#ifndef PREFETCH_AHEAD
+#define PREFETCH_AHEAD 3 /* samples ahead (~1.5 voxels at step 0.5): covers a DRAM latency */
+#endif
+#if CLRF_PREFETCH
+#define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
+#else
+#define CLRF_PREFETCH_LINE(p)
+#endif
 
 typedef struct {
     float3 p0;   /* entry point, box units */
@@ -237,6 +249,33 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
     return any;
 }
 
+/* Start loading the corner rows of the cell around point p (box units) into the cache, so the
+ * gathers of a later sample do not wait for DRAM. Only when CLRF_PREFETCH; *last holds the
+ * cell prefetched last time (skip if unchanged). The links are read here and again later
+ * (then from the cache). */
+inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
+                          __global const float *density, __global const float *sh, int *last) {
+#if CLRF_PREFETCH
+    int x0, x1, y0, y1, z0, z1;
+    float fx, fy, fz;
+    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
+    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
+    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
+    const int cell = (x0 * reso.y + y0) * reso.z + z0;
+    if (cell == *last) return;
+    *last = cell;
+    const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+    for (int c = 0; c < 8; ++c) {
+        int k = links[(xs[c >> 2] * reso.y + ys[(c >> 1) & 1]) * reso.z + zs[c & 1]];
+        if (k < 0) continue;
+        __global const float *row = sh + (size_t)k * SH_DIM;
+        for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
+        CLRF_PREFETCH_LINE(row + SH_DIM - 1);
+        CLRF_PREFETCH_LINE(density + k);
+    }
+#endif
+}
+
 typedef struct {
     float3 rgb;  /* foreground radiance, without background */
     float acc;   /* sum of weights */
@@ -256,9 +295,15 @@ inline void march_forward(const march_t *m, int4 reso, __global const int *links
     float acc = 0.0f, depth = 0.0f;
     lerp_t L;
     L.cell = -1;
+    int pf_cell = -1;
     for (int k = 0; k < m->nsteps; ++k) {
         float mid, delta;
         march_segment(m, k, &mid, &delta);
+#if CLRF_PREFETCH
+        if (k + PREFETCH_AHEAD < m->nsteps)
+            prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,
+                          sh, &pf_cell);
+#endif
         if (!lerp_setup_cached(m->p0 + mid * m->dg, reso, links, &L)) {
             k = skip_empty(m, k, L.lo, reso) - 1;
             continue;

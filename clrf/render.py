@@ -16,6 +16,7 @@ from .validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
+PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
 REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
 
 
@@ -23,7 +24,17 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
                  slots: int = 0):
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
-        "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots)})
+        "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
+        "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD})
+
+
+def _prefetch(dev) -> bool:
+    """Software prefetch in the march (__builtin_prefetch): PoCL CPU devices only (clang-based;
+    other compilers need not know the builtin). ``CLRF_PREFETCH=0`` turns it off."""
+    env = os.environ.get("CLRF_PREFETCH", "").strip()
+    if env:
+        return env != "0"
+    return dev.is_cpu and "pocl" in dev.caps.platform_version.lower()
 
 
 def _bg4(background):
