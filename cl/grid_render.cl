@@ -187,7 +187,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     int cur_cell = -1;
     lerp_t L;
     L.cell = -1;
-    int pf_cell = -1;
+    int pf_cell = -1, pf_link = -1;
 
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
@@ -196,6 +196,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
 #if CLRF_PREFETCH
+        if (k + 2 * PREFETCH_AHEAD < m.nsteps)
+            prefetch_links(m.p0 + (mid + 2 * PREFETCH_AHEAD * m.dt) * m.dg, reso, links,
+                           &pf_link);
         if (k + PREFETCH_AHEAD < m.nsteps)
             prefetch_cell(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density, sh,
                           &pf_cell);
@@ -216,7 +219,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
         }
         const float tau = sigma * delta;
-        const float w = T * alpha_from_tau(tau);
+        const float w = T * alpha_of_tau(tau);
         const float3 pre = color_pre(lerp_sh(&L, sh), &S);
         const float3 c = fmax(pre, 0.0f);
         const float gc = dot(g, c);
@@ -302,10 +305,17 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
         const float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
         const float tau = sigma * delta;
-        const float w = exp(logT.s) * alpha_from_tau(tau);
+        const float w = exp(logT.s) * alpha_of_tau(tau);
         for (int c = 0; c < 8; ++c)
             if (L.idx[c] >= 0 && L.w[c] > 0.0f) atomic_max_nonneg_f(maxw + L.idx[c], w * L.w[c]);
         ksum_add(&logT, -tau);
         if (exp(logT.s) < T_STOP) break;
     }
+}
+
+/* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every
+ * kernel of this file uses. */
+__kernel void march_alpha_eval(const int n, __global const float *tau, __global float *out) {
+    const int i = get_global_id(0);
+    if (i < n) out[i] = alpha_of_tau(tau[i]);
 }

@@ -140,6 +140,26 @@ inline float lerp_density(const lerp_t *L, __global const float *density) {
     return s;
 }
 
+/* Opacity 1 - exp(-tau) for tau >= 0, as accurate as common.h's alpha_from_tau (-expm1) but
+ * without its out-of-line expm1 call, which cost a fifth of the forward march on PoCL:
+ * tau <= ALPHA_SERIES_MAX: Taylor series tau - tau^2/2! + ... + tau^9/9! in Horner form
+ * (truncation < tau^10/10! <= 2.7e-10, far below float rounding); above: 1 - exp(-tau), whose
+ * rounding error is at most ulp(exp(-tau)) / (1 - exp(-0.5)) ~ 1.3 ulp of the result. */
+#define ALPHA_SERIES_MAX 0.5f
+inline float alpha_of_tau(float tau) {
+    if (tau > ALPHA_SERIES_MAX) return 1.0f - exp(-tau);
+    float r = -1.0f / 362880.0f;           /* -1/9! ... alternating coefficients 1/k! */
+    r = fma(r, -tau, 1.0f / 40320.0f);
+    r = fma(r, -tau, 1.0f / 5040.0f);
+    r = fma(r, -tau, 1.0f / 720.0f);
+    r = fma(r, -tau, 1.0f / 120.0f);
+    r = fma(r, -tau, 1.0f / 24.0f);
+    r = fma(r, -tau, 1.0f / 6.0f);
+    r = fma(r, -tau, 0.5f);
+    r = fma(r, -tau, 1.0f);
+    return tau * r;
+}
+
 /* ---- one SH row in vector registers -------------------------------------------------------
  * PoCL runs a work-item's own loops one lane wide (docs/perf-notes.md), so a row of SH_DIM
  * floats is held as explicit vectors: SH_DIM = 3 -> float3; 12 -> float8 + float4;
@@ -249,6 +269,25 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
     return any;
 }
 
+/* Start loading the 8 links of the cell around point p (4 pairs adjacent along z) into the
+ * cache, a few samples before prefetch_cell needs them to find the rows. */
+inline void prefetch_links(float3 p, int4 reso, __global const int *links, int *last) {
+#if CLRF_PREFETCH
+    int x0, x1, y0, y1, z0, z1;
+    float fx, fy, fz;
+    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
+    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
+    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
+    const int cell = (x0 * reso.y + y0) * reso.z + z0;
+    if (cell == *last) return;
+    *last = cell;
+    CLRF_PREFETCH_LINE(links + cell);
+    CLRF_PREFETCH_LINE(links + (x0 * reso.y + y1) * reso.z + z0);
+    CLRF_PREFETCH_LINE(links + (x1 * reso.y + y0) * reso.z + z0);
+    CLRF_PREFETCH_LINE(links + (x1 * reso.y + y1) * reso.z + z0);
+#endif
+}
+
 /* Start loading the corner rows of the cell around point p (box units) into the cache, so the
  * gathers of a later sample do not wait for DRAM. Only when CLRF_PREFETCH; *last holds the
  * cell prefetched last time (skip if unchanged). The links are read here and again later
@@ -295,11 +334,14 @@ inline void march_forward(const march_t *m, int4 reso, __global const int *links
     float acc = 0.0f, depth = 0.0f;
     lerp_t L;
     L.cell = -1;
-    int pf_cell = -1;
+    int pf_cell = -1, pf_link = -1;
     for (int k = 0; k < m->nsteps; ++k) {
         float mid, delta;
         march_segment(m, k, &mid, &delta);
 #if CLRF_PREFETCH
+        if (k + 2 * PREFETCH_AHEAD < m->nsteps)
+            prefetch_links(m->p0 + (mid + 2 * PREFETCH_AHEAD * m->dt) * m->dg, reso, links,
+                           &pf_link);
         if (k + PREFETCH_AHEAD < m->nsteps)
             prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,
                           sh, &pf_cell);
@@ -311,7 +353,7 @@ inline void march_forward(const march_t *m, int4 reso, __global const int *links
         float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
         float tau = sigma * delta;
-        float w = T * alpha_from_tau(tau);
+        float w = T * alpha_of_tau(tau);
         float3 c = fmax(color_pre(lerp_sh(&L, sh), &S), 0.0f);
         rgb += w * c;
         acc += w;
