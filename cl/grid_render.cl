@@ -200,8 +200,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             prefetch_links(m.p0 + (mid + 2 * PREFETCH_AHEAD * m.dt) * m.dg, reso, links,
                            &pf_link);
         if (k + PREFETCH_AHEAD < m.nsteps)
-            prefetch_cell(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density, sh,
-                          &pf_cell);
+            prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,
+                               sh, dst_d, dst_s, &pf_cell);
 #endif
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;

@@ -289,11 +289,14 @@ inline void prefetch_links(float3 p, int4 reso, __global const int *links, int *
 }
 
 /* Start loading the corner rows of the cell around point p (box units) into the cache, so the
- * gathers of a later sample do not wait for DRAM. Only when CLRF_PREFETCH; *last holds the
- * cell prefetched last time (skip if unchanged). The links are read here and again later
- * (then from the cache). */
-inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
-                          __global const float *density, __global const float *sh, int *last) {
+ * gathers of a later sample do not wait for DRAM; when grad_d is not 0, also the gradient rows
+ * grad_d[k], grad_s[k * SH_DIM ...] that the backward pass will read-modify-write. Only when
+ * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
+ * read here and again later (then from the cache). */
+inline void prefetch_cell_grad(float3 p, int4 reso, __global const int *links,
+                               __global const float *density, __global const float *sh,
+                               __global const float *grad_d, __global const float *grad_s,
+                               int *last) {
 #if CLRF_PREFETCH
     int x0, x1, y0, y1, z0, z1;
     float fx, fy, fz;
@@ -311,8 +314,19 @@ inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
         for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
         CLRF_PREFETCH_LINE(row + SH_DIM - 1);
         CLRF_PREFETCH_LINE(density + k);
+        if (grad_d) {
+            __global const float *grow = grad_s + (size_t)k * SH_DIM;
+            for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(grow + j);
+            CLRF_PREFETCH_LINE(grow + SH_DIM - 1);
+            CLRF_PREFETCH_LINE(grad_d + k);
+        }
     }
 #endif
+}
+
+inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
+                          __global const float *density, __global const float *sh, int *last) {
+    prefetch_cell_grad(p, reso, links, density, sh, 0, 0, last);
 }
 
 typedef struct {
