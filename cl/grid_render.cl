@@ -126,7 +126,9 @@ inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *g
  * take a copy (slot_lock[s] 0 -> 1 by compare-and-swap) and, holding it, adds with plain
  * vector stores. A work-item that finds every copy taken adds with float atomics into scratch
  * entry S-1. Scratch rows that received anything are marked in slot_touched [S, n_rows];
- * grad_slots_reduce then adds them into grad_density / grad_sh and zeroes them. PoCL runs one
+ * grad_slots_reduce then adds them into grad_density / grad_sh and zeroes them. A slot also
+ * owns slot_rec [S, rec_max, 8]: the forward march records each sample there (march.h,
+ * march_forward_rec) and the backward march reads it instead of re-gathering the rows. PoCL runs one
  * work-item at a time per compute unit, so with S = compute units no atomics are used in
  * practice, and the result is correct under any scheduling. */
 __kernel void render_backward(const int n_rays, __global const float *origins,
@@ -138,16 +140,41 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global float *grad_density, __global float *grad_sh,
                               __global uchar *touched, const int n_rows,
                               __global float *slot_density, __global float *slot_sh,
-                              __global uchar *slot_touched, __global volatile int *slot_lock) {
+                              __global uchar *slot_touched, __global volatile int *slot_lock,
+                              __global float *slot_rec, const int rec_max) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
     const int hit = march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m);
+
+    /* where this work-item's gradients go; a slot also brings a private sample record */
+    __global float *dst_d = grad_density;
+    __global float *dst_s = grad_sh;
+    __global uchar *mark = touched;
+    __global float *rec = 0;
+    int do_mark = TRACK_TOUCHED;
+    int slot = -1;
+#if GRAD_SLOTS > 0
+    if (hit) {
+        for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
+            if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
+    }
+    if (slot >= 0) rec = slot_rec + (size_t)slot * rec_max * 8;
+    if (slot != 0) {   /* a scratch entry: its own (slot - 1), or the shared atomic one */
+        const size_t e = slot > 0 ? (size_t)(slot - 1) : (size_t)(GRAD_SLOTS - 1);
+        dst_d = slot_density + e * n_rows;
+        dst_s = slot_sh + e * n_rows * SH_DIM;
+        mark = slot_touched + e * n_rows;
+        do_mark = 1;
+    }
+#endif
+
     float Y[SH_BASIS];
     fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+    int n_rec = -1;
     if (hit) {
         sh_basis(m.dir, Y);
-        march_forward(&m, reso, links, density, sh, Y, &f);
+        march_forward_rec(&m, reso, links, density, sh, Y, rec, rec ? rec_max : 0, &n_rec, &f);
     }
     const float3 rgb = f.rgb + exp(f.logT) * bg.xyz;
 #if GRAD_MODE == 1
@@ -158,27 +185,10 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     const float3 g = load3(ray_in, i);
 #endif
     if (!hit) return;
+    const int use_rec = rec != 0 && n_rec >= 0;
     const float total = dot(g, rgb);
     shy_t S;
     shy_setup(Y, &S);
-
-    /* where this work-item's gradients go */
-    __global float *dst_d = grad_density;
-    __global float *dst_s = grad_sh;
-    __global uchar *mark = touched;
-    int do_mark = TRACK_TOUCHED;
-    int slot = -1;
-#if GRAD_SLOTS > 0
-    for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
-        if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
-    if (slot != 0) {   /* a scratch entry: its own (slot - 1), or the shared atomic one */
-        const size_t e = slot > 0 ? (size_t)(slot - 1) : (size_t)(GRAD_SLOTS - 1);
-        dst_d = slot_density + e * n_rows;
-        dst_s = slot_sh + e * n_rows * SH_DIM;
-        mark = slot_touched + e * n_rows;
-        do_mark = 1;
-    }
-#endif
 
     float gsig[8];
     shv_t gsh[8];
@@ -192,6 +202,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
     float T = 1.0f;
+    int j = 0;   /* index of the non-empty sample in the record */
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
@@ -201,13 +212,14 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                            &pf_link);
         if (k + PREFETCH_AHEAD < m.nsteps)
             prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,
-                               sh, dst_d, dst_s, &pf_cell);
+                               sh, dst_d, dst_s, &pf_cell);   /* data rows: cached by now */
 #endif
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
         }
-        const float sigma = lerp_density(&L, density);
+        const float sigma = use_rec ? rec[8 * j + REC_SIGMA] : lerp_density(&L, density);
+        ++j;
         if (!(sigma > 0.0f)) continue;
         if (L.cell != cur_cell) {
             if (cur_cell >= 0) {
@@ -218,14 +230,23 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             cur_cell = L.cell;
             for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
         }
-        const float tau = sigma * delta;
-        const float w = T * alpha_of_tau(tau);
-        const float3 pre = color_pre(lerp_sh(&L, sh), &S);
+        float w, Tnext;
+        float3 pre;
+        if (use_rec) {
+            const float8 r = vload8(j - 1, rec);
+            w = r.s1;
+            Tnext = r.s2;
+            pre = (float3)(r.s3, r.s4, r.s5);
+        } else {
+            const float tau = sigma * delta;
+            w = T * alpha_of_tau(tau);
+            pre = color_pre(lerp_sh(&L, sh), &S);
+            ksum_add(&logT, -tau);
+            Tnext = exp(logT.s);
+        }
         const float3 c = fmax(pre, 0.0f);
         const float gc = dot(g, c);
         ksum_add(&prefix, w * gc);
-        ksum_add(&logT, -tau);
-        const float Tnext = exp(logT.s);
         const float remaining = total - prefix.s;
         const float dsig = delta * (Tnext * gc - remaining);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));

@@ -336,10 +336,23 @@ typedef struct {
     float logT;  /* log transmittance at the end of the march */
 } fwd_t;
 
-/* The forward march shared by every kernel. */
-inline void march_forward(const march_t *m, int4 reso, __global const int *links,
-                          __global const float *density, __global const float *sh,
-                          const float *Y, fwd_t *out) {
+/* Per-sample record written by the forward march for the backward march (rec != 0): one
+ * float8 per non-empty sample j, in march order: (sigma, w, T after the sample, pre.x, pre.y,
+ * pre.z, 0, 0), w and T only where sigma > 0. The backward march visits the same samples in
+ * the same order and reads them instead of re-gathering and recomputing (bitwise the same
+ * values). rec_max bounds the count; a march that would exceed it records nothing usable
+ * (*n_rec < 0) and the backward recomputes. */
+#define REC_SIGMA 0
+#define REC_W 1
+#define REC_TNEXT 2
+#define REC_PRE 3
+
+/* The forward march shared by every kernel (rec: see above; 0 for no record). */
+inline void march_forward_rec(const march_t *m, int4 reso, __global const int *links,
+                              __global const float *density, __global const float *sh,
+                              const float *Y, __global float *rec, const int rec_max,
+                              int *n_rec, fwd_t *out) {
+    int j = 0;
     shy_t S;
     shy_setup(Y, &S);
     ksum_t logT = {0.0f, 0.0f};
@@ -365,21 +378,37 @@ inline void march_forward(const march_t *m, int4 reso, __global const int *links
             continue;
         }
         float sigma = lerp_density(&L, density);
-        if (!(sigma > 0.0f)) continue;
+        if (!(sigma > 0.0f)) {
+            if (rec && j < rec_max) rec[8 * j + REC_SIGMA] = sigma;
+            ++j;
+            continue;
+        }
         float tau = sigma * delta;
         float w = T * alpha_of_tau(tau);
-        float3 c = fmax(color_pre(lerp_sh(&L, sh), &S), 0.0f);
+        float3 pre = color_pre(lerp_sh(&L, sh), &S);
+        float3 c = fmax(pre, 0.0f);
         rgb += w * c;
         acc += w;
         depth += w * mid;
         ksum_add(&logT, -tau);
         T = exp(logT.s);
+        if (rec && j < rec_max)
+            vstore8((float8)(sigma, w, T, pre.x, pre.y, pre.z, 0.0f, 0.0f), j, rec);
+        ++j;
         if (T < T_STOP) break;
     }
+    *n_rec = j <= rec_max ? j : -1;
     out->rgb = rgb;
     out->acc = acc;
     out->depth = depth;
     out->logT = logT.s;
+}
+
+inline void march_forward(const march_t *m, int4 reso, __global const int *links,
+                          __global const float *density, __global const float *sh,
+                          const float *Y, fwd_t *out) {
+    int n_rec;
+    march_forward_rec(m, reso, links, density, sh, Y, 0, 0, &n_rec, out);
 }
 
 inline float3 load3(__global const float *a, int i) {

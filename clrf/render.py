@@ -75,6 +75,21 @@ def _slot_buffers(grid, slots):
     return cache[key]
 
 
+def max_samples_per_ray(reso, step) -> int:
+    """Upper bound of the segments of one ray: the box diagonal in voxels over the step, + 2."""
+    return int(np.ceil(np.sqrt(float(sum(r * r for r in reso))) / float(step))) + 2
+
+
+def _record_buffer(grid, slots, rec_max):
+    """Per-slot sample records of the backward march: float [slots, rec_max, 8] (march.h)."""
+    key = (slots, rec_max)
+    cache = grid.__dict__.setdefault("_grad_record_buffers", {})
+    if key not in cache:
+        cache.clear()
+        cache[key] = cla.empty(grid.device.queue, slots * rec_max * 8, np.float32)
+    return cache[key]
+
+
 def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
     """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n]."""
     dev = grid.device
@@ -114,13 +129,16 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     n_rows = grid.density.shape[0]
     if slots:
         sd, ss, st, lock = _slot_buffers(grid, slots)
-    else:
-        sd, ss, st, lock = grad_density, grad_sh, tch, grid.links   # unused by the kernel
+        rec_max = max_samples_per_ray(grid.reso, step)
+        rec = _record_buffer(grid, slots, rec_max)
+    else:   # unused by the kernel
+        sd, ss, st, lock, rec, rec_max = grad_density, grad_sh, tch, grid.links, grad_density, 0
     launch(dev, prg.kernel("render_backward"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
             ray_in_d.data, dummy.data, np.float32(loss_scale), grad_density.data, grad_sh.data,
-            tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data), LOCAL_SIZE)
+            tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data, rec.data,
+            np.int32(rec_max)), LOCAL_SIZE)
     if slots:
         launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
