@@ -207,8 +207,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
 #if CLRF_PREFETCH
-        if (k + 2 * PREFETCH_AHEAD < m.nsteps)
-            prefetch_links(m.p0 + (mid + 2 * PREFETCH_AHEAD * m.dt) * m.dg, reso, links,
+        if (k + PREFETCH_LINKS_AHEAD < m.nsteps)
+            prefetch_links(m.p0 + (mid + PREFETCH_LINKS_AHEAD * m.dt) * m.dg, reso, links,
                            &pf_link);
         if (k + PREFETCH_AHEAD < m.nsteps)
             prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,

@@ -20,6 +20,9 @@
 #ifndef PREFETCH_AHEAD
 #define PREFETCH_AHEAD 3 /* samples ahead (~1.5 voxels at step 0.5): covers a DRAM latency */
 #endif
+#ifndef PREFETCH_LINKS_AHEAD
+#define PREFETCH_LINKS_AHEAD (2 * PREFETCH_AHEAD) /* samples ahead for the links of a cell */
+#endif
 #if CLRF_PREFETCH
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #else
@@ -366,8 +369,8 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
         float mid, delta;
         march_segment(m, k, &mid, &delta);
 #if CLRF_PREFETCH
-        if (k + 2 * PREFETCH_AHEAD < m->nsteps)
-            prefetch_links(m->p0 + (mid + 2 * PREFETCH_AHEAD * m->dt) * m->dg, reso, links,
+        if (k + PREFETCH_LINKS_AHEAD < m->nsteps)
+            prefetch_links(m->p0 + (mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
                            &pf_link);
         if (k + PREFETCH_AHEAD < m->nsteps)
             prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,

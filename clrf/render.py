@@ -17,6 +17,7 @@ from .validate import check_array, check_positive, check_rays
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
 PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
+PREFETCH_LINKS_AHEAD = int(os.environ.get("CLRF_PREFETCH_LINKS_AHEAD", 2 * PREFETCH_AHEAD))
 REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
 
 
@@ -25,7 +26,8 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
-        "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD})
+        "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD,
+        "PREFETCH_LINKS_AHEAD": PREFETCH_LINKS_AHEAD})
 
 
 def _prefetch(dev) -> bool:
