@@ -254,6 +254,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         shv_t dco = shv_scale(S.ych[0], dpre.x);
         shv_axpy(&dco, dpre.y, S.ych[1]);
         shv_axpy(&dco, dpre.z, S.ych[2]);
+#pragma unroll
         for (int cc = 0; cc < 8; ++cc) {
             const float wc = L.w[cc];
             gsig[cc] += wc * dsig;

@@ -138,6 +138,7 @@ inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
 
 inline float lerp_density(const lerp_t *L, __global const float *density) {
     float s = 0.0f;
+#pragma unroll
     for (int c = 0; c < 8; ++c)
         if (L->idx[c] >= 0) s += L->w[c] * density[L->idx[c]];
     return s;
@@ -219,6 +220,7 @@ inline void shy_setup(const float *Y, shy_t *S) {
 /* Interpolated SH coefficients of the sample (8 corner rows, vector loads). */
 inline shv_t lerp_sh(const lerp_t *L, __global const float *sh) {
     shv_t co = shv_zero();
+#pragma unroll
     for (int c = 0; c < 8; ++c)
         if (L->idx[c] >= 0) shv_axpy(&co, L->w[c], shv_load(sh + (size_t)L->idx[c] * SH_DIM));
     return co;
@@ -229,8 +231,10 @@ inline float3 color_pre(shv_t co, const shy_t *S) {
     float t[SH_DIM];
     shv_store_private(shv_mul(co, S->yall), t);
     float pre[3];
+#pragma unroll
     for (int ch = 0; ch < 3; ++ch) {
         float v = 0.0f;
+#pragma unroll
         for (int b = 0; b < SH_BASIS; ++b) v += t[ch * SH_BASIS + b];
         pre[ch] = v + COLOR_OFFSET;
     }
@@ -259,11 +263,13 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
         L->cell = cell;
         L->lo = (int3)(x0, y0, z0);
         const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+#pragma unroll
         for (int c = 0; c < 8; ++c) {
             int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
             L->idx[c] = links[(xs[cx] * reso.y + ys[cy]) * reso.z + zs[cz]];
         }
     }
+#pragma unroll
     for (int c = 0; c < 8; ++c) {
         int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
         L->w[c] = wx[cx] * wy[cy] * wz[cz];
