@@ -419,12 +419,14 @@ def _requires_ok(spec):
 def time_case(case: Case, min_repeats, max_repeats, max_seconds, tol, warmup=1):
     for _ in range(warmup):
         case.run()
-    ts = []
+    ts, cpu = [], []
     t_start = time.perf_counter()
     while True:
         t = time.perf_counter()
+        c = time.process_time()
         case.run()
         ts.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
         n = len(ts)
         if n >= max_repeats:
             break
@@ -432,7 +434,7 @@ def time_case(case: Case, min_repeats, max_repeats, max_seconds, tol, warmup=1):
             q1, med, q3 = np.percentile(ts, [25, 50, 75])
             if (q3 - q1) / med < tol or time.perf_counter() - t_start > max_seconds:
                 break
-    return ts
+    return ts, cpu
 
 
 def metrics(work, median_s):
@@ -496,10 +498,16 @@ def run_spec(ctx, spec, args):
     if ctx.quick:
         case.run()
         return rec
-    ts = time_case(case, args.min_repeats, args.max_repeats, args.max_seconds, args.tol)
+    ts, cpu = time_case(case, args.min_repeats, args.max_repeats, args.max_seconds, args.tol)
     med = float(np.median(ts))
     rec["time_s"] = {"median": med, "min": float(min(ts)), "max": float(max(ts)),
                      "repeats": len(ts)}
+    # CPU time of this process (all threads) per repetition: on a shared host, work / (CPU time
+    # / compute units) estimates what the case would reach with the cores to itself.
+    cus = ctx.dev.caps.compute_units if ctx.dev.is_cpu else 0
+    rec["cpu_s"] = {"median": float(np.median(cpu))}
+    if cus:
+        rec["metrics_cpu_normalised"] = metrics(case.work, float(np.median(cpu)) / cus)
     rec["metrics"] = metrics(case.work, med)
     rec["metrics_min_max"] = {k: [metrics(case.work, max(ts))[k], metrics(case.work, min(ts))[k]]
                               for k in rec["metrics"]}

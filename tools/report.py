@@ -61,8 +61,8 @@ def grid_table(doc):
             impls.append(impl)
         rows.setdefault(case, {})[impl] = r
     lines = ["| case (mode/reso/SH/occupancy/rays) | implementation | samples/s [min-max] | "
-             "rays/s | ms | model GB/s | % of triad | vs clrf |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "rays/s | ms | model GB/s | % of triad | vs clrf | samples/s, CPU-normalised |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for case, byimpl in rows.items():
         base = byimpl.get("grid", {}).get("metrics", {}).get("samples/s")
         for impl in impls:
@@ -72,7 +72,7 @@ def grid_table(doc):
             label = "clrf" if impl == "grid" else impl.replace("peer.", "")
             if "metrics" not in r:
                 why = r.get("skipped") or r.get("failed") or "smoke only"
-                lines.append(f"| {case} | {label} | {why} | | | | | |")
+                lines.append(f"| {case} | {label} | {why} | | | | | | |")
                 continue
             m = r["metrics"]
             lo, hi = r["metrics_min_max"].get("samples/s", [0, 0])
@@ -81,7 +81,8 @@ def grid_table(doc):
             vs = f"{sps / base:.3g}x" if base and impl != "grid" else ""
             lines.append(f"| {case} | {label} | {_fmt_rate(sps)} [{_fmt_rate(lo)}-{_fmt_rate(hi)}] "
                          f"| {_fmt_rate(m.get('rays/s', 0))} | {r['time_s']['median'] * 1e3:.1f} | "
-                         f"{m.get('GB/s', 0):.2f} | {100 * ratio:.1f}% | {vs} |")
+                         f"{m.get('GB/s', 0):.2f} | {100 * ratio:.1f}% | {vs} | "
+                         f"{_fmt_rate(r.get('metrics_cpu_normalised', {}).get('samples/s', 0))} |")
     return "\n".join(lines)
 
 
@@ -129,7 +130,9 @@ def render_markdown(doc, pngs=()):
           "(forward: 8 links + 8 rows of 1 + SH_DIM floats; fwd+bwd: two gathers plus the read "
           "and write of 8 gradient rows), divided by the time; % of triad is that over the "
           "triad bandwidth measured in the same run. Samples count only samples whose cell has "
-          "an allocated corner (empty space is skipped)."]
+          "an allocated corner (empty space is skipped). CPU-normalised: work / (process CPU time / "
+          "compute units), what the case would reach with the cores to itself (the host is "
+          "shared; see the load average)."]
     for p in pngs:
         md.append(f"![{p.stem}]({p.name})")
     return "\n".join(md)
