@@ -107,7 +107,9 @@ def read_image(path: Path, what: str = "image") -> np.ndarray:
     if not path.is_file():
         raise DataError(f"{path}: {what} file does not exist; restore it, or remove its entry")
     try:
-        a = np.asarray(iio.imread(path))
+        with warnings.catch_warnings():        # imageio probes legacy plugins on a bad file
+            warnings.simplefilter("ignore", DeprecationWarning)
+            a = np.asarray(iio.imread(path))
     except Exception as e:  # noqa: BLE001 - imageio raises many types; all mean "unreadable"
         raise DataError(f"{path}: unreadable {what} ({type(e).__name__}: {e}); replace the file "
                         f"with a valid PNG/JPEG") from None

@@ -35,6 +35,7 @@ from .io import (IMAGE_EXTS, check_downscale, check_poses, check_splits, composi
 BD_FACTOR = 0.75          # NeRF: scale so the nearest bound becomes 1 / 0.75 (NDC near plane 1)
 FACING_THRESHOLD = 0.7    # |mean viewing axis| above this: forward-facing (all cameras alike)
 ASPECT_TOL = 0.02         # images may be cropped by a pixel when resized; more means a mismatch
+FOCUS_COND_MAX = 1e8     # condition number beyond which the optical axes count as parallel
 REAL360_NEAR = 0.02       # in units of the farthest camera's distance
 
 
@@ -55,16 +56,20 @@ def _image_folder(root: Path, factor):
     return found[0][1], 1
 
 
-def _focus_point(origins, axes):
+def _focus_point(origins, axes, path):
     """The least-squares point closest to all lines origin + s * axis (axes unit)."""
     a = np.eye(3) - axes[:, :, None] * axes[:, None, :]          # projectors orthogonal to axes
-    return np.linalg.solve(a.sum(0), np.einsum("nij,nj->i", a, origins))
+    m = a.sum(0)
+    if np.linalg.cond(m) > FOCUS_COND_MAX:
+        raise DataError(f"{path}: the cameras' optical axes are (nearly) parallel, so they have no "
+                        f"focus point for a 360 scene; pass kind='forward_facing'")
+    return np.linalg.solve(m, np.einsum("nij,nj->i", a, origins))
 
 
-def _recentre_360(poses):
+def _recentre_360(poses, path):
     """Rigidly move and uniformly scale the world: focus point at the origin, mean up along +z,
     farthest camera at distance 1."""
-    focus = _focus_point(poses[:, :3, 3], -poses[:, :3, 2])
+    focus = _focus_point(poses[:, :3, 3], -poses[:, :3, 2], path)
     z = poses[:, :3, 1].mean(0)
     z /= np.linalg.norm(z)
     x0 = poses[0, :3, 0] - z * (poses[0, :3, 0] @ z)
@@ -82,9 +87,8 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
               background="white") -> Dataset:
     """Load an LLFF / Mip-NeRF 360 folder (poses_bounds.npy + images).
 
-    kind: "forward_facing", "real360" or "auto" (real360 when the bounds are placeholders, i.e.
-    constant over all views, or when the cameras' mean viewing axis is shorter than
-    FACING_THRESHOLD, i.e. they look in many directions).
+    kind: "forward_facing", "real360" or "auto" (real360 when the cameras' mean viewing axis is
+    shorter than FACING_THRESHOLD, i.e. they look in many directions: fern 0.99, bonsai 0.50).
     downscale: None -> images/ at full size if present, else the images_<k>/ with the smallest k;
     d -> images_<d>/ if present, else images/ box-downscaled by d.
     holdout: every holdout-th view is test. max_images: first this-many views of each split.
@@ -119,11 +123,10 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
         raise DataError(f"{folder}: {len(files)} images but {pb_path.name} has {n} rows; one "
                         f"image per pose row is required (remove extra images or re-run COLMAP)")
 
-    placeholder = bool(np.all(bounds == bounds[0]))
     if kind == "auto":
         spread = np.linalg.norm(poses[:, :3, 2].mean(0))
-        kind = "real360" if placeholder or spread < FACING_THRESHOLD else "forward_facing"
-    if placeholder and kind == "forward_facing":
+        kind = "real360" if spread < FACING_THRESHOLD else "forward_facing"
+    if n > 1 and np.all(bounds == bounds[0]) and kind == "forward_facing":
         warn(f"{pb_path}: the bounds columns are constant ({bounds[0].tolist()}); they look like "
              f"placeholders but are used for the forward-facing rescale")
     if kind == "forward_facing":
@@ -135,7 +138,7 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
         poses = np.linalg.inv(average_pose(poses)) @ poses
         poses[:, 3] = [0.0, 0.0, 0.0, 1.0]
     else:
-        poses = _recentre_360(poses)
+        poses = _recentre_360(poses, pb_path)
 
     split = holdout_split(n, holdout)
     check_splits(split, pb_path, f"use a holdout between 2 and {n}")

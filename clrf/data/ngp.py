@@ -59,9 +59,10 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
                       f"{where}.transform_matrix")
         check_poses(m[None], jpath, f"{where}.transform_matrix")
         for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"):
-            if key in fr and key in meta and fr[key] != meta[key]:
-                raise DataError(f"{jpath}: {where}.{key} differs from the global '{key}'; "
-                                f"per-frame cameras are not supported (one camera per scene)")
+            if key in fr and fr[key] != meta.get(key):
+                raise DataError(f"{jpath}: {where}.{key} is set per frame (and differs from the "
+                                f"top-level '{key}'); clrf supports one camera per scene: put "
+                                f"'{key}' at the top level only")
         f = root / fp
         if not f.is_file():
             missing.append(fp)
