@@ -30,3 +30,14 @@ FD_RTOL = 1e-5
 from clrf.render import T_STOP  # noqa: E402
 
 CLOSED_FORM_ATOL = T_STOP + 1e-6
+
+# Camera rays are returned in float32 (the kernels' input type): components of size <= ~10 carry
+# a rounding error <= 10 * 6e-8 = 6e-7, so 2e-6 absolute; a convention error (half-pixel shift,
+# flipped axis) is >= 1e-2 on the toy cameras the tests use.
+CAMERA_ATOL = 2e-6
+# Undistortion by fixed-point iteration stops at 1e-12 in float64; 1e-6 (normalised units, i.e.
+# ~1e-3 px at f = 1000) is the accuracy the data layer promises.
+UNDISTORT_ATOL = 1e-6
+# Procedural images are computed in float64 and stored as float32 (values in [0, 1]: error
+# <= 6e-8); hand-computed expected values are written with 6 decimals (error <= 5e-7).
+PROCEDURAL_ATOL = 1e-6
