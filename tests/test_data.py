@@ -46,6 +46,9 @@ def test_procedural_defaults_and_determinism():
 def test_procedural_default_sizes():
     d = load_dataset(None)
     assert d.images.shape == (72, 64, 64, 3) and d.name == "procedural"
+    assert load_dataset(None, size=8, max_images=3).images.shape == (6, 8, 8, 3)
+    with pytest.raises(DataError, match="unknown options.*'downscale'"):
+        load_dataset(None, downscale=2)
 
 
 def _axis_camera(eye, rot):

@@ -218,6 +218,14 @@ def test_llff_crafted_ok(tmp_path):
     assert d.ndc and d.images.shape == (9, 6, 8, 3)
     np.testing.assert_array_equal(d.split["test"], [0, 8])
     np.testing.assert_allclose(d.intrinsics, [50 / 8, 50 / 8, 4, 3])
+    # LLFF column 1 (right) is world x and the cameras step 0.1 along it: after the axis
+    # conversion, the 1 / (0.75 * min bound) = 1 / 1.5 rescale and recentring on the average
+    # camera, they sit on the camera x axis at (0.1 i - 0.4) / 1.5, with identity rotations
+    np.testing.assert_allclose(d.poses[:, :3, :3], np.broadcast_to(np.eye(3), (9, 3, 3)),
+                               atol=1e-6)
+    expect = np.zeros((9, 3))
+    expect[:, 0] = (0.1 * np.arange(9) - 0.4) / 1.5
+    np.testing.assert_allclose(d.poses[:, :3, 3], expect, atol=1e-6)
 
 
 def test_llff_errors(tmp_path):

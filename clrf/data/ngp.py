@@ -15,8 +15,6 @@ y,z,x, which only matters for a non-uniform offset).
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from .base import Dataset, DataError

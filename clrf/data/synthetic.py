@@ -165,15 +165,19 @@ def procedural_cameras(n_train: int, n_test: int, seed: int = 0, radius: float =
 
 
 def load_procedural(n_train: int = 64, n_test: int = 8, size: int = 64, seed: int = 0,
-                    scene: ProceduralScene | None = None, **unused) -> Dataset:
+                    scene: ProceduralScene | None = None, max_images: int | None = None,
+                    **unused) -> Dataset:
     """The procedural scene as a Dataset: ``n_train`` + ``n_test`` views of ``size`` x ``size``
     pixels on an orbit of radius 4, white background, Blender field of view, deterministic in
-    ``seed``. Example: load_procedural(size=32).images.shape -> (72, 32, 32, 3)."""
+    ``seed``; ``max_images`` caps both counts (as for the file loaders).
+    Example: load_procedural(size=32).images.shape -> (72, 32, 32, 3)."""
     from .base import DataError
 
     if unused:
         raise DataError(f"procedural scene: unknown options {sorted(unused)}; accepted: n_train, "
-                        f"n_test, size, seed, scene")
+                        f"n_test, size, seed, scene, max_images")
+    if max_images is not None:
+        n_train, n_test = min(n_train, max_images), min(n_test, max_images)
     if n_train < 1 or n_test < 1 or size < 1:
         raise DataError(f"procedural scene: n_train, n_test and size must be >= 1, got "
                         f"{n_train}, {n_test}, {size}")
