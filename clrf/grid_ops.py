@@ -28,14 +28,16 @@ def tv_grad(grid, param, grad, touched, start: int, n_cells: int, scale: float,
             np.float32(scale), np.int32(bool(empty_is_zero)), np.float32(lambda_sparsity)))
 
 
-def max_weight(grid, origins_d, dirs_d, step, chunk=1 << 18):
-    """Per-row max rendering weight over the given rays (device float [N])."""
+def max_weight(grid, origins, dirs, step, chunk=1 << 18):
+    """Per-row max rendering weight over the given rays (numpy [n, 3], uploaded in chunks)."""
     q = grid.device.queue
     mw = cla.zeros(q, grid.density.shape[0], np.float32)
-    n = origins_d.shape[0]
+    n = origins.shape[0]
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        render_max_weight_device(grid, origins_d[s:e], dirs_d[s:e], step, mw)
+        render_max_weight_device(grid, cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                                 cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
+                                 step, mw)
     return mw
 
 

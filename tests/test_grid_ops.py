@@ -144,7 +144,7 @@ def test_prune_vs_reference_and_to_nothing(device):
     o = (rng.normal(0, 2.5, (200, 3))).astype(np.float32)
     d = (rng.uniform(-0.5, 0.5, (200, 3)) - o).astype(np.float32)
     q = device.queue
-    mw = grid_ops.max_weight(grid, cla.to_device(q, o), cla.to_device(q, d), 0.5)
+    mw = grid_ops.max_weight(grid, o, d, 0.5)
     mw_dense = grid.rows_to_dense(mw.get(), np.zeros((mw.shape[0], 3), np.float32))[0]
     thr = float(np.quantile(mw_dense[alloc], 0.8))
     keep = grid_ops.prune_keep(grid, mw, thr)

@@ -93,4 +93,4 @@ def load_npz(path, n_test: int = DEFAULT_N_TEST, background="black", downscale=N
                    poses=poses[keep].astype(np.float32),
                    intrinsics=np.array([f_px, f_px, W / 2.0, H / 2.0]), split=split,
                    background=bg, bbox=np.array([[-1.5] * 3, [1.5] * 3]), near=2.0, far=6.0,
-                   ndc=False, preset="synthetic")
+                   ndc=False, preset="tiny")

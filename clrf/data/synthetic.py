@@ -190,4 +190,4 @@ def load_procedural(n_train: int = 64, n_test: int = 8, size: int = 64, seed: in
                    intrinsics=intr,
                    split={"train": np.arange(n_train), "test": np.arange(n_train, n_train + n_test)},
                    background=tuple(scene.background), bbox=np.array([[-1.5] * 3, [1.5] * 3]),
-                   near=2.0, far=6.0, ndc=False, preset="synthetic")
+                   near=2.0, far=6.0, ndc=False, preset="procedural")
