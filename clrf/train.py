@@ -30,7 +30,7 @@ from .metrics import image_metrics, psnr_from_mse
 from .programs import launch
 
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
-              "rays_per_s", "model"]
+              "eval_views", "rays_per_s", "model"]
 
 
 class RayStore:
@@ -112,12 +112,21 @@ def plot_error_vs_time(csv_path, png_path, title=""):
     import matplotlib.pyplot as plt
 
     rows = [r for r in csv.DictReader(open(csv_path)) if r["eval_psnr"]]
+    # the final evaluation over every test view is the row after the last periodic one
+    final = rows[-1] if len(rows) > 1 and not rows[-1]["train_loss"] and rows[-1]["eval_views"] \
+        and rows[-1]["eval_views"] != rows[-2]["eval_views"] else None
+    periodic = rows[:-1] if final else rows
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     if rows:
-        t = [float(r["seconds"]) for r in rows]
-        p = [float(r["eval_psnr"]) for r in rows]
-        ax.plot(t, p, "o-", ms=3, label="eval PSNR (held-out views)")
-        tr = [(float(r["seconds"]), float(r["train_psnr"])) for r in rows if r["train_psnr"]]
+        t = [float(r["seconds"]) for r in periodic]
+        p = [float(r["eval_psnr"]) for r in periodic]
+        nv = periodic[-1]["eval_views"] if periodic else "?"
+        ax.plot(t, p, "o-", ms=3, label=f"eval PSNR ({nv} held-out views)")
+        if final:
+            ax.plot([float(final["seconds"])], [float(final["eval_psnr"])], "*", ms=10,
+                    label=f"final: all {final['eval_views']} test views, "
+                          f"{float(final['eval_psnr']):.2f} dB")
+        tr = [(float(r["seconds"]), float(r["train_psnr"])) for r in periodic if r["train_psnr"]]
         if tr:
             ax.plot(*zip(*tr), "-", alpha=0.5, label="train PSNR (batch)")
         ax.legend(loc="lower right")
@@ -223,7 +232,7 @@ class Trainer:
                               train_loss=f"{lt:.6g}" if losses else "",
                               train_psnr=f"{psnr_from_mse(lt):.3f}" if losses else "",
                               eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
-                              rays_per_s=f"{self._rate:.0f}" if losses else "",
+                              eval_views=len(self.periodic_views), rays_per_s=f"{self._rate:.0f}" if losses else "",
                               model=self.model.describe())
                     losses = []
                     plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
@@ -265,6 +274,10 @@ class Trainer:
             ev = evaluate(self.model, self.ds, self.test_views)
             result.update(psnr=ev["psnr"], ssim=ev["ssim"], views=ev["views"],
                           n_views=len(self.test_views))
+            self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
+                      eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
+                      eval_views=len(self.test_views), model=self.model.describe())
+            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
             tmp = self.out / "eval.json.tmp"
             tmp.write_text(json.dumps(result, indent=2))
             tmp.replace(self.out / "eval.json")
