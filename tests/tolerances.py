@@ -71,3 +71,7 @@ STAB_PSNR_ATOL = 1e-5
 # Observed convergence order of the midpoint quadrature (expected 2): the next term of the error
 # is O(sigma delta) ~ 0.2 relative at step 1 (sigma = 3, delta = 1/16), i.e. ~0.25 in log2.
 STAB_ORDER_ATOL = 0.25
+# Very long rays (~1e6 samples, step 1e-5 voxels): what compensated accumulation gives
+# independent of N (Kahan: 2u + N u^2 = 1.6e-7 relative at N = 1e6, plus ~3u per term as for
+# STAB_SEGMENT_SUM_RTOL); 1e-5 is 60x that. A plain float32 sum drifts up to N u / 2 = 3e-2.
+STAB_VERY_LONG_RTOL = 1e-5

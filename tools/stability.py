@@ -38,6 +38,7 @@ import math
 import platform
 import sys
 import time
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -110,7 +111,7 @@ class Run:
         self.device = device
         self.quick = quick
         self.case = case
-        self.rng = np.random.default_rng(abs(hash(case.name)) % 2**32)
+        self.rng = np.random.default_rng(zlib.crc32(case.name.encode()))  # stable per case
         self.rows: list[Row] = []
 
     def size(self, quick, full):
@@ -124,7 +125,7 @@ class Run:
         both by ``scale`` (for cases whose values are ~scale, e.g. SH coefficients of 1e20)."""
         t = tol or self.case.tol
         g = np.asarray(got, np.float64).ravel() / scale
-        w = np.asarray(want, np.float64).ravel() / scale
+        w = np.broadcast_to(np.asarray(want, np.float64), np.shape(got)).ravel() / scale
         bad = int(np.count_nonzero(~np.isfinite(g)))
         ok = np.isfinite(g) & np.isfinite(w)
         err = np.abs(g - w)[ok]
@@ -341,11 +342,62 @@ def long_ray(run):
     density *= np.float32(3.0 / (0.5 * 4))      # optical depth ~3 over the length: no early stop
     n = run.size(6, 32)
     o, d = axis_rays(n, 2, +1, bbox, rng=run.rng, margin=0.1)
-    d[:, 0] += 1e-3 * run.rng.normal(size=n).astype(np.float32)   # slightly oblique
+    o[:, :2] = bbox[1, :2] * (0.3 + 0.4 * run.rng.random((n, 2)))  # away from the sides
+    d[:, 0] = 2e-3 * run.rng.uniform(-1, 1, n)     # slightly oblique: stays inside over 4 units
     m = ref.march_setup(o, d, shape, bbox, step)
     assert m["nsteps"].min() >= 4096, m["nsteps"].min()
     check_render(run, f"{int(m['nsteps'].min())}+ samples", density, sh, bbox, o, d, step,
                  grads=True, fwd_tol=LONG_FWD, grad_tol=LONG_GRAD)
+
+
+def very_long_ray(run):
+    """~1e6 samples per ray (step 1e-5 voxels): a homogeneous slab with sigma L = 2 must still
+    give acc = 1 - exp(-2) to float32 precision. Needs compensated accumulation of acc / rgb /
+    depth (design principle 9); a plain float32 sum of 1e6 terms of ~1e-6 drifts by ~N u."""
+    R = 8
+    step = run.size(1e-5, 2e-6)
+    density, sh = homogeneous((R, 2, 2), 2.0)
+    g = make_grid(run, density, sh)
+    o, d = axis_rays(4, 0, +1)
+    out = clrf.render_rays(g, o, d, step)
+    acc_cf = -np.expm1(-2.0)
+    run.compare(f"{R / step:.0e} samples acc vs 1-exp(-sigma L)", out["acc"],
+                np.full(len(o), acc_cf), tol("STAB_ZERO_ATOL", "STAB_VERY_LONG_RTOL"))
+    run.compare(f"{R / step:.0e} samples rgb vs closed form", out["rgb"],
+                np.broadcast_to(COLOUR * acc_cf + (1 - acc_cf), out["rgb"].shape),
+                tol("STAB_ZERO_ATOL", "STAB_VERY_LONG_RTOL"))
+
+
+def step_overflow(run):
+    """A step so small that a ray needs more than 2^31 - 1 samples (int nsteps) must be
+    rejected with a ValueError rather than rendered as an empty ray."""
+    R = 8
+    density, sh = homogeneous((R, R, R), 2.0)
+    g = make_grid(run, density, sh)
+    o, d = axis_rays(2, 0, +1)
+    out = clrf.render_rays(g, o, d, 1e-6)           # 8e6 samples: fine
+    run.finite("step 1e-6 (8e6 samples) outputs", out["rgb"], out["acc"])
+    run.raises("step 1e-9 (8e9 samples) rejected", lambda: clrf.render_rays(g, o, d, 1e-9),
+               "step")
+
+
+def world_scale(run):
+    """Box scaled by s in [1e-10, 1e10] with density / s: same optical depths, so the same rgb
+    and acc (depth scales by s); gradients finite."""
+    R = run.size(4, 12)
+    density, sh = random_grid(run.rng, (R, R, R), degree=1, dens=4.0)
+    o, d = random_rays(run.rng, run.size(24, 256))
+    base = clrf.render_rays(make_grid(run, density, sh), o, d)
+    for sc in (1e-10, 1e-5, 1e5, 1e10):
+        bbox = UNIT * sc + 0.25 * sc
+        oo = (o.astype(np.float64) * sc + 0.25 * sc).astype(np.float32)
+        dens = (density / np.float64(sc)).astype(np.float32)
+        g = make_grid(run, dens, sh, bbox)
+        out = check_render(run, f"x{sc:g}", dens, sh, bbox, oo, d, grid=g, grads=True,
+                           scale=1.0)
+        run.compare(f"x{sc:g} rgb vs unit box", out["rgb"], base["rgb"], RENDER)
+        run.compare(f"x{sc:g} depth/s vs unit box", out["depth"] / sc, base["depth"] + 0.0,
+                    DEPTH)
 
 
 # ---- closed forms ------------------------------------------------------------------------------
@@ -465,11 +517,12 @@ def convergence_table(device, quick: bool, n_rays=None, repeats=3):
 
 def convergence(run):
     """Midpoint quadrature of a linear colour ramp converges at order 2 in the step: each
-    halving of the step (1 -> 1/8, well above the float32 floor) divides the error by ~4."""
-    rows = convergence_table(run.device, True, n_rays=64, repeats=1)[:4]
+    halving of the step in the asymptotic range (1/2 -> 1/16; the errors, ~1e-4..2e-6, stay well
+    above the float32 floor ~1e-7) divides the error by ~4."""
+    rows = convergence_table(run.device, True, n_rays=64, repeats=1)[1:5]
     errs = [r["max_err"] for r in rows]
     orders = [math.log2(e0 / e1) for e0, e1 in zip(errs, errs[1:])]
-    run.compare("observed order, steps 1 -> 1/8", orders, [2.0] * len(orders),
+    run.compare("observed order, steps 1/2 -> 1/16", orders, [2.0] * len(orders),
                 tol("STAB_ORDER_ATOL"), note="errors " + ", ".join(f"{e:.1e}" for e in errs))
 
 
@@ -577,7 +630,8 @@ def pruned(run):
     o, d = random_rays(run.rng, run.size(32, 256))
     bg = (0.3, 0.5, 0.7)
     out = clrf.render_rays(g, o, d, 0.5, bg)
-    run.compare("rgb == background", out["rgb"], np.broadcast_to(bg, out["rgb"].shape), EXACT)
+    run.compare("rgb == background", out["rgb"],
+                np.broadcast_to(np.float32(bg), out["rgb"].shape), EXACT)
     run.compare("acc == 0", out["acc"], np.zeros(len(o)), EXACT)
     run.compare("depth == 0", out["depth"], np.zeros(len(o)), EXACT)
     gr = clrf.render_rays_backward(g, o, d, np.ones((len(o), 3), np.float32), 0.5, bg)
@@ -656,10 +710,11 @@ def bad_inputs(run):
         run.raises(f"background {tag}", lambda: clrf.render_rays(g, o, d, 0.5, (1.0, v, 1.0)),
                    "background")
         run.raises(f"step {tag}", lambda: clrf.render_rays(g, o, d, v), "step")
-    run.raises("density 1e39 (overflows float32)", lambda: clrf.SparseGrid.from_dense(
-        run.device, np.full((R, R, R), 1e39), sh, UNIT), "density")
-    run.raises("origins 1e39 (overflows float32)",
-               lambda: clrf.render_rays(g, np.full((4, 3), 1e39), d), "origins")
+    with np.errstate(over="ignore"):     # validate.py's float32 cast warns before raising
+        run.raises("density 1e39 (overflows float32)", lambda: clrf.SparseGrid.from_dense(
+            run.device, np.full((R, R, R), 1e39), sh, UNIT), "density")
+        run.raises("origins 1e39 (overflows float32)",
+                   lambda: clrf.render_rays(g, np.full((4, 3), 1e39), d), "origins")
 
 
 # ---- reductions --------------------------------------------------------------------------------
@@ -720,7 +775,16 @@ def scale_sweep(run, dm, sm):
     run.finite("gradients", grads["density"], grads["sh"])
 
 
-# ---- the matrix --------------------------------------------------------------------------------
+# ---- the matrix ----------------------------------------------------------------------------
+# Known kernel findings (reported to the kernel owner; the tests expect these cases to fail).
+XFAIL_DRIFT = ("cl/march.h march_forward: rgb/acc/depth are plain float32 sums (rgb += w*c; "
+               "acc += w; depth += w*mid): they drift like N u. Homogeneous slab, sigma L = 2, step "
+               "1e-5 (8e5 samples): acc rel. error 8.6e-5, rgb 4.8e-4 (expected <= 1e-5); step 1e-6 "
+               "(8e6 samples): acc 0.6433 vs 0.6321. Fix: ksum_t (Kahan) accumulators as for logT")
+XFAIL_NSTEPS = ("cl/march.h march_setup: nsteps = (int)ceil(len / dt) overflows int for > 2^31 "
+                "samples (step 1e-9 on 8 voxels): undefined behaviour, renders background (acc "
+                "0) silently; the host should reject such steps")
+# --------------------------------------------------------------------------------
 def _cases() -> list[Case]:
     P = functools.partial
     cs: list[Case] = []
@@ -728,7 +792,9 @@ def _cases() -> list[Case]:
         cs.append(Case(f"stiff sigma*delta={sd:g}", "stiff", P(stiff_sigma_delta, sd=sd)))
     cs += [Case("one-hot voxel 1e10", "stiff", one_hot_voxel),
            Case("nearly opaque", "stiff", nearly_opaque),
-           Case("long ray fwd+bwd", "stiff", long_ray, LONG_FWD)]
+           Case("long ray fwd+bwd", "stiff", long_ray, LONG_FWD),
+           Case("very long ray (1e6 samples)", "stiff", very_long_ray, xfail=XFAIL_DRIFT),
+           Case("step below 2^31 samples limit", "stiff", step_overflow, xfail=XFAIL_NSTEPS)]
     for s in (1e-6, 1e-4, 1e-2, 1.0, 1e2, 1e4, 1e6):
         cs.append(Case(f"slab sigma={s:g}", "closed form", P(slab, sigma=s), CLOSED))
     for axis in range(3):
@@ -741,7 +807,8 @@ def _cases() -> list[Case]:
            Case("unnormalised dirs 1e-20..1e20", "geometry", dir_scale),
            Case("origin 1e4 outside", "geometry", far_origin),
            Case("grazing faces/edges/corners", "geometry", grazing),
-           Case("start inside / on voxel boundary", "geometry", inside_start)]
+           Case("start inside / on voxel boundary", "geometry", inside_start),
+           Case("world scale 1e-10..1e10", "geometry", world_scale)]
     for shape in ((1, 1, 1), (1, 4, 4), (4, 1, 1), (2, 1, 3)):
         cs.append(Case(f"degenerate grid {shape}", "geometry", P(degenerate, shape=shape)))
     cs += [Case("fully pruned grid", "geometry", pruned, EXACT),
