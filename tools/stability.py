@@ -102,6 +102,7 @@ class Row:
     n: int
     passed: bool
     note: str = ""
+    known_bug: bool = False     # the case documents a known kernel bug (Case.xfail)
 
 
 class Run:
@@ -183,6 +184,8 @@ def run_case(case: Case, device, quick: bool) -> list[Row]:
         run._row("exception", max_abs=math.nan, max_rel=math.nan, tol="-", atol=math.nan,
                  rtol=math.nan, usage=math.inf, nonfinite=0, n=0, passed=False,
                  note=f"{type(e).__name__}: {str(e)[:200]}")
+    for r in run.rows:
+        r.known_bug = case.xfail is not None
     if not run.rows:
         run._row("no checks", max_abs=math.nan, max_rel=math.nan, tol="-", atol=math.nan,
                  rtol=math.nan, usage=math.inf, nonfinite=0, n=0, passed=False)
@@ -240,7 +243,8 @@ def make_grid(run, density, sh, bbox=UNIT, mask=None):
 
 
 def check_render(run, label, density, sh, bbox, o, d, step=0.5, bg=(1.0, 1.0, 1.0),
-                 grads=False, mask=None, scale=1.0, fwd_tol=None, grad_tol=None, grid=None):
+                 grads=False, mask=None, scale=1.0, fwd_tol=None, grad_tol=None, grid=None,
+                 grad_scale=None):
     """Kernel vs float64 reference: rgb, acc, depth (and gradients); returns kernel outputs."""
     g = grid or make_grid(run, density, sh, bbox, mask)
     out = clrf.render_rays(g, o, d, step, bg)
@@ -255,6 +259,7 @@ def check_render(run, label, density, sh, bbox, o, d, step=0.5, bg=(1.0, 1.0, 1.
             mask = (density != 0) | np.any(sh != 0, axis=-1)
         wg = ref.render_backward(density, sh, bbox, o, d, gr, step, bg, mask=mask)
         gs = max(float(np.abs(wg["density"]).max(initial=0)), 1.0) if scale != 1.0 else 1.0
+        gs = grad_scale if grad_scale is not None else gs
         run.compare(f"{label} grad density", got["density"], wg["density"], grad_tol or GRAD,
                     scale=gs)
         run.compare(f"{label} grad sh", got["sh"], wg["sh"], grad_tol or GRAD)
@@ -426,8 +431,10 @@ def world_scale(run):
         oo = (o.astype(np.float64) * sc + 0.25 * sc).astype(np.float32)
         dens = (density / np.float64(sc)).astype(np.float32)
         g = make_grid(run, dens, sh, bbox)
+        # dL/dsigma is proportional to the segment lengths, i.e. to sc: compare it in the units
+        # of the unit-box problem (divided by sc), like rgb and acc.
         out = check_render(run, f"x{sc:g}", dens, sh, bbox, oo, d, grid=g, grads=True,
-                           scale=1.0)
+                           grad_scale=sc)
         run.compare(f"x{sc:g} rgb vs unit box", out["rgb"], base["rgb"], RENDER)
         run.compare(f"x{sc:g} depth/s vs unit box", out["depth"] / sc, base["depth"] + 0.0,
                     DEPTH)
@@ -879,8 +886,9 @@ def markdown(rows: list[Row], meta: dict) -> str:
     lines = [f"# clrf numerical stability ({'quick' if meta['quick'] else 'full'} run)", "",
              f"Device: {meta['device']}  ", f"Platform: {meta['platform']}  ",
              f"Date: {meta['date']}, {meta['seconds']:.0f} s", "",
-             f"Rows: {len(rows)}, failed: {sum(not r.passed for r in rows)}, non-finite values: "
-             f"{sum(r.nonfinite for r in rows)}", "",
+             f"Rows: {len(rows)}, failed: {sum(not r.passed and not r.known_bug for r in rows)}, "
+             f"failed in known-bug cases (xfail): {sum(not r.passed and r.known_bug for r in rows)}"
+             f", non-finite values: {sum(r.nonfinite for r in rows)}", "",
              "max rel is normwise (max |err| / max |reference|); usage = max |err| / (atol + "
              "rtol |reference|), <= 1 passes.", "",
              "| group | case | quantity | max abs | max rel | tolerance (atol, rtol) | usage | "
@@ -890,14 +898,17 @@ def markdown(rows: list[Row], meta: dict) -> str:
         t = r.tol if math.isnan(r.atol) else f"{r.tol} ({_fmt(r.atol)}, {_fmt(r.rtol)})"
         lines.append(f"| {r.group} | {r.case} | {r.quantity} | {_fmt(r.max_abs)} | "
                      f"{_fmt(r.max_rel)} | {t} | {_fmt(r.usage)} | {r.nonfinite} | "
-                     f"{'yes' if r.passed else '**NO**'} | {r.note.replace('|', '/')} |")
+                     f"{'yes' if r.passed else ('xfail' if r.known_bug else '**NO**')} | "
+                     f"{r.note.replace('|', '/')} |")
     return "\n".join(lines) + "\n"
 
 
 def headline(rows: list[Row]) -> dict:
-    num = [r for r in rows if not math.isnan(r.max_abs) and r.tol not in (RAISES.name,)]
+    num = [r for r in rows if not math.isnan(r.max_abs) and r.tol != RAISES.name
+           and not r.known_bug]
     worst = max(num, key=lambda r: r.usage, default=None)
-    return {"rows": len(rows), "failed": sum(not r.passed for r in rows),
+    return {"rows": len(rows), "failed": sum(not r.passed and not r.known_bug for r in rows),
+            "known_bug_rows_failed": sum(not r.passed and r.known_bug for r in rows),
             "nonfinite": sum(r.nonfinite for r in rows),
             "worst_usage": (worst.case, worst.quantity, worst.usage) if worst else None}
 
@@ -910,7 +921,8 @@ def run_all(device, quick: bool, select: str | None = None, log=print) -> list[R
         t = time.perf_counter()
         rr = run_case(c, device, quick)
         rows += rr
-        log(f"{time.perf_counter() - t:6.2f}s  {'ok ' if all(r.passed for r in rr) else 'BAD'} "
+        state = "ok " if all(r.passed for r in rr) else ("xf " if c.xfail else "BAD")
+        log(f"{time.perf_counter() - t:6.2f}s  {state} "
             f"{c.name}")
     return rows
 
