@@ -891,6 +891,7 @@ def markdown(rows: list[Row], meta: dict) -> str:
              f", non-finite values: {sum(r.nonfinite for r in rows)}", "",
              "max rel is normwise (max |err| / max |reference|); usage = max |err| / (atol + "
              "rtol |reference|), <= 1 passes.", "",
+             summary(rows), "",
              "| group | case | quantity | max abs | max rel | tolerance (atol, rtol) | usage | "
              "non-finite | ok | note |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -900,6 +901,24 @@ def markdown(rows: list[Row], meta: dict) -> str:
                      f"{_fmt(r.max_rel)} | {t} | {_fmt(r.usage)} | {r.nonfinite} | "
                      f"{'yes' if r.passed else ('xfail' if r.known_bug else '**NO**')} | "
                      f"{r.note.replace('|', '/')} |")
+    return "\n".join(lines) + "\n"
+
+
+def summary(rows: list[Row]) -> str:
+    """Per-group Markdown summary: worst usage and relative error, non-finite count, failures."""
+    lines = ["| group | cases | checks | worst usage (case: quantity) | largest max rel | "
+             "non-finite | failed | known-bug (xfail) |", "|---|---|---|---|---|---|---|---|"]
+    for grp in dict.fromkeys(r.group for r in rows):
+        rr = [r for r in rows if r.group == grp]
+        num = [r for r in rr if not math.isnan(r.max_abs) and r.tol != RAISES.name
+               and not r.known_bug]
+        w = max(num, key=lambda r: r.usage, default=None)
+        rel = max((r.max_rel for r in num if math.isfinite(r.max_rel)), default=math.nan)
+        lines.append(
+            f"| {grp} | {len(set(r.case for r in rr))} | {len(rr)} | "
+            f"{_fmt(w.usage) + f' ({w.case}: {w.quantity})' if w else '-'} | {_fmt(rel)} | "
+            f"{sum(r.nonfinite for r in rr)} | {sum(not r.passed and not r.known_bug for r in rr)}"
+            f" | {sum(not r.passed and r.known_bug for r in rr)} |")
     return "\n".join(lines) + "\n"
 
 
