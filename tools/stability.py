@@ -299,6 +299,20 @@ def stiff_sigma_delta(run, sd):
                 np.broadcast_to(1 - out["acc"][:, None], out["rgb"].shape), RENDER)
 
 
+def tau_overflow(run):
+    """Density 3e38 (the float32 maximum is 3.4e38) on a 100-unit box: sigma * delta = +inf in
+    float32. alpha = -expm1(-inf) = 1: the first sample takes all the weight, log T = -inf gives
+    T = 0 (no inf - inf), gradients finite."""
+    R = 4
+    bbox = UNIT * 100.0
+    density, sh = homogeneous((R, R, R), 3e38)
+    o, d = axis_rays(6, 0, +1, bbox, margin=5.0)
+    out = check_render(run, "3e38 x 12.5", density, sh, bbox, o, d, 0.5, grads=True)
+    run.compare("acc == 1", out["acc"], np.ones(len(o)), EXACT)
+    run.compare("rgb == colour", out["rgb"], np.broadcast_to(COLOUR, out["rgb"].shape), RENDER)
+    run.compare("depth == entry + delta/2", out["depth"], np.full(len(o), 5.0 + 12.5 / 2), DEPTH)
+
+
 def one_hot_voxel(run):
     """A single voxel of density 1e10 on an empty grid: the first sample in its interpolation
     support takes all the weight (acc = 1) and depth is that sample's distance."""
@@ -568,19 +582,20 @@ def convergence(run):
 
 # ---- geometry extremes -------------------------------------------------------------------------
 def tiny_dirs(run):
-    """Direction components exactly 0 and +-1e-30 (ray.h slab method: no NaN, same result)."""
+    """Direction components exactly 0, +-1e-30 and subnormal (ray.h slab method: no NaN, the
+    same result as 0)."""
     R = run.size(5, 16)
     density, sh = random_grid(run.rng, (R, R, R), degree=2, dens=4.0)
     g = make_grid(run, density, sh)
     o, d = axis_rays(run.size(12, 128), 1, +1, rng=run.rng)
     outs = {}
-    for tiny in (0.0, 1e-30, -1e-30):
+    for tiny in (0.0, 1e-30, -1e-30, 1e-40, -1e-45):     # 1e-40, 1e-45: float32 subnormals
         dd = d.copy()
         dd[:, 0] = tiny
         dd[:, 2] = -tiny
         outs[tiny] = check_render(run, f"components {tiny:g}", density, sh, UNIT, o, dd, 0.5,
                                   grads=True, grid=g)
-    for tiny in (1e-30, -1e-30):
+    for tiny in (1e-30, -1e-30, 1e-40, -1e-45):
         run.compare(f"{tiny:g} vs 0", outs[tiny]["rgb"], outs[0.0]["rgb"], RENDER)
 
 
@@ -832,7 +847,8 @@ def _cases() -> list[Case]:
     cs: list[Case] = []
     for sd in (0.0, 1e-12, 1e-8, 1e-4, 1.0, 10.0, 1e2, 1e4, 1e8, 1e30):
         cs.append(Case(f"stiff sigma*delta={sd:g}", "stiff", P(stiff_sigma_delta, sd=sd)))
-    cs += [Case("one-hot voxel 1e10", "stiff", one_hot_voxel),
+    cs += [Case("sigma*delta overflows float32", "stiff", tau_overflow),
+           Case("one-hot voxel 1e10", "stiff", one_hot_voxel),
            Case("nearly opaque", "stiff", nearly_opaque),
            Case("long ray fwd+bwd", "stiff", long_ray, LONG_FWD),
            Case("very long ray transmittance", "stiff", very_long_transmittance),
