@@ -78,7 +78,8 @@ class SparseGrid:
         density_rows = np.ascontiguousarray(density_rows, np.float32).reshape(-1)
         sh_rows = np.ascontiguousarray(sh_rows, np.float32)
         n = density_rows.shape[0]
-        sh_rows = sh_rows.reshape(n, -1)
+        if sh_rows.ndim != 2 or sh_rows.shape[0] != n:
+            raise ValueError(f"sh rows must be [N, C] with N = {n} density rows, got {sh_rows.shape}")
         if sh_rows.shape[1] not in SH_DIMS:
             raise ValueError(f"sh rows have {sh_rows.shape[1]} coefficients; expected one of "
                              f"{sorted(SH_DIMS)}")

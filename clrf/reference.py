@@ -236,3 +236,109 @@ def finite_difference(density, sh, bbox, origins, dirs, grad_rgb, which, index, 
         return float(np.sum(np.asarray(grad_rgb, np.float64) * out["rgb"]))
 
     return (loss(eps) - loss(-eps)) / (2 * eps)
+
+
+# ---- optimiser, regularisers, structure changes (cl/optim.cl, cl/grid_ops.cl) -------------
+GRAD_CLAMP = 1e18
+
+
+def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsprop"):
+    """Float64 twin of update_rows: returns (param, state); rows not touched are unchanged."""
+    p = np.array(param, np.float64)
+    s = np.array(state, np.float64)
+    g = np.clip(np.asarray(grad, np.float64), -GRAD_CLAMP, GRAD_CLAMP)
+    t = np.asarray(touched, bool)
+    if p.ndim == 1:
+        p, s, g = p[:, None], s[:, None], g[:, None]
+    m = t[:, None] & (g != 0)
+    if mode == "rmsprop":
+        s_new = np.where(s == 0, g * g, beta * s + (1 - beta) * g * g)
+        s = np.where(m, s_new, s)
+        p = np.where(m, p - lr * g / (np.sqrt(s) + eps), p)
+    else:
+        p = np.where(m, p - lr * g, p)
+    return p.reshape(np.shape(param)), s.reshape(np.shape(state))
+
+
+def tv_grad(alloc, data, start, n_cells, scale, empty_is_zero, lambda_sparsity=0.0, eps=1e-9):
+    """Float64 TV (+ Cauchy sparsity) gradient, dense [X,Y,Z,D], over a wrapped cell window."""
+    alloc = np.asarray(alloc, bool)
+    v = np.asarray(data, np.float64)
+    if v.ndim == 3:
+        v = v[..., None]
+    X, Y, Z = alloc.shape
+    total = X * Y * Z
+    grad = np.zeros_like(v)
+    cells = (start + np.arange(min(n_cells, total))) % total
+    xs, ys, zs = np.unravel_index(cells, alloc.shape)
+    sel = alloc[xs, ys, zs]
+    xs, ys, zs = xs[sel], ys[sel], zs[sel]
+    c = v[xs, ys, zs]                                            # [m, D]
+    diffs, nbrs = [], []
+    for a, (dx, dy, dz) in enumerate(((1, 0, 0), (0, 1, 0), (0, 0, 1))):
+        nx, ny, nz = xs + dx, ys + dy, zs + dz
+        inside = (nx < X) & (ny < Y) & (nz < Z)
+        nxc, nyc, nzc = np.minimum(nx, X - 1), np.minimum(ny, Y - 1), np.minimum(nz, Z - 1)
+        nal = inside & alloc[nxc, nyc, nzc]
+        va = np.where(nal[:, None], v[nxc, nyc, nzc], c)
+        if empty_is_zero:
+            va = np.where((inside & ~nal)[:, None], 0.0, va)
+        diffs.append(va - c)
+        nbrs.append((nal, nxc, nyc, nzc))
+    r = np.sqrt(eps + sum(d * d for d in diffs))
+    np.add.at(grad, (xs, ys, zs), -sum(diffs) * scale / r)
+    for d, (nal, nx, ny, nz) in zip(diffs, nbrs):
+        np.add.at(grad, (nx[nal], ny[nal], nz[nal]), (d * scale / r)[nal])
+    if lambda_sparsity > 0 and v.shape[-1] == 1:
+        s = c[:, 0]
+        np.add.at(grad[..., 0], (xs, ys, zs), lambda_sparsity * 4 * s / (1 + 2 * s * s))
+    return grad
+
+
+def prune_keep(alloc, maxw, density, weight_thresh, density_thresh=np.inf, dilate=True):
+    """Dense bool mask of kept voxels (threshold, then 26-neighbourhood dilation)."""
+    alloc = np.asarray(alloc, bool)
+    keep = alloc & ((np.asarray(maxw) >= weight_thresh) | (np.asarray(density) >= density_thresh))
+    if not dilate:
+        return keep
+    X, Y, Z = alloc.shape
+    pad = np.pad(keep, 1)
+    out = np.zeros_like(keep)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                out |= pad[1 + dx:1 + dx + X, 1 + dy:1 + dy + Y, 1 + dz:1 + dz + Z]
+    return out & alloc
+
+
+def resample(density, sh, keep, new_reso):
+    """Float64 resample of the kept voxels: (density, sh, alloc) dense at new_reso."""
+    density = np.asarray(density, np.float64)
+    sh = np.asarray(sh, np.float64)
+    keep = np.asarray(keep, bool)
+    old = np.array(density.shape)
+    new = np.array(new_reso)
+    g = np.stack(np.meshgrid(*[np.arange(r) for r in new], indexing="ij"), -1).reshape(-1, 3)
+    p = (g + 0.5) * old / new
+    idx, w = trilerp_corners(p, old)
+    kc = keep[idx[..., 0], idx[..., 1], idx[..., 2]]
+    w = w * kc
+    alloc = np.any(kc & (w > 0), axis=1)
+    d = np.sum(w * density[idx[..., 0], idx[..., 1], idx[..., 2]], axis=1)
+    s = np.einsum("nc,ncj->nj", w, sh[idx[..., 0], idx[..., 1], idx[..., 2]])
+    shape = tuple(new)
+    return (np.where(alloc, d, 0).reshape(shape), (s * alloc[:, None]).reshape(shape + (-1,)),
+            alloc.reshape(shape))
+
+
+def pcg_hash(x):
+    x = np.asarray(x, np.uint64) & 0xFFFFFFFF
+    state = (x * 747796405 + 2891336453) & 0xFFFFFFFF
+    word = (((state >> ((state >> 28) + 4)) ^ state) * 277803737) & 0xFFFFFFFF
+    return ((word >> 22) ^ word) & 0xFFFFFFFF
+
+
+def batch_indices(seed, n, n_src):
+    """Source ray indices of batch slots 0..n-1 (cl/batch.cl gather_batch)."""
+    h = pcg_hash(np.uint64(seed) ^ pcg_hash(np.arange(n, dtype=np.uint64)))
+    return ((h * np.uint64(n_src)) >> np.uint64(32)).astype(np.int64)

@@ -30,3 +30,58 @@ FD_RTOL = 1e-5
 from clrf.render import T_STOP  # noqa: E402
 
 CLOSED_FORM_ATOL = T_STOP + 1e-6
+
+# Camera rays are returned in float32 (the kernels' input type): components of size <= ~10 carry
+# a rounding error <= 10 * 6e-8 = 6e-7, so 2e-6 absolute; a convention error (half-pixel shift,
+# flipped axis) is >= 1e-2 on the toy cameras the tests use.
+CAMERA_ATOL = 2e-6
+# Undistortion by fixed-point iteration stops at 1e-12 in float64; 1e-6 (normalised units, i.e.
+# ~1e-3 px at f = 1000) is the accuracy the data layer promises.
+UNDISTORT_ATOL = 1e-6
+# Procedural images are computed in float64 and stored as float32 (values in [0, 1]: error
+# <= 6e-8); hand-computed expected values are written with 6 decimals (error <= 5e-7).
+PROCEDURAL_ATOL = 1e-6
+# ---- stability suite (tools/stability.py, tests/test_stability.py) -----------------------------
+# Relative error bounds below use u = 6e-8 (float32 unit roundoff) and N = samples per ray.
+
+# Exact identities: fully pruned grids (rgb == background bit for bit), directions scaled by a
+# power of two (the set-up divides by the largest component in double: bitwise identical), and
+# the absolute part of the relative-only checks below.
+STAB_ZERO_ATOL = 0.0
+# Closed forms that hold up to early termination (CLOSED_FORM_ATOL above) plus float32
+# accumulation of N <= ~200 weights: N u = 1.2e-5 worst case; 1e-5 relative is plenty because the
+# absolute part already covers everything near 1.
+STAB_CLOSED_FORM_RTOL = 1e-5
+# Opacity against 1 - exp(-sigma L) relative to itself, for rays that do not terminate early
+# (tiny sigma: acc ~ sigma L ~ 1e-12 must still be right to float32 precision). acc is a float32
+# sum of N <= 300 terms, each T_k alpha_k with ~3u error (expm1, exp of the Kahan log-T, product):
+# worst case (N/2 + 3) u = 9e-6. Segment lengths telescope exactly (consecutive segment ends are
+# the same float and s1 - s0 is exact for k >= 1), so a missing or doubled piece of path
+# (>= one step, i.e. >= 1/N relative) fails by orders of magnitude.
+STAB_SEGMENT_SUM_RTOL = 2e-5
+# Long rays (N >= 4096 samples): rgb is a plain float32 sum of N terms (worst case N u |rgb|
+# = 2.5e-4, random-walk sqrt(N) u = 4e-6) and sample positions p0 + s dg carry ulp(s) ~ 1e-5
+# voxels at s ~ 128..512 voxels. 5e-5 absolute is 10x the random-walk estimate plus position error,
+# 5x below the worst case; a drift that grows with N (no Kahan in log T) reaches 1e-3.
+STAB_LONG_RAY_ATOL = 5e-5
+# Long-ray gradients: remaining radiance = total - Kahan prefix, so its error is ~ u |total| per
+# sample instead of N u; summed over the ~N/Z samples of a voxel (tens) with deltas ~1e-3: 2e-5
+# (GRAD_ATOL) stays the right scale. Kept separate so a future change is visible.
+STAB_LONG_GRAD_ATOL = 2e-5
+# Reductions of n = 4M..16M squared differences against float64 numpy (relative):
+# fp64: each work-item adds n / 16384 terms in double then a 7-level tree: (n/16384 + 20) * 1.1e-16
+# < 2e-13; 1e-12 leaves margin.
+STAB_REDUCE_FP64_RTOL = 1e-12
+# compensated float32 (TwoSum heads, exact squares by fma): only the tails are rounded, error
+# ~ (ops) u^2 ~ 1.6e7 * 3.6e-15 = 6e-8; 1e-6 is still 4000x tighter than a float32 running sum
+# (4.5e-3 measured at n = 4M).
+STAB_REDUCE_F32C_RTOL = 1e-6
+# PSNR in dB: d(PSNR) = (10 / ln 10) d(MSE)/MSE = 4.34 * 1e-6 at the looser reduction bound.
+STAB_PSNR_ATOL = 1e-5
+# Observed convergence order of the midpoint quadrature (expected 2): the next term of the error
+# is O(sigma delta) ~ 0.2 relative at step 1 (sigma = 3, delta = 1/16), i.e. ~0.25 in log2.
+STAB_ORDER_ATOL = 0.25
+# Very long rays (~1e6 samples, step 1e-5 voxels): what compensated accumulation gives
+# independent of N (Kahan: 2u + N u^2 = 1.6e-7 relative at N = 1e6, plus ~3u per term as for
+# STAB_SEGMENT_SUM_RTOL); 1e-5 is 60x that. A plain float32 sum drifts up to N u / 2 = 3e-2.
+STAB_VERY_LONG_RTOL = 1e-5

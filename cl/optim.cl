@@ -1,0 +1,44 @@
+/* optim.cl: optimiser updates of parameter rows touched in this step.
+ *
+ * Layout: param, grad, state are float [n_rows, D] (row-major); touched uchar [n_rows].
+ * For each touched row k and column j (i = k*D + j), with g = clamp(grad[i], +-GRAD_CLAMP):
+ *   RMSProp (OPT_MODE 0, svox2's variant): s = state[i] == 0 ? g^2 : beta s + (1 - beta) g^2,
+ *                                          param[i] -= lr g / (sqrt(s) + eps)
+ *   SGD     (OPT_MODE 1):                  param[i] -= lr g
+ * then grad[i] = 0, so gradient buffers stay zero outside the rows touched by the next step
+ * (no dense zero-fill per step). With clear_touched = 1 the row's flag is reset too.
+ * A zero gradient leaves param and state unchanged (state stays 0 until the first real touch).
+ *
+ * Defines read: OPT_MODE.  Mirrored by reference.rmsprop_rows / sgd_rows.
+ */
+#ifndef OPT_MODE
+#define OPT_MODE 0  /* 0: RMSProp, 1: SGD */
+#endif
+#if OPT_MODE != 0 && OPT_MODE != 1
+#error "OPT_MODE must be 0 (RMSProp) or 1 (SGD)"
+#endif
+/* |g| above this is clamped, so g*g stays finite in float32 (1e18^2 = 1e36 < 3.4e38). */
+#define GRAD_CLAMP 1e18f
+
+__kernel void update_rows(const int n_rows, const int D, __global float *param,
+                          __global float *grad, __global float *state,
+                          __global uchar *touched, const float lr, const float beta,
+                          const float eps, const int clear_touched) {
+    const int k = get_global_id(0);
+    if (k >= n_rows || !touched[k]) return;
+    for (int j = 0; j < D; ++j) {
+        const size_t i = (size_t)k * D + j;
+        const float g = clamp(grad[i], -GRAD_CLAMP, GRAD_CLAMP);
+        grad[i] = 0.0f;
+        if (g == 0.0f) continue;
+#if OPT_MODE == 0
+        const float s0 = state[i];
+        const float s = s0 == 0.0f ? g * g : beta * s0 + (1.0f - beta) * g * g;
+        state[i] = s;
+        param[i] -= lr * g / (sqrt(s) + eps);
+#else
+        param[i] -= lr * g;
+#endif
+    }
+    if (clear_touched) touched[k] = 0;
+}

@@ -1,0 +1,78 @@
+/* reduce.cl: accurate sum of squared differences sum_i (x_i - y_i)^2 over float32 arrays.
+ *
+ * Used by clrf/reduce.py for the loss and PSNR over millions of rays, where a float32 running
+ * sum loses ~log2(n) bits. Two accumulators, chosen at build time:
+ *
+ *   REDUCE_FP64 1  each difference is formed in double (exact for two floats), squared and
+ *                  summed in double. Relative error ~ n * 1.1e-16.
+ *   REDUCE_FP64 0  compensated float32: a partial sum is an unevaluated pair (hi, lo) of floats
+ *                  worth hi + lo. A term enters as the exact difference (TwoSum) squared, with
+ *                  the square's rounding error from fma; pairs merge with Knuth's TwoSum on the
+ *                  heads, so only the small tails are rounded (a double-float sum).
+ *
+ * Layout: x, y float [n]; partial [n_groups] (double, or float2 (hi, lo)), one per work-group.
+ * Work-item g of group w sums elements i = w*REDUCE_WG + g, stepping by the global size, then the
+ * group reduces its REDUCE_WG partials in a tree in local memory. The host adds the n_groups
+ * (<= a few hundred) partials in float64.
+ *
+ * Requires IEEE round-to-nearest: never build with -cl-fast-relaxed-math (TwoSum would fold).
+ *
+ * Defines read: REDUCE_FP64 (0/1), REDUCE_WG (work-group size, a power of two).
+ */
+#ifndef REDUCE_FP64
+#define REDUCE_FP64 0   /* 1: double accumulation (needs cl_khr_fp64); 0: compensated float32 */
+#endif
+#ifndef REDUCE_WG
+#define REDUCE_WG 64    /* work-group size the kernel is launched with (power of two) */
+#endif
+#if (REDUCE_WG & (REDUCE_WG - 1)) != 0
+#error "REDUCE_WG must be a power of two"
+#endif
+
+#if REDUCE_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double acc_t;
+#define ACC_ZERO 0.0
+inline acc_t acc_add(acc_t a, acc_t b) { return a + b; }
+/* (a - b)^2: the difference of two floats is exact in double. */
+inline acc_t sq_diff(float a, float b) { double d = (double)a - (double)b; return d * d; }
+#else
+typedef float2 acc_t;
+#define ACC_ZERO ((float2)(0.0f, 0.0f))
+/* Knuth's TwoSum: s + e == a + b exactly (round to nearest). */
+inline float2 two_sum(float a, float b) {
+    float s = a + b;
+    float bp = s - a;
+    float e = (a - (s - bp)) + (b - bp);
+    return (float2)(s, e);
+}
+/* Sum of two pairs: heads with TwoSum, tails (small) added in float. */
+inline acc_t acc_add(acc_t a, acc_t b) {
+    float2 h = two_sum(a.x, b.x);
+    return (float2)(h.x, h.y + (a.y + b.y));
+}
+/* (a - b)^2 as a pair: exact difference d = (dh, dl), exact square of dh via fma, plus the
+ * cross term 2 dh dl (dl^2 is below the float32 resolution of the result). */
+inline acc_t sq_diff(float a, float b) {
+    float2 d = two_sum(a, -b);
+    float p = d.x * d.x;
+    return (float2)(p, fma(d.x, d.x, -p) + 2.0f * d.x * d.y);
+}
+#endif
+
+__kernel __attribute__((reqd_work_group_size(REDUCE_WG, 1, 1)))
+void sum_sq_diff_partial(const long n, __global const float *x, __global const float *y,
+                         __global acc_t *partial) {
+    __local acc_t scratch[REDUCE_WG];
+    const size_t lid = get_local_id(0);
+    const size_t stride = get_global_size(0);
+    acc_t s = ACC_ZERO;
+    for (long i = get_global_id(0); i < n; i += stride) s = acc_add(s, sq_diff(x[i], y[i]));
+    scratch[lid] = s;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int w = REDUCE_WG / 2; w > 0; w >>= 1) {  /* "half" is a type name */
+        if (lid < (size_t)w) scratch[lid] = acc_add(scratch[lid], scratch[lid + w]);
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (lid == 0) partial[get_group_id(0)] = scratch[0];
+}

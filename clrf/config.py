@@ -1,0 +1,219 @@
+"""Typed, validated configuration: defaults < scene preset < config file < command line.
+
+One dataclass per concern. Every field is commented; `validate()` rejects out-of-range values
+with a message naming the field. The effective configuration is written next to the outputs
+(config.json) and can be fed back with --config.
+
+Schedules are in iterations and were chosen for CPU budgets of minutes (svox2's defaults,
+anchors.md 2.1, assume 100k+ GPU iterations): a coarse grid first, pruned by rendering weight
+and upsampled twice within the first few hundred iterations, RMSProp with svox2's rates but
+decay horizons of a few thousand iterations.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+class ConfigError(ValueError):
+    """An unknown option or an out-of-range value; the message names the field and the fix."""
+
+
+@dataclass
+class GridConfig:
+    reso: list = field(default_factory=lambda: [[64, 64, 64], [128, 128, 128], [256, 256, 256]])
+    # ^ grid resolutions, coarse to fine; the run moves to the next at each upsample_at entry
+    upsample_at: list = field(default_factory=lambda: [300, 1200])
+    # ^ iterations at which to prune (by rendering weight) and upsample to the next resolution
+    sh_degree: int = 2            # SH degree of colour (0: diffuse .. 3)
+    step: float = 0.5             # ray-march step in voxels
+    init_density: float = 0.1     # initial density of every voxel of the first grid
+    sphere_bound: bool = True     # start with voxels inside the bbox's inscribed sphere only
+    batch_size: int = 5000        # rays per step
+    optimizer: str = "rmsprop"    # "rmsprop" (svox2) or "sgd"
+    rms_beta: float = 0.95        # RMSProp decay
+    lr_density: float = 30.0      # density learning rate (svox2: 3e1)
+    lr_density_final: float = 0.05
+    lr_density_delay_steps: int = 100   # reverse-cosine warm-up of the density lr
+    lr_density_delay_mult: float = 0.01
+    lr_sh: float = 1e-2           # SH learning rate (svox2: 1e-2)
+    lr_sh_final: float = 5e-6
+    lr_decay_steps: int = 20000   # horizon of the log-linear decay
+    lambda_tv: float = 1e-5       # TV weight on density (svox2 syn: 1e-5)
+    lambda_tv_sh: float = 1e-3    # TV weight on SH (svox2 syn: 1e-3)
+    tv_fraction: float = 0.01     # fraction of cells regularised per step (one contiguous window)
+    tv_early_only: bool = True    # stop TV after the first upsample (svox2 syn)
+    lambda_sparsity: float = 0.0  # Cauchy sparsity prior on density (svox2 llff: 1e-12 scale)
+    weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
+    prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
+
+
+@dataclass
+class TrainConfig:
+    model: str = "grid"           # "grid" (Plenoxels) or "nerf"
+    data: str = ""                # dataset path; empty: the built-in procedural scene
+    preset: str = ""              # scene preset; empty: the dataset's own
+    max_seconds: float = 120.0    # wall-clock training budget (evaluation excluded)
+    max_iters: int = 100000       # iteration cap
+    eval_every: float = 10.0      # seconds of training between evaluations
+    eval_views: int = 4           # test views per periodic evaluation (all at the end)
+    final_eval: bool = True       # evaluate every test view at the end
+    checkpoint_every: float = 60.0  # seconds of training between checkpoints
+    seed: int = 0                 # batch sampling and initialisation seed
+    background: list = field(default_factory=list)  # override the dataset background [r,g,b]
+    downscale: int = 1            # load images downscaled by this integer factor
+    max_train_images: int = 0     # 0: all
+
+
+PRESETS = {
+    # Blender-style synthetic 360: white/black background, no NDC, no background model.
+    "synthetic": {"grid": {}},
+    # The built-in procedural scene: small images, smaller grids.
+    "procedural": {"grid": {"reso": [[48, 48, 48], [96, 96, 96]], "upsample_at": [250],
+                            "sh_degree": 2, "batch_size": 4000},
+                   "train": {"max_seconds": 60.0, "eval_every": 5.0}},
+    # tiny_lego (100x100 images): a 160^3 final grid is as fine as the pixels can resolve.
+    "tiny": {"grid": {"reso": [[64, 64, 64], [128, 128, 128]], "upsample_at": [250],
+                      "batch_size": 4000}},
+    # Forward-facing (LLFF): NDC rays, stronger TV, sparsity prior (svox2 llff.json).
+    "forward_facing": {"grid": {"reso": [[128, 128, 64], [256, 256, 128]], "upsample_at": [500],
+                                "sphere_bound": False, "lambda_tv": 5e-4,
+                                "lambda_tv_sh": 5e-3, "tv_early_only": False,
+                                "lambda_sparsity": 1e-10}},
+    # Unbounded real 360: no sphere bound, sparsity prior (no background model yet).
+    "real360": {"grid": {"sphere_bound": False, "lambda_tv": 5e-5, "lambda_tv_sh": 5e-3,
+                         "tv_early_only": False, "lambda_sparsity": 1e-10}},
+}
+
+
+@dataclass
+class Config:
+    grid: GridConfig = field(default_factory=GridConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    nerf: dict = field(default_factory=dict)   # NeRF options (clrf.nerf.NerfConfig fields)
+
+    def to_dict(self):
+        return {"grid": dataclasses.asdict(self.grid), "train": dataclasses.asdict(self.train),
+                "nerf": dict(self.nerf)}
+
+    def validate(self):
+        g, t = self.grid, self.train
+        checks = [
+            (t.model in ("grid", "nerf"), "train.model", "must be 'grid' or 'nerf'"),
+            (not t.preset or t.preset in PRESETS, "train.preset", f"must be one of {sorted(PRESETS)}"),
+            (t.max_seconds > 0, "train.max_seconds", "must be > 0"),
+            (t.max_iters > 0, "train.max_iters", "must be > 0"),
+            (t.eval_every > 0, "train.eval_every", "must be > 0"),
+            (t.eval_views >= 1, "train.eval_views", "must be >= 1"),
+            (t.checkpoint_every > 0, "train.checkpoint_every", "must be > 0"),
+            (t.downscale >= 1, "train.downscale", "must be an integer >= 1"),
+            (t.max_train_images >= 0, "train.max_train_images", "must be >= 0"),
+            (len(t.background) in (0, 3) and all(0 <= b <= 1 for b in t.background),
+             "train.background", "must be empty or three values in [0, 1]"),
+            (isinstance(g.reso, list) and len(g.reso) >= 1
+             and all(isinstance(r, list) and len(r) == 3 and all(isinstance(v, int) and 1 <= v <= 1024 for v in r)
+                     for r in g.reso), "grid.reso", "must be a list of [x, y, z] integer resolutions in 1..1024"),
+            (isinstance(g.upsample_at, list) and len(g.upsample_at) == len(g.reso) - 1
+             and all(isinstance(v, int) and v > 0 for v in g.upsample_at)
+             and g.upsample_at == sorted(g.upsample_at), "grid.upsample_at",
+             "must list one increasing iteration per resolution after the first"),
+            (g.sh_degree in (0, 1, 2, 3), "grid.sh_degree", "must be 0, 1, 2 or 3"),
+            (0 < g.step <= 4, "grid.step", "must be in (0, 4] voxels"),
+            (g.init_density >= 0, "grid.init_density", "must be >= 0"),
+            (1 <= g.batch_size <= 1 << 22, "grid.batch_size", "must be in 1..4194304"),
+            (g.optimizer in ("rmsprop", "sgd"), "grid.optimizer", "must be 'rmsprop' or 'sgd'"),
+            (0 <= g.rms_beta < 1, "grid.rms_beta", "must be in [0, 1)"),
+            (g.lr_density > 0 and g.lr_density_final > 0, "grid.lr_density", "must be > 0"),
+            (g.lr_sh > 0 and g.lr_sh_final > 0, "grid.lr_sh", "must be > 0"),
+            (g.lr_decay_steps > 0, "grid.lr_decay_steps", "must be > 0"),
+            (g.lr_density_delay_steps >= 0, "grid.lr_density_delay_steps", "must be >= 0"),
+            (0 < g.lr_density_delay_mult <= 1, "grid.lr_density_delay_mult", "must be in (0, 1]"),
+            (g.lambda_tv >= 0 and g.lambda_tv_sh >= 0 and g.lambda_sparsity >= 0,
+             "grid.lambda_*", "regulariser weights must be >= 0"),
+            (0 < g.tv_fraction <= 1, "grid.tv_fraction", "must be in (0, 1]"),
+            (g.weight_thresh >= 0, "grid.weight_thresh", "must be >= 0"),
+            (g.prune_rays >= 1, "grid.prune_rays", "must be >= 1"),
+        ]
+        for ok, name, msg in checks:
+            if not ok:
+                value = _get(self, name)
+                raise ConfigError(f"{name} = {value!r}: {msg}")
+        return self
+
+
+def _get(cfg, dotted):
+    sect, _, key = dotted.partition(".")
+    obj = getattr(cfg, sect, None)
+    if key.endswith("*"):
+        return "..."
+    return getattr(obj, key, None) if not isinstance(obj, dict) else obj.get(key)
+
+
+def _merge(cfg: Config, d: dict, source: str):
+    for sect, vals in d.items():
+        if sect == "nerf":
+            if not isinstance(vals, dict):
+                raise ConfigError(f"{source}: 'nerf' must be an object")
+            cfg.nerf.update(vals)
+            continue
+        if sect not in ("grid", "train") or not isinstance(vals, dict):
+            raise ConfigError(f"{source}: unknown section '{sect}' (sections: grid, train, nerf)")
+        obj = getattr(cfg, sect)
+        names = {f.name: f for f in dataclasses.fields(obj)}
+        for k, v in vals.items():
+            if k not in names:
+                raise ConfigError(f"{source}: unknown option '{sect}.{k}'. Options of '{sect}': "
+                                  f"{', '.join(sorted(names))}")
+            cur = getattr(obj, k)
+            if isinstance(cur, bool):
+                if not isinstance(v, bool):
+                    raise ConfigError(f"{source}: {sect}.{k} must be true or false, got {v!r}")
+            elif isinstance(cur, int):
+                if isinstance(v, bool) or not isinstance(v, int):
+                    if isinstance(v, float) and v.is_integer():
+                        v = int(v)
+                    else:
+                        raise ConfigError(f"{source}: {sect}.{k} must be an integer, got {v!r}")
+            elif isinstance(cur, float):
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise ConfigError(f"{source}: {sect}.{k} must be a number, got {v!r}")
+                v = float(v)
+            elif isinstance(cur, list):
+                if not isinstance(v, list):
+                    raise ConfigError(f"{source}: {sect}.{k} must be a list, got {v!r}")
+            elif isinstance(cur, str) and not isinstance(v, str):
+                raise ConfigError(f"{source}: {sect}.{k} must be a string, got {v!r}")
+            setattr(obj, k, v)
+
+
+def load_config_file(path) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {p} not found: pass an existing JSON file to --config")
+    try:
+        d = json.loads(p.read_text())
+    except json.JSONDecodeError as e:
+        raise ConfigError(f"config file {p}: invalid JSON at line {e.lineno} column {e.colno}: "
+                          f"{e.msg}") from None
+    if not isinstance(d, dict):
+        raise ConfigError(f"config file {p}: expected a JSON object with sections grid/train/nerf")
+    return d
+
+
+def build_config(preset: str = "", file: str | None = None, overrides: dict | None = None,
+                 dataset_preset: str = "synthetic") -> Config:
+    """Defaults < preset (explicit, else the dataset's) < config file < overrides."""
+    cfg = Config()
+    file_d = load_config_file(file) if file else {}
+    name = preset or file_d.get("train", {}).get("preset", "") or dataset_preset
+    if name not in PRESETS:
+        raise ConfigError(f"train.preset = {name!r}: must be one of {sorted(PRESETS)}")
+    _merge(cfg, PRESETS[name], f"preset '{name}'")
+    if file_d:
+        _merge(cfg, file_d, f"config file {file}")
+    if overrides:
+        _merge(cfg, overrides, "command line")
+    cfg.train.preset = name
+    return cfg.validate()

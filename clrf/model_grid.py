@@ -1,0 +1,164 @@
+"""GridModel: a Plenoxels model being trained: the SparseGrid, its optimisers and schedule.
+
+Implements the model interface the trainer drives (shared with clrf.nerf.NerfModel):
+``train_step(it, origins, dirs, target) -> mse``, ``render(origins, dirs) -> dict``,
+``state_dict()``, ``from_state_dict(device, state)``, ``on_iteration(it, trainer)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl.array as cla
+
+from . import grid_ops
+from .config import GridConfig
+from .grid import SparseGrid, sh_dim
+from .optim import RowOptimizer, expon_lr
+from .render import render_backward_device, render_forward_device
+
+
+def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
+    """First (coarsest) grid: constant density, grey colour; optionally only voxels inside the
+    box's inscribed ellipsoid (svox2's sphere bound for 360 scenes)."""
+    reso = tuple(cfg.reso[0])
+    mask = np.ones(reso, bool)
+    if cfg.sphere_bound:
+        c = [(np.arange(r) + 0.5) / r * 2 - 1 for r in reso]
+        x, y, z = np.meshgrid(*c, indexing="ij")
+        mask = x * x + y * y + z * z <= 1.0
+    n = int(mask.sum())
+    links = np.full(reso, -1, np.int32)
+    links[mask] = np.arange(n, dtype=np.int32)
+    return SparseGrid.from_arrays(device, links, np.full(n, cfg.init_density, np.float32),
+                                  np.zeros((n, sh_dim(cfg.sh_degree)), np.float32), bbox)
+
+
+class GridModel:
+    kind = "grid"
+
+    def __init__(self, device, cfg: GridConfig, grid: SparseGrid, background, stage: int = 0,
+                 opt_state=None):
+        self.device = device
+        self.cfg = cfg
+        self.background = tuple(float(b) for b in background)
+        self.stage = stage          # index into cfg.reso of the current grid
+        self._set_grid(grid, opt_state)
+
+    @classmethod
+    def create(cls, device, cfg: GridConfig, bbox, background):
+        return cls(device, cfg, initial_grid(device, cfg, bbox), background)
+
+    def _set_grid(self, grid, opt_state=None):
+        self.grid = grid
+        q = self.device.queue
+        st = opt_state or {}
+        self.opt_density = RowOptimizer(self.device, grid.density, self.cfg.optimizer,
+                                        self.cfg.rms_beta, state=st.get("density"))
+        self.opt_sh = RowOptimizer(self.device, grid.sh, self.cfg.optimizer, self.cfg.rms_beta,
+                                   state=st.get("sh"))
+        self.touched = cla.zeros(q, grid.density.shape[0], np.uint8)
+        self._sqerr = None
+
+    # ---- training ----------------------------------------------------------------------
+    def learning_rates(self, it):
+        c = self.cfg
+        return (expon_lr(it, c.lr_density, c.lr_density_final, c.lr_decay_steps,
+                         c.lr_density_delay_steps, c.lr_density_delay_mult),
+                expon_lr(it, c.lr_sh, c.lr_sh_final, c.lr_decay_steps))
+
+    def train_step(self, it, origins, dirs, target) -> float:
+        """One RMSProp step on a batch (device arrays [B, 3]); returns the batch MSE."""
+        c = self.cfg
+        B = origins.shape[0]
+        q = self.device.queue
+        if self._sqerr is None or self._sqerr.shape[0] != B:
+            self._sqerr = cla.empty(q, B, np.float32)
+        render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
+                               self.opt_density.grad, self.opt_sh.grad, grad_mode=1,
+                               loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
+                               touched=self.touched)
+        if not (c.tv_early_only and self.stage > 0):
+            self._tv(it)
+        lr_d, lr_s = self.learning_rates(it)
+        self.opt_density.step(self.touched, lr_d, clear_touched=False)
+        self.opt_sh.step(self.touched, lr_s, clear_touched=True)
+        return float(cla.sum(self._sqerr).get()) / (3 * B)
+
+    def _tv(self, it):
+        c = self.cfg
+        g = self.grid
+        total = int(np.prod(g.reso))
+        n = max(1, int(c.tv_fraction * total))
+        start = int(np.random.default_rng(it).integers(total))
+        if c.lambda_tv > 0 or c.lambda_sparsity > 0:
+            grid_ops.tv_grad(g, g.density, self.opt_density.grad, self.touched, start, n,
+                             c.lambda_tv / n, True, c.lambda_sparsity / n)
+        if c.lambda_tv_sh > 0:
+            grid_ops.tv_grad(g, g.sh, self.opt_sh.grad, self.touched, start, n,
+                             c.lambda_tv_sh / n, False)
+
+    def on_iteration(self, it, trainer):
+        """Prune and upsample at the scheduled iterations. Returns a log message or None."""
+        c = self.cfg
+        if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
+            o, d = trainer.rays.strided(c.prune_rays)
+            return self.upsample(o, d)
+        return None
+
+    def upsample(self, origins, dirs):
+        """Prune rows whose max rendering weight over the given rays is below
+        weight_thresh / new z-resolution (dilated by one voxel), then resample to the next
+        resolution of the schedule."""
+        c = self.cfg
+        new_reso = tuple(c.reso[self.stage + 1])
+        before = self.grid.n_rows
+        mw = grid_ops.max_weight(self.grid, origins, dirs, c.step)
+        keep = grid_ops.prune_keep(self.grid, mw, c.weight_thresh / new_reso[2])
+        kept = int(cla.sum(keep.astype(np.int32)).get())
+        self._set_grid(grid_ops.resample(self.grid, new_reso, keep))
+        self.stage += 1
+        return (f"pruned {before} -> {kept} rows, upsampled to {new_reso[0]}x{new_reso[1]}x"
+                f"{new_reso[2]} ({self.grid.n_rows} rows)")
+
+    # ---- evaluation ----------------------------------------------------------------------
+    def render(self, origins, dirs, chunk=1 << 16):
+        """Render numpy rays [n, 3] in chunks; returns numpy rgb, depth, acc."""
+        q = self.device.queue
+        n = origins.shape[0]
+        out = {"rgb": np.empty((n, 3), np.float32), "depth": np.empty(n, np.float32),
+               "acc": np.empty(n, np.float32)}
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            r = render_forward_device(self.grid, cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                                      cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
+                                      self.cfg.step, self.background)
+            for k in out:
+                out[k][s:e] = r[k].get()
+        return out
+
+    def describe(self):
+        r = self.grid.reso
+        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows"
+
+    # ---- state -------------------------------------------------------------------------
+    def state_dict(self):
+        n = self.grid.n_rows
+        return {
+            "model": "grid", "stage": self.stage, "sh_degree": self.grid.sh_degree,
+            "background": list(self.background),
+            "links": self.grid.links.get(), "bbox": self.grid.bbox,
+            "density": self.grid.density.get()[:n], "sh": self.grid.sh.get()[:n],
+            "opt_density": self.opt_density.state.get()[:n],
+            "opt_sh": self.opt_sh.state.get()[:n],
+        }
+
+    @classmethod
+    def from_state_dict(cls, device, state, cfg: GridConfig):
+        grid = SparseGrid.from_arrays(device, state["links"], state["density"], state["sh"],
+                                      state["bbox"])
+        q = device.queue
+        pad = grid.density.shape[0] - state["density"].shape[0]
+        od = np.concatenate([state["opt_density"], np.zeros(pad, np.float32)])
+        osh = np.concatenate([state["opt_sh"], np.zeros((pad, grid.sh_dim), np.float32)])
+        opt = {"density": cla.to_device(q, od.astype(np.float32)),
+               "sh": cla.to_device(q, osh.astype(np.float32))}
+        return cls(device, cfg, grid, state["background"], int(state["stage"]), opt)

@@ -1,0 +1,49 @@
+"""Model kinds the trainer and CLI know, and loading a model back from a checkpoint."""
+from __future__ import annotations
+
+from . import checkpoint
+from .config import Config, _merge
+
+
+class GridFactory:
+    @staticmethod
+    def create(device, cfg, ds, background):
+        from .model_grid import GridModel
+        return GridModel.create(device, cfg.grid, ds.bbox, background)
+
+    @staticmethod
+    def from_state(device, state, cfg):
+        from .model_grid import GridModel
+        return GridModel.from_state_dict(device, state, cfg.grid)
+
+
+class NerfFactory:
+    @staticmethod
+    def create(device, cfg, ds, background):
+        from .nerf import NerfConfig, NerfModel
+        return NerfModel(device, NerfConfig.from_dict(cfg.nerf, ds), ds.near, ds.far,
+                         background, cfg.train.seed)
+
+    @staticmethod
+    def from_state(device, state, cfg):
+        from .nerf import NerfModel
+        return NerfModel.from_state_dict(device, state)
+
+
+FACTORIES = {"grid": GridFactory, "nerf": NerfFactory}
+
+
+def config_from_state(state) -> Config:
+    cfg = Config()
+    _merge(cfg, state["config"], "checkpoint")
+    return cfg
+
+
+def load_model(device, ckpt):
+    """(model, state, config) from a run directory or checkpoint file."""
+    state = checkpoint.load(ckpt)
+    cfg = config_from_state(state)
+    kind = state.get("model", "grid")
+    if kind not in FACTORIES:
+        raise checkpoint.CheckpointError(f"checkpoint {ckpt}: unknown model kind '{kind}'")
+    return FACTORIES[kind].from_state(device, state, cfg), state, cfg

@@ -1,0 +1,300 @@
+"""The training loop shared by Plenoxels (GridModel) and NeRF (NerfModel).
+
+Rays of every training pixel are built once (vectorised numpy) and kept on the device; each
+step draws a random batch on the device (cl/batch.cl), runs the model's fused step, and reads
+back one number (the batch loss). Held-out views are evaluated every ``eval_every`` seconds of
+training; the clock excludes evaluation and checkpointing, so ``seconds`` in metrics.csv is
+pure training time. Outputs in the run directory:
+
+- ``config.json``       the effective configuration (feed it back with --config)
+- ``metrics.csv``       iteration, seconds, train_loss, train_psnr, eval_psnr, eval_ssim, ...
+- ``error_vs_time.png`` eval PSNR against training seconds
+- ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
+- ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation
+"""
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyopencl.array as cla
+
+from . import checkpoint
+from .cameras import pixel_rays, to_ndc
+from .metrics import image_metrics, psnr_from_mse
+from .programs import launch
+
+CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
+              "eval_views", "rays_per_s", "model"]
+
+
+class RayStore:
+    """All training rays and colours on the device; random batches drawn on the device."""
+
+    def __init__(self, device, origins, dirs, colors):
+        q = device.queue
+        self.device = device
+        self.n = int(origins.shape[0])
+        self.host = (origins, dirs)
+        self.o = cla.to_device(q, np.ascontiguousarray(origins, np.float32))
+        self.d = cla.to_device(q, np.ascontiguousarray(dirs, np.float32))
+        self.c = cla.to_device(q, np.ascontiguousarray(colors, np.float32))
+        self._bufs = {}
+
+    def batch(self, seed: int, n: int):
+        """(origins, dirs, colours, indices) of n rays drawn with replacement; deterministic in seed."""
+        q = self.device.queue
+        if n not in self._bufs:
+            self._bufs[n] = tuple(cla.empty(q, (n, 3), np.float32) for _ in range(3)) + (
+                cla.empty(q, n, np.int32),)
+        bo, bd, bc, bi = self._bufs[n]
+        k = self.device.program("batch.cl").kernel("gather_batch")
+        launch(self.device, k, n, (np.int32(n), np.uint32(seed & 0xFFFFFFFF), np.uint32(self.n),
+                                   self.o.data, self.d.data, self.c.data, bo.data, bd.data,
+                                   bc.data, bi.data))
+        return bo, bd, bc, bi
+
+    def strided(self, n: int):
+        """About n rays evenly strided over the training set (numpy views)."""
+        stride = max(1, self.n // max(1, n))
+        o, d = self.host
+        return o[::stride], d[::stride]
+
+
+def view_rays(ds, poses):
+    """Rays of whole views: numpy origins, dirs [len(poses)*H*W, 3] (NDC when the scene uses it)."""
+    H, W = ds.hw
+    o, d = pixel_rays(poses, ds.intrinsics, H, W, ds.distortion)
+    if ds.ndc:
+        o, d = to_ndc(o, d, ds.intrinsics, H, W)
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+def training_rays(device, ds, max_images=0):
+    idx = ds.split["train"]
+    if max_images:
+        idx = idx[:max_images]
+    o, d = view_rays(ds, ds.poses[idx])
+    c = ds.images[idx].reshape(-1, 3)
+    return RayStore(device, o, d, c)
+
+
+def evaluate(model, ds, views, keep_images=False):
+    """PSNR/SSIM of the model's renders of the given test view indices (into ds.images)."""
+    H, W = ds.hw
+    per_view, images = [], []
+    for v in views:
+        o, d = view_rays(ds, ds.poses[v:v + 1])
+        rgb = model.render(o, d)["rgb"].reshape(H, W, 3)
+        m = image_metrics(rgb, ds.images[v])
+        m["view"] = int(v)
+        per_view.append(m)
+        if keep_images:
+            images.append(np.clip(rgb, 0, 1))
+    mse = float(np.mean([m["mse"] for m in per_view]))
+    res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
+           "ssim": float(np.mean([m["ssim"] for m in per_view])),
+           "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
+    if keep_images:
+        res["images"] = images
+    return res
+
+
+def plot_error_vs_time(csv_path, png_path, title=""):
+    """PSNR on held-out views against training seconds, from metrics.csv."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in csv.DictReader(open(csv_path)) if r["eval_psnr"]]
+    # the final evaluation over every test view is the row after the last periodic one
+    final = rows[-1] if len(rows) > 1 and not rows[-1]["train_loss"] and rows[-1]["eval_views"] \
+        and rows[-1]["eval_views"] != rows[-2]["eval_views"] else None
+    periodic = rows[:-1] if final else rows
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    if rows:
+        t = [float(r["seconds"]) for r in periodic]
+        p = [float(r["eval_psnr"]) for r in periodic]
+        nv = periodic[-1]["eval_views"] if periodic else "?"
+        ax.plot(t, p, "o-", ms=3, label=f"eval PSNR ({nv} held-out views)")
+        if final:
+            ax.plot([float(final["seconds"])], [float(final["eval_psnr"])], "*", ms=10,
+                    label=f"final: all {final['eval_views']} test views, "
+                          f"{float(final['eval_psnr']):.2f} dB")
+        tr = [(float(r["seconds"]), float(r["train_psnr"])) for r in periodic if r["train_psnr"]]
+        if tr:
+            ax.plot(*zip(*tr), "-", alpha=0.5, label="train PSNR (batch)")
+        ax.legend(loc="lower right")
+    ax.set_xlabel("training time (s, evaluation excluded)")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = Path(str(png_path) + ".tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    tmp.replace(png_path)
+
+
+class Progress:
+    """One status line: rewritten in place on a terminal, printed every few seconds otherwise."""
+
+    def __init__(self, stream=sys.stderr):
+        self.stream = stream
+        self.tty = stream.isatty()
+        self.last = 0.0
+
+    def update(self, text, force=False):
+        now = time.perf_counter()
+        if self.tty and (force or now - self.last > 0.2):
+            self.stream.write("\r" + text[:150].ljust(150))
+            self.stream.flush()
+            self.last = now
+        elif not self.tty and (force or now - self.last > 10):
+            self.stream.write(text + "\n")
+            self.stream.flush()
+            self.last = now
+
+    def message(self, text):
+        if self.tty:
+            self.stream.write("\r" + " " * 150 + "\r")
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+
+class Trainer:
+    def __init__(self, device, ds, cfg, out_dir, resume=False, model_factory=None, log=print):
+        self.device = device
+        self.ds = ds
+        self.cfg = cfg
+        self.out = Path(out_dir)
+        self.log = log
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.ckpt_path = self.out / checkpoint.CKPT_NAME
+        self.csv_path = self.out / "metrics.csv"
+        t = cfg.train
+        self.background = tuple(t.background) if t.background else tuple(ds.background)
+        self.iteration = 0
+        self.seconds = 0.0
+        if resume:
+            state = checkpoint.load(self.ckpt_path)
+            self.model = model_factory.from_state(device, state, cfg)
+            self.iteration = int(state["iteration"])
+            self.seconds = float(state["seconds"])
+            self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
+                     f"({self.seconds:.1f} s)")
+        else:
+            self.model = model_factory.create(device, cfg, ds, self.background)
+            with open(self.csv_path, "w", newline="") as f:
+                csv.DictWriter(f, CSV_FIELDS).writeheader()
+        (self.out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        self.rays = training_rays(device, ds, t.max_train_images)
+        test = ds.split.get("test", ds.split.get("val"))
+        self.test_views = np.asarray(test)
+        k = min(t.eval_views, len(self.test_views))
+        self.periodic_views = self.test_views[np.linspace(0, len(self.test_views) - 1, k).astype(int)]
+
+    def _row(self, **kw):
+        with open(self.csv_path, "a", newline="") as f:
+            csv.DictWriter(f, CSV_FIELDS).writerow({k: kw.get(k, "") for k in CSV_FIELDS})
+
+    def save(self):
+        state = self.model.state_dict()
+        state.update(iteration=self.iteration, seconds=self.seconds,
+                     config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
+        checkpoint.save(self.ckpt_path, state)
+
+    def run(self):
+        t = self.cfg.train
+        batch = self.cfg.grid.batch_size if t.model == "grid" else self.model.batch_size
+        prog = Progress()
+        interrupted = False
+        old = signal.getsignal(signal.SIGINT)
+        losses = []
+        next_eval = self.seconds + (0 if self.iteration == 0 else t.eval_every)
+        next_ckpt = self.seconds + t.checkpoint_every
+        last_eval = None
+        title = (f"{self.ds.name}: {self.model.kind}, {self.device.caps.name} "
+                 f"({self.device.caps.platform_version.split()[3] if len(self.device.caps.platform_version.split()) > 3 else ''})")
+        try:
+            while True:
+                if self.seconds >= next_eval or self.seconds >= t.max_seconds \
+                        or self.iteration >= t.max_iters:
+                    ev = evaluate(self.model, self.ds, self.periodic_views)
+                    last_eval = ev
+                    lt = float(np.mean(losses)) if losses else float("nan")
+                    self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
+                              train_loss=f"{lt:.6g}" if losses else "",
+                              train_psnr=f"{psnr_from_mse(lt):.3f}" if losses else "",
+                              eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
+                              eval_views=len(self.periodic_views), rays_per_s=f"{self._rate:.0f}" if losses else "",
+                              model=self.model.describe())
+                    losses = []
+                    plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
+                    prog.message(f"it {self.iteration:6d}  {self.seconds:7.1f}s  eval PSNR "
+                                 f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
+                                 f"({len(self.periodic_views)} views)  {self.model.describe()}")
+                    next_eval = self.seconds + t.eval_every
+                if self.seconds >= t.max_seconds or self.iteration >= t.max_iters:
+                    break
+                if self.seconds >= next_ckpt:
+                    self.save()
+                    next_ckpt = self.seconds + t.checkpoint_every
+                t0 = time.perf_counter()
+                msg = self.model.on_iteration(self.iteration, self)
+                if msg:
+                    prog.message(f"it {self.iteration:6d}  {msg}")
+                bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, batch)
+                loss = self.model.train_step(self.iteration, bo, bd, bc)
+                dt = time.perf_counter() - t0
+                if not np.isfinite(loss):
+                    raise FloatingPointError(f"training loss became {loss} at iteration "
+                                             f"{self.iteration}; the last checkpoint is kept")
+                self.seconds += dt
+                self.iteration += 1
+                self._rate = batch / dt if dt > 0 else 0.0
+                losses.append(loss)
+                prog.update(f"it {self.iteration:6d} | {self.seconds:6.1f}/{t.max_seconds:.0f}s | "
+                            f"loss {loss:.5f} | PSNR {psnr_from_mse(loss):5.2f} | "
+                            f"{self._rate / 1e3:6.1f}k rays/s | {self.model.describe()}")
+        except KeyboardInterrupt:
+            interrupted = True
+            prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
+        finally:
+            signal.signal(signal.SIGINT, old)
+        self.save()
+        result = {"iteration": self.iteration, "seconds": self.seconds,
+                  "interrupted": interrupted}
+        if t.final_eval and not interrupted:
+            ev = evaluate(self.model, self.ds, self.test_views)
+            result.update(psnr=ev["psnr"], ssim=ev["ssim"], views=ev["views"],
+                          n_views=len(self.test_views))
+            self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
+                      eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
+                      eval_views=len(self.test_views), model=self.model.describe())
+            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
+            tmp = self.out / "eval.json.tmp"
+            tmp.write_text(json.dumps(result, indent=2))
+            tmp.replace(self.out / "eval.json")
+            prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
+                         f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
+                         f"({self.iteration} iterations)")
+        elif last_eval is not None:
+            result.update(psnr=last_eval["psnr"], ssim=last_eval["ssim"])
+        return result
+
+    _rate = 0.0
+
+
+def dataset_meta(ds):
+    H, W = ds.hw
+    return {"name": ds.name, "H": int(H), "W": int(W), "intrinsics": list(map(float, ds.intrinsics)),
+            "background": list(map(float, ds.background)), "ndc": bool(ds.ndc),
+            "near": float(ds.near), "far": float(min(ds.far, 1e10)), "preset": ds.preset,
+            "bbox": np.asarray(ds.bbox).tolist(),
+            "distortion": None if ds.distortion is None else list(map(float, ds.distortion))}

@@ -1,0 +1,197 @@
+"""Optimiser, TV/sparsity, pruning, resampling and batch kernels against float64 numpy."""
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+import clrf
+from clrf import grid_ops, reference as ref
+from clrf.optim import RowOptimizer, expon_lr
+
+from tolerances import GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
+
+BBOX = np.array([[-1.0] * 3, [1.0] * 3])
+
+
+def sparse_grid(device, rng, shape, degree=1, empty_frac=0.3):
+    C = 3 * (degree + 1) ** 2
+    dens = rng.uniform(0.1, 2.0, shape).astype(np.float32)
+    sh = rng.normal(0, 0.3, shape + (C,)).astype(np.float32)
+    alloc = rng.random(shape) >= empty_frac
+    dens[~alloc] = 0
+    sh[~alloc] = 0
+    return clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=alloc), dens, sh, alloc
+
+
+@pytest.mark.parametrize("mode", ["rmsprop", "sgd"])
+def test_update_rows_vs_reference(device, mode):
+    rng = np.random.default_rng(0)
+    q = device.queue
+    n, D = 37, 5
+    p0 = rng.normal(size=(n, D)).astype(np.float32)
+    g = rng.normal(size=(n, D)).astype(np.float32)
+    g[3] = 0                       # touched row with a zero gradient: no update, state stays 0
+    g[4, 0] = 1e30                 # huge gradient: clamped, finite
+    s0 = np.where(rng.random((n, D)) < 0.5, 0, rng.uniform(0.1, 1, (n, D))).astype(np.float32)
+    touched = (rng.random(n) < 0.6).astype(np.uint8)
+    touched[3] = touched[4] = 1
+    param = cla.to_device(q, p0)
+    opt = RowOptimizer(device, param, mode=mode, state=cla.to_device(q, s0))
+    opt.grad.set(g)
+    tch = cla.to_device(q, touched)
+    opt.step(tch, lr=0.1, clear_touched=True)
+    p_ref, s_ref = ref.update_rows(p0, g, s0, touched, 0.1, mode=mode)
+    np.testing.assert_allclose(param.get(), p_ref, rtol=1e-6, atol=1e-6)
+    if mode == "rmsprop":
+        np.testing.assert_allclose(opt.state.get()[~np.isinf(s_ref)], s_ref[~np.isinf(s_ref)],
+                                   rtol=1e-6, atol=1e-30)
+        assert np.all(opt.state.get()[3] == s0[3])
+    assert np.all(np.isfinite(param.get()))
+    # consumed gradients reset to zero, untouched ones kept
+    gg = opt.grad.get()
+    assert np.all(gg[touched == 1] == 0) and np.all(gg[touched == 0] == g[touched == 0])
+    assert np.all(tch.get() == 0)
+
+
+def test_update_rows_1d_and_first_step(device):
+    q = device.queue
+    p = cla.to_device(q, np.array([1.0, 2.0, 3.0], np.float32))
+    opt = RowOptimizer(device, p)
+    opt.grad.set(np.array([4.0, -0.5, 0.0], np.float32))
+    opt.step(cla.to_device(q, np.ones(3, np.uint8)), lr=0.5, clear_touched=False)
+    # RMSProp's first step is +-lr (state = g^2): 1 - 0.5, 2 + 0.5, untouched 3
+    np.testing.assert_allclose(p.get(), [0.5, 2.5, 3.0], rtol=1e-6)
+
+
+def test_expon_lr_schedule():
+    assert expon_lr(0, 1.0, 0.01, 100) == pytest.approx(1.0)
+    assert expon_lr(100, 1.0, 0.01, 100) == pytest.approx(0.01)
+    assert expon_lr(50, 1.0, 0.01, 100) == pytest.approx(0.1)
+    assert expon_lr(0, 1.0, 0.01, 100, delay_steps=10, delay_mult=0.01) == pytest.approx(0.01)
+    assert expon_lr(1000, 1.0, 0.01, 100) == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize("empty_is_zero,which", [(True, "density"), (False, "sh")])
+@pytest.mark.parametrize("start,frac", [(0, 1.0), (37, 0.3), (200, 0.5)])
+def test_tv_grad_vs_reference(device, empty_is_zero, which, start, frac):
+    rng = np.random.default_rng(start)
+    shape = (5, 6, 7)
+    grid, dens, sh, alloc = sparse_grid(device, rng, shape)
+    dens[2:4, 2:4, 2:4] = np.where(alloc[2:4, 2:4, 2:4], 0.7, 0)  # a flat patch
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=alloc)
+    q = device.queue
+    param = grid.density if which == "density" else grid.sh
+    grad = cla.zeros_like(param)
+    touched = cla.zeros(q, param.shape[0], np.uint8)
+    n_cells = int(frac * dens.size)
+    lam = 0.01 if which == "density" else 0.0
+    grid_ops.tv_grad(grid, param, grad, touched, start, n_cells, 0.5, empty_is_zero, lam)
+    data = dens if which == "density" else sh
+    r = ref.tv_grad(alloc, data, start, n_cells, 0.5, empty_is_zero, lam)
+    D = 1 if which == "density" else sh.shape[-1]
+    gk = grid.rows_to_dense(grad.get().reshape(-1), np.zeros((grad.shape[0], 3), np.float32))[0] \
+        if D == 1 else grid.rows_to_dense(np.zeros(grad.shape[0], np.float32), grad.get())[1]
+    np.testing.assert_allclose(gk.reshape(r.shape), r, atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    assert np.abs(r).max() > 0.01
+    assert np.all(np.isfinite(gk))
+    # every row that got a gradient is marked touched
+    links = grid.links.get()
+    t = touched.get()
+    nz = np.any(r.reshape(shape + (-1,)) != 0, axis=-1) & alloc
+    assert np.all(t[links[nz]] == 1)
+
+
+def test_tv_flat_region_has_zero_gradient(device):
+    shape = (4, 4, 4)
+    dens = np.full(shape, 2.0, np.float32)
+    sh = np.full(shape + (3,), 0.3, np.float32)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    grad = cla.zeros_like(grid.sh)
+    touched = cla.zeros(device.queue, grid.n_rows, np.uint8)
+    grid_ops.tv_grad(grid, grid.sh, grad, touched, 0, dens.size, 1.0, False)
+    assert np.all(grad.get() == 0)
+
+
+@pytest.mark.parametrize("new_reso", [(5, 6, 7), (10, 12, 14), (3, 3, 3), (1, 1, 1), (8, 5, 9)])
+def test_resample_vs_reference(device, new_reso):
+    rng = np.random.default_rng(sum(new_reso))
+    grid, dens, sh, alloc = sparse_grid(device, rng, (5, 6, 7))
+    keep = alloc & (rng.random(alloc.shape) < 0.7)
+    links = grid.links.get()
+    keep_rows = np.zeros(grid.density.shape[0], np.uint8)
+    keep_rows[links[keep]] = 1
+    g2 = grid_ops.resample(grid, new_reso, cla.to_device(device.queue, keep_rows))
+    d_ref, s_ref, a_ref = ref.resample(dens, sh, keep, new_reso)
+    assert g2.reso == tuple(new_reso)
+    np.testing.assert_array_equal(g2.links.get() >= 0, a_ref)
+    d2, s2 = g2.to_dense()
+    np.testing.assert_allclose(d2, d_ref, atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    np.testing.assert_allclose(s2, s_ref, atol=RENDER_ATOL, rtol=RENDER_RTOL)
+
+
+def test_resample_same_reso_keep_all_is_identity(device):
+    rng = np.random.default_rng(1)
+    grid, dens, sh, alloc = sparse_grid(device, rng, (4, 5, 6))
+    g2 = grid_ops.resample(grid, grid.reso)
+    d2, s2 = g2.to_dense()
+    np.testing.assert_array_equal(g2.links.get() >= 0, alloc)
+    np.testing.assert_allclose(d2, dens, rtol=1e-6)
+    np.testing.assert_allclose(s2, sh, rtol=1e-6, atol=1e-7)
+
+
+def test_prune_vs_reference_and_to_nothing(device):
+    rng = np.random.default_rng(2)
+    grid, dens, sh, alloc = sparse_grid(device, rng, (6, 6, 6), degree=0)
+    o = (rng.normal(0, 2.5, (200, 3))).astype(np.float32)
+    d = (rng.uniform(-0.5, 0.5, (200, 3)) - o).astype(np.float32)
+    q = device.queue
+    mw = grid_ops.max_weight(grid, o, d, 0.5)
+    mw_dense = grid.rows_to_dense(mw.get(), np.zeros((mw.shape[0], 3), np.float32))[0]
+    thr = float(np.quantile(mw_dense[alloc], 0.8))
+    keep = grid_ops.prune_keep(grid, mw, thr)
+    keep_dense = np.zeros(alloc.shape, bool)
+    links = grid.links.get()
+    keep_dense[alloc] = keep.get()[links[alloc]] == 1
+    r = ref.prune_keep(alloc, mw_dense, dens, thr)
+    np.testing.assert_array_equal(keep_dense, r)
+    assert 0 < r.sum() < alloc.sum()
+    pruned = grid_ops.prune(grid, mw, thr)
+    assert pruned.n_rows == r.sum()
+    # pruned to nothing: a legal, empty grid that renders the background
+    empty = grid_ops.prune(grid, mw, 1e9)
+    assert empty.n_rows == 0 and np.all(empty.links.get() == -1)
+    out = clrf.render_rays(empty, o, d, background=(0.3, 0.3, 0.3))
+    assert np.all(out["acc"] == 0) and np.allclose(out["rgb"], 0.3)
+
+
+def test_pruned_grid_renders_like_its_dense_equivalent(device):
+    """Empty-space skipping over pruned cells leaves the render unchanged (float32 rounding)."""
+    rng = np.random.default_rng(4)
+    shape = (16, 16, 16)
+    dens = np.zeros(shape, np.float32)
+    dens[5:11, 4:9, 6:12] = rng.uniform(0.5, 4, (6, 5, 6))
+    sh = rng.normal(0, 0.3, shape + (3,)).astype(np.float32) * (dens > 0)[..., None]
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)   # rows only where non-zero
+    assert grid.n_rows < dens.size / 5
+    o = rng.normal(0, 3, (500, 3)).astype(np.float32)
+    d = (rng.uniform(-0.4, 0.4, (500, 3)) - o).astype(np.float32)
+    out = clrf.render_rays(grid, o, d, step=0.5)
+    r = ref.render_forward(dens, sh, BBOX, o, d, 0.5)         # dense, no skipping
+    np.testing.assert_allclose(out["rgb"], r["rgb"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    assert np.sum(out["acc"] > 0.5) > 20
+
+
+def test_gather_batch_vs_reference(device):
+    from clrf.train import RayStore
+    rng = np.random.default_rng(0)
+    n_src = 1001
+    o = rng.normal(size=(n_src, 3)).astype(np.float32)
+    d = rng.normal(size=(n_src, 3)).astype(np.float32)
+    c = rng.uniform(size=(n_src, 3)).astype(np.float32)
+    store = RayStore(device, o, d, c)
+    bo, bd, bc, idx = store.batch(seed=1234, n=257)
+    r = ref.batch_indices(1234, 257, n_src)
+    np.testing.assert_array_equal(idx.get(), r)
+    np.testing.assert_array_equal(bo.get(), o[r])
+    np.testing.assert_array_equal(bc.get(), c[r])
+    counts = np.bincount(ref.batch_indices(7, 200000, 10), minlength=10)
+    assert counts.min() > 19000  # uniform over the sources

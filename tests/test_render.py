@@ -1,0 +1,240 @@
+"""Grid renderer: kernels against the float64 reference, finite differences and closed forms."""
+import numpy as np
+import pytest
+
+import clrf
+from clrf import reference as ref
+from clrf.render import LOCAL_SIZE
+
+from tolerances import (CLOSED_FORM_ATOL, DEPTH_ATOL, DEPTH_RTOL, FD_ATOL, FD_RTOL, GRAD_ATOL,
+                        GRAD_RTOL, RENDER_ATOL, RENDER_RTOL)
+
+BBOX = np.array([[-1.0, -1.2, -0.9], [1.1, 1.0, 1.0]])
+
+
+def random_grid(rng, shape, degree, empty_frac=0.0, dens_hi=3.0):
+    C = 3 * (degree + 1) ** 2
+    dens = rng.uniform(0.05, dens_hi, shape).astype(np.float32)
+    sh = rng.normal(0, 0.3, shape + (C,)).astype(np.float32)
+    if empty_frac:
+        empty = rng.random(shape) < empty_frac
+        dens[empty] = 0
+        sh[empty] = 0
+    return dens, sh
+
+
+def random_rays(rng, n, bbox=BBOX, spread=2.5):
+    """Rays from points around the box aimed at points inside it (most hit, some miss)."""
+    c = bbox.mean(0)
+    o = c + rng.normal(0, spread, (n, 3))
+    target = c + rng.uniform(-0.7, 0.7, (n, 3)) * (bbox[1] - bbox[0])
+    return o.astype(np.float32), (target - o).astype(np.float32)
+
+
+def assert_forward_matches(out, r):
+    np.testing.assert_allclose(out["rgb"], r["rgb"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    np.testing.assert_allclose(out["acc"], r["acc"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    np.testing.assert_allclose(out["depth"], r["depth"], atol=DEPTH_ATOL, rtol=DEPTH_RTOL)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("shape", [(1, 1, 1), (2, 2, 2), (3, 50, 7), (6, 5, 4)])
+def test_forward_vs_reference(device, degree, shape):
+    rng = np.random.default_rng(hash((degree, shape)) % 2**32)
+    dens, sh = random_grid(rng, shape, degree, empty_frac=0.25 if np.prod(shape) > 8 else 0.0)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    o, d = random_rays(rng, 200)
+    bg = (0.2, 0.5, 0.9)
+    out = clrf.render_rays(grid, o, d, step=0.37, background=bg)
+    r = ref.render_forward(dens, sh, BBOX, o, d, 0.37, bg)
+    assert_forward_matches(out, r)
+    assert np.any(out["acc"] > 0.1), "test rays should see the grid"
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, LOCAL_SIZE - 1, LOCAL_SIZE, LOCAL_SIZE + 1, 10000])
+def test_forward_ray_counts(device, n):
+    rng = np.random.default_rng(n)
+    dens, sh = random_grid(rng, (4, 5, 6), 2, empty_frac=0.2)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    o, d = random_rays(rng, n)
+    out = clrf.render_rays(grid, o, d, step=0.5)
+    assert out["rgb"].shape == (n, 3) and out["acc"].shape == (n,) and out["depth"].shape == (n,)
+    r = ref.render_forward(dens, sh, BBOX, o, d, 0.5)
+    assert_forward_matches(out, r)
+
+
+def test_forward_128_cubed(device):
+    rng = np.random.default_rng(128)
+    R = 128
+    dens = rng.uniform(0, 0.6, (R, R, R)).astype(np.float32)
+    dens[rng.random((R, R, R)) < 0.5] = 0  # half empty: exercises the cell skip at scale
+    sh = rng.normal(0, 0.3, (R, R, R, 3)).astype(np.float32)
+    bbox = np.array([[-1.0] * 3, [1.0] * 3])
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, bbox, mask=dens > 0)
+    sh[dens == 0] = 0
+    o, d = random_rays(rng, 48, bbox)
+    out = clrf.render_rays(grid, o, d, step=0.5)
+    r = ref.render_forward(dens, sh, bbox, o, d, 0.5)
+    assert_forward_matches(out, r)
+
+
+@pytest.mark.parametrize("degree", [0, 2, 3])
+def test_backward_vs_finite_differences(device, degree):
+    """Tiny grid: kernel gradient == reference analytic gradient == central differences."""
+    rng = np.random.default_rng(10 + degree)
+    shape = (2, 3, 2)
+    dens, sh = random_grid(rng, shape, degree, dens_hi=2.0)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    o, d = random_rays(rng, 24, spread=2.0)
+    g = rng.normal(size=(24, 3)).astype(np.float32)
+    bg = (0.3, 0.6, 0.1)
+    kern = clrf.render_rays_backward(grid, o, d, g, step=0.3, background=bg)
+    ana = ref.render_backward(dens, sh, BBOX, o, d, g, 0.3, bg)
+    np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    for which, arr in (("density", dens), ("sh", sh)):
+        for flat in rng.choice(arr.size, 6, replace=False):
+            idx = np.unravel_index(flat, arr.shape)
+            fd = ref.finite_difference(dens, sh, BBOX, o, d, g, which, idx, step=0.3,
+                                       background=bg)
+            assert abs(fd - ana[which][idx]) <= FD_ATOL + FD_RTOL * abs(fd), (which, idx, fd)
+    assert np.abs(ana["density"]).max() > 1e-3  # the rays do touch the grid
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_backward_vs_reference_medium(device, degree):
+    rng = np.random.default_rng(20 + degree)
+    shape = (9, 8, 10)
+    dens, sh = random_grid(rng, shape, degree, empty_frac=0.3, dens_hi=1.5)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    o, d = random_rays(rng, 300)
+    g = rng.normal(size=(300, 3)).astype(np.float32)
+    kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=(1, 1, 1))
+    ana = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, (1, 1, 1))
+    np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    assert np.all(kern["density"][dens == 0] == 0), "empty voxels get no gradient"
+
+
+def homogeneous(device, sigma, shape=(4, 4, 4), rgb=(0.2, 0.4, 0.6)):
+    """Grid of constant density sigma (world units) and constant diffuse colour rgb."""
+    dens = np.full(shape, sigma, np.float32)
+    sh = np.zeros(shape + (3,), np.float32)
+    sh[..., :] = (np.asarray(rgb) - 0.5) / ref.SH_C0
+    bbox = np.array([[0.0] * 3, [1.0] * 3])
+    return clrf.SparseGrid.from_dense(device, dens, sh, bbox), bbox
+
+
+@pytest.mark.parametrize("sigma", [1e-6, 1e-3, 1.0, 10.0, 1e3, 1e6])
+def test_homogeneous_slab_closed_form(device, sigma):
+    grid, bbox = homogeneous(device, sigma)
+    rng = np.random.default_rng(1)
+    o = np.array([[0.5, 0.5, -2.0], [0.3, 0.6, -1.0], [-1, -1, -1]], np.float32)
+    d = np.array([[0, 0, 1.0], [0.1, -0.05, 1.0], [1, 1, 1]], np.float32)
+    o = np.concatenate([o, rng.uniform(0.1, 0.9, (5, 3)).astype(np.float32)])  # inside
+    d = np.concatenate([d, rng.normal(size=(5, 3)).astype(np.float32)])
+    ref_m = ref.march_setup(o, d, grid.reso, bbox, 0.5)
+    L = ref_m["len"]
+    acc_exact = -np.expm1(-sigma * L)
+    out1 = clrf.render_rays(grid, o, d, step=0.5, background=(1, 1, 1))
+    out0 = clrf.render_rays(grid, o, d, step=0.5, background=(0, 0, 0))
+    np.testing.assert_allclose(out1["acc"], acc_exact, atol=CLOSED_FORM_ATOL, rtol=RENDER_RTOL)
+    diff = out1["rgb"] - out0["rgb"]
+    np.testing.assert_allclose(diff, np.repeat(1 - out1["acc"][:, None], 3, 1), atol=RENDER_ATOL)
+    # colour: constant rgb weighted by acc
+    np.testing.assert_allclose(out0["rgb"], out0["acc"][:, None] * [0.2, 0.4, 0.6],
+                               atol=RENDER_ATOL, rtol=RENDER_RTOL)
+
+
+def test_geometry_cases(device):
+    rng = np.random.default_rng(3)
+    shape = (4, 4, 4)
+    dens, sh = random_grid(rng, shape, 1)
+    bbox = np.array([[0.0] * 3, [1.0] * 3])
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, bbox)
+    vox = 0.25
+    cases = {
+        "miss": ([2.0, 2.0, -1.0], [0, 0, 1.0]),
+        "pointing away": ([0.5, 0.5, -1.0], [0, 0, -1.0]),
+        "inside start": ([0.4, 0.45, 0.5], [0.3, -0.2, 1.0]),
+        "along x axis": ([-1.0, 0.5 + 0.1 * vox, 0.5], [1.0, 0, 0]),
+        "along voxel face": ([0.5, 2 * vox, -1.0], [0, 0, 1.0]),
+        "through voxel edge": ([vox, 2 * vox, -1.0], [0, 0, 1.0]),
+        "on box face": ([0.0, 0.5, -1.0], [0, 0, 1.0]),
+        "tiny component": ([0.5, 0.5, -1.0], [1e-30, -1e-30, 1.0]),
+        "unnormalised": ([0.2, 0.7, -1.0], [0.3e-3, -0.1e-3, 1e-3]),
+        "diagonal corner": ([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]),
+    }
+    o = np.array([v[0] for v in cases.values()], np.float32)
+    d = np.array([v[1] for v in cases.values()], np.float32)
+    out = clrf.render_rays(grid, o, d, step=0.5, background=(1, 1, 1))
+    r = ref.render_forward(dens, sh, bbox, o, d, 0.5)
+    assert_forward_matches(out, r)
+    names = list(cases)
+    for k in ("miss", "pointing away"):
+        i = names.index(k)
+        assert out["acc"][i] == 0 and np.all(out["rgb"][i] == 1) and out["depth"][i] == 0
+    for k in names:
+        if k not in ("miss", "pointing away"):
+            assert out["acc"][names.index(k)] > 0.05, k
+    # unnormalised == normalised
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    out_n = clrf.render_rays(grid, o, dn.astype(np.float32), step=0.5)
+    np.testing.assert_allclose(out["rgb"], out_n["rgb"], atol=RENDER_ATOL)
+    np.testing.assert_allclose(out["depth"], out_n["depth"], atol=DEPTH_ATOL)
+
+
+def test_empty_grid(device):
+    shape = (3, 3, 3)
+    dens = np.zeros(shape, np.float32)
+    sh = np.zeros(shape + (12,), np.float32)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, [[0, 0, 0], [1, 1, 1]])
+    assert grid.n_rows == 0
+    rng = np.random.default_rng(0)
+    o = rng.uniform(-1, 2, (50, 3)).astype(np.float32)
+    d = (0.5 - o).astype(np.float32)
+    out = clrf.render_rays(grid, o, d, background=(0.1, 0.2, 0.3))
+    assert np.all(out["acc"] == 0) and np.all(out["depth"] == 0)
+    np.testing.assert_array_equal(out["rgb"], np.tile([0.1, 0.2, 0.3], (50, 1)).astype(np.float32))
+    g = clrf.render_rays_backward(grid, o, d, np.ones((50, 3), np.float32))
+    assert np.all(g["density"] == 0) and np.all(g["sh"] == 0)
+
+
+def test_dense_roundtrip_and_validation(device):
+    rng = np.random.default_rng(5)
+    dens, sh = random_grid(rng, (3, 4, 5), 2, empty_frac=0.5)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    d2, s2 = grid.to_dense()
+    np.testing.assert_array_equal(d2, dens)
+    np.testing.assert_array_equal(s2, sh)
+    with pytest.raises(ValueError, match="coefficients"):
+        clrf.SparseGrid.from_dense(device, dens, sh[..., :5], BBOX)
+    with pytest.raises(ValueError, match="bbox"):
+        clrf.SparseGrid.from_dense(device, dens, sh, [[0, 0, 0], [1, -1, 1]])
+    bad = dens.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="density.*NaN"):
+        clrf.SparseGrid.from_dense(device, bad, sh, BBOX)
+    o, d = random_rays(rng, 4)
+    d[1, 0] = np.inf
+    with pytest.raises(ValueError, match="dirs.*NaN or Inf"):
+        clrf.render_rays(grid, o, d)
+    with pytest.raises(ValueError, match="step"):
+        clrf.render_rays(grid, o, np.ones_like(o), step=0)
+
+
+def test_max_weight_vs_reference(device):
+    import pyopencl.array as cla
+    from clrf.render import render_max_weight_device
+    rng = np.random.default_rng(7)
+    dens, sh = random_grid(rng, (5, 6, 7), 0, empty_frac=0.3)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    o, d = random_rays(rng, 100)
+    q = device.queue
+    mw = cla.zeros(q, grid.density.shape[0], np.float32)
+    render_max_weight_device(grid, cla.to_device(q, o), cla.to_device(q, d), 0.5, mw)
+    dense_k, _ = grid.rows_to_dense(mw.get(), np.zeros((mw.shape[0], 3), np.float32))
+    r = ref.max_weight(dens, BBOX, o, d, 0.5)
+    r[~((dens != 0) | np.any(sh != 0, -1))] = 0  # unallocated voxels have no row
+    np.testing.assert_allclose(dense_k, r, atol=RENDER_ATOL, rtol=RENDER_RTOL)
+    assert r.max() > 0.05

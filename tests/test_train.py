@@ -1,0 +1,225 @@
+"""Training end to end through the CLI: outputs, resume, checkpoints, render/eval, bad input."""
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import clrf
+from clrf import checkpoint
+from clrf.cli import main as cli
+from clrf.config import ConfigError, build_config
+from clrf.model_grid import GridModel
+
+ROOT = Path(__file__).resolve().parent.parent
+# A small, fast schedule for the built-in scene: 16^3 -> 32^3 after 8 iterations.
+FAST = ["--set", "grid.reso=[[16,16,16],[32,32,32]]", "--set", "grid.upsample_at=[8]",
+        "--set", "grid.batch_size=1024", "--set", "train.eval_every=1.0",
+        "--set", "train.eval_views=2"]
+
+
+def run_cli(*args):
+    return cli([str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "r"
+    rc = run_cli("train", "--out", out, "--max-seconds", 4, *FAST)
+    assert rc == 0
+    return out
+
+
+def read_csv(p):
+    return list(csv.DictReader(open(p)))
+
+
+def test_train_writes_every_output(trained):
+    for name in ("config.json", "metrics.csv", "error_vs_time.png", "ckpt.npz", "eval.json"):
+        assert (trained / name).is_file(), name
+    rows = read_csv(trained / "metrics.csv")
+    assert {"iteration", "seconds", "train_loss", "eval_psnr", "eval_ssim"} <= set(rows[0])
+    secs = [float(r["seconds"]) for r in rows]
+    assert secs == sorted(secs) and secs[-1] >= 4.0
+    losses = [float(r["train_loss"]) for r in rows if r["train_loss"]]
+    assert losses[-1] < 0.5 * losses[0], "training must reduce the loss"
+    psnr = [float(r["eval_psnr"]) for r in rows]
+    assert psnr[-1] > psnr[0] + 3
+    cfg = json.loads((trained / "config.json").read_text())
+    assert cfg["grid"]["reso"] == [[16, 16, 16], [32, 32, 32]] and cfg["train"]["preset"] == "procedural"
+    ev = json.loads((trained / "eval.json").read_text())
+    assert ev["n_views"] == 8 and np.isfinite(ev["psnr"])
+    assert any("32x32x32" in r["model"] for r in rows), "the upsample must have happened"
+
+
+def test_checkpoint_round_trip(device, trained):
+    state = checkpoint.load(trained)
+    cfg = build_config(overrides=state["config"])
+    m1 = GridModel.from_state_dict(device, state, cfg.grid)
+    o = np.array([[0, 0, 4.0], [0.2, -0.1, 4.0]], np.float32)
+    d = np.array([[0, 0, -1.0], [0, 0.1, -1.0]], np.float32)
+    r1 = m1.render(o, d)
+    s2 = m1.state_dict()
+    for k in ("links", "density", "sh", "opt_density", "opt_sh"):
+        np.testing.assert_array_equal(s2[k], state[k])
+    m2 = GridModel.from_state_dict(device, s2, cfg.grid)
+    np.testing.assert_array_equal(m2.render(o, d)["rgb"], r1["rgb"])
+
+
+def test_resume_continues(tmp_path):
+    out = tmp_path / "r"
+    assert run_cli("train", "--out", out, "--max-seconds", 1.5, *FAST) == 0
+    st1 = checkpoint.load(out)
+    it1 = st1["iteration"]
+    n_rows = len(read_csv(out / "metrics.csv"))
+    budget = st1["seconds"] + 1.5   # the first run may overshoot its budget by one step
+    assert run_cli("train", "--out", out, "--resume", "--max-seconds", budget) == 0
+    st = checkpoint.load(out)
+    assert st["iteration"] > it1 and st["seconds"] >= budget
+    rows = read_csv(out / "metrics.csv")
+    assert len(rows) > n_rows
+    assert int(rows[n_rows]["iteration"]) >= it1   # appended, not restarted
+    # a second plain train into the same directory is refused
+    assert run_cli("train", "--out", out, "--max-seconds", 1) == 2
+
+
+def test_render_and_eval(trained, tmp_path, capsys):
+    out = tmp_path / "frames"
+    assert run_cli("render", "--ckpt", trained, "--views", "orbit", "--frames", 3, "--out", out) == 0
+    pngs = sorted(out.glob("orbit_*.png"))
+    assert len(pngs) == 3 and (out / "orbit.gif").is_file()
+    import imageio.v3 as iio
+    img = iio.imread(pngs[0])
+    assert img.shape == (64, 64, 3) and img.std() > 5
+    assert run_cli("render", "--ckpt", trained, "--views", "test", "--out", out, "--max-views", 2) == 0
+    assert len(list(out.glob("test_*.png"))) == 2
+    assert run_cli("eval", "--ckpt", trained, "--out", tmp_path / "ev.json") == 0
+    ev = json.loads((tmp_path / "ev.json").read_text())
+    assert len(ev["views"]) == 8
+    assert "mean over 8 views" in capsys.readouterr().out
+
+
+def test_train_on_tiny_lego(data_dir, tmp_path):
+    out = tmp_path / "tl"
+    rc = run_cli("train", "--data", data_dir / "tiny_lego", "--out", out, "--max-seconds", 6,
+                 "--set", "grid.reso=[[32,32,32],[64,64,64]]", "--set", "grid.upsample_at=[15]",
+                 "--set", "train.eval_every=3")
+    assert rc == 0
+    ev = json.loads((out / "eval.json").read_text())
+    assert ev["n_views"] == 6 and ev["psnr"] > 17   # grey start is ~14 dB
+
+
+def _err(capsys, *args):
+    rc = run_cli(*args)
+    err = capsys.readouterr().err
+    return rc, err
+
+
+def write_npz(path, images=None, poses=None, focal=50.0):
+    rng = np.random.default_rng(0)
+    imgs = rng.uniform(size=(8, 10, 10, 3)).astype(np.float32) if images is None else images
+    if poses is None:
+        poses = np.tile(np.eye(4, dtype=np.float32), (len(imgs), 1, 1))
+        poses[:, 2, 3] = 4
+    np.savez(path, images=imgs, poses=poses, focal=focal)
+    return path
+
+
+@pytest.mark.parametrize("case", ["missing", "nan", "not_rigid", "bad_json", "mixed_sizes"])
+def test_bad_data_exits_2_without_output(tmp_path, capsys, case):
+    d = tmp_path / "scene"
+    d.mkdir()
+    if case == "missing":
+        target, needle = tmp_path / "nowhere", "nowhere"
+    elif case == "nan":
+        imgs = np.random.default_rng(0).uniform(size=(8, 10, 10, 3)).astype(np.float32)
+        imgs[2, 3, 4, 1] = np.nan
+        target, needle = write_npz(d / "s.npz", images=imgs), "NaN"
+    elif case == "not_rigid":
+        poses = np.tile(np.eye(4, dtype=np.float32), (8, 1, 1))
+        poses[3, 0, 0] = 2.0
+        target, needle = write_npz(d / "s.npz", poses=poses), "rigid"
+    elif case == "bad_json":
+        (d / "transforms_train.json").write_text('{"camera_angle_x": 0.5, "frames": [')
+        target, needle = d, "transforms_train.json"
+    else:
+        import imageio.v3 as iio
+        frames = []
+        for i, s in enumerate((8, 9)):
+            iio.imwrite(d / f"r_{i}.png", np.zeros((s, s, 4), np.uint8))
+            frames.append({"file_path": f"./r_{i}", "transform_matrix": np.eye(4).tolist()})
+        for split in ("train", "val", "test"):
+            (d / f"transforms_{split}.json").write_text(
+                json.dumps({"camera_angle_x": 0.6, "frames": frames}))
+        target, needle = d, "size"
+    out = tmp_path / "out"
+    rc, err = _err(capsys, "train", "--data", target, "--out", out, "--max-seconds", 1)
+    assert rc == 2, err
+    assert needle.lower() in err.lower(), err
+    assert "Traceback" not in err
+    assert not out.exists(), "nothing may be written for a run that could not start"
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--set", "grid.no_such_option=1"], "unknown option 'grid.no_such_option'"),
+    (["--set", "grid.step=-1"], "grid.step"),
+    (["--set", "grid.sh_degree=7"], "grid.sh_degree"),
+    (["--set", "grid.upsample_at=[5,1]"], "grid.upsample_at"),
+    (["--set", "bogus"], "SECTION.KEY=VALUE"),
+    (["--preset", "nope"], "train.preset"),
+    (["--config", "/nonexistent.json"], "config file"),
+])
+def test_bad_options_exit_2(tmp_path, capsys, args, needle):
+    out = tmp_path / "out"
+    rc, err = _err(capsys, "train", "--out", out, "--max-seconds", 1, *args)
+    assert rc == 2 and needle in err, err
+    assert not out.exists()
+
+
+def test_unknown_flag_and_bad_ckpt(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        run_cli("train", "--no-such-flag")
+    assert e.value.code == 2
+    rc, err = _err(capsys, "eval", "--ckpt", tmp_path)
+    assert rc == 2 and "no checkpoint" in err
+    (tmp_path / "ckpt.npz").write_bytes(b"garbage")
+    rc, err = _err(capsys, "render", "--ckpt", tmp_path, "--out", tmp_path / "o")
+    assert rc == 2 and "unreadable" in err
+
+
+def test_config_precedence(tmp_path):
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps({"grid": {"batch_size": 1234, "step": 0.7}}))
+    cfg = build_config("tiny", str(f), {"grid": {"step": 0.3}})
+    assert cfg.grid.batch_size == 1234          # file over preset
+    assert cfg.grid.step == 0.3                 # command line over file
+    assert cfg.grid.upsample_at == [250]        # preset over defaults
+    with pytest.raises(ConfigError, match="grid.batch_size"):
+        build_config(overrides={"grid": {"batch_size": "many"}})
+
+
+def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
+    out = tmp_path / "r"
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cmd = [sys.executable, "-m", "clrf.cli", "train", "--out", str(out), "--max-seconds", "120",
+           "--set", "train.checkpoint_every=0.5", *FAST]
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    t0 = time.time()
+    while not (out / "ckpt.npz").exists() and time.time() - t0 < 60:
+        time.sleep(0.2)
+    assert (out / "ckpt.npz").exists(), p.stderr.read1().decode() if p.poll() else "no ckpt"
+    time.sleep(1.0)
+    p.send_signal(signal.SIGINT)
+    rc = p.wait(timeout=60)
+    err = p.stderr.read().decode()
+    assert rc == 130, err
+    assert "checkpoint kept" in err
+    st = checkpoint.load(out)
+    assert st["iteration"] > 0
+    assert not list(out.glob("*.tmp*")), "no temporary files left behind"
