@@ -330,6 +330,139 @@ def _peer_taichi(ctx, p):
     return _peer_case(ctx, p, taichi_grid.TaichiGrid)
 
 
+# ---- training kernels (main: clrf.grid_ops, clrf.optim, clrf.model_grid) ----------------------
+def _touched_all(dev, n):
+    t = cla.empty(dev.queue, n, np.uint8)
+    t.fill(1)
+    return t
+
+
+@factory("train.tv")
+def _train_tv(ctx, p):
+    """tv_grad over every cell of the grid (density and SH), as one training step does over a
+    window: cells/s. Adds into zeroed-once gradient buffers (not reset per repetition)."""
+    from clrf import grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    q = dev.queue
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    touched = cla.zeros(q, grid.density.shape[0], np.uint8)
+    total = int(np.prod(grid.reso))
+
+    def run():
+        grid_ops.tv_grad(grid, grid.density, gd, touched, 0, total, 1e-5 / total, True)
+        grid_ops.tv_grad(grid, grid.sh, gs, touched, 0, total, 1e-3 / total, False)
+        dev.finish()
+    # per cell: links of the cell and 3 neighbours, their rows (density + SH) read, grad RMW
+    row = 4 * (1 + grid.sh_dim)
+    return Case(run, {"cells": total, "bytes": total * (16 + 4 * row + 2 * row)},
+                {"rows": grid.n_rows})
+
+
+@factory("train.optim")
+def _train_optim(ctx, p):
+    """RowOptimizer.step (RMSProp) over every row of density and SH (all touched): rows/s."""
+    from clrf.optim import RowOptimizer
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    od = RowOptimizer(dev, grid.density.copy(), "rmsprop")
+    osh = RowOptimizer(dev, grid.sh.copy(), "rmsprop")
+    touched = _touched_all(dev, grid.density.shape[0])
+
+    def run():
+        od.step(touched, 1e-3, clear_touched=False)
+        osh.step(touched, 1e-3, clear_touched=False)
+        dev.finish()
+    n = grid.density.shape[0]
+    # per row: param, grad, state read and written, touched read
+    return Case(run, {"rows": n, "bytes": n * (6 * 4 * (1 + grid.sh_dim) + 1)},
+                {"rows": grid.n_rows})
+
+
+@factory("train.upsample")
+def _train_upsample(ctx, p):
+    """grid_ops.resample to twice the resolution (all rows kept): output cells/s."""
+    from clrf import grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    new = tuple(2 * r for r in grid.reso)
+
+    def run():
+        grid_ops.resample(grid, new)
+        dev.finish()
+    total = int(np.prod(new))
+    return Case(run, {"cells": total}, {"rows_in": grid.n_rows, "new_reso": new})
+
+
+@factory("train.prune")
+def _train_prune(ctx, p):
+    """Pruning: max rendering weight over n_rays camera rays, threshold + dilation, rebuild
+    (grid_ops.max_weight + grid_ops.prune): cells/s of the grid."""
+    from clrf import grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    o, d = _rays(p)
+
+    def run():
+        mw = grid_ops.max_weight(grid, o, d, p["step"])
+        grid_ops.prune(grid, mw, 0.256 / grid.reso[2])
+        dev.finish()
+    return Case(run, {"cells": int(np.prod(grid.reso)), "rays": o.shape[0]},
+                {"rows": grid.n_rows})
+
+
+@factory("train.step")
+def _train_step(ctx, p):
+    """One full Plenoxels training step (GridModel.train_step: fused render backward, TV,
+    RMSProp on density and SH, per-batch MSE read back) on a batch of random rays: rays/s."""
+    from clrf.config import GridConfig
+    from clrf.model_grid import GridModel
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    q = dev.queue
+    # a private copy: the step updates the grid
+    g = clrf.SparseGrid.from_arrays(dev, links, dens, sh, scenes.BBOX)
+    cfg = GridConfig(reso=[list(g.reso)], sh_degree=p["degree"], step=p["step"],
+                     batch_size=p["n_rays"], tv_early_only=False)
+    model = GridModel(dev, cfg, g, (1.0, 1.0, 1.0))
+    o, d = _rays(p)
+    rng = np.random.default_rng(3)
+    target = rng.uniform(0, 1, (o.shape[0], 3)).astype(np.float32)
+    od, dd, td = cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, target)
+    it = [0]
+
+    def run():
+        it[0] += 1
+        model.train_step(it[0], od, dd, td)
+        dev.finish()
+    work = _grid_work(dict(p, mode="fwdbwd"), links, o, d)
+    work.pop("bytes")
+    return Case(run, work, {"rows": g.n_rows, "batch": o.shape[0]})
+
+
+def _train_specs():
+    base = {"reso": 128, "degree": 2, "occupancy": 1.0, "step": 0.5}
+    quick = {"reso": 16, "n_rays": 64}
+    need_ops = (("clrf.grid_ops", "tv_grad"),)
+    return [
+        Spec("train/tv/128/sh2/dense", "train.tv", dict(base), "cells/s", dict(quick), need_ops),
+        Spec("train/optim/128/sh2/dense", "train.optim", dict(base), "rows/s", dict(quick),
+             (("clrf.optim", "RowOptimizer"),)),
+        Spec("train/upsample/64to128/sh2/dense", "train.upsample", dict(base, reso=64),
+             "cells/s", dict(quick, reso=8), (("clrf.grid_ops", "resample"),)),
+        Spec("train/prune/128/sh2/dense", "train.prune",
+             dict(base, rays="camera", n_rays=65536), "cells/s", dict(quick),
+             (("clrf.grid_ops", "prune"),)),
+        Spec("train/step/128/sh2/dense/random", "train.step",
+             dict(base, rays="random", n_rays=5000), "rays/s", dict(quick),
+             (("clrf.model_grid", "GridModel"),)),
+        Spec("train/step/128/sh2/pruned5/random", "train.step",
+             dict(base, occupancy=0.05, rays="random", n_rays=5000), "rays/s", dict(quick),
+             (("clrf.model_grid", "GridModel"),)),
+    ]
+
+
 # ---- the benchmark list ---------------------------------------------------------------------
 def _grid_specs():
     base = {"step": 0.5, "n_rays": 4096}
@@ -386,9 +519,9 @@ def _peak_specs():
     ]
 
 
-# Training kernels (TV, optimiser step, upsample, prune, full Plenoxels step) are added here by
-# name once they are on this branch; see README-bench.md.
-TRAINING_SPECS: list = []
+# Training kernels (TV, optimiser step, upsample, prune, full Plenoxels step); a spec whose
+# module is missing on a branch is reported as skipped (Spec.requires).
+TRAINING_SPECS: list = _train_specs()
 
 SPECS = _grid_specs() + TRAINING_SPECS
 
@@ -439,7 +572,8 @@ def time_case(case: Case, min_repeats, max_repeats, max_seconds, tol, warmup=1):
 
 def metrics(work, median_s):
     m = {}
-    for key, unit in (("samples", "samples/s"), ("rays", "rays/s"), ("segments", "segments/s")):
+    for key, unit in (("samples", "samples/s"), ("rays", "rays/s"), ("segments", "segments/s"),
+                      ("cells", "cells/s"), ("rows", "rows/s")):
         if key in work:
             m[unit] = work[key] / median_s
     if "bytes" in work:

@@ -54,7 +54,7 @@ def grid_table(doc):
     rows = {}
     impls = []
     for r in doc["results"]:
-        if r["name"].startswith("peak/"):
+        if r["name"].startswith(("peak/", "train/")):
             continue
         impl, case = _case_key(r["name"])
         if impl not in impls:
@@ -86,11 +86,35 @@ def grid_table(doc):
     return "\n".join(lines)
 
 
+def train_table(doc):
+    """Training kernels: headline metric [min-max], ms, model GB/s and % of triad."""
+    lines = ["| training kernel | metric [min-max] | ms | model GB/s | % of triad | "
+             "CPU-normalised |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in doc["results"]:
+        if not r["name"].startswith("train/"):
+            continue
+        if "metrics" not in r:
+            why = r.get("skipped") or r.get("failed") or "smoke only"
+            lines.append(f"| {r['name']} | {why} | | | | |")
+            continue
+        u = r["metric"]
+        m = r["metrics"]
+        lo, hi = r["metrics_min_max"][u]
+        gbs = f"{m['GB/s']:.2f}" if "GB/s" in m else ""
+        ratio = r.get("ratios", {}).get("GB/s / triad")
+        pct = f"{100 * ratio:.1f}%" if ratio is not None else ""
+        cpu = r.get("metrics_cpu_normalised", {}).get(u)
+        lines.append(f"| {r['name']} | {_fmt_rate(m[u])} [{_fmt_rate(lo)}-{_fmt_rate(hi)}] {u} | "
+                     f"{r['time_s']['median'] * 1e3:.1f} | {gbs} | {pct} | "
+                     f"{_fmt_rate(cpu) if cpu else ''} |")
+    return "\n".join(lines)
+
+
 def plot(doc, out_dir):
     out_dir.mkdir(parents=True, exist_ok=True)
     by_mode = {}
     for r in doc["results"]:
-        if r["name"].startswith("peak/") or "metrics" not in r:
+        if r["name"].startswith(("peak/", "train/")) or "metrics" not in r:
             continue
         impl, case = _case_key(r["name"])
         mode = case.split("/")[0]
@@ -125,7 +149,7 @@ def render_markdown(doc, pngs=()):
     md = [f"Device: **{d['name']}** ({d['platform_version']}), {d['compute_units']} compute units; "
           f"host {h0['cpu']}, {h0['cpus']} CPUs; load average {h0['loadavg']} at the start, "
           f"{h1['loadavg']} at the end; run {doc['started']} - {doc['finished']}.",
-          "", peaks_table(doc), "", grid_table(doc), "",
+          "", peaks_table(doc), "", grid_table(doc), "", train_table(doc), "",
           "Model GB/s: bytes requested per evaluated sample with no reuse between samples "
           "(forward: 8 links + 8 rows of 1 + SH_DIM floats; fwd+bwd: two gathers plus the read "
           "and write of 8 gradient rows), divided by the time; % of triad is that over the "
