@@ -32,7 +32,9 @@
  * add per corner value when the march leaves the cell.
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
- * sample before the cell's exit. Those samples have sigma = 0, so the result is unchanged.
+ * sample before the cell's exit; with BLOCK > 0 it first checks a table of BLOCK^3-cell blocks
+ * (block_occupancy) and jumps over a whole empty block. Those samples have sigma = 0, so the
+ * result is unchanged.
  *
  * Gradient accumulation: atomics (GRAD_SLOTS 0, any device) or, on CPU devices, private copies
  * per running work-item without atomics, added into the caller's buffers by grad_slots_reduce
@@ -42,8 +44,8 @@
  * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
  * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, TRACK_TOUCHED,
- * CLRF_HAS_FP64 (ray.h).
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, TRACK_TOUCHED, BLOCK,
+ * CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h).
  */
 #include "march.h"
 
@@ -63,10 +65,13 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
                              __global const float *density, __global const float *sh,
                              const int4 reso, const float4 bmin, const float4 scale,
                              const float step, const float4 bg, __global float *out_rgb,
-                             __global float *out_depth, __global float *out_acc) {
+                             __global float *out_depth, __global float *out_acc,
+                             __global const uchar *occ, const int4 oreso) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
+    m.occ = occ;
+    m.oreso = oreso;
     fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     float t0 = 0.0f;
     if (march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) {
@@ -141,10 +146,13 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global uchar *touched, const int n_rows,
                               __global float *slot_density, __global float *slot_sh,
                               __global uchar *slot_touched, __global volatile int *slot_lock,
-                              __global float *slot_rec, const int rec_max) {
+                              __global float *slot_rec, const int rec_max,
+                              __global const uchar *occ, const int4 oreso) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
+    m.occ = occ;
+    m.oreso = oreso;
     const int hit = march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m);
 
     /* where this work-item's gradients go; a slot also brings a private sample record */
@@ -214,6 +222,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,
                                sh, dst_d, dst_s, &pf_cell);   /* data rows: cached by now */
 #endif
+        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
@@ -309,10 +318,13 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
                                 __global const float *dirs, __global const int *links,
                                 __global const float *density, const int4 reso,
                                 const float4 bmin, const float4 scale, const float step,
-                                __global float *maxw) {
+                                __global float *maxw, __global const uchar *occ,
+                                const int4 oreso) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
+    m.occ = occ;
+    m.oreso = oreso;
     if (!march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) return;
     ksum_t logT = {0.0f, 0.0f};
     lerp_t L;
@@ -320,6 +332,7 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
+        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;
@@ -333,6 +346,26 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
         ksum_add(&logT, -tau);
         if (exp(logT.s) < T_STOP) break;
     }
+}
+
+/* occ[b] = 1 if block b (cells with lower corner in [b*BLOCK, b*BLOCK + BLOCK - 1] per axis)
+ * has an allocated corner voxel, i.e. any links >= 0 in [b*BLOCK, b*BLOCK + BLOCK] (clamped):
+ * the table skip_block reads. One work-item per block, blocks in C order. */
+__kernel void block_occupancy(const int4 reso, const int4 oreso, __global const int *links,
+                              __global uchar *occ) {
+    const int b = get_global_id(0);
+    if (b >= oreso.x * oreso.y * oreso.z) return;
+#if BLOCK > 0
+    const int bz = b % oreso.z, by = (b / oreso.z) % oreso.y, bx = b / (oreso.y * oreso.z);
+    const int3 lo = (int3)(bx, by, bz) * BLOCK;
+    const int3 hi = min(lo + BLOCK, (int3)(reso.x, reso.y, reso.z) - 1);
+    uchar any = 0;
+    for (int x = lo.x; x <= hi.x && !any; ++x)
+        for (int y = lo.y; y <= hi.y && !any; ++y)
+            for (int z = lo.z; z <= hi.z; ++z)
+                if (links[(x * reso.y + y) * reso.z + z] >= 0) { any = 1; break; }
+    occ[b] = any;
+#endif
 }
 
 /* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every

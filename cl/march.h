@@ -37,6 +37,8 @@ typedef struct {
     float len;   /* world length inside the box */
     float dt;    /* world length of one step */
     int nsteps;  /* number of segments, the last one clipped to len */
+    __global const uchar *occ; /* BLOCK > 0: occupancy of BLOCK^3 blocks of cells, set by the kernel */
+    int4 oreso;  /* blocks per axis */
 } march_t;
 
 typedef struct {
@@ -112,28 +114,56 @@ inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L)
     return any;
 }
 
-/* Distance (from the entry) at which the ray leaves the region of points that interpolate
- * from the cell with lower corner lo. Unbounded sides (the clamped outer half voxels) are
- * +-inf, so the region is convex and contains the current point. */
-inline float cell_exit(const march_t *m, int3 lo, int4 reso) {
+/* Distance (from the entry) at which the ray leaves the region of points whose cell (lower
+ * corner) lies in [lo, lo + nb - 1] per axis. Unbounded sides (the clamped outer half voxels)
+ * are +-inf, so the region is convex and contains the current point. */
+inline float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
     float s = INFINITY;
     const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
     const int l[3] = {lo.x, lo.y, lo.z}, r[3] = {reso.x, reso.y, reso.z};
     for (int a = 0; a < 3; ++a) {
         float bound_lo = l[a] == 0 ? -INFINITY : (float)l[a] + 0.5f;
-        float bound_hi = l[a] >= r[a] - 2 ? INFINITY : (float)l[a] + 1.5f;
+        float bound_hi = l[a] + nb - 1 >= r[a] - 2 ? INFINITY : (float)(l[a] + nb) + 0.5f;
         if (d[a] > 0.0f) s = fmin(s, (bound_hi - p[a]) / d[a]);
         else if (d[a] < 0.0f) s = fmin(s, (bound_lo - p[a]) / d[a]);
     }
     return s;
 }
 
-/* Index of the next segment to evaluate after segment k found its cell empty: the last one
- * whose midpoint is still inside the cell (so a skipped sample is never outside it). */
-inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
-    float s = cell_exit(m, lo, reso);
+/* Index of the next segment to evaluate after segment k found its region (nb^3 cells from
+ * lo) empty: the last one whose midpoint is still inside it (a skipped sample is never
+ * outside it). */
+inline int skip_region(const march_t *m, int k, int3 lo, int nb, int4 reso) {
+    float s = region_exit(m, lo, nb, reso);
     float j = fmin(ceil(s / m->dt - 0.5f) - 1.0f, (float)m->nsteps);
     return max(k + 1, (int)j);
+}
+
+/* The same for one empty cell. */
+inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
+    return skip_region(m, k, lo, 1, reso);
+}
+
+#ifndef BLOCK
+#define BLOCK 0  /* > 0: skip BLOCK^3-cell blocks with no allocated corner (occupancy array) */
+#endif
+
+/* Empty-space skipping by blocks: if the block of sample point p has no allocated voxel,
+ * set *k to the segment before the next one to evaluate (the loop's ++k follows) and return 1. */
+inline int skip_block(const march_t *m, float3 p, int4 reso, int *k) {
+#if BLOCK > 0
+    int x0, x1, y0, y1, z0, z1;
+    float fx, fy, fz;
+    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
+    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
+    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
+    const int3 b = (int3)(x0, y0, z0) / BLOCK;
+    if (m->occ[(b.x * m->oreso.y + b.y) * m->oreso.z + b.z]) return 0;
+    *k = skip_region(m, *k, b * BLOCK, BLOCK, reso) - 1;
+    return 1;
+#else
+    return 0;
+#endif
 }
 
 inline float lerp_density(const lerp_t *L, __global const float *density) {
@@ -382,6 +412,7 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
             prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,
                           sh, &pf_cell);
 #endif
+        if (skip_block(m, m->p0 + mid * m->dg, reso, &k)) continue;
         if (!lerp_setup_cached(m->p0 + mid * m->dg, reso, links, &L)) {
             k = skip_empty(m, k, L.lo, reso) - 1;
             continue;

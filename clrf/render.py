@@ -18,7 +18,8 @@ T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_ST
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
 PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
 PREFETCH_LINKS_AHEAD = int(os.environ.get("CLRF_PREFETCH_LINKS_AHEAD", 2 * PREFETCH_AHEAD))
-REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
+REDUCE_LOCAL_SIZE = 256
+BLOCK = int(os.environ.get("CLRF_BLOCK", 4))  # empty-space blocks of BLOCK^3 cells (0: off)  # rows per work-group of grad_slots_reduce
 
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
@@ -27,7 +28,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
         "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD,
-        "PREFETCH_LINKS_AHEAD": PREFETCH_LINKS_AHEAD})
+        "PREFETCH_LINKS_AHEAD": PREFETCH_LINKS_AHEAD, "BLOCK": BLOCK})
 
 
 def _prefetch(dev) -> bool:
@@ -77,6 +78,24 @@ def _slot_buffers(grid, slots):
     return cache[key]
 
 
+def block_occupancy(grid):
+    """(occ uint8 device array, oreso int4): which BLOCK^3-cell blocks have an allocated corner
+    (cl/grid_render.cl block_occupancy). Built once per links buffer and cached on the grid;
+    a grid whose links are rewritten in place must drop ``grid._block_occupancy``."""
+    ob = [max(1, -(-r // BLOCK)) if BLOCK > 0 else 1 for r in grid.reso]
+    key = (grid.links.data.int_ptr, BLOCK, tuple(grid.reso))
+    cached = grid.__dict__.get("_block_occupancy")
+    if cached is None or cached[0] != key:
+        occ = cla.zeros(grid.device.queue, int(np.prod(ob)), np.uint8)
+        oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], 0)
+        if BLOCK > 0:
+            launch(grid.device, grid_program(grid).kernel("block_occupancy"), occ.size,
+                   (grid.geometry_args()[0], oreso, grid.links.data, occ.data), 64)
+        cached = (key, occ, oreso)
+        grid._block_occupancy = cached
+    return cached[1], cached[2]
+
+
 def max_samples_per_ray(reso, step) -> int:
     """Upper bound of the segments of one ray: the box diagonal in voxels over the step, + 2."""
     return int(np.ceil(np.sqrt(float(sum(r * r for r in reso))) / float(step))) + 2
@@ -101,10 +120,11 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
     k = grid_program(grid).kernel("render_forward")
+    occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
                        np.float32(step), _bg4(background), out["rgb"].data, out["depth"].data,
-                       out["acc"].data), LOCAL_SIZE)
+                       out["acc"].data, occ.data, oreso), LOCAL_SIZE)
     return out
 
 
@@ -129,6 +149,7 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     dummy = ray_out
     tch = touched if touched is not None else grid.links
     n_rows = grid.density.shape[0]
+    occ, oreso = block_occupancy(grid)
     if slots:
         sd, ss, st, lock = _slot_buffers(grid, slots)
         rec_max = max_samples_per_ray(grid.reso, step)
@@ -140,7 +161,7 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
             ray_in_d.data, dummy.data, np.float32(loss_scale), grad_density.data, grad_sh.data,
             tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data, rec.data,
-            np.int32(rec_max)), LOCAL_SIZE)
+            np.int32(rec_max), occ.data, oreso), LOCAL_SIZE)
     if slots:
         launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
@@ -193,6 +214,7 @@ def render_max_weight_device(grid, origins_d, dirs_d, step, maxw):
     """maxw[k] = max(maxw[k], max over samples of w_sample * w_corner) for rows k (device)."""
     dev = grid.device
     n = origins_d.shape[0]
+    occ, oreso = block_occupancy(grid)
     launch(dev, grid_program(grid).kernel("render_max_weight"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
-            *grid.geometry_args(), np.float32(step), maxw.data), LOCAL_SIZE)
+            *grid.geometry_args(), np.float32(step), maxw.data, occ.data, oreso), LOCAL_SIZE)

@@ -78,6 +78,7 @@ class Spec:
     metric: str = "samples/s" # headline metric for tables
     quick: dict = field(default_factory=dict)      # parameter overrides in --quick mode
     requires: tuple = ()      # ("module", "attribute") pairs that must exist, else skipped
+    min_repeats: int | None = None  # overrides --min-repeats (slow peers: at least 3)
 
 
 @dataclass
@@ -469,12 +470,12 @@ def _grid_specs():
     quick = {"reso": 16, "n_rays": 64}
     out = []
 
-    def add(kind, prefix, **kw):
+    def add(kind, prefix, min_repeats=None, **kw):
         p = dict(base, **kw)
         occ = "dense" if p["occupancy"] >= 1 else f"pruned{int(round(p['occupancy'] * 100))}"
         name = (f"{prefix}/{p.get('mode', 'fwd')}/{p['reso']}/sh{p['degree']}/{occ}/"
                 f"{p['rays']}")
-        out.append(Spec(name, kind, p, "samples/s", dict(quick)))
+        out.append(Spec(name, kind, p, "samples/s", dict(quick), min_repeats=min_repeats))
 
     # 128^3: every SH degree, dense and pruned (5 %), coherent camera rays, fwd / fused fwd+bwd
     for deg in (0, 2, 3):
@@ -495,12 +496,15 @@ def _grid_specs():
         add("grid.render", "grid", reso=256, degree=2, occupancy=0.05, rays="camera", mode=mode)
     add("grid.render", "grid", reso=256, degree=2, occupancy=0.05, rays="random", mode="fwd")
 
-    # peers on the bar configuration (128^3 SH2 dense camera) and on a pruned grid
-    for peer in ("taichi", "torch"):
-        for occ in (1.0, 0.05):
-            for mode in ("fwd", "fwdbwd"):
-                add(f"peer.{peer}", f"peer.{peer}", reso=128, degree=2, occupancy=occ,
-                    rays="camera", mode=mode)
+    # peers on the bar configuration (128^3 SH2 dense camera); taichi also on a pruned grid
+    # (torch takes tens of seconds per repetition here: dense only, 3 repetitions)
+    for occ in (1.0, 0.05):
+        for mode in ("fwd", "fwdbwd"):
+            add("peer.taichi", "peer.taichi", reso=128, degree=2, occupancy=occ, rays="camera",
+                mode=mode)
+    for mode in ("fwd", "fwdbwd"):
+        add("peer.torch", "peer.torch", min_repeats=3, reso=128, degree=2, occupancy=1.0,
+            rays="camera", mode=mode)
     # the float64 reference is slow: a small problem, with clrf on the same one
     small = dict(reso=32, degree=2, occupancy=1.0, rays="camera", n_rays=1024, mode="fwd")
     add("peer.numpy_ref", "peer.numpy_ref", **small)
@@ -632,7 +636,8 @@ def run_spec(ctx, spec, args):
     if ctx.quick:
         case.run()
         return rec
-    ts, cpu = time_case(case, args.min_repeats, args.max_repeats, args.max_seconds, args.tol)
+    ts, cpu = time_case(case, spec.min_repeats or args.min_repeats, args.max_repeats,
+                        args.max_seconds, args.tol)
     med = float(np.median(ts))
     rec["time_s"] = {"median": med, "min": float(min(ts)), "max": float(max(ts)),
                      "repeats": len(ts)}
