@@ -133,20 +133,16 @@ def _rays(p):
     return scenes.make_rays(p["rays"], p["n_rays"])
 
 
-def grid_bytes_per_sample(degree, backward):
-    """Bytes requested per evaluated sample with no reuse between samples (perf-notes 7.1):
-    8 links + 8 rows of (1 + SH_DIM) floats; fwd+bwd gathers twice and reads + writes the
-    8 gradient rows."""
-    row = 4 * (1 + 3 * (degree + 1) ** 2)
-    fwd = 8 * 4 + 8 * row
-    return 2 * fwd + 2 * 8 * row if backward else fwd
+grid_bytes_per_sample = scenes.grid_bytes_per_sample
+grid_flop_per_sample = scenes.grid_flop_per_sample
 
 
 def _grid_work(p, links, o, d):
     seg, smp = scenes.count_samples(links, o, d, scenes.BBOX, p["step"])
     bwd = p.get("mode", "fwd") != "fwd"
     return {"rays": o.shape[0], "segments": seg, "samples": smp,
-            "bytes": smp * grid_bytes_per_sample(p["degree"], bwd)}
+            "bytes": smp * grid_bytes_per_sample(p["degree"], bwd),
+            "flop": smp * grid_flop_per_sample(p["degree"], bwd)}
 
 
 def _compare(a, b, atol, rtol):
@@ -546,8 +542,12 @@ def _requires_ok(spec):
     for modname, attr in spec.requires:
         try:
             mod = importlib.import_module(modname)
-        except ImportError:
-            return f"{modname} not importable (not landed on this branch)"
+        except ModuleNotFoundError as e:
+            if e.name and modname.startswith(e.name):
+                return f"{modname} does not exist (not landed on this branch)"
+            return f"{modname} not importable: {e}"
+        except ImportError as e:
+            return f"{modname} not importable: {e}"
         if not hasattr(mod, attr):
             return f"{modname}.{attr} does not exist (not landed on this branch)"
     return None

@@ -131,3 +131,22 @@ def count_samples(links, origins, dirs, bbox, step, chunk_points: int = 1 << 20)
         samples += int(occ.any(axis=1).sum())
         lo = hi
     return segments, samples
+
+
+def grid_bytes_per_sample(degree, backward):
+    """Bytes requested per evaluated sample with no reuse between samples (perf-notes 7.1):
+    8 links + 8 rows of (1 + SH_DIM) floats; fwd+bwd gathers twice and reads + writes the
+    8 gradient rows."""
+    row = 4 * (1 + 3 * (degree + 1) ** 2)
+    fwd = 8 * 4 + 8 * row
+    return 2 * fwd + 2 * 8 * row if backward else fwd
+
+
+def grid_flop_per_sample(degree, backward):
+    """Floating-point operations per evaluated sample (model, perf-notes 7.1): interpolation
+    8 x (1 + SH_DIM) FMAs, SH dot and colour 2 x SH_DIM, ~70 for weights, exp and compositing;
+    fwd+bwd: the forward twice plus the corner-gradient accumulation (again 8 x (1 + SH_DIM)
+    FMAs), the coefficient gradient 2 x SH_DIM and ~40 for the density gradient."""
+    C = 3 * (degree + 1) ** 2
+    fwd = 2 * 8 * (1 + C) + 2 * C + 70
+    return 2 * fwd + 2 * 8 * (1 + C) + 2 * C + 40 if backward else fwd

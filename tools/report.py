@@ -13,10 +13,32 @@ import argparse
 import json
 from pathlib import Path
 
+import sys
+
 import matplotlib
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
+
+def enrich(doc):
+    """Model GFLOP/s and its ratio to the FMA peak for grid cases recorded without a flop
+    count (runs before the flop model was added)."""
+    try:
+        import bench_scenes
+    except ImportError:
+        return
+    fma = doc.get("peaks", {}).get("fma")
+    for r in doc["results"]:
+        p, m = r.get("params", {}), r.get("metrics")
+        if not m or "degree" not in p or "samples/s" not in m or r["name"].startswith("train/"):
+            continue
+        if "GFLOP/s" not in m:
+            bwd = p.get("mode", "fwd") != "fwd"
+            m["GFLOP/s"] = m["samples/s"] * bench_scenes.grid_flop_per_sample(p["degree"], bwd) / 1e9
+        if fma:
+            r.setdefault("ratios", {})["GFLOP/s / fma"] = m["GFLOP/s"] / fma
 
 
 def _case_key(name):
@@ -61,8 +83,9 @@ def grid_table(doc):
             impls.append(impl)
         rows.setdefault(case, {})[impl] = r
     lines = ["| case (mode/reso/SH/occupancy/rays) | implementation | samples/s [min-max] | "
-             "rays/s | ms | model GB/s | % of triad | vs clrf | samples/s, CPU-normalised |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "rays/s | ms | model GB/s | % of triad | model GFLOP/s | % of FMA | vs clrf | "
+             "samples/s, CPU-normalised |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for case, byimpl in rows.items():
         base = byimpl.get("grid", {}).get("metrics", {}).get("samples/s")
         for impl in impls:
@@ -72,7 +95,7 @@ def grid_table(doc):
             label = "clrf" if impl == "grid" else impl.replace("peer.", "")
             if "metrics" not in r:
                 why = r.get("skipped") or r.get("failed") or "smoke only"
-                lines.append(f"| {case} | {label} | {why} | | | | | | |")
+                lines.append(f"| {case} | {label} | {why} | | | | | | | | |")
                 continue
             m = r["metrics"]
             lo, hi = r["metrics_min_max"].get("samples/s", [0, 0])
@@ -81,7 +104,10 @@ def grid_table(doc):
             vs = f"{sps / base:.3g}x" if base and impl != "grid" else ""
             lines.append(f"| {case} | {label} | {_fmt_rate(sps)} [{_fmt_rate(lo)}-{_fmt_rate(hi)}] "
                          f"| {_fmt_rate(m.get('rays/s', 0))} | {r['time_s']['median'] * 1e3:.1f} | "
-                         f"{m.get('GB/s', 0):.2f} | {100 * ratio:.1f}% | {vs} | "
+                         f"{m.get('GB/s', 0):.2f} | {100 * ratio:.1f}% | "
+                         f"{m.get('GFLOP/s', 0):.1f} | "
+                         f"{100 * r.get('ratios', {}).get('GFLOP/s / fma', float('nan')):.1f}% | "
+                         f"{vs} | "
                          f"{_fmt_rate(r.get('metrics_cpu_normalised', {}).get('samples/s', 0))} |")
     return "\n".join(lines)
 
@@ -153,7 +179,8 @@ def render_markdown(doc, pngs=()):
           "Model GB/s: bytes requested per evaluated sample with no reuse between samples "
           "(forward: 8 links + 8 rows of 1 + SH_DIM floats; fwd+bwd: two gathers plus the read "
           "and write of 8 gradient rows), divided by the time; % of triad is that over the "
-          "triad bandwidth measured in the same run. Samples count only samples whose cell has "
+          "triad bandwidth measured in the same run; model GFLOP/s likewise from a per-sample "
+          "flop model (tools/bench_scenes.py), over the float16 FMA peak. Samples count only samples whose cell has "
           "an allocated corner (empty space is skipped). CPU-normalised: work / (process CPU time / "
           "compute units), what the case would reach with the cores to itself (the host is "
           "shared; see the load average)."]
@@ -168,6 +195,7 @@ def main(argv=None):
     ap.add_argument("--out-dir", help="default: <json dir>/report-<json stem>")
     a = ap.parse_args(argv)
     doc = json.loads(Path(a.json).read_text())
+    enrich(doc)
     out = Path(a.out_dir) if a.out_dir else Path(a.json).parent / f"report-{Path(a.json).stem}"
     pngs = plot(doc, out)
     md = render_markdown(doc, pngs)
