@@ -32,7 +32,7 @@
  * add per corner value when the march leaves the cell.
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
- * sample before the cell's exit; with BLOCK > 0 it first checks a table of BLOCK^3-cell blocks
+ * sample before the cell's exit; with BLOCK > 0 (8 from the host) it first checks a table of BLOCK^3-cell blocks
  * (block_occupancy) and jumps over a whole empty block. Those samples have sigma = 0, so the
  * result is unchanged.
  *
@@ -214,6 +214,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
         march_segment(&m, k, &mid, &delta);
+        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
 #if CLRF_PREFETCH
         if (k + PREFETCH_LINKS_AHEAD < m.nsteps)
             prefetch_links(m.p0 + (mid + PREFETCH_LINKS_AHEAD * m.dt) * m.dg, reso, links,
@@ -222,7 +223,6 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,
                                sh, dst_d, dst_s, &pf_cell);   /* data rows: cached by now */
 #endif
-        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
         if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
             k = skip_empty(&m, k, L.lo, reso) - 1;
             continue;

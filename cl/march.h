@@ -404,7 +404,8 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
     for (int k = 0; k < m->nsteps; ++k) {
         float mid, delta;
         march_segment(m, k, &mid, &delta);
-#if CLRF_PREFETCH
+        if (skip_block(m, m->p0 + mid * m->dg, reso, &k)) continue;
+#if CLRF_PREFETCH   /* only where the march evaluates samples: not across empty blocks */
         if (k + PREFETCH_LINKS_AHEAD < m->nsteps)
             prefetch_links(m->p0 + (mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
                            &pf_link);
@@ -412,7 +413,6 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
             prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,
                           sh, &pf_cell);
 #endif
-        if (skip_block(m, m->p0 + mid * m->dg, reso, &k)) continue;
         if (!lerp_setup_cached(m->p0 + mid * m->dg, reso, links, &L)) {
             k = skip_empty(m, k, L.lo, reso) - 1;
             continue;

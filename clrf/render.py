@@ -18,8 +18,8 @@ T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_ST
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
 PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
 PREFETCH_LINKS_AHEAD = int(os.environ.get("CLRF_PREFETCH_LINKS_AHEAD", 2 * PREFETCH_AHEAD))
-REDUCE_LOCAL_SIZE = 256
-BLOCK = int(os.environ.get("CLRF_BLOCK", 4))  # empty-space blocks of BLOCK^3 cells (0: off)  # rows per work-group of grad_slots_reduce
+REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
+BLOCK = int(os.environ.get("CLRF_BLOCK", 8))  # empty-space blocks of BLOCK^3 cells (0: off)
 
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
