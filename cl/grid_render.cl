@@ -18,6 +18,7 @@
  *
  * Compositing, with sigma_k = max(trilerp(density), 0), tau_k = sigma_k delta_k:
  *   alpha_k = 1 - exp(-tau_k) = -expm1(-tau_k),  T_k = exp(-sum_{j<k} tau_j)  (log space)
+ *   (alpha_of_tau in march.h: series below tau = 0.5, 1 - exp(-tau) above; within 2 ulp)
  *   w_k = T_k alpha_k,  rgb = sum_k w_k c_k + T_end * bg,  acc = sum_k w_k,
  *   depth = sum_k w_k t_k (t_k the world distance of sample k; not divided by acc),
  *   c_k = max(0, sum_b sh_{ch,b}(x_k) Y_b(d) + 0.5)  (svox2's colour activation).
@@ -27,14 +28,21 @@
  *   dL/dsigma_k = delta_k (T_{k+1} (g.c_k) - R_k),   R_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg)
  *   dL/dsh_{ch,b}(x_k) = w_k g_ch [pre_ch > 0] Y_b
  * R_k is the remaining radiance: g.rgb minus the (Kahan-summed) prefix, so the ray is marched
- * twice (forward for rgb, then backward) and nothing is stored per sample. Corner gradients of
- * consecutive samples in the same cell are merged in registers and scattered with one atomic
- * add per corner value when the march leaves the cell.
+ * twice (forward for rgb, then backward). A work-item holding a gradient slot (GRAD_SLOTS)
+ * records each sample's (sigma, w, T_{k+1}, pre-activation colour) in the slot's private
+ * buffer during the forward march and reads them back in the backward march (the same values
+ * bit for bit); without a slot it recomputes them. Corner gradients of consecutive samples in
+ * the same cell are merged in registers and scattered when the march leaves the cell: one
+ * atomic add per corner value, or plain vector adds into a private copy (GRAD_SLOTS).
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
- * sample before the cell's exit; with BLOCK > 0 (8 from the host) it first checks a table of BLOCK^3-cell blocks
- * (block_occupancy) and jumps over a whole empty block. Those samples have sigma = 0, so the
- * result is unchanged.
+ * sample before the cell's exit; with BLOCK > 0 (the host uses 8) it first checks a table of
+ * BLOCK^3-cell blocks (block_occupancy) and jumps over a whole empty block. Those samples
+ * have sigma = 0, so the result is unchanged.
+ *
+ * Prefetch (CLRF_PREFETCH, PoCL CPU): PREFETCH_LINKS_AHEAD samples ahead the links of the
+ * cell there are prefetched, PREFETCH_AHEAD samples ahead its rows (and, in the backward
+ * march, its gradient rows), so the gathers do not wait for DRAM.
  *
  * Gradient accumulation: atomics (GRAD_SLOTS 0, any device) or, on CPU devices, private copies
  * per running work-item without atomics, added into the caller's buffers by grad_slots_reduce
