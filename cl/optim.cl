@@ -4,6 +4,9 @@
  * For each touched row k and column j (i = k*D + j), with g = clamp(grad[i], +-GRAD_CLAMP):
  *   RMSProp (OPT_MODE 0, svox2's variant): s = state[i] == 0 ? g^2 : beta s + (1 - beta) g^2,
  *                                          param[i] -= lr g / (sqrt(s) + eps)
+ *     (on a first touch sqrt(s) is |g| itself, so the step is lr g / (|g| + eps) even where g^2
+ *     underflows float32, |g| < ~1e-19; a state that underflowed stays 0, so the next touch is
+ *     again a first touch - the float64 twin would keep s ~ g^2 there)
  *   SGD     (OPT_MODE 1):                  param[i] -= lr g
  * then grad[i] = 0, so gradient buffers stay zero outside the rows touched by the next step
  * (no dense zero-fill per step). With clear_touched = 1 the row's flag is reset too.
@@ -35,7 +38,10 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
         const float s0 = state[i];
         const float s = s0 == 0.0f ? g * g : beta * s0 + (1.0f - beta) * g * g;
         state[i] = s;
-        param[i] -= lr * g / (sqrt(s) + eps);
+        /* first touch: sqrt(g^2) = |g| taken exactly (g^2 underflows to 0 for |g| < ~1e-19;
+         * with eps = 0 that was g / 0 = inf), and g / den before lr so that step is +-lr */
+        const float den = (s0 == 0.0f ? fabs(g) : sqrt(s)) + eps;
+        param[i] -= lr * (g / den);
 #else
         param[i] -= lr * g;
 #endif

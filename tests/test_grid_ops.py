@@ -62,6 +62,25 @@ def test_update_rows_1d_and_first_step(device):
     np.testing.assert_allclose(p.get(), [0.5, 2.5, 3.0], rtol=1e-6)
 
 
+@pytest.mark.parametrize("eps", [1e-8, 0.0])
+def test_rmsprop_first_step_tiny_and_huge_gradients(device, eps):
+    """First touch: step = lr g / (|g| + eps), also where g^2 underflows float32 (|g| < 1e-19;
+    with eps = 0 this used to be g / 0 = -inf) and where |g| is clamped (1e38 -> 1e18)."""
+    q = device.queue
+    g = np.array([1e-30, -1e-30, 1e-20, 1e-40, 3.0, -0.1234567, 1e20, 1e38, -1e38], np.float32)
+    p = cla.to_device(q, np.zeros(g.size, np.float32))
+    opt = RowOptimizer(device, p, eps=eps)
+    opt.grad.set(g)
+    opt.step(cla.to_device(q, np.ones(g.size, np.uint8)), lr=0.1, clear_touched=True)
+    got = p.get()
+    assert np.all(np.isfinite(got))
+    gd = np.clip(g.astype(np.float64), -1e18, 1e18)
+    want = -np.float32(0.1) * gd / (np.abs(gd) + eps)
+    np.testing.assert_allclose(got, want, rtol=2e-7, atol=0)
+    if eps == 0.0:
+        np.testing.assert_array_equal(np.abs(got), np.float32(0.1))   # exactly +-lr
+
+
 def test_expon_lr_schedule():
     assert expon_lr(0, 1.0, 0.01, 100) == pytest.approx(1.0)
     assert expon_lr(100, 1.0, 0.01, 100) == pytest.approx(0.01)
