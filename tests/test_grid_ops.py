@@ -130,6 +130,31 @@ def test_tv_flat_region_has_zero_gradient(device):
     assert np.all(grad.get() == 0)
 
 
+@pytest.mark.parametrize("big", [1e10, 1e19, 1e20, 1e30, 1e38, 3e38])
+def test_tv_grad_huge_differences(device, big):
+    """Neighbour differences whose squares overflow float32 (|d| > 1.8e19) keep the gradient
+    scale * d / |d| (it used to vanish: r = inf). At 3e38 next to -3e38 the difference itself
+    overflows float32; it is clamped to +-FLT_MAX: finite, bounded, direction approximate."""
+    rng = np.random.default_rng(5)
+    shape = (3, 4, 5)
+    dens = (rng.choice([-1.0, 0.0, 0.5, 1.0], shape) * big).astype(np.float32)
+    dens[0, 0, 0], dens[1, 0, 0] = big, -big
+    alloc = rng.random(shape) < 0.8
+    alloc[:2, 0, 0] = True
+    grid = clrf.SparseGrid.from_dense(device, dens * alloc, np.zeros(shape + (3,), np.float32),
+                                      BBOX, mask=alloc)
+    grad = cla.zeros_like(grid.density)
+    touched = cla.zeros(device.queue, grad.shape[0], np.uint8)
+    grid_ops.tv_grad(grid, grid.density, grad, touched, 0, dens.size, 0.5, True)
+    r = ref.tv_grad(alloc, dens * alloc, 0, dens.size, 0.5, True)[..., 0]
+    gk = grid.rows_to_dense(grad.get(), np.zeros((grad.shape[0], 3), np.float32))[0]
+    assert np.all(np.isfinite(gk))
+    assert np.abs(gk).max() <= 0.5 * (3 + np.sqrt(3)) * (1 + 1e-6)   # <= scale per term
+    if big < 1.7e38:
+        np.testing.assert_allclose(gk, r, atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    assert np.abs(r).max() > 0.4
+
+
 @pytest.mark.parametrize("new_reso", [(5, 6, 7), (10, 12, 14), (3, 3, 3), (1, 1, 1), (8, 5, 9)])
 def test_resample_vs_reference(device, new_reso):
     rng = np.random.default_rng(sum(new_reso))
