@@ -10,7 +10,8 @@
  *   SGD     (OPT_MODE 1):                  param[i] -= lr g
  * then grad[i] = 0, so gradient buffers stay zero outside the rows touched by the next step
  * (no dense zero-fill per step). With clear_touched = 1 the row's flag is reset too.
- * A zero gradient leaves param and state unchanged (state stays 0 until the first real touch).
+ * A zero or NaN gradient leaves param and state unchanged (state stays 0 until the first real
+ * touch); +-inf is clamped like any huge gradient.
  *
  * Defines read: OPT_MODE.  Mirrored by reference.rmsprop_rows / sgd_rows.
  */
@@ -31,9 +32,12 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
     if (k >= n_rows || !touched[k]) return;
     for (int j = 0; j < D; ++j) {
         const size_t i = (size_t)k * D + j;
-        const float g = clamp(grad[i], -GRAD_CLAMP, GRAD_CLAMP);
+        const float g0 = grad[i];
         grad[i] = 0.0f;
-        if (g == 0.0f) continue;
+        /* NaN is skipped like 0: clamp(NaN) is fmin(fmax(NaN, -C), C) = -C on conformant
+         * devices, which stepped the parameter by +lr and set the state to 1e36 */
+        if (g0 == 0.0f || isnan(g0)) continue;
+        const float g = clamp(g0, -GRAD_CLAMP, GRAD_CLAMP);
 #if OPT_MODE == 0
         const float s0 = state[i];
         const float s = s0 == 0.0f ? g * g : beta * s0 + (1.0f - beta) * g * g;

@@ -81,6 +81,24 @@ def test_rmsprop_first_step_tiny_and_huge_gradients(device, eps):
         np.testing.assert_array_equal(np.abs(got), np.float32(0.1))   # exactly +-lr
 
 
+@pytest.mark.parametrize("mode", ["rmsprop", "sgd"])
+def test_nan_gradient_is_skipped(device, mode):
+    """A NaN gradient entry changes nothing (like 0) and is consumed; it used to be clamped to
+    -1e18 (fmax(NaN, -C) = -C): RMSProp stepped +lr and set the state to 1e36, SGD moved the
+    parameter by +1e17."""
+    q = device.queue
+    p = cla.to_device(q, np.ones((2, 2), np.float32))
+    opt = RowOptimizer(device, p, mode=mode)
+    opt.grad.set(np.array([[np.nan, 1.0], [np.nan, np.nan]], np.float32))
+    opt.step(cla.to_device(q, np.ones(2, np.uint8)), lr=0.1, clear_touched=True)
+    np.testing.assert_allclose(p.get(), [[1.0, 0.9], [1.0, 1.0]], rtol=1e-6)
+    assert np.all(opt.state.get() == ([[0, 1], [0, 0]] if mode == "rmsprop" else 0))
+    assert np.all(opt.grad.get() == 0)
+    p_ref, _ = ref.update_rows(np.ones((2, 2)), np.array([[np.nan, 1.0], [np.nan, np.nan]]),
+                               np.zeros((2, 2)), [1, 1], 0.1, mode=mode)
+    np.testing.assert_allclose(p.get(), p_ref, rtol=1e-6)
+
+
 def test_expon_lr_schedule():
     assert expon_lr(0, 1.0, 0.01, 100) == pytest.approx(1.0)
     assert expon_lr(100, 1.0, 0.01, 100) == pytest.approx(0.01)
