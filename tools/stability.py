@@ -868,14 +868,16 @@ def _twin(p, g, s, touched, lr=LR, mode="rmsprop", eps=1e-8):
 
 
 def opt_zero_grad(run, mode):
-    """Touched rows with zero gradients: parameters and state unchanged bit for bit (state 0
-    stays 0: no 0/(sqrt(0) + eps) update), gradients stay 0, touched flags cleared."""
+    """Touched rows with zero (and NaN, skipped the same way) gradients: parameters and state
+    unchanged bit for bit (state 0 stays 0: no 0/(sqrt(0) + eps) update), gradients reset to 0,
+    touched flags cleared."""
     n, D = 64, 4
     p0 = run.rng.normal(size=(n, D)).astype(np.float32)
     s0 = np.where(run.rng.random((n, D)) < 0.5, 0.0, run.rng.uniform(0.1, 2, (n, D)))
     opt = _opt(run, mode, p0, s0)
-    for _ in range(3):
-        t = _opt_step(run, opt, np.zeros((n, D)), np.ones(n))
+    for k in range(3):
+        g = np.where(run.rng.random((n, D)) < 0.5, np.nan, 0.0) if k == 2 else np.zeros((n, D))
+        t = _opt_step(run, opt, g, np.ones(n))
     run.compare("params unchanged", opt.param.get(), p0, EXACT)
     run.compare("state unchanged (zeros stay 0)", opt.state.get(), s0.astype(np.float32), EXACT)
     run.compare("grad buffer 0, touched cleared", np.concatenate([opt.grad.get().ravel(), t]),
@@ -1268,7 +1270,7 @@ def _cases() -> list[Case]:
            Case("SH degree 3 at the poles", "values", sh3_poles),
            Case("NaN/Inf inputs rejected", "values", bad_inputs, RAISES)]
     for mode in ("rmsprop", "sgd"):
-        cs += [Case(f"{mode} zero gradients", "optimiser", P(opt_zero_grad, mode=mode), EXACT),
+        cs += [Case(f"{mode} zero and NaN gradients", "optimiser", P(opt_zero_grad, mode=mode), EXACT),
                Case(f"{mode} huge gradients 1e20..inf", "optimiser", P(opt_huge_grad, mode=mode),
                     OPT),
                Case(f"{mode} long sparse run vs float64", "optimiser",
