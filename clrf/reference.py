@@ -246,7 +246,8 @@ def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsp
     """Float64 twin of update_rows: returns (param, state); rows not touched are unchanged."""
     p = np.array(param, np.float64)
     s = np.array(state, np.float64)
-    g = np.clip(np.asarray(grad, np.float64), -GRAD_CLAMP, GRAD_CLAMP)
+    g = np.asarray(grad, np.float64)
+    g = np.clip(np.where(np.isnan(g), 0.0, g), -GRAD_CLAMP, GRAD_CLAMP)   # NaN: skipped like 0
     t = np.asarray(touched, bool)
     if p.ndim == 1:
         p, s, g = p[:, None], s[:, None], g[:, None]

@@ -85,3 +85,24 @@ STAB_ORDER_ATOL = 0.25
 # independent of N (Kahan: 2u + N u^2 = 1.6e-7 relative at N = 1e6, plus ~3u per term as for
 # STAB_SEGMENT_SUM_RTOL); 1e-5 is 60x that. A plain float32 sum drifts up to N u / 2 = 3e-2.
 STAB_VERY_LONG_RTOL = 1e-5
+# ---- optimiser, regulariser and structure cases (cl/optim.cl, cl/grid_ops.cl) -----------------
+# One optimiser step against the float64 twin (lr = 0.1, |param| <~ 4). The kernel's step
+# lr * (g / (sqrt(s) + eps)) may carry OpenCL's allowed 3 ulp (sqrt) + 2.5 ulp (divide) + 0.5 ulp
+# (lr *) + ~1 ulp (state lerp, halved by sqrt) ~ 7 ulp = 8e-7 relative; steps are <= lr /
+# sqrt(1 - beta) = 0.45, so <= 3.6e-7 absolute, and the update p - step rounds to 0.5 ulp(|p|)
+# (1.2e-7 at |p| < 4). Hence 5e-7 absolute + 1e-6 relative (the relative part alone for
+# quantities compared relatively: first steps from 0, the state, SGD steps of lr * 1e18).
+# PoCL measures <= 1e-1 of this; a wrong rule (eps placement, missed first-touch branch, beta
+# vs 1 - beta) is off by >= 1e-3 relative.
+STAB_OPT_ATOL = 5e-7
+STAB_OPT_RTOL = 1e-6
+# Long sparse runs (1% of 2000 rows per step, up to K ~ 40 updates per entry in 2000 steps),
+# compared normwise (max |err| / max |param|): each update rounds p - step (0.5 ulp of max |p|)
+# and adds the step error (7 ulp of a step that is <= 0.45 ~ max |p| / 8 for RMSProp, 1 ulp for
+# SGD), so <= 1.5 ulp = 1.8e-7 per update, K = 40: 7e-6 worst case; 1e-5. Measured ~1e-7 (the
+# errors are not all of one sign). A step applied twice or skipped is >= 1e-3.
+STAB_OPT_LONG_NORM = 1e-5
+# RMSProp state after a long run, relative per entry: s <- beta s + (1 - beta) g^2 rounds twice
+# (~1 ulp) per update and is contracting only when g^2 keeps up with s; when s decays (tiny g
+# after a huge one) the relative errors add: K = 40 updates -> 4.8e-6; 1e-5.
+STAB_OPT_LONG_STATE_RTOL = 1e-5
