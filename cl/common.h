@@ -56,4 +56,46 @@ inline void atomic_max_nonneg_f(volatile __global float *p, float v) {
     atomic_max((volatile __global int *)p, as_int(fmax(v, 0.0f)));
 }
 
+
+/* ---- activations (scalar and float16 overloads share one definition each) ---------------
+ * softplus(x) = max(x, 0) + log1p(exp(-|x|)): never overflows, exact for large |x|.
+ * sigmoid(x)  = 1 / (1 + exp(-x)) written with e = exp(-|x|) <= 1, so exp never overflows.
+ * Their derivatives are written in terms of the OUTPUT y, which is what the MLP stores:
+ *   relu'   = [y > 0],  softplus' = sigmoid(x) = 1 - exp(-y) = -expm1(-y),  sigmoid' = y (1 - y).
+ */
+#define CLRF_DEFINE_ACTIVATIONS(T)                                                            \
+    inline T __attribute__((overloadable)) safe_softplus(T x) {                               \
+        return fmax(x, (T)(0.0f)) + log1p(exp(-fabs(x)));                                     \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) safe_sigmoid(T x) {                                \
+        const T e = exp(-fabs(x));                                                            \
+        const T r = (T)(1.0f) / ((T)(1.0f) + e);                                              \
+        return select(e * r, r, x >= (T)(0.0f));                                              \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) relu_grad_from_y(T y) {                            \
+        return select((T)(0.0f), (T)(1.0f), y > (T)(0.0f));                                   \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) softplus_grad_from_y(T y) { return -expm1(-y); }   \
+    inline T __attribute__((overloadable)) sigmoid_grad_from_y(T y) {                         \
+        return y * ((T)(1.0f) - y);                                                           \
+    }
+CLRF_DEFINE_ACTIVATIONS(float)
+CLRF_DEFINE_ACTIVATIONS(float16)
+
+/* ---- counter-based random numbers ---------------------------------------------------------
+ * hash_u32 is the "lowbias32" integer hash (two multiply-xorshift rounds); its twin is
+ * clrf.reference_nerf.hash_u32 (bit-exact). uniform01(key, counter) is in [0, 1) with 24 bits. */
+inline uint hash_u32(uint x) {
+    x ^= x >> 16;
+    x *= 0x7feb352dU;
+    x ^= x >> 15;
+    x *= 0x846ca68bU;
+    x ^= x >> 16;
+    return x;
+}
+#define CLRF_U24_SCALE 5.9604644775390625e-8f  /* 2^-24: maps a 24-bit integer into [0, 1) */
+inline float uniform01(uint key, uint counter) {
+    return (float)(hash_u32(key ^ hash_u32(counter)) >> 8) * CLRF_U24_SCALE;
+}
+
 #endif /* CLRF_COMMON_H */
