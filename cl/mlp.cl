@@ -103,8 +103,8 @@
 #if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS
 #error "SIGMA_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
 #endif
-#if MLP_ROWS < 1 || MLP_ROWS > 16
-#error "MLP_ROWS must be in 1..16"
+#if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 4 && MLP_ROWS != 8 && MLP_ROWS != 16
+#error "MLP_ROWS must be 1, 2, 4, 8 or 16"
 #endif
 #if DW_ROWS != 1 && DW_ROWS != 2 && DW_ROWS != 4 && DW_ROWS != 8 && DW_ROWS != 16
 #error "DW_ROWS must divide 16"
@@ -171,24 +171,55 @@ inline int n_params(void) {
 
 /* ---- the register-blocked product ---------------------------------------------------------
  * acc[r*CJ + c] += sum_{k<K} L[r*lr + k*lk] * M[k*ms + 16c .. 16c+15]  for r < ROWS, c < CJ.
- * Generated for the (ROWS, CJ) pairs used below; after inlining acc lives in registers. */
-#define DEFINE_GEMM_TILE(NAME, ROWS, CJ)                                                    \
+ * PoCL's compiler neither unrolls the row loop nor keeps a private accumulator array in
+ * registers, so the tile is written out with one named float16 per accumulator (REPn repeats
+ * a per-row statement n times); acc is read once before and written once after the k loop. */
+#define REP1(X) X(0)
+#define REP2(X) REP1(X) X(1)
+#define REP4(X) REP2(X) X(2) X(3)
+#define REP8(X) REP4(X) X(4) X(5) X(6) X(7)
+#define REP16(X) REP8(X) X(8) X(9) X(10) X(11) X(12) X(13) X(14) X(15)
+#define REPN_(n) REP##n
+#define REPN(n) REPN_(n)
+
+#define T2_LOAD(r) float16 a##r##0 = acc[2 * r], a##r##1 = acc[2 * r + 1];
+#define T2_FMA(r) {                                                                         \
+        const float16 l = (float16)(Lp[(size_t)(r) * lr + (size_t)k * lk]);                \
+        a##r##0 = fma(l, m0, a##r##0);                                                      \
+        a##r##1 = fma(l, m1, a##r##1);                                                      \
+    }
+#define T2_STORE(r) acc[2 * r] = a##r##0; acc[2 * r + 1] = a##r##1;
+#define T1_LOAD(r) float16 a##r##0 = acc[r];
+#define T1_FMA(r) a##r##0 = fma((float16)(Lp[(size_t)(r) * lr + (size_t)k * lk]), m0, a##r##0);
+#define T1_STORE(r) acc[r] = a##r##0;
+
+#define DEFINE_GEMM_TILE2(NAME, ROWS)                                                       \
     inline void NAME(__global const float *restrict Lp, const int lr, const int lk,         \
                      __global const float *restrict Mp, const int ms, const int K,          \
                      float16 *acc) {                                                        \
+        REPN(ROWS)(T2_LOAD)                                                                 \
         for (int k = 0; k < K; ++k) {                                                       \
-            float16 m[CJ];                                                                  \
-            for (int c = 0; c < CJ; ++c) m[c] = vload16(0, Mp + (size_t)k * ms + 16 * c);   \
-            for (int r = 0; r < ROWS; ++r) {                                                \
-                const float16 l = (float16)(Lp[(size_t)r * lr + (size_t)k * lk]);           \
-                for (int c = 0; c < CJ; ++c) acc[r * CJ + c] = fma(l, m[c], acc[r * CJ + c]); \
-            }                                                                               \
+            const float16 m0 = vload16(0, Mp + (size_t)k * ms);                             \
+            const float16 m1 = vload16(0, Mp + (size_t)k * ms + 16);                        \
+            REPN(ROWS)(T2_FMA)                                                              \
         }                                                                                   \
+        REPN(ROWS)(T2_STORE)                                                                \
     }
-DEFINE_GEMM_TILE(gemm_rows2, MLP_ROWS, 2)
-DEFINE_GEMM_TILE(gemm_rows1, MLP_ROWS, 1)
-DEFINE_GEMM_TILE(gemm_dw2, DW_ROWS, 2)
-DEFINE_GEMM_TILE(gemm_dw1, DW_ROWS, 1)
+#define DEFINE_GEMM_TILE1(NAME, ROWS)                                                       \
+    inline void NAME(__global const float *restrict Lp, const int lr, const int lk,         \
+                     __global const float *restrict Mp, const int ms, const int K,          \
+                     float16 *acc) {                                                        \
+        REPN(ROWS)(T1_LOAD)                                                                 \
+        for (int k = 0; k < K; ++k) {                                                       \
+            const float16 m0 = vload16(0, Mp + (size_t)k * ms);                             \
+            REPN(ROWS)(T1_FMA)                                                              \
+        }                                                                                   \
+        REPN(ROWS)(T1_STORE)                                                                \
+    }
+DEFINE_GEMM_TILE2(gemm_rows2, MLP_ROWS)
+DEFINE_GEMM_TILE1(gemm_rows1, MLP_ROWS)
+DEFINE_GEMM_TILE2(gemm_dw2, DW_ROWS)
+DEFINE_GEMM_TILE1(gemm_dw1, DW_ROWS)
 
 inline float16 act_forward(const float16 x, const int act) {
     if (act == ACT_RELU) return fmax(x, (float16)(0.0f));

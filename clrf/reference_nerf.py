@@ -201,6 +201,20 @@ def sample_importance(t_c, w, Nf, near, far, jitter=False, key=0):
     return np.clip(out, near, far)
 
 
+def importance_cdf(t_c, w, near, far, t):
+    """The (unnormalised) CDF of the importance pdf of each ray, evaluated at t [n, M]: the
+    well-conditioned quantity to compare samples in (a sample in a nearly empty bin moves a lot
+    for a tiny change of the CDF)."""
+    t_c = np.asarray(t_c, np.float64)
+    w = np.nan_to_num(np.asarray(w, np.float64), nan=0.0)
+    n = t_c.shape[0]
+    edges = np.concatenate([np.full((n, 1), near), 0.5 * (t_c[:, 1:] + t_c[:, :-1]),
+                            np.full((n, 1), far)], axis=1)
+    cdf = np.concatenate([np.zeros((n, 1)), np.cumsum(np.maximum(w, 0.0) + PDF_PAD, axis=1)],
+                         axis=1)
+    return np.stack([np.interp(t[i], edges[i], cdf[i]) for i in range(n)]), cdf[:, -1]
+
+
 def merge_sorted(a, b):
     return np.sort(np.concatenate([a, b], axis=1), axis=1, kind="stable")
 
