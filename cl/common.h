@@ -98,4 +98,37 @@ inline float uniform01(uint key, uint counter) {
     return (float)(hash_u32(key ^ hash_u32(counter)) >> 8) * CLRF_U24_SCALE;
 }
 
+
+/* ---- sin(pi a), cos(pi a) with exact argument reduction ----------------------------------
+ * a = n/2 + r with n = rint(2a) and |r| <= 1/4; r = a - n/2 is exact in float32 (it is a
+ * multiple of ulp(a) and no larger than 1/4), and only n mod 4 matters, taken in float so any
+ * finite a works. sin(pi r), cos(pi r) are Taylor polynomials to degree 11 / 12: truncation
+ * < 1e-11 on |pi r| <= pi/4, so the result is accurate to a few ulp. Written on float3 with
+ * selects (no branches, no library call): PoCL vectorises it across work-items, which its
+ * sinpi/cospi did not. Twin: clrf.reference_nerf._sincospi (float64).
+ * Caveat: scalar isequal returns 1, vector isequal -1; select tests the MSB for vectors and
+ * non-zero for scalars, so both overloads select correctly. */
+#define CLRF_PI_F 3.14159265358979323846f
+#define CLRF_DEFINE_SINCOSPI(T, IT)                                                           \
+    inline void __attribute__((overloadable)) sincospi_v(const T a, T *s_out, T *c_out) {     \
+        const T nf = rint(2.0f * a);                                                          \
+        const T r = a - 0.5f * nf;                                                            \
+        const T q = nf - 4.0f * floor(0.25f * nf);        /* n mod 4, in {0, 1, 2, 3} */      \
+        const T x = CLRF_PI_F * r, x2 = x * x;                                                \
+        const T sp = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f                     \
+                     + x2 * (-1.0f / 5040.0f + x2 * (1.0f / 362880.0f                         \
+                     + x2 * (-1.0f / 39916800.0f))))));                                       \
+        const T cp = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f           \
+                     + x2 * (1.0f / 40320.0f + x2 * (-1.0f / 3628800.0f                       \
+                     + x2 * (1.0f / 479001600.0f))))));                                       \
+        const IT odd = isequal(q, (T)(1.0f)) | isequal(q, (T)(3.0f));                         \
+        const T s0 = select(sp, cp, odd), c0 = select(cp, sp, odd);                           \
+        /* sin negated for n = 2, 3; cos negated for n = 1, 2 */                              \
+        *s_out = select(s0, -s0, isgreaterequal(q, (T)(2.0f)));                               \
+        *c_out = select(c0, -c0, isequal(q, (T)(1.0f)) | isequal(q, (T)(2.0f)));              \
+    }
+CLRF_DEFINE_SINCOSPI(float, int)
+CLRF_DEFINE_SINCOSPI(float3, int3)
+CLRF_DEFINE_SINCOSPI(float16, int16)
+
 #endif /* CLRF_COMMON_H */
