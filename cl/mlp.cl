@@ -35,8 +35,8 @@
  *   forward      A_out[s, j]  = act(b_j + sum_k A_in[s, k] Wt[k, j])     (rows = samples)
  *   backward     G_in[s, k]   = act'(A_in[s, k]) sum_j G_out[s, j] W[j, k] (rows = samples)
  *   weight grad  dW[j, k]     = sum_s G_out[s, j] A_in[s, k]              (rows = outputs j)
- * Weight gradients are reduced without races: mlp_weight_grad / mlp_bias_grad write one
- * partial gradient per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
+ * Weight gradients are reduced without races: mlp_weight_grad writes one partial gradient
+ * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
  *
  * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
  * SIGMA_ACT, MLP_ROWS, DW_ROWS, DW_CHUNK.
@@ -390,8 +390,10 @@ __kernel void mlp_backward(const int n, __global const float *dsigma, __global c
     }
 }
 
-/* Partial weight gradient of layer `layer` over chunk p of the scratch rows:
- * partial[p, w_off + j*nin + k] = sum_{s in chunk p} G[s, out_off + j] A[s, in_off + k].
+/* Partial weight and bias gradients of layer `layer` over chunk p of the scratch rows:
+ *   partial[p, w_off + j*nin + k] = sum_{s in chunk p} G[s, out_off + j] A[s, in_off + k],
+ *   partial[p, b_off + j]         = sum_{s in chunk p} G[s, out_off + j]  (items with kb == 0,
+ *                                   while the chunk's G rows are still in cache).
  * Work-item gid = (p * nkb + kb) * njb + jb: DW_ROWS outputs j x 32 (or a last 16) inputs k. */
 __kernel void mlp_weight_grad(const int layer, const int n_rows, __global const float *A,
                               __global const float *G, __global float *partial) {
@@ -405,37 +407,28 @@ __kernel void mlp_weight_grad(const int layer, const int n_rows, __global const 
     const int s0 = p * DW_CHUNK, ns = min(DW_CHUNK, n_rows - s0);
     __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;
     __global const float *Mp = A + (size_t)s0 * NSLOT + L.in_off + k0;
-    __global float *out = partial + (size_t)p * n_params() + L.w_off;
+    __global float *out = partial + (size_t)p * n_params();
     if (k0 + 32 <= L.nin) {
         float16 acc[DW_ROWS * 2];
         for (int r = 0; r < 2 * DW_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_dw2(Lp, 1, NSLOT, Mp, NSLOT, ns, acc);
         for (int r = 0; r < DW_ROWS; ++r)
             for (int c = 0; c < 2; ++c)
-                vstore16(acc[2 * r + c], 0, out + (size_t)(j0 + r) * L.nin + k0 + 16 * c);
+                vstore16(acc[2 * r + c], 0, out + L.w_off + (size_t)(j0 + r) * L.nin + k0 + 16 * c);
     } else {
         float16 acc[DW_ROWS];
         for (int r = 0; r < DW_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_dw1(Lp, 1, NSLOT, Mp, NSLOT, ns, acc);
         for (int r = 0; r < DW_ROWS; ++r)
-            vstore16(acc[r], 0, out + (size_t)(j0 + r) * L.nin + k0);
+            vstore16(acc[r], 0, out + L.w_off + (size_t)(j0 + r) * L.nin + k0);
     }
-}
-
-/* Partial bias gradient: partial[p, b_off + j] = sum_{s in chunk p} G[s, out_off + j];
- * gid = p * (nout/16) + jb, 16 outputs each. */
-__kernel void mlp_bias_grad(const int layer, const int n_rows, __global const float *G,
-                            __global float *partial) {
-    const layer_t L = layer_desc(layer);
-    const int njb = L.nout / 16;
-    const int n_chunks = (n_rows + DW_CHUNK - 1) / DW_CHUNK;
-    const int gid = get_global_id(0);
-    if (gid >= njb * n_chunks) return;
-    const int jb = gid % njb, p = gid / njb;
-    const int s0 = p * DW_CHUNK, s1 = min(s0 + DW_CHUNK, n_rows);
-    float16 acc = (float16)(0.0f);
-    for (int s = s0; s < s1; ++s) acc += vload16(0, G + (size_t)s * NSLOT + L.out_off + 16 * jb);
-    vstore16(acc, 0, partial + (size_t)p * n_params() + L.b_off + 16 * jb);
+    if (kb == 0) {
+        float b[DW_ROWS];
+        for (int r = 0; r < DW_ROWS; ++r) b[r] = 0.0f;
+        for (int s = 0; s < ns; ++s)
+            for (int r = 0; r < DW_ROWS; ++r) b[r] += Lp[(size_t)s * NSLOT + r];
+        for (int r = 0; r < DW_ROWS; ++r) out[L.b_off + j0 + r] = b[r];
+    }
 }
 
 /* grad[16i .. 16i+15] (+)= sum_p partial[p, 16i ..] in chunk order (deterministic). */

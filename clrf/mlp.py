@@ -143,7 +143,7 @@ class MLP:
         self.A = self.G = self.partial = None
         self._n = 0
         self._k = {name: self.program.kernel(name) for name in (
-            "mlp_forward", "mlp_backward", "mlp_weight_grad", "mlp_bias_grad", "mlp_reduce",
+            "mlp_forward", "mlp_backward", "mlp_weight_grad", "mlp_reduce",
             "mlp_transpose")}
         self.sync_params()
 
@@ -152,16 +152,19 @@ class MLP:
         r = self.layout.rows
         return (n + r - 1) // r * r
 
-    def _ensure_scratch(self, n: int):
+    def _ensure_scratch(self, n: int, backward: bool = False):
+        """A (forward) and, for a backward, G and the partial gradients, for >= n rows. Only
+        grown, never shrunk; a render allocates no G."""
         rows = max(self.n_rows(n), self.layout.rows)
+        q = self.device.queue
         if rows > self._scratch_rows:
-            q = self.device.queue
-            nbytes = rows * self.layout.nslot
-            self.A = cla.zeros(q, nbytes, np.float32)
-            self.G = cla.zeros(q, nbytes, np.float32)
-            chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
-            self.partial = cla.empty(q, max(chunks, 1) * self.layout.n_params, np.float32)
+            self.A = cla.zeros(q, rows * self.layout.nslot, np.float32)
             self._scratch_rows = rows
+            self.G = self.partial = None
+        if backward and self.G is None:
+            self.G = cla.zeros(q, self._scratch_rows * self.layout.nslot, np.float32)
+            chunks = (self._scratch_rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+            self.partial = cla.empty(q, chunks * self.layout.n_params, np.float32)
 
     def sync_params(self):
         """Refresh the transposed copy the forward reads; call after every update of params."""
@@ -198,6 +201,7 @@ class MLP:
         if want_input:
             dx = cla.empty(q, (n, self.spec.in_dim), np.float32)
             dd = cla.empty(q, (n, self.spec.dir_dim), np.float32)
+        self._ensure_scratch(n, backward=True)
         tiles = self.n_rows(n) // self.layout.rows
         dummy = self.A.data
         launch(self.device, self._k["mlp_backward"], tiles,
@@ -217,9 +221,6 @@ class MLP:
             nw = (L["nout"] // dwr) * ((L["nin"] + 31) // 32) * n_chunks
             launch(self.device, self._k["mlp_weight_grad"], nw,
                    (np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data),
-                   GRAD_LOCAL_SIZE)
-            launch(self.device, self._k["mlp_bias_grad"], (L["nout"] // 16) * n_chunks,
-                   (np.int32(l), np.int32(rows), self.G.data, self.partial.data),
                    GRAD_LOCAL_SIZE)
         k = self._k["mlp_reduce"]
         k.set_args(np.int32(n_chunks), self.partial.data, grad.data, np.int32(bool(accumulate)))

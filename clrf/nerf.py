@@ -25,7 +25,7 @@ import pyopencl.array as cla
 from . import nerf_ops as ops
 from .mlp import MLP, MLPSpec
 
-MAX_RENDER_ROWS = 1 << 16   # samples per render chunk: bounds the MLP scratch (rows x NSLOT)
+MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
 
 @dataclass(frozen=True)
@@ -197,7 +197,8 @@ class NerfModel:
         c, dev, q = self.config, self.device, self.device.queue
         n = o.shape[0]
         per_ray = c.n_coarse + c.n_fine
-        step = max(1, min(int(chunk), MAX_RENDER_ROWS // per_ray))
+        max_rows = MAX_RENDER_SCRATCH // (4 * self.coarse.layout.nslot)
+        step = max(1, min(int(chunk), max_rows // per_ray))
         out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),
                "acc": np.zeros(n, np.float32)}
         for s in range(0, n, step):
