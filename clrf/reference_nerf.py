@@ -11,7 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-PDF_PAD = 1e-5
+__all__ = ["hash_u32", "uniform01", "encode", "encode_backward", "mlp_forward", "mlp_backward",
+           "sample_stratified", "sample_importance", "importance_cdf", "merge_sorted",
+           "ray_points", "composite_forward", "composite_backward", "finite_difference",
+           "PDF_PAD"]
+
+PDF_PAD = 1e-5   # cl/sample.cl PDF_PAD
 _M32 = np.uint64(0xFFFFFFFF)
 
 
@@ -149,7 +154,6 @@ def mlp_backward(params, spec, layout, x_enc, d_enc, dsigma, drgb):
     """Analytic gradients of sum(dsigma*sigma) + sum(drgb*rgb): dict(params [n_params] in the
     packed layout, x_enc [n, in_dim], d_enc [n, dir_dim])."""
     sigma, rgb, S, pre = mlp_forward(params, spec, layout, x_enc, d_enc, record=True)
-    n = S.shape[0]
     Gv = np.zeros_like(S)                    # dL/d(slot value)
     sl = layout.slots
     Gv[:, sl["SL_HD"]] = dsigma
@@ -169,7 +173,6 @@ def mlp_backward(params, spec, layout, x_enc, d_enc, dsigma, drgb):
     if sl["SL_XS"] >= 0:
         dx += Gv[:, sl["SL_XS"]:sl["SL_XS"] + spec.in_dim]
     dd = Gv[:, sl["SL_DV"]:sl["SL_DV"] + spec.dir_dim].copy()
-    del n
     return dict(params=grad, x_enc=dx, d_enc=dd)
 
 
