@@ -55,10 +55,10 @@
 #define MLP_DEPTH 4         /* trunk layers D >= 1 (NeRF: 8) */
 #endif
 #ifndef MLP_SKIP
-#define MLP_SKIP -1         /* x is concatenated to the input of layer MLP_SKIP+1; -1: no skip (NeRF: 4) */
+#define MLP_SKIP -1         /* x re-enters at the input of layer MLP_SKIP+1; -1: none (NeRF: 4) */
 #endif
 #ifndef MLP_COLOR_WIDTH
-#define MLP_COLOR_WIDTH 32  /* width WC of the view-dependent colour layer; multiple of 16 (NeRF: 128) */
+#define MLP_COLOR_WIDTH 32  /* view-dependent colour layer width WC, multiple of 16 (NeRF: 128) */
 #endif
 #ifndef MLP_IN
 #define MLP_IN 51           /* encoded position dims (NeRF: 63 = 3 + 6*10) */
@@ -73,7 +73,7 @@
 #define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF) or ACT_SOFTPLUS (stable, never dead) */
 #endif
 #ifndef MLP_ROWS
-#define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward (register rows) */
+#define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
 #endif
 #ifndef DW_ROWS
 #define DW_ROWS 8           /* output neurons per work-item in mlp_weight_grad; divides 16 */
@@ -303,7 +303,8 @@ inline void load_input(const int n, const int r0, __global const float *src, con
     for (int r = 0; r < MLP_ROWS; ++r) {
         const int row = r0 + r;
         for (int k = 0; k < dim_p; ++k)
-            A[(size_t)r * NSLOT + off + k] = (row < n && k < dim) ? src[(size_t)row * dim + k] : 0.0f;
+            A[(size_t)r * NSLOT + off + k] =
+                (row < n && k < dim) ? src[(size_t)row * dim + k] : 0.0f;
     }
 }
 
@@ -476,6 +477,7 @@ __kernel void mlp_layout(__global int *out) {
     for (int l = 0; l < NLAYER; ++l) {
         const layer_t L = layer_desc(l);
         __global int *o = out + 12 + 6 * l;
-        o[0] = L.in_off; o[1] = L.nin; o[2] = L.out_off; o[3] = L.nout; o[4] = L.w_off; o[5] = L.b_off;
+        o[0] = L.in_off; o[1] = L.nin; o[2] = L.out_off; o[3] = L.nout;
+        o[4] = L.w_off; o[5] = L.b_off;
     }
 }

@@ -27,11 +27,16 @@ def _empty(device, shape):
     return cla.empty(device.queue, shape, np.float32)
 
 
+def _encode_prg(device, n_freqs, include_input):
+    return device.program("encode.cl", {"ENC_FREQS": n_freqs,
+                                        "ENC_INCLUDE_INPUT": int(include_input)})
+
+
 def encode(device, x, n_freqs: int, include_input: bool = True, scale: float = 1.0, out=None):
     """gamma(scale * x): x [n, 3] -> [n, 3*include_input + 6*n_freqs]."""
     n = int(x.shape[0])
     out = out if out is not None else _empty(device, (n, enc_dim(n_freqs, include_input)))
-    prg = device.program("encode.cl", {"ENC_FREQS": n_freqs, "ENC_INCLUDE_INPUT": int(include_input)})
+    prg = _encode_prg(device, n_freqs, include_input)
     launch(device, prg.kernel("encode_forward"), 3 * max(n_freqs, 1) * ((n + 15) // 16),
            (np.int32(n), np.float32(scale), x.data, out.data), ENCODE_LOCAL_SIZE)
     return out
@@ -42,7 +47,7 @@ def encode_backward(device, x, grad_out, n_freqs: int, include_input: bool = Tru
     """dL/dx [n, 3] from dL/dgamma [n, enc_dim]."""
     n = int(x.shape[0])
     gx = _empty(device, (n, 3))
-    prg = device.program("encode.cl", {"ENC_FREQS": n_freqs, "ENC_INCLUDE_INPUT": int(include_input)})
+    prg = _encode_prg(device, n_freqs, include_input)
     launch(device, prg.kernel("encode_backward"), n,
            (np.int32(n), np.float32(scale), x.data, grad_out.data, gx.data), ELEMENTWISE_LOCAL_SIZE)
     return gx

@@ -48,9 +48,9 @@ def test_toy_values(device):
     # a white background -> (1, 0.5, 0.5); acc 0.5; depth 0.5 * 2 = 1.
     out = ops.composite_forward(device, dev_arr(device, [[2.0]]), dev_arr(device, [np.log(2)]),
                                 dev_arr(device, [[1, 0, 0]]), 3.0, (1, 1, 1))
-    np.testing.assert_allclose(out["rgb"].get(), [[1, 0.5, 0.5]], atol=1e-6)
-    np.testing.assert_allclose(out["acc"].get(), [0.5], atol=1e-6)
-    np.testing.assert_allclose(out["depth"].get(), [1.0], atol=1e-6)
+    np.testing.assert_allclose(out["rgb"].get(), [[1, 0.5, 0.5]], atol=tol.TOY_ATOL)
+    np.testing.assert_allclose(out["acc"].get(), [0.5], atol=tol.TOY_ATOL)
+    np.testing.assert_allclose(out["depth"].get(), [1.0], atol=tol.TOY_ATOL)
 
 
 def run_backward(device, t, sig, rgb, g, bg):
@@ -123,7 +123,7 @@ def test_scale_sweep_finite(device, sigma, spacing):
     out = run_forward(device, t, sig, rgb, (1, 1, 1))
     for v in out.values():
         assert np.all(np.isfinite(v))
-    assert np.all(out["weights"] >= 0) and np.all(out["acc"] <= 1 + 1e-6)
+    assert np.all(out["weights"] >= 0) and np.all(out["acc"] <= 1 + tol.TOY_ATOL)
     ds, dc = run_backward(device, t, sig, rgb, np.ones((n, 3), np.float32), (1, 1, 1))
     assert np.all(np.isfinite(ds)) and np.all(np.isfinite(dc))
 

@@ -62,5 +62,5 @@ def test_encode_reference_backward_vs_finite_differences():
     x32 = x.astype(np.float32).astype(np.float64)
     an = ref.encode_backward(x32, g, 3, True, 0.7)
     fd32 = ref.finite_difference(loss, x32, 1e-6)
-    np.testing.assert_allclose(an, fd32, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(an, fd32, rtol=tol.ENCODE_FD_RTOL, atol=tol.ENCODE_FD_ATOL)
     assert np.all(np.isfinite(fd))

@@ -75,7 +75,7 @@ def test_importance_one_hot_weights_fill_one_bin(device):
     edges = np.concatenate([np.full((n, 1), 2.0), 0.5 * (t[:, 1:] + t[:, :-1]),
                             np.full((n, 1), 6.0)], axis=1)
     lo, hi = edges[np.arange(n), hot], edges[np.arange(n), hot + 1]
-    assert np.all((tf >= lo[:, None] - 1e-6) & (tf <= hi[:, None] + 1e-6))
+    assert np.all((tf >= lo[:, None] - tol.SAMPLE_ATOL) & (tf <= hi[:, None] + tol.SAMPLE_ATOL))
     assert np.ptp(tf, axis=1).min() > 0.5 * (hi - lo).min()   # spread over the bin
 
 
@@ -113,5 +113,5 @@ def test_ray_points(device):
     t = np.sort(rng.random((5, 4)) * 3, axis=1)
     x, v = ops.ray_points(device, dev_arr(device, o), dev_arr(device, d), dev_arr(device, t))
     rx, rv = ref.ray_points(o.astype(np.float32), d.astype(np.float32), t.astype(np.float32))
-    np.testing.assert_allclose(x.get(), rx, rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(v.get(), rv, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(x.get(), rx, rtol=tol.RAY_POINTS_RTOL, atol=tol.RAY_POINTS_ATOL)
+    np.testing.assert_allclose(v.get(), rv, rtol=tol.RAY_POINTS_RTOL, atol=tol.RAY_POINTS_ATOL)

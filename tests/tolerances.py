@@ -93,3 +93,20 @@ COMPOSITE_FD_EPS = 1e-6
 # Adam vs float64 on the same gradients: one update of size <= lr with float32 moments.
 ADAM_ATOL = 1e-7
 ADAM_RTOL = 1e-5
+
+# Encoding reference gradient vs central differences (float64, eps 1e-6): truncation
+# O(eps^2 (2^k pi)^3) ~ 1e-9 for k < 3, roundoff ~1e-10.
+ENCODE_FD_ATOL = 1e-6
+ENCODE_FD_RTOL = 1e-6
+# Points o + t d/|d| in float32 vs float64: a few ulp of |o| + t <= ~4 (normalising d costs
+# ~2 ulp); unit directions a few ulp of 1.
+RAY_POINTS_RTOL = 1e-6
+RAY_POINTS_ATOL = 1e-6
+# Hand-computed toy values (exact in decimal) evaluated in float32: a few ulp of O(1) numbers.
+TOY_ATOL = 1e-6
+# The loss train_step returns vs the MSE of a render of the same rays with the same samples:
+# two float32 evaluations summed in different orders (per-ray kernel sum vs numpy mean).
+MODEL_LOSS_RTOL = 1e-4
+# Two models restored from one checkpoint run the same kernels on the same data: only the
+# nondeterminism of nothing (no atomics in the NeRF path) -> they agree to float32 roundoff.
+CHECKPOINT_RTOL = 1e-5

@@ -72,7 +72,8 @@ def fma_peak(dev, repeats):
 
     med, lo, hi = timed(run, repeats)
     flop = n_items * iters * 8 * 16 * 2
-    return {"gflops": flop / med / 1e9, "gflops_min": flop / hi / 1e9, "gflops_max": flop / lo / 1e9,
+    return {"gflops": flop / med / 1e9, "gflops_min": flop / hi / 1e9,
+            "gflops_max": flop / lo / 1e9,
             "gflop_per_cpu_s": flop / float(np.median(CPU_TIMES)) / 1e9}
 
 
@@ -186,7 +187,8 @@ def main(argv=None):
         print(f"{'':17s} per CPU-second: fused {fu['forward_gflop_per_cpu_s']:6.1f} / "
               f"{fu['fwdbwd_gflop_per_cpu_s']:6.1f}, numpy {npm['forward_gflop_per_cpu_s']:6.1f} / "
               f"{npm['fwdbwd_gflop_per_cpu_s']:6.1f}, FMA kernel {peak_cpu:6.1f} GFLOP; fused/FMA "
-              f"{entry['fwd_cpu_ratio_to_fma_peak']:.2f} / {entry['fwdbwd_cpu_ratio_to_fma_peak']:.2f}",
+              f"{entry['fwd_cpu_ratio_to_fma_peak']:.2f} / "
+              f"{entry['fwdbwd_cpu_ratio_to_fma_peak']:.2f}",
               flush=True)
     res["load1_after"] = os.getloadavg()[0]
     txt = json.dumps(res, indent=1)

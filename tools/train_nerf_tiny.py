@@ -42,7 +42,8 @@ def psnr(a, b) -> float:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=None, help="tiny_lego .npz (default: $CLRF_DATA/tiny_lego/*.npz)")
+    ap.add_argument("--data", default=None,
+                    help="tiny_lego .npz (default: $CLRF_DATA/tiny_lego/*.npz)")
     ap.add_argument("--minutes", type=float, default=10.0, help="training time budget")
     ap.add_argument("--eval-every", type=float, default=60.0, help="seconds between evaluations")
     ap.add_argument("--preset", default="tiny")
@@ -53,7 +54,13 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="also write the CSV and config here")
     args = ap.parse_args(argv)
 
-    path = Path(args.data) if args.data else next(Path(os.environ["CLRF_DATA"], "tiny_lego").glob("*.npz"))
+    if args.data:
+        path = Path(args.data)
+    else:
+        if "CLRF_DATA" not in os.environ:
+            sys.exit("train_nerf_tiny: pass --data FILE.npz or set CLRF_DATA to the shared data "
+                     "folder (it holds tiny_lego/)")
+        path = next(Path(os.environ["CLRF_DATA"], "tiny_lego").glob("*.npz"))
     d = np.load(path)
     images, poses, focal = d["images"], d["poses"], float(d["focal"])
     n_train = 100
