@@ -20,7 +20,7 @@ from .programs import launch
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
 FUSED_LOCAL_SIZE = 1      # work-items per group for the fused kernels: big private tiles
-GRAD_LOCAL_SIZE = 1       # the weight-gradient kernels loop over a chunk of rows
+GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of this much A + G
 ELEMENTWISE_LOCAL_SIZE = 64
 
 
@@ -140,6 +140,7 @@ class MLP:
         self.params_t = cla.empty_like(self.params)
         self.grad = cla.zeros_like(self.params)
         self._scratch_rows = 0
+        self.group_bytes = GROUP_BYTES
         self.A = self.G = self.partial = None
         self._n = 0
         self._k = {name: self.program.kernel(name) for name in (
@@ -202,31 +203,56 @@ class MLP:
             dx = cla.empty(q, (n, self.spec.in_dim), np.float32)
             dd = cla.empty(q, (n, self.spec.dir_dim), np.float32)
         self._ensure_scratch(n, backward=True)
-        tiles = self.n_rows(n) // self.layout.rows
         dummy = self.A.data
-        launch(self.device, self._k["mlp_backward"], tiles,
-               (np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data, self.G.data,
-                np.int32(bool(want_input)), dx.data if dx is not None else dummy,
-                dd.data if dd is not None else dummy), FUSED_LOCAL_SIZE)
-        self.weight_grad(grad, accumulate)
-        return (dx, dd) if want_input else None
-
-    def weight_grad(self, grad, accumulate=False):
-        """Weight and bias gradients of the last forward/backward pair into grad."""
-        rows = self.n_rows(self._n)
+        kb = self._k["mlp_backward"]
+        kb.set_args(np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data,
+                    self.G.data, np.int32(bool(want_input)), dx.data if dx is not None else dummy,
+                    dd.data if dd is not None else dummy)
+        # Interleave the backward and the weight gradient by groups of rows, so that the weight
+        # gradient reads A and G while they are still in the last-level cache.
+        rows, R = self.n_rows(n), self.layout.rows
         chunk = self.layout.dw_chunk
         n_chunks = (rows + chunk - 1) // chunk
+        group_rows = self.group_bytes // (8 * self.layout.nslot)
+        per_group = max(1, group_rows // chunk)
+        for c0 in range(0, n_chunks, per_group):
+            c1 = min(n_chunks, c0 + per_group)
+            t0, t1 = c0 * chunk // R, min(rows, c1 * chunk) // R
+            self._enqueue(kb, t0, t1 - t0)
+            self._weight_grad_chunks(rows, c0, c1)
+        self._reduce(grad, n_chunks, accumulate)
+        return (dx, dd) if want_input else None
+
+    def _enqueue(self, kernel, start: int, count: int):
+        """Items start .. start+count-1 exactly (local size 1, so no rounding spills into the
+        next group)."""
+        if count > 0:
+            cl.enqueue_nd_range_kernel(self.device.queue, kernel, (count,), (1,),
+                                       global_work_offset=(start,))
+
+    def _weight_grad_chunks(self, rows: int, c0: int, c1: int):
+        """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward)."""
         dwr = self.spec.dw_rows
+        k = self._k["mlp_weight_grad"]
         for l, L in enumerate(self.layout.layers):
-            nw = (L["nout"] // dwr) * ((L["nin"] + 31) // 32) * n_chunks
-            launch(self.device, self._k["mlp_weight_grad"], nw,
-                   (np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data),
-                   GRAD_LOCAL_SIZE)
+            per_chunk = (L["nout"] // dwr) * ((L["nin"] + 31) // 32)
+            k.set_args(np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data)
+            self._enqueue(k, c0 * per_chunk, (c1 - c0) * per_chunk)
+
+    def _reduce(self, grad, n_chunks: int, accumulate: bool):
         k = self._k["mlp_reduce"]
         k.set_args(np.int32(n_chunks), self.partial.data, grad.data, np.int32(bool(accumulate)))
         ng = self.layout.n_params // 16
         ls = ELEMENTWISE_LOCAL_SIZE
         cl.enqueue_nd_range_kernel(self.device.queue, k, ((ng + ls - 1) // ls * ls,), (ls,))
+
+    def weight_grad(self, grad, accumulate=False):
+        """Weight and bias gradients of the last forward/backward pair into grad (all chunks;
+        backward() already does this, interleaved)."""
+        rows = self.n_rows(self._n)
+        n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+        self._weight_grad_chunks(rows, 0, n_chunks)
+        self._reduce(grad, n_chunks, accumulate)
 
     def spec_dict(self) -> dict:
         return asdict(self.spec)

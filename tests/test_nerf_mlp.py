@@ -92,8 +92,10 @@ def test_backward_matches_reference(device, name, n):
 
 
 def test_batch_over_many_chunks_and_accumulate(device):
-    """n = 100 rows over 16-row chunks (7 partials), and accumulate=True adds to grad."""
-    net = get_net(device, "relu")
+    """n = 100 rows over 16-row chunks (7 partials) in groups of 2 chunks (backward and weight
+    gradient interleaved), and accumulate=True adds to grad."""
+    net = MLP(device, SPECS["relu"], seed=5)
+    net.group_bytes = 2 * 16 * 8 * net.layout.nslot
     n = 100
     x, d = inputs(net.spec, n, seed=4)
     rng = np.random.default_rng(4)
