@@ -218,6 +218,19 @@ class NerfModel:
                 out[k][s:e] = res[k].get()
         return out
 
+    # ---- trainer interface (clrf.train) --------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return self.config.batch_rays
+
+    def on_iteration(self, it, trainer):
+        return None
+
+    def describe(self) -> str:
+        c = self.config
+        return (f"NeRF {c.depth}x{c.width}, {c.n_coarse}+{c.n_fine} samples"
+                f"{', shared net' if c.shared_net else ''}")
+
     # ---- checkpoints --------------------------------------------------------------------
     def state_dict(self) -> dict:
         """numpy arrays + python scalars: weights, Adam moments, step, config as dict."""

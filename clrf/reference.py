@@ -343,3 +343,7 @@ def batch_indices(seed, n, n_src):
     """Source ray indices of batch slots 0..n-1 (cl/batch.cl gather_batch)."""
     h = pcg_hash(np.uint64(seed) ^ pcg_hash(np.arange(n, dtype=np.uint64)))
     return ((h * np.uint64(n_src)) >> np.uint64(32)).astype(np.int64)
+
+
+# NeRF references (encoding, MLP, sampling, compositing, Adam) live in their own module.
+from .reference_nerf import *  # noqa: E402,F401,F403
