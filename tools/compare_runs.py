@@ -27,6 +27,9 @@ def load(run):
 
 
 def psnr_at(periodic, t):
+    """Last periodic PSNR at or before t seconds; None past the end of the run."""
+    if not periodic or t > 1.05 * float(periodic[-1]["seconds"]):
+        return None
     best = None
     for r in periodic:
         if float(r["seconds"]) <= t:
