@@ -56,4 +56,79 @@ inline void atomic_max_nonneg_f(volatile __global float *p, float v) {
     atomic_max((volatile __global int *)p, as_int(fmax(v, 0.0f)));
 }
 
+
+/* ---- activations (scalar and float16 overloads share one definition each) ---------------
+ * softplus(x) = max(x, 0) + log1p(exp(-|x|)): never overflows, exact for large |x|.
+ * sigmoid(x)  = 1 / (1 + exp(-x)) written with e = exp(-|x|) <= 1, so exp never overflows.
+ * Their derivatives are written in terms of the OUTPUT y, which is what the MLP stores:
+ *   relu'   = [y > 0],  softplus' = sigmoid(x) = 1 - exp(-y) = -expm1(-y),  sigmoid' = y (1 - y).
+ */
+#define CLRF_DEFINE_ACTIVATIONS(T)                                                            \
+    inline T __attribute__((overloadable)) safe_softplus(T x) {                               \
+        return fmax(x, (T)(0.0f)) + log1p(exp(-fabs(x)));                                     \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) safe_sigmoid(T x) {                                \
+        const T e = exp(-fabs(x));                                                            \
+        const T r = (T)(1.0f) / ((T)(1.0f) + e);                                              \
+        return select(e * r, r, x >= (T)(0.0f));                                              \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) relu_grad_from_y(T y) {                            \
+        return select((T)(0.0f), (T)(1.0f), y > (T)(0.0f));                                   \
+    }                                                                                         \
+    inline T __attribute__((overloadable)) softplus_grad_from_y(T y) { return -expm1(-y); }   \
+    inline T __attribute__((overloadable)) sigmoid_grad_from_y(T y) {                         \
+        return y * ((T)(1.0f) - y);                                                           \
+    }
+CLRF_DEFINE_ACTIVATIONS(float)
+CLRF_DEFINE_ACTIVATIONS(float16)
+
+/* ---- counter-based random numbers ---------------------------------------------------------
+ * hash_u32 is the "lowbias32" integer hash (two multiply-xorshift rounds); its twin is
+ * clrf.reference_nerf.hash_u32 (bit-exact). uniform01(key, counter) is in [0, 1) with 24 bits. */
+inline uint hash_u32(uint x) {
+    x ^= x >> 16;
+    x *= 0x7feb352dU;
+    x ^= x >> 15;
+    x *= 0x846ca68bU;
+    x ^= x >> 16;
+    return x;
+}
+#define CLRF_U24_SCALE 5.9604644775390625e-8f  /* 2^-24: maps a 24-bit integer into [0, 1) */
+inline float uniform01(uint key, uint counter) {
+    return (float)(hash_u32(key ^ hash_u32(counter)) >> 8) * CLRF_U24_SCALE;
+}
+
+
+/* ---- sin(pi a), cos(pi a) with exact argument reduction ----------------------------------
+ * a = n/2 + r with n = rint(2a) and |r| <= 1/4; r = a - n/2 is exact in float32 (it is a
+ * multiple of ulp(a) and no larger than 1/4), and only n mod 4 matters, taken in float so any
+ * finite a works. sin(pi r), cos(pi r) are Taylor polynomials to degree 11 / 12: truncation
+ * < 1e-11 on |pi r| <= pi/4, so the result is accurate to a few ulp. Written on float3 with
+ * selects (no branches, no library call): PoCL vectorises it across work-items, which its
+ * sinpi/cospi did not. Twin: clrf.reference_nerf._sincospi (float64).
+ * Caveat: scalar isequal returns 1, vector isequal -1; select tests the MSB for vectors and
+ * non-zero for scalars, so both overloads select correctly. */
+#define CLRF_PI_F 3.14159265358979323846f
+#define CLRF_DEFINE_SINCOSPI(T, IT)                                                           \
+    inline void __attribute__((overloadable)) sincospi_v(const T a, T *s_out, T *c_out) {     \
+        const T nf = rint(2.0f * a);                                                          \
+        const T r = a - 0.5f * nf;                                                            \
+        const T q = nf - 4.0f * floor(0.25f * nf);        /* n mod 4, in {0, 1, 2, 3} */      \
+        const T x = CLRF_PI_F * r, x2 = x * x;                                                \
+        const T sp = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f                     \
+                     + x2 * (-1.0f / 5040.0f + x2 * (1.0f / 362880.0f                         \
+                     + x2 * (-1.0f / 39916800.0f))))));                                       \
+        const T cp = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f           \
+                     + x2 * (1.0f / 40320.0f + x2 * (-1.0f / 3628800.0f                       \
+                     + x2 * (1.0f / 479001600.0f))))));                                       \
+        const IT odd = isequal(q, (T)(1.0f)) | isequal(q, (T)(3.0f));                         \
+        const T s0 = select(sp, cp, odd), c0 = select(cp, sp, odd);                           \
+        /* sin negated for n = 2, 3; cos negated for n = 1, 2 */                              \
+        *s_out = select(s0, -s0, isgreaterequal(q, (T)(2.0f)));                               \
+        *c_out = select(c0, -c0, isequal(q, (T)(1.0f)) | isequal(q, (T)(2.0f)));              \
+    }
+CLRF_DEFINE_SINCOSPI(float, int)
+CLRF_DEFINE_SINCOSPI(float3, int3)
+CLRF_DEFINE_SINCOSPI(float16, int16)
+
 #endif /* CLRF_COMMON_H */

@@ -5,7 +5,9 @@
  *
  * tv_grad: total variation over a window of n_cells consecutive cells starting at `start`
  *   (wrapping around), svox2-style. For an allocated cell with value v and +x/+y/+z neighbour
- *   values v_a, d_a = v_a - v, per column j:  TV = sqrt(TV_EPS + dx^2 + dy^2 + dz^2).
+ *   values v_a, d_a = v_a - v, per column j:  TV = sqrt(TV_EPS + dx^2 + dy^2 + dz^2)
+ *   (evaluated with power-of-two rescaling above |d| = 2^60; a d that overflows float32 is
+ *   clamped to +-FLT_MAX).
  *   A neighbour outside the grid counts as v (no gradient); an unallocated one as 0 if
  *   empty_is_zero (density: pulls surfaces' outsides down) else as v (SH). Gradients times
  *   `scale` are added atomically to the cell and its allocated neighbours, which are marked
@@ -52,9 +54,15 @@ __kernel void tv_grad(const int n_cells, const int start, const int4 reso,
             float va = v;
             if (kn[a] >= 0) va = data[(size_t)kn[a] * D + j];
             else if (kn[a] == -1 && empty_is_zero) va = 0.0f;
-            d[a] = va - v;
+            d[a] = clamp(va - v, -FLT_MAX, FLT_MAX);   /* opposite-sign values near FLT_MAX */
         }
-        const float r = sqrt(TV_EPS + d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        /* d^2 overflows for |d| > 1.8e19 (r = inf, s = 0: the gradient vanished, or was
+         * NaN = inf * 0 where d itself overflowed). Above 2^60, d and TV_EPS are scaled by
+         * 2^-sc2 first (exact); d[a] * s is then the same scale * d / r. Below 2^60 sc2 = 0. */
+        const float m = fmax(fabs(d[0]), fmax(fabs(d[1]), fabs(d[2])));
+        const int sc2 = m > 0x1p60f ? ilogb(m) : 0;
+        for (int a = 0; a < 3; ++a) d[a] = ldexp(d[a], -sc2);
+        const float r = sqrt(ldexp(TV_EPS, -2 * sc2) + d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
         const float s = scale / r;
         const float gc = -(d[0] + d[1] + d[2]) * s;
         if (gc != 0.0f) atomic_add_f(grad + (size_t)k * D + j, gc);

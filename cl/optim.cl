@@ -4,10 +4,14 @@
  * For each touched row k and column j (i = k*D + j), with g = clamp(grad[i], +-GRAD_CLAMP):
  *   RMSProp (OPT_MODE 0, svox2's variant): s = state[i] == 0 ? g^2 : beta s + (1 - beta) g^2,
  *                                          param[i] -= lr g / (sqrt(s) + eps)
+ *     (on a first touch sqrt(s) is |g| itself, so the step is lr g / (|g| + eps) even where g^2
+ *     underflows float32, |g| < ~1e-19; a state that underflowed stays 0, so the next touch is
+ *     again a first touch - the float64 twin would keep s ~ g^2 there)
  *   SGD     (OPT_MODE 1):                  param[i] -= lr g
  * then grad[i] = 0, so gradient buffers stay zero outside the rows touched by the next step
  * (no dense zero-fill per step). With clear_touched = 1 the row's flag is reset too.
- * A zero gradient leaves param and state unchanged (state stays 0 until the first real touch).
+ * A zero or NaN gradient leaves param and state unchanged (state stays 0 until the first real
+ * touch); +-inf is clamped like any huge gradient.
  *
  * Defines read: OPT_MODE.  Mirrored by reference.rmsprop_rows / sgd_rows.
  */
@@ -28,14 +32,20 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
     if (k >= n_rows || !touched[k]) return;
     for (int j = 0; j < D; ++j) {
         const size_t i = (size_t)k * D + j;
-        const float g = clamp(grad[i], -GRAD_CLAMP, GRAD_CLAMP);
+        const float g0 = grad[i];
         grad[i] = 0.0f;
-        if (g == 0.0f) continue;
+        /* NaN is skipped like 0: clamp(NaN) is fmin(fmax(NaN, -C), C) = -C on conformant
+         * devices, which stepped the parameter by +lr and set the state to 1e36 */
+        if (g0 == 0.0f || isnan(g0)) continue;
+        const float g = clamp(g0, -GRAD_CLAMP, GRAD_CLAMP);
 #if OPT_MODE == 0
         const float s0 = state[i];
         const float s = s0 == 0.0f ? g * g : beta * s0 + (1.0f - beta) * g * g;
         state[i] = s;
-        param[i] -= lr * g / (sqrt(s) + eps);
+        /* first touch: sqrt(g^2) = |g| taken exactly (g^2 underflows to 0 for |g| < ~1e-19;
+         * with eps = 0 that was g / 0 = inf), and g / den before lr so that step is +-lr */
+        const float den = (s0 == 0.0f ? fabs(g) : sqrt(s)) + eps;
+        param[i] -= lr * (g / den);
 #else
         param[i] -= lr * g;
 #endif

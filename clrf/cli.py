@@ -71,7 +71,7 @@ def cmd_train(a):
     if a.resume:
         from .checkpoint import load
         state = load(out)
-        base = state["config"]
+        base = state["run_config"]
         if not a.config:
             # resume with the run's own configuration unless a new file is given
             for sect, vals in base.items():
@@ -109,7 +109,7 @@ def cmd_train(a):
 
 
 def _ckpt_dataset(state, data_override):
-    cfg_data = state["config"]["train"].get("data", "")
+    cfg_data = state["run_config"]["train"].get("data", "")
     path = data_override if data_override is not None else cfg_data
     ds = load_data(path)
     return ds
@@ -139,7 +139,7 @@ def cmd_eval(a):
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps({"psnr": ev["psnr"], "ssim": ev["ssim"], "views": ev["views"],
-                               "data": str(a.data or state["config"]["train"].get("data", "")),
+                               "data": str(a.data or state["run_config"]["train"].get("data", "")),
                                "device": repr(dev)}, indent=2))
     tmp.replace(out)
     print(f"saved {out}")

@@ -119,6 +119,10 @@ class GridModel:
         return (f"pruned {before} -> {kept} rows, upsampled to {new_reso[0]}x{new_reso[1]}x"
                 f"{new_reso[2]} ({self.grid.n_rows} rows)")
 
+    @property
+    def batch_size(self) -> int:
+        return self.cfg.batch_size
+
     # ---- evaluation ----------------------------------------------------------------------
     def render(self, origins, dirs, chunk=1 << 16):
         """Render numpy rays [n, 3] in chunks; returns numpy rgb, depth, acc."""
@@ -143,7 +147,7 @@ class GridModel:
     def state_dict(self):
         n = self.grid.n_rows
         return {
-            "model": "grid", "stage": self.stage, "sh_degree": self.grid.sh_degree,
+            "kind": "grid", "stage": self.stage, "sh_degree": self.grid.sh_degree,
             "background": list(self.background),
             "links": self.grid.links.get(), "bbox": self.grid.bbox,
             "density": self.grid.density.get()[:n], "sh": self.grid.sh.get()[:n],

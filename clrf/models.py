@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from . import checkpoint
-from .config import Config, _merge
+from .config import Config, ConfigError, _merge
 
 
 class GridFactory:
@@ -20,9 +20,8 @@ class GridFactory:
 class NerfFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .nerf import NerfConfig, NerfModel
-        return NerfModel(device, NerfConfig.from_dict(cfg.nerf, ds), ds.near, ds.far,
-                         background, cfg.train.seed)
+        from .nerf import NerfModel
+        return NerfModel(device, nerf_config(cfg), ds.near, ds.far, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
@@ -33,9 +32,21 @@ class NerfFactory:
 FACTORIES = {"grid": GridFactory, "nerf": NerfFactory}
 
 
+def nerf_config(cfg):
+    """NerfConfig from the run config's ``nerf`` section: ``preset`` (default "tiny") plus
+    overrides of any NerfConfig field."""
+    from .nerf import NerfConfig
+    d = dict(cfg.nerf)
+    name = d.pop("preset", "tiny")
+    try:
+        return NerfConfig.preset(name, **d)
+    except (ValueError, TypeError) as e:
+        raise ConfigError(f"nerf: {e}. Fields: {', '.join(f for f in NerfConfig.__dataclass_fields__)}") from None
+
+
 def config_from_state(state) -> Config:
     cfg = Config()
-    _merge(cfg, state["config"], "checkpoint")
+    _merge(cfg, state["run_config"], "checkpoint")
     return cfg
 
 
@@ -43,7 +54,7 @@ def load_model(device, ckpt):
     """(model, state, config) from a run directory or checkpoint file."""
     state = checkpoint.load(ckpt)
     cfg = config_from_state(state)
-    kind = state.get("model", "grid")
+    kind = state.get("kind", "grid")
     if kind not in FACTORIES:
         raise checkpoint.CheckpointError(f"checkpoint {ckpt}: unknown model kind '{kind}'")
     return FACTORIES[kind].from_state(device, state, cfg), state, cfg

@@ -246,7 +246,8 @@ def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsp
     """Float64 twin of update_rows: returns (param, state); rows not touched are unchanged."""
     p = np.array(param, np.float64)
     s = np.array(state, np.float64)
-    g = np.clip(np.asarray(grad, np.float64), -GRAD_CLAMP, GRAD_CLAMP)
+    g = np.asarray(grad, np.float64)
+    g = np.clip(np.where(np.isnan(g), 0.0, g), -GRAD_CLAMP, GRAD_CLAMP)   # NaN: skipped like 0
     t = np.asarray(touched, bool)
     if p.ndim == 1:
         p, s, g = p[:, None], s[:, None], g[:, None]
@@ -342,3 +343,7 @@ def batch_indices(seed, n, n_src):
     """Source ray indices of batch slots 0..n-1 (cl/batch.cl gather_batch)."""
     h = pcg_hash(np.uint64(seed) ^ pcg_hash(np.arange(n, dtype=np.uint64)))
     return ((h * np.uint64(n_src)) >> np.uint64(32)).astype(np.int64)
+
+
+# NeRF references (encoding, MLP, sampling, compositing, Adam) live in their own module.
+from .reference_nerf import *  # noqa: E402,F401,F403

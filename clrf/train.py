@@ -206,12 +206,12 @@ class Trainer:
     def save(self):
         state = self.model.state_dict()
         state.update(iteration=self.iteration, seconds=self.seconds,
-                     config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
+                     run_config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
         checkpoint.save(self.ckpt_path, state)
 
     def run(self):
         t = self.cfg.train
-        batch = self.cfg.grid.batch_size if t.model == "grid" else self.model.batch_size
+        batch = self.model.batch_size
         prog = Progress()
         interrupted = False
         old = signal.getsignal(signal.SIGINT)

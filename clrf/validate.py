@@ -22,7 +22,8 @@ def check_array(name: str, a, ndim: int | None = None, shape_tail: tuple | None 
         bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
         raise ValueError(f"{name}: {bad} of {arr.size} values are NaN or Inf; clean the input "
                          f"(e.g. np.nan_to_num) before passing it")
-    out = np.ascontiguousarray(arr, dtype=dtype)
+    with np.errstate(over="ignore"):   # an overflowing cast is reported just below, not warned
+        out = np.ascontiguousarray(arr, dtype=dtype)
     if finite and dtype == np.float32 and arr.dtype.kind == "f" and arr.size:
         if not np.all(np.isfinite(out)):
             raise ValueError(f"{name}: values overflow float32 (|x| > 3.4e38)")

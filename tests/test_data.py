@@ -31,7 +31,7 @@ def test_procedural_defaults_and_determinism():
     a = load_procedural(size=32, seed=3)
     _check_common(a, 72, (32, 32))
     assert len(a.split["train"]) == 64 and len(a.split["test"]) == 8
-    assert a.background == (1.0, 1.0, 1.0) and a.preset == "synthetic" and not a.ndc
+    assert a.background == (1.0, 1.0, 1.0) and a.preset == "procedural" and not a.ndc
     b = load_procedural(size=32, seed=3)
     np.testing.assert_array_equal(a.images, b.images)
     np.testing.assert_array_equal(a.poses, b.poses)

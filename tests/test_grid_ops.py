@@ -62,6 +62,43 @@ def test_update_rows_1d_and_first_step(device):
     np.testing.assert_allclose(p.get(), [0.5, 2.5, 3.0], rtol=1e-6)
 
 
+@pytest.mark.parametrize("eps", [1e-8, 0.0])
+def test_rmsprop_first_step_tiny_and_huge_gradients(device, eps):
+    """First touch: step = lr g / (|g| + eps), also where g^2 underflows float32 (|g| < 1e-19;
+    with eps = 0 this used to be g / 0 = -inf) and where |g| is clamped (1e38 -> 1e18)."""
+    q = device.queue
+    g = np.array([1e-30, -1e-30, 1e-20, 1e-40, 3.0, -0.1234567, 1e20, 1e38, -1e38], np.float32)
+    p = cla.to_device(q, np.zeros(g.size, np.float32))
+    opt = RowOptimizer(device, p, eps=eps)
+    opt.grad.set(g)
+    opt.step(cla.to_device(q, np.ones(g.size, np.uint8)), lr=0.1, clear_touched=True)
+    got = p.get()
+    assert np.all(np.isfinite(got))
+    gd = np.clip(g.astype(np.float64), -1e18, 1e18)
+    want = -np.float32(0.1) * gd / (np.abs(gd) + eps)
+    np.testing.assert_allclose(got, want, rtol=2e-7, atol=0)
+    if eps == 0.0:
+        np.testing.assert_array_equal(np.abs(got), np.float32(0.1))   # exactly +-lr
+
+
+@pytest.mark.parametrize("mode", ["rmsprop", "sgd"])
+def test_nan_gradient_is_skipped(device, mode):
+    """A NaN gradient entry changes nothing (like 0) and is consumed; it used to be clamped to
+    -1e18 (fmax(NaN, -C) = -C): RMSProp stepped +lr and set the state to 1e36, SGD moved the
+    parameter by +1e17."""
+    q = device.queue
+    p = cla.to_device(q, np.ones((2, 2), np.float32))
+    opt = RowOptimizer(device, p, mode=mode)
+    opt.grad.set(np.array([[np.nan, 1.0], [np.nan, np.nan]], np.float32))
+    opt.step(cla.to_device(q, np.ones(2, np.uint8)), lr=0.1, clear_touched=True)
+    np.testing.assert_allclose(p.get(), [[1.0, 0.9], [1.0, 1.0]], rtol=1e-6)
+    assert np.all(opt.state.get() == ([[0, 1], [0, 0]] if mode == "rmsprop" else 0))
+    assert np.all(opt.grad.get() == 0)
+    p_ref, _ = ref.update_rows(np.ones((2, 2)), np.array([[np.nan, 1.0], [np.nan, np.nan]]),
+                               np.zeros((2, 2)), [1, 1], 0.1, mode=mode)
+    np.testing.assert_allclose(p.get(), p_ref, rtol=1e-6)
+
+
 def test_expon_lr_schedule():
     assert expon_lr(0, 1.0, 0.01, 100) == pytest.approx(1.0)
     assert expon_lr(100, 1.0, 0.01, 100) == pytest.approx(0.01)
@@ -109,6 +146,31 @@ def test_tv_flat_region_has_zero_gradient(device):
     touched = cla.zeros(device.queue, grid.n_rows, np.uint8)
     grid_ops.tv_grad(grid, grid.sh, grad, touched, 0, dens.size, 1.0, False)
     assert np.all(grad.get() == 0)
+
+
+@pytest.mark.parametrize("big", [1e10, 1e19, 1e20, 1e30, 1e38, 3e38])
+def test_tv_grad_huge_differences(device, big):
+    """Neighbour differences whose squares overflow float32 (|d| > 1.8e19) keep the gradient
+    scale * d / |d| (it used to vanish: r = inf). At 3e38 next to -3e38 the difference itself
+    overflows float32; it is clamped to +-FLT_MAX: finite, bounded, direction approximate."""
+    rng = np.random.default_rng(5)
+    shape = (3, 4, 5)
+    dens = (rng.choice([-1.0, 0.0, 0.5, 1.0], shape) * big).astype(np.float32)
+    dens[0, 0, 0], dens[1, 0, 0] = big, -big
+    alloc = rng.random(shape) < 0.8
+    alloc[:2, 0, 0] = True
+    grid = clrf.SparseGrid.from_dense(device, dens * alloc, np.zeros(shape + (3,), np.float32),
+                                      BBOX, mask=alloc)
+    grad = cla.zeros_like(grid.density)
+    touched = cla.zeros(device.queue, grad.shape[0], np.uint8)
+    grid_ops.tv_grad(grid, grid.density, grad, touched, 0, dens.size, 0.5, True)
+    r = ref.tv_grad(alloc, dens * alloc, 0, dens.size, 0.5, True)[..., 0]
+    gk = grid.rows_to_dense(grad.get(), np.zeros((grad.shape[0], 3), np.float32))[0]
+    assert np.all(np.isfinite(gk))
+    assert np.abs(gk).max() <= 0.5 * (3 + np.sqrt(3)) * (1 + 1e-6)   # <= scale per term
+    if big < 1.7e38:
+        np.testing.assert_allclose(gk, r, atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    assert np.abs(r).max() > 0.4
 
 
 @pytest.mark.parametrize("new_reso", [(5, 6, 7), (10, 12, 14), (3, 3, 3), (1, 1, 1), (8, 5, 9)])

@@ -60,7 +60,7 @@ def test_train_writes_every_output(trained):
 
 def test_checkpoint_round_trip(device, trained):
     state = checkpoint.load(trained)
-    cfg = build_config(overrides=state["config"])
+    cfg = build_config(overrides=state["run_config"])
     m1 = GridModel.from_state_dict(device, state, cfg.grid)
     o = np.array([[0, 0, 4.0], [0.2, -0.1, 4.0]], np.float32)
     d = np.array([[0, 0, -1.0], [0, 0.1, -1.0]], np.float32)
@@ -223,3 +223,24 @@ def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     st = checkpoint.load(out)
     assert st["iteration"] > 0
     assert not list(out.glob("*.tmp*")), "no temporary files left behind"
+
+
+def test_nerf_through_the_cli(tmp_path, capsys):
+    out = tmp_path / "n"
+    tiny = ["--set", "nerf.width=16", "--set", "nerf.depth=2", "--set", "nerf.color_width=16",
+            "--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8", "--set", "nerf.batch_rays=256",
+            "--set", "train.eval_every=1.0", "--set", "train.eval_views=2"]
+    assert run_cli("train", "--model", "nerf", "--out", out, "--max-seconds", 3, *tiny) == 0
+    rows = read_csv(out / "metrics.csv")
+    assert "NeRF 2x16" in rows[-1]["model"]
+    assert float(rows[-1]["eval_psnr"]) > float(rows[0]["eval_psnr"])
+    it1 = checkpoint.load(out)["iteration"]
+    assert run_cli("train", "--out", out, "--resume",
+                   "--max-seconds", checkpoint.load(out)["seconds"] + 1.0) == 0
+    assert checkpoint.load(out)["iteration"] > it1
+    assert run_cli("eval", "--ckpt", out, "--max-views", 2) == 0
+    assert run_cli("render", "--ckpt", out, "--views", "orbit", "--frames", 2,
+                   "--out", tmp_path / "f") == 0
+    assert len(list((tmp_path / "f").glob("orbit_*.png"))) == 2
+    rc = run_cli("train", "--model", "nerf", "--out", tmp_path / "bad", "--set", "nerf.widht=3")
+    assert rc == 2 and "widht" in capsys.readouterr().err

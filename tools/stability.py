@@ -17,16 +17,19 @@ Cases are data: ``Case(name, group, fn, tol)``; ``fn(run)`` calls ``run.compare`
 a case is appending to ``CASES`` (tests/test_stability.py parametrises over it). ``xfail`` holds
 the reason when a case documents a known kernel bug (the test then expects it to fail, strictly).
 
-TODO (cases to add when the kernels land on main: clrf/optim.py, clrf/regularizers.py):
-  - RMSProp / Adam: zero gradient -> no update, running average stays 0, no NaN (first step
-    divides by sqrt(rms) + eps); huge gradients (1e30) -> update bounded by lr; long runs
-    (1e5 steps) of sparse updates on rarely touched voxels (per-parameter step counters, the
-    bias correction of Adam) stay finite and match a float64 loop.
-  - TV: flat regions (all neighbours equal: gradient 0, not 0/sqrt(eps) = NaN); missing
-    neighbours at empty voxels and the grid border; density 1e30 next to 0.
-  - Sparsity (Cauchy log(1 + 2 sigma^2)): sigma = 0, 1e-30, 1e30 -> gradient 4 sigma/(1+2sigma^2)
-    finite and bounded.
-  - Beta prior on acc: T = 0 and T = 1 exactly (log(0) guards), acc = 1 - 1e-7.
+Groups: stiff, closed form, geometry, values, reduction, scale sweep (renderer and reductions);
+optimiser (cl/optim.cl against the float64 twin reference.update_rows: zero, huge, tiny
+gradients, eps 0..1 with state 0, long sparse runs in lockstep), regulariser (cl/grid_ops.cl
+tv_grad: flat regions, step edges, missing and outside neighbours, values up to 3e38, Cauchy
+sparsity at sigma 0..+-3e38), structure (prune to nothing, resampling of single voxels, flat
+grids and values up to 3e38, batch indices at extremes).
+
+TODO (not covered yet):
+  - Beta prior on acc (log(acc) + log(1 - acc) at T = 0 and T = 1 exactly, acc = 1 - 1e-7):
+    NOT IMPLEMENTED in clrf yet (it would be fused into the render backward); there is
+    deliberately no case for it until it exists.
+  - Adam (bias correction with per-parameter step counters over long sparse runs): clrf has only
+    RMSProp and SGD.
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ import math
 import platform
 import sys
 import time
+import warnings
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -83,6 +87,9 @@ REL = tol("STAB_ZERO_ATOL", "STAB_SEGMENT_SUM_RTOL")
 EXACT = tol("STAB_ZERO_ATOL")
 LONG_FWD = tol("STAB_LONG_RAY_ATOL", "RENDER_RTOL")
 LONG_GRAD = tol("STAB_LONG_GRAD_ATOL", "GRAD_RTOL")
+OPT = tol("STAB_OPT_ATOL", "STAB_OPT_RTOL")
+OPT_REL = tol("STAB_ZERO_ATOL", "STAB_OPT_RTOL")
+OPT_LONG = tol("STAB_OPT_LONG_NORM")
 FINITE = Tol(math.nan, math.nan, "finite only")
 RAISES = Tol(math.nan, math.nan, "raises ValueError")
 
@@ -767,7 +774,8 @@ def bad_inputs(run):
         run.raises(f"background {tag}", lambda: clrf.render_rays(g, o, d, 0.5, (1.0, v, 1.0)),
                    "background")
         run.raises(f"step {tag}", lambda: clrf.render_rays(g, o, d, v), "step")
-    with np.errstate(over="ignore"):     # validate.py's float32 cast warns before raising
+    with warnings.catch_warnings():      # the overflowing float32 cast must not warn either
+        warnings.simplefilter("error")   # (a RuntimeWarning here would fail the raises check)
         run.raises("density 1e39 (overflows float32)", lambda: clrf.SparseGrid.from_dense(
             run.device, np.full((R, R, R), 1e39), sh, UNIT), "density")
         run.raises("origins 1e39 (overflows float32)",
@@ -832,6 +840,390 @@ def scale_sweep(run, dm, sm):
     run.finite("gradients", grads["density"], grads["sh"])
 
 
+# ---- optimiser (cl/optim.cl) -------------------------------------------------------------------
+LR = 0.1    # learning rate of the optimiser cases (STAB_OPT_ATOL is written for it)
+F32_BETA = float(np.float32(0.95))   # the kernel's float32 beta, given to the float64 twin too
+FLT_MAX = float(np.finfo(np.float32).max)
+
+
+def _opt(run, mode, p0, s0=None, eps=1e-8):
+    from clrf.optim import RowOptimizer
+    q = run.device.queue
+    p = cla.to_device(q, np.ascontiguousarray(p0, np.float32))
+    st = None if s0 is None else cla.to_device(q, np.ascontiguousarray(s0, np.float32))
+    return RowOptimizer(run.device, p, mode=mode, beta=0.95, eps=eps, state=st)
+
+
+def _opt_step(run, opt, g, touched, lr=LR):
+    q = run.device.queue
+    opt.grad.set(np.ascontiguousarray(g, np.float32))
+    t = cla.to_device(q, np.ascontiguousarray(touched, np.uint8))
+    opt.step(t, lr, clear_touched=True)
+    return t.get()
+
+
+def _twin(p, g, s, touched, lr=LR, mode="rmsprop", eps=1e-8):
+    return ref.update_rows(p, np.asarray(g, np.float32), s, touched, float(np.float32(lr)),
+                           beta=F32_BETA, eps=float(np.float32(eps)), mode=mode)
+
+
+def opt_zero_grad(run, mode):
+    """Touched rows with zero (and NaN, skipped the same way) gradients: parameters and state
+    unchanged bit for bit (state 0 stays 0: no 0/(sqrt(0) + eps) update), gradients reset to 0,
+    touched flags cleared."""
+    n, D = 64, 4
+    p0 = run.rng.normal(size=(n, D)).astype(np.float32)
+    s0 = np.where(run.rng.random((n, D)) < 0.5, 0.0, run.rng.uniform(0.1, 2, (n, D)))
+    opt = _opt(run, mode, p0, s0)
+    for k in range(3):
+        g = np.where(run.rng.random((n, D)) < 0.5, np.nan, 0.0) if k == 2 else np.zeros((n, D))
+        t = _opt_step(run, opt, g, np.ones(n))
+    run.compare("params unchanged", opt.param.get(), p0, EXACT)
+    run.compare("state unchanged (zeros stay 0)", opt.state.get(), s0.astype(np.float32), EXACT)
+    run.compare("grad buffer 0, touched cleared", np.concatenate([opt.grad.get().ravel(), t]),
+                0.0, EXACT)
+
+
+def opt_huge_grad(run, mode):
+    """Gradients 1e20, 1e38, -1e38, +-FLT_MAX, +-inf (clamped to +-1e18 = GRAD_CLAMP; plus 1 and
+    -3e-3): params and state finite; RMSProp's first and second steps are -lr sign(g) for the
+    huge ones (state 1e36); SGD moves by lr * 1e18. Against the float64 twin (same clamp)."""
+    g = np.array([1e18, 1e20, 1e38, -1e38, FLT_MAX, -FLT_MAX, np.inf, -np.inf, 1.0, -3e-3],
+                 np.float32)[:, None]
+    n = len(g)
+    p0 = run.rng.normal(size=(n, 1)).astype(np.float32)
+    opt = _opt(run, mode, p0)
+    p, s = p0.astype(np.float64), np.zeros((n, 1))
+    for k in range(2):
+        _opt_step(run, opt, g, np.ones(n))
+        p, s = _twin(p, g, s, np.ones(n), mode=mode)
+        run.compare(f"step {k + 1} params vs twin", opt.param.get(), p,
+                    OPT if mode == "rmsprop" else tol("STAB_ZERO_ATOL", "STAB_OPT_RTOL"))
+        run.finite(f"step {k + 1} params, state finite", opt.param.get(), opt.state.get())
+    if mode == "rmsprop":
+        gc = np.clip(g.astype(np.float64), -1e18, 1e18)
+        run.compare("two steps = -2 lr g / (|g| + eps) (= -2 lr sign(g) for huge g)",
+                    opt.param.get(), p0 - 2 * float(np.float32(LR)) * gc / (np.abs(gc) + 1e-8),
+                    OPT)
+        run.compare("state = 1e36 (clamped g^2)", opt.state.get()[:8], 1e36,
+                    tol("STAB_ZERO_ATOL", "STAB_OPT_RTOL"))
+
+
+def opt_tiny_grad(run):
+    """Gradients 1e-20 .. 1e-45 (g^2 subnormal or 0 in float32) on a first touch, eps 1e-8 and
+    0: the step is lr g / (|g| + eps) as in the float64 twin (+-lr exactly for eps = 0, no
+    g / 0). A state that underflowed to 0 makes the next touch a first touch again (the twin
+    keeps s = g^2 ~ 1e-60 there and would step 4.5 lr = lr / sqrt(1 - beta) for g = 1): that
+    rule, not the twin, is checked for the second step."""
+    g = np.array([1e-20, -1e-20, 1e-25, 1e-30, -1e-30, 1e-38, 1e-40, -1e-45, 1.0, -0.25],
+                 np.float32)[:, None]
+    n = len(g)
+    for eps in (1e-8, 0.0):
+        p0 = np.zeros((n, 1), np.float32)
+        opt = _opt(run, "rmsprop", p0, eps=eps)
+        _opt_step(run, opt, g, np.ones(n))
+        p, s = _twin(p0, g, np.zeros((n, 1)), np.ones(n), eps=eps)
+        run.compare(f"eps {eps:g}: first step vs twin", opt.param.get(), p, OPT_REL)
+        g2 = np.ones((n, 1), np.float32)
+        before = opt.param.get().astype(np.float64)
+        s1 = opt.state.get().astype(np.float64)    # g^2 in float32 (0 where it underflowed)
+        _opt_step(run, opt, g2, np.ones(n))
+        s_new = np.where(s1 == 0, 1.0, F32_BETA * s1 + (1 - F32_BETA))
+        run.compare(f"eps {eps:g}: second step (g = 1) vs the rule on the float32 state",
+                    opt.param.get(), before - np.float32(LR) / (np.sqrt(s_new) + eps), OPT,
+                    note=f"{int(np.sum(s1 == 0))} of {n} states underflowed to 0")
+        run.finite(f"eps {eps:g}: params, state finite", opt.param.get(), opt.state.get())
+
+
+def opt_eps_state0(run):
+    """eps in {0, 1e-8, 1e-3, 1} with state 0 and |g| log-uniform in 1e-6..1e6: first step
+    lr g / (|g| + eps), second step the RMS rule; against the float64 twin."""
+    n = 256
+    g = (run.rng.choice([-1, 1], (n, 1)) * 10.0 ** run.rng.uniform(-6, 6, (n, 1))).astype(
+        np.float32)
+    for eps in (0.0, 1e-8, 1e-3, 1.0):
+        p0 = run.rng.normal(size=(n, 1)).astype(np.float32)
+        opt = _opt(run, "rmsprop", p0, eps=eps)
+        p, s = p0.astype(np.float64), np.zeros((n, 1))
+        for k in range(2):
+            gk = g if k == 0 else (g * run.rng.uniform(0.1, 10, (n, 1))).astype(np.float32)
+            _opt_step(run, opt, gk, np.ones(n))
+            p, s = _twin(p, gk, s, np.ones(n), eps=eps)
+            run.compare(f"eps {eps:g} step {k + 1} params", opt.param.get(), p, OPT)
+            run.compare(f"eps {eps:g} step {k + 1} state", opt.state.get(), s,
+                        tol("STAB_ZERO_ATOL", "STAB_OPT_RTOL"))
+
+
+def opt_long_sparse(run, mode):
+    """Long run of sparse updates: each step touches a random 1% of 2000 rows (D = 4) with
+    gradients of random sign and magnitude 1e-3..1e3 (10% exact zeros), lr from expon_lr
+    (1e-1 -> 1e-3); the kernel and the float64 twin run in lockstep from the same inputs."""
+    from clrf.optim import expon_lr
+    n, D = 2000, 4
+    steps = run.size(300, 2000)
+    p0 = run.rng.normal(size=(n, D)).astype(np.float32)
+    opt = _opt(run, mode, p0)
+    p, s = p0.astype(np.float64), np.zeros((n, D))
+    worst = 0.0
+    ever = np.zeros((n, D), bool)
+    touches = np.zeros((n, D), int)
+    for k in range(steps):
+        touched = run.rng.random(n) < 0.01
+        g = np.zeros((n, D), np.float32)
+        m = int(touched.sum())
+        gt = run.rng.choice([-1, 1], (m, D)) * 10.0 ** run.rng.uniform(-3, 3, (m, D))
+        gt[run.rng.random((m, D)) < 0.1] = 0.0
+        g[touched] = gt
+        ever |= touched[:, None] & (g != 0)
+        touches += touched[:, None] & (g != 0)
+        lr = expon_lr(k, 1e-1, 1e-3, steps)
+        _opt_step(run, opt, g, touched, lr)
+        p, s = _twin(p, g, s, touched, lr, mode=mode)
+        if k % 100 == 99:
+            worst = max(worst, float(np.abs(opt.param.get() - p).max() / np.abs(p).max()))
+    got = opt.param.get()
+    pmax = float(np.abs(p).max())
+    run.compare(f"{steps} steps params vs twin (normwise)", got, p, OPT_LONG, scale=pmax,
+                note=f"max |param| {pmax:.2g}; up to {touches.max()} updates per entry; worst "
+                     f"normwise error at any 100th step {worst:.1e}")
+    run.compare("never-touched entries unchanged", got[~ever], p0[~ever], EXACT)
+    if mode == "rmsprop":
+        run.compare(f"{steps} steps state vs twin", opt.state.get(), s,
+                    tol("STAB_ZERO_ATOL", "STAB_OPT_LONG_STATE_RTOL"))
+        run.compare("state 0 where never touched with g != 0", opt.state.get()[~ever], 0.0,
+                    EXACT)
+    run.finite("params, state, grad finite", got, opt.state.get(), opt.grad.get())
+    run.compare("grad buffer all 0 after the run", opt.grad.get(), 0.0, EXACT)
+
+
+# ---- regularisers (cl/grid_ops.cl tv_grad) -----------------------------------------------------
+def _tv(run, data, alloc, scale, empty_is_zero, lam=0.0, start=0, n_cells=None):
+    """Kernel and twin TV (+ sparsity) gradients of density ([X,Y,Z]) or SH ([X,Y,Z,C]) data,
+    both dense [X,Y,Z,D]; the kernel's touched flags as a dense bool mask."""
+    from clrf import grid_ops
+    data = np.asarray(data, np.float32)
+    shape = alloc.shape
+    dens = data if data.ndim == 3 else np.zeros(shape, np.float32)
+    sh = data if data.ndim == 4 else np.zeros(shape + (3,), np.float32)
+    g = clrf.SparseGrid.from_dense(run.device, dens * alloc, sh * alloc[..., None], UNIT,
+                                   mask=alloc)
+    param = g.density if data.ndim == 3 else g.sh
+    grad = cla.zeros_like(param)
+    touched = cla.zeros(run.device.queue, param.shape[0], np.uint8)
+    n_cells = alloc.size if n_cells is None else n_cells
+    grid_ops.tv_grad(g, param, grad, touched, start, n_cells, scale, empty_is_zero, lam)
+    want = ref.tv_grad(alloc, (data * (alloc if data.ndim == 3 else alloc[..., None])), start,
+                       n_cells, scale, empty_is_zero, lam)
+    gr = grad.get()
+    links = g.links.get()
+    got = np.zeros(want.shape, np.float32)
+    got[alloc] = gr.reshape(gr.shape[0], -1)[links[alloc]]
+    tch = np.zeros(shape, bool)
+    tch[alloc] = touched.get()[links[alloc]] == 1
+    return got, want, tch
+
+
+TV_BOUND = 3 + math.sqrt(3)   # |grad| per cell <= scale (sqrt 3 own term + 3 neighbour terms)
+
+
+def tv_flat(run):
+    """Flat regions (all allocated neighbours equal; outside / unallocated count as the cell
+    itself) at values 0, 1e-30, 1, 1e30, -1e30: gradient exactly 0, not d / sqrt(eps) noise."""
+    shape = (4, 5, 6)
+    for v in (0.0, 1e-30, 1.0, 1e30, -1e30):
+        alloc = run.rng.random(shape) < 0.7
+        data = np.full(shape, v, np.float32)
+        got, _, _ = _tv(run, data, alloc, 1.0, False)
+        run.compare(f"density {v:g}, holes (empty = self): grad == 0", got, 0.0, EXACT)
+        got, _, _ = _tv(run, np.full(shape + (12,), v, np.float32), alloc, 1.0, False)
+        run.compare(f"SH {v:g}, holes: grad == 0", got, 0.0, EXACT)
+        got, _, _ = _tv(run, data, np.ones(shape, bool), 1.0, True)
+        run.compare(f"density {v:g}, dense, empty_is_zero: grad == 0", got, 0.0, EXACT)
+
+
+def tv_step_edge(run):
+    """A step edge of height h in {1e-6, 1, 1e10} across x: gradient vs the float64 twin
+    (normwise, in units of scale), non-zero only next to the edge, |grad| <= scale (3+sqrt 3)."""
+    shape = (6, 4, 5)
+    scale = 0.5
+    for h in (1e-6, 1.0, 1e10):
+        data = np.zeros(shape, np.float32)
+        data[3:] = h
+        alloc = np.ones(shape, bool)
+        got, want, _ = _tv(run, data, alloc, scale, False)
+        run.compare(f"h {h:g} vs twin", got, want, GRAD, scale=scale)
+        run.compare(f"h {h:g}: 0 away from the edge", np.concatenate(
+            [got[:2].ravel(), got[4:].ravel()]), 0.0, EXACT)
+        run.compare(f"h {h:g}: within bound scale (3 + sqrt 3)",
+                    [max(float(np.abs(got).max()) - scale * TV_BOUND, 0.0)], [0.0], EXACT)
+
+
+def tv_missing_neighbours(run):
+    """Half the voxels unallocated (empty_is_zero true and false), windows that wrap, grids
+    whose neighbours are mostly outside (1x1x1, 1xNxN, Nx1x1): vs the float64 twin; every cell
+    that got a gradient is touched; a 1x1x1 grid has no TV gradient at all."""
+    for shape in ((6, 5, 4), (1, 6, 6), (7, 1, 1), (1, 1, 1)):
+        alloc = run.rng.random(shape) < (0.5 if min(shape) > 1 else 0.8)
+        alloc.flat[0] = True
+        for eiz in (True, False):
+            data = run.rng.uniform(0.1, 2.0, shape + (3,)).astype(np.float32)
+            start = int(run.rng.integers(0, alloc.size))
+            got, want, tch = _tv(run, data, alloc, 0.7, eiz, start=start,
+                                 n_cells=max(1, alloc.size // 2))
+            tag = f"{'x'.join(map(str, shape))} empty_is_zero={eiz}"
+            run.compare(f"{tag} vs twin", got, want, GRAD)
+            nz = np.any(want != 0, axis=-1)
+            run.compare(f"{tag}: cells with gradient touched", [float(np.sum(nz & ~tch))], [0.0],
+                        EXACT)
+            if shape == (1, 1, 1):
+                run.compare(f"{tag}: no neighbours -> 0", got, 0.0, EXACT)
+
+
+def tv_huge_values(run, big):
+    """Density / SH values +-big (and 0, big/2): differences |d| up to 2 big; d^2 overflows
+    float32 above 1.8e19. Against the float64 twin (normwise, units of scale), finite, bounded;
+    for big = 3e38 the difference itself overflows (clamped to +-FLT_MAX): finite and bounded
+    only, the direction is approximate."""
+    shape = (5, 4, 6)
+    scale = 0.5
+    for which in ("density", "sh"):
+        tail = () if which == "density" else (3,)
+        data = (run.rng.choice([-1.0, -0.5, 0.0, 0.5, 1.0], shape + tail) * big).astype(
+            np.float32)
+        alloc = run.rng.random(shape) < 0.8
+        for eiz in (True, False):
+            got, want, _ = _tv(run, data, alloc, scale, eiz)
+            tag = f"{which} empty_is_zero={eiz}"
+            if big < FLT_MAX / 2:
+                run.compare(f"{tag} vs twin", got, want, GRAD, scale=scale)
+            run.finite(f"{tag} finite", got)
+            run.compare(f"{tag} within bound scale (3 + sqrt 3)",
+                        [max(float(np.abs(got).max()) - scale * TV_BOUND * (1 + 1e-6), 0.0)],
+                        [0.0], EXACT)
+
+
+def sparsity(run):
+    """Cauchy sparsity gradient lambda 4 sigma / (1 + 2 sigma^2) at sigma in {0, +-1e-30, 1,
+    1e19, 1.5e19 (2 sigma^2 overflows), 1e30, -1e30, 3e38, -3e38}, lambda 1e-10 and 1 (TV scale
+    0 so only the prior acts): finite, against the float64 twin (the exact value is <= 2 lambda /
+    sigma there, so a 0 from the overflow is within GRAD_ATOL)."""
+    sig = np.array([0.0, 1e-30, -1e-30, 1.0, -1.0, 0.7071, 1e19, 1.5e19, 1e30, -1e30, 3e38,
+                    -3e38], np.float32)
+    shape = (len(sig), 1, 1)
+    alloc = np.ones(shape, bool)
+    for lam in (1e-10, 1.0):
+        got, want, _ = _tv(run, sig.reshape(shape), alloc, 0.0, True, lam=lam)
+        run.compare(f"lambda {lam:g} vs twin (units of lambda)", got, want, GRAD, scale=lam)
+        run.finite(f"lambda {lam:g} finite", got)
+
+
+# ---- structure changes (cl/grid_ops.cl resample / prune, cl/batch.cl) --------------------------
+def _resample_check(run, label, dens, sh, keep, new_reso, scale=1.0):
+    from clrf import grid_ops
+    alloc = (dens != 0) | np.any(sh != 0, axis=-1) | keep
+    g = make_grid(run, dens, sh, UNIT, mask=alloc)
+    links = g.links.get()
+    kr = np.zeros(g.density.shape[0], np.uint8)
+    kr[links[keep & alloc]] = 1
+    g2 = grid_ops.resample(g, new_reso, cla.to_device(run.device.queue, kr))
+    d_ref, s_ref, a_ref = ref.resample(dens * alloc, sh * alloc[..., None], keep & alloc,
+                                       new_reso)
+    d2, s2 = g2.to_dense()
+    run.compare(f"{label} allocation == twin", (g2.links.get() >= 0).astype(float),
+                a_ref.astype(float), EXACT)
+    run.compare(f"{label} density vs twin", d2, d_ref, RENDER, scale=scale)
+    run.compare(f"{label} sh vs twin", s2, s_ref, RENDER, scale=scale)
+    run.finite(f"{label} finite", d2, s2)
+    return g2
+
+
+def prune_to_nothing(run):
+    """Pruning every row: a grid with 0 rows (one padding row), then resampled to other
+    resolutions (still 0 rows), TV and an optimiser step on it (no-ops), rendered (background)."""
+    from clrf import grid_ops
+    from clrf.optim import RowOptimizer
+    R = run.size(6, 16)
+    dens, sh = random_grid(run.rng, (R, R, R), degree=1, dens=2.0)
+    g = make_grid(run, dens, sh)
+    q = run.device.queue
+    empty = grid_ops.prune(g, cla.zeros(q, g.density.shape[0], np.float32), 1e30)
+    up = grid_ops.resample(empty, (2 * R, R + 1, 3))
+    down = grid_ops.resample(empty, (1, 1, 1))
+    run.compare("rows after prune / upsample / downsample",
+                [empty.n_rows, up.n_rows, down.n_rows], [0, 0, 0], EXACT)
+    run.compare("links all -1", np.concatenate([x.links.get().ravel() for x in (empty, up, down)]),
+                -1.0, EXACT)
+    grad = cla.zeros_like(empty.density)
+    touched = cla.zeros(q, empty.density.shape[0], np.uint8)
+    grid_ops.tv_grad(empty, empty.density, grad, touched, 0, R ** 3, 1.0, True, 1.0)
+    opt = RowOptimizer(run.device, empty.density)
+    opt.grad.set(np.full(opt.grad.shape, 5.0, np.float32))
+    opt.step(touched, 0.1, True)
+    run.compare("TV + optimiser on the empty grid: no touch, no change",
+                np.concatenate([touched.get().astype(float), empty.density.get()]), 0.0, EXACT)
+    o, d = random_rays(run.rng, 16)
+    out = clrf.render_rays(up, o, d, 0.5, (0.3, 0.5, 0.7))
+    run.compare("render == background", out["rgb"], np.broadcast_to(
+        np.float32([0.3, 0.5, 0.7]), out["rgb"].shape), EXACT)
+
+
+def single_voxel_upsample(run):
+    """A 1x1x1 grid upsampled to 64^3 (quick: 32^3): every new voxel takes the one value
+    (clamped interpolation), allocation and values as the twin; and back down to 1^3."""
+    from clrf import grid_ops
+    R = run.size(32, 64)
+    dens = np.full((1, 1, 1), 2.5, np.float32)
+    sh = run.rng.normal(size=(1, 1, 1, 12)).astype(np.float32)
+    g2 = _resample_check(run, f"1 -> {R}^3", dens, sh, np.ones((1, 1, 1), bool), (R, R, R))
+    d2, s2 = g2.to_dense()
+    run.compare(f"{R}^3 all equal to the voxel", d2, 2.5, REL)
+    g3 = grid_ops.resample(g2, (1, 1, 1))
+    run.compare(f"{R}^3 -> 1 back to the voxel", g3.to_dense()[0], 2.5, REL)
+
+
+def resample_huge(run):
+    """Densities and SH of +-1e30 (and one-signed 3e38, next to FLT_MAX) interpolated up and
+    down: finite, against the twin normwise (units of the value size)."""
+    shape = (4, 5, 3)
+    for big, signs in ((1e30, (-1.0, 0.3, 1.0)), (3e38, (0.5, 1.0))):
+        dens = (run.rng.choice(signs, shape) * big).astype(np.float32)
+        sh = (run.rng.choice(signs, shape + (3,)) * big).astype(np.float32)
+        keep = run.rng.random(shape) < 0.8
+        for nr in ((8, 10, 6), (2, 3, 2), (5, 7, 9)):
+            _resample_check(run, f"{big:g} -> {nr}", dens, sh, keep, nr, scale=big)
+
+
+def flat_grid_upsample(run):
+    """Degenerate 1xNxN (and Nx1xN) grids upsampled (x2, and 1 -> 4 along the flat axis) and
+    downsampled: against the twin, finite."""
+    N = run.size(6, 24)
+    for shape in ((1, N, N), (N, 1, N)):
+        dens, sh = random_grid(run.rng, shape, degree=1, dens=2.0)
+        keep = run.rng.random(shape) < 0.9
+        up = tuple(2 * s for s in shape)
+        thick = tuple(4 if s == 1 else s for s in shape)
+        down = tuple(max(1, s // 3) for s in shape)
+        for nr in (up, thick, down):
+            _resample_check(run, f"{shape} -> {nr}", dens, sh, keep, nr)
+
+
+def batch_extremes(run):
+    """Batch indices for 1, 2, 3 and 2^18 + 3 source rays, seeds 0, 2^32 - 1 and a large odd
+    one: exactly the twin's, all in range; a 1-ray source gives only index 0."""
+    from clrf.train import RayStore
+    for n_src in (1, 2, 3, (1 << 18) + 3):
+        src = run.rng.random((n_src, 3)).astype(np.float32)
+        store = RayStore(run.device, src, src, src)
+        for seed in (0, 0xFFFFFFFF, 0x9E3779B9):
+            n = run.size(4099, 65537)
+            _, _, _, idx = store.batch(seed=seed, n=n)
+            idx = idx.get()
+            run.compare(f"n_src {n_src} seed {seed:#x} == twin", idx,
+                        ref.batch_indices(seed, n, n_src), EXACT)
+            run.compare(f"n_src {n_src} seed {seed:#x} in range",
+                        [float(np.sum((idx < 0) | (idx >= n_src)))], [0.0], EXACT)
+
+
 # ---- the matrix ----------------------------------------------------------------------------
 # Known kernel findings (reported to the kernel owner; the tests expect these cases to fail).
 XFAIL_DRIFT = ("cl/march.h march_forward: rgb/acc/depth are plain float32 sums (rgb += w*c; "
@@ -877,6 +1269,25 @@ def _cases() -> list[Case]:
            Case("SH coefficients 1e20", "values", huge_sh),
            Case("SH degree 3 at the poles", "values", sh3_poles),
            Case("NaN/Inf inputs rejected", "values", bad_inputs, RAISES)]
+    for mode in ("rmsprop", "sgd"):
+        cs += [Case(f"{mode} zero and NaN gradients", "optimiser", P(opt_zero_grad, mode=mode), EXACT),
+               Case(f"{mode} huge gradients 1e20..inf", "optimiser", P(opt_huge_grad, mode=mode),
+                    OPT),
+               Case(f"{mode} long sparse run vs float64", "optimiser",
+                    P(opt_long_sparse, mode=mode), OPT_LONG)]
+    cs += [Case("rmsprop tiny gradients 1e-20..1e-45", "optimiser", opt_tiny_grad, OPT),
+           Case("rmsprop eps 0..1 with state 0", "optimiser", opt_eps_state0, OPT),
+           Case("TV flat regions", "regulariser", tv_flat, EXACT),
+           Case("TV step edge", "regulariser", tv_step_edge, GRAD),
+           Case("TV missing / outside neighbours", "regulariser", tv_missing_neighbours, GRAD)]
+    for big in (1e10, 1e19, 1e30, 1e38, 3e38):
+        cs.append(Case(f"TV values +-{big:g}", "regulariser", P(tv_huge_values, big=big), GRAD))
+    cs += [Case("sparsity sigma 0..+-3e38", "regulariser", sparsity, GRAD),
+           Case("prune to nothing", "structure", prune_to_nothing, EXACT),
+           Case("single voxel upsampled", "structure", single_voxel_upsample, RENDER),
+           Case("resample values 1e30, 3e38", "structure", resample_huge, RENDER),
+           Case("resample flat grids", "structure", flat_grid_upsample, RENDER),
+           Case("batch indices at extremes", "structure", batch_extremes, EXACT)]
     for fp64 in (True, False):
         for kind in ("tiny", "O(1)"):
             cs.append(Case(f"reduce {'fp64' if fp64 else 'f32 compensated'} {kind} diffs",

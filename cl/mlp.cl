@@ -1,0 +1,485 @@
+/* mlp.cl: the fused NeRF MLP, forward and backward, for tiles of MLP_ROWS samples.
+ *
+ * Network (NeRF's, with the sizes as defines):
+ *   h_0 = act(W_0 x + b_0), h_l = act(W_l h_{l-1} + b_l) for l = 1..D-1, where the input of
+ *   layer MLP_SKIP+1 is [h_SKIP, x] (NeRF's skip connection; MLP_SKIP = -1: none);
+ *   head: [sigma_raw, feature] = W_D h_{D-1} + b_D;  sigma = SIGMA_ACT(sigma_raw);
+ *   c = act(W_{D+1} [feature, d] + b_{D+1});  rgb = sigmoid(W_{D+2} c + b_{D+2}).
+ *   x: encoded position [MLP_IN], d: encoded view direction [MLP_DIR_IN], act = HIDDEN_ACT.
+ *
+ * Padding. Every vector is padded to a multiple of LPAD = 16 floats, so each block of 16
+ * columns is one float16: inputs MLP_IN -> IN_P, MLP_DIR_IN -> DIN_P; the head has 16 + W
+ * outputs (sigma, 15 zero rows, feature) and the rgb layer 16 outputs (r, g, b, 13 zero rows).
+ * Padded weights are zero and stay zero: their inputs are 0 and their output gradients are
+ * set to 0, so their weight gradients are exactly 0.
+ *
+ * Parameters: ONE contiguous float buffer. Layer l (l = 0..NLAYER-1, NLAYER = D + 3) holds
+ *   W_l [nout_l, nin_l] row-major at w_off_l, then b_l [nout_l] at b_off_l = w_off_l + nout*nin,
+ * and layer l+1 starts right after b_l. layer_desc(l) below is the single definition of the
+ * offsets; the host reads them with the mlp_layout kernel. The forward reads a transposed copy
+ * (params_t: each W_l stored [nin_l, nout_l] at the same offsets, biases copied) made by
+ * mlp_transpose after every parameter update, so both passes stream contiguous weight rows.
+ *
+ * Scratch. Per sample one row of NSLOT floats in A (activations, after activation functions)
+ * and G (dL/d pre-activation, or dL/d input for input slots). Row layout (slot offsets):
+ *   SL_X  encoded position [IN_P] | h_0 [W] ... h_SKIP [W] | SL_XS copy of x [IN_P] | ... h_{D-1}
+ *   SL_HD head [16 + W] = sigma, pad, feature (SL_FEAT) | SL_DV encoded direction [DIN_P]
+ *   SL_C colour hidden [WC] | SL_RGB rgb [16]
+ * so that the input of every layer is one contiguous slot range (the copy of x sits right after
+ * h_SKIP, the encoded direction right after the feature). Rows n..n_rows-1 of a batch are
+ * padding: their output gradients are 0, so they add nothing to the weight gradients.
+ *
+ * Vectorisation. Every matrix product goes through gemm_tile: a ROWS x (16*CJ) register block
+ * of float16 accumulators, each float16 weight row loaded once per ROWS samples and each
+ * scalar activation broadcast into CJ FMAs (PoCL does not vectorise loops across work-items).
+ *   forward      A_out[s, j]  = act(b_j + sum_k A_in[s, k] Wt[k, j])     (rows = samples)
+ *   backward     G_in[s, k]   = act'(A_in[s, k]) sum_j G_out[s, j] W[j, k] (rows = samples)
+ *   weight grad  dW[j, k]     = sum_s G_out[s, j] A_in[s, k]              (rows = outputs j)
+ * Weight gradients are reduced without races: mlp_weight_grad writes one partial gradient
+ * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
+ *
+ * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
+ * SIGMA_ACT, MLP_ROWS, DW_ROWS, DW_CHUNK.
+ */
+#include "common.h"
+
+#define ACT_NONE 0
+#define ACT_RELU 1
+#define ACT_SOFTPLUS 2
+#define ACT_SIGMOID 3
+
+#ifndef MLP_WIDTH
+#define MLP_WIDTH 64        /* trunk width W; a multiple of 16 */
+#endif
+#ifndef MLP_DEPTH
+#define MLP_DEPTH 4         /* trunk layers D >= 1 (NeRF: 8) */
+#endif
+#ifndef MLP_SKIP
+#define MLP_SKIP -1         /* x re-enters at the input of layer MLP_SKIP+1; -1: none (NeRF: 4) */
+#endif
+#ifndef MLP_COLOR_WIDTH
+#define MLP_COLOR_WIDTH 32  /* view-dependent colour layer width WC, multiple of 16 (NeRF: 128) */
+#endif
+#ifndef MLP_IN
+#define MLP_IN 51           /* encoded position dims (NeRF: 63 = 3 + 6*10) */
+#endif
+#ifndef MLP_DIR_IN
+#define MLP_DIR_IN 27       /* encoded direction dims (NeRF: 27 = 3 + 6*4) */
+#endif
+#ifndef HIDDEN_ACT
+#define HIDDEN_ACT ACT_RELU /* trunk and colour layers: ACT_RELU or ACT_SOFTPLUS */
+#endif
+#ifndef SIGMA_ACT
+#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF) or ACT_SOFTPLUS (stable, never dead) */
+#endif
+#ifndef MLP_ROWS
+#define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
+#endif
+#ifndef DW_ROWS
+#define DW_ROWS 8           /* output neurons per work-item in mlp_weight_grad; divides 16 */
+#endif
+#ifndef DW_CHUNK
+#define DW_CHUNK 512        /* scratch rows per partial weight gradient; multiple of MLP_ROWS */
+#endif
+
+#if MLP_WIDTH % 16 != 0 || MLP_WIDTH < 16
+#error "MLP_WIDTH must be a positive multiple of 16"
+#endif
+#if MLP_COLOR_WIDTH % 16 != 0 || MLP_COLOR_WIDTH < 16
+#error "MLP_COLOR_WIDTH must be a positive multiple of 16"
+#endif
+#if MLP_DEPTH < 1
+#error "MLP_DEPTH must be >= 1"
+#endif
+#if MLP_SKIP < -1 || MLP_SKIP >= MLP_DEPTH - 1
+#error "MLP_SKIP must be -1 (none) or in 0..MLP_DEPTH-2 (it feeds layer MLP_SKIP+1)"
+#endif
+#if MLP_IN < 1 || MLP_DIR_IN < 1
+#error "MLP_IN and MLP_DIR_IN must be >= 1"
+#endif
+#if HIDDEN_ACT != ACT_RELU && HIDDEN_ACT != ACT_SOFTPLUS
+#error "HIDDEN_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
+#endif
+#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS
+#error "SIGMA_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
+#endif
+#if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 4 && MLP_ROWS != 8 && MLP_ROWS != 16
+#error "MLP_ROWS must be 1, 2, 4, 8 or 16"
+#endif
+#if DW_ROWS != 1 && DW_ROWS != 2 && DW_ROWS != 4 && DW_ROWS != 8 && DW_ROWS != 16
+#error "DW_ROWS must divide 16"
+#endif
+#if DW_CHUNK < MLP_ROWS || DW_CHUNK % MLP_ROWS != 0
+#error "DW_CHUNK must be a positive multiple of MLP_ROWS"
+#endif
+
+#define LPAD 16                                   /* padding unit: one float16 */
+#define PADUP(n) ((((n) + LPAD - 1) / LPAD) * LPAD)
+#define MW MLP_WIDTH
+#define IN_P PADUP(MLP_IN)
+#define DIN_P PADUP(MLP_DIR_IN)
+#define HEAD_PAD LPAD                             /* sigma + 15 zero outputs before the feature */
+#define RGB_P LPAD                                /* r, g, b + 13 zero outputs */
+#define NLAYER (MLP_DEPTH + 3)
+
+/* Slot offsets in a scratch row (see the header). */
+#define SL_X 0
+#define SL_H(l) (IN_P + (l) * MW + ((MLP_SKIP >= 0 && (l) > MLP_SKIP) ? IN_P : 0))
+#define SL_XS (IN_P + (MLP_SKIP + 1) * MW)
+#define SL_HD SL_H(MLP_DEPTH)
+#define SL_FEAT (SL_HD + HEAD_PAD)
+#define SL_DV (SL_FEAT + MW)
+#define SL_C (SL_DV + DIN_P)
+#define SL_RGB (SL_C + MLP_COLOR_WIDTH)
+#define NSLOT (SL_RGB + RGB_P)
+
+typedef struct {
+    int in_off, nin;    /* input slot range */
+    int out_off, nout;  /* output slot range */
+    int w_off, b_off;   /* parameter offsets */
+} layer_t;
+
+/* The layout of layer l: the one definition of slot and parameter offsets. */
+inline layer_t layer_desc(const int l) {
+    layer_t L = {0, 0, 0, 0, 0, 0};
+    int w_off = 0;
+    for (int i = 0; i <= l; ++i) {
+        if (i == 0) {
+            L.in_off = SL_X; L.nin = IN_P; L.out_off = SL_H(0); L.nout = MW;
+        } else if (i < MLP_DEPTH) {
+            L.in_off = SL_H(i - 1);
+            L.nin = MW + (i == MLP_SKIP + 1 ? IN_P : 0);
+            L.out_off = SL_H(i); L.nout = MW;
+        } else if (i == MLP_DEPTH) {
+            L.in_off = SL_H(MLP_DEPTH - 1); L.nin = MW; L.out_off = SL_HD; L.nout = HEAD_PAD + MW;
+        } else if (i == MLP_DEPTH + 1) {
+            L.in_off = SL_FEAT; L.nin = MW + DIN_P; L.out_off = SL_C; L.nout = MLP_COLOR_WIDTH;
+        } else {
+            L.in_off = SL_C; L.nin = MLP_COLOR_WIDTH; L.out_off = SL_RGB; L.nout = RGB_P;
+        }
+        L.w_off = w_off;
+        L.b_off = w_off + L.nout * L.nin;
+        w_off = L.b_off + L.nout;
+    }
+    return L;
+}
+
+inline int n_params(void) {
+    const layer_t L = layer_desc(NLAYER - 1);
+    return L.b_off + L.nout;
+}
+
+/* ---- the register-blocked product ---------------------------------------------------------
+ * acc[r*CJ + c] += sum_{k<K} L[r*lr + k*lk] * M[k*ms + 16c .. 16c+15]  for r < ROWS, c < CJ.
+ * PoCL's compiler neither unrolls the row loop nor keeps a private accumulator array in
+ * registers, so the tile is written out with one named float16 per accumulator (REPn repeats
+ * a per-row statement n times); acc is read once before and written once after the k loop. */
+#define REP1(X) X(0)
+#define REP2(X) REP1(X) X(1)
+#define REP4(X) REP2(X) X(2) X(3)
+#define REP8(X) REP4(X) X(4) X(5) X(6) X(7)
+#define REP16(X) REP8(X) X(8) X(9) X(10) X(11) X(12) X(13) X(14) X(15)
+#define REPN_(n) REP##n
+#define REPN(n) REPN_(n)
+
+#define T2_LOAD(r) float16 a##r##0 = acc[2 * r], a##r##1 = acc[2 * r + 1];
+#define T2_FMA(r) {                                                                         \
+        const float16 l = (float16)(Lp[(size_t)(r) * lr + (size_t)k * lk]);                \
+        a##r##0 = fma(l, m0, a##r##0);                                                      \
+        a##r##1 = fma(l, m1, a##r##1);                                                      \
+    }
+#define T2_STORE(r) acc[2 * r] = a##r##0; acc[2 * r + 1] = a##r##1;
+#define T1_LOAD(r) float16 a##r##0 = acc[r];
+#define T1_FMA(r) a##r##0 = fma((float16)(Lp[(size_t)(r) * lr + (size_t)k * lk]), m0, a##r##0);
+#define T1_STORE(r) acc[r] = a##r##0;
+
+#define DEFINE_GEMM_TILE2(NAME, ROWS)                                                       \
+    inline void NAME(__global const float *restrict Lp, const int lr, const int lk,         \
+                     __global const float *restrict Mp, const int ms, const int K,          \
+                     float16 *acc) {                                                        \
+        REPN(ROWS)(T2_LOAD)                                                                 \
+        for (int k = 0; k < K; ++k) {                                                       \
+            const float16 m0 = vload16(0, Mp + (size_t)k * ms);                             \
+            const float16 m1 = vload16(0, Mp + (size_t)k * ms + 16);                        \
+            REPN(ROWS)(T2_FMA)                                                              \
+        }                                                                                   \
+        REPN(ROWS)(T2_STORE)                                                                \
+    }
+#define DEFINE_GEMM_TILE1(NAME, ROWS)                                                       \
+    inline void NAME(__global const float *restrict Lp, const int lr, const int lk,         \
+                     __global const float *restrict Mp, const int ms, const int K,          \
+                     float16 *acc) {                                                        \
+        REPN(ROWS)(T1_LOAD)                                                                 \
+        for (int k = 0; k < K; ++k) {                                                       \
+            const float16 m0 = vload16(0, Mp + (size_t)k * ms);                             \
+            REPN(ROWS)(T1_FMA)                                                              \
+        }                                                                                   \
+        REPN(ROWS)(T1_STORE)                                                                \
+    }
+DEFINE_GEMM_TILE2(gemm_rows2, MLP_ROWS)
+DEFINE_GEMM_TILE1(gemm_rows1, MLP_ROWS)
+DEFINE_GEMM_TILE2(gemm_dw2, DW_ROWS)
+DEFINE_GEMM_TILE1(gemm_dw1, DW_ROWS)
+
+inline float16 act_forward(const float16 x, const int act) {
+    if (act == ACT_RELU) return fmax(x, (float16)(0.0f));
+    if (act == ACT_SOFTPLUS) return safe_softplus(x);
+    if (act == ACT_SIGMOID) return safe_sigmoid(x);
+    return x;
+}
+
+/* g * (d act / d x) for the hidden activation, the derivative a function of its output y.
+ * Compile-time: a runtime switch that can reach the softplus library call made the compiler
+ * keep the whole backward tile in memory (~30% of the backward pass on PoCL). */
+inline float16 hidden_act_grad_mul(const float16 g, const float16 y) {
+#if HIDDEN_ACT == ACT_RELU
+    return as_float16(as_int16(g) & isgreater(y, (float16)(0.0f)));
+#else
+    return g * softplus_grad_from_y(y);
+#endif
+}
+
+inline float act_grad1(const float y, const int act) {
+    if (act == ACT_RELU) return relu_grad_from_y(y);
+    if (act == ACT_SOFTPLUS) return softplus_grad_from_y(y);
+    if (act == ACT_SIGMOID) return sigmoid_grad_from_y(y);
+    return 1.0f;
+}
+
+/* Forward of one layer for the MLP_ROWS rows starting at A (row stride NSLOT). */
+inline void layer_forward(const layer_t L, __global const float *Pt, __global float *A,
+                          const int act) {
+    int j0 = 0;
+    for (; j0 + 32 <= L.nout; j0 += 32) {
+        float16 acc[MLP_ROWS * 2];
+        const float16 b0 = vload16(0, Pt + L.b_off + j0), b1 = vload16(0, Pt + L.b_off + j0 + 16);
+        for (int r = 0; r < MLP_ROWS; ++r) { acc[2 * r] = b0; acc[2 * r + 1] = b1; }
+        gemm_rows2(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.nin, acc);
+        for (int r = 0; r < MLP_ROWS; ++r)
+            for (int c = 0; c < 2; ++c)
+                vstore16(act_forward(acc[2 * r + c], act), 0,
+                         A + (size_t)r * NSLOT + L.out_off + j0 + 16 * c);
+    }
+    if (j0 < L.nout) {
+        float16 acc[MLP_ROWS];
+        const float16 b0 = vload16(0, Pt + L.b_off + j0);
+        for (int r = 0; r < MLP_ROWS; ++r) acc[r] = b0;
+        gemm_rows1(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.nin, acc);
+        for (int r = 0; r < MLP_ROWS; ++r)
+            vstore16(act_forward(acc[r], act), 0, A + (size_t)r * NSLOT + L.out_off + j0);
+    }
+}
+
+/* Backward through one layer's weights for MLP_ROWS rows: G[in] = (G[out] W) * act'(A[in])
+ * where the (hidden) activation derivative applies to the first n_act input columns only. */
+inline void layer_backward(const layer_t L, __global const float *P, __global float *G,
+                           __global const float *A, const int n_act) {
+    int k0 = 0;
+    for (; k0 + 32 <= L.nin; k0 += 32) {
+        float16 acc[MLP_ROWS * 2];
+        for (int r = 0; r < 2 * MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
+        gemm_rows2(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.nout, acc);
+        for (int r = 0; r < MLP_ROWS; ++r)
+            for (int c = 0; c < 2; ++c) {
+                const size_t o = (size_t)r * NSLOT + L.in_off + k0 + 16 * c;
+                float16 d = acc[2 * r + c];
+                if (k0 + 16 * c < n_act) d = hidden_act_grad_mul(d, vload16(0, A + o));
+                vstore16(d, 0, G + o);
+            }
+    }
+    if (k0 < L.nin) {
+        float16 acc[MLP_ROWS];
+        for (int r = 0; r < MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
+        gemm_rows1(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.nout, acc);
+        for (int r = 0; r < MLP_ROWS; ++r) {
+            const size_t o = (size_t)r * NSLOT + L.in_off + k0;
+            float16 d = acc[r];
+            if (k0 < n_act) d = hidden_act_grad_mul(d, vload16(0, A + o));
+            vstore16(d, 0, G + o);
+        }
+    }
+}
+
+/* Copy `dim` input columns of rows r0.. into a padded slot range (zeros beyond dim and n). */
+inline void load_input(const int n, const int r0, __global const float *src, const int dim,
+                       const int dim_p, __global float *A, const int off) {
+    for (int r = 0; r < MLP_ROWS; ++r) {
+        const int row = r0 + r;
+        for (int k = 0; k < dim_p; ++k)
+            A[(size_t)r * NSLOT + off + k] =
+                (row < n && k < dim) ? src[(size_t)row * dim + k] : 0.0f;
+    }
+}
+
+/* Forward of tiles of MLP_ROWS samples: one work-item per tile (n_tiles = ceil(n / MLP_ROWS)).
+ * x_enc [n, MLP_IN], d_enc [n, MLP_DIR_IN]; A [n_tiles*MLP_ROWS, NSLOT] receives every
+ * activation (kept for the backward); sigma [n], rgb [n, 3]. */
+__kernel void mlp_forward(const int n, __global const float *x_enc, __global const float *d_enc,
+                          __global const float *params_t, __global float *A_all,
+                          __global float *sigma_out, __global float *rgb_out) {
+    const int tile = get_global_id(0);
+    const int r0 = tile * MLP_ROWS;
+    if (r0 >= n) return;
+    __global float *A = A_all + (size_t)r0 * NSLOT;
+    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_X);
+#if MLP_SKIP >= 0
+    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_XS);
+#endif
+    load_input(n, r0, d_enc, MLP_DIR_IN, DIN_P, A, SL_DV);
+    for (int l = 0; l < MLP_DEPTH; ++l) layer_forward(layer_desc(l), params_t, A, HIDDEN_ACT);
+    layer_forward(layer_desc(MLP_DEPTH), params_t, A, ACT_NONE);
+    for (int r = 0; r < MLP_ROWS; ++r) {
+        __global float *s = A + (size_t)r * NSLOT + SL_HD;
+#if SIGMA_ACT == ACT_RELU
+        *s = fmax(*s, 0.0f);
+#else
+        *s = safe_softplus(*s);
+#endif
+    }
+    layer_forward(layer_desc(MLP_DEPTH + 1), params_t, A, HIDDEN_ACT);
+    layer_forward(layer_desc(MLP_DEPTH + 2), params_t, A, ACT_SIGMOID);
+    for (int r = 0; r < MLP_ROWS; ++r) {
+        const int row = r0 + r;
+        if (row >= n) break;
+        __global const float *a = A + (size_t)r * NSLOT;
+        sigma_out[row] = a[SL_HD];
+        rgb_out[3 * row] = a[SL_RGB];
+        rgb_out[3 * row + 1] = a[SL_RGB + 1];
+        rgb_out[3 * row + 2] = a[SL_RGB + 2];
+    }
+}
+
+/* Backward of tiles: dsigma [n], drgb [n, 3] (dL/d outputs) -> G [n_tiles*MLP_ROWS, NSLOT].
+ * With want_input != 0 also dx_enc [n, MLP_IN] and dd_enc [n, MLP_DIR_IN] (else unused). */
+__kernel void mlp_backward(const int n, __global const float *dsigma, __global const float *drgb,
+                           __global const float *params, __global const float *A_all,
+                           __global float *G_all, const int want_input,
+                           __global float *dx_enc, __global float *dd_enc) {
+    const int tile = get_global_id(0);
+    const int r0 = tile * MLP_ROWS;
+    if (r0 >= n) return;
+    __global const float *A = A_all + (size_t)r0 * NSLOT;
+    __global float *G = G_all + (size_t)r0 * NSLOT;
+    for (int r = 0; r < MLP_ROWS; ++r) {
+        const int row = r0 + r;
+        const int live = row < n;
+        __global const float *a = A + (size_t)r * NSLOT;
+        __global float *g = G + (size_t)r * NSLOT;
+        for (int k = 0; k < HEAD_PAD; ++k) g[SL_HD + k] = 0.0f;
+        for (int k = 0; k < RGB_P; ++k) g[SL_RGB + k] = 0.0f;
+        if (!live) continue;
+        g[SL_HD] = dsigma[row] * act_grad1(a[SL_HD], SIGMA_ACT);
+        for (int c = 0; c < 3; ++c)
+            g[SL_RGB + c] = drgb[3 * row + c] * sigmoid_grad_from_y(a[SL_RGB + c]);
+    }
+    layer_backward(layer_desc(MLP_DEPTH + 2), params, G, A, MLP_COLOR_WIDTH);
+    layer_backward(layer_desc(MLP_DEPTH + 1), params, G, A, 0);
+    layer_backward(layer_desc(MLP_DEPTH), params, G, A, MW);
+    for (int l = MLP_DEPTH - 1; l >= 1; --l) layer_backward(layer_desc(l), params, G, A, MW);
+    if (!want_input) return;
+    layer_backward(layer_desc(0), params, G, A, 0);
+    for (int r = 0; r < MLP_ROWS; ++r) {
+        const int row = r0 + r;
+        if (row >= n) break;
+        __global const float *g = G + (size_t)r * NSLOT;
+        for (int k = 0; k < MLP_IN; ++k) {
+            float v = g[SL_X + k];
+#if MLP_SKIP >= 0
+            v += g[SL_XS + k];
+#endif
+            dx_enc[(size_t)row * MLP_IN + k] = v;
+        }
+        for (int k = 0; k < MLP_DIR_IN; ++k) dd_enc[(size_t)row * MLP_DIR_IN + k] = g[SL_DV + k];
+    }
+}
+
+/* Partial weight and bias gradients of layer `layer` over chunk p of the scratch rows:
+ *   partial[p, w_off + j*nin + k] = sum_{s in chunk p} G[s, out_off + j] A[s, in_off + k],
+ *   partial[p, b_off + j]         = sum_{s in chunk p} G[s, out_off + j]  (items with kb == 0,
+ *                                   while the chunk's G rows are still in cache).
+ * Work-item gid = (p * nkb + kb) * njb + jb: DW_ROWS outputs j x 32 (or a last 16) inputs k. */
+__kernel void mlp_weight_grad(const int layer, const int n_rows, __global const float *A,
+                              __global const float *G, __global float *partial) {
+    const layer_t L = layer_desc(layer);
+    const int njb = L.nout / DW_ROWS, nkb = (L.nin + 31) / 32;
+    const int n_chunks = (n_rows + DW_CHUNK - 1) / DW_CHUNK;
+    const int gid = get_global_id(0);
+    if (gid >= njb * nkb * n_chunks) return;
+    const int jb = gid % njb, kb = (gid / njb) % nkb, p = gid / (njb * nkb);
+    const int j0 = jb * DW_ROWS, k0 = kb * 32;
+    const int s0 = p * DW_CHUNK, ns = min(DW_CHUNK, n_rows - s0);
+    __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;
+    __global const float *Mp = A + (size_t)s0 * NSLOT + L.in_off + k0;
+    __global float *out = partial + (size_t)p * n_params();
+    if (k0 + 32 <= L.nin) {
+        float16 acc[DW_ROWS * 2];
+        for (int r = 0; r < 2 * DW_ROWS; ++r) acc[r] = (float16)(0.0f);
+        gemm_dw2(Lp, 1, NSLOT, Mp, NSLOT, ns, acc);
+        for (int r = 0; r < DW_ROWS; ++r)
+            for (int c = 0; c < 2; ++c)
+                vstore16(acc[2 * r + c], 0, out + L.w_off + (size_t)(j0 + r) * L.nin + k0 + 16 * c);
+    } else {
+        float16 acc[DW_ROWS];
+        for (int r = 0; r < DW_ROWS; ++r) acc[r] = (float16)(0.0f);
+        gemm_dw1(Lp, 1, NSLOT, Mp, NSLOT, ns, acc);
+        for (int r = 0; r < DW_ROWS; ++r)
+            vstore16(acc[r], 0, out + L.w_off + (size_t)(j0 + r) * L.nin + k0);
+    }
+    if (kb == 0) {
+#if DW_ROWS == 8
+        float8 b = (float8)(0.0f);   /* one vector add per row instead of 8 scalar ones */
+        for (int s = 0; s < ns; ++s) b += vload8(0, Lp + (size_t)s * NSLOT);
+        vstore8(b, 0, out + L.b_off + j0);
+#else
+        float b[DW_ROWS];
+        for (int r = 0; r < DW_ROWS; ++r) b[r] = 0.0f;
+        for (int s = 0; s < ns; ++s)
+            for (int r = 0; r < DW_ROWS; ++r) b[r] += Lp[(size_t)s * NSLOT + r];
+        for (int r = 0; r < DW_ROWS; ++r) out[L.b_off + j0 + r] = b[r];
+#endif
+    }
+}
+
+/* grad[16i .. 16i+15] (+)= sum_p partial[p, 16i ..] in chunk order (deterministic). */
+__kernel void mlp_reduce(const int n_chunks, __global const float *partial, __global float *grad,
+                         const int accumulate) {
+    const int i = get_global_id(0);
+    const int np = n_params();
+    if (16 * i >= np) return;
+    float16 s = accumulate ? vload16(i, grad) : (float16)(0.0f);
+    for (int p = 0; p < n_chunks; ++p) s += vload16(0, partial + (size_t)p * np + 16 * i);
+    vstore16(s, i, grad);
+}
+
+/* params_t = params with every W_l transposed to [nin, nout] (biases copied). One item each. */
+__kernel void mlp_transpose(__global const float *params, __global float *params_t) {
+    const int i = get_global_id(0);
+    if (i >= n_params()) return;
+    for (int l = 0; l < NLAYER; ++l) {
+        const layer_t L = layer_desc(l);
+        if (i >= L.b_off + L.nout) continue;
+        if (i >= L.b_off) {
+            params_t[i] = params[i];
+        } else {
+            const int e = i - L.w_off, j = e / L.nin, k = e % L.nin;
+            params_t[L.w_off + k * L.nout + j] = params[i];
+        }
+        return;
+    }
+}
+
+/* The layout for the host: out[0..7] = NLAYER, NSLOT, n_params, MLP_ROWS, DW_CHUNK, SL_X,
+ * SL_XS (-1 without skip), SL_HD; out[8..11] = SL_FEAT, SL_DV, SL_C, SL_RGB;
+ * then 6 ints per layer: in_off, nin, out_off, nout, w_off, b_off. */
+__kernel void mlp_layout(__global int *out) {
+    if (get_global_id(0) != 0) return;
+    out[0] = NLAYER; out[1] = NSLOT; out[2] = n_params(); out[3] = MLP_ROWS;
+    out[4] = DW_CHUNK; out[5] = SL_X; out[6] = MLP_SKIP >= 0 ? SL_XS : -1; out[7] = SL_HD;
+    out[8] = SL_FEAT; out[9] = SL_DV; out[10] = SL_C; out[11] = SL_RGB;
+    for (int l = 0; l < NLAYER; ++l) {
+        const layer_t L = layer_desc(l);
+        __global int *o = out + 12 + 6 * l;
+        o[0] = L.in_off; o[1] = L.nin; o[2] = L.out_off; o[3] = L.nout;
+        o[4] = L.w_off; o[5] = L.b_off;
+    }
+}

@@ -1,0 +1,258 @@
+"""Host side of cl/mlp.cl: the fused NeRF MLP (one contiguous parameter buffer) and its kernels.
+
+The parameter layout is defined once, in ``layer_desc`` of cl/mlp.cl; ``MLP.layout`` reads it
+from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree.
+
+>>> spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=27)
+>>> net = MLP(dev, spec, seed=0)
+>>> sigma, rgb = net.forward(x_enc_d, d_enc_d)        # device arrays [n], [n, 3]
+>>> net.backward(dsigma_d, drgb_d, net.grad)          # net.grad: dL/dparams, same layout
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from .programs import launch
+
+ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
+FUSED_LOCAL_SIZE = 1      # work-items per group for the fused kernels: big private tiles
+GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of this much A + G
+ELEMENTWISE_LOCAL_SIZE = 64
+
+
+@dataclass(frozen=True)
+class MLPSpec:
+    """Shape of the NeRF MLP (all compile-time defines of cl/mlp.cl)."""
+
+    width: int = 64            # trunk width W (multiple of 16)
+    depth: int = 4             # trunk layers D
+    skip: int = -1             # encoded position re-enters at the input of layer skip+1; -1 none
+    color_width: int = 32      # view-dependent colour layer width (multiple of 16)
+    in_dim: int = 51           # encoded position dims
+    dir_dim: int = 27          # encoded direction dims
+    hidden_act: str = "relu"   # "relu" | "softplus"
+    sigma_act: str = "relu"    # "relu" | "softplus"
+    rows: int = 8              # samples per work-item (register block)
+    dw_rows: int = 8           # output neurons per work-item in the weight gradient
+    dw_chunk: int = 512        # rows per partial weight gradient (second pass sums the partials)
+
+    def defines(self) -> dict:
+        for name in ("hidden_act", "sigma_act"):
+            if getattr(self, name) not in ("relu", "softplus"):
+                raise ValueError(f"MLPSpec.{name}: must be 'relu' or 'softplus', got "
+                                 f"{getattr(self, name)!r}")
+        return {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
+                "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
+                "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
+                "SIGMA_ACT": ACT[self.sigma_act], "MLP_ROWS": self.rows,
+                "DW_ROWS": self.dw_rows, "DW_CHUNK": self.dw_chunk}
+
+    def flops_per_sample(self) -> tuple:
+        """(forward, forward+backward) multiply-add flops per sample, logical (unpadded) sizes."""
+        W, D, WC = self.width, self.depth, self.color_width
+        macs = self.in_dim * W + (D - 1) * W * W + (self.in_dim * W if self.skip >= 0 else 0)
+        macs += W * (W + 1) + (W + self.dir_dim) * WC + WC * 3
+        return 2 * macs, 6 * macs
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Offsets read from cl/mlp.cl (see its header)."""
+
+    n_layers: int
+    nslot: int
+    n_params: int
+    rows: int
+    dw_chunk: int
+    slots: dict                # SL_X, SL_XS, SL_HD, SL_FEAT, SL_DV, SL_C, SL_RGB
+    layers: tuple              # per layer dict(in_off, nin, out_off, nout, w_off, b_off)
+
+    def logical_shapes(self, spec: MLPSpec):
+        """Per layer (rows, cols) of the unpadded weight matrix, and which padded rows / cols
+        they occupy: list of (out_idx, in_idx) index arrays into the padded matrix."""
+        D, W = spec.depth, spec.width
+        out = []
+        for l, L in enumerate(self.layers):
+            if l < D:
+                cols = np.arange(spec.in_dim) if l == 0 else np.arange(W)
+                if l == spec.skip + 1 and l > 0:
+                    cols = np.concatenate([np.arange(W), W + np.arange(spec.in_dim)])
+                rows = np.arange(W)
+            elif l == D:
+                rows = np.concatenate([[0], 16 + np.arange(W)])
+                cols = np.arange(W)
+            elif l == D + 1:
+                rows = np.arange(spec.color_width)
+                cols = np.concatenate([np.arange(W), W + np.arange(spec.dir_dim)])
+            else:
+                rows = np.arange(3)
+                cols = np.arange(spec.color_width)
+            out.append((rows, cols))
+        return out
+
+
+def read_layout(device, program) -> Layout:
+    buf = cla.zeros(device.queue, 12 + 6 * 64, np.int32)
+    program.kernel("mlp_layout")(device.queue, (1,), (1,), buf.data)
+    a = buf.get()
+    nl = int(a[0])
+    names = ("in_off", "nin", "out_off", "nout", "w_off", "b_off")
+    layers = tuple({k: int(v) for k, v in zip(names, a[12 + 6 * l: 18 + 6 * l])} for l in range(nl))
+    slots = dict(zip(("SL_X", "SL_XS", "SL_HD", "SL_FEAT", "SL_DV", "SL_C", "SL_RGB"),
+                     (int(a[5]), int(a[6]), int(a[7]), int(a[8]), int(a[9]), int(a[10]),
+                      int(a[11]))))
+    return Layout(nl, int(a[1]), int(a[2]), int(a[3]), int(a[4]), slots, layers)
+
+
+def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.ndarray:
+    """NeRF's initialisation (Keras Dense defaults): Glorot-uniform weights over the logical
+    fan-in/fan-out, zero biases; padding zero."""
+    p = np.zeros(layout.n_params, np.float32)
+    for L, (rows, cols) in zip(layout.layers, layout.logical_shapes(spec)):
+        fan_in, fan_out = len(cols), len(rows)
+        lim = np.sqrt(6.0 / (fan_in + fan_out))
+        Wm = np.zeros((L["nout"], L["nin"]), np.float32)
+        Wm[np.ix_(rows, cols)] = rng.uniform(-lim, lim, (fan_out, fan_in))
+        p[L["w_off"]:L["b_off"]] = Wm.ravel()
+    return p
+
+
+class MLP:
+    """One NeRF MLP on a device: parameters, their transposed copy, scratch and gradients."""
+
+    def __init__(self, device, spec: MLPSpec, seed: int = 0, params: np.ndarray | None = None):
+        self.device = device
+        self.spec = spec
+        self.program = device.program("mlp.cl", spec.defines())
+        self.layout = read_layout(device, self.program)
+        q = device.queue
+        if params is None:
+            params = init_params(spec, self.layout, np.random.default_rng(seed))
+        params = np.asarray(params, np.float32)
+        if params.shape != (self.layout.n_params,):
+            raise ValueError(f"params: expected {self.layout.n_params} floats for {spec}, got "
+                             f"shape {params.shape}")
+        self.params = cla.to_device(q, params)
+        self.params_t = cla.empty_like(self.params)
+        self.grad = cla.zeros_like(self.params)
+        self._scratch_rows = 0
+        self.group_bytes = GROUP_BYTES
+        self.A = self.G = self.partial = None
+        self._n = 0
+        self._k = {name: self.program.kernel(name) for name in (
+            "mlp_forward", "mlp_backward", "mlp_weight_grad", "mlp_reduce",
+            "mlp_transpose")}
+        self.sync_params()
+
+    # ---- buffers ------------------------------------------------------------------------
+    def n_rows(self, n: int) -> int:
+        r = self.layout.rows
+        return (n + r - 1) // r * r
+
+    def _ensure_scratch(self, n: int, backward: bool = False):
+        """A (forward) and, for a backward, G and the partial gradients, for >= n rows. Only
+        grown, never shrunk; a render allocates no G."""
+        rows = max(self.n_rows(n), self.layout.rows)
+        q = self.device.queue
+        if rows > self._scratch_rows:
+            self.A = cla.zeros(q, rows * self.layout.nslot, np.float32)
+            self._scratch_rows = rows
+            self.G = self.partial = None
+        if backward and self.G is None:
+            self.G = cla.zeros(q, self._scratch_rows * self.layout.nslot, np.float32)
+            chunks = (self._scratch_rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+            self.partial = cla.empty(q, chunks * self.layout.n_params, np.float32)
+
+    def sync_params(self):
+        """Refresh the transposed copy the forward reads; call after every update of params."""
+        launch(self.device, self._k["mlp_transpose"], self.layout.n_params,
+               (self.params.data, self.params_t.data), ELEMENTWISE_LOCAL_SIZE)
+
+    def set_params(self, params: np.ndarray):
+        self.params.set(np.ascontiguousarray(params, np.float32))
+        self.sync_params()
+
+    # ---- passes -------------------------------------------------------------------------
+    def forward(self, x_enc, d_enc, sigma=None, rgb=None):
+        """sigma [n], rgb [n, 3] (device) of encoded inputs x_enc [n, in_dim], d_enc [n, dir_dim].
+        Keeps every activation in self.A for a following backward."""
+        n = int(x_enc.shape[0])
+        q = self.device.queue
+        self._ensure_scratch(n)
+        sigma = sigma if sigma is not None else cla.empty(q, n, np.float32)
+        rgb = rgb if rgb is not None else cla.empty(q, (n, 3), np.float32)
+        self._n = n
+        launch(self.device, self._k["mlp_forward"], self.n_rows(n) // self.layout.rows,
+               (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
+                sigma.data, rgb.data), FUSED_LOCAL_SIZE)
+        return sigma, rgb
+
+    def backward(self, dsigma, drgb, grad=None, accumulate=False, want_input=False):
+        """Gradients of the last forward: grad (default self.grad) gets dL/dparams (added to it
+        with accumulate=True); returns (dx_enc [n, in_dim], dd_enc [n, dir_dim]) device arrays
+        with want_input, else None."""
+        n = self._n
+        q = self.device.queue
+        grad = self.grad if grad is None else grad
+        dx = dd = None
+        if want_input:
+            dx = cla.empty(q, (n, self.spec.in_dim), np.float32)
+            dd = cla.empty(q, (n, self.spec.dir_dim), np.float32)
+        self._ensure_scratch(n, backward=True)
+        dummy = self.A.data
+        kb = self._k["mlp_backward"]
+        kb.set_args(np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data,
+                    self.G.data, np.int32(bool(want_input)), dx.data if dx is not None else dummy,
+                    dd.data if dd is not None else dummy)
+        # Interleave the backward and the weight gradient by groups of rows, so that the weight
+        # gradient reads A and G while they are still in the last-level cache.
+        rows, R = self.n_rows(n), self.layout.rows
+        chunk = self.layout.dw_chunk
+        n_chunks = (rows + chunk - 1) // chunk
+        group_rows = self.group_bytes // (8 * self.layout.nslot)
+        per_group = max(1, group_rows // chunk)
+        for c0 in range(0, n_chunks, per_group):
+            c1 = min(n_chunks, c0 + per_group)
+            t0, t1 = c0 * chunk // R, min(rows, c1 * chunk) // R
+            self._enqueue(kb, t0, t1 - t0)
+            self._weight_grad_chunks(rows, c0, c1)
+        self._reduce(grad, n_chunks, accumulate)
+        return (dx, dd) if want_input else None
+
+    def _enqueue(self, kernel, start: int, count: int):
+        """Items start .. start+count-1 exactly (local size 1, so no rounding spills into the
+        next group)."""
+        if count > 0:
+            cl.enqueue_nd_range_kernel(self.device.queue, kernel, (count,), (1,),
+                                       global_work_offset=(start,))
+
+    def _weight_grad_chunks(self, rows: int, c0: int, c1: int):
+        """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward)."""
+        dwr = self.spec.dw_rows
+        k = self._k["mlp_weight_grad"]
+        for l, L in enumerate(self.layout.layers):
+            per_chunk = (L["nout"] // dwr) * ((L["nin"] + 31) // 32)
+            k.set_args(np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data)
+            self._enqueue(k, c0 * per_chunk, (c1 - c0) * per_chunk)
+
+    def _reduce(self, grad, n_chunks: int, accumulate: bool):
+        k = self._k["mlp_reduce"]
+        k.set_args(np.int32(n_chunks), self.partial.data, grad.data, np.int32(bool(accumulate)))
+        ng = self.layout.n_params // 16
+        ls = ELEMENTWISE_LOCAL_SIZE
+        cl.enqueue_nd_range_kernel(self.device.queue, k, ((ng + ls - 1) // ls * ls,), (ls,))
+
+    def weight_grad(self, grad, accumulate=False):
+        """Weight and bias gradients of the last forward/backward pair into grad (all chunks;
+        backward() already does this, interleaved)."""
+        rows = self.n_rows(self._n)
+        n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+        self._weight_grad_chunks(rows, 0, n_chunks)
+        self._reduce(grad, n_chunks, accumulate)
+
+    def spec_dict(self) -> dict:
+        return asdict(self.spec)

@@ -1,0 +1,268 @@
+"""NeRF model: positional encoding, coarse + fine fused MLPs, hierarchical sampling, compositing
+and Adam, all as OpenCL kernels; this module only schedules them.
+
+One training step on B rays (nothing per sample crosses to the host):
+  t_c  = stratified(B, n_coarse, near, far, jitter)           (sample.cl)
+  x, d = o + t_c d/|d|, d/|d|;  gamma(x), gamma(d)            (sample.cl, encode.cl)
+  sigma, rgb = coarse MLP;  composite + MSE backward -> w_c   (mlp.cl, composite.cl)
+  coarse MLP backward -> dL/dtheta_c                           (gradients of the coarse loss)
+  t_f = importance(t_c, w_c, n_fine);  t = merge(t_c, t_f)    (sample.cl; no gradient to w_c)
+  fine MLP forward / composite + MSE backward / MLP backward  -> dL/dtheta_f
+  Adam on both, exponential lr decay; refresh the transposed weights.
+Loss = MSE(fine) + coarse_loss_weight * MSE(coarse), MSE = mean over rays and channels.
+
+>>> model = NerfModel(dev, NerfConfig.preset("tiny"), near=2.0, far=6.0, background=(0, 0, 0))
+>>> loss = model.train_step(0, origins_d, dirs_d, target_d)     # pyopencl arrays [B, 3]
+>>> out = model.render(origins, dirs)                           # numpy: rgb [n,3], depth, acc
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+import numpy as np
+import pyopencl.array as cla
+
+from . import nerf_ops as ops
+from .mlp import MLP, MLPSpec
+
+MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
+
+
+@dataclass(frozen=True)
+class NerfConfig:
+    """Everything that defines a NeRF model and its optimiser (presets: ``NerfConfig.preset``)."""
+
+    width: int = 64                 # trunk width (multiple of 16); NeRF: 256
+    depth: int = 4                  # trunk layers; NeRF: 8
+    skip: int = -1                  # encoded position re-enters at layer skip+1; NeRF: 4; -1 none
+    color_width: int = 32           # view-dependent colour layer; NeRF: 128
+    pos_freqs: int = 8              # position frequencies L; NeRF: 10
+    dir_freqs: int = 2              # view-direction frequencies; NeRF: 4
+    include_input: bool = True      # encoding starts with the scaled input itself (NeRF: yes)
+    pos_scale: float = 1.0 / np.pi  # gamma(p) uses sin(2^k pi s p): 1/pi gives NeRF's 2^k rad/unit
+    dir_scale: float = 1.0 / np.pi  # the same for the unit view direction
+    hidden_act: str = "relu"        # "relu" | "softplus"
+    sigma_act: str = "relu"         # "relu" (NeRF) | "softplus" (never dead at initialisation)
+    n_coarse: int = 32              # stratified samples per ray; NeRF: 64
+    n_fine: int = 32                # importance samples per ray (0: coarse only); NeRF: 128
+    shared_net: bool = False        # True: one network evaluated on both sample sets
+    perturb: bool = True            # jitter samples during training (never when rendering)
+    coarse_loss_weight: float = 1.0 # weight of the coarse MSE in the loss (NeRF: 1)
+    lr: float = 5e-4                # Adam learning rate at step 0; NeRF: 5e-4
+    lr_decay_steps: int = 500_000   # lr = lr * 0.1^(step / lr_decay_steps); NeRF: 500k (Blender)
+    beta1: float = 0.9              # Adam beta1
+    beta2: float = 0.999            # Adam beta2
+    adam_eps: float = 1e-7          # Adam epsilon (NeRF used TF's 1e-7)
+    batch_rays: int = 1024          # rays per training step (used by training drivers)
+    mlp_rows: int = 8               # samples per work-item in the fused MLP (register block)
+    dw_chunk: int = 512             # rows per partial weight gradient
+
+    @staticmethod
+    def preset(name: str, **overrides) -> "NerfConfig":
+        """``"tiny"``: CPU-friendly (4 x 64, 32 + 32 samples) for 100 x 100 scenes such as
+        tiny_lego; ``"original"``: NeRF's 8 x 256 with skip at 4, 10/4 frequencies, 64 + 128."""
+        if name == "tiny":
+            base = NerfConfig(width=64, depth=4, skip=-1, color_width=32, pos_freqs=8,
+                              dir_freqs=2, sigma_act="softplus", n_coarse=32, n_fine=32,
+                              lr=3e-3, lr_decay_steps=6000, batch_rays=1024)
+        elif name == "original":
+            base = NerfConfig(width=256, depth=8, skip=4, color_width=128, pos_freqs=10,
+                              dir_freqs=4, sigma_act="relu", n_coarse=64, n_fine=128, lr=5e-4,
+                              lr_decay_steps=500_000, batch_rays=1024)
+        else:
+            raise ValueError(f"NerfConfig.preset: unknown preset {name!r}; use 'tiny' or "
+                             f"'original'")
+        return replace(base, **overrides)
+
+    @staticmethod
+    def from_dict(d: dict) -> "NerfConfig":
+        names = {f.name for f in fields(NerfConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"NerfConfig: unknown fields {sorted(unknown)}")
+        return NerfConfig(**d)
+
+    def mlp_spec(self) -> MLPSpec:
+        return MLPSpec(width=self.width, depth=self.depth, skip=self.skip,
+                       color_width=self.color_width,
+                       in_dim=ops.enc_dim(self.pos_freqs, self.include_input),
+                       dir_dim=ops.enc_dim(self.dir_freqs, self.include_input),
+                       hidden_act=self.hidden_act, sigma_act=self.sigma_act,
+                       rows=self.mlp_rows, dw_chunk=self.dw_chunk)
+
+
+def _key(seed: int, it: int, stream: int) -> int:
+    """A 32-bit random-number key per (seed, step, stream): splitmix-style mixing."""
+    x = (seed * 0x9E3779B97F4A7C15 + it * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB)
+    x &= (1 << 64) - 1
+    x ^= x >> 31
+    x = (x * 0xD6E8FEB86659FD93) & ((1 << 64) - 1)
+    return int(x >> 32)
+
+
+class _Adam:
+    def __init__(self, net: MLP):
+        self.m = cla.zeros_like(net.params)
+        self.v = cla.zeros_like(net.params)
+
+
+class NerfModel:
+    """Coarse + fine NeRF on one device; see the module docstring for the step."""
+
+    kind = "nerf"
+
+    def __init__(self, device, config: NerfConfig, near: float, far: float,
+                 background=(1, 1, 1), seed: int = 0):
+        near, far = float(near), float(far)
+        if not (np.isfinite(near) and np.isfinite(far) and 0 <= near <= far):
+            raise ValueError(f"near/far: need finite 0 <= near <= far, got {near}, {far}")
+        bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+        if not np.all(np.isfinite(bg)):
+            raise ValueError(f"background: must be finite, got {background}")
+        if config.n_coarse < 1 or config.n_fine < 0:
+            raise ValueError("NerfConfig: n_coarse must be >= 1 and n_fine >= 0")
+        self.device = device
+        self.config = config
+        self.near, self.far = near, far
+        self.background = tuple(float(b) for b in bg)
+        self.seed = int(seed)
+        self.step = 0
+        spec = config.mlp_spec()
+        self.coarse = MLP(device, spec, seed=self.seed)
+        self.fine = self.coarse if config.shared_net else MLP(device, spec, seed=self.seed + 1)
+        self._adam = {id(n): _Adam(n) for n in self._nets()}
+
+    def _nets(self):
+        return [self.coarse] if self.fine is self.coarse else [self.coarse, self.fine]
+
+    # ---- one pass over a sample list --------------------------------------------------------
+    def _eval(self, net: MLP, origins, dirs, t):
+        c = self.config
+        xyz, vdir = ops.ray_points(self.device, origins, dirs, t)
+        xe = ops.encode(self.device, xyz, c.pos_freqs, c.include_input, c.pos_scale)
+        de = ops.encode(self.device, vdir, c.dir_freqs, c.include_input, c.dir_scale)
+        return net.forward(xe, de)
+
+    def lr_at(self, it: int) -> float:
+        return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
+
+    def train_step(self, it: int, origins, dirs, target) -> float:
+        """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
+        on device. Returns the batch MSE (mean over rays and channels) of the fine network."""
+        for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
+            if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
+                    or a.shape[1] != 3 or not a.flags.c_contiguous:
+                raise TypeError(f"train_step: {name} must be a C-contiguous pyopencl float32 "
+                                f"array [B, 3]; got {type(a).__name__} "
+                                f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', None)}")
+        B = int(origins.shape[0])
+        if dirs.shape[0] != B or target.shape[0] != B or B == 0:
+            raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
+                             f"{origins.shape}, {dirs.shape}, {target.shape}")
+        c, dev = self.config, self.device
+        scale = 1.0 / (3.0 * B)
+        t_c = ops.sample_stratified(dev, B, c.n_coarse, self.near, self.far, c.perturb,
+                                    _key(self.seed, it, 0))
+        sig, rgb = self._eval(self.coarse, origins, dirs, t_c)
+        cb = ops.composite_backward(dev, t_c, sig, rgb, self.far, target, self.background,
+                                    mse=True, loss_scale=scale * c.coarse_loss_weight,
+                                    want_weights=c.n_fine > 0)
+        self.coarse.backward(cb["sigma"], cb["rgb"])
+        sq_err = cb["sq_err"]
+        if c.n_fine > 0:
+            t_f = ops.sample_importance(dev, t_c, cb["weights"], c.n_fine, self.near, self.far,
+                                        c.perturb, _key(self.seed, it, 1))
+            t_all = ops.merge_sorted(dev, t_c, t_f)
+            sig, rgb = self._eval(self.fine, origins, dirs, t_all)
+            fb = ops.composite_backward(dev, t_all, sig, rgb, self.far, target, self.background,
+                                        mse=True, loss_scale=scale)
+            self.fine.backward(fb["sigma"], fb["rgb"], accumulate=self.fine is self.coarse)
+            sq_err = fb["sq_err"]
+        lr = self.lr_at(it)
+        for net in self._nets():
+            st = self._adam[id(net)]
+            ops.adam_step(dev, net.params, net.grad, st.m, st.v, lr, self.step + 1, c.beta1,
+                          c.beta2, c.adam_eps)
+            net.sync_params()
+        self.step += 1
+        return float(np.sum(sq_err.get(), dtype=np.float64) * scale)
+
+    def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
+        """Evaluation render (no jitter) of numpy rays [n, 3]; numpy rgb [n,3], depth [n],
+        acc [n] of the fine pass (the coarse pass when n_fine == 0)."""
+        from .validate import check_rays
+        o, d = check_rays(origins, dirs)
+        if np.any(np.max(np.abs(d), axis=1) == 0):
+            raise ValueError("dirs: every direction must be non-zero")
+        c, dev, q = self.config, self.device, self.device.queue
+        n = o.shape[0]
+        per_ray = c.n_coarse + c.n_fine
+        max_rows = MAX_RENDER_SCRATCH // (4 * self.coarse.layout.nslot)
+        step = max(1, min(int(chunk), max_rows // per_ray))
+        out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),
+               "acc": np.zeros(n, np.float32)}
+        for s in range(0, n, step):
+            e = min(n, s + step)
+            od, dd = cla.to_device(q, o[s:e]), cla.to_device(q, d[s:e])
+            t = ops.sample_stratified(dev, e - s, c.n_coarse, self.near, self.far, False)
+            sig, rgb = self._eval(self.coarse, od, dd, t)
+            res = ops.composite_forward(dev, t, sig, rgb, self.far, self.background,
+                                        want_weights=c.n_fine > 0)
+            if c.n_fine > 0:
+                t_f = ops.sample_importance(dev, t, res["weights"], c.n_fine, self.near,
+                                            self.far, False)
+                t = ops.merge_sorted(dev, t, t_f)
+                sig, rgb = self._eval(self.fine, od, dd, t)
+                res = ops.composite_forward(dev, t, sig, rgb, self.far, self.background)
+            for k in out:
+                out[k][s:e] = res[k].get()
+        return out
+
+    # ---- trainer interface (clrf.train) --------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return self.config.batch_rays
+
+    def on_iteration(self, it, trainer):
+        return None
+
+    def describe(self) -> str:
+        c = self.config
+        return (f"NeRF {c.depth}x{c.width}, {c.n_coarse}+{c.n_fine} samples"
+                f"{', shared net' if c.shared_net else ''}")
+
+    # ---- checkpoints --------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """numpy arrays + python scalars: weights, Adam moments, step, config as dict."""
+        st = {"kind": self.kind, "config": asdict(self.config), "near": self.near,
+              "far": self.far, "background": list(self.background), "seed": self.seed,
+              "step": self.step, "n_params": self.coarse.layout.n_params}
+        for name, net in (("coarse", self.coarse), ("fine", self.fine)):
+            if name == "fine" and net is self.coarse:
+                continue
+            a = self._adam[id(net)]
+            st[f"{name}_params"] = net.params.get()
+            st[f"{name}_adam_m"] = a.m.get()
+            st[f"{name}_adam_v"] = a.v.get()
+        return st
+
+    @classmethod
+    def from_state_dict(cls, device, state: dict) -> "NerfModel":
+        if state.get("kind") != cls.kind:
+            raise ValueError(f"state_dict: kind is {state.get('kind')!r}, expected 'nerf'")
+        model = cls(device, NerfConfig.from_dict(dict(state["config"])), state["near"],
+                    state["far"], tuple(state["background"]), int(state["seed"]))
+        model.step = int(state["step"])
+        for name, net in (("coarse", model.coarse), ("fine", model.fine)):
+            if name == "fine" and net is model.coarse:
+                continue
+            for key, arr in ((f"{name}_params", net.params),
+                             (f"{name}_adam_m", model._adam[id(net)].m),
+                             (f"{name}_adam_v", model._adam[id(net)].v)):
+                v = np.asarray(state[key], np.float32)
+                if v.shape != arr.shape:
+                    raise ValueError(f"state_dict[{key!r}]: shape {v.shape}, the config needs "
+                                     f"{arr.shape}")
+                arr.set(np.ascontiguousarray(v))
+            net.sync_params()
+        return model
