@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["hash_u32", "uniform01", "encode", "encode_backward", "mlp_forward", "mlp_backward",
            "sample_stratified", "sample_importance", "importance_cdf", "merge_sorted",
-           "ray_points", "composite_forward", "composite_backward", "finite_difference",
+           "ray_points", "composite_forward", "composite_backward", "numeric_gradient",
            "PDF_PAD"]
 
 PDF_PAD = 1e-5   # cl/sample.cl PDF_PAD
@@ -270,7 +270,7 @@ def composite_backward(t, sigma, rgb, far, grad_rgb, background=(0, 0, 0)):
     return dict(sigma=dsig, rgb=w[..., None] * g[:, None, :])
 
 
-def finite_difference(fn, x, eps):
+def numeric_gradient(fn, x, eps):
     """Central differences of the scalar fn at every entry of the float64 array x."""
     x = np.array(x, np.float64)
     out = np.zeros_like(x)

@@ -103,9 +103,9 @@ def test_reference_backward_vs_finite_differences():
     def loss(s=sig, c=rgb):
         return float(np.sum(g * ref.composite_forward(t, s, c, FAR, bg)["rgb"]))
 
-    fd_s = ref.finite_difference(lambda s: loss(s=s), sig, tol.COMPOSITE_FD_EPS)
+    fd_s = ref.numeric_gradient(lambda s: loss(s=s), sig, tol.COMPOSITE_FD_EPS)
     np.testing.assert_allclose(r["sigma"], fd_s, rtol=0, atol=tol.COMPOSITE_FD_ATOL)
-    fd_c = ref.finite_difference(lambda c: loss(c=c), rgb.astype(np.float64), tol.COMPOSITE_FD_EPS)
+    fd_c = ref.numeric_gradient(lambda c: loss(c=c), rgb.astype(np.float64), tol.COMPOSITE_FD_EPS)
     np.testing.assert_allclose(r["rgb"], fd_c, rtol=0, atol=tol.COMPOSITE_FD_ATOL)
 
 

@@ -58,9 +58,9 @@ def test_encode_reference_backward_vs_finite_differences():
         parts = [p] + [f(np.pi * 2.0 ** k * p) for k in range(3) for f in (np.sin, np.cos)]
         return float(np.sum(g * np.concatenate(parts, axis=1)))
 
-    fd = ref.finite_difference(loss, x, 1e-6)
+    fd = ref.numeric_gradient(loss, x, 1e-6)
     x32 = x.astype(np.float32).astype(np.float64)
     an = ref.encode_backward(x32, g, 3, True, 0.7)
-    fd32 = ref.finite_difference(loss, x32, 1e-6)
+    fd32 = ref.numeric_gradient(loss, x32, 1e-6)
     np.testing.assert_allclose(an, fd32, rtol=tol.ENCODE_FD_RTOL, atol=tol.ENCODE_FD_ATOL)
     assert np.all(np.isfinite(fd))

@@ -155,12 +155,12 @@ def test_reference_gradient_vs_finite_differences(device, name):
         flat = (r[:, None] * L["nin"] + c[None, :]).ravel() + L["w_off"]
         idx += list(rng.choice(flat, size=min(6, flat.size), replace=False))
     idx = np.array(idx)
-    fd = ref.finite_difference(lambda v: loss(p=_put(p0, idx, v)),
+    fd = ref.numeric_gradient(lambda v: loss(p=_put(p0, idx, v)),
                                p0[idx], tol.MLP_FD_EPS)
     np.testing.assert_allclose(an["params"][idx], fd, rtol=tol.MLP_FD_RTOL, atol=tol.MLP_FD_ATOL)
-    fdx = ref.finite_difference(lambda v: loss(xx=v), x, tol.MLP_FD_EPS)
+    fdx = ref.numeric_gradient(lambda v: loss(xx=v), x, tol.MLP_FD_EPS)
     np.testing.assert_allclose(an["x_enc"], fdx, rtol=tol.MLP_FD_RTOL, atol=tol.MLP_FD_ATOL)
-    fdd = ref.finite_difference(lambda v: loss(dd=v), d, tol.MLP_FD_EPS)
+    fdd = ref.numeric_gradient(lambda v: loss(dd=v), d, tol.MLP_FD_EPS)
     np.testing.assert_allclose(an["d_enc"], fdd, rtol=tol.MLP_FD_RTOL, atol=tol.MLP_FD_ATOL)
 
 
