@@ -209,6 +209,11 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     float gsig[8];
     shv_t gsh[8];
     for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
+#if COMPENSATED_SUMS
+    float gsig_c[8];   /* Kahan carries of the per-cell registers (long rays only) */
+    shv_t gsh_c[8];
+    for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = shv_zero(); }
+#endif
     int cur_idx[8];
     int cur_cell = -1;
     lerp_t L;
@@ -243,6 +248,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                 if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
                 else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
                 for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
+#if COMPENSATED_SUMS
+                for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = shv_zero(); }
+#endif
             }
             cur_cell = L.cell;
             for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
@@ -274,8 +282,16 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #pragma unroll
         for (int cc = 0; cc < 8; ++cc) {
             const float wc = L.w[cc];
+#if COMPENSATED_SUMS
+            csum_add(&gsig[cc], &gsig_c[cc], wc * dsig);
+            const shv_t y = shv_add(shv_scale(dco, wc), shv_scale(gsh_c[cc], -1.0f));
+            const shv_t t = shv_add(gsh[cc], y);
+            gsh_c[cc] = shv_add(shv_add(t, shv_scale(gsh[cc], -1.0f)), shv_scale(y, -1.0f));
+            gsh[cc] = t;
+#else
             gsig[cc] += wc * dsig;
             shv_axpy(&gsh[cc], wc, dco);
+#endif
         }
         T = Tnext;
         if (Tnext < T_STOP) break;

@@ -368,6 +368,25 @@ inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
     prefetch_cell_grad(p, reso, links, density, sh, 0, 0, last);
 }
 
+#ifndef COMPENSATED_SUMS
+#define COMPENSATED_SUMS 0  /* 1: Kahan-compensated rgb/acc/depth (and, in the backward, per-cell
+                               gradient registers); the host sets it when a ray can have more
+                               than LONG_RAY_SAMPLES samples (clrf/render.py), where plain float32
+                               sums would drift like n * 6e-8 */
+#endif
+
+/* s += x, compensated when COMPENSATED_SUMS (c carries the lost low-order part). */
+inline void csum_add(float *s, float *c, float x) {
+#if COMPENSATED_SUMS
+    const float y = x - *c;
+    const float t = *s + y;
+    *c = (t - *s) - y;
+    *s = t;
+#else
+    *s += x;
+#endif
+}
+
 typedef struct {
     float3 rgb;  /* foreground radiance, without background */
     float acc;   /* sum of weights */
@@ -396,8 +415,8 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
     shy_setup(Y, &S);
     ksum_t logT = {0.0f, 0.0f};
     float T = 1.0f;
-    float3 rgb = (float3)(0.0f);
-    float acc = 0.0f, depth = 0.0f;
+    float rgb[3] = {0.0f, 0.0f, 0.0f}, crgb[3] = {0.0f, 0.0f, 0.0f};
+    float acc = 0.0f, depth = 0.0f, cacc = 0.0f, cdepth = 0.0f;
     lerp_t L;
     L.cell = -1;
     int pf_cell = -1, pf_link = -1;
@@ -427,9 +446,11 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
         float w = T * alpha_of_tau(tau);
         float3 pre = color_pre(lerp_sh(&L, sh), &S);
         float3 c = fmax(pre, 0.0f);
-        rgb += w * c;
-        acc += w;
-        depth += w * mid;
+        csum_add(&rgb[0], &crgb[0], w * c.x);
+        csum_add(&rgb[1], &crgb[1], w * c.y);
+        csum_add(&rgb[2], &crgb[2], w * c.z);
+        csum_add(&acc, &cacc, w);
+        csum_add(&depth, &cdepth, w * mid);
         ksum_add(&logT, -tau);
         T = exp(logT.s);
         if (rec && j < rec_max)
@@ -438,7 +459,7 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
         if (T < T_STOP) break;
     }
     *n_rec = j <= rec_max ? j : -1;
-    out->rgb = rgb;
+    out->rgb = (float3)(rgb[0], rgb[1], rgb[2]);
     out->acc = acc;
     out->depth = depth;
     out->logT = logT.s;

@@ -16,17 +16,33 @@ from .validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
 LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
+# Rays that can have more samples than this get compensated (Kahan) accumulators (COMPENSATED_SUMS
+# in cl/march.h): plain float32 sums drift like n * 6e-8, 5e-4 relative at 8192 samples.
+LONG_RAY_SAMPLES = 8192
+# The kernels count samples in int; a step that would need more than this per ray is rejected.
+MAX_SAMPLES_PER_RAY = 2.0 ** 30
 PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
 PREFETCH_LINKS_AHEAD = int(os.environ.get("CLRF_PREFETCH_LINKS_AHEAD", 2 * PREFETCH_AHEAD))
 REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
 BLOCK = int(os.environ.get("CLRF_BLOCK", 8))  # empty-space blocks of BLOCK^3 cells (0: off)
 
 
+def check_step(grid, step) -> float:
+    step = check_positive("step", step)
+    if max_samples_per_ray(grid.reso, step) > MAX_SAMPLES_PER_RAY:
+        raise ValueError(f"step: {step} voxels gives up to {max_samples_per_ray(grid.reso, step):.3g} "
+                         f"samples per ray through this {grid.reso} grid; the limit is "
+                         f"{MAX_SAMPLES_PER_RAY:.3g}. Use a step >= "
+                         f"{np.linalg.norm(grid.reso) / MAX_SAMPLES_PER_RAY:.3g}")
+    return step
+
+
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
-                 slots: int = 0):
+                 slots: int = 0, step: float = 0.5):
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
+        "COMPENSATED_SUMS": int(max_samples_per_ray(grid.reso, step) > LONG_RAY_SAMPLES),
         "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD,
         "PREFETCH_LINKS_AHEAD": PREFETCH_LINKS_AHEAD, "BLOCK": BLOCK})
 
@@ -119,7 +135,7 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
     if out is None:
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
-    k = grid_program(grid).kernel("render_forward")
+    k = grid_program(grid, step=step).kernel("render_forward")
     occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
@@ -141,7 +157,7 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     if n == 0:
         return
     slots = grad_slots(grid)
-    prg = grid_program(grid, grad_mode, touched is not None, slots=slots)
+    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step)
     if ray_out is None:
         # GRAD_MODE 1 writes the per-ray loss: never alias it onto ray_in (the targets), which
         # other work-items may still be reading.
@@ -180,7 +196,7 @@ def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
     ['acc', 'depth', 'rgb']
     """
     o, d = check_rays(origins, dirs)
-    step = check_positive("step", step)
+    step = check_step(grid, step)
     q = grid.device.queue
     n = o.shape[0]
     if n == 0:
@@ -199,7 +215,7 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
     g = check_array("grad_rgb", grad_rgb, ndim=2, shape_tail=(3,))
     if g.shape[0] != o.shape[0]:
         raise ValueError(f"grad_rgb has {g.shape[0]} rows for {o.shape[0]} rays")
-    step = check_positive("step", step)
+    step = check_step(grid, step)
     q = grid.device.queue
     gd = cla.zeros(q, grid.density.shape[0], np.float32)
     gs = cla.zeros(q, grid.sh.shape, np.float32)
@@ -215,6 +231,6 @@ def render_max_weight_device(grid, origins_d, dirs_d, step, maxw):
     dev = grid.device
     n = origins_d.shape[0]
     occ, oreso = block_occupancy(grid)
-    launch(dev, grid_program(grid).kernel("render_max_weight"), n,
+    launch(dev, grid_program(grid, step=step).kernel("render_max_weight"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             *grid.geometry_args(), np.float32(step), maxw.data, occ.data, oreso), LOCAL_SIZE)

@@ -1225,16 +1225,12 @@ def batch_extremes(run):
 
 
 # ---- the matrix ----------------------------------------------------------------------------
-# Known kernel findings (reported to the kernel owner; the tests expect these cases to fail).
-XFAIL_DRIFT = ("cl/march.h march_forward: rgb/acc/depth are plain float32 sums (rgb += w*c; "
-               "acc += w; depth += w*mid), as are the per-cell gradient registers gsig/gsh in "
-               "grid_render.cl, so errors grow like N u. Homogeneous slab, sigma L = 1.7, step 1e-5 "
-               "(8e5 samples): acc rel. error 3.9e-4, rgb 1.2e-4, 1-voxel grad density 4.8e-3 "
-               "(expected <= 1e-5); step 1e-6 (8e6 samples): acc off by 1.8e-2. Fix: ksum_t (Kahan) "
-               "accumulators as already used for log T and the backward prefix")
-XFAIL_NSTEPS = ("cl/march.h march_setup: nsteps = (int)ceil(len / dt) overflows int for > 2^31 "
-                "samples (step 1e-9 on 8 voxels): undefined behaviour, renders background (acc "
-                "0) silently; the host should reject such steps")
+# Former kernel findings, fixed (kept here as the cases that guard them):
+# - very long rays: rgb/acc/depth and the per-cell gradient registers were plain float32 sums
+#   (error ~ N u: acc 3.9e-4 relative at 8e5 samples); now Kahan-compensated when a ray can
+#   exceed LONG_RAY_SAMPLES (COMPENSATED_SUMS in cl/march.h, chosen by clrf/render.py).
+# - a step needing > 2^31 samples overflowed the int step count and rendered background
+#   silently; the host now rejects it with a ValueError naming `step`.
 # --------------------------------------------------------------------------------
 def _cases() -> list[Case]:
     P = functools.partial
@@ -1246,8 +1242,8 @@ def _cases() -> list[Case]:
            Case("nearly opaque", "stiff", nearly_opaque),
            Case("long ray fwd+bwd", "stiff", long_ray, LONG_FWD),
            Case("very long ray transmittance", "stiff", very_long_transmittance),
-           Case("very long ray acc/rgb/grads", "stiff", very_long_ray, xfail=XFAIL_DRIFT),
-           Case("step below 2^31 samples limit", "stiff", step_overflow, xfail=XFAIL_NSTEPS)]
+           Case("very long ray acc/rgb/grads", "stiff", very_long_ray),
+           Case("step below 2^31 samples limit", "stiff", step_overflow)]
     for s in (1e-6, 1e-4, 1e-2, 1.0, 1e2, 1e4, 1e6):
         cs.append(Case(f"slab sigma={s:g}", "closed form", P(slab, sigma=s), CLOSED))
     for axis in range(3):
