@@ -57,6 +57,9 @@
  */
 #include "march.h"
 
+#ifndef BETA_EPS
+#define BETA_EPS 1e-3f  /* guard inside the beta prior's logs (svox2/Neural Volumes: 1e-3) */
+#endif
 #ifndef GRAD_MODE
 #define GRAD_MODE 0   /* 0: ray_in holds dL/drgb; 1: ray_in holds target rgb, loss = MSE */
 #endif
@@ -150,6 +153,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               const int4 reso, const float4 bmin, const float4 scale,
                               const float step, const float4 bg, __global const float *ray_in,
                               __global float *ray_out, const float loss_scale,
+                              const float beta_scale,
                               __global float *grad_density, __global float *grad_sh,
                               __global uchar *touched, const int n_rows,
                               __global float *slot_density, __global float *slot_sh,
@@ -192,17 +196,25 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         sh_basis(m.dir, Y);
         march_forward_rec(&m, reso, links, density, sh, Y, rec, rec ? rec_max : 0, &n_rec, &f);
     }
-    const float3 rgb = f.rgb + exp(f.logT) * bg.xyz;
+    const float Tend = exp(f.logT);
+    const float3 rgb = f.rgb + Tend * bg.xyz;
 #if GRAD_MODE == 1
     const float3 diff = rgb - load3(ray_in, i);
     ray_out[i] = dot(diff, diff);
     const float3 g = 2.0f * loss_scale * diff;
+    /* Beta prior (Neural Volumes) on the ray's final transmittance T:
+     * beta_scale * [log(T + BETA_EPS) + log(1 - T + BETA_EPS)], pushing rays to be clear or
+     * opaque. dT/dsigma_k = -delta_k T, so dL/dT enters the remaining radiance exactly like a
+     * background channel: total += T * dL/dT. */
+    const float gT = beta_scale != 0.0f
+        ? beta_scale * (1.0f / (Tend + BETA_EPS) - 1.0f / (1.0f - Tend + BETA_EPS)) : 0.0f;
 #else
     const float3 g = load3(ray_in, i);
+    const float gT = 0.0f;
 #endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
-    const float total = dot(g, rgb);
+    const float total = dot(g, rgb) + Tend * gT;
     shy_t S;
     shy_setup(Y, &S);
 

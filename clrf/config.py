@@ -46,6 +46,8 @@ class GridConfig:
     tv_fraction: float = 0.01     # fraction of cells regularised per step (one contiguous window)
     tv_early_only: bool = True    # stop TV after the first upsample (svox2 syn)
     lambda_sparsity: float = 0.0  # Cauchy sparsity prior on density (svox2 llff: 1e-12 scale)
+    lambda_beta: float = 0.0      # beta prior on each ray's transmittance (svox2 tnt: 1e-5),
+                                  # averaged over the batch: rays end clear or opaque
     weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
     prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
 
@@ -84,7 +86,8 @@ PRESETS = {
                                 "lambda_sparsity": 1e-10}},
     # Unbounded real 360: no sphere bound, sparsity prior (no background model yet).
     "real360": {"grid": {"sphere_bound": False, "lambda_tv": 5e-5, "lambda_tv_sh": 5e-3,
-                         "tv_early_only": False, "lambda_sparsity": 1e-10}},
+                         "tv_early_only": False, "lambda_sparsity": 1e-10,
+                         "lambda_beta": 1e-5}},
 }
 
 
@@ -130,7 +133,8 @@ class Config:
             (g.lr_decay_steps > 0, "grid.lr_decay_steps", "must be > 0"),
             (g.lr_density_delay_steps >= 0, "grid.lr_density_delay_steps", "must be >= 0"),
             (0 < g.lr_density_delay_mult <= 1, "grid.lr_density_delay_mult", "must be in (0, 1]"),
-            (g.lambda_tv >= 0 and g.lambda_tv_sh >= 0 and g.lambda_sparsity >= 0,
+            (g.lambda_tv >= 0 and g.lambda_tv_sh >= 0 and g.lambda_sparsity >= 0
+             and g.lambda_beta >= 0,
              "grid.lambda_*", "regulariser weights must be >= 0"),
             (0 < g.tv_fraction <= 1, "grid.tv_fraction", "must be in (0, 1]"),
             (g.weight_thresh >= 0, "grid.weight_thresh", "must be >= 0"),

@@ -75,7 +75,7 @@ class GridModel:
         render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
                                self.opt_density.grad, self.opt_sh.grad, grad_mode=1,
                                loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
-                               touched=self.touched)
+                               touched=self.touched, beta_scale=c.lambda_beta / B)
         if not (c.tv_early_only and self.stage > 0):
             self._tv(it)
         lr_d, lr_s = self.learning_rates(it)

@@ -172,12 +172,13 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
 
 
 def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, background=(1, 1, 1),
-                    t_stop=T_STOP, mask=None):
+                    t_stop=T_STOP, mask=None, grad_T=None):
     """Analytic gradient of sum(grad_rgb * rgb) w.r.t. dense density and sh (float64).
 
     Uses explicit suffix sums S_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg). ``mask`` [X,Y,Z]
     marks the allocated voxels (default: where any value is non-zero, as SparseGrid.from_dense
-    allocates); the others are constants and get no gradient.
+    allocates); the others are constants and get no gradient. ``grad_T`` [n] adds a loss
+    term's derivative with respect to each ray's final transmittance (e.g. beta_grad_T).
     """
     density = np.asarray(density, np.float64)
     sh = np.asarray(sh, np.float64)
@@ -193,7 +194,7 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
         wgc[r["rays"], k] = r["wgt"] * np.sum(g[r["rays"]] * r["c"], axis=1)
     suffix = np.cumsum(wgc[:, ::-1], axis=1)[:, ::-1]           # sum_{j>=k}
     after = suffix - wgc                                        # sum_{j>k}
-    bgterm = T_end * (g @ bg)
+    bgterm = T_end * (g @ bg + (0.0 if grad_T is None else np.asarray(grad_T, np.float64)))
     gd = np.zeros_like(density)
     gs = np.zeros_like(sh)
     for k, r in enumerate(rec):
@@ -209,6 +210,20 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
     if mask is None:
         mask = (density != 0) | np.any(sh != 0, axis=-1)
     return dict(density=gd * mask, sh=gs * mask[..., None])
+
+
+BETA_EPS = 1e-3
+
+
+def beta_loss(T, scale, eps=BETA_EPS):
+    """Beta prior of final transmittances T: scale * sum[log(T + eps) + log(1 - T + eps)]."""
+    T = np.asarray(T, np.float64)
+    return scale * np.sum(np.log(T + eps) + np.log(1 - T + eps))
+
+
+def beta_grad_T(T, scale, eps=BETA_EPS):
+    T = np.asarray(T, np.float64)
+    return scale * (1 / (T + eps) - 1 / (1 - T + eps))
 
 
 def max_weight(density, bbox, origins, dirs, step=0.5, t_stop=T_STOP):

@@ -145,11 +145,14 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
 
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
-                           grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None):
+                           grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
+                           beta_scale=0.0):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
-    is ``loss_scale * sum |rgb - target|^2`` and ray_out receives the per-ray squared error.
+    is ``loss_scale * sum |rgb - target|^2 + beta_scale * sum [log(T + 1e-3) + log(1 - T + 1e-3)]``
+    (T the ray's final transmittance: the beta prior) and ray_out receives the per-ray squared
+    error.
     touched (uint8 [N]) gets 1 for every row that received a gradient, if given.
     """
     dev = grid.device
@@ -175,7 +178,8 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     launch(dev, prg.kernel("render_backward"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
-            ray_in_d.data, dummy.data, np.float32(loss_scale), grad_density.data, grad_sh.data,
+            ray_in_d.data, dummy.data, np.float32(loss_scale), np.float32(beta_scale),
+            grad_density.data, grad_sh.data,
             tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data, rec.data,
             np.int32(rec_max), occ.data, oreso), LOCAL_SIZE)
     if slots:

@@ -7,7 +7,7 @@ import clrf
 from clrf import grid_ops, reference as ref
 from clrf.optim import RowOptimizer, expon_lr
 
-from tolerances import GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
+from tolerances import FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
 
 BBOX = np.array([[-1.0] * 3, [1.0] * 3])
 
@@ -257,3 +257,48 @@ def test_gather_batch_vs_reference(device):
     np.testing.assert_array_equal(bc.get(), c[r])
     counts = np.bincount(ref.batch_indices(7, 200000, 10), minlength=10)
     assert counts.min() > 19000  # uniform over the sources
+
+
+@pytest.mark.parametrize("lambda_beta", [0.0, 0.05])
+def test_fused_mse_and_beta_prior_vs_reference(device, lambda_beta):
+    """Training's fused backward (GRAD_MODE 1): MSE against targets plus the beta prior on each
+    ray's transmittance, against the float64 reference (analytic) and finite differences."""
+    from clrf.render import render_backward_device
+    rng = np.random.default_rng(11)
+    grid, dens, sh, alloc = sparse_grid(device, rng, (4, 5, 3), degree=1, empty_frac=0.2)
+    n = 64
+    o = rng.normal(0, 2.5, (n, 3)).astype(np.float32)
+    d = (rng.uniform(-0.6, 0.6, (n, 3)) - o).astype(np.float32)
+    target = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    bg = (1.0, 1.0, 1.0)
+    q = device.queue
+    gd = cla.zeros_like(grid.density)
+    gs = cla.zeros_like(grid.sh)
+    sq = cla.empty(q, n, np.float32)
+    loss_scale = 1.0 / (3 * n)
+    render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, target),
+                           0.5, bg, gd, gs, grad_mode=1, loss_scale=loss_scale, ray_out=sq,
+                           beta_scale=lambda_beta / n)
+    f = ref.render_forward(dens, sh, BBOX, o, d, 0.5, bg)
+    np.testing.assert_allclose(sq.get(), np.sum((f["rgb"] - target) ** 2, 1), atol=RENDER_ATOL,
+                               rtol=RENDER_RTOL)
+    g = 2 * loss_scale * (f["rgb"] - target)
+    T = 1 - f["acc"]
+    r = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, bg, mask=alloc,
+                            grad_T=ref.beta_grad_T(T, lambda_beta / n))
+    kd, ks = grid.rows_to_dense(gd.get(), gs.get())
+    if lambda_beta:   # the prior must matter in this problem, or the test has no teeth
+        r0 = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, bg, mask=alloc)
+        assert np.abs(r0["density"] - r["density"]).max() > 100 * GRAD_ATOL
+    np.testing.assert_allclose(kd, r["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(ks, r["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+
+    def loss(dd):
+        ff = ref.render_forward(dd, sh, BBOX, o, d, 0.5, bg)
+        return (loss_scale * np.sum((ff["rgb"] - target) ** 2)
+                + ref.beta_loss(1 - ff["acc"], lambda_beta / n))
+    for idx in [tuple(np.argwhere(alloc)[k]) for k in (0, 7, 19)]:
+        e = np.zeros_like(dens, dtype=np.float64)
+        e[idx] = 1e-4
+        fd = (loss(dens + e) - loss(dens - e)) / 2e-4
+        assert abs(fd - r["density"][idx]) <= FD_ATOL + FD_RTOL * abs(fd), (idx, fd, r["density"][idx])

@@ -21,13 +21,11 @@ Groups: stiff, closed form, geometry, values, reduction, scale sweep (renderer a
 optimiser (cl/optim.cl against the float64 twin reference.update_rows: zero, huge, tiny
 gradients, eps 0..1 with state 0, long sparse runs in lockstep), regulariser (cl/grid_ops.cl
 tv_grad: flat regions, step edges, missing and outside neighbours, values up to 3e38, Cauchy
-sparsity at sigma 0..+-3e38), structure (prune to nothing, resampling of single voxels, flat
+sparsity at sigma 0..+-3e38, the beta prior fused into the render backward at T = 1, T -> 0
+and acc = 1e-7), structure (prune to nothing, resampling of single voxels, flat
 grids and values up to 3e38, batch indices at extremes).
 
 TODO (not covered yet):
-  - Beta prior on acc (log(acc) + log(1 - acc) at T = 0 and T = 1 exactly, acc = 1 - 1e-7):
-    NOT IMPLEMENTED in clrf yet (it would be fused into the render backward); there is
-    deliberately no case for it until it exists.
   - Adam (bias correction with per-parameter step counters over long sparse runs): clrf has only
     RMSProp and SGD.
 """
@@ -1117,6 +1115,37 @@ def sparsity(run):
         run.finite(f"lambda {lam:g} finite", got)
 
 
+def beta_prior(run):
+    """The beta prior beta_scale [log(T + 1e-3) + log(1 - T + 1e-3)] fused into training's
+    backward (GRAD_MODE 1), on rays ending at T = 1 (zero density), T ~ 1 - 1e-7, T ~ 0.5 and
+    T below T_STOP (density 1e30): gradients finite and equal to the float64 reference."""
+    from clrf.render import render_backward_device
+    q = run.device.queue
+    o = np.array([[0.5, 0.5, -1.0]] * 3, np.float32)
+    d = np.array([[0, 0, 1.0], [0.1, 0.05, 1.0], [-0.1, 0.1, 1.0]], np.float32)
+    for sigma in (0.0, 1e-7, 0.7, 1e4, 1e30):
+        dens = np.full((2, 2, 2), sigma, np.float32)
+        sh = np.full((2, 2, 2, 3), 0.1, np.float32)
+        g = make_grid(run, dens, sh, UNIT, mask=np.ones((2, 2, 2), bool))
+        target = np.full((3, 3), 0.3, np.float32)
+        gd, gs = cla.zeros_like(g.density), cla.zeros_like(g.sh)
+        for lam in (1e-3, 1.0):
+            gd.fill(0)
+            gs.fill(0)
+            render_backward_device(g, cla.to_device(q, o), cla.to_device(q, d),
+                                   cla.to_device(q, target), 0.5, (1, 1, 1), gd, gs,
+                                   grad_mode=1, loss_scale=0.0, beta_scale=lam)
+            f = ref.render_forward(dens, sh, UNIT, o, d, 0.5, (1, 1, 1))
+            r = ref.render_backward(dens, sh, UNIT, o, d, np.zeros((3, 3)), 0.5, (1, 1, 1),
+                                    mask=np.ones((2, 2, 2), bool),
+                                    grad_T=ref.beta_grad_T(1 - f["acc"], lam))
+            kd, _ = g.rows_to_dense(gd.get(), gs.get())
+            run.finite(f"sigma {sigma:g} lambda {lam:g} finite", kd)
+            scale = max(1.0, float(np.abs(r["density"]).max()))
+            run.compare(f"sigma {sigma:g} lambda {lam:g} density grad vs ref", kd, r["density"],
+                        GRAD, scale=scale)
+
+
 # ---- structure changes (cl/grid_ops.cl resample / prune, cl/batch.cl) --------------------------
 def _resample_check(run, label, dens, sh, keep, new_reso, scale=1.0):
     from clrf import grid_ops
@@ -1278,7 +1307,8 @@ def _cases() -> list[Case]:
            Case("TV missing / outside neighbours", "regulariser", tv_missing_neighbours, GRAD)]
     for big in (1e10, 1e19, 1e30, 1e38, 3e38):
         cs.append(Case(f"TV values +-{big:g}", "regulariser", P(tv_huge_values, big=big), GRAD))
-    cs += [Case("sparsity sigma 0..+-3e38", "regulariser", sparsity, GRAD),
+    cs += [Case("beta prior at T = 0, 1 - 1e-7, 1", "regulariser", beta_prior, GRAD),
+           Case("sparsity sigma 0..+-3e38", "regulariser", sparsity, GRAD),
            Case("prune to nothing", "structure", prune_to_nothing, EXACT),
            Case("single voxel upsampled", "structure", single_voxel_upsample, RENDER),
            Case("resample values 1e30, 3e38", "structure", resample_huge, RENDER),
