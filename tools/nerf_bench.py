@@ -200,3 +200,99 @@ def main(argv=None):
 
 if __name__ == "__main__":
     main()
+
+
+# ---- specs for tools/bench.py (EXTERNAL_SUITES): the NeRF kernels in the main benchmark run --
+def bench_suite(api):
+    """Specs for tools/bench.py: encoding, fused MLP forward and forward+backward (flop-counted,
+    so bench.py reports GFLOP/s and the ratio to the FMA peak of the same run), numpy float32
+    matmul on the same layer shapes, and one whole NeRF training step."""
+    from clrf import nerf_ops
+
+    @api.factory("nerf.encode")
+    def _encode(ctx, p):
+        """Positional encoding forward of n points with L frequencies (+ the raw input)."""
+        dev = ctx.dev
+        n, L = p["n"], p["freqs"]
+        x = cla.to_device(dev.queue, np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32))
+        out = nerf_ops.encode(dev, x, L)
+
+        def run():
+            nerf_ops.encode(dev, x, L, out=out)
+            dev.finish()
+        return api.Case(run, {"samples": n, "bytes": n * 4 * (3 + out.shape[1])},
+                        {"out_dim": int(out.shape[1])})
+
+    @api.factory("nerf.mlp")
+    def _mlp(ctx, p):
+        """Fused MLP forward, or forward + backward (input, weight and bias gradients)."""
+        dev = ctx.dev
+        spec = CONFIGS[p["config"]]
+        n = p["n"]
+        q = dev.queue
+        net = MLP(dev, spec)
+        rng = np.random.default_rng(0)
+        x = cla.to_device(q, rng.random((n, spec.in_dim), np.float32))
+        d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
+        ds = cla.to_device(q, rng.random(n, np.float32))
+        dr = cla.to_device(q, rng.random((n, 3), np.float32))
+        macs = sum(a * b for a, b in layer_shapes(spec)) * n
+
+        def run():
+            net.forward(x, d)
+            if p["mode"] == "fwdbwd":
+                net.backward(ds, dr)
+            q.finish()
+        return api.Case(run, {"samples": n, "flop": (6 if p["mode"] == "fwdbwd" else 2) * macs})
+
+    @api.factory("nerf.numpy_matmul")
+    def _npm(ctx, p):
+        """numpy float32 matmuls with the MLP's layer shapes (the peer for the fused MLP)."""
+        spec = CONFIGS[p["config"]]
+        n = p["n"]
+        rng = np.random.default_rng(0)
+        mats = [(rng.random((n, a), np.float32), rng.random((a, b), np.float32),
+                 rng.random((n, b), np.float32)) for a, b in layer_shapes(spec)]
+
+        def run():
+            for X, Wm, G in mats:
+                X @ Wm
+                if p["mode"] == "fwdbwd":
+                    G @ Wm.T
+                    X.T @ G
+        macs = sum(a * b for a, b in layer_shapes(spec)) * n
+        return api.Case(run, {"samples": n, "flop": (6 if p["mode"] == "fwdbwd" else 2) * macs})
+
+    @api.factory("nerf.train_step")
+    def _step(ctx, p):
+        """One NerfModel.train_step (coarse + fine, Adam) on a batch of random rays: rays/s."""
+        from clrf.nerf import NerfConfig, NerfModel
+        dev = ctx.dev
+        cfg = NerfConfig.preset(p["preset"], batch_rays=p["rays"])
+        model = NerfModel(dev, cfg, 2.0, 6.0, (1, 1, 1))
+        rng = np.random.default_rng(0)
+        n = p["rays"]
+        o = rng.normal(0, 0.1, (n, 3)) + [0, 0, 4.0]
+        dd = rng.normal(0, 0.2, (n, 3)) + [0, 0, -1.0]
+        q = dev.queue
+        args = [cla.to_device(q, a.astype(np.float32)) for a in
+                (o, dd / np.linalg.norm(dd, axis=1, keepdims=True), rng.uniform(0, 1, (n, 3)))]
+        it = [0]
+
+        def run():
+            model.train_step(it[0], *args)
+            it[0] += 1
+        return api.Case(run, {"rays": n, "samples": n * (cfg.n_coarse + cfg.n_fine)},
+                        {"preset": p["preset"]})
+
+    specs = [api.Spec("nerf/encode/L10", "nerf.encode", {"n": 1 << 20, "freqs": 10},
+                      quick={"n": 1000})]
+    for cfg in CONFIGS:
+        for mode in ("fwd", "fwdbwd"):
+            specs.append(api.Spec(f"nerf/mlp/{cfg}/{mode}", "nerf.mlp",
+                                  {"config": cfg, "mode": mode, "n": 8192}, quick={"n": 64}))
+            specs.append(api.Spec(f"nerf/numpy_matmul/{cfg}/{mode}", "nerf.numpy_matmul",
+                                  {"config": cfg, "mode": mode, "n": 8192}, quick={"n": 64}))
+    specs.append(api.Spec("nerf/train_step/tiny", "nerf.train_step",
+                          {"preset": "tiny", "rays": 1024}, metric="rays/s", quick={"rays": 16}))
+    return specs
