@@ -25,6 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from clrf import reference  # noqa: E402
+from clrf.benchmark import camera_rays  # noqa: E402,F401  (same view as `clrf bench`)
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 DENSITY_MAX_128 = 0.05   # raw density upper bound at 128^3 (optical depth ~5 along a diagonal)
@@ -71,21 +72,6 @@ def dense_from_rows(links, density_rows, sh_rows):
     dens[mask] = density_rows[links[mask]]
     sh[mask] = sh_rows[links[mask]]
     return dens, sh
-
-
-def camera_rays(side: int, dist: float = 3.0, fov_deg: float = 40.0, seed: int = 0):
-    """origins, dirs float32 [side*side, 3]: a pinhole camera looking at the box centre."""
-    rng = np.random.default_rng(seed)
-    eye = np.array([0.3, 0.5, dist]) + rng.normal(0, 0.01, 3)
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0, 1, 0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    f = 0.5 * side / np.tan(np.radians(fov_deg) / 2)
-    j, i = np.meshgrid(np.arange(side) + 0.5, np.arange(side) + 0.5, indexing="ij")
-    d = ((i - side / 2) / f)[..., None] * right + (-(j - side / 2) / f)[..., None] * up + fwd
-    d = d.reshape(-1, 3)
-    return np.broadcast_to(eye, d.shape).astype(np.float32).copy(), d.astype(np.float32)
 
 
 def random_rays(n: int, seed: int = 1):
