@@ -105,8 +105,9 @@ def _probe_works(dev: "cl.Device") -> str | None:
         if not np.all(a == 1.0):
             return "probe kernel gave wrong results"
     except Exception as e:  # noqa: BLE001 - any driver failure disqualifies the device
-        msg = str(e).strip().splitlines()
-        return " ".join(m for m in msg if m.strip())[-200:] or type(e).__name__
+        lines = [m.strip() for m in str(e).splitlines() if m.strip()]
+        errors = [m for m in lines if m.lower().startswith("error")]
+        return (errors[0] if errors else " ".join(lines)[-200:]) or type(e).__name__
     return None
 
 
