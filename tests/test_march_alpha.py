@@ -9,7 +9,7 @@ from clrf.programs import launch
 
 class _G:   # grid_program needs only these attributes
     def __init__(self, dev):
-        self.device, self.sh_degree = dev, 0
+        self.device, self.sh_degree, self.reso = dev, 0, (1, 1, 1)
 
 
 def test_alpha_of_tau_accuracy(device):
