@@ -46,12 +46,9 @@ def parse_set(items):
     return out
 
 
-def load_data(path, cfg_train=None, for_model=None):
+def load_data(path, downscale=1):
     from .data import load_dataset
-    opts = {}
-    if cfg_train is not None:
-        if cfg_train.downscale > 1:
-            opts["downscale"] = cfg_train.downscale
+    opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
     return load_dataset(path or None, **opts)
 
 
@@ -89,7 +86,7 @@ def cmd_train(a):
     ds = load_data(data_path)
     cfg = build_config(a.preset or "", a.config, overrides, dataset_preset=ds.preset)
     if cfg.train.downscale > 1 and data_path:
-        ds = load_data(data_path, cfg.train)
+        ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     dev = Device(a.device)
     print(f"clrf: device {dev}", file=sys.stderr)
@@ -109,10 +106,10 @@ def cmd_train(a):
 
 
 def _ckpt_dataset(state, data_override):
-    cfg_data = state["run_config"]["train"].get("data", "")
-    path = data_override if data_override is not None else cfg_data
-    ds = load_data(path)
-    return ds
+    """The run's dataset (or data_override), loaded at the resolution the run trained on."""
+    tr = state["run_config"]["train"]
+    path = data_override if data_override is not None else tr.get("data", "")
+    return load_data(path, tr.get("downscale", 1) if path else 1)
 
 
 def cmd_eval(a):
