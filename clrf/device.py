@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl as cl
 
-_PROBE_SRC = "__kernel void clrf_probe(__global float *a) { a[get_global_id(0)] += 1.0f; }"
 
 
 class DeviceError(RuntimeError):
@@ -96,7 +95,8 @@ def _probe_works(dev: "cl.Device") -> str | None:
     try:
         ctx = cl.Context([dev])
         q = cl.CommandQueue(ctx)
-        prg = cl.Program(ctx, _PROBE_SRC).build()
+        from .programs import cl_dir
+        prg = cl.Program(ctx, (cl_dir() / "probe.cl").read_text()).build()
         a = np.zeros(4, np.float32)
         buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
         prg.clrf_probe(q, (4,), None, buf)

@@ -87,9 +87,8 @@ def layer_shapes(spec):
     return shapes
 
 
-def numpy_matmul(spec, n, repeats):
-    """numpy float32 matmuls with the MLP's shapes: forward (X W) and forward + backward
-    (X W, G W^T, X^T G) per layer, timed as one sequence each."""
+def _matmul_runs(spec, n):
+    """(forward, forward+backward) callables: numpy float32 matmuls with the MLP's shapes."""
     rng = np.random.default_rng(0)
     mats = [(rng.random((n, a), np.float32), rng.random((a, b), np.float32),
              rng.random((n, b), np.float32)) for a, b in layer_shapes(spec)]
@@ -103,6 +102,13 @@ def numpy_matmul(spec, n, repeats):
             X @ Wm
             G @ Wm.T
             X.T @ G
+    return fwd, fwdbwd
+
+
+def numpy_matmul(spec, n, repeats):
+    """numpy float32 matmuls with the MLP's shapes: forward (X W) and forward + backward
+    (X W, G W^T, X^T G) per layer, timed as one sequence each."""
+    fwd, fwdbwd = _matmul_runs(spec, n)
 
     macs = sum(a * b for a, b in layer_shapes(spec)) * n
     f = timed(fwd, repeats)
@@ -250,16 +256,8 @@ def bench_suite(api):
         """numpy float32 matmuls with the MLP's layer shapes (the peer for the fused MLP)."""
         spec = CONFIGS[p["config"]]
         n = p["n"]
-        rng = np.random.default_rng(0)
-        mats = [(rng.random((n, a), np.float32), rng.random((a, b), np.float32),
-                 rng.random((n, b), np.float32)) for a, b in layer_shapes(spec)]
-
-        def run():
-            for X, Wm, G in mats:
-                X @ Wm
-                if p["mode"] == "fwdbwd":
-                    G @ Wm.T
-                    X.T @ G
+        fwd, fwdbwd = _matmul_runs(spec, n)
+        run = fwdbwd if p["mode"] == "fwdbwd" else fwd
         macs = sum(a * b for a, b in layer_shapes(spec)) * n
         return api.Case(run, {"samples": n, "flop": (6 if p["mode"] == "fwdbwd" else 2) * macs})
 
