@@ -5,10 +5,12 @@
  *   bench_triad  a[i] = b[i] + s * c[i]      float16 per work-item; bytes = 3 * 4 * n (STREAM count)
  *   bench_fma    FMA_CHAINS independent float16 chains of FMA_ITERS fused multiply-adds each;
  *                flop = 2 * 16 * FMA_CHAINS * FMA_ITERS per work-item. Explicit float16 because
- *                PoCL runs a scalar loop one lane wide (docs/perf-notes.md).
+ *                PoCL runs a work-item's scalar loop one lane wide.
  *
  * n is in floats and a multiple of 16 (the host pads). Defines read: FMA_CHAINS, FMA_ITERS.
  */
+#include "common.h"   /* for its -Wpsabi note: float16 builtin calls */
+
 #ifndef FMA_CHAINS
 #define FMA_CHAINS 8    /* independent dependency chains: enough to cover the FMA latency */
 #endif

@@ -7,7 +7,8 @@
  * Segments: delta_k = t_{k+1} - t_k, and delta_{K-1} = far - t_{K-1} (the last sample covers
  * the rest of [near, far], so background shows through a transparent ray), clamped at >= 0.
  * Compositing, tau_k = sigma_k delta_k:
- *   alpha_k = -expm1(-tau_k),  T_k = exp(-sum_{j<k} tau_j) (Kahan-summed in log space),
+ *   alpha_k = alpha_of_tau(tau_k) = 1 - exp(-tau_k),  T_k = exp(-sum_{j<k} tau_j) (Kahan-summed
+ *   in log space),
  *   w_k = T_k alpha_k,  rgb = sum_k w_k c_k + T_K bg,  acc = sum_k w_k,  depth = sum_k w_k t_k.
  * No early termination: every sample was evaluated by the MLP already, so all K are used.
  *
@@ -16,10 +17,11 @@
  *   dL/dsigma_k = delta_k (T_{k+1} (g.c_k) - R_k),  R_k = sum_{j>k} w_j (g.c_j) + T_K (g.bg),
  * with R_k = g.rgb - prefix_k (the remaining radiance; prefix Kahan-summed), so the ray is
  * marched twice and nothing is stored per sample. dL/dsigma_k = 0 where sigma_k is not > 0.
+ * The per-sample steps are volrend.h's, the same as the grid renderer's.
  *
  * Defines read: GRAD_MODE.
  */
-#include "common.h"
+#include "volrend.h"
 
 #ifndef GRAD_MODE
 #define GRAD_MODE 0  /* 0: ray_in holds dL/drgb; 1: ray_in holds target rgb, loss = MSE */
@@ -29,31 +31,21 @@ inline float seg_delta(__global const float *t, const int k, const int K, const 
     return fmax((k + 1 < K ? t[k + 1] : far) - t[k], 0.0f);
 }
 
-inline float3 load3(__global const float *a, const size_t i) {
-    return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
-}
-
-typedef struct {
-    float3 rgb;  /* foreground radiance (no background) */
-    float acc, depth, logT;
-} comp_t;
-
 /* The forward march shared by both kernels; writes weights [K] if w_out is not null. */
-inline comp_t composite_march(const int K, const float far, __global const float *t,
-                              __global const float *sigma, __global const float *rgb,
-                              __global float *w_out) {
-    comp_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+inline fwd_t composite_march(const int K, const float far, __global const float *t,
+                             __global const float *sigma, __global const float *rgb,
+                             __global float *w_out) {
+    fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     ksum_t logT = {0.0f, 0.0f};
+    float T = 1.0f;
     for (int k = 0; k < K; ++k) {
         const float s = sigma[k];
         float w = 0.0f;
         if (s > 0.0f) {
-            const float tau = s * seg_delta(t, k, K, far);
-            w = exp(logT.s) * alpha_from_tau(tau);
+            w = vr_step(&logT, T, s * seg_delta(t, k, K, far), &T);
             f.rgb += w * load3(rgb, k);
             f.acc += w;
             f.depth += w * t[k];
-            ksum_add(&logT, -tau);
         }
         if (w_out) w_out[k] = w;
     }
@@ -70,7 +62,7 @@ __kernel void composite_forward(const int n, const int K, const float far,
     const int i = get_global_id(0);
     if (i >= n) return;
     const size_t o = (size_t)i * K;
-    const comp_t f = composite_march(K, far, t + o, sigma + o, rgb + 3 * o,
+    const fwd_t f = composite_march(K, far, t + o, sigma + o, rgb + 3 * o,
                                      weights ? weights + o : 0);
     const float3 c = f.rgb + exp(f.logT) * bg.xyz;
     out_rgb[3 * i] = c.x;
@@ -92,7 +84,7 @@ __kernel void composite_backward(const int n, const int K, const float far,
     if (i >= n) return;
     const size_t o = (size_t)i * K;
     __global const float *ti = t + o, *si = sigma + o, *ci = rgb + 3 * o;
-    const comp_t f = composite_march(K, far, ti, si, ci, weights ? weights + o : 0);
+    const fwd_t f = composite_march(K, far, ti, si, ci, weights ? weights + o : 0);
     const float3 col = f.rgb + exp(f.logT) * bg.xyz;
 #if GRAD_MODE == 1
     const float3 diff = col - load3(ray_in, i);
@@ -104,6 +96,7 @@ __kernel void composite_backward(const int n, const int K, const float far,
     const float total = dot(g, col);
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
+    float T = 1.0f;
     for (int k = 0; k < K; ++k) {
         const size_t q = o + k;
         const float s = si[k];
@@ -113,14 +106,8 @@ __kernel void composite_backward(const int n, const int K, const float far,
             continue;
         }
         const float delta = seg_delta(ti, k, K, far);
-        const float tau = s * delta;
-        const float w = exp(logT.s) * alpha_from_tau(tau);
-        const float3 c = load3(ci, k);
-        const float gc = dot(g, c);
-        ksum_add(&prefix, w * gc);
-        ksum_add(&logT, -tau);
-        const float remaining = total - prefix.s;
-        dsigma[q] = delta * (exp(logT.s) * gc - remaining);
+        const float w = vr_step(&logT, T, s * delta, &T);
+        dsigma[q] = vr_dsigma(&prefix, total, w, T, dot(g, load3(ci, k)), delta);
         drgb[3 * q] = w * g.x;
         drgb[3 * q + 1] = w * g.y;
         drgb[3 * q + 2] = w * g.z;

@@ -29,8 +29,6 @@
 #define TV_EPS 1e-9f  /* inside the TV square root: keeps the gradient finite on flat regions */
 #endif
 
-inline int cell_of(int x, int y, int z, int4 r) { return (x * r.y + y) * r.z + z; }
-
 __kernel void tv_grad(const int n_cells, const int start, const int4 reso,
                       __global const int *links, __global const float *data, const int D,
                       __global float *grad, __global uchar *touched, const float scale,

@@ -18,7 +18,7 @@
  *
  * Compositing, with sigma_k = max(trilerp(density), 0), tau_k = sigma_k delta_k:
  *   alpha_k = 1 - exp(-tau_k) = -expm1(-tau_k),  T_k = exp(-sum_{j<k} tau_j)  (log space)
- *   (alpha_of_tau in march.h: series below tau = 0.5, 1 - exp(-tau) above; within 2 ulp)
+ *   (alpha_of_tau in common.h: series below tau = 0.5, 1 - exp(-tau) above; within 2 ulp)
  *   w_k = T_k alpha_k,  rgb = sum_k w_k c_k + T_end * bg,  acc = sum_k w_k,
  *   depth = sum_k w_k t_k (t_k the world distance of sample k; not divided by acc),
  *   c_k = max(0, sum_b sh_{ch,b}(x_k) Y_b(d) + 0.5)  (svox2's colour activation).
@@ -28,11 +28,11 @@
  *   dL/dsigma_k = delta_k (T_{k+1} (g.c_k) - R_k),   R_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg)
  *   dL/dsh_{ch,b}(x_k) = w_k g_ch [pre_ch > 0] Y_b
  * R_k is the remaining radiance: g.rgb minus the (Kahan-summed) prefix, so the ray is marched
- * twice (forward for rgb, then backward). A work-item holding a gradient slot (GRAD_SLOTS)
- * records each sample's (sigma, w, T_{k+1}, pre-activation colour) in the slot's private
- * buffer during the forward march and reads them back in the backward march (the same values
- * bit for bit); without a slot it recomputes them. Corner gradients of consecutive samples in
- * the same cell are merged in registers and scattered when the march leaves the cell: one
+ * twice (forward for rgb, then backward). A work-item holding a gradient slot (GRAD_SLOTS,
+ * with SAMPLE_RECORD) records each sample's (sigma, w, T_{k+1}, pre-activation colour) in the
+ * slot's private buffer during the forward march and reads them back in the backward march
+ * (the same values bit for bit); otherwise it recomputes them. Corner gradients of
+ * consecutive samples in the same cell are merged in registers and scattered when the march leaves the cell: one
  * atomic add per corner value, or plain vector adds into a private copy (GRAD_SLOTS).
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
@@ -52,8 +52,11 @@
  * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
  * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, TRACK_TOUCHED, BLOCK,
- * CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h).
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
+ * BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h),
+ * CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the signature:
+ * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
+ * buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD.
  */
 #include "march.h"
 
@@ -66,6 +69,10 @@
 #ifndef GRAD_SLOTS
 #define GRAD_SLOTS 0     /* > 0: private gradient copies per running work-item (CPU devices),
                             reduced by grad_slots_reduce; 0: float atomics into the buffers */
+#endif
+#ifndef SAMPLE_RECORD
+#define SAMPLE_RECORD 0  /* 1 (needs GRAD_SLOTS > 0): a slot's forward march records every sample
+                            and the backward reads the record instead of recomputing */
 #endif
 #ifndef TRACK_TOUCHED
 #define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
@@ -142,23 +149,33 @@ inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *g
  * take a copy (slot_lock[s] 0 -> 1 by compare-and-swap) and, holding it, adds with plain
  * vector stores. A work-item that finds every copy taken adds with float atomics into scratch
  * entry S-1. Scratch rows that received anything are marked in slot_touched [S, n_rows];
- * grad_slots_reduce then adds them into grad_density / grad_sh and zeroes them. A slot also
- * owns slot_rec [S, rec_max, 8]: the forward march records each sample there (march.h,
- * march_forward_rec) and the backward march reads it instead of re-gathering the rows. PoCL runs one
- * work-item at a time per compute unit, so with S = compute units no atomics are used in
- * practice, and the result is correct under any scheduling. */
+ * grad_slots_reduce then adds them into grad_density / grad_sh and zeroes them. With
+ * SAMPLE_RECORD a slot also owns slot_rec [S, rec_max, 8]: the forward march records each
+ * sample there (march.h, march_forward_rec) and the backward march reads it instead of
+ * re-gathering the rows. PoCL runs one work-item at a time per compute unit, so with
+ * S = compute units no atomics are used in practice, and the result is correct under any
+ * scheduling. */
 __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global const float *dirs, __global const int *links,
                               __global const float *density, __global const float *sh,
                               const int4 reso, const float4 bmin, const float4 scale,
                               const float step, const float4 bg, __global const float *ray_in,
+#if GRAD_MODE == 1
                               __global float *ray_out, const float loss_scale,
                               const float beta_scale,
+#endif
                               __global float *grad_density, __global float *grad_sh,
-                              __global uchar *touched, const int n_rows,
-                              __global float *slot_density, __global float *slot_sh,
-                              __global uchar *slot_touched, __global volatile int *slot_lock,
+#if TRACK_TOUCHED
+                              __global uchar *touched,
+#endif
+#if GRAD_SLOTS > 0
+                              const int n_rows, __global float *slot_density,
+                              __global float *slot_sh, __global uchar *slot_touched,
+                              __global volatile int *slot_lock,
+#if SAMPLE_RECORD
                               __global float *slot_rec, const int rec_max,
+#endif
+#endif
                               __global const uchar *occ, const int4 oreso) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
@@ -170,8 +187,13 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     /* where this work-item's gradients go; a slot also brings a private sample record */
     __global float *dst_d = grad_density;
     __global float *dst_s = grad_sh;
+#if TRACK_TOUCHED
     __global uchar *mark = touched;
+#else
+    __global uchar *mark = 0;
+#endif
     __global float *rec = 0;
+    int rec_len = 0;
     int do_mark = TRACK_TOUCHED;
     int slot = -1;
 #if GRAD_SLOTS > 0
@@ -179,7 +201,12 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
             if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
     }
-    if (slot >= 0) rec = slot_rec + (size_t)slot * rec_max * 8;
+#if SAMPLE_RECORD
+    if (slot >= 0) {
+        rec = slot_rec + (size_t)slot * rec_max * 8;
+        rec_len = rec_max;
+    }
+#endif
     if (slot != 0) {   /* a scratch entry: its own (slot - 1), or the shared atomic one */
         const size_t e = slot > 0 ? (size_t)(slot - 1) : (size_t)(GRAD_SLOTS - 1);
         dst_d = slot_density + e * n_rows;
@@ -194,7 +221,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     int n_rec = -1;
     if (hit) {
         sh_basis(m.dir, Y);
-        march_forward_rec(&m, reso, links, density, sh, Y, rec, rec ? rec_max : 0, &n_rec, &f);
+        march_forward_rec(&m, reso, links, density, sh, Y, rec, rec_len, &n_rec, &f);
     }
     const float Tend = exp(f.logT);
     const float3 rgb = f.rgb + Tend * bg.xyz;
@@ -230,7 +257,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     int cur_cell = -1;
     lerp_t L;
     L.cell = -1;
-    int pf_cell = -1, pf_link = -1;
+    int pf[2] = {-1, -1};
 
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
@@ -238,20 +265,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     int j = 0;   /* index of the non-empty sample in the record */
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
-        march_segment(&m, k, &mid, &delta);
-        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
-#if CLRF_PREFETCH
-        if (k + PREFETCH_LINKS_AHEAD < m.nsteps)
-            prefetch_links(m.p0 + (mid + PREFETCH_LINKS_AHEAD * m.dt) * m.dg, reso, links,
-                           &pf_link);
-        if (k + PREFETCH_AHEAD < m.nsteps)
-            prefetch_cell_grad(m.p0 + (mid + PREFETCH_AHEAD * m.dt) * m.dg, reso, links, density,
-                               sh, dst_d, dst_s, &pf_cell);   /* data rows: cached by now */
-#endif
-        if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
-            k = skip_empty(&m, k, L.lo, reso) - 1;
+        if (!march_visit(&m, reso, links, density, sh, dst_d, dst_s, pf, &k, &mid, &delta, &L))
             continue;
-        }
         const float sigma = use_rec ? rec[8 * j + REC_SIGMA] : lerp_density(&L, density);
         ++j;
         if (!(sigma > 0.0f)) continue;
@@ -275,17 +290,11 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             Tnext = r.s2;
             pre = (float3)(r.s3, r.s4, r.s5);
         } else {
-            const float tau = sigma * delta;
-            w = T * alpha_of_tau(tau);
+            w = vr_step(&logT, T, sigma * delta, &Tnext);
             pre = color_pre(lerp_sh(&L, sh), &S);
-            ksum_add(&logT, -tau);
-            Tnext = exp(logT.s);
         }
         const float3 c = fmax(pre, 0.0f);
-        const float gc = dot(g, c);
-        ksum_add(&prefix, w * gc);
-        const float remaining = total - prefix.s;
-        const float dsig = delta * (Tnext * gc - remaining);
+        const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
         /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
         shv_t dco = shv_scale(S.ych[0], dpre.x);
@@ -363,24 +372,20 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
     m.oreso = oreso;
     if (!march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) return;
     ksum_t logT = {0.0f, 0.0f};
+    float T = 1.0f;
     lerp_t L;
     L.cell = -1;
     for (int k = 0; k < m.nsteps; ++k) {
         float mid, delta;
-        march_segment(&m, k, &mid, &delta);
-        if (skip_block(&m, m.p0 + mid * m.dg, reso, &k)) continue;
-        if (!lerp_setup_cached(m.p0 + mid * m.dg, reso, links, &L)) {
-            k = skip_empty(&m, k, L.lo, reso) - 1;
-            continue;
-        }
+        if (!march_visit(&m, reso, links, density, 0, 0, 0, 0, &k, &mid, &delta, &L)) continue;
         const float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
-        const float tau = sigma * delta;
-        const float w = exp(logT.s) * alpha_of_tau(tau);
+        float Tnext;
+        const float w = vr_step(&logT, T, sigma * delta, &Tnext);
         for (int c = 0; c < 8; ++c)
             if (L.idx[c] >= 0 && L.w[c] > 0.0f) atomic_max_nonneg_f(maxw + L.idx[c], w * L.w[c]);
-        ksum_add(&logT, -tau);
-        if (exp(logT.s) < T_STOP) break;
+        T = Tnext;
+        if (T < T_STOP) break;
     }
 }
 
@@ -399,7 +404,7 @@ __kernel void block_occupancy(const int4 reso, const int4 oreso, __global const 
     for (int x = lo.x; x <= hi.x && !any; ++x)
         for (int y = lo.y; y <= hi.y && !any; ++y)
             for (int z = lo.z; z <= hi.z; ++z)
-                if (links[(x * reso.y + y) * reso.z + z] >= 0) { any = 1; break; }
+                if (links[cell_of(x, y, z, reso)] >= 0) { any = 1; break; }
     occ[b] = any;
 #endif
 }

@@ -6,6 +6,7 @@
 #ifndef CLRF_MARCH_H
 #define CLRF_MARCH_H
 #include "common.h"
+#include "volrend.h"
 #include "sh.h"
 #include "ray.h"
 
@@ -92,21 +93,31 @@ inline void lerp_axis(float p, int r, int *i0, int *i1, float *f) {
     *f = u - (float)i;
 }
 
+/* Linear index of cell / voxel (x, y, z) in a C-order [RX, RY, RZ] array (links). */
+inline int cell_of(int x, int y, int z, int4 r) { return (x * r.y + y) * r.z + z; }
+
+/* The cell around point p (box units): corners x0..x1, y0..y1, z0..z1 (clamped at the grid
+ * edges) and fractions fx, fy, fz along each axis; lerp_axis on the three axes. */
+typedef struct { int x0, x1, y0, y1, z0, z1; float fx, fy, fz; } cellpos_t;
+inline void cell_locate(float3 p, int4 reso, cellpos_t *q) {
+    lerp_axis(p.x, reso.x, &q->x0, &q->x1, &q->fx);
+    lerp_axis(p.y, reso.y, &q->y0, &q->y1, &q->fy);
+    lerp_axis(p.z, reso.z, &q->z0, &q->z1, &q->fz);
+}
+
 /* Find the 8 corners and weights of point p (box units). Returns 1 if any corner is allocated. */
 inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L) {
-    int x0, x1, y0, y1, z0, z1;
-    float fx, fy, fz;
-    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
-    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
-    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
-    L->lo = (int3)(x0, y0, z0);
-    L->cell = (x0 * reso.y + y0) * reso.z + z0;
-    const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
-    const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy}, wz[2] = {1.0f - fz, fz};
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    L->lo = (int3)(q.x0, q.y0, q.z0);
+    L->cell = cell_of(q.x0, q.y0, q.z0, reso);
+    const int xs[2] = {q.x0, q.x1}, ys[2] = {q.y0, q.y1}, zs[2] = {q.z0, q.z1};
+    const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
+                wz[2] = {1.0f - q.fz, q.fz};
     int any = 0;
     for (int c = 0; c < 8; ++c) {
         int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
-        int k = links[(xs[cx] * reso.y + ys[cy]) * reso.z + zs[cz]];
+        int k = links[cell_of(xs[cx], ys[cy], zs[cz], reso)];
         L->idx[c] = k;
         L->w[c] = wx[cx] * wy[cy] * wz[cz];
         any |= (k >= 0);
@@ -152,13 +163,10 @@ inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
  * set *k to the segment before the next one to evaluate (the loop's ++k follows) and return 1. */
 inline int skip_block(const march_t *m, float3 p, int4 reso, int *k) {
 #if BLOCK > 0
-    int x0, x1, y0, y1, z0, z1;
-    float fx, fy, fz;
-    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
-    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
-    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
-    const int3 b = (int3)(x0, y0, z0) / BLOCK;
-    if (m->occ[(b.x * m->oreso.y + b.y) * m->oreso.z + b.z]) return 0;
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const int3 b = (int3)(q.x0, q.y0, q.z0) / BLOCK;
+    if (m->occ[cell_of(b.x, b.y, b.z, m->oreso)]) return 0;
     *k = skip_region(m, *k, b * BLOCK, BLOCK, reso) - 1;
     return 1;
 #else
@@ -174,28 +182,8 @@ inline float lerp_density(const lerp_t *L, __global const float *density) {
     return s;
 }
 
-/* Opacity 1 - exp(-tau) for tau >= 0, as accurate as common.h's alpha_from_tau (-expm1) but
- * without its out-of-line expm1 call, which cost a fifth of the forward march on PoCL:
- * tau <= ALPHA_SERIES_MAX: Taylor series tau - tau^2/2! + ... + tau^9/9! in Horner form
- * (truncation < tau^10/10! <= 2.7e-10, far below float rounding); above: 1 - exp(-tau), whose
- * rounding error is at most ulp(exp(-tau)) / (1 - exp(-0.5)) ~ 1.3 ulp of the result. */
-#define ALPHA_SERIES_MAX 0.5f
-inline float alpha_of_tau(float tau) {
-    if (tau > ALPHA_SERIES_MAX) return 1.0f - exp(-tau);
-    float r = -1.0f / 362880.0f;           /* -1/9! ... alternating coefficients 1/k! */
-    r = fma(r, -tau, 1.0f / 40320.0f);
-    r = fma(r, -tau, 1.0f / 5040.0f);
-    r = fma(r, -tau, 1.0f / 720.0f);
-    r = fma(r, -tau, 1.0f / 120.0f);
-    r = fma(r, -tau, 1.0f / 24.0f);
-    r = fma(r, -tau, 1.0f / 6.0f);
-    r = fma(r, -tau, 0.5f);
-    r = fma(r, -tau, 1.0f);
-    return tau * r;
-}
-
 /* ---- one SH row in vector registers -------------------------------------------------------
- * PoCL runs a work-item's own loops one lane wide (docs/perf-notes.md), so a row of SH_DIM
+ * PoCL runs a work-item's own scalar loops one lane wide, so a row of SH_DIM
  * floats is held as explicit vectors: SH_DIM = 3 -> float3; 12 -> float8 + float4;
  * 27 -> float16 + float8 + float3; 48 -> 3 x float16. SHV_MAP(OP) applies OP(field, width,
  * offset) to each part. Rows start at any float offset: vloadn/vstoren need only float
@@ -271,32 +259,23 @@ inline float3 color_pre(shv_t co, const shy_t *S) {
     return (float3)(pre[0], pre[1], pre[2]);
 }
 
-/* Interpolated SH coefficients -> pre-activation colour per channel (scalar Y array). */
-inline float3 lerp_color_pre(const lerp_t *L, __global const float *sh, const float *Y) {
-    shy_t S;
-    shy_setup(Y, &S);
-    return color_pre(lerp_sh(L, sh), &S);
-}
-
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
 inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, lerp_t *L) {
-    int x0, x1, y0, y1, z0, z1;
-    float fx, fy, fz;
-    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
-    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
-    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
-    const int cell = (x0 * reso.y + y0) * reso.z + z0;
-    const float wx[2] = {1.0f - fx, fx}, wy[2] = {1.0f - fy, fy}, wz[2] = {1.0f - fz, fz};
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const int cell = cell_of(q.x0, q.y0, q.z0, reso);
+    const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
+                wz[2] = {1.0f - q.fz, q.fz};
     int any = 0;
     if (cell != L->cell) {
         L->cell = cell;
-        L->lo = (int3)(x0, y0, z0);
-        const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+        L->lo = (int3)(q.x0, q.y0, q.z0);
+        const int xs[2] = {q.x0, q.x1}, ys[2] = {q.y0, q.y1}, zs[2] = {q.z0, q.z1};
 #pragma unroll
         for (int c = 0; c < 8; ++c) {
             int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
-            L->idx[c] = links[(xs[cx] * reso.y + ys[cy]) * reso.z + zs[cz]];
+            L->idx[c] = links[cell_of(xs[cx], ys[cy], zs[cz], reso)];
         }
     }
 #pragma unroll
@@ -312,18 +291,15 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
  * cache, a few samples before prefetch_cell needs them to find the rows. */
 inline void prefetch_links(float3 p, int4 reso, __global const int *links, int *last) {
 #if CLRF_PREFETCH
-    int x0, x1, y0, y1, z0, z1;
-    float fx, fy, fz;
-    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
-    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
-    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
-    const int cell = (x0 * reso.y + y0) * reso.z + z0;
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const int cell = cell_of(q.x0, q.y0, q.z0, reso);
     if (cell == *last) return;
     *last = cell;
     CLRF_PREFETCH_LINE(links + cell);
-    CLRF_PREFETCH_LINE(links + (x0 * reso.y + y1) * reso.z + z0);
-    CLRF_PREFETCH_LINE(links + (x1 * reso.y + y0) * reso.z + z0);
-    CLRF_PREFETCH_LINE(links + (x1 * reso.y + y1) * reso.z + z0);
+    CLRF_PREFETCH_LINE(links + cell_of(q.x0, q.y1, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + cell_of(q.x1, q.y0, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + cell_of(q.x1, q.y1, q.z0, reso));
 #endif
 }
 
@@ -337,17 +313,14 @@ inline void prefetch_cell_grad(float3 p, int4 reso, __global const int *links,
                                __global const float *grad_d, __global const float *grad_s,
                                int *last) {
 #if CLRF_PREFETCH
-    int x0, x1, y0, y1, z0, z1;
-    float fx, fy, fz;
-    lerp_axis(p.x, reso.x, &x0, &x1, &fx);
-    lerp_axis(p.y, reso.y, &y0, &y1, &fy);
-    lerp_axis(p.z, reso.z, &z0, &z1, &fz);
-    const int cell = (x0 * reso.y + y0) * reso.z + z0;
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const int cell = cell_of(q.x0, q.y0, q.z0, reso);
     if (cell == *last) return;
     *last = cell;
-    const int xs[2] = {x0, x1}, ys[2] = {y0, y1}, zs[2] = {z0, z1};
+    const int xs[2] = {q.x0, q.x1}, ys[2] = {q.y0, q.y1}, zs[2] = {q.z0, q.z1};
     for (int c = 0; c < 8; ++c) {
-        int k = links[(xs[c >> 2] * reso.y + ys[(c >> 1) & 1]) * reso.z + zs[c & 1]];
+        int k = links[cell_of(xs[c >> 2], ys[(c >> 1) & 1], zs[c & 1], reso)];
         if (k < 0) continue;
         __global const float *row = sh + (size_t)k * SH_DIM;
         for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
@@ -363,36 +336,52 @@ inline void prefetch_cell_grad(float3 p, int4 reso, __global const int *links,
 #endif
 }
 
-inline void prefetch_cell(float3 p, int4 reso, __global const int *links,
-                          __global const float *density, __global const float *sh, int *last) {
-    prefetch_cell_grad(p, reso, links, density, sh, 0, 0, last);
+/* The march loop's visit of segment *k, shared by every grid march: the segment's midpoint
+ * and length, the empty-block skip, the prefetch of a later sample's rows (pf != 0: pf[0] the
+ * cell, pf[1] the links last prefetched; grad_d / grad_s as in prefetch_cell_grad) and the
+ * trilinear set-up with the empty-cell skip. Returns 1 when segment *k has a sample to
+ * evaluate (L set up for it); 0 when the caller continues, *k then being the segment before
+ * the next one to visit (the loop's ++k follows). Prefetching happens only where the march
+ * evaluates samples, never across empty blocks. */
+inline int march_visit(const march_t *m, int4 reso, __global const int *links,
+                       __global const float *density, __global const float *sh,
+                       __global const float *grad_d, __global const float *grad_s, int *pf,
+                       int *k, float *mid, float *delta, lerp_t *L) {
+    march_segment(m, *k, mid, delta);
+    if (skip_block(m, m->p0 + *mid * m->dg, reso, k)) return 0;
+#if CLRF_PREFETCH
+    if (pf) {
+        if (*k + PREFETCH_LINKS_AHEAD < m->nsteps)
+            prefetch_links(m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
+                           &pf[1]);
+        if (*k + PREFETCH_AHEAD < m->nsteps)
+            prefetch_cell_grad(m->p0 + (*mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links,
+                               density, sh, grad_d, grad_s, &pf[0]);
+    }
+#endif
+    if (!lerp_setup_cached(m->p0 + *mid * m->dg, reso, links, L)) {
+        *k = skip_empty(m, *k, L->lo, reso) - 1;
+        return 0;
+    }
+    return 1;
 }
 
 #ifndef COMPENSATED_SUMS
 #define COMPENSATED_SUMS 0  /* 1: Kahan-compensated rgb/acc/depth (and, in the backward, per-cell
                                gradient registers); the host sets it when a ray can have more
-                               than LONG_RAY_SAMPLES samples (clrf/render.py), where plain float32
-                               sums would drift like n * 6e-8 */
+                               than LONG_RAY_SAMPLES samples (clrf/grid/render.py), where plain
+                               float32 sums would drift like n * 6e-8 */
 #endif
 
 /* s += x, compensated when COMPENSATED_SUMS (c carries the lost low-order part). */
 inline void csum_add(float *s, float *c, float x) {
 #if COMPENSATED_SUMS
-    const float y = x - *c;
-    const float t = *s + y;
-    *c = (t - *s) - y;
-    *s = t;
+    kahan_add(s, c, x);
 #else
     *s += x;
 #endif
 }
 
-typedef struct {
-    float3 rgb;  /* foreground radiance, without background */
-    float acc;   /* sum of weights */
-    float depth; /* sum of weights times distance from the entry */
-    float logT;  /* log transmittance at the end of the march */
-} fwd_t;
 
 /* Per-sample record written by the forward march for the backward march (rec != 0): one
  * float8 per non-empty sample j, in march order: (sigma, w, T after the sample, pre.x, pre.y,
@@ -419,23 +408,10 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
     float acc = 0.0f, depth = 0.0f, cacc = 0.0f, cdepth = 0.0f;
     lerp_t L;
     L.cell = -1;
-    int pf_cell = -1, pf_link = -1;
+    int pf[2] = {-1, -1};
     for (int k = 0; k < m->nsteps; ++k) {
         float mid, delta;
-        march_segment(m, k, &mid, &delta);
-        if (skip_block(m, m->p0 + mid * m->dg, reso, &k)) continue;
-#if CLRF_PREFETCH   /* only where the march evaluates samples: not across empty blocks */
-        if (k + PREFETCH_LINKS_AHEAD < m->nsteps)
-            prefetch_links(m->p0 + (mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
-                           &pf_link);
-        if (k + PREFETCH_AHEAD < m->nsteps)
-            prefetch_cell(m->p0 + (mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links, density,
-                          sh, &pf_cell);
-#endif
-        if (!lerp_setup_cached(m->p0 + mid * m->dg, reso, links, &L)) {
-            k = skip_empty(m, k, L.lo, reso) - 1;
-            continue;
-        }
+        if (!march_visit(m, reso, links, density, sh, 0, 0, pf, &k, &mid, &delta, &L)) continue;
         float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) {
             if (rec && j < rec_max) rec[8 * j + REC_SIGMA] = sigma;
@@ -443,7 +419,8 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
             continue;
         }
         float tau = sigma * delta;
-        float w = T * alpha_of_tau(tau);
+        float Tnext;
+        float w = vr_step(&logT, T, tau, &Tnext);
         float3 pre = color_pre(lerp_sh(&L, sh), &S);
         float3 c = fmax(pre, 0.0f);
         csum_add(&rgb[0], &crgb[0], w * c.x);
@@ -451,8 +428,7 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
         csum_add(&rgb[2], &crgb[2], w * c.z);
         csum_add(&acc, &cacc, w);
         csum_add(&depth, &cdepth, w * mid);
-        ksum_add(&logT, -tau);
-        T = exp(logT.s);
+        T = Tnext;
         if (rec && j < rec_max)
             vstore8((float8)(sigma, w, T, pre.x, pre.y, pre.z, 0.0f, 0.0f), j, rec);
         ++j;
@@ -470,10 +446,6 @@ inline void march_forward(const march_t *m, int4 reso, __global const int *links
                           const float *Y, fwd_t *out) {
     int n_rec;
     march_forward_rec(m, reso, links, density, sh, Y, 0, 0, &n_rec, out);
-}
-
-inline float3 load3(__global const float *a, int i) {
-    return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
 }
 
 #endif /* CLRF_MARCH_H */

@@ -1,6 +1,8 @@
-/* optim.cl: optimiser updates of parameter rows touched in this step.
+/* optim.cl: the optimisers, one per OPT_MODE: RMSProp and SGD over the parameter rows touched
+ * in this step (grid), Adam over a flat parameter buffer (NeRF's MLPs).
  *
- * Layout: param, grad, state are float [n_rows, D] (row-major); touched uchar [n_rows].
+ * update_rows (OPT_MODE 0, 1): param, grad, state are float [n_rows, D] (row-major); touched
+ * uchar [n_rows].
  * For each touched row k and column j (i = k*D + j), with g = clamp(grad[i], +-GRAD_CLAMP):
  *   RMSProp (OPT_MODE 0, svox2's variant): s = state[i] == 0 ? g^2 : beta s + (1 - beta) g^2,
  *                                          param[i] -= lr g / (sqrt(s) + eps)
@@ -13,17 +15,28 @@
  * A zero or NaN gradient leaves param and state unchanged (state stays 0 until the first real
  * touch); +-inf is clamped like any huge gradient.
  *
- * Defines read: OPT_MODE.  Mirrored by reference.rmsprop_rows / sgd_rows.
+ *
+ * adam_step (OPT_MODE 2; Kingma & Ba, with bias correction): p, g, m, v are float [n], one
+ * work-item per parameter (no loops: PoCL vectorises across the group):
+ *   m = b1 m + (1 - b1) g,  v = b2 v + (1 - b2) g^2,
+ *   p -= lr (m / bc1) / (sqrt(v / bc2) + eps),  bc1 = 1 - b1^t, bc2 = 1 - b2^t (host, float64).
+ * A zero gradient on a zero moment leaves p unchanged (0 / (0 + eps) = 0), which keeps the
+ * MLP's zero padding at zero. Non-finite gradients are skipped (p, m, v unchanged) so one bad
+ * sample cannot poison the moments.
+ *
+ * Defines read: OPT_MODE. Mirrored by reference.rmsprop_rows / sgd_rows and the Adam formula in
+ * tests/test_nerf_model.py.
  */
 #ifndef OPT_MODE
-#define OPT_MODE 0  /* 0: RMSProp, 1: SGD */
+#define OPT_MODE 0  /* 0: RMSProp, 1: SGD, 2: Adam */
 #endif
-#if OPT_MODE != 0 && OPT_MODE != 1
-#error "OPT_MODE must be 0 (RMSProp) or 1 (SGD)"
+#if OPT_MODE < 0 || OPT_MODE > 2
+#error "OPT_MODE must be 0 (RMSProp), 1 (SGD) or 2 (Adam)"
 #endif
 /* |g| above this is clamped, so g*g stays finite in float32 (1e18^2 = 1e36 < 3.4e38). */
 #define GRAD_CLAMP 1e18f
 
+#if OPT_MODE < 2
 __kernel void update_rows(const int n_rows, const int D, __global float *param,
                           __global float *grad, __global float *state,
                           __global uchar *touched, const float lr, const float beta,
@@ -52,3 +65,18 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
     }
     if (clear_touched) touched[k] = 0;
 }
+#else
+__kernel void adam_step(const int n, __global float *p, __global const float *g,
+                        __global float *m, __global float *v, const float lr, const float b1,
+                        const float b2, const float eps, const float bc1, const float bc2) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float gi = g[i];
+    if (!isfinite(gi)) return;
+    const float mi = b1 * m[i] + (1.0f - b1) * gi;
+    const float vi = b2 * v[i] + (1.0f - b2) * gi * gi;
+    m[i] = mi;
+    v[i] = vi;
+    p[i] -= lr * (mi / bc1) / (sqrt(vi / bc2) + eps);
+}
+#endif

@@ -1,7 +1,7 @@
 """clrf: portable OpenCL radiance fields (Plenoxels and NeRF) with handwritten kernels."""
 from .device import Device, DeviceError
 from .grid import SparseGrid
-from .render import render_rays, render_rays_backward
+from .grid.render import render_rays, render_rays_backward
 
 
 def __getattr__(name):

@@ -207,7 +207,7 @@ def cmd_devices(a):
 
 
 def cmd_bench(a):
-    from .benchmark import main as bench_main
+    from .testing.benchmark import main as bench_main
     return bench_main(["--reso", str(a.reso), "--degree", str(a.degree)])
 
 

@@ -4,8 +4,8 @@ One dataclass per concern. Every field is commented; `validate()` rejects out-of
 with a message naming the field. The effective configuration is written next to the outputs
 (config.json) and can be fed back with --config.
 
-Schedules are in iterations and were chosen for CPU budgets of minutes (svox2's defaults,
-anchors.md 2.1, assume 100k+ GPU iterations): a coarse grid first, pruned by rendering weight
+Schedules are in iterations and were chosen for CPU budgets of minutes (svox2's defaults
+assume 100k+ GPU iterations): a coarse grid first, pruned by rendering weight
 and upsampled twice within the first few hundred iterations, RMSProp with svox2's rates but
 decay horizons of a few thousand iterations.
 """

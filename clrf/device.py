@@ -12,12 +12,15 @@ but cannot compile for this CPU is skipped with the reason, never chosen silentl
 """
 from __future__ import annotations
 
+import copy
 import os
 import sys
 from dataclasses import dataclass, field
 
 import numpy as np
 import pyopencl as cl
+
+from .tuning import Tuning
 
 
 
@@ -180,11 +183,18 @@ class Device:
     True
     """
 
-    def __init__(self, spec: str | None = None, verbose: bool = False):
+    def __init__(self, spec: str | None = None, verbose: bool = False,
+                 tuning: Tuning | None = None):
         self.platform_index, self.device_index, self.cl_device = select_device(spec)
         self.context = cl.Context([self.cl_device])
         self.queue = cl.CommandQueue(self.context)
         self.caps = probe_capabilities(self.cl_device)
+        if tuning is None:
+            try:
+                tuning = Tuning.from_env(self.caps)
+            except ValueError as e:
+                raise DeviceError(str(e)) from None
+        self.tuning = tuning   # how kernels run here (clrf/tuning.py); CLRF_* overrides applied
         self._programs = {}
         if verbose:
             print(f"clrf: device {self}", file=sys.stderr)
@@ -197,10 +207,22 @@ class Device:
     def is_cpu(self) -> bool:
         return self.caps.type == "cpu"
 
+    def with_tuning(self, **kw) -> "Device":
+        """The same device, context and queue with ``tuning.replace(**kw)``, e.g.
+        ``dev.with_tuning(grad_slots=0, sample_record=False)`` for the GPU code path."""
+        other = copy.copy(self)
+        other.tuning = self.tuning.replace(**kw)
+        return other
+
     def program(self, source: str, defines: dict | None = None):
-        """The built program for ``cl/<source>`` with ``defines``; see programs.build."""
+        """The program for ``cl/<source>`` with ``defines`` (programs.build), built once per
+        (source, defines, fast_math) and kept for the device's lifetime."""
         from .programs import build
-        return build(self, source, defines or {})
+        key = (source, tuple(sorted((defines or {}).items())), self.tuning.fast_math)
+        prg = self._programs.get(key)
+        if prg is None:
+            prg = self._programs[key] = build(self, source, defines or {}, self.tuning.fast_math)
+        return prg
 
     def finish(self):
         self.queue.finish()

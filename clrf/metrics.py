@@ -1,10 +1,17 @@
-"""Image metrics: PSNR (from an MSE) and SSIM (scikit-image), per view and mean."""
+"""Image metrics: PSNR (from an MSE) and SSIM (scikit-image), per view and mean; accurate sum
+of squares / MSE / PSNR of device arrays (pyopencl ReductionKernel over cl/reduce.h)."""
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+from pyopencl.reduction import ReductionKernel
 from skimage.metrics import structural_similarity
+
+from .programs import cl_dir
 
 
 def psnr_from_mse(mse: float) -> float:
@@ -23,3 +30,56 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
     mse = float(np.mean((p - g) ** 2))
     ssim = float(structural_similarity(p, g, channel_axis=-1, data_range=1.0))
     return {"psnr": psnr_from_mse(mse), "ssim": ssim, "mse": mse}
+
+
+@functools.lru_cache(maxsize=None)
+def _sum_sq_kernel(context, fp64: bool) -> ReductionKernel:
+    return ReductionKernel(
+        context, np.float64 if fp64 else cl.cltypes.float2, neutral="ACC_ZERO",
+        reduce_expr="acc_add(a, b)", map_expr="sq_diff(x[i], y[i])",
+        arguments="__global const float *x, __global const float *y",
+        preamble=f"#define REDUCE_FP64 {int(fp64)}\n#include \"reduce.h\"\n",
+        options=[f"-I{cl_dir()}"])
+
+
+def _check(a, b):
+    for name, v in (("a", a), ("b", b)):
+        if not isinstance(v, cla.Array) or v.dtype != np.float32:
+            raise TypeError(f"{name}: expected a pyopencl float32 array, got "
+                            f"{type(v).__name__} {getattr(v, 'dtype', '')}")
+        if not v.flags.c_contiguous:
+            raise ValueError(f"{name}: must be contiguous")
+    if a.shape != b.shape:
+        raise ValueError(f"a {a.shape} and b {b.shape} must have the same shape")
+
+
+def sum_squares(device, a, b, fp64: bool | None = None) -> float:
+    """sum_i (a_i - b_i)^2 over two float32 device arrays of the same shape, as a Python float.
+
+    fp64: None picks double accumulation when ``device.caps.fp64``, else compensated float32
+    (double-float pairs, cl/reduce.h); True / False force one (True without fp64 raises).
+
+    >>> a = cla.to_device(dev.queue, np.full(4, 0.5, np.float32))
+    >>> sum_squares(dev, a, cla.to_device(dev.queue, np.full(4, 0.25, np.float32)))
+    0.25
+    """
+    _check(a, b)
+    if fp64 is None:
+        fp64 = bool(device.caps.fp64)
+    if fp64 and not device.caps.fp64:
+        raise ValueError("sum_squares: fp64=True but the device has no cl_khr_fp64")
+    if a.size == 0:
+        return 0.0
+    r = _sum_sq_kernel(device.context, bool(fp64))(a, b, queue=device.queue).get()
+    return float(r) if fp64 else float(np.float64(r["x"]) + np.float64(r["y"]))
+
+
+def mse(device, a, b, fp64: bool | None = None) -> float:
+    """Mean of (a - b)^2 over all elements (0.0 for empty arrays)."""
+    n = a.size
+    return sum_squares(device, a, b, fp64) / n if n else 0.0
+
+
+def psnr(device, a, b, max_value: float = 1.0, fp64: bool | None = None) -> float:
+    """Peak signal-to-noise ratio 10 log10(max_value^2 / MSE) in dB; +inf when a == b."""
+    return psnr_from_mse(mse(device, a, b, fp64) / (max_value * max_value))

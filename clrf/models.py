@@ -8,12 +8,12 @@ from .config import Config, ConfigError, _merge
 class GridFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .model_grid import GridModel
+        from .grid.model import GridModel
         return GridModel.create(device, cfg.grid, ds.bbox, background)
 
     @staticmethod
     def from_state(device, state, cfg):
-        from .model_grid import GridModel
+        from .grid.model import GridModel
         return GridModel.from_state_dict(device, state, cfg.grid)
 
 

@@ -1,4 +1,4 @@
-"""Optimisers over device parameter rows, and learning-rate schedules."""
+"""The optimisers (RMSProp, SGD, Adam; cl/optim.cl) and learning-rate schedules."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,8 @@ import pyopencl.array as cla
 
 from .programs import launch
 
-MODES = {"rmsprop": 0, "sgd": 1}
+MODES = {"rmsprop": 0, "sgd": 1, "adam": 2}   # OPT_MODE of cl/optim.cl
+ADAM_LOCAL_SIZE = 64   # adam_step has no loop: PoCL vectorises across the group
 
 
 def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):
@@ -24,28 +25,54 @@ def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):
     return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
 
 
-class RowOptimizer:
-    """RMSProp (svox2 variant) or SGD over rows of a [N, D] parameter; updates touched rows only.
+class Optimizer:
+    """One optimiser over a device parameter buffer; its gradient buffer is ``self.grad``.
 
-    The gradient buffer is consumed and reset to zero by each step (see cl/optim.cl).
+    - ``rmsprop`` (svox2 variant) / ``sgd``: param [N, D] or [N]; ``step(touched, lr, ...)``
+      updates the rows with touched[k] != 0 only, then zeroes their gradient (cl/optim.cl), so
+      gradient buffers never need a dense zero-fill. ``state``: RMSProp's mean square.
+    - ``adam``: param [n]; ``step(None, lr, t=t)`` updates every entry with bias correction for
+      the 1-based update count t. ``state`` / ``state2``: the first / second moments (beta,
+      beta2 their decay rates). The gradient is not reset (the MLP backward overwrites it).
+
+    >>> opt = Optimizer(dev, grid.density)              # RMSProp over rows
+    >>> opt.step(touched, lr=0.1, clear_touched=False)
+    >>> adam = Optimizer(dev, net.params, "adam", beta=0.9, beta2=0.999, eps=1e-7, grad=net.grad)
+    >>> adam.step(None, 5e-4, t=1)
     """
 
-    def __init__(self, device, param, mode="rmsprop", beta=0.95, eps=1e-8, state=None):
+    def __init__(self, device, param, mode="rmsprop", beta=0.95, eps=1e-8, state=None,
+                 grad=None, beta2=0.999, state2=None):
         if mode not in MODES:
             raise ValueError(f"optimizer: '{mode}' is not one of {sorted(MODES)}")
         self.device = device
         self.mode = mode
         self.beta = float(beta)
+        self.beta2 = float(beta2)
         self.eps = float(eps)
         self.param = param
-        self.grad = cla.zeros_like(param)
+        self.grad = grad if grad is not None else cla.zeros_like(param)
         self.state = state if state is not None else cla.zeros_like(param)
+        self.state2 = None
+        if mode == "adam":
+            self.state2 = state2 if state2 is not None else cla.zeros_like(param)
 
-    def step(self, touched, lr, clear_touched):
+    def _kernel(self, name):
+        return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
+
+    def step(self, touched, lr, clear_touched=False, t: int = 1):
+        if self.mode == "adam":
+            n = int(self.param.size)
+            bc1, bc2 = 1.0 - self.beta ** t, 1.0 - self.beta2 ** t
+            launch(self.device, self._kernel("adam_step"), n,
+                   (np.int32(n), self.param.data, self.grad.data, self.state.data,
+                    self.state2.data, np.float32(lr), np.float32(self.beta),
+                    np.float32(self.beta2), np.float32(self.eps), np.float32(bc1),
+                    np.float32(bc2)), ADAM_LOCAL_SIZE)
+            return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]
-        k = self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel("update_rows")
-        launch(self.device, k, n,
+        launch(self.device, self._kernel("update_rows"), n,
                (np.int32(n), np.int32(D), self.param.data, self.grad.data, self.state.data,
                 touched.data, np.float32(lr), np.float32(self.beta), np.float32(self.eps),
                 np.int32(bool(clear_touched))))

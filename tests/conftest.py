@@ -13,6 +13,20 @@ def device():
 
 
 @pytest.fixture(scope="session")
+def device_gpu_path(device):
+    """The session device running the GPU code path of the grid backward on any device: float
+    atomics into the gradient buffers (grad_slots 0), no per-sample record."""
+    return device.with_tuning(grad_slots=0, sample_record=False)
+
+
+@pytest.fixture(scope="session", params=["default_path", "gpu_path"])
+def render_device(request, device, device_gpu_path):
+    """Both code paths of the grid backward: the device's own tuning (on CPU devices private
+    gradient copies + the per-sample record) and the GPU path."""
+    return device if request.param == "default_path" else device_gpu_path
+
+
+@pytest.fixture(scope="session")
 def data_dir():
     """$CLRF_DATA (the shared real scenes); tests that need it skip with the reason if unset."""
     p = os.environ.get("CLRF_DATA")

@@ -4,7 +4,7 @@ import pytest
 
 from clrf.cameras import (distort, look_at, orbit_poses, pixel_rays, spiral_poses, to_ndc,
                           undistort)
-from tolerances import CAMERA_ATOL, UNDISTORT_ATOL
+from clrf.testing.tolerances import CAMERA_ATOL, UNDISTORT_ATOL
 
 # The fox capture's OpenCV coefficients (instant-ngp data/nerf/fox/transforms.json).
 FOX_DISTORTION = (0.0578421, -0.0805099, -0.000980296, 0.00015575)

@@ -5,7 +5,7 @@ import pytest
 
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.synthetic import ProceduralScene, load_procedural
-from tolerances import PROCEDURAL_ATOL
+from clrf.testing.tolerances import PROCEDURAL_ATOL
 
 
 def _rigid(poses, tol=1e-4):

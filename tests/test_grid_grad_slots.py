@@ -10,9 +10,9 @@ import pyopencl.array as cla
 import pytest
 
 import clrf
-from clrf import reference
-from clrf.render import grad_slots, render_backward_device
-from tolerances import GRAD_ATOL, GRAD_RTOL
+from clrf.testing import reference
+from clrf.grid.render import grad_slots, render_backward_device
+from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -32,8 +32,9 @@ def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6):
 
 @pytest.mark.parametrize("slots", [0, 1, 2, 3])
 @pytest.mark.parametrize("grad_mode", [0, 1])
-def test_grad_slots_match_reference(device, monkeypatch, slots, grad_mode):
-    monkeypatch.setenv("CLRF_GRAD_SLOTS", str(slots))
+@pytest.mark.parametrize("record", [False, True])
+def test_grad_slots_match_reference(device, slots, grad_mode, record):
+    device = device.with_tuning(grad_slots=slots, sample_record=record)
     dens, sh, mask, o, d = _scene()
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
     assert grad_slots(grid) == slots

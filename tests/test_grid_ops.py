@@ -4,10 +4,11 @@ import pyopencl.array as cla
 import pytest
 
 import clrf
-from clrf import grid_ops, reference as ref
-from clrf.optim import RowOptimizer, expon_lr
+from clrf.grid import ops as grid_ops
+from clrf.testing import reference as ref
+from clrf.optim import Optimizer, expon_lr
 
-from tolerances import FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
+from clrf.testing.tolerances import FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
 
 BBOX = np.array([[-1.0] * 3, [1.0] * 3])
 
@@ -35,7 +36,7 @@ def test_update_rows_vs_reference(device, mode):
     touched = (rng.random(n) < 0.6).astype(np.uint8)
     touched[3] = touched[4] = 1
     param = cla.to_device(q, p0)
-    opt = RowOptimizer(device, param, mode=mode, state=cla.to_device(q, s0))
+    opt = Optimizer(device, param, mode=mode, state=cla.to_device(q, s0))
     opt.grad.set(g)
     tch = cla.to_device(q, touched)
     opt.step(tch, lr=0.1, clear_touched=True)
@@ -55,7 +56,7 @@ def test_update_rows_vs_reference(device, mode):
 def test_update_rows_1d_and_first_step(device):
     q = device.queue
     p = cla.to_device(q, np.array([1.0, 2.0, 3.0], np.float32))
-    opt = RowOptimizer(device, p)
+    opt = Optimizer(device, p)
     opt.grad.set(np.array([4.0, -0.5, 0.0], np.float32))
     opt.step(cla.to_device(q, np.ones(3, np.uint8)), lr=0.5, clear_touched=False)
     # RMSProp's first step is +-lr (state = g^2): 1 - 0.5, 2 + 0.5, untouched 3
@@ -69,7 +70,7 @@ def test_rmsprop_first_step_tiny_and_huge_gradients(device, eps):
     q = device.queue
     g = np.array([1e-30, -1e-30, 1e-20, 1e-40, 3.0, -0.1234567, 1e20, 1e38, -1e38], np.float32)
     p = cla.to_device(q, np.zeros(g.size, np.float32))
-    opt = RowOptimizer(device, p, eps=eps)
+    opt = Optimizer(device, p, eps=eps)
     opt.grad.set(g)
     opt.step(cla.to_device(q, np.ones(g.size, np.uint8)), lr=0.1, clear_touched=True)
     got = p.get()
@@ -88,7 +89,7 @@ def test_nan_gradient_is_skipped(device, mode):
     parameter by +1e17."""
     q = device.queue
     p = cla.to_device(q, np.ones((2, 2), np.float32))
-    opt = RowOptimizer(device, p, mode=mode)
+    opt = Optimizer(device, p, mode=mode)
     opt.grad.set(np.array([[np.nan, 1.0], [np.nan, np.nan]], np.float32))
     opt.step(cla.to_device(q, np.ones(2, np.uint8)), lr=0.1, clear_touched=True)
     np.testing.assert_allclose(p.get(), [[1.0, 0.9], [1.0, 1.0]], rtol=1e-6)
@@ -263,7 +264,7 @@ def test_gather_batch_vs_reference(device):
 def test_fused_mse_and_beta_prior_vs_reference(device, lambda_beta):
     """Training's fused backward (GRAD_MODE 1): MSE against targets plus the beta prior on each
     ray's transmittance, against the float64 reference (analytic) and finite differences."""
-    from clrf.render import render_backward_device
+    from clrf.grid.render import render_backward_device
     rng = np.random.default_rng(11)
     grid, dens, sh, alloc = sparse_grid(device, rng, (4, 5, 3), degree=1, empty_frac=0.2)
     n = 64

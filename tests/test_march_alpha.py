@@ -1,9 +1,9 @@
-"""alpha_of_tau (cl/march.h: series below 0.5, 1 - exp(-tau) above) against float64
+"""alpha_of_tau (cl/common.h: series below 0.5, 1 - exp(-tau) above) against float64
 -expm1(-tau) from 1e-30 to 1e30: within 2 float32 ulp of the exact value everywhere."""
 import numpy as np
 import pyopencl.array as cla
 
-from clrf.render import grid_program
+from clrf.grid.render import grid_program
 from clrf.programs import launch
 
 

@@ -3,9 +3,9 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf import nerf_ops as ops
-from clrf import reference_nerf as ref
-import tolerances as tol
+from clrf.nerf import ops
+from clrf.testing import reference_nerf as ref
+from clrf.testing import tolerances as tol
 
 
 @pytest.mark.parametrize("n", [0, 1, 7, 65])

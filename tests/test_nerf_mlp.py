@@ -3,9 +3,9 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf import reference_nerf as ref
-from clrf.mlp import MLP, MLPSpec
-import tolerances as tol
+from clrf.testing import reference_nerf as ref
+from clrf.nerf.mlp import MLP, MLPSpec
+from clrf.testing import tolerances as tol
 
 # tiny networks: skip into layer 1 with softplus everywhere; no skip with ReLU; a chunk of
 # 16 rows so that the partial-sum reduction of the weight gradient has several chunks.

@@ -3,9 +3,9 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf import nerf_ops as ops
 from clrf.nerf import NerfConfig, NerfModel
-import tolerances as tol
+from clrf.optim import Optimizer
+from clrf.testing import tolerances as tol
 
 # a very small model so that each step takes milliseconds
 TEST_CFG = NerfConfig.preset("tiny", width=32, depth=2, color_width=16, pos_freqs=4,
@@ -22,7 +22,9 @@ def test_adam_matches_reference(device):
     m[:5] = v[:5] = 0.0
     q = device.queue
     pd, md, vd, gd = (cla.to_device(q, a.astype(np.float32)) for a in (p, m, v, g))
-    ops.adam_step(device, pd, gd, md, vd, lr=1e-3, step=3, beta1=0.9, beta2=0.999, eps=1e-7)
+    opt = Optimizer(device, pd, "adam", beta=0.9, beta2=0.999, eps=1e-7, state=md, grad=gd,
+                    state2=vd)
+    opt.step(None, lr=1e-3, t=3)
     m2 = 0.9 * m + 0.1 * g
     v2 = 0.999 * v + 0.001 * g * g
     p2 = p - 1e-3 * (m2 / (1 - 0.9 ** 3)) / (np.sqrt(v2 / (1 - 0.999 ** 3)) + 1e-7)

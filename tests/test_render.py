@@ -3,13 +3,14 @@ import numpy as np
 import pytest
 
 import clrf
-from clrf import reference as ref
-from clrf.render import LOCAL_SIZE
+from clrf.testing import reference as ref
+from clrf.tuning import Tuning
 
-from tolerances import (CLOSED_FORM_ATOL, DEPTH_ATOL, DEPTH_RTOL, FD_ATOL, FD_RTOL, GRAD_ATOL,
-                        GRAD_RTOL, RENDER_ATOL, RENDER_RTOL)
+from clrf.testing.tolerances import (CLOSED_FORM_ATOL, DEPTH_ATOL, DEPTH_RTOL, FD_ATOL, FD_RTOL,
+                                     GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL)
 
 BBOX = np.array([[-1.0, -1.2, -0.9], [1.1, 1.0, 1.0]])
+LOCAL_SIZE = Tuning().grid_local_size   # ray counts around one work-group
 
 
 def random_grid(rng, shape, degree, empty_frac=0.0, dens_hi=3.0):
@@ -79,12 +80,13 @@ def test_forward_128_cubed(device):
 
 
 @pytest.mark.parametrize("degree", [0, 2, 3])
-def test_backward_vs_finite_differences(device, degree):
-    """Tiny grid: kernel gradient == reference analytic gradient == central differences."""
+def test_backward_vs_finite_differences(render_device, degree):
+    """Tiny grid: kernel gradient == reference analytic gradient == central differences, on
+    both backward code paths (render_device)."""
     rng = np.random.default_rng(10 + degree)
     shape = (2, 3, 2)
     dens, sh = random_grid(rng, shape, degree, dens_hi=2.0)
-    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    grid = clrf.SparseGrid.from_dense(render_device, dens, sh, BBOX)
     o, d = random_rays(rng, 24, spread=2.0)
     g = rng.normal(size=(24, 3)).astype(np.float32)
     bg = (0.3, 0.6, 0.1)
@@ -102,11 +104,11 @@ def test_backward_vs_finite_differences(device, degree):
 
 
 @pytest.mark.parametrize("degree", [1, 2])
-def test_backward_vs_reference_medium(device, degree):
+def test_backward_vs_reference_medium(render_device, degree):
     rng = np.random.default_rng(20 + degree)
     shape = (9, 8, 10)
     dens, sh = random_grid(rng, shape, degree, empty_frac=0.3, dens_hi=1.5)
-    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
+    grid = clrf.SparseGrid.from_dense(render_device, dens, sh, BBOX)
     o, d = random_rays(rng, 300)
     g = rng.normal(size=(300, 3)).astype(np.float32)
     kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=(1, 1, 1))
@@ -225,7 +227,7 @@ def test_dense_roundtrip_and_validation(device):
 
 def test_max_weight_vs_reference(device):
     import pyopencl.array as cla
-    from clrf.render import render_max_weight_device
+    from clrf.grid.render import render_max_weight_device
     rng = np.random.default_rng(7)
     dens, sh = random_grid(rng, (5, 6, 7), 0, empty_frac=0.3)
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)

@@ -1,11 +1,10 @@
-"""Numerical stability: the whole case matrix of tools/stability.py at quick sizes.
+"""Numerical stability: the whole case matrix of tools/stability/ at quick sizes.
 
 One test per case. A case passes when every comparison it makes is within its documented
-tolerance (tests/tolerances.py, stability section) and no output or gradient is non-finite.
+tolerance (clrf/testing/tolerances.py, stability section) and no output or gradient is non-finite.
 Cases that document a known kernel bug carry ``xfail`` (strict: they must keep failing, for the
 stated reason, until the kernel is fixed; a crash is never an expected failure).
 """
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -14,18 +13,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load_tool():
-    name = "clrf_tools_stability"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / "stability.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod          # dataclasses look the module up while it executes
-    spec.loader.exec_module(mod)
-    return mod
-
-
-stab = _load_tool()
+sys.path.insert(0, str(ROOT / "tools"))
+import stability as stab  # noqa: E402  (the package tools/stability/)
 
 
 class StabilityFailure(AssertionError):

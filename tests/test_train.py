@@ -15,7 +15,7 @@ import clrf
 from clrf import checkpoint
 from clrf.cli import main as cli
 from clrf.config import ConfigError, build_config
-from clrf.model_grid import GridModel
+from clrf.grid.model import GridModel
 
 ROOT = Path(__file__).resolve().parent.parent
 # A small, fast schedule for the built-in scene: 16^3 -> 32^3 after 8 iterations.

@@ -14,8 +14,7 @@ then repeats until the timing is stable (relative inter-quartile range below ``-
 ``--min-repeats``) or a cap (``--max-repeats``, ``--max-seconds``), and records the median and
 the min-max. The device peaks (copy and triad bandwidth, float16 FMA throughput, cl/bench.cl)
 are measured at the start and at the end of the run; every throughput is also given as a
-ratio to them, because this class of machine sometimes halves everything at once
-(docs/perf-notes.md 1.2).
+ratio to them, because this class of machine sometimes halves everything at once.
 
 Adding benchmarks: append Specs (and, for a new kind, a factory registered with
 ``@factory("kind")``). Kernels that have not landed are left out by name: a Spec whose
@@ -26,7 +25,7 @@ that defines ``bench_suite(api)`` returning Specs (``api`` is this module, for `
 
 Peers (optional dependencies, skipped with the reason when not importable) run on identical
 inputs after their outputs were checked against clrf's: the float64 numpy reference
-(clrf.reference, small sizes), tools/peers/torch_grid.py (PyTorch CPU, autograd backward)
+(clrf.testing.reference, small sizes), tools/peers/torch_grid.py (PyTorch CPU, autograd backward)
 and tools/peers/taichi_grid.py (Taichi CPU).
 """
 from __future__ import annotations
@@ -58,9 +57,9 @@ ROOT = TOOLS.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(TOOLS))
 import clrf  # noqa: E402
-from clrf import reference  # noqa: E402
-from clrf.render import (render_backward_device, render_forward_device,  # noqa: E402
-                         render_rays)
+from clrf.testing import reference  # noqa: E402
+from clrf.grid.render import (render_backward_device, render_forward_device,  # noqa: E402
+                              render_rays)
 import bench_scenes as scenes  # noqa: E402
 
 EXTERNAL_SUITES = ["nerf_bench"]   # modules in tools/ that may define bench_suite(api)
@@ -262,7 +261,7 @@ def _clrf_reference_outputs(grid, o, d, p, target):
     return fwd["rgb"], gd.get()[:n], gs.get()[:n]
 
 
-# Peer-vs-clrf agreement: both are float32 (rgb: same error budget as tests/tolerances.py
+# Peer-vs-clrf agreement: both are float32 (rgb: same error budget as clrf/testing/tolerances.py
 # RENDER_*; gradients: GRAD_*, relative to the largest gradient since sums run in other orders).
 PEER_RGB_ATOL = 2e-5
 PEER_GRAD_ATOL_REL = 1e-4
@@ -303,7 +302,7 @@ def _peer_numpy(ctx, p):
                                             self.p["step"], (1, 1, 1))["rgb"]
 
         def describe(self):
-            return f"clrf.reference (numpy {np.__version__}, float64)"
+            return f"clrf.testing.reference (numpy {np.__version__}, float64)"
     if p.get("mode", "fwd") != "fwd":
         raise Skip("the numpy reference backward is not a fused MSE step; forward only")
     return _peer_case(ctx, p, Ref)
@@ -327,7 +326,7 @@ def _peer_taichi(ctx, p):
     return _peer_case(ctx, p, taichi_grid.TaichiGrid)
 
 
-# ---- training kernels (main: clrf.grid_ops, clrf.optim, clrf.model_grid) ----------------------
+# ---- training kernels (main: clrf.grid.ops, clrf.optim, clrf.grid.model) ----------------------
 def _touched_all(dev, n):
     t = cla.empty(dev.queue, n, np.uint8)
     t.fill(1)
@@ -338,7 +337,7 @@ def _touched_all(dev, n):
 def _train_tv(ctx, p):
     """tv_grad over every cell of the grid (density and SH), as one training step does over a
     window: cells/s. Adds into zeroed-once gradient buffers (not reset per repetition)."""
-    from clrf import grid_ops
+    from clrf.grid import ops as grid_ops
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
     q = dev.queue
@@ -359,12 +358,12 @@ def _train_tv(ctx, p):
 
 @factory("train.optim")
 def _train_optim(ctx, p):
-    """RowOptimizer.step (RMSProp) over every row of density and SH (all touched): rows/s."""
-    from clrf.optim import RowOptimizer
+    """Optimizer.step (RMSProp) over every row of density and SH (all touched): rows/s."""
+    from clrf.optim import Optimizer
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
-    od = RowOptimizer(dev, grid.density.copy(), "rmsprop")
-    osh = RowOptimizer(dev, grid.sh.copy(), "rmsprop")
+    od = Optimizer(dev, grid.density.copy(), "rmsprop")
+    osh = Optimizer(dev, grid.sh.copy(), "rmsprop")
     touched = _touched_all(dev, grid.density.shape[0])
 
     def run():
@@ -380,7 +379,7 @@ def _train_optim(ctx, p):
 @factory("train.upsample")
 def _train_upsample(ctx, p):
     """grid_ops.resample to twice the resolution (all rows kept): output cells/s."""
-    from clrf import grid_ops
+    from clrf.grid import ops as grid_ops
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
     new = tuple(2 * r for r in grid.reso)
@@ -396,7 +395,7 @@ def _train_upsample(ctx, p):
 def _train_prune(ctx, p):
     """Pruning: max rendering weight over n_rays camera rays, threshold + dilation, rebuild
     (grid_ops.max_weight + grid_ops.prune): cells/s of the grid."""
-    from clrf import grid_ops
+    from clrf.grid import ops as grid_ops
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
     o, d = _rays(p)
@@ -414,7 +413,7 @@ def _train_step(ctx, p):
     """One full Plenoxels training step (GridModel.train_step: fused render backward, TV,
     RMSProp on density and SH, per-batch MSE read back) on a batch of random rays: rays/s."""
     from clrf.config import GridConfig
-    from clrf.model_grid import GridModel
+    from clrf.grid.model import GridModel
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
     q = dev.queue
@@ -441,22 +440,22 @@ def _train_step(ctx, p):
 def _train_specs():
     base = {"reso": 128, "degree": 2, "occupancy": 1.0, "step": 0.5}
     quick = {"reso": 16, "n_rays": 64}
-    need_ops = (("clrf.grid_ops", "tv_grad"),)
+    need_ops = (("clrf.grid.ops", "tv_grad"),)
     return [
         Spec("train/tv/128/sh2/dense", "train.tv", dict(base), "cells/s", dict(quick), need_ops),
         Spec("train/optim/128/sh2/dense", "train.optim", dict(base), "rows/s", dict(quick),
-             (("clrf.optim", "RowOptimizer"),)),
+             (("clrf.optim", "Optimizer"),)),
         Spec("train/upsample/64to128/sh2/dense", "train.upsample", dict(base, reso=64),
-             "cells/s", dict(quick, reso=8), (("clrf.grid_ops", "resample"),)),
+             "cells/s", dict(quick, reso=8), (("clrf.grid.ops", "resample"),)),
         Spec("train/prune/128/sh2/dense", "train.prune",
              dict(base, rays="camera", n_rays=65536), "cells/s", dict(quick),
-             (("clrf.grid_ops", "prune"),)),
+             (("clrf.grid.ops", "prune"),)),
         Spec("train/step/128/sh2/dense/random", "train.step",
              dict(base, rays="random", n_rays=5000), "rays/s", dict(quick),
-             (("clrf.model_grid", "GridModel"),)),
+             (("clrf.grid.model", "GridModel"),)),
         Spec("train/step/128/sh2/pruned5/random", "train.step",
              dict(base, occupancy=0.05, rays="random", n_rays=5000), "rays/s", dict(quick),
-             (("clrf.model_grid", "GridModel"),)),
+             (("clrf.grid.model", "GridModel"),)),
     ]
 
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from clrf import reference  # noqa: E402
-from clrf.benchmark import camera_rays  # noqa: E402,F401  (same view as `clrf bench`)
+from clrf.testing import reference  # noqa: E402
+from clrf.testing.benchmark import camera_rays  # noqa: E402,F401  (same view as `clrf bench`)
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 DENSITY_MAX_128 = 0.05   # raw density upper bound at 128^3 (optical depth ~5 along a diagonal)
@@ -120,7 +120,7 @@ def count_samples(links, origins, dirs, bbox, step, chunk_points: int = 1 << 20)
 
 
 def grid_bytes_per_sample(degree, backward):
-    """Bytes requested per evaluated sample with no reuse between samples (perf-notes 7.1):
+    """Bytes requested per evaluated sample with no reuse between samples:
     8 links + 8 rows of (1 + SH_DIM) floats; fwd+bwd gathers twice and reads + writes the
     8 gradient rows."""
     row = 4 * (1 + 3 * (degree + 1) ** 2)
@@ -129,7 +129,7 @@ def grid_bytes_per_sample(degree, backward):
 
 
 def grid_flop_per_sample(degree, backward):
-    """Floating-point operations per evaluated sample (model, perf-notes 7.1): interpolation
+    """Floating-point operations per evaluated sample (a model): interpolation
     8 x (1 + SH_DIM) FMAs, SH dot and colour 2 x SH_DIM, ~70 for weights, exp and compositing;
     fwd+bwd: the forward twice plus the corner-gradient accumulation (again 8 x (1 + SH_DIM)
     FMAs), the coefficient gradient 2 x SH_DIM and ~40 for the density gradient."""

@@ -25,7 +25,7 @@ import numpy as np
 import pyopencl.array as cla
 
 import clrf
-from clrf.mlp import MLP, MLPSpec
+from clrf.nerf.mlp import MLP, MLPSpec
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)
     "nerf-8x256-skip4": MLPSpec(width=256, depth=8, skip=4, color_width=128, in_dim=63, dir_dim=27),
@@ -60,14 +60,13 @@ def timed(fn, repeats):
 
 
 def fma_peak(dev, repeats):
-    prg = dev.program("bench_fma.cl", {"FMA_CHAINS": 8})
-    k = prg.kernel("fma_peak")
     n_items, iters = 64 * dev.caps.compute_units, 20000
+    prg = dev.program("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": iters})
+    k = prg.kernel("bench_fma")
     out = cla.empty(dev.queue, n_items, np.float32)
 
     def run():
-        k(dev.queue, (n_items,), (1,), np.int32(iters), np.float32(0.999), np.float32(1e-3),
-          out.data)
+        k(dev.queue, (n_items,), (1,), out.data, np.float32(0.999), np.float32(1e-3))
         dev.queue.finish()
 
     med, lo, hi = timed(run, repeats)
@@ -213,7 +212,7 @@ def bench_suite(api):
     """Specs for tools/bench.py: encoding, fused MLP forward and forward+backward (flop-counted,
     so bench.py reports GFLOP/s and the ratio to the FMA peak of the same run), numpy float32
     matmul on the same layer shapes, and one whole NeRF training step."""
-    from clrf import nerf_ops
+    from clrf.nerf import ops as nerf_ops
 
     @api.factory("nerf.encode")
     def _encode(ctx, p):

@@ -35,7 +35,3 @@ class Dataset:
     @property
     def hw(self):
         return self.images.shape[1:3]
-
-    def subset(self, split: str):
-        idx = self.split[split]
-        return self.images[idx], self.poses[idx]

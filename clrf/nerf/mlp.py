@@ -16,12 +16,12 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch
+from ..programs import launch
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
-FUSED_LOCAL_SIZE = 1      # work-items per group for the fused kernels: big private tiles
 GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of this much A + G
-ELEMENTWISE_LOCAL_SIZE = 64
+# Work-group sizes come from device.tuning (clrf/tuning.py): mlp_fused_local_size (big private
+# tiles: 1) and elementwise_local_size.
 
 
 @dataclass(frozen=True)
@@ -170,7 +170,8 @@ class MLP:
     def sync_params(self):
         """Refresh the transposed copy the forward reads; call after every update of params."""
         launch(self.device, self._k["mlp_transpose"], self.layout.n_params,
-               (self.params.data, self.params_t.data), ELEMENTWISE_LOCAL_SIZE)
+               (self.params.data, self.params_t.data),
+               self.device.tuning.elementwise_local_size)
 
     def set_params(self, params: np.ndarray):
         self.params.set(np.ascontiguousarray(params, np.float32))
@@ -188,7 +189,7 @@ class MLP:
         self._n = n
         launch(self.device, self._k["mlp_forward"], self.n_rows(n) // self.layout.rows,
                (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
-                sigma.data, rgb.data), FUSED_LOCAL_SIZE)
+                sigma.data, rgb.data), self.device.tuning.mlp_fused_local_size)
         return sigma, rgb
 
     def backward(self, dsigma, drgb, grad=None, accumulate=False, want_input=False):
@@ -243,16 +244,8 @@ class MLP:
         k = self._k["mlp_reduce"]
         k.set_args(np.int32(n_chunks), self.partial.data, grad.data, np.int32(bool(accumulate)))
         ng = self.layout.n_params // 16
-        ls = ELEMENTWISE_LOCAL_SIZE
+        ls = self.device.tuning.elementwise_local_size
         cl.enqueue_nd_range_kernel(self.device.queue, k, ((ng + ls - 1) // ls * ls,), (ls,))
-
-    def weight_grad(self, grad, accumulate=False):
-        """Weight and bias gradients of the last forward/backward pair into grad (all chunks;
-        backward() already does this, interleaved)."""
-        rows = self.n_rows(self._n)
-        n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
-        self._weight_grad_chunks(rows, 0, n_chunks)
-        self._reduce(grad, n_chunks, accumulate)
 
     def spec_dict(self) -> dict:
         return asdict(self.spec)

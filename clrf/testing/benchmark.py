@@ -17,9 +17,9 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import reference
-from .device import Device
-from .grid import SparseGrid
-from .render import render_backward_device, render_forward_device
+from ..device import Device
+from ..grid import SparseGrid
+from ..grid.render import render_backward_device, render_forward_device
 
 
 def camera_rays(side, dist=3.0, fov_deg=40.0, seed=0):

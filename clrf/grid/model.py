@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from . import grid_ops
-from .config import GridConfig
+from . import ops as grid_ops
+from ..config import GridConfig
 from .grid import SparseGrid, sh_dim
-from .optim import RowOptimizer, expon_lr
+from ..optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
 
 
@@ -51,9 +51,9 @@ class GridModel:
         self.grid = grid
         q = self.device.queue
         st = opt_state or {}
-        self.opt_density = RowOptimizer(self.device, grid.density, self.cfg.optimizer,
+        self.opt_density = Optimizer(self.device, grid.density, self.cfg.optimizer,
                                         self.cfg.rms_beta, state=st.get("density"))
-        self.opt_sh = RowOptimizer(self.device, grid.sh, self.cfg.optimizer, self.cfg.rms_beta,
+        self.opt_sh = Optimizer(self.device, grid.sh, self.cfg.optimizer, self.cfg.rms_beta,
                                    state=st.get("sh"))
         self.touched = cla.zeros(q, grid.density.shape[0], np.uint8)
         self._sqerr = None

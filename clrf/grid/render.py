@@ -5,26 +5,21 @@ take and return pyopencl arrays and are what training uses (no host copies per b
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch
-from .validate import check_array, check_positive, check_rays
+from ..programs import launch
+from ..validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
-LOCAL_SIZE = 32        # rays per work-group; one value keeps PoCL's JIT count low
 # Rays that can have more samples than this get compensated (Kahan) accumulators (COMPENSATED_SUMS
 # in cl/march.h): plain float32 sums drift like n * 6e-8, 5e-4 relative at 8192 samples.
 LONG_RAY_SAMPLES = 8192
 # The kernels count samples in int; a step that would need more than this per ray is rejected.
 MAX_SAMPLES_PER_RAY = 2.0 ** 30
-PREFETCH_AHEAD = int(os.environ.get("CLRF_PREFETCH_AHEAD", 3))  # samples ahead (march.h)
-PREFETCH_LINKS_AHEAD = int(os.environ.get("CLRF_PREFETCH_LINKS_AHEAD", 2 * PREFETCH_AHEAD))
-REDUCE_LOCAL_SIZE = 256  # rows per work-group of grad_slots_reduce
-BLOCK = int(os.environ.get("CLRF_BLOCK", 8))  # empty-space blocks of BLOCK^3 cells (0: off)
+# Work-group sizes, prefetch, block skipping and the gradient path come from grid.device.tuning
+# (clrf/tuning.py).
 
 
 def check_step(grid, step) -> float:
@@ -38,22 +33,17 @@ def check_step(grid, step) -> float:
 
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
-                 slots: int = 0, step: float = 0.5):
+                 slots: int = 0, step: float = 0.5, record: bool = False):
+    """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
+    record: the backward reads the forward's per-sample record, needs slots > 0)."""
+    t = grid.device.tuning
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
+        "SAMPLE_RECORD": int(bool(record) and slots > 0),
         "COMPENSATED_SUMS": int(max_samples_per_ray(grid.reso, step) > LONG_RAY_SAMPLES),
-        "CLRF_PREFETCH": int(_prefetch(grid.device)), "PREFETCH_AHEAD": PREFETCH_AHEAD,
-        "PREFETCH_LINKS_AHEAD": PREFETCH_LINKS_AHEAD, "BLOCK": BLOCK})
-
-
-def _prefetch(dev) -> bool:
-    """Software prefetch in the march (__builtin_prefetch): PoCL CPU devices only (clang-based;
-    other compilers need not know the builtin). ``CLRF_PREFETCH=0`` turns it off."""
-    env = os.environ.get("CLRF_PREFETCH", "").strip()
-    if env:
-        return env != "0"
-    return dev.is_cpu and "pocl" in dev.caps.platform_version.lower()
+        "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
+        "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block})
 
 
 def _bg4(background):
@@ -64,27 +54,23 @@ def _bg4(background):
 
 
 def grad_slots(grid) -> int:
-    """Private gradient copies for render_backward (GRAD_SLOTS): one per compute unit on CPU
-    devices (PoCL runs one work-item at a time per compute unit, so no atomics are needed),
-    0 (float atomics) on other devices or when the copies would not fit in a quarter of the
-    device memory. ``CLRF_GRAD_SLOTS`` overrides the count."""
+    """Private gradient copies for render_backward (GRAD_SLOTS): ``tuning.grad_slots`` (one
+    per compute unit on CPU devices, where PoCL runs one work-item at a time per compute unit
+    so no atomics are needed; 0, float atomics, elsewhere), 0 when the copies would not fit in
+    a quarter of the device memory."""
     caps = grid.device.caps
-    env = os.environ.get("CLRF_GRAD_SLOTS")
-    if env is not None and env.strip() != "":
-        s = int(env)
-    else:
-        s = caps.compute_units if grid.device.is_cpu else 0
+    s = max(0, int(grid.device.tuning.grad_slots))
     row_bytes = 4 * (1 + grid.sh_dim) + 1
     if s > 0 and s * grid.density.shape[0] * row_bytes > caps.global_mem_size // 4:
         s = 0
-    return max(0, s)
+    return s
 
 
 def _slot_buffers(grid, slots):
     """Zeroed slot buffers (allocated once per grid and row count; the kernels leave them zero)."""
     n = grid.density.shape[0]
     key = (slots, n, grid.sh_dim)
-    cache = grid.__dict__.setdefault("_grad_slot_buffers", {})
+    cache = grid.scratch.setdefault("grad_slot_buffers", {})
     if key not in cache:
         cache.clear()
         q = grid.device.queue
@@ -97,18 +83,19 @@ def _slot_buffers(grid, slots):
 def block_occupancy(grid):
     """(occ uint8 device array, oreso int4): which BLOCK^3-cell blocks have an allocated corner
     (cl/grid_render.cl block_occupancy). Built once per links buffer and cached on the grid;
-    a grid whose links are rewritten in place must drop ``grid._block_occupancy``."""
-    ob = [max(1, -(-r // BLOCK)) if BLOCK > 0 else 1 for r in grid.reso]
-    key = (grid.links.data.int_ptr, BLOCK, tuple(grid.reso))
-    cached = grid.__dict__.get("_block_occupancy")
+    a grid whose links are rewritten in place must drop ``grid.scratch["block_occupancy"]``."""
+    block = grid.device.tuning.block
+    ob = [max(1, -(-r // block)) if block > 0 else 1 for r in grid.reso]
+    key = (grid.links.data.int_ptr, block, tuple(grid.reso))
+    cached = grid.scratch.get("block_occupancy")
     if cached is None or cached[0] != key:
         occ = cla.zeros(grid.device.queue, int(np.prod(ob)), np.uint8)
         oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], 0)
-        if BLOCK > 0:
+        if block > 0:
             launch(grid.device, grid_program(grid).kernel("block_occupancy"), occ.size,
                    (grid.geometry_args()[0], oreso, grid.links.data, occ.data), 64)
         cached = (key, occ, oreso)
-        grid._block_occupancy = cached
+        grid.scratch["block_occupancy"] = cached
     return cached[1], cached[2]
 
 
@@ -120,7 +107,7 @@ def max_samples_per_ray(reso, step) -> int:
 def _record_buffer(grid, slots, rec_max):
     """Per-slot sample records of the backward march: float [slots, rec_max, 8] (march.h)."""
     key = (slots, rec_max)
-    cache = grid.__dict__.setdefault("_grad_record_buffers", {})
+    cache = grid.scratch.setdefault("grad_record_buffers", {})
     if key not in cache:
         cache.clear()
         cache[key] = cla.empty(grid.device.queue, slots * rec_max * 8, np.float32)
@@ -140,7 +127,7 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
                        np.float32(step), _bg4(background), out["rgb"].data, out["depth"].data,
-                       out["acc"].data, occ.data, oreso), LOCAL_SIZE)
+                       out["acc"].data, occ.data, oreso), dev.tuning.grid_local_size)
     return out
 
 
@@ -160,32 +147,35 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     if n == 0:
         return
     slots = grad_slots(grid)
-    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step)
-    if ray_out is None:
-        # GRAD_MODE 1 writes the per-ray loss: never alias it onto ray_in (the targets), which
-        # other work-items may still be reading.
-        ray_out = cla.empty(dev.queue, max(n, 1), np.float32) if grad_mode == 1 else ray_in_d
-    dummy = ray_out
-    tch = touched if touched is not None else grid.links
+    record = slots > 0 and dev.tuning.sample_record
+    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step, record=record)
+    args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+            grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
+            ray_in_d.data]
+    if grad_mode == 1:
+        # the per-ray loss: never aliased onto ray_in (the targets), which other work-items
+        # may still be reading
+        if ray_out is None:
+            ray_out = cla.empty(dev.queue, max(n, 1), np.float32)
+        args += [ray_out.data, np.float32(loss_scale), np.float32(beta_scale)]
+    args += [grad_density.data, grad_sh.data]
+    if touched is not None:
+        args.append(touched.data)
     n_rows = grid.density.shape[0]
-    occ, oreso = block_occupancy(grid)
     if slots:
         sd, ss, st, lock = _slot_buffers(grid, slots)
-        rec_max = max_samples_per_ray(grid.reso, step)
-        rec = _record_buffer(grid, slots, rec_max)
-    else:   # unused by the kernel
-        sd, ss, st, lock, rec, rec_max = grad_density, grad_sh, tch, grid.links, grad_density, 0
-    launch(dev, prg.kernel("render_backward"), n,
-           (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
-            grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
-            ray_in_d.data, dummy.data, np.float32(loss_scale), np.float32(beta_scale),
-            grad_density.data, grad_sh.data,
-            tch.data, np.int32(n_rows), sd.data, ss.data, st.data, lock.data, rec.data,
-            np.int32(rec_max), occ.data, oreso), LOCAL_SIZE)
+        args += [np.int32(n_rows), sd.data, ss.data, st.data, lock.data]
+        if record:
+            rec_max = max_samples_per_ray(grid.reso, step)
+            args += [_record_buffer(grid, slots, rec_max).data, np.int32(rec_max)]
+    occ, oreso = block_occupancy(grid)
+    args += [occ.data, oreso]
+    launch(dev, prg.kernel("render_backward"), n, args, dev.tuning.grid_local_size)
     if slots:
+        tch = touched if touched is not None else st   # not read without TRACK_TOUCHED
         launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
-                tch.data), REDUCE_LOCAL_SIZE)
+                tch.data), dev.tuning.reduce_local_size)
 
 
 def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
@@ -237,4 +227,5 @@ def render_max_weight_device(grid, origins_d, dirs_d, step, maxw):
     occ, oreso = block_occupancy(grid)
     launch(dev, grid_program(grid, step=step).kernel("render_max_weight"), n,
            (np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
-            *grid.geometry_args(), np.float32(step), maxw.data, occ.data, oreso), LOCAL_SIZE)
+            *grid.geometry_args(), np.float32(step), maxw.data, occ.data, oreso),
+           dev.tuning.grid_local_size)

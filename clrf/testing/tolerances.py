@@ -27,7 +27,7 @@ FD_RTOL = 1e-5
 
 # Early termination: the march stops once transmittance < T_STOP, so closed forms that assume
 # a full march (slab opacity) are exact only up to T_STOP.
-from clrf.render import T_STOP  # noqa: E402
+from clrf.grid.render import T_STOP  # noqa: E402
 
 CLOSED_FORM_ATOL = T_STOP + 1e-6
 
@@ -54,7 +54,7 @@ STAB_ZERO_ATOL = 0.0
 STAB_CLOSED_FORM_RTOL = 1e-5
 # Opacity against 1 - exp(-sigma L) relative to itself, for rays that do not terminate early
 # (tiny sigma: acc ~ sigma L ~ 1e-12 must still be right to float32 precision). acc is a float32
-# sum of N <= 300 terms, each T_k alpha_k with ~3u error (expm1, exp of the Kahan log-T, product):
+# sum of N <= 300 terms, each T_k alpha_k with ~3u error (alpha, exp of the Kahan log-T, product):
 # worst case (N/2 + 3) u = 9e-6. Segment lengths telescope exactly (consecutive segment ends are
 # the same float and s1 - s0 is exact for k >= 1), so a missing or doubled piece of path
 # (>= one step, i.e. >= 1/N relative) fails by orders of magnitude.
@@ -108,7 +108,7 @@ STAB_OPT_LONG_NORM = 1e-5
 STAB_OPT_LONG_STATE_RTOL = 1e-5
 
 # ============================================================================================
-# NeRF (cl/encode.cl, cl/mlp.cl, cl/sample.cl, cl/composite.cl, cl/optim_adam.cl)
+# NeRF (cl/encode.cl, cl/mlp.cl, cl/sample.cl, cl/composite.cl, cl/optim.cl)
 # ============================================================================================
 
 # Encoding vs float64: sinpi/cospi of an exactly scaled float32 argument are accurate to a few

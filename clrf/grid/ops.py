@@ -6,7 +6,7 @@ import pyopencl.array as cla
 from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
-from .programs import launch
+from ..programs import launch
 from .render import render_max_weight_device
 
 TV_EPS = 1e-9
@@ -107,9 +107,7 @@ def resample(grid, new_reso, keep=None) -> SparseGrid:
     launch(dev, prg.kernel("resample_fill"), total,
            (nr, orr, grid.links.data, keep.data, links.data, np.int32(D), grid.density.data,
             grid.sh.data, nd.data, ns.data))
-    g = SparseGrid(dev, links, nd, ns, grid.bbox, grid.sh_degree)
-    g._n_rows = n
-    return g
+    return SparseGrid(dev, links, nd, ns, grid.bbox, grid.sh_degree, n_rows=n)
 
 
 def _reso4(r):

@@ -1,5 +1,5 @@
 """Thin host wrappers of the NeRF-path kernels other than the MLP (cl/encode.cl, cl/sample.cl,
-cl/composite.cl, cl/optim_adam.cl). All take and return pyopencl arrays (float32, C order);
+cl/composite.cl). All take and return pyopencl arrays (float32, C order);
 shapes are in each docstring and the math in the kernel file headers.
 
 >>> t = sample_stratified(dev, n=2, K=4, near=2.0, far=6.0)     # jitter off: bin centres
@@ -12,11 +12,10 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch
+from ..programs import launch
 
-ELEMENTWISE_LOCAL_SIZE = 64  # items with no loop: PoCL vectorises across the group
-PER_RAY_LOCAL_SIZE = 16      # one ray per item, with a loop over its samples
-ENCODE_LOCAL_SIZE = 8        # encode_forward: explicitly vectorised items (16 points each)
+# Work-group sizes come from device.tuning (clrf/tuning.py): elementwise_local_size,
+# per_ray_local_size, encode_local_size.
 
 
 def enc_dim(n_freqs: int, include_input: bool = True) -> int:
@@ -38,7 +37,7 @@ def encode(device, x, n_freqs: int, include_input: bool = True, scale: float = 1
     out = out if out is not None else _empty(device, (n, enc_dim(n_freqs, include_input)))
     prg = _encode_prg(device, n_freqs, include_input)
     launch(device, prg.kernel("encode_forward"), 3 * max(n_freqs, 1) * ((n + 15) // 16),
-           (np.int32(n), np.float32(scale), x.data, out.data), ENCODE_LOCAL_SIZE)
+           (np.int32(n), np.float32(scale), x.data, out.data), device.tuning.encode_local_size)
     return out
 
 
@@ -49,7 +48,8 @@ def encode_backward(device, x, grad_out, n_freqs: int, include_input: bool = Tru
     gx = _empty(device, (n, 3))
     prg = _encode_prg(device, n_freqs, include_input)
     launch(device, prg.kernel("encode_backward"), n,
-           (np.int32(n), np.float32(scale), x.data, grad_out.data, gx.data), ELEMENTWISE_LOCAL_SIZE)
+           (np.int32(n), np.float32(scale), x.data, grad_out.data, gx.data),
+           device.tuning.elementwise_local_size)
     return gx
 
 
@@ -63,7 +63,7 @@ def sample_stratified(device, n: int, K: int, near: float, far: float, jitter: b
     out = out if out is not None else _empty(device, (n, K))
     launch(device, _sample_prg(device).kernel("sample_stratified"), n * K,
            (np.int32(n), np.int32(K), np.float32(near), np.float32(far), np.int32(bool(jitter)),
-            np.uint32(key), out.data), ELEMENTWISE_LOCAL_SIZE)
+            np.uint32(key), out.data), device.tuning.elementwise_local_size)
     return out
 
 
@@ -76,7 +76,7 @@ def sample_importance(device, t_c, weights, Nf: int, near: float, far: float,
     launch(device, _sample_prg(device).kernel("sample_importance"), n,
            (np.int32(n), np.int32(Kc), np.int32(Nf), np.float32(near), np.float32(far),
             t_c.data, weights.data, np.int32(bool(jitter)), np.uint32(key), out.data),
-           PER_RAY_LOCAL_SIZE)
+           device.tuning.per_ray_local_size)
     return out
 
 
@@ -86,7 +86,8 @@ def merge_sorted(device, a, b, out=None):
     Kb = int(b.shape[1])
     out = out if out is not None else _empty(device, (n, Ka + Kb))
     launch(device, _sample_prg(device).kernel("merge_sorted"), n,
-           (np.int32(n), np.int32(Ka), np.int32(Kb), a.data, b.data, out.data), PER_RAY_LOCAL_SIZE)
+           (np.int32(n), np.int32(Ka), np.int32(Kb), a.data, b.data, out.data),
+           device.tuning.per_ray_local_size)
     return out
 
 
@@ -97,7 +98,7 @@ def ray_points(device, origins, dirs, t, xyz=None, vdir=None):
     vdir = vdir if vdir is not None else _empty(device, (n * K, 3))
     launch(device, _sample_prg(device).kernel("ray_points"), n * K,
            (np.int32(n), np.int32(K), origins.data, dirs.data, t.data, xyz.data, vdir.data),
-           ELEMENTWISE_LOCAL_SIZE)
+           device.tuning.elementwise_local_size)
     return xyz, vdir
 
 
@@ -118,7 +119,7 @@ def composite_forward(device, t, sigma, rgb, far: float, background=(0, 0, 0),
     launch(device, prg.kernel("composite_forward"), n,
            (np.int32(n), np.int32(K), np.float32(far), t.data, sigma.data, rgb.data,
             _bg4(background), out["rgb"].data, out["depth"].data, out["acc"].data,
-            out["weights"].data if want_weights else None), PER_RAY_LOCAL_SIZE)
+            out["weights"].data if want_weights else None), device.tuning.per_ray_local_size)
     return out
 
 
@@ -140,18 +141,5 @@ def composite_backward(device, t, sigma, rgb, far: float, ray_in, background=(0,
            (np.int32(n), np.int32(K), np.float32(far), t.data, sigma.data, rgb.data,
             _bg4(background), ray_in.data, out["sq_err"].data if mse else None,
             np.float32(loss_scale), out["sigma"].data, out["rgb"].data,
-            out["weights"].data if "weights" in out else None), PER_RAY_LOCAL_SIZE)
+            out["weights"].data if "weights" in out else None), device.tuning.per_ray_local_size)
     return out
-
-
-def adam_step(device, p, g, m, v, lr: float, step: int, beta1=0.9, beta2=0.999, eps=1e-7):
-    """One in-place Adam update of p with gradient g and moments m, v (all [n]); ``step`` is the
-    1-based update count used for bias correction."""
-    n = int(p.shape[0])
-    bc1 = 1.0 - beta1 ** step
-    bc2 = 1.0 - beta2 ** step
-    prg = device.program("optim_adam.cl", {})
-    launch(device, prg.kernel("adam_step"), n,
-           (np.int32(n), p.data, g.data, m.data, v.data, np.float32(lr), np.float32(beta1),
-            np.float32(beta2), np.float32(eps), np.float32(bc1), np.float32(bc2)),
-           ELEMENTWISE_LOCAL_SIZE)

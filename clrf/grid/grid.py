@@ -16,7 +16,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .validate import as_bbox, check_array
+from ..validate import as_bbox, check_array
 
 SH_DIMS = {3 * (d + 1) ** 2: d for d in range(4)}
 
@@ -28,7 +28,8 @@ def sh_dim(degree: int) -> int:
 class SparseGrid:
     """Sparse SH voxel grid on a device. Build with ``from_dense`` or ``from_arrays``."""
 
-    def __init__(self, device, links, density, sh, bbox, sh_degree: int):
+    def __init__(self, device, links, density, sh, bbox, sh_degree: int,
+                 n_rows: int | None = None):
         self.device = device
         self.links = links
         self.density = density
@@ -36,6 +37,11 @@ class SparseGrid:
         self.bbox = as_bbox(bbox)
         self.sh_degree = int(sh_degree)
         self.reso = tuple(int(r) for r in links.shape)
+        # allocated rows (the buffers keep >= 1 row, so a fully pruned grid has n_rows 0)
+        self._n_rows = int(density.shape[0]) if n_rows is None else int(n_rows)
+        # device buffers the render wrappers (render.py) keep between calls: block occupancy,
+        # gradient slots, sample records; keyed so a changed links buffer or size rebuilds them
+        self.scratch = {}
 
     # ---- construction -------------------------------------------------------------------
     @classmethod
@@ -90,15 +96,13 @@ class SparseGrid:
         pad = 1 if n == 0 else 0
         dens = np.concatenate([density_rows, np.zeros(pad, np.float32)])
         shr = np.concatenate([sh_rows, np.zeros((pad, sh_rows.shape[1]), np.float32)])
-        g = cls(device, cla.to_device(q, links), cla.to_device(q, dens), cla.to_device(q, shr),
-                bbox, SH_DIMS[sh_rows.shape[1]])
-        g._n_rows = n
-        return g
+        return cls(device, cla.to_device(q, links), cla.to_device(q, dens), cla.to_device(q, shr),
+                   bbox, SH_DIMS[sh_rows.shape[1]], n_rows=n)
 
     # ---- properties ---------------------------------------------------------------------
     @property
     def n_rows(self) -> int:
-        return getattr(self, "_n_rows", int(self.density.shape[0]))
+        return self._n_rows
 
     @property
     def sh_dim(self) -> int:

@@ -20,11 +20,7 @@ SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633
 
 
 # ---- safe math (twins of cl/common.h) ----------------------------------------------------
-def safe_exp(x):
-    return np.exp(np.minimum(x, 80.0))
-
-
-def alpha_from_tau(tau):
+def alpha_of_tau(tau):
     return -np.expm1(-tau)
 
 
@@ -153,7 +149,7 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
         tau = sigma * delta
         pre = np.einsum("ncb,nb->nc", co.reshape(-1, 3, B), Y[rays]) + COLOR_OFFSET
         c = np.maximum(pre, 0.0)
-        wgt = np.exp(logT[rays]) * alpha_from_tau(tau)
+        wgt = np.exp(logT[rays]) * alpha_of_tau(tau)
         rgb[rays] += wgt[:, None] * c
         acc[rays] += wgt
         depth[rays] += wgt * (m["t0"][rays] + mid)

@@ -1,7 +1,8 @@
-/* reduce.cl: accurate sum of squared differences sum_i (x_i - y_i)^2 over float32 arrays.
- *
- * Used by clrf/reduce.py for the loss and PSNR over millions of rays, where a float32 running
- * sum loses ~log2(n) bits. Two accumulators, chosen at build time:
+/* reduce.h: the terms and the merge of an accurate sum of squared differences
+ * sum_i (x_i - y_i)^2 over float32 arrays, for pyopencl's ReductionKernel (clrf/metrics.py
+ * sum_squares: map_expr sq_diff(x[i], y[i]), reduce_expr acc_add(a, b), neutral ACC_ZERO).
+ * A float32 running sum loses ~log2(n) bits over millions of rays. Two accumulators, chosen at
+ * build time:
  *
  *   REDUCE_FP64 1  each difference is formed in double (exact for two floats), squared and
  *                  summed in double. Relative error ~ n * 1.1e-16.
@@ -10,25 +11,16 @@
  *                  the square's rounding error from fma; pairs merge with Knuth's TwoSum on the
  *                  heads, so only the small tails are rounded (a double-float sum).
  *
- * Layout: x, y float [n]; partial [n_groups] (double, or float2 (hi, lo)), one per work-group.
- * Work-item g of group w sums elements i = w*REDUCE_WG + g, stepping by the global size, then the
- * group reduces its REDUCE_WG partials in a tree in local memory. The host adds the n_groups
- * (<= a few hundred) partials in float64.
- *
  * Requires IEEE round-to-nearest: never build with -cl-fast-relaxed-math (TwoSum would fold).
  *
- * Defines read: REDUCE_FP64 (0/1), REDUCE_WG (work-group size, a power of two).
+ * Defines read: REDUCE_FP64 (0/1).
  */
+#ifndef CLRF_REDUCE_H
+#define CLRF_REDUCE_H
+
 #ifndef REDUCE_FP64
 #define REDUCE_FP64 0   /* 1: double accumulation (needs cl_khr_fp64); 0: compensated float32 */
 #endif
-#ifndef REDUCE_WG
-#define REDUCE_WG 64    /* work-group size the kernel is launched with (power of two) */
-#endif
-#if (REDUCE_WG & (REDUCE_WG - 1)) != 0
-#error "REDUCE_WG must be a power of two"
-#endif
-
 #if REDUCE_FP64
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 typedef double acc_t;
@@ -60,19 +52,4 @@ inline acc_t sq_diff(float a, float b) {
 }
 #endif
 
-__kernel __attribute__((reqd_work_group_size(REDUCE_WG, 1, 1)))
-void sum_sq_diff_partial(const long n, __global const float *x, __global const float *y,
-                         __global acc_t *partial) {
-    __local acc_t scratch[REDUCE_WG];
-    const size_t lid = get_local_id(0);
-    const size_t stride = get_global_size(0);
-    acc_t s = ACC_ZERO;
-    for (long i = get_global_id(0); i < n; i += stride) s = acc_add(s, sq_diff(x[i], y[i]));
-    scratch[lid] = s;
-    barrier(CLK_LOCAL_MEM_FENCE);
-    for (int w = REDUCE_WG / 2; w > 0; w >>= 1) {  /* "half" is a type name */
-        if (lid < (size_t)w) scratch[lid] = acc_add(scratch[lid], scratch[lid + w]);
-        barrier(CLK_LOCAL_MEM_FENCE);
-    }
-    if (lid == 0) partial[get_group_id(0)] = scratch[0];
-}
+#endif /* CLRF_REDUCE_H */

@@ -22,7 +22,8 @@ from dataclasses import asdict, dataclass, fields, replace
 import numpy as np
 import pyopencl.array as cla
 
-from . import nerf_ops as ops
+from . import ops
+from ..optim import Optimizer
 from .mlp import MLP, MLPSpec
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
@@ -100,12 +101,6 @@ def _key(seed: int, it: int, stream: int) -> int:
     return int(x >> 32)
 
 
-class _Adam:
-    def __init__(self, net: MLP):
-        self.m = cla.zeros_like(net.params)
-        self.v = cla.zeros_like(net.params)
-
-
 class NerfModel:
     """Coarse + fine NeRF on one device; see the module docstring for the step."""
 
@@ -130,7 +125,9 @@ class NerfModel:
         spec = config.mlp_spec()
         self.coarse = MLP(device, spec, seed=self.seed)
         self.fine = self.coarse if config.shared_net else MLP(device, spec, seed=self.seed + 1)
-        self._adam = {id(n): _Adam(n) for n in self._nets()}
+        self._adam = {id(n): Optimizer(device, n.params, "adam", beta=config.beta1,
+                                       beta2=config.beta2, eps=config.adam_eps, grad=n.grad)
+                      for n in self._nets()}
 
     def _nets(self):
         return [self.coarse] if self.fine is self.coarse else [self.coarse, self.fine]
@@ -180,9 +177,7 @@ class NerfModel:
             sq_err = fb["sq_err"]
         lr = self.lr_at(it)
         for net in self._nets():
-            st = self._adam[id(net)]
-            ops.adam_step(dev, net.params, net.grad, st.m, st.v, lr, self.step + 1, c.beta1,
-                          c.beta2, c.adam_eps)
+            self._adam[id(net)].step(None, lr, t=self.step + 1)
             net.sync_params()
         self.step += 1
         return float(np.sum(sq_err.get(), dtype=np.float64) * scale)
@@ -190,7 +185,7 @@ class NerfModel:
     def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
         """Evaluation render (no jitter) of numpy rays [n, 3]; numpy rgb [n,3], depth [n],
         acc [n] of the fine pass (the coarse pass when n_fine == 0)."""
-        from .validate import check_rays
+        from ..validate import check_rays
         o, d = check_rays(origins, dirs)
         if np.any(np.max(np.abs(d), axis=1) == 0):
             raise ValueError("dirs: every direction must be non-zero")
@@ -242,8 +237,8 @@ class NerfModel:
                 continue
             a = self._adam[id(net)]
             st[f"{name}_params"] = net.params.get()
-            st[f"{name}_adam_m"] = a.m.get()
-            st[f"{name}_adam_v"] = a.v.get()
+            st[f"{name}_adam_m"] = a.state.get()
+            st[f"{name}_adam_v"] = a.state2.get()
         return st
 
     @classmethod
@@ -257,8 +252,8 @@ class NerfModel:
             if name == "fine" and net is model.coarse:
                 continue
             for key, arr in ((f"{name}_params", net.params),
-                             (f"{name}_adam_m", model._adam[id(net)].m),
-                             (f"{name}_adam_v", model._adam[id(net)].v)):
+                             (f"{name}_adam_m", model._adam[id(net)].state),
+                             (f"{name}_adam_v", model._adam[id(net)].state2)):
                 v = np.asarray(state[key], np.float32)
                 if v.shape != arr.shape:
                     raise ValueError(f"state_dict[{key!r}]: shape {v.shape}, the config needs "

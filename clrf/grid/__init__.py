@@ -1,0 +1,6 @@
+"""Plenoxels: the sparse SH voxel grid (grid.py), its render kernels' host wrappers (render.py),
+training ops on it (ops.py: total variation, pruning, resampling) and the training model
+(model.py) the trainer drives. Kernels: cl/grid_render.cl, cl/march.h, cl/grid_ops.cl."""
+from .grid import SparseGrid, sh_dim
+
+__all__ = ["SparseGrid", "sh_dim"]

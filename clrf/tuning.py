@@ -1,0 +1,83 @@
+"""Per-device tuning: the work-group sizes, code-path switches and prefetch distances the kernel
+wrappers pass to the kernels as ``-D`` defines or launch sizes.
+
+The Device builds one ``Tuning`` (``dev.tuning``) from its capabilities with
+``Tuning.for_device``; the wrappers read it and nothing else. Environment overrides are read
+in one place, ``Tuning.from_env`` (called by the Device), and only these variables:
+
+  CLRF_GRAD_SLOTS            grad_slots (0 = float atomics, the GPU path)
+  CLRF_SAMPLE_RECORD         sample_record (0 / 1)
+  CLRF_PREFETCH              prefetch (0 / 1)
+  CLRF_PREFETCH_AHEAD        prefetch_ahead
+  CLRF_PREFETCH_LINKS_AHEAD  prefetch_links_ahead
+  CLRF_BLOCK                 block (0 = no empty-block skipping)
+  CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
+
+>>> t = Tuning.for_device(dev.caps)
+>>> gpu_path = t.replace(grad_slots=0, sample_record=False)
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+
+ENV = {
+    "CLRF_GRAD_SLOTS": ("grad_slots", int),
+    "CLRF_SAMPLE_RECORD": ("sample_record", lambda v: v != "0"),
+    "CLRF_PREFETCH": ("prefetch", lambda v: v != "0"),
+    "CLRF_PREFETCH_AHEAD": ("prefetch_ahead", int),
+    "CLRF_PREFETCH_LINKS_AHEAD": ("prefetch_links_ahead", int),
+    "CLRF_BLOCK": ("block", int),
+    "CLRF_FAST_MATH": ("fast_math", lambda v: v != "0"),
+}
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """How the kernels run on one device. Results do not depend on it (except fast_math)."""
+
+    grid_local_size: int = 32      # rays per work-group of the grid render kernels
+    grad_slots: int = 0            # render_backward: N > 0 private gradient copies (one per
+    #                                compute unit: the CPU path, no atomics); 0 float atomics
+    #                                into the gradient buffers (the GPU path)
+    sample_record: bool = False    # backward reads the forward march's per-sample record
+    #                                (needs grad_slots > 0: the record lives in the slot)
+    prefetch: bool = False         # software prefetch in the march (__builtin_prefetch: clang)
+    prefetch_ahead: int = 3        # samples ahead for a cell's rows (~1.5 voxels at step 0.5)
+    prefetch_links_ahead: int = 6  # samples ahead for a cell's links
+    block: int = 8                 # empty-space skipping over block^3-cell blocks (0: off)
+    reduce_local_size: int = 256   # rows per work-group of grad_slots_reduce
+    mlp_fused_local_size: int = 1  # work-items per group of the fused MLP kernels (big tiles)
+    elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group
+    per_ray_local_size: int = 16   # one ray per work-item with a loop over its samples
+    encode_local_size: int = 8     # encode_forward: explicitly vectorised items (16 points)
+    fast_math: bool = False        # -cl-fast-relaxed-math (off: results follow the references)
+
+    @classmethod
+    def for_device(cls, caps) -> "Tuning":
+        """Defaults from capabilities: CPU devices get one private gradient copy per compute
+        unit and the per-sample record; PoCL CPU devices (clang) get software prefetch."""
+        cpu = caps.type == "cpu"
+        return cls(grad_slots=caps.compute_units if cpu else 0, sample_record=cpu,
+                   prefetch=cpu and "pocl" in caps.platform_version.lower())
+
+    @classmethod
+    def from_env(cls, caps, environ=None) -> "Tuning":
+        """for_device, then the CLRF_* overrides listed in the module docstring."""
+        environ = os.environ if environ is None else environ
+        t, kw = cls.for_device(caps), {}
+        for var, (field, conv) in ENV.items():
+            v = environ.get(var, "").strip()
+            if v:
+                try:
+                    kw[field] = conv(v)
+                except ValueError:
+                    raise ValueError(f"{var}={v!r}: expected an integer") from None
+        if "prefetch_ahead" in kw and "prefetch_links_ahead" not in kw:
+            kw["prefetch_links_ahead"] = 2 * kw["prefetch_ahead"]
+        return t.replace(**kw)
+
+    def replace(self, **kw) -> "Tuning":
+        """A copy with the given fields changed."""
+        return dataclasses.replace(self, **kw)

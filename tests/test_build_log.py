@@ -1,0 +1,41 @@
+"""Every kernel file builds with an empty compiler log (no warnings) on this device, with the
+defines the library and tools use: users never see compiler output, and a warning introduced
+in cl/ fails here instead of being hidden by the filter in clrf/programs.py."""
+import itertools
+
+import pytest
+
+from clrf.nerf.mlp import MLPSpec
+from clrf.programs import build, build_log
+
+
+def _grid_render():
+    base = {"SH_DEGREE": 2, "GRAD_MODE": 0, "GRAD_SLOTS": 0, "SAMPLE_RECORD": 0,
+            "TRACK_TOUCHED": 0, "COMPENSATED_SUMS": 0, "CLRF_PREFETCH": 1, "T_STOP": 1e-4,
+            "BLOCK": 8}
+    for deg in (0, 1, 3):
+        yield {**base, "SH_DEGREE": deg}
+    for mode, (slots, rec), touched in itertools.product((0, 1), ((0, 0), (2, 0), (2, 1)),
+                                                         (0, 1)):
+        yield {**base, "GRAD_MODE": mode, "GRAD_SLOTS": slots, "SAMPLE_RECORD": rec,
+               "TRACK_TOUCHED": touched}
+    yield {**base, "COMPENSATED_SUMS": 1, "CLRF_PREFETCH": 0, "BLOCK": 0}
+
+
+# (file, defines) for every program the library and tools build, grid_render.cl over the
+# combinations of its switches that change which code is compiled.
+CASES = ([("grid_render.cl", d) for d in _grid_render()]
+         + [("grid_ops.cl", {"SH_DEGREE": d, "TV_EPS": 1e-9}) for d in (0, 1, 2, 3)]
+         + [("composite.cl", {"GRAD_MODE": m}) for m in (0, 1)]
+         + [("encode.cl", {"ENC_FREQS": f, "ENC_INCLUDE_INPUT": 1}) for f in (4, 10)]
+         + [("sample.cl", {}), ("batch.cl", {}), ("probe.cl", {}), ("bench.cl", {}),
+            ("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": 20000})]
+         + [("optim.cl", {"OPT_MODE": m}) for m in (0, 1, 2)]
+         + [("mlp.cl", MLPSpec().defines())])
+
+
+@pytest.mark.parametrize("source,defines", CASES,
+                         ids=[f"{s}-{i}" for i, (s, _) in enumerate(CASES)])
+def test_build_log_empty(device, source, defines):
+    prg = build(device, source, defines)
+    assert build_log(prg.cl_program, device) == "", f"{source} {defines}"
