@@ -221,7 +221,8 @@ class Device:
         key = (source, tuple(sorted((defines or {}).items())), self.tuning.fast_math)
         prg = self._programs.get(key)
         if prg is None:
-            prg = self._programs[key] = build(self, source, defines or {}, self.tuning.fast_math)
+            prg = self._programs[key] = build(self, source, defines or {}, self.tuning.fast_math,
+                                              self.tuning.verbose_build)
         return prg
 
     def finish(self):

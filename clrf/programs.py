@@ -3,13 +3,12 @@
 ``Device.program`` caches the built programs per (source file, defines, options); across
 processes pyopencl's binary cache (keyed on source, included headers, options and driver) and
 PoCL's own kernel cache make a rebuild cost tens of milliseconds. A failed build raises
-``BuildError`` carrying the compiler log; a successful one prints nothing unless
-``CLRF_VERBOSE_BUILD=1`` (or the CLI's ``--verbose``), which shows every non-empty build log.
+``BuildError`` carrying the compiler log; a successful one prints nothing unless the device's
+tuning has ``verbose_build`` (``CLRF_VERBOSE_BUILD=1``), which shows every non-empty build log.
 The kernels build without warnings on PoCL (tests/test_build_log.py).
 """
 from __future__ import annotations
 
-import os
 import sys
 import warnings
 from pathlib import Path
@@ -48,14 +47,10 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def verbose_build() -> bool:
-    """Whether build logs are shown (``CLRF_VERBOSE_BUILD=1``, set by the CLI's --verbose)."""
-    return os.environ.get("CLRF_VERBOSE_BUILD", "").strip() not in ("", "0")
-
-
-def build(device, source: str, defines: dict, fast_math: bool = False):
+def build(device, source: str, defines: dict, fast_math: bool = False, verbose: bool = False):
     """The program for ``cl/<source>`` built for ``device`` with ``defines`` (the capability
-    defines of build_options added), not cached: callers use ``Device.program``."""
+    defines of build_options added), not cached: callers use ``Device.program``. verbose:
+    print a non-empty compiler log to stderr."""
     allopts = dict(build_options(device))
     allopts.update(defines)
     path = cl_dir() / source
@@ -74,7 +69,7 @@ def build(device, source: str, defines: dict, fast_math: bool = False):
             prg = cl.Program(device.context, src).build(options=opts)
     except cl.RuntimeError as e:
         raise BuildError(f"building {path} with {' '.join(opts)} failed:\n{e}") from e
-    if verbose_build():
+    if verbose:
         log = build_log(prg, device)
         if log:
             print(f"clrf: build log of {source} ({' '.join(opts[1:])}):\n{log}", file=sys.stderr)

@@ -12,6 +12,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_PREFETCH_LINKS_AHEAD  prefetch_links_ahead
   CLRF_BLOCK                 block (0 = no empty-block skipping)
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
+  CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print every non-empty compiler log)
 
 >>> t = Tuning.for_device(dev.caps)
 >>> gpu_path = t.replace(grad_slots=0, sample_record=False)
@@ -30,6 +31,7 @@ ENV = {
     "CLRF_PREFETCH_LINKS_AHEAD": ("prefetch_links_ahead", int),
     "CLRF_BLOCK": ("block", int),
     "CLRF_FAST_MATH": ("fast_math", lambda v: v != "0"),
+    "CLRF_VERBOSE_BUILD": ("verbose_build", lambda v: v != "0"),
 }
 
 
@@ -53,6 +55,7 @@ class Tuning:
     per_ray_local_size: int = 16   # one ray per work-item with a loop over its samples
     encode_local_size: int = 8     # encode_forward: explicitly vectorised items (16 points)
     fast_math: bool = False        # -cl-fast-relaxed-math (off: results follow the references)
+    verbose_build: bool = False    # print non-empty compiler logs (they are empty on PoCL)
 
     @classmethod
     def for_device(cls, caps) -> "Tuning":

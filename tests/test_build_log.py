@@ -39,3 +39,11 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
 def test_build_log_empty(device, source, defines):
     prg = build(device, source, defines)
     assert build_log(prg.cl_program, device) == "", f"{source} {defines}"
+
+
+def test_verbose_build_prints_only_non_empty_logs(device, capsys, monkeypatch):
+    build(device, "probe.cl", {}, verbose=True)
+    assert capsys.readouterr().err == ""     # clean build: nothing shown even when verbose
+    monkeypatch.setattr("clrf.programs.build_log", lambda prg, dev: "warning: stand-in log")
+    build(device, "probe.cl", {}, verbose=True)
+    assert "probe.cl" in capsys.readouterr().err

@@ -1,0 +1,321 @@
+"""The benchmark factories: device peaks (cl/bench.cl), the grid renderer, peers on identical
+inputs, and the training kernels."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+import clrf
+from clrf.testing import reference
+from clrf.grid.render import (render_backward_device, render_forward_device,
+                              render_rays)
+import bench_scenes as scenes
+
+from .framework import Case, Skip, Spec, _compare, _grid_work, _rays, factory
+
+
+# ---- peaks (cl/bench.cl) --------------------------------------------------------------------
+@factory("peak.bandwidth")
+def _peak_bandwidth(ctx, p):
+    dev = ctx.dev
+    n = (int(p["mbytes"] * 2 ** 20) // 4) // 16 * 16
+    prg = dev.program("bench.cl")
+    q = dev.queue
+    a = cla.empty(q, n, np.float32)
+    b = cla.zeros(q, n, np.float32) + 1.0
+    c = cla.zeros(q, n, np.float32) + 2.0
+    if p["op"] == "copy":
+        k = prg.kernel("bench_copy")
+        args, nbytes = (a.data, b.data), 2 * 4 * n
+    else:
+        k = prg.kernel("bench_triad")
+        args, nbytes = (a.data, b.data, c.data, np.float32(3.0)), 3 * 4 * n
+    k.set_args(*args)
+    keep = (a, b, c)   # the kernel holds raw buffers: keep the arrays alive with the case
+
+    def run():
+        cl.enqueue_nd_range_kernel(q, k, (n // 16,), None, wait_for=None)
+        q.finish()
+        return keep
+    return Case(run, {"bytes": nbytes}, {"mbytes_per_array": n * 4 / 2 ** 20})
+
+
+@factory("peak.fma")
+def _peak_fma(ctx, p):
+    dev = ctx.dev
+    iters, chains = p["iters"], 8
+    prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains})
+    q = dev.queue
+    n = p["items"]
+    out = cla.empty(q, n, np.float32)
+    k = prg.kernel("bench_fma")
+    k.set_args(out.data, np.float32(0.999), np.float32(1e-3))
+
+    def run():
+        cl.enqueue_nd_range_kernel(q, k, (n,), None)
+        q.finish()
+        return out
+    return Case(run, {"flop": 2 * 16 * chains * iters * n}, {"items": n})
+
+
+# ---- clrf grid renderer ---------------------------------------------------------------------
+@factory("grid.render")
+def _grid_render(ctx, p):
+    """params: reso, degree, occupancy, rays ('camera'/'random'), n_rays, step,
+    mode ('fwd', 'fwdbwd' = fused MSE backward (GRAD_MODE 1, what training runs),
+    'fwdbwd_g' = backward given dL/drgb (GRAD_MODE 0)). The gradient buffers are zeroed once
+    at set-up, never per repetition (training keeps them zero except for touched rows)."""
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    o, d = _rays(p)
+    q = dev.queue
+    od, dd = cla.to_device(q, o), cla.to_device(q, d)
+    step, bg = p["step"], (1.0, 1.0, 1.0)
+    work = _grid_work(p, links, o, d)
+    mode = p.get("mode", "fwd")
+    check = None
+    if p["reso"] <= 32:   # small: check the kernel against the float64 reference first
+        dn, shd = scenes.dense_from_rows(links, dens, sh)
+        ref = reference.render_forward(dn, shd, scenes.BBOX, o, d, step, bg)
+        got = render_rays(grid, o, d, step, bg)
+        check = _compare(got["rgb"], ref["rgb"], 2e-5, 1e-5)
+    if mode == "fwd":
+        out = render_forward_device(grid, od, dd, step, bg)
+
+        def run():
+            render_forward_device(grid, od, dd, step, bg, out)
+            dev.finish()
+    else:
+        rng = np.random.default_rng(2)
+        ray_in = cla.to_device(q, rng.uniform(0, 1, (o.shape[0], 3)).astype(np.float32))
+        ray_out = cla.empty(q, o.shape[0], np.float32)
+        gd = cla.zeros(q, grid.density.shape[0], np.float32)
+        gs = cla.zeros(q, grid.sh.shape, np.float32)
+        gm = 1 if mode == "fwdbwd" else 0
+        scale = 1.0 / o.shape[0]
+
+        def run():
+            render_backward_device(grid, od, dd, ray_in, step, bg, gd, gs, grad_mode=gm,
+                                   loss_scale=scale, ray_out=ray_out)
+            dev.finish()
+    info = {"rows": grid.n_rows, "grid_mb": grid.n_rows * (1 + grid.sh_dim) * 4 / 2 ** 20,
+            "samples_per_ray": work["samples"] / max(1, work["rays"])}
+    return Case(run, work, info, check)
+
+
+# ---- peers ------------------------------------------------------------------------------------
+def _peer_inputs(ctx, p):
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    o, d = _rays(p)
+    return links, dens, sh, grid, o, d
+
+
+def _clrf_reference_outputs(grid, o, d, p, target):
+    """clrf's rgb and (fused MSE) row gradients on the peer's inputs, as numpy."""
+    q = grid.device.queue
+    fwd = render_rays(grid, o, d, p["step"], (1, 1, 1))
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
+                           cla.to_device(q, target), p["step"], (1, 1, 1), gd, gs,
+                           grad_mode=1, loss_scale=1.0 / o.shape[0])
+    n = grid.n_rows
+    return fwd["rgb"], gd.get()[:n], gs.get()[:n]
+
+
+# Peer-vs-clrf agreement: both are float32 (rgb: same error budget as clrf/testing/tolerances.py
+# RENDER_*; gradients: GRAD_*, relative to the largest gradient since sums run in other orders).
+PEER_RGB_ATOL = 2e-5
+PEER_GRAD_ATOL_REL = 1e-4
+
+
+def _peer_case(ctx, p, make_peer):
+    links, dens, sh, grid, o, d = _peer_inputs(ctx, p)
+    rng = np.random.default_rng(2)
+    target = rng.uniform(0, 1, (o.shape[0], 3)).astype(np.float32)
+    peer = make_peer(links, dens, sh, o, d, p, target)
+    mode = p.get("mode", "fwd")
+    rgb_c, gd_c, gs_c = _clrf_reference_outputs(grid, o, d, p, target)
+    res = peer.forward()
+    check = {"rgb": _compare(res, rgb_c, PEER_RGB_ATOL, 1e-5)}
+    if mode != "fwd":
+        gd_p, gs_p = peer.forward_backward()
+        scale_d = max(1e-30, float(np.abs(gd_c).max()))
+        scale_s = max(1e-30, float(np.abs(gs_c).max()))
+        check["grad_density"] = _compare(gd_p, gd_c, PEER_GRAD_ATOL_REL * scale_d, 1e-3)
+        check["grad_sh"] = _compare(gs_p, gs_c, PEER_GRAD_ATOL_REL * scale_s, 1e-3)
+    check["ok"] = all(v["ok"] for v in check.values() if isinstance(v, dict))
+    if not check["ok"]:
+        raise Skip(f"peer disagrees with clrf, not timed: {check}")
+    run = peer.forward if mode == "fwd" else peer.forward_backward
+    work = _grid_work(p, links, o, d)
+    return Case(run, work, {"peer": peer.describe()}, check)
+
+
+@factory("peer.numpy_ref")
+def _peer_numpy(ctx, p):
+    class Ref:
+        def __init__(self, links, dens, sh, o, d, p, target):
+            self.dn, self.sh = scenes.dense_from_rows(links, dens, sh)
+            self.o, self.d, self.p = o, d, p
+
+        def forward(self):
+            return reference.render_forward(self.dn, self.sh, scenes.BBOX, self.o, self.d,
+                                            self.p["step"], (1, 1, 1))["rgb"]
+
+        def describe(self):
+            return f"clrf.testing.reference (numpy {np.__version__}, float64)"
+    if p.get("mode", "fwd") != "fwd":
+        raise Skip("the numpy reference backward is not a fused MSE step; forward only")
+    return _peer_case(ctx, p, Ref)
+
+
+@factory("peer.torch")
+def _peer_torch(ctx, p):
+    try:
+        from peers import torch_grid
+    except ImportError as e:
+        raise Skip(f"torch peer unavailable: {e}") from None
+    return _peer_case(ctx, p, torch_grid.TorchGrid)
+
+
+@factory("peer.taichi")
+def _peer_taichi(ctx, p):
+    try:
+        from peers import taichi_grid
+    except ImportError as e:
+        raise Skip(f"taichi peer unavailable: {e}") from None
+    return _peer_case(ctx, p, taichi_grid.TaichiGrid)
+
+
+# ---- training kernels (main: clrf.grid.ops, clrf.optim, clrf.grid.model) ----------------------
+def _touched_all(dev, n):
+    t = cla.empty(dev.queue, n, np.uint8)
+    t.fill(1)
+    return t
+
+
+@factory("train.tv")
+def _train_tv(ctx, p):
+    """tv_grad over every cell of the grid (density and SH), as one training step does over a
+    window: cells/s. Adds into zeroed-once gradient buffers (not reset per repetition)."""
+    from clrf.grid import ops as grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    q = dev.queue
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    touched = cla.zeros(q, grid.density.shape[0], np.uint8)
+    total = int(np.prod(grid.reso))
+
+    def run():
+        grid_ops.tv_grad(grid, grid.density, gd, touched, 0, total, 1e-5 / total, True)
+        grid_ops.tv_grad(grid, grid.sh, gs, touched, 0, total, 1e-3 / total, False)
+        dev.finish()
+    # per cell: links of the cell and 3 neighbours, their rows (density + SH) read, grad RMW
+    row = 4 * (1 + grid.sh_dim)
+    return Case(run, {"cells": total, "bytes": total * (16 + 4 * row + 2 * row)},
+                {"rows": grid.n_rows})
+
+
+@factory("train.optim")
+def _train_optim(ctx, p):
+    """Optimizer.step (RMSProp) over every row of density and SH (all touched): rows/s."""
+    from clrf.optim import Optimizer
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    od = Optimizer(dev, grid.density.copy(), "rmsprop")
+    osh = Optimizer(dev, grid.sh.copy(), "rmsprop")
+    touched = _touched_all(dev, grid.density.shape[0])
+
+    def run():
+        od.step(touched, 1e-3, clear_touched=False)
+        osh.step(touched, 1e-3, clear_touched=False)
+        dev.finish()
+    n = grid.density.shape[0]
+    # per row: param, grad, state read and written, touched read
+    return Case(run, {"rows": n, "bytes": n * (6 * 4 * (1 + grid.sh_dim) + 1)},
+                {"rows": grid.n_rows})
+
+
+@factory("train.upsample")
+def _train_upsample(ctx, p):
+    """grid_ops.resample to twice the resolution (all rows kept): output cells/s."""
+    from clrf.grid import ops as grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    new = tuple(2 * r for r in grid.reso)
+
+    def run():
+        grid_ops.resample(grid, new)
+        dev.finish()
+    total = int(np.prod(new))
+    return Case(run, {"cells": total}, {"rows_in": grid.n_rows, "new_reso": new})
+
+
+@factory("train.prune")
+def _train_prune(ctx, p):
+    """Pruning: max rendering weight over n_rays camera rays, threshold + dilation, rebuild
+    (grid_ops.max_weight + grid_ops.prune): cells/s of the grid."""
+    from clrf.grid import ops as grid_ops
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    o, d = _rays(p)
+
+    def run():
+        mw = grid_ops.max_weight(grid, o, d, p["step"])
+        grid_ops.prune(grid, mw, 0.256 / grid.reso[2])
+        dev.finish()
+    return Case(run, {"cells": int(np.prod(grid.reso)), "rays": o.shape[0]},
+                {"rows": grid.n_rows})
+
+
+@factory("train.step")
+def _train_step(ctx, p):
+    """One full Plenoxels training step (GridModel.train_step: fused render backward, TV,
+    RMSProp on density and SH, per-batch MSE read back) on a batch of random rays: rays/s."""
+    from clrf.config import GridConfig
+    from clrf.grid.model import GridModel
+    dev = ctx.dev
+    links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
+    q = dev.queue
+    # a private copy: the step updates the grid
+    g = clrf.SparseGrid.from_arrays(dev, links, dens, sh, scenes.BBOX)
+    cfg = GridConfig(reso=[list(g.reso)], sh_degree=p["degree"], step=p["step"],
+                     batch_size=p["n_rays"], tv_early_only=False)
+    model = GridModel(dev, cfg, g, (1.0, 1.0, 1.0))
+    o, d = _rays(p)
+    rng = np.random.default_rng(3)
+    target = rng.uniform(0, 1, (o.shape[0], 3)).astype(np.float32)
+    od, dd, td = cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, target)
+    it = [0]
+
+    def run():
+        it[0] += 1
+        model.train_step(it[0], od, dd, td)
+        dev.finish()
+    work = _grid_work(dict(p, mode="fwdbwd"), links, o, d)
+    work.pop("bytes")
+    return Case(run, work, {"rows": g.n_rows, "batch": o.shape[0]})
+
+
+def _train_specs():
+    base = {"reso": 128, "degree": 2, "occupancy": 1.0, "step": 0.5}
+    quick = {"reso": 16, "n_rays": 64}
+    need_ops = (("clrf.grid.ops", "tv_grad"),)
+    return [
+        Spec("train/tv/128/sh2/dense", "train.tv", dict(base), "cells/s", dict(quick), need_ops),
+        Spec("train/optim/128/sh2/dense", "train.optim", dict(base), "rows/s", dict(quick),
+             (("clrf.optim", "Optimizer"),)),
+        Spec("train/upsample/64to128/sh2/dense", "train.upsample", dict(base, reso=64),
+             "cells/s", dict(quick, reso=8), (("clrf.grid.ops", "resample"),)),
+        Spec("train/prune/128/sh2/dense", "train.prune",
+             dict(base, rays="camera", n_rays=65536), "cells/s", dict(quick),
+             (("clrf.grid.ops", "prune"),)),
+        Spec("train/step/128/sh2/dense/random", "train.step",
+             dict(base, rays="random", n_rays=5000), "rays/s", dict(quick),
+             (("clrf.grid.model", "GridModel"),)),
+        Spec("train/step/128/sh2/pruned5/random", "train.step",
+             dict(base, occupancy=0.05, rays="random", n_rays=5000), "rays/s", dict(quick),
+             (("clrf.grid.model", "GridModel"),)),
+    ]
