@@ -21,6 +21,7 @@ import numpy as np
 import pyopencl.array as cla
 
 import clrf
+from clrf.metrics import psnr_from_mse
 from clrf.nerf import NerfConfig, NerfModel
 
 
@@ -37,7 +38,7 @@ def camera_rays(poses: np.ndarray, H: int, W: int, focal: float):
 
 def psnr(a, b) -> float:
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return -10.0 * np.log10(max(mse, 1e-12))
+    return psnr_from_mse(max(mse, 1e-12))
 
 
 def main(argv=None):

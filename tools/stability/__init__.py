@@ -1,11 +1,12 @@
 """Numerical-stability matrix of clrf: stiff, extreme and long cases through the public API.
 
 Every case drives ``clrf.render_rays`` / ``clrf.render_rays_backward`` / ``clrf.metrics`` and
-compares with the float64 reference (clrf/testing/reference.py) or a closed form. Each comparison is one
-row of the report: the largest absolute error, the largest relative error (normwise:
-max|got - want| / max|want|), the tolerance it is held to (constants of clrf/testing/tolerances.py,
-stability section), the usage max_i |got_i - want_i| / (atol + rtol |want_i|) (<= 1 passes) and
-the number of non-finite values among the outputs / gradients it covers.
+compares with the float64 reference (clrf/testing/reference.py) or a closed form. Each
+comparison is one row of the report: the largest absolute error, the largest relative error
+(normwise: max|got - want| / max|want|), the tolerance it is held to (constants of
+clrf/testing/tolerances.py, stability section), the usage
+max_i |got_i - want_i| / (atol + rtol |want_i|) (<= 1 passes) and the number of non-finite
+values among the outputs / gradients it covers.
 
     python tools/stability.py [--quick] --out DIR         # DIR/stability.md, DIR/stability.json
     python tools/stability.py --convergence --out DIR     # also DIR/convergence.csv
@@ -13,8 +14,9 @@ the number of non-finite values among the outputs / gradients it covers.
 
 Cases are data: ``Case(name, group, fn, tol)``; ``fn(run)`` calls ``run.compare`` /
 ``run.finite`` / ``run.raises`` and ``tol`` is the default tolerance of its comparisons. Adding
-a case is appending to ``CASES`` in matrix.py (tests/test_stability.py parametrises over it). ``xfail`` holds
-the reason when a case documents a known kernel bug (the test then expects it to fail, strictly).
+a case is appending to ``CASES`` in matrix.py (tests/test_stability.py parametrises over it).
+``xfail`` holds the reason when a case documents a known kernel bug (the test then expects it
+to fail, strictly).
 
 Groups: stiff, closed form, geometry, values, reduction, scale sweep (renderer and reductions);
 optimiser (cl/optim.cl against the float64 twin reference.update_rows: zero, huge, tiny
