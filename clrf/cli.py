@@ -55,6 +55,7 @@ def load_data(path, downscale=1):
 def cmd_train(a):
     from .config import build_config
     from .device import Device
+    from .memory import check_training_fits
     from .models import FACTORIES
     from .train import Trainer
 
@@ -89,6 +90,9 @@ def cmd_train(a):
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     dev = Device(a.device)
+    n_views = len(ds.split["train"])
+    n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
+    check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1])
     print(f"clrf: device {dev}", file=sys.stderr)
     print(f"clrf: scene '{ds.name}' ({len(ds.split['train'])} train / "
           f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "

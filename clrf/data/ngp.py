@@ -19,8 +19,8 @@ import numpy as np
 
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 get_field, holdout_split, limit_split, load_images, parse_background, read_json,
-                 require_dir, warn)
+                 get_field, holdout_split, inside, limit_split, load_images, parse_background,
+                 read_json, require_dir, warn)
 
 NGP_SCALE = 0.33          # instant-ngp's default world -> unit cube scale
 NGP_OFFSET = 0.5          # ... and offset (the unit cube's centre)
@@ -61,7 +61,7 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
                 raise DataError(f"{jpath}: {where}.{key} is set per frame (and differs from the "
                                 f"top-level '{key}'); clrf supports one camera per scene: put "
                                 f"'{key}' at the top level only")
-        f = root / fp
+        f = inside(root, fp, jpath, f"{where}.file_path")
         if not f.is_file():
             missing.append(fp)
             continue
@@ -100,6 +100,10 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
         angle_y = _num(meta, "camera_angle_y", jpath)
         fl_y = fl_x if angle_y is None else 0.5 * h / np.tan(0.5 * angle_y)
     cx, cy = _num(meta, "cx", jpath, w / 2.0), _num(meta, "cy", jpath, h / 2.0)
+    if not (w > 0 and h > 0 and fl_x > 0 and fl_y > 0):
+        raise DataError(f"{jpath}: focal lengths and image size must be positive (fl_x {fl_x:g}, "
+                        f"fl_y {fl_y:g}, w {w:g}, h {h:g}; a field of view must lie in (0, pi)); "
+                        f"fix the calibration fields")
     s = W0 / w / factor                                        # file intrinsics -> loaded pixels
     intr = np.array([fl_x * s, fl_y * s, cx * s, cy * s])
     dist = np.array([_num(meta, k, jpath, 0.0) for k in ("k1", "k2", "p1", "p2")])
