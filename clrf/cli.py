@@ -46,6 +46,13 @@ def parse_set(items):
     return out
 
 
+def _out_dir(path) -> Path:
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {out}: is an existing file, not a folder; pass a folder path")
+    return out
+
+
 def load_data(path, downscale=1):
     from .data import load_dataset
     opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
@@ -65,7 +72,7 @@ def cmd_train(a):
                  ("seed", a.seed)):
         if v is not None:
             tr[k] = v
-    out = Path(a.out)
+    out = _out_dir(a.out)
     if a.resume:
         from .checkpoint import load
         state = load(out)
@@ -159,7 +166,7 @@ def cmd_render(a):
     model, state, cfg = load_model(dev, a.ckpt)
     meta = state["dataset"]
     H, W = int(meta["H"]), int(meta["W"])
-    out = Path(a.out)
+    out = _out_dir(a.out)
     out.mkdir(parents=True, exist_ok=True)
 
     class _View:  # the bits of a Dataset that view_rays needs

@@ -155,7 +155,7 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     if abs((H0 / W0) / (hwf[0] / hwf[1]) - 1.0) > ASPECT_TOL:
         raise DataError(f"{folder}: images are {W0}x{H0} (WxH) but {pb_path.name} says "
                         f"{hwf[1]:.0f}x{hwf[0]:.0f}; the aspect ratios differ, so these are not "
-                        f"the images the poses were computed for")
+                        f"the images the poses were computed for: use those (or re-run COLMAP)")
     focal = hwf[2] * W0 / hwf[1] / extra
     intr = np.array([focal, focal, W0 / 2.0 / extra, H0 / 2.0 / extra])
     if kind == "forward_facing":
