@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from . import checkpoint
+from . import checkpoint, rundir
 from .cameras import pixel_rays, to_ndc
 from .metrics import image_metrics, psnr_from_mse
 from .programs import launch
@@ -181,18 +181,20 @@ class Trainer:
         self.background = tuple(t.background) if t.background else tuple(ds.background)
         self.iteration = 0
         self.seconds = 0.0
+        rundir.remove_stale_temps(self.out)
         if resume:
             state = checkpoint.load(self.ckpt_path)
             self.model = model_factory.from_state(device, state, cfg)
             self.iteration = int(state["iteration"])
             self.seconds = float(state["seconds"])
+            rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
             self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
                      f"({self.seconds:.1f} s)")
         else:
             self.model = model_factory.create(device, cfg, ds, self.background)
             with open(self.csv_path, "w", newline="") as f:
                 csv.DictWriter(f, CSV_FIELDS).writeheader()
-        (self.out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         self.rays = training_rays(device, ds, t.max_train_images)
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)
