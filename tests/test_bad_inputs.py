@@ -380,6 +380,8 @@ CASES = [
     ("memory-too-large", opts("--set", "grid.reso=[[1024,1024,1024]]", "--set",
                               "grid.upsample_at=[]", "--set", "grid.sh_degree=3"),
      ["grid stage 0 (1024x1024x1024, SH degree 3)", "lower grid.reso"]),
+    ("memory-nerf-too-large", opts("--model", "nerf", "--set", "nerf.batch_rays=4194304"),
+     ["NeRF training (4194304 rays", "lower nerf.batch_rays"]),
     # ---- output folder and checkpoints
     ("out-is-a-file", existing_file_out, ["taken", "existing file"]),
     ("out-holds-a-run", plain_train_over_run, ["already holds a run", "--resume"]),
