@@ -144,9 +144,10 @@ def plot_error_vs_time(csv_path, png_path, title=""):
 class Progress:
     """One status line: rewritten in place on a terminal, printed every few seconds otherwise."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream=None):
+        # sys.stderr as it is now, not as it was at import (pytest swaps it per test)
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty()
         self.last = 0.0
 
     def update(self, text, force=False):
