@@ -20,7 +20,7 @@ stage 0 over the grid grown by one previous-stage voxel on each side, at most V_
 NeRF (P parameters per network, s samples per ray, B rays per step, nslot activation slots
 per sample): 5 P per network (params, transposed copy, gradient, Adam m and v), activations
 and their gradients 2 * 4 B s nslot, per-sample encodings and gradients, plus the ray store.
-Estimates are upper bounds of what clrf allocates, not of the OpenCL runtime's own overhead.
+The figures estimate what clrf itself allocates; the OpenCL runtime's own overhead is not counted.
 """
 from __future__ import annotations
 

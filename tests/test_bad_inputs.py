@@ -10,6 +10,8 @@ break are loaded by test_data_errors.py (and the ``valid`` rows here).
 import json
 import os
 import struct
+import subprocess
+import sys
 import zlib
 from pathlib import Path
 
@@ -180,26 +182,31 @@ def ngp_frame(**frame):
     return ngp(lambda m: m["frames"][1].update(frame))
 
 
-def procedural_npz(t):
+def empty_folder(t):
+    (t / "empty").mkdir()
+    return train(t / "empty")
+
+
+def small_npz(t):
     """A valid 8-view .npz scene (fast to load) for the option and config rows."""
     return _npz(t / "s.npz")
 
 
 def opts(*extra):
-    return lambda t: train(procedural_npz(t), *extra)
+    return lambda t: train(small_npz(t), *extra)
 
 
 def config(obj):
     def build(t):
         f = t / "c.json"
         f.write_text(obj if isinstance(obj, str) else json.dumps(obj))
-        return train(procedural_npz(t), "--config", str(f))
+        return train(small_npz(t), "--config", str(f))
     return build
 
 
 def existing_file_out(t):
     (t / "taken").write_text("not a folder")
-    return ["train", "--data", str(procedural_npz(t)), "--out", str(t / "taken")]
+    return ["train", "--data", str(small_npz(t)), "--out", str(t / "taken")]
 
 
 def run_dir(t, ckpt=None):
@@ -224,7 +231,7 @@ def on_ckpt(cmd, ckpt, *extra):
 
 def plain_train_over_run(t):
     d = run_dir(t, b"x")
-    return ["train", "--data", str(procedural_npz(t)), "--out", str(d), "--max-seconds", "1"]
+    return ["train", "--data", str(small_npz(t)), "--out", str(d), "--max-seconds", "1"]
 
 
 def nan_row(i):
@@ -353,7 +360,7 @@ CASES = [
     ("ngp-frames-not-list", ngp(lambda m: m.update(frames="all")), ["'frames'", "list"]),
     # ---- dataset path
     ("data-missing", lambda t: train(t / "nowhere"), ["nowhere", "does not exist"]),
-    ("data-no-layout", lambda t: train(t / "empty") if (t / "empty").mkdir() is None else 0,
+    ("data-no-layout", empty_folder,
      ["empty", "not a dataset layout", "accepted layouts"]),
     # ---- options and config files
     ("set-wrong-type", opts("--set", "grid.batch_size=many"), ["grid.batch_size", "integer"]),
@@ -425,3 +432,20 @@ def test_unknown_flag_exits_2(capsys):
         cli(["train", "--no-such-flag"])
     assert e.value.code == 2
     assert "unrecognized arguments: --no-such-flag" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["blender-decompression-bomb", "memory-too-large",
+                                  "resume-corrupt-checkpoint"])
+def test_bad_input_in_a_real_process(tmp_path, name):
+    """A few rows again as `python -m clrf.cli`: the exit status and stderr of a real process."""
+    build, needles = next(c[1:] for c in CASES if c[0] == name)
+    args = [str(tmp_path / "out") if a == "OUT" else a for a in build(tmp_path)]
+    before = _files(tmp_path)
+    root = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-m", "clrf.cli", *args], env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.count("clrf: error:") == 1 and "Traceback" not in p.stderr, p.stderr
+    assert all(n in p.stderr for n in needles), p.stderr
+    assert _files(tmp_path) == before
