@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 import numpy as np
+
+from .rundir import checkpoint_write_delay
 
 CKPT_NAME = "ckpt.npz"
 
@@ -31,6 +34,9 @@ def save(path, state: dict):
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
+        delay = checkpoint_write_delay()
+        if delay:
+            time.sleep(delay)
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -46,6 +46,13 @@ def parse_set(items):
     return out
 
 
+def _out_dir(path) -> Path:
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--out {out}: is an existing file, not a folder; pass a folder path")
+    return out
+
+
 def load_data(path, downscale=1):
     from .data import load_dataset
     opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
@@ -55,6 +62,7 @@ def load_data(path, downscale=1):
 def cmd_train(a):
     from .config import build_config
     from .device import Device
+    from .memory import check_training_fits
     from .models import FACTORIES
     from .train import Trainer
 
@@ -64,7 +72,7 @@ def cmd_train(a):
                  ("seed", a.seed)):
         if v is not None:
             tr[k] = v
-    out = Path(a.out)
+    out = _out_dir(a.out)
     if a.resume:
         from .checkpoint import load
         state = load(out)
@@ -89,6 +97,9 @@ def cmd_train(a):
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     dev = Device(a.device)
+    n_views = len(ds.split["train"])
+    n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
+    check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1])
     print(f"clrf: device {dev}", file=sys.stderr)
     print(f"clrf: scene '{ds.name}' ({len(ds.split['train'])} train / "
           f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "
@@ -155,7 +166,7 @@ def cmd_render(a):
     model, state, cfg = load_model(dev, a.ckpt)
     meta = state["dataset"]
     H, W = int(meta["H"]), int(meta["W"])
-    out = Path(a.out)
+    out = _out_dir(a.out)
     out.mkdir(parents=True, exist_ok=True)
 
     class _View:  # the bits of a Dataset that view_rays needs

@@ -163,12 +163,12 @@ def _merge(cfg: Config, d: dict, source: str):
             cfg.nerf.update(vals)
             continue
         if sect not in ("grid", "train") or not isinstance(vals, dict):
-            raise ConfigError(f"{source}: unknown section '{sect}' (sections: grid, train, nerf)")
+            raise ConfigError(f"{source}: unknown section '{sect}'; use grid, train or nerf")
         obj = getattr(cfg, sect)
         names = {f.name: f for f in dataclasses.fields(obj)}
         for k, v in vals.items():
             if k not in names:
-                raise ConfigError(f"{source}: unknown option '{sect}.{k}'. Options of '{sect}': "
+                raise ConfigError(f"{source}: unknown option '{sect}.{k}'; use one of "
                                   f"{', '.join(sorted(names))}")
             cur = getattr(obj, k)
             if isinstance(cur, bool):
@@ -200,7 +200,7 @@ def load_config_file(path) -> dict:
         d = json.loads(p.read_text())
     except json.JSONDecodeError as e:
         raise ConfigError(f"config file {p}: invalid JSON at line {e.lineno} column {e.colno}: "
-                          f"{e.msg}") from None
+                          f"{e.msg}; fix the file (check it with python -m json.tool)") from None
     if not isinstance(d, dict):
         raise ConfigError(f"config file {p}: expected a JSON object with sections grid/train/nerf")
     return d

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from . import checkpoint
+from . import checkpoint, rundir
 from .cameras import pixel_rays, to_ndc
 from .metrics import image_metrics, psnr_from_mse
 from .programs import launch
@@ -144,9 +144,10 @@ def plot_error_vs_time(csv_path, png_path, title=""):
 class Progress:
     """One status line: rewritten in place on a terminal, printed every few seconds otherwise."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
-        self.tty = stream.isatty()
+    def __init__(self, stream=None):
+        # sys.stderr as it is now, not as it was at import (pytest swaps it per test)
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = self.stream.isatty()
         self.last = 0.0
 
     def update(self, text, force=False):
@@ -181,18 +182,20 @@ class Trainer:
         self.background = tuple(t.background) if t.background else tuple(ds.background)
         self.iteration = 0
         self.seconds = 0.0
+        rundir.remove_stale_temps(self.out)
         if resume:
             state = checkpoint.load(self.ckpt_path)
             self.model = model_factory.from_state(device, state, cfg)
             self.iteration = int(state["iteration"])
             self.seconds = float(state["seconds"])
+            rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
             self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
                      f"({self.seconds:.1f} s)")
         else:
             self.model = model_factory.create(device, cfg, ds, self.background)
             with open(self.csv_path, "w", newline="") as f:
                 csv.DictWriter(f, CSV_FIELDS).writeheader()
-        (self.out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         self.rays = training_rays(device, ds, t.max_train_images)
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)

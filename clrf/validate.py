@@ -46,6 +46,10 @@ def check_rays(origins, dirs):
     d = check_array("dirs", dirs, ndim=2, shape_tail=(3,))
     if o.shape != d.shape:
         raise ValueError(f"origins {o.shape} and dirs {d.shape} must have the same shape")
+    zero = np.flatnonzero(~np.any(d != 0, axis=1))
+    if zero.size:
+        raise ValueError(f"dirs: {zero.size} of {d.shape[0]} direction vectors are zero (first at "
+                         f"row {int(zero[0])}); every ray needs a non-zero direction")
     return o, d
 
 

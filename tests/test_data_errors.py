@@ -1,5 +1,6 @@
-"""Bad input fails loudly: each case is a small crafted scene in tmp_path, and the DataError
-message must name the file and the field (or the offending path)."""
+"""Loader-level checks through the Python API (load_dataset / load_blender), and the small valid
+scenes (make_blender, _npz, _llff, _ngp) that the CLI bad-input corpus (test_bad_inputs.py)
+breaks one way per row. Cases the corpus covers are not repeated here."""
 import json
 
 import imageio.v3 as iio
@@ -66,22 +67,7 @@ def test_missing_json(tmp_path):
     _raises(lambda: load_dataset(root), "transforms_val.json", "does not exist")
 
 
-def test_missing_image_file(tmp_path):
-    root = make_blender(tmp_path)
-    (root / "test" / "r_1.png").unlink()
-    _raises(lambda: load_dataset(root), "r_1.png", "does not exist")
-
-
-def test_malformed_json(tmp_path):
-    root = make_blender(tmp_path)
-    (root / "transforms_train.json").write_text('{"camera_angle_x": 0.69, "frames": [,]}')
-    _raises(lambda: load_dataset(root), "transforms_train.json", "malformed JSON", "line 1")
-
-
 def test_missing_required_fields(tmp_path):
-    root = make_blender(tmp_path)
-    _edit(root / "transforms_test.json", lambda m: m.pop("camera_angle_x"))
-    _raises(lambda: load_dataset(root), "transforms_test.json", "'camera_angle_x'", "missing")
     root = make_blender(tmp_path / "b")
     _edit(root / "transforms_train.json", lambda m: m["frames"][1].pop("transform_matrix"))
     _raises(lambda: load_dataset(root), "transforms_train.json", "frames[1].transform_matrix")
@@ -90,31 +76,7 @@ def test_missing_required_fields(tmp_path):
     _raises(lambda: load_dataset(root), "transforms_val.json", "'frames'")
 
 
-def test_wrong_field_type(tmp_path):
-    root = make_blender(tmp_path)
-    _edit(root / "transforms_train.json", lambda m: m.update(camera_angle_x="wide"))
-    _raises(lambda: load_dataset(root), "transforms_train.json", "camera_angle_x", "number")
-    root = make_blender(tmp_path / "b")
-    _edit(root / "transforms_train.json",
-          lambda m: m["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]))
-    _raises(lambda: load_dataset(root), "frames[0].transform_matrix", "4x4")
-
-
-def test_mixed_image_sizes(tmp_path):
-    root = make_blender(tmp_path)
-    _png(root / "val" / "r_1.png", h=5, w=4)
-    msg = _raises(lambda: load_dataset(root), "r_1.png", "4x5", "train/r_0.png")
-    assert "val" in msg
-
-
-def test_unreadable_image(tmp_path):
-    root = make_blender(tmp_path)
-    (root / "train" / "r_1.png").write_bytes(b"this is not a png")
-    _raises(lambda: load_dataset(root), "r_1.png", "unreadable")
-
-
 @pytest.mark.parametrize("bad, what", [
-    (lambda m: np.diag([2.0, 1.0, 1.0, 1.0]) @ m, "not orthonormal"),       # scaled rotation
     (lambda m: m + np.array([[0, 0, 0, 0]] * 3 + [[0, 0, 0.5, 0]]), "bottom row"),
 ])
 def test_non_rigid_pose(tmp_path, bad, what):
@@ -134,16 +96,7 @@ def test_slightly_off_rotation_accepted(tmp_path):
 
 
 def test_empty_split(tmp_path):
-    root = make_blender(tmp_path)
-    _edit(root / "transforms_val.json", lambda m: m.update(frames=[]))
-    _raises(lambda: load_dataset(root), "transforms_val.json", "split 'val' is empty")
     _raises(lambda: load_dataset(make_blender(tmp_path / "b"), max_images=0), "is empty")
-
-
-def test_inconsistent_camera(tmp_path):
-    root = make_blender(tmp_path)
-    _edit(root / "transforms_test.json", lambda m: m.update(camera_angle_x=0.9))
-    _raises(lambda: load_dataset(root), "transforms_test.json", "camera_angle_x", "differs")
 
 
 # ---------------------------------------------------------------- npz
@@ -164,35 +117,9 @@ def test_npz_ok_and_split_rule(tmp_path):
     np.testing.assert_array_equal(d.split["test"], [5, 6, 7])
 
 
-def test_npz_nan_images(tmp_path):
-    imgs = np.full((8, 4, 4, 3), 0.5, np.float32)
-    imgs[3, 1, 2, 0] = np.nan
-    imgs[4, 0, 0, 1] = np.inf
-    _raises(lambda: load_dataset(_npz(tmp_path / "s.npz", images=imgs)), "s.npz", "'images'",
-            "2 NaN/Inf")
-
-
-def test_npz_missing_field(tmp_path):
-    _raises(lambda: load_dataset(_npz(tmp_path / "s.npz", focal=None)), "s.npz", "'focal'",
-            "missing")
-
-
-def test_npz_bad_poses(tmp_path):
-    poses = np.stack([np.array(_pose(i)) for i in range(8)])
-    poses[2, :3, :3] *= 1.1
-    _raises(lambda: load_dataset(_npz(tmp_path / "s.npz", poses=poses)), "s.npz", "poses[2]",
-            "not a rigid transform")
-    _raises(lambda: load_dataset(_npz(tmp_path / "t.npz", poses=poses[:5])), "t.npz", "'poses'")
-
-
 def test_npz_empty_split(tmp_path):
     _raises(lambda: load_dataset(_npz(tmp_path / "s.npz"), n_test=0), "s.npz", "n_test")
     _raises(lambda: load_dataset(_npz(tmp_path / "t.npz", n=3), n_test=3), "t.npz", "empty")
-
-
-def test_npz_unreadable(tmp_path):
-    (tmp_path / "s.npz").write_bytes(b"garbage")
-    _raises(lambda: load_dataset(tmp_path / "s.npz"), "s.npz", "unreadable")
 
 
 # ---------------------------------------------------------------- LLFF
@@ -229,17 +156,6 @@ def test_llff_crafted_ok(tmp_path):
 
 
 def test_llff_errors(tmp_path):
-    _raises(lambda: load_dataset(_llff(tmp_path / "a", rows=np.zeros((9, 15)))),
-            "poses_bounds.npy", "(N, 17)")
-    root = _llff(tmp_path / "b")
-    (root / "images_8" / "IMG_03.png").unlink()
-    _raises(lambda: load_dataset(root), "images_8", "8 images", "9 rows")
-    _raises(lambda: load_dataset(_llff(tmp_path / "c", size=(8, 8))), "images_8", "aspect")
-    root = _llff(tmp_path / "d")
-    pb = np.load(root / "poses_bounds.npy")
-    pb[4, 0] = 3.0                                           # breaks orthonormality of row 4
-    np.save(root / "poses_bounds.npy", pb)
-    _raises(lambda: load_dataset(root), "poses_bounds.npy", "row 4", "not a rigid transform")
     _raises(lambda: load_dataset(_llff(tmp_path / "e", n=1)), "poses_bounds.npy", "'train'",
             "empty")
     _raises(lambda: load_dataset(_llff(tmp_path / "f"), kind="real360"), "poses_bounds.npy",
@@ -264,14 +180,8 @@ def test_ngp_errors(tmp_path):
     with pytest.warns(UserWarning, match="skipping 1 of 4"):
         d = load_dataset(_ngp(tmp_path / "a", present={0, 1, 3}))
     assert d.images.shape == (3, 4, 4, 3) and d.distortion is None
-    root = _ngp(tmp_path / "b", present=set())
-    with pytest.warns(UserWarning):
-        _raises(lambda: load_dataset(root), "transforms.json", "none of the 4 frames")
     root = _ngp(tmp_path / "c")
     _edit(root / "transforms.json", lambda m: m.pop("fl_x"))
     _raises(lambda: load_dataset(root), "transforms.json", "'fl_x'")
     root = _ngp(tmp_path / "d", n=1)
     _raises(lambda: load_dataset(root), "transforms.json", "'train' is empty")
-    root = _ngp(tmp_path / "e")
-    _edit(root / "transforms.json", lambda m: m.update(w=8))
-    _raises(lambda: load_dataset(root), "transforms.json", "'w', 'h'")

@@ -221,6 +221,11 @@ def test_dense_roundtrip_and_validation(device):
     d[1, 0] = np.inf
     with pytest.raises(ValueError, match="dirs.*NaN or Inf"):
         clrf.render_rays(grid, o, d)
+    d[1] = 0.0                                      # a zero direction has no ray to march
+    with pytest.raises(ValueError, match="dirs: 1 of 4 direction vectors are zero"):
+        clrf.render_rays(grid, o, d)
+    with pytest.raises(ValueError, match="dirs.*zero"):
+        clrf.render_rays_backward(grid, o, d, np.ones_like(o))
     with pytest.raises(ValueError, match="step"):
         clrf.render_rays(grid, o, np.ones_like(o), step=0)
 

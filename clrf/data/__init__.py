@@ -35,7 +35,8 @@ def detect_layout(path) -> str:
         if len(list(p.glob("*.npz"))) == 1:
             return "npz"
     what = "does not exist" if not p.exists() else "is not a dataset layout clrf can read"
-    raise DataError(f"{p}: {what}. Accepted layouts:\n  - " + "\n  - ".join(LAYOUTS))
+    raise DataError(f"{p}: {what}; pass a path in one of the accepted layouts:\n  - "
+                    + "\n  - ".join(LAYOUTS))
 
 
 def load_dataset(path=None, **options) -> Dataset:

@@ -14,7 +14,7 @@ import numpy as np
 
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 get_field, load_images, parse_background, read_json, require_dir)
+                 get_field, inside, load_images, parse_background, read_json, require_dir)
 
 SPLITS = ("train", "val", "test")
 
@@ -52,7 +52,7 @@ def load_blender(path, splits=SPLITS, background="white", downscale=None,
             fp = get_field(fr, "file_path", jpath, where, kind=str)
             m = as_matrix(get_field(fr, "transform_matrix", jpath, where), jpath,
                           f"{where}.transform_matrix")
-            p = (root / fp).resolve() if Path(fp).suffix else (root / (fp + ".png")).resolve()
+            p = inside(root, fp if Path(fp).suffix else fp + ".png", jpath, f"{where}.file_path")
             files.append(p)
             poses.append(m)
         if len(frames):

@@ -4,6 +4,7 @@ half-loaded is ever returned."""
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from .base import DataError
 ROTATION_TOL = 1e-3       # max |R^T R - I| entry for a pose to count as a rigid transform
 BOTTOM_ROW_TOL = 1e-6     # max |bottom row - [0, 0, 0, 1]| entry
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+MAX_IMAGE_FRACTION = 0.25  # largest decoded image (float32 RGBA) as a fraction of RAM
 
 
 def require_file(path: Path, what: str, fix: str = "") -> Path:
@@ -29,6 +31,20 @@ def require_dir(path: Path, what: str, fix: str = "") -> Path:
     if not path.is_dir():
         raise DataError(f"{path}: {what} folder does not exist" + (f"; {fix}" if fix else ""))
     return path
+
+
+def inside(root: Path, rel: str, jpath: Path, field: str) -> Path:
+    """``root / rel`` resolved (symlinks followed), or a DataError naming ``field`` of ``jpath``
+    when it is absolute or resolves outside ``root`` (by '..' or a symlink)."""
+    root = Path(root).resolve()
+    if Path(rel).is_absolute():
+        raise DataError(f"{jpath}: field '{field}' = {rel!r} is an absolute path; image paths "
+                        f"must be relative to {root} (move the images into the dataset folder)")
+    p = (root / rel).resolve()
+    if not p.is_relative_to(root):
+        raise DataError(f"{jpath}: field '{field}' = {rel!r} resolves to {p}, outside the "
+                        f"dataset folder {root} (by '..' or a symlink); copy the image into it")
+    return p
 
 
 def read_json(path: Path) -> dict:
@@ -99,13 +115,42 @@ def check_poses(poses: np.ndarray, path: Path, field: str) -> None:
                             f"scale/shear from the camera-to-world matrix")
 
 
+def image_header(path: Path, what: str = "image") -> tuple:
+    """(width, height, mode) from the file header, without decoding the pixels; a DataError
+    when the decoded float32 RGBA image would take more than MAX_IMAGE_FRACTION of RAM (a
+    decompression bomb: a small file declaring a huge size)."""
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            Image.MAX_IMAGE_PIXELS, limit = None, Image.MAX_IMAGE_PIXELS
+            try:
+                with Image.open(path) as im:
+                    w, h, mode = im.width, im.height, im.mode
+            finally:
+                Image.MAX_IMAGE_PIXELS = limit
+    except Exception as e:  # noqa: BLE001 - Pillow raises many types; all mean "unreadable"
+        raise DataError(f"{path}: unreadable {what} ({type(e).__name__}: {e}); replace the file "
+                        f"with a valid PNG/JPEG") from None
+    need = 16 * w * h                                   # float32 RGBA
+    ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > MAX_IMAGE_FRACTION * ram:
+        raise DataError(f"{path}: {what} header declares {w}x{h} pixels ({need / 2**30:.1f} GiB "
+                        f"decoded), more than this machine's memory allows ({ram / 2**30:.1f} "
+                        f"GiB RAM); the file is corrupt or far too large: resize it")
+    return w, h, mode
+
+
 def read_image(path: Path, what: str = "image") -> np.ndarray:
-    """An image file as float32 [H, W, C] in [0, 1] (C = 3 or 4); grey becomes RGB."""
+    """An image file as float32 [H, W, C] in [0, 1] (C = 3 or 4); grey becomes RGB. The header
+    is checked first (image_header), so nothing huge is decoded."""
     import imageio.v3 as iio
 
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: {what} file does not exist; restore it, or remove its entry")
+    image_header(path, what)
     try:
         with warnings.catch_warnings():        # imageio probes legacy plugins on a bad file
             warnings.simplefilter("ignore", DeprecationWarning)
@@ -218,6 +263,11 @@ def load_images(paths, path_for_errors=None, downscale: int = 1, what: str = "im
             first = (a.shape, p)
         else:
             check_same_size(a.shape, first[0], p, first[1])
+            if a.shape[-1] != first[0][-1]:
+                kinds = {3: "RGB (or grey/palette without alpha)", 4: "RGBA"}
+                raise DataError(f"{p}: {what} is {kinds[a.shape[-1]]} but {first[1]} is "
+                                f"{kinds[first[0][-1]]}; all images of a scene must share one "
+                                f"channel layout (convert this one, e.g. to RGBA)")
         out.append(downscale_image(a, downscale))
     return out, (first[0][:2] if first else (0, 0))
 

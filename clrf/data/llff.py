@@ -30,7 +30,8 @@ import numpy as np
 from ..cameras import average_pose
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_poses, check_splits, composite, holdout_split,
-                 limit_split, load_images, parse_background, require_dir, require_file, warn)
+                 inside, limit_split, load_images, parse_background, require_dir, require_file,
+                 warn)
 
 BD_FACTOR = 0.75          # NeRF: scale so the nearest bound becomes 1 / 0.75 (NDC near plane 1)
 FACING_THRESHOLD = 0.7    # |mean viewing axis| above this: forward-facing (all cameras alike)
@@ -112,13 +113,17 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     n = arr.shape[0]
     p35 = arr[:, :15].reshape(n, 3, 5).astype(np.float64)
     hwf = p35[0, :, 4]
+    if not np.all(hwf > 0):
+        raise DataError(f"{pb_path}: column 4 (H, W, focal) of row 0 must be positive, got "
+                        f"{hwf.tolist()}; regenerate the file with LLFF's imgs2poses.py")
     bounds = arr[:, 15:17].astype(np.float64)
     poses = np.tile(np.eye(4), (n, 1, 1))
     poses[:, :3, :4] = np.concatenate([p35[:, :, 1:2], -p35[:, :, 0:1], p35[:, :, 2:4]], -1)
     check_poses(poses, pb_path, "row {} (3x4 pose part)")
 
     folder, extra = _image_folder(root, factor)
-    files = sorted(f for f in folder.iterdir() if f.suffix in IMAGE_EXTS)
+    files = [inside(root, str(f.relative_to(root)), folder, f.name)
+             for f in sorted(folder.iterdir()) if f.suffix in IMAGE_EXTS]
     if len(files) != n:
         raise DataError(f"{folder}: {len(files)} images but {pb_path.name} has {n} rows; one "
                         f"image per pose row is required (remove extra images or re-run COLMAP)")
@@ -150,7 +155,7 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     if abs((H0 / W0) / (hwf[0] / hwf[1]) - 1.0) > ASPECT_TOL:
         raise DataError(f"{folder}: images are {W0}x{H0} (WxH) but {pb_path.name} says "
                         f"{hwf[1]:.0f}x{hwf[0]:.0f}; the aspect ratios differ, so these are not "
-                        f"the images the poses were computed for")
+                        f"the images the poses were computed for: use those (or re-run COLMAP)")
     focal = hwf[2] * W0 / hwf[1] / extra
     intr = np.array([focal, focal, W0 / 2.0 / extra, H0 / 2.0 / extra])
     if kind == "forward_facing":

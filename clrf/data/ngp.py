@@ -19,8 +19,8 @@ import numpy as np
 
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 get_field, holdout_split, limit_split, load_images, parse_background, read_json,
-                 require_dir, warn)
+                 get_field, holdout_split, inside, limit_split, load_images, parse_background,
+                 read_json, require_dir, warn)
 
 NGP_SCALE = 0.33          # instant-ngp's default world -> unit cube scale
 NGP_OFFSET = 0.5          # ... and offset (the unit cube's centre)
@@ -33,6 +33,14 @@ def _num(meta, key, path, default=None):
     if key not in meta:
         return default
     return as_number(meta[key], path, key)
+
+
+def _fov_focal(angle, size, path, name) -> float:
+    """Focal length in pixels of a field of view ``angle`` (radians) over ``size`` pixels."""
+    if not 0.0 < angle < np.pi:
+        raise DataError(f"{path}: field '{name}' must be in (0, pi) radians, got {angle}; fix it "
+                        f"(or give the focal length in pixels)")
+    return 0.5 * size / np.tan(0.5 * angle)
 
 
 def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white") -> Dataset:
@@ -61,7 +69,7 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
                 raise DataError(f"{jpath}: {where}.{key} is set per frame (and differs from the "
                                 f"top-level '{key}'); clrf supports one camera per scene: put "
                                 f"'{key}' at the top level only")
-        f = root / fp
+        f = inside(root, fp, jpath, f"{where}.file_path")
         if not f.is_file():
             missing.append(fp)
             continue
@@ -94,12 +102,15 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
         if angle is None:
             raise DataError(f"{jpath}: required field 'fl_x' (or 'camera_angle_x') is missing; "
                             f"add the focal length in pixels")
-        fl_x = 0.5 * w / np.tan(0.5 * angle)
+        fl_x = _fov_focal(angle, w, jpath, "camera_angle_x")
     fl_y = _num(meta, "fl_y", jpath)
     if fl_y is None:
         angle_y = _num(meta, "camera_angle_y", jpath)
-        fl_y = fl_x if angle_y is None else 0.5 * h / np.tan(0.5 * angle_y)
+        fl_y = fl_x if angle_y is None else _fov_focal(angle_y, h, jpath, "camera_angle_y")
     cx, cy = _num(meta, "cx", jpath, w / 2.0), _num(meta, "cy", jpath, h / 2.0)
+    if not all(np.isfinite(v) and v > 0 for v in (w, h, fl_x, fl_y)):
+        raise DataError(f"{jpath}: focal lengths and image size must be positive (fl_x {fl_x:g}, "
+                        f"fl_y {fl_y:g}, w {w:g}, h {h:g}); fix the calibration fields")
     s = W0 / w / factor                                        # file intrinsics -> loaded pixels
     intr = np.array([fl_x * s, fl_y * s, cx * s, cy * s])
     dist = np.array([_num(meta, k, jpath, 0.0) for k in ("k1", "k2", "p1", "p2")])

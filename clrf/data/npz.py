@@ -46,7 +46,8 @@ def load_npz(path, n_test: int = DEFAULT_N_TEST, background="black", downscale=N
             missing = [k for k in ("images", "poses", "focal") if k not in z.files]
             if missing:
                 raise DataError(f"{f}: required field '{missing[0]}' is missing (the file has "
-                                f"{sorted(z.files)}); a tiny-NeRF .npz needs images, poses, focal")
+                                f"{sorted(z.files)}); re-save it with np.savez(images=..., "
+                                f"poses=..., focal=...)")
             images, poses, focal = z["images"], z["poses"], z["focal"]
     except DataError:
         raise

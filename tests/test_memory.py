@@ -1,0 +1,62 @@
+"""The memory guard (clrf.memory): per-stage estimates against the device's global memory and
+largest allocation, checked before anything is allocated."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from clrf.cli import main as cli
+from clrf.config import build_config
+from clrf.memory import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
+
+GiB = 1 << 30
+
+
+def test_sphere_rows_matches_the_initial_grid_mask():
+    for reso in ((48, 48, 48), (16, 20, 24), (1, 5, 7)):
+        c = [(np.arange(r) + 0.5) / r * 2 - 1 for r in reso]
+        x, y, z = np.meshgrid(*c, indexing="ij")
+        assert sphere_rows(reso) == int((x * x + y * y + z * z <= 1.0).sum())
+
+
+def test_grid_estimate_counts_every_term():
+    # one dense 10^3 stage, SH degree 0 (C = 3), no slots: links 4 V, values + gradient +
+    # RMSProp state 3 * 16 n, touched n, rays 36 N + 44 B
+    cfg = build_config(overrides={"grid": {"reso": [[10, 10, 10]], "upsample_at": [],
+                                           "sh_degree": 0, "sphere_bound": False,
+                                           "batch_size": 100}})
+    (st,) = grid_stages(cfg, n_rays=1000, slots=0, global_mem=GiB)
+    V = 1000
+    assert st.total == 4 * V + 3 * 16 * V + V + 36 * 1000 + 44 * 100
+    assert st.largest == max(4 * 3 * V, 4 * V)
+
+
+def test_stage_estimates_grow_and_fit_a_normal_device(device):
+    stages = check_training_fits(device.caps, device.is_cpu, build_config("procedural"),
+                                 72 * 64 * 64)
+    assert len(stages) == 2 and stages[1].total > stages[0].total
+
+
+def test_small_device_names_the_stage_and_the_fix(device):
+    cfg = build_config("synthetic")
+    small = replace(device.caps, global_mem_size=int(0.5 * GiB), max_alloc_size=GiB)
+    with pytest.raises(MemoryBudgetError, match=r"grid stage 2 \(256x256x256.*lower grid.reso"):
+        check_training_fits(small, False, cfg, 1000)
+    tiny_alloc = replace(device.caps, max_alloc_size=16 << 20)
+    with pytest.raises(MemoryBudgetError, match="largest single allocation"):
+        check_training_fits(tiny_alloc, False, cfg, 1000)
+    nerf = build_config(overrides={"train": {"model": "nerf"}, "nerf": {"batch_rays": 1 << 16}})
+    with pytest.raises(MemoryBudgetError, match="NeRF training.*nerf.batch_rays"):
+        check_training_fits(small, False, nerf, 1000)
+
+
+def test_too_large_scene_exits_2_before_allocating(tmp_path, capsys, monkeypatch):
+    # the guard runs before the trainer: no model or ray store is ever built
+    import clrf.train
+    monkeypatch.setattr(clrf.train, "Trainer", None)
+    out = tmp_path / "out"
+    rc = cli(["train", "--out", str(out), "--set", "grid.reso=[[1024,1024,1024]]",
+              "--set", "grid.upsample_at=[]", "--set", "grid.sh_degree=3"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "grid stage 0 (1024x1024x1024, SH degree 3) needs about" in err, err
+    assert not out.exists()
