@@ -61,6 +61,8 @@ class TrainConfig:
     max_iters: int = 100000       # iteration cap
     eval_every: float = 10.0      # seconds of training between evaluations
     eval_views: int = 4           # test views per periodic evaluation (all at the end)
+    eval_downscale: int = 1       # periodic evaluations render views downscaled by this factor
+                                  # (the final one is full size)
     final_eval: bool = True       # evaluate every test view at the end
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
     seed: int = 0                 # batch sampling and initialisation seed
@@ -110,6 +112,7 @@ class Config:
             (t.max_iters > 0, "train.max_iters", "must be > 0"),
             (t.eval_every > 0, "train.eval_every", "must be > 0"),
             (t.eval_views >= 1, "train.eval_views", "must be >= 1"),
+            (t.eval_downscale >= 1, "train.eval_downscale", "must be an integer >= 1"),
             (t.checkpoint_every > 0, "train.checkpoint_every", "must be > 0"),
             (t.downscale >= 1, "train.downscale", "must be an integer >= 1"),
             (t.max_train_images >= 0, "train.max_train_images", "must be >= 0"),
