@@ -49,6 +49,7 @@ class GridConfig:
     lambda_beta: float = 0.0      # beta prior on each ray's transmittance (svox2 tnt: 1e-5),
                                   # averaged over the batch: rays end clear or opaque
     weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
+    prune_dilate: bool = True     # also keep every row within one voxel of a kept one
     prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
 
 
@@ -82,10 +83,16 @@ PRESETS = {
     "tiny": {"grid": {"reso": [[64, 64, 64], [128, 128, 128]], "upsample_at": [250],
                       "batch_size": 4000}},
     # Forward-facing (LLFF): NDC rays, stronger TV, sparsity prior (svox2 llff.json).
-    "forward_facing": {"grid": {"reso": [[128, 128, 64], [256, 256, 128]], "upsample_at": [500],
+    # The z-resolution stays fixed (as in svox2's LLFF schedule): NDC rays run along z, so the
+    # samples per ray, and with them the cost of a step, stay those of the coarse stage. No
+    # dilation at pruning: the density is scattered through the frustum at the upsample, so a
+    # dilated mask covers nearly all of it, while resampling already keeps the new voxels that
+    # interpolate a kept one. Periodic evaluations on 1/4-size views.
+    "forward_facing": {"grid": {"reso": [[128, 128, 64], [256, 256, 64]], "upsample_at": [500],
                                 "sphere_bound": False, "lambda_tv": 5e-4,
                                 "lambda_tv_sh": 5e-3, "tv_early_only": False,
-                                "lambda_sparsity": 1e-10}},
+                                "lambda_sparsity": 1e-10, "prune_dilate": False},
+                       "train": {"eval_downscale": 4}},
     # Unbounded real 360: no sphere bound, sparsity prior (no background model yet).
     "real360": {"grid": {"sphere_bound": False, "lambda_tv": 5e-5, "lambda_tv_sh": 5e-3,
                          "tv_early_only": False, "lambda_sparsity": 1e-10,
