@@ -238,8 +238,8 @@ def test_colmap_unregistered_images_skipped(tmp_path):
 def test_colmap_downscale_uses_images_n(tmp_path):
     poses, points = _scene("forward_facing")
     root = _colmap_scene(tmp_path / "c", poses, points, "txt")
-    _images(root / "images_2", [f"IMG_{i:03d}.png" for i in range(len(poses))], h=H // 2,
-            w=W // 2)
+    _images(root / "images_2", [f"IMG_{i:03d}.jpg" for i in range(len(poses))], h=H // 2,
+            w=W // 2)                    # LLFF-style copies may change the extension
     ds = load_dataset(root, downscale=2)
     assert ds.hw == (H // 2, W // 2)
     np.testing.assert_allclose(ds.intrinsics, [F / 2, F / 2, W / 4, H / 4], atol=CAMERA_ATOL)

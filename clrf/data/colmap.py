@@ -246,6 +246,16 @@ def _model_file(model: Path, stem: str) -> Path:
     raise DataError(f"{model}: {stem}.bin / {stem}.txt is missing; {MODEL_FIX}")
 
 
+def _image_file(folder: Path, name: str) -> Path:
+    """folder / name; in an images_<d>/ folder also the same stem with another image extension
+    (LLFF's downscaled copies are PNGs of the JPEGs COLMAP saw)."""
+    f = folder / name
+    if f.is_file() or folder.name == "images":
+        return f
+    alt = [f.with_suffix(ext) for ext in IMAGE_EXTS if f.with_suffix(ext).is_file()]
+    return alt[0] if alt else f
+
+
 def _resample(img, cam, ref, hw):
     """``img`` (taken by ``cam``, already at its loaded size) seen through camera ``ref`` at
     size ``hw``: bilinear lookup of each ref pixel's ray in ``img``."""
@@ -334,7 +344,7 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     imgs, hw = [], None
     for i in keep:
         name, cid = recs[i][:2]
-        a = downscale_image(read_image(folder / name, "image"), extra)
+        a = downscale_image(read_image(_image_file(folder, name), "image"), extra)
         cam = cams[cid]
         s = a.shape[1] / cam["wh"][0]
         if abs(a.shape[0] / cam["wh"][1] / s - 1.0) > 0.02:
