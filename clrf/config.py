@@ -49,6 +49,7 @@ class GridConfig:
     lambda_beta: float = 0.0      # beta prior on each ray's transmittance (svox2 tnt: 1e-5),
                                   # averaged over the batch: rays end clear or opaque
     weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
+    prune_dilate: bool = True     # also keep every row within one voxel of a kept one
     prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
 
 
@@ -61,6 +62,8 @@ class TrainConfig:
     max_iters: int = 100000       # iteration cap
     eval_every: float = 10.0      # seconds of training between evaluations
     eval_views: int = 4           # test views per periodic evaluation (all at the end)
+    eval_downscale: int = 1       # periodic evaluations render views downscaled by this factor
+                                  # (the final one is full size)
     final_eval: bool = True       # evaluate every test view at the end
     checkpoint_every: float = 60.0  # seconds of training between checkpoints
     seed: int = 0                 # batch sampling and initialisation seed
@@ -80,10 +83,16 @@ PRESETS = {
     "tiny": {"grid": {"reso": [[64, 64, 64], [128, 128, 128]], "upsample_at": [250],
                       "batch_size": 4000}},
     # Forward-facing (LLFF): NDC rays, stronger TV, sparsity prior (svox2 llff.json).
-    "forward_facing": {"grid": {"reso": [[128, 128, 64], [256, 256, 128]], "upsample_at": [500],
+    # The z-resolution stays fixed (as in svox2's LLFF schedule): NDC rays run along z, so the
+    # samples per ray, and with them the cost of a step, stay those of the coarse stage. No
+    # dilation at pruning: the density is scattered through the frustum at the upsample, so a
+    # dilated mask covers nearly all of it, while resampling already keeps the new voxels that
+    # interpolate a kept one. Periodic evaluations on 1/4-size views.
+    "forward_facing": {"grid": {"reso": [[128, 128, 64], [256, 256, 64]], "upsample_at": [500],
                                 "sphere_bound": False, "lambda_tv": 5e-4,
                                 "lambda_tv_sh": 5e-3, "tv_early_only": False,
-                                "lambda_sparsity": 1e-10}},
+                                "lambda_sparsity": 1e-10, "prune_dilate": False},
+                       "train": {"eval_downscale": 4}},
     # Unbounded real 360: no sphere bound, sparsity prior (no background model yet).
     "real360": {"grid": {"sphere_bound": False, "lambda_tv": 5e-5, "lambda_tv_sh": 5e-3,
                          "tv_early_only": False, "lambda_sparsity": 1e-10,
@@ -110,6 +119,7 @@ class Config:
             (t.max_iters > 0, "train.max_iters", "must be > 0"),
             (t.eval_every > 0, "train.eval_every", "must be > 0"),
             (t.eval_views >= 1, "train.eval_views", "must be >= 1"),
+            (t.eval_downscale >= 1, "train.eval_downscale", "must be an integer >= 1"),
             (t.checkpoint_every > 0, "train.checkpoint_every", "must be > 0"),
             (t.downscale >= 1, "train.downscale", "must be an integer >= 1"),
             (t.max_train_images >= 0, "train.max_train_images", "must be >= 0"),

@@ -26,9 +26,11 @@ import pyopencl.array as cla
 
 from . import checkpoint, rundir
 from .cameras import pixel_rays, to_ndc
+from .data.io import downscale_image
 from .metrics import image_metrics, psnr_from_mse
 from .programs import launch
 
+EVAL_MIN_SIDE = 7          # smallest evaluated image side (SSIM's window)
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
               "eval_views", "rays_per_s", "model"]
 
@@ -66,12 +68,16 @@ class RayStore:
         return o[::stride], d[::stride]
 
 
-def view_rays(ds, poses):
-    """Rays of whole views: numpy origins, dirs [len(poses)*H*W, 3] (NDC when the scene uses it)."""
-    H, W = ds.hw
-    o, d = pixel_rays(poses, ds.intrinsics, H, W, ds.distortion)
+def view_rays(ds, poses, downscale=1):
+    """Rays of whole views: numpy origins, dirs [len(poses)*h*w, 3] (NDC when the scene uses it).
+
+    downscale f: the views at (H // f, W // f) with intrinsics / f, i.e. one ray per f x f block
+    of pixels (the pixels ``downscale_image`` averages)."""
+    H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
+    intr = np.asarray(ds.intrinsics, np.float64) / downscale
+    o, d = pixel_rays(poses, intr, H, W, ds.distortion)
     if ds.ndc:
-        o, d = to_ndc(o, d, ds.intrinsics, H, W)
+        o, d = to_ndc(o, d, intr, H, W)
     return o.astype(np.float32), d.astype(np.float32)
 
 
@@ -84,14 +90,17 @@ def training_rays(device, ds, max_images=0):
     return RayStore(device, o, d, c)
 
 
-def evaluate(model, ds, views, keep_images=False):
-    """PSNR/SSIM of the model's renders of the given test view indices (into ds.images)."""
-    H, W = ds.hw
+def evaluate(model, ds, views, keep_images=False, downscale=1):
+    """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
+
+    downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
+    images (f^2 times fewer rays; for cheap evaluations between checkpoints)."""
+    H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     per_view, images = [], []
     for v in views:
-        o, d = view_rays(ds, ds.poses[v:v + 1])
+        o, d = view_rays(ds, ds.poses[v:v + 1], downscale)
         rgb = model.render(o, d)["rgb"].reshape(H, W, 3)
-        m = image_metrics(rgb, ds.images[v])
+        m = image_metrics(rgb, downscale_image(ds.images[v], downscale))
         m["view"] = int(v)
         per_view.append(m)
         if keep_images:
@@ -105,8 +114,9 @@ def evaluate(model, ds, views, keep_images=False):
     return res
 
 
-def plot_error_vs_time(csv_path, png_path, title=""):
-    """PSNR on held-out views against training seconds, from metrics.csv."""
+def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
+    """PSNR on held-out views against training seconds, from metrics.csv (periodic evaluations
+    at 1 / eval_downscale resolution, the final one at full resolution)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -121,7 +131,8 @@ def plot_error_vs_time(csv_path, png_path, title=""):
         t = [float(r["seconds"]) for r in periodic]
         p = [float(r["eval_psnr"]) for r in periodic]
         nv = periodic[-1]["eval_views"] if periodic else "?"
-        ax.plot(t, p, "o-", ms=3, label=f"eval PSNR ({nv} held-out views)")
+        at = f" at 1/{eval_downscale} resolution" if eval_downscale > 1 else ""
+        ax.plot(t, p, "o-", ms=3, label=f"eval PSNR ({nv} held-out views{at})")
         if final:
             ax.plot([float(final["seconds"])], [float(final["eval_psnr"])], "*", ms=10,
                     label=f"final: all {final['eval_views']} test views, "
@@ -201,6 +212,8 @@ class Trainer:
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))
         self.periodic_views = self.test_views[np.linspace(0, len(self.test_views) - 1, k).astype(int)]
+        # periodic evaluations: downscaled, but no smaller than SSIM's 7x7 window
+        self.eval_downscale = max(1, min(t.eval_downscale, min(ds.hw) // EVAL_MIN_SIDE))
 
     def _row(self, **kw):
         with open(self.csv_path, "a", newline="") as f:
@@ -228,7 +241,8 @@ class Trainer:
             while True:
                 if self.seconds >= next_eval or self.seconds >= t.max_seconds \
                         or self.iteration >= t.max_iters:
-                    ev = evaluate(self.model, self.ds, self.periodic_views)
+                    ev = evaluate(self.model, self.ds, self.periodic_views,
+                                  downscale=self.eval_downscale)
                     last_eval = ev
                     lt = float(np.mean(losses)) if losses else float("nan")
                     self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
@@ -238,7 +252,8 @@ class Trainer:
                               eval_views=len(self.periodic_views), rays_per_s=f"{self._rate:.0f}" if losses else "",
                               model=self.model.describe())
                     losses = []
-                    plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
+                    plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title,
+                                       t.eval_downscale)
                     prog.message(f"it {self.iteration:6d}  {self.seconds:7.1f}s  eval PSNR "
                                  f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
                                  f"({len(self.periodic_views)} views)  {self.model.describe()}")
@@ -280,7 +295,8 @@ class Trainer:
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
-            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title)
+            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title,
+                                       t.eval_downscale)
             tmp = self.out / "eval.json.tmp"
             tmp.write_text(json.dumps(result, indent=2))
             tmp.replace(self.out / "eval.json")

@@ -3,6 +3,7 @@
     python tools/targets.py tiny            # tiny_lego, 60 s  (target: test PSNR >= 24)
     python tools/targets.py lego15          # lego_400, 15 min (target: test PSNR >= 28)
     python tools/targets.py lego60          # lego_400, 60 min (best PSNR reached)
+    python tools/targets.py fern15          # fern images_8, 15 min (target: test PSNR >= 24)
     python tools/targets.py tiny --out runs/targets --data $CLRF_DATA
 
 Each target runs `clrf train` in its own run directory (config.json, metrics.csv,
@@ -23,6 +24,9 @@ TARGETS = {
                "args": ["--set", "train.eval_every=60"]},
     "lego60": {"scene": "lego_400", "seconds": 3600, "goal": None,
                "args": ["--set", "train.eval_every=120"]},
+    # forward-facing: the preset's schedule; periodic evaluations on downscaled views
+    "fern15": {"scene": "fern", "seconds": 900, "goal": 24.0,
+               "args": ["--set", "train.eval_every=30"]},
 }
 
 

@@ -1,4 +1,5 @@
-"""Dataset loaders: Blender synthetic, tiny .npz, LLFF, instant-ngp transforms.json, procedural.
+"""Dataset loaders: Blender synthetic, tiny .npz, LLFF, COLMAP, instant-ngp transforms.json,
+procedural.
 
 ``load_dataset(path=None, **options)`` is the one entry point: it detects the layout of ``path``
 and forwards ``options`` to that loader (see each loader for the options it accepts).
@@ -13,13 +14,15 @@ LAYOUTS = (
     "Blender synthetic: a folder with transforms_train.json (+ _val, _test) and RGBA PNGs",
     "instant-ngp: a folder with transforms.json (fl_x/fl_y or camera_angle_x, frames)",
     "LLFF / Mip-NeRF 360: a folder with poses_bounds.npy and images_N/ or images/",
+    "COLMAP: a folder with images/ and sparse/0/ (cameras, images, points3D as .bin or .txt)",
     "tiny NeRF: a .npz file with images, poses, focal (or a folder holding exactly one)",
     "procedural: no path (None) for the built-in analytic scene",
 )
 
 
 def detect_layout(path) -> str:
-    """'blender', 'ngp', 'llff', 'npz' or 'procedural' for ``path``; DataError otherwise."""
+    """'blender', 'ngp', 'llff', 'colmap', 'npz' or 'procedural' for ``path``; DataError
+    otherwise. A folder with both poses_bounds.npy and a COLMAP model reads as LLFF."""
     if path is None:
         return "procedural"
     p = Path(path)
@@ -32,6 +35,9 @@ def detect_layout(path) -> str:
             return "ngp"
         if (p / "poses_bounds.npy").is_file():
             return "llff"
+        from .colmap import is_colmap
+        if is_colmap(p):
+            return "colmap"
         if len(list(p.glob("*.npz"))) == 1:
             return "npz"
     what = "does not exist" if not p.exists() else "is not a dataset layout clrf can read"
@@ -58,6 +64,9 @@ def load_dataset(path=None, **options) -> Dataset:
     if layout == "llff":
         from .llff import load_llff
         return load_llff(path, **options)
+    if layout == "colmap":
+        from .colmap import load_colmap
+        return load_colmap(path, **options)
     from .ngp import load_ngp
     return load_ngp(path, **options)
 

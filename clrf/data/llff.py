@@ -84,6 +84,40 @@ def _recentre_360(poses, path):
     return out
 
 
+def normalize_capture(poses, bounds, kind, path, bounds_name="bounds (columns 15, 16)"):
+    """Steps 3-4 above on OpenGL camera-to-world ``poses`` [N, 4, 4] with per-view depth
+    ``bounds`` [N, 2] (near, far): returns (normalised poses, kind), deciding kind when "auto"
+    (real360 when the cameras' mean viewing axis is shorter than FACING_THRESHOLD).
+    ``bounds_name`` names where the bounds come from in error messages."""
+    poses = np.array(poses, np.float64)
+    if kind == "auto":
+        spread = np.linalg.norm(poses[:, :3, 2].mean(0))
+        kind = "real360" if spread < FACING_THRESHOLD else "forward_facing"
+    if len(poses) > 1 and np.all(bounds == bounds[0]) and kind == "forward_facing":
+        warn(f"{path}: the {bounds_name} are constant ({bounds[0].tolist()}); they look like "
+             f"placeholders but are used for the forward-facing rescale")
+    if kind == "forward_facing":
+        if not np.all(bounds > 0):
+            raise DataError(f"{path}: {bounds_name} must be positive for a forward-facing "
+                            f"scene; regenerate them or pass kind='real360'")
+        sc = 1.0 / (bounds.min() * BD_FACTOR)
+        poses[:, :3, 3] *= sc
+        poses = np.linalg.inv(average_pose(poses)) @ poses
+        poses[:, 3] = [0.0, 0.0, 0.0, 1.0]
+    else:
+        poses = _recentre_360(poses, path)
+    return poses, kind
+
+
+def scene_extent(kind) -> dict:
+    """Dataset fields (bbox, near, far, ndc, preset) of a normalised LLFF-style scene."""
+    if kind == "forward_facing":
+        return dict(bbox=np.array([[-1.0] * 3, [1.0] * 3]), near=0.0, far=1.0, ndc=True,
+                    preset="forward_facing")
+    return dict(bbox=np.array([[-1.0] * 3, [1.0] * 3]), near=REAL360_NEAR,
+                far=2.0 * np.sqrt(3.0), ndc=False, preset="real360")
+
+
 def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
               background="white") -> Dataset:
     """Load an LLFF / Mip-NeRF 360 folder (poses_bounds.npy + images).
@@ -128,22 +162,7 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
         raise DataError(f"{folder}: {len(files)} images but {pb_path.name} has {n} rows; one "
                         f"image per pose row is required (remove extra images or re-run COLMAP)")
 
-    if kind == "auto":
-        spread = np.linalg.norm(poses[:, :3, 2].mean(0))
-        kind = "real360" if spread < FACING_THRESHOLD else "forward_facing"
-    if n > 1 and np.all(bounds == bounds[0]) and kind == "forward_facing":
-        warn(f"{pb_path}: the bounds columns are constant ({bounds[0].tolist()}); they look like "
-             f"placeholders but are used for the forward-facing rescale")
-    if kind == "forward_facing":
-        if not np.all(bounds > 0):
-            raise DataError(f"{pb_path}: bounds (columns 15, 16) must be positive for a "
-                            f"forward-facing scene; regenerate them or pass kind='real360'")
-        sc = 1.0 / (bounds.min() * BD_FACTOR)
-        poses[:, :3, 3] *= sc
-        poses = np.linalg.inv(average_pose(poses)) @ poses
-        poses[:, 3] = [0.0, 0.0, 0.0, 1.0]
-    else:
-        poses = _recentre_360(poses, pb_path)
+    poses, kind = normalize_capture(poses, bounds, kind, pb_path)
 
     split = holdout_split(n, holdout)
     check_splits(split, pb_path, f"use a holdout between 2 and {n}")
@@ -158,11 +177,5 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
                         f"the images the poses were computed for: use those (or re-run COLMAP)")
     focal = hwf[2] * W0 / hwf[1] / extra
     intr = np.array([focal, focal, W0 / 2.0 / extra, H0 / 2.0 / extra])
-    if kind == "forward_facing":
-        extra_kw = dict(bbox=np.array([[-1.0] * 3, [1.0] * 3]), near=0.0, far=1.0, ndc=True,
-                        preset="forward_facing")
-    else:
-        extra_kw = dict(bbox=np.array([[-1.0] * 3, [1.0] * 3]), near=REAL360_NEAR,
-                        far=2.0 * np.sqrt(3.0), ndc=False, preset="real360")
     return Dataset(name=root.name, images=images, poses=poses[keep].astype(np.float32),
-                   intrinsics=intr, split=split, background=bg, **extra_kw)
+                   intrinsics=intr, split=split, background=bg, **scene_extent(kind))

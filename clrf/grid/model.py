@@ -106,13 +106,14 @@ class GridModel:
 
     def upsample(self, origins, dirs):
         """Prune rows whose max rendering weight over the given rays is below
-        weight_thresh / new z-resolution (dilated by one voxel), then resample to the next
-        resolution of the schedule."""
+        weight_thresh / new z-resolution (dilated by one voxel when prune_dilate), then resample
+        to the next resolution of the schedule."""
         c = self.cfg
         new_reso = tuple(c.reso[self.stage + 1])
         before = self.grid.n_rows
         mw = grid_ops.max_weight(self.grid, origins, dirs, c.step)
-        keep = grid_ops.prune_keep(self.grid, mw, c.weight_thresh / new_reso[2])
+        keep = grid_ops.prune_keep(self.grid, mw, c.weight_thresh / new_reso[2],
+                                   dilate=c.prune_dilate)
         kept = int(cla.sum(keep.astype(np.int32)).get())
         self._set_grid(grid_ops.resample(self.grid, new_reso, keep))
         self.stage += 1

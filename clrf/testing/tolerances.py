@@ -38,6 +38,10 @@ CAMERA_ATOL = 2e-6
 # Undistortion by fixed-point iteration stops at 1e-12 in float64; 1e-6 (normalised units, i.e.
 # ~1e-3 px at f = 1000) is the accuracy the data layer promises.
 UNDISTORT_ATOL = 1e-6
+# Resampling a second COLMAP camera's image onto the first: the source is a 16-bit PNG
+# (quantisation <= 0.5 / 65535 = 7.6e-6), bilinear weights are a convex combination (no growth),
+# float32 storage adds 6e-8; a wrong focal or half-pixel shift moves values by >= 1e-2.
+RESAMPLE_ATOL = 2e-5
 # Procedural images are computed in float64 and stored as float32 (values in [0, 1]: error
 # <= 6e-8); hand-computed expected values are written with 6 decimals (error <= 5e-7).
 PROCEDURAL_ATOL = 1e-6
