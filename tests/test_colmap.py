@@ -14,7 +14,7 @@ from clrf.cameras import camera_dirs, pixel_rays
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.colmap import CAMERA_MODELS
 from clrf.train import view_rays
-from tolerances import CAMERA_ATOL, RESAMPLE_ATOL
+from clrf.testing.tolerances import CAMERA_ATOL, RESAMPLE_ATOL
 
 H, W, F = 12, 16, 14.0
 MODEL_IDS = {name: mid for mid, (name, _) in CAMERA_MODELS.items()}

@@ -6,7 +6,7 @@ from clrf.data.io import downscale_image
 from clrf.data.synthetic import load_procedural
 from clrf.metrics import image_metrics
 from clrf.train import evaluate, view_rays
-from tolerances import CAMERA_ATOL
+from clrf.testing.tolerances import CAMERA_ATOL
 
 
 class _Flat:

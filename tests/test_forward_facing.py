@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 
 import clrf
-from clrf import grid_ops, reference as ref
+from clrf.grid import ops as grid_ops
+from clrf.testing import reference as ref
 from clrf.config import GridConfig, build_config
-from clrf.model_grid import GridModel
+from clrf.grid.model import GridModel
 
 BBOX = np.array([[-1.0] * 3, [1.0] * 3])
 
