@@ -61,8 +61,10 @@ class MSIBackground:
             raise ValueError(f"background r_inner = {r_inner}: need a finite radius > 0")
         self.device = device
         self.layers, self.height, self.width = layers, height, 2 * height
-        self.r_inner = float(r_inner)
-        self.center = np.asarray(center, np.float64).reshape(3)
+        # rounded to float32 here: the values the kernels receive, so a float64 reference given
+        # these attributes sees the same geometry (a ray along a pole stays on it)
+        self.r_inner = float(np.float32(r_inner))
+        self.center = np.asarray(center, np.float32).astype(np.float64).reshape(3)
         self.background = np.asarray(background, np.float64).reshape(3)
         shape = self.shape
         self.density = cla.empty(device.queue, shape, np.float32).fill(np.float32(init_density))
@@ -143,8 +145,8 @@ class MSIBackground:
                 raise ValueError(f"checkpoint has no field {key!r}: it was not saved with an "
                                  "MSI background")
         self.set_params(state["bg_density"], state["bg_color"])
-        self.center = np.asarray(state["bg_center"], np.float64).reshape(3)
-        self.r_inner = float(state["bg_r_inner"])
+        self.center = np.asarray(state["bg_center"], np.float32).astype(np.float64).reshape(3)
+        self.r_inner = float(np.float32(state["bg_r_inner"]))
         self.background = np.asarray(state["bg_background"], np.float64).reshape(3)
 
     @classmethod
