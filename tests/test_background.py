@@ -312,3 +312,22 @@ def test_invalid_sizes(device):
         device.program("background.cl", {"BG_LAYERS": 1, "BG_H": 4})
     with pytest.raises(BuildError, match="BG_H"):
         device.program("background.cl", {"BG_LAYERS": 4, "BG_H": 0})
+
+
+@pytest.mark.parametrize("caps", [{"fp64": False}, {"float_atomics": False}])
+def test_portable_paths(device, monkeypatch, caps):
+    # devices without fp64 (per-ray set-up in float32) and without native float atomics
+    # (compare-and-swap loop): same results within the same tolerances
+    import dataclasses
+    monkeypatch.setattr(device, "caps", dataclasses.replace(device.caps, **caps))
+    m, den, col = make_model(device, 12, 6, seed=31, density=(-0.5, 1.5), color=(-0.8, 0.8))
+    o, d, t = make_rays(200, m.r_inner, seed=31, t_start_max=3.0)
+    g = np.random.default_rng(31).normal(size=(200, 3)).astype(np.float32)
+    rgb, T = m.forward(o, d, t)
+    r_rgb, r_T = ref_forward(m, den, col, o, d, t)
+    np.testing.assert_allclose(rgb, r_rgb, rtol=tol.BG_RTOL, atol=tol.BG_ATOL)
+    np.testing.assert_allclose(T, r_T, rtol=tol.BG_RTOL, atol=tol.BG_ATOL)
+    gd, gc = m.backward(o, d, g, t)
+    rd, rc = ref.backward(den, col, m.r_inner, o, d, t, g, m.center, m.background)
+    np.testing.assert_allclose(gd, rd, rtol=tol.BG_GRAD_RTOL, atol=tol.BG_GRAD_ATOL)
+    np.testing.assert_allclose(gc, rc, rtol=tol.BG_GRAD_RTOL, atol=tol.BG_GRAD_ATOL)
