@@ -32,7 +32,7 @@ def _rays(origins, dirs, center, t_start):
     return o, d, b, h2, start, valid
 
 
-def _segments(density, color, r_inner, o, d, b, h2, start):
+def _segments(density, r_inner, o, d, b, h2, start):
     """Per segment k: list of (valid mask, delta, idx [n, 8], w [n, 8]) for layers k, k+1."""
     L, H, W = density.shape
     u = inv_radii(L, r_inner)
@@ -71,7 +71,7 @@ def _samples(density, color, r_inner, origins, dirs, t_start, center):
     density = np.asarray(density, np.float64)
     color = np.asarray(color, np.float64)
     o, d, b, h2, start, valid = _rays(origins, dirs, center, t_start)
-    segs = _segments(density, color, r_inner, o, d, b, h2, start)
+    segs = _segments(density, r_inner, o, d, b, h2, start)
     n = o.shape[0]
     K = len(segs)
     raw_s = np.zeros((n, K))
