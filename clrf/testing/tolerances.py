@@ -189,3 +189,28 @@ MODEL_LOSS_RTOL = 1e-4
 # Two models restored from one checkpoint run the same kernels on the same data: only the
 # nondeterminism of nothing (no atomics in the NeRF path) -> they agree to float32 roundoff.
 CHECKPOINT_RTOL = 1e-5
+
+# ============================================================================================
+# MSI background (cl/background.cl)
+# ============================================================================================
+# Forward vs float64: at most L - 1 <= 15 samples of 8-tap trilinear values; float32 atan2
+# (OpenCL allows 6 ulp: ~1e-6 rad) moves a sample by 1e-6 * W / (2 pi) <= 3e-6 texels, i.e.
+# <= 3e-6 times a texel-to-texel difference of O(1). The same budget as the grid renderer.
+BG_ATOL = 2e-5
+BG_RTOL = 1e-5
+# Background gradients vs the float64 analytic gradient: dL/dsigma carries delta_k, up to the
+# outermost shell's thickness (~L r_inner ~ 20 world units here), times the remaining-radiance
+# cancellation (~L * 6e-8 * |total|), summed over a few hundred rays per texel by float atomics in
+# nondeterministic order: 1e-4 absolute + 1e-4 relative.
+BG_GRAD_ATOL = 1e-4
+BG_GRAD_RTOL = 1e-4
+# Reference gradient vs central differences of the reference (float64, eps 1e-5): truncation
+# O(eps^2 f''') with f''' up to delta^3 ~ 1e2 gives ~1e-8; roundoff 1e-16 / eps ~ 1e-11.
+BG_FD_EPS = 1e-5
+BG_FD_ATOL = 1e-7
+BG_FD_RTOL = 1e-6
+# The float32 kernels against their own directional central difference (step 1e-2 on a unit
+# direction): roundoff 6e-8 * |loss| (~50) / 1e-2 ~ 3e-4 and truncation O(e^2) ~ 1e-4 relative
+# to a directional derivative of O(1..10): 1e-2 relative; a wrong sign or factor is O(1).
+BG_KERNEL_FD_EPS = 1e-2
+BG_KERNEL_FD_RTOL = 1e-2
