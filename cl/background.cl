@@ -56,6 +56,7 @@
  */
 #include "common.h"
 #include "ray.h"
+#include "volrend.h"
 
 #ifndef BG_LAYERS
 #define BG_LAYERS 16  /* number of spheres L; samples per ray = L - 1 */
@@ -170,9 +171,7 @@ inline float3 bg_march(const bg_ray_t *R, float r_inner, __global const float *d
         const float sigma = bg_lerp_density(&S, density);
         if (!(sigma > 0.0f)) continue;
         const float tau = sigma * delta;
-        rgb += T * alpha_from_tau(tau) * fmax(bg_lerp_color_pre(&S, color), 0.0f);
-        ksum_add(&logT, -tau);
-        T = exp(logT.s);
+        rgb += vr_step(&logT, T, tau, &T) * fmax(bg_lerp_color_pre(&S, color), 0.0f);
         if (logT.s < BG_LOGT_DEAD) break;
     }
     *logT_end = logT.s;
@@ -217,15 +216,10 @@ __kernel void bg_backward(const int n, __global const float *origins, __global c
         const float sigma = bg_lerp_density(&S, density);
         if (!(sigma > 0.0f)) continue;
         const float tau = sigma * delta;
-        const float w = T * alpha_from_tau(tau);
+        const float w = vr_step(&logT, T, tau, &T);   /* T is now T_{k+1} */
         const float3 pre = bg_lerp_color_pre(&S, color);
-        const float3 c = fmax(pre, 0.0f);
-        const float gc = dot(g, c);
-        ksum_add(&prefix, w * gc);
-        ksum_add(&logT, -tau);
-        T = exp(logT.s);
-        const float rem = total - prefix.s;            /* R_k */
-        const float dsigma = delta * (T * gc - rem);
+        const float gc = dot(g, fmax(pre, 0.0f));
+        const float dsigma = vr_dsigma(&prefix, total, w, T, gc, delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
         for (int c8 = 0; c8 < 8; ++c8) {
             const float wc = S.w[c8];

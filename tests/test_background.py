@@ -1,12 +1,12 @@
 """Multi-sphere-image background (cl/background.cl, clrf/background.py) vs the float64 reference
-(clrf/reference_background.py), closed forms, finite differences and a density scale sweep."""
+(clrf/testing/reference_background.py), closed forms, finite differences and a density scale sweep."""
 import numpy as np
 import pytest
 
-from clrf import reference_background as ref
+from clrf.testing import reference_background as ref
 from clrf.background import MSIBackground
 from clrf.programs import BuildError
-import tolerances as tol
+from clrf.testing import tolerances as tol
 
 CENTER = (0.1, -0.2, 0.05)
 BG = (0.2, 0.5, 0.9)
