@@ -185,3 +185,11 @@ MODEL_LOSS_RTOL = 1e-4
 # Two models restored from one checkpoint run the same kernels on the same data: only the
 # nondeterminism of nothing (no atomics in the NeRF path) -> they agree to float32 roundoff.
 CHECKPOINT_RTOL = 1e-5
+# ---- export (clrf/export.py, cl/export.cl) ------------------------------------------------------
+# Fields at points are one 8-corner trilinear interpolation (plus one multiply-add for colour):
+# float32 error a few u times the largest corner value; the render's budget is ample.
+EXPORT_FIELD_ATOL = RENDER_ATOL
+EXPORT_FIELD_RTOL = RENDER_RTOL
+# Geometry: marching cubes and expected depth locate a surface to within the sampling cell,
+# which is what the issue asks ("within one voxel of the exact surfaces").
+EXPORT_GEOMETRY_VOXELS = 1.0
