@@ -58,6 +58,11 @@ def cmd_train(a):
     from .models import FACTORIES
     from .train import Trainer
 
+    if a.log == "tensorboard":
+        from .tblog import available
+        if not available():
+            raise CliError("--log tensorboard needs tensorboardX: pip install tensorboardX (or "
+                           "clrf[tensorboard])")
     overrides = parse_set(a.set)
     tr = overrides.setdefault("train", {})
     for k, v in (("max_seconds", a.max_seconds), ("model", a.model), ("data", a.data),
@@ -96,7 +101,14 @@ def cmd_train(a):
           f"output {out}", file=sys.stderr)
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=FACTORIES[cfg.train.model],
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
-    res = trainer.run()
+    if a.log == "tensorboard":
+        from .tblog import TensorBoardLog
+        trainer.metric_sinks = (TensorBoardLog(out),)
+    try:
+        res = trainer.run()
+    finally:
+        for sink in trainer.metric_sinks:
+            sink.close()
     if res.get("interrupted"):
         print(f"clrf: interrupted; checkpoint kept at {trainer.ckpt_path} (resume with "
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
@@ -257,6 +269,9 @@ def build_parser():
                    help="override one option, e.g. --set grid.batch_size=4000 (repeatable)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out")
     t.add_argument("--force", action="store_true", help="start over in an --out that holds a run")
+    t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
+                   help="metrics.csv always; 'tensorboard' also writes event files to "
+                        "OUT/tensorboard (needs tensorboardX)")
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")

@@ -1,6 +1,6 @@
 """Progress output on stderr: tqdm bars (rate, ETA) on a terminal, a line every LOG_EVERY seconds
-in logs, nothing in quiet mode (``clrf --quiet``). Messages (one line per evaluation) are
-printed in every mode except quiet.
+in logs, no bars and no periodic lines in quiet mode (``clrf --quiet``). Messages (one line
+per evaluation, pruning) print in every mode: they are the log.
 
 >>> with bar(len(views), "render", "view") as b:
 ...     for v in views: ...; b.update(1)
@@ -23,6 +23,10 @@ def _tty() -> bool:
     return hasattr(sys.stderr, "isatty") and sys.stderr.isatty()
 
 
+def _num(x) -> str:
+    return f"{x:.0f}" if float(x).is_integer() else f"{x:.1f}"
+
+
 class _LogBar:
     """tqdm's interface for logs: one plain line every LOG_EVERY seconds and one at the end."""
 
@@ -36,8 +40,8 @@ class _LogBar:
         dt = time.perf_counter() - self.t0
         rate = self.n / dt if dt > 0 else 0.0
         eta = max(self.total - self.n, 0) / rate if rate > 0 and self.total else 0.0
-        tot = f"/{self.total:.4g}" if self.total else ""
-        sys.stderr.write(f"{self.desc}: {self.n:.4g}{tot} {self.unit} ({rate:.3g} {self.unit}/s, "
+        tot = f"/{_num(self.total)}" if self.total else ""
+        sys.stderr.write(f"{self.desc}: {_num(self.n)}{tot} {self.unit} ({rate:.3g} {self.unit}/s, "
                          f"{dt:.0f} s elapsed, ETA {eta:.0f} s){self.postfix}\n")
         sys.stderr.flush()
         self.last = time.perf_counter()
@@ -49,10 +53,6 @@ class _LogBar:
 
     def set_postfix_str(self, s, refresh=False):
         self.postfix = f"  {s}"
-
-    def write(self, msg):
-        sys.stderr.write(msg + "\n")
-        sys.stderr.flush()
 
     def close(self):
         if self.n:
@@ -69,16 +69,13 @@ class _Silent(_LogBar):
     def update(self, k=1):
         self.n += k
 
-    def write(self, msg):
-        pass
-
     def close(self):
         pass
 
 
 def bar(total, desc: str, unit: str = "it"):
     """A progress bar over ``total`` units: tqdm on a terminal, _LogBar in logs, silent when
-    quiet. All three have update(k), set_postfix_str(s), write(msg), close()."""
+    quiet. All three have update(k), set_postfix_str(s), close() and work as context managers."""
     if QUIET:
         return _Silent(total, desc, unit)
     if not _tty():
@@ -89,10 +86,8 @@ def bar(total, desc: str, unit: str = "it"):
 
 
 def message(text: str):
-    """One line on stderr (above any bar) unless quiet."""
-    if QUIET:
-        return
-    if _tty():
+    """One line on stderr (above a tqdm bar on a terminal), in every mode."""
+    if _tty() and not QUIET:
         from tqdm import tqdm
         tqdm.write(text, file=sys.stderr)
     else:
@@ -120,9 +115,7 @@ class TrainProgress:
         self.advance_to(seconds)
 
     def message(self, text: str):
-        if QUIET:
-            return
-        self.bar.write(text) if _tty() else message(text)
+        message(text)
 
     def close(self):
         self.bar.close()

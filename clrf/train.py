@@ -176,6 +176,8 @@ class Trainer:
     def _row(self, **kw):
         with open(self.csv_path, "a", newline="") as f:
             csv.DictWriter(f, CSV_FIELDS).writerow({k: kw.get(k, "") for k in CSV_FIELDS})
+        for sink in self.metric_sinks:
+            sink.row(kw)
 
     def save(self):
         state = self.model.state_dict()
@@ -263,6 +265,7 @@ class Trainer:
         return result
 
     _rate = 0.0
+    metric_sinks = ()   # extra receivers of every metrics.csv row (clrf.tblog.TensorBoardLog)
 
 
 def dataset_meta(ds):

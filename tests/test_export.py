@@ -216,3 +216,52 @@ def test_cli_render_bad_input(trained, tmp_path, capsys, args, msg):
     err = capsys.readouterr().err
     assert "clrf: error:" in err and msg in err
     assert not out.exists()
+
+
+# ---- progress and TensorBoard ---------------------------------------------------------------
+def test_log_progress_lines(monkeypatch, capsys):
+    """Not a terminal: one line at the end (and every LOG_EVERY s), rate and ETA; quiet: none."""
+    from clrf import progress
+    with progress.bar(4, "work", "view") as b:
+        for _ in range(4):
+            b.update(1)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("work: 4/4 view (") and "ETA 0 s" in err[0]
+    monkeypatch.setattr(progress, "QUIET", True)
+    with progress.bar(4, "work") as b:
+        b.update(4)
+    progress.message("eval line")
+    assert capsys.readouterr().err == "eval line\n"     # messages are the log: always printed
+
+
+def test_train_tensorboard_events(tmp_path, capsys):
+    pytest.importorskip("tensorboardX", reason="the tensorboard extra is not installed")
+    out = tmp_path / "tb"
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 1, "--log", "tensorboard",
+                   "--set", "grid.reso=[[16,16,16]]", "--set", "grid.upsample_at=[]",
+                   "--set", "train.eval_every=0.5", "--set", "train.eval_views=1") == 0
+    err = capsys.readouterr().err
+    assert "eval PSNR" in err and "train:" not in err     # eval lines, no progress lines
+    events = list((out / "tensorboard").glob("events.out.tfevents.*"))
+    assert len(events) == 1 and events[0].stat().st_size > 100
+    import struct
+    data = events[0].read_bytes()
+    n, tags = 0, set()
+    while data:                            # TFRecord framing: length, crc, payload, crc
+        (length,) = struct.unpack("<Q", data[:8])
+        payload = data[12:12 + length]
+        data = data[16 + length:]
+        n += 1
+        for tag in (b"metrics/eval_psnr", b"metrics/train_loss"):
+            if tag in payload:
+                tags.add(tag)
+    assert tags == {b"metrics/eval_psnr", b"metrics/train_loss"}
+    rows = (out / "metrics.csv").read_text().splitlines()
+    assert rows[0].startswith("iteration,seconds,train_loss")  # metrics.csv unchanged
+
+
+def test_train_tensorboard_bad_option(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:          # argparse: usage and exit 2
+        run_cli("train", "--out", tmp_path / "x", "--log", "wandb")
+    assert e.value.code == 2 and "--log" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
