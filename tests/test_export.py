@@ -265,3 +265,15 @@ def test_train_tensorboard_bad_option(tmp_path, capsys):
         run_cli("train", "--out", tmp_path / "x", "--log", "wandb")
     assert e.value.code == 2 and "--log" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_ndc_mesh_is_mapped_to_world(exact_model):
+    """An NDC scene's mesh is the model-space mesh with every vertex through ndc_to_world
+    (faces reaching NDC depth NDC_MAX_DEPTH dropped)."""
+    ndc = (np.array([40.0, 40.0, 16.0, 16.0]), 32, 32)
+    box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 0.0]])
+    plain = export.extract_mesh(exact_model, box, (32, 32, 16))
+    mapped = export.extract_mesh(exact_model, box, (32, 32, 16), ndc=ndc)
+    assert len(mapped.faces) > 0
+    np.testing.assert_allclose(mapped.verts, export.ndc_to_world(plain.verts, *ndc), rtol=1e-6)
+    assert np.all(mapped.verts[:, 2] < 0)                 # in front of the camera (world z < 0)
