@@ -15,17 +15,20 @@
  *   rgb0[n,c] = max(SH_C0 * sum_c w_c sh_c[c * SH_BASIS] + 0.5, 0)   (the degree-0 band: the
  *               view-independent colour, i.e. the colour averaged over all directions)
  *
- * Defines read: SH_DEGREE (0..3). Mirrored by clrf.export.sample_fields_reference.
+ * Defines read: SH_DEGREE (0..3), SH_C0, COLOR_OFFSET (the host passes clrf.export's values).
+ * Mirrored by clrf.reference_export.sample_fields.
  */
-#include "common.h"
-
 #ifndef SH_DEGREE
-#define SH_DEGREE 0
+#define SH_DEGREE 0                  /* SH degree of the grid's rows (0..3) */
+#endif
+#ifndef SH_C0
+#define SH_C0 0.28209479f            /* Y_0^0 = 1 / (2 sqrt(pi)) (set by the host) */
+#endif
+#ifndef COLOR_OFFSET
+#define COLOR_OFFSET 0.5f            /* as in the renderer: zero coefficients give grey */
 #endif
 #define SH_BASIS ((SH_DEGREE + 1) * (SH_DEGREE + 1))
 #define SH_DIM (3 * SH_BASIS)
-#define SH_C0 0.28209479177387814f   /* Y_0^0 = 1 / (2 sqrt(pi)) */
-#define COLOR_OFFSET 0.5f            /* as in the renderer: zero coefficients give grey */
 
 inline void axis_lerp(float u, int r, int *i0, int *i1, float *f) {
     const float c = clamp(u - 0.5f, 0.0f, (float)(r - 1));

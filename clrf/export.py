@@ -33,8 +33,8 @@ from .programs import launch
 
 BLOCK = 1 << 20          # points per device evaluation (12 MB of coordinates)
 NDC_MAX_DEPTH = 0.99     # NDC z' beyond this (world depth > 200 x near) is "at infinity": dropped
-SH_C0 = 0.28209479177387814
-COLOR_OFFSET = 0.5
+SH_C0 = 0.28209479177387814   # Y_0^0 = 1 / (2 sqrt(pi))
+COLOR_OFFSET = 0.5             # the renderer's colour offset (cl/march.h): zero SH gives grey
 
 
 class ExportError(ValueError):
@@ -83,7 +83,9 @@ def _grid_fields(grid, points):
     n = int(points.shape[0])
     q = grid.device.queue
     sigma, rgb = cla.empty(q, n, np.float32), cla.empty(q, (n, 3), np.float32)
-    k = grid.device.program("export.cl", {"SH_DEGREE": grid.sh_degree}).kernel("sample_fields")
+    prg = grid.device.program("export.cl", {"SH_DEGREE": grid.sh_degree, "SH_C0": SH_C0,
+                                            "COLOR_OFFSET": COLOR_OFFSET})
+    k = prg.kernel("sample_fields")
     launch(grid.device, k, n, (np.int32(n), points.data, *grid.geometry_args(), grid.links.data,
                                grid.density.data, grid.sh.data, sigma.data, rgb.data))
     return sigma, rgb
@@ -95,24 +97,6 @@ def _nerf_fields(model, points, dirs):
     xe = ops.encode(dev, points, c.pos_freqs, c.include_input, c.pos_scale)
     de = ops.encode(dev, dirs, c.dir_freqs, c.include_input, c.dir_scale)
     return model.fine.forward(xe, de)
-
-
-def sample_fields_reference(density, sh, bbox, points):
-    """Float64 twin of cl/export.cl on dense arrays density [X,Y,Z], sh [X,Y,Z,3B]:
-    (sigma [n], rgb [n, 3]) at world points [n, 3]."""
-    from .reference import trilerp_corners
-    density = np.asarray(density, np.float64)
-    sh = np.asarray(sh, np.float64)
-    bbox = np.asarray(bbox, np.float64)
-    reso = np.array(density.shape)
-    u = (np.asarray(points, np.float64) - bbox[0]) * reso / (bbox[1] - bbox[0])
-    idx, w = trilerp_corners(u, reso)
-    i, j, k = idx[..., 0], idx[..., 1], idx[..., 2]
-    sigma = np.sum(w * density[i, j, k], 1)
-    B = sh.shape[-1] // 3
-    band0 = sh[..., [0, B, 2 * B]]                                  # [X, Y, Z, 3]
-    rgb = np.maximum(SH_C0 * np.einsum("nc,ncj->nj", w, band0[i, j, k]) + COLOR_OFFSET, 0.0)
-    return sigma, rgb
 
 
 # ---- mesh ---------------------------------------------------------------------------------------
@@ -140,8 +124,9 @@ def default_reso(model, bbox) -> tuple:
 
 
 def density_volume(model, bbox, reso, progress=None):
-    """sigma [X, Y, Z] (float32, raw for grids: see sample_fields) at the cell centres bbox[0] + (i + 1/2) h of a ``reso`` grid
-    over ``bbox``, evaluated in blocks of whole x-slabs (at most BLOCK points each)."""
+    """sigma [X, Y, Z] (float32; raw for grids, see sample_fields) at the cell centres
+    bbox[0] + (i + 1/2) h of a ``reso`` grid over ``bbox``, h = (bbox[1] - bbox[0]) / reso,
+    evaluated in blocks of whole x-slabs (at most BLOCK points each)."""
     bbox = np.asarray(bbox, np.float64)
     X, Y, Z = (int(r) for r in reso)
     h = (bbox[1] - bbox[0]) / np.array([X, Y, Z])

@@ -4,7 +4,7 @@ A PLY file is an ASCII header followed by packed records, so numpy structured ar
 directly (one ``tobytes`` per element); that keeps a dependency out of the install for ~40 lines.
 The files open in MeshLab, Blender, CloudCompare and Open3D.
 
->>> write_ply("mesh.ply", verts, colors, faces)   # verts [V,3] float, colors [V,3] uint8, faces [F,3]
+>>> write_ply("mesh.ply", verts, colors, faces)  # [V,3] float, [V,3] uint8, [F,3] int
 """
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from clrf import export
+from clrf import export, reference_export
 from clrf.cameras import to_ndc
 from clrf.cli import main as cli
 from clrf.config import GridConfig
@@ -59,7 +59,7 @@ def test_sample_fields_matches_reference(device):
     model = GridModel(device, GridConfig(), g, (1, 1, 1))
     pts = rng.uniform(bbox[0] - 0.3, bbox[1] + 0.3, size=(5000, 3))   # some outside: clamped
     sig, rgb = export.sample_fields(model, pts, block=1024)
-    rs, rr = export.sample_fields_reference(dens, sh, bbox, pts)
+    rs, rr = reference_export.sample_fields(dens, sh, bbox, pts)
     np.testing.assert_allclose(sig, rs, atol=EXPORT_FIELD_ATOL, rtol=EXPORT_FIELD_RTOL)
     np.testing.assert_allclose(rgb, rr, atol=EXPORT_FIELD_ATOL, rtol=EXPORT_FIELD_RTOL)
     assert np.any(rs < 0) and np.any(rr == 0)    # the raw sign and the colour ReLU are exercised
@@ -144,7 +144,7 @@ def test_nerf_mesh_path(device):
     assert export.default_level(model) == pytest.approx(np.log(2) / (4.0 / 64))
 
 
-# ---- CLI ------------------------------------------------------------------------------------------
+# ---- CLI ---------------------------------------------------------------------------------------
 def run_cli(*args):
     return cli([str(a) for a in args])
 
@@ -246,12 +246,11 @@ def test_train_tensorboard_events(tmp_path, capsys):
     assert len(events) == 1 and events[0].stat().st_size > 100
     import struct
     data = events[0].read_bytes()
-    n, tags = 0, set()
+    tags = set()
     while data:                            # TFRecord framing: length, crc, payload, crc
         (length,) = struct.unpack("<Q", data[:8])
         payload = data[12:12 + length]
         data = data[16 + length:]
-        n += 1
         for tag in (b"metrics/eval_psnr", b"metrics/train_loss"):
             if tag in payload:
                 tags.add(tag)
@@ -277,3 +276,8 @@ def test_ndc_mesh_is_mapped_to_world(exact_model):
     assert len(mapped.faces) > 0
     np.testing.assert_allclose(mapped.verts, export.ndc_to_world(plain.verts, *ndc), rtol=1e-6)
     assert np.all(mapped.verts[:, 2] < 0)                 # in front of the camera (world z < 0)
+
+
+def test_export_constants_match_the_renderer():
+    from clrf import reference
+    assert export.SH_C0 == reference.SH_C0 and export.COLOR_OFFSET == reference.COLOR_OFFSET
