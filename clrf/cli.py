@@ -26,8 +26,10 @@ def _user_errors():
     from .config import ConfigError
     from .data.base import DataError
     from .device import DeviceError
+    from .export import ExportError
     from .programs import BuildError
-    return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError)
+    return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
+            ExportError)
 
 
 def parse_set(items):

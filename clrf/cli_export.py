@@ -1,6 +1,7 @@
 """``clrf export`` (mesh / point cloud PLY) and the video and depth outputs of ``clrf render``.
 
-Options are checked before anything is computed or written; bad ones raise CliError (exit 2).
+Options are checked before anything is computed or written; bad ones raise ExportError, which
+the CLI reports as ``clrf: error: ...`` with exit code 2.
 """
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ DEPTH_MIN_OPACITY = 0.5  # depth maps are NaN / background where less light is a
 
 
 def _error(msg):
-    from .cli import CliError
-    return CliError(msg)
+    from .export import ExportError
+    return ExportError(msg)
 
 
 def _check_ply(opt, path):
@@ -58,7 +59,7 @@ def _ndc_of(meta):
 
 def cmd_export(a):
     from .device import Device
-    from .export import ExportError, default_reso, extract_mesh, point_cloud
+    from .export import default_reso, extract_mesh, point_cloud
     from .models import load_model
     from .ply import write_ply
 
@@ -78,10 +79,7 @@ def cmd_export(a):
         else:
             reso = default_reso(model, bbox)
         with bar(reso[0], "export mesh", "slab") as b:
-            try:
-                mesh = extract_mesh(model, bbox, reso, a.level, ndc, progress=b.update)
-            except ExportError as e:
-                raise _error(str(e)) from None
+            mesh = extract_mesh(model, bbox, reso, a.level, ndc, progress=b.update)
         mesh_path.parent.mkdir(parents=True, exist_ok=True)
         write_ply(mesh_path, mesh.verts, mesh.colors, mesh.faces)
         print(f"saved {mesh_path}: {len(mesh.verts)} vertices, {len(mesh.faces)} triangles, "

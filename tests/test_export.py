@@ -281,3 +281,18 @@ def test_ndc_mesh_is_mapped_to_world(exact_model):
 def test_export_constants_match_the_renderer():
     from clrf import reference
     assert export.SH_C0 == reference.SH_C0 and export.COLOR_OFFSET == reference.COLOR_OFFSET
+
+
+def test_cli_export_bad_level_as_a_process(trained, tmp_path):
+    """Through `python -m clrf.cli` (a second copy of the cli module): still exit 2, no trace."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-m", "clrf.cli", "--quiet", "export", "--ckpt",
+                        str(trained), "--mesh", str(tmp_path / "m.ply"), "--level", "1e30"],
+                       capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert r.returncode == 2 and "clrf: error: --level" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "m.ply").exists()
