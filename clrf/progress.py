@@ -73,6 +73,11 @@ class _Silent(_LogBar):
         pass
 
 
+# tqdm's layout for fractional totals (training seconds): counts with one decimal
+FLOAT_FORMAT = ("{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} {unit} "
+                "[{elapsed}<{remaining}{postfix}]")
+
+
 def bar(total, desc: str, unit: str = "it"):
     """A progress bar over ``total`` units: tqdm on a terminal, _LogBar in logs, silent when
     quiet. All three have update(k), set_postfix_str(s), close() and work as context managers."""
@@ -81,8 +86,9 @@ def bar(total, desc: str, unit: str = "it"):
     if not _tty():
         return _LogBar(total, desc, unit)
     from tqdm import tqdm
+    fmt = None if isinstance(total, int) else FLOAT_FORMAT
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True,
-                mininterval=0.2, leave=True)
+                mininterval=0.2, leave=True, bar_format=fmt)
 
 
 def message(text: str):
@@ -100,12 +106,14 @@ class TrainProgress:
     pace), the latest loss/PSNR/rate as its postfix; messages print above it."""
 
     def __init__(self, total_seconds: float, start_seconds: float = 0.0):
-        self.bar = bar(round(float(total_seconds), 1), "train", "s")
+        self.total = float(total_seconds)
+        self.bar = bar(self.total, "train", "s")
         self.done = 0.0
         self.advance_to(start_seconds)
 
     def advance_to(self, seconds: float):
-        step = round(float(seconds) - self.done, 3)
+        """Move the bar to ``seconds`` of training (clamped to the budget)."""
+        step = min(float(seconds), self.total) - self.done
         if step > 0:
             self.bar.update(step)
             self.done += step
