@@ -296,3 +296,16 @@ def test_cli_export_bad_level_as_a_process(trained, tmp_path):
                        capture_output=True, text=True, env=env, cwd=tmp_path)
     assert r.returncode == 2 and "clrf: error: --level" in r.stderr
     assert "Traceback" not in r.stderr and not (tmp_path / "m.ply").exists()
+
+
+def test_write_video_odd_size(tmp_path):
+    """H.264 needs even sizes: odd frames are edge-padded; frame count and content survive."""
+    import imageio.v3 as iio
+    from clrf.cli_export import write_video
+    frames = np.zeros((3, 33, 35, 3), np.uint8)
+    frames[1] = 255
+    write_video(tmp_path / "v.mp4", frames, 5)
+    back = iio.imread(tmp_path / "v.mp4", index=None)
+    assert back.shape == (3, 34, 36, 3)
+    assert back[0].mean() < 10 and back[1].mean() > 245   # lossy codec: near, not equal
+    assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]   # no temporary left
