@@ -309,3 +309,21 @@ def test_write_video_odd_size(tmp_path):
     assert back.shape == (3, 34, 36, 3)
     assert back[0].mean() < 10 and back[1].mean() > 245   # lossy codec: near, not equal
     assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]   # no temporary left
+
+
+@pytest.mark.parametrize("cmd, module, msg", [
+    (["render", "--views", "orbit", "--video"], "imageio_ffmpeg", "imageio-ffmpeg"),
+    (["train", "--log", "tensorboard", "--max-seconds", "1"], "tensorboardX", "tensorboardX"),
+])
+def test_missing_optional_package(trained, tmp_path, capsys, monkeypatch, cmd, module, msg):
+    """Without the optional package: exit 2 naming the pip install, before anything is written."""
+    import importlib.util
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == module else real(name, *a))
+    out = tmp_path / "o"
+    args = cmd + (["--ckpt", str(trained)] if cmd[0] == "render" else []) + ["--out", str(out)]
+    assert run_cli(*args) == 2
+    err = capsys.readouterr().err
+    assert "clrf: error:" in err and f"pip install {msg}" in err
+    assert not out.exists()
