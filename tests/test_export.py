@@ -152,9 +152,11 @@ def run_cli(*args):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     out = tmp_path_factory.mktemp("exp") / "r"
-    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 8,
+    # a fixed number of iterations (not seconds), so the geometry does not depend on load
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 120,
+                   "--set", "train.max_iters=100",
                    "--set", "grid.reso=[[32,32,32],[64,64,64]]", "--set", "grid.upsample_at=[40]",
-                   "--set", "train.eval_every=100", "--set", "train.eval_views=1") == 0
+                   "--set", "train.eval_every=1000", "--set", "train.eval_views=1") == 0
     return out
 
 
@@ -163,8 +165,9 @@ def test_cli_export_trained_scene(trained, tmp_path):
                    "--points", tmp_path / "p.ply", "--n", 20000) == 0
     mesh, pts = read_ply(tmp_path / "m.ply"), read_ply(tmp_path / "p.ply")
     assert len(mesh["faces"]) > 1000 and len(pts["verts"]) > 2000
-    # a briefly trained grid has floaters and a blurred inside, so the check is looser than on
-    # the exact grid: most points and vertices lie near the exact surfaces
+    # a briefly trained grid has floaters and loose density inside the objects, so the check
+    # is looser than on the exact grid: most points and vertices lie near the exact surfaces
+    # (measured at 100 iterations: medians 0.94 voxel for points, 1.7 for vertices)
     vox = 3.0 / 64
     assert np.median(np.abs(sdf(pts["verts"]))) < 1.5 * vox
     assert np.median(np.abs(sdf(mesh["verts"]))) < 3 * vox
