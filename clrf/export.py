@@ -47,7 +47,6 @@ class Mesh:
     faces: np.ndarray    # [F, 3] int32 vertex indices
     colors: np.ndarray   # [V, 3] uint8
     level: float         # the isosurface density
-    cell: np.ndarray     # [3] sampling cell edge (model space)
 
 
 # ---- fields at points ---------------------------------------------------------------------------
@@ -175,10 +174,11 @@ def extract_mesh(model, bbox, reso=None, level=None, ndc=None, progress=None) ->
     _, rgb = sample_fields(model, verts, dirs=None if model.kind == "grid" else nrm)
     colors = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
     if ndc is not None:
-        keep_v = verts[:, 2] < NDC_MAX_DEPTH
-        verts = ndc_to_world(verts, *ndc)
-        faces = faces[np.all(keep_v[faces], axis=1)]
-    return Mesh(verts.astype(np.float32), faces.astype(np.int32), colors, level, h)
+        faces = faces[np.all(verts[faces, 2] < NDC_MAX_DEPTH, axis=1)]
+        used, faces = np.unique(faces, return_inverse=True)      # drop vertices left unused
+        faces = faces.reshape(-1, 3)
+        verts, colors = ndc_to_world(verts[used], *ndc), colors[used]
+    return Mesh(verts.astype(np.float32), faces.astype(np.int32), colors, level)
 
 
 # ---- point cloud ---------------------------------------------------------------------------------

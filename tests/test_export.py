@@ -269,16 +269,26 @@ def test_train_tensorboard_bad_option(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
-def test_ndc_mesh_is_mapped_to_world(exact_model):
+def test_ndc_mesh_is_mapped_to_world(exact_model, monkeypatch):
     """An NDC scene's mesh is the model-space mesh with every vertex through ndc_to_world
     (faces reaching NDC depth NDC_MAX_DEPTH dropped)."""
     ndc = (np.array([40.0, 40.0, 16.0, 16.0]), 32, 32)
     box = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 0.0]])
     plain = export.extract_mesh(exact_model, box, (32, 32, 16))
     mapped = export.extract_mesh(exact_model, box, (32, 32, 16), ndc=ndc)
-    assert len(mapped.faces) > 0
-    np.testing.assert_allclose(mapped.verts, export.ndc_to_world(plain.verts, *ndc), rtol=1e-6)
+    assert len(mapped.faces) == len(plain.faces) > 0
+    np.testing.assert_allclose(mapped.verts[mapped.faces],
+                               export.ndc_to_world(plain.verts, *ndc)[plain.faces], rtol=1e-6)
     assert np.all(mapped.verts[:, 2] < 0)                 # in front of the camera (world z < 0)
+    # faces reaching the far cut go, and no vertex is left unused (the cut moved to z' = -0.3
+    # so that it crosses the scene's sphere 0 and box)
+    monkeypatch.setattr(export, "NDC_MAX_DEPTH", -0.3)
+    cut = export.extract_mesh(exact_model, box, (32, 32, 16), ndc=ndc)
+    keep = np.all(plain.verts[plain.faces, 2] < -0.3, axis=1)
+    assert 0 < len(cut.faces) == keep.sum() < len(plain.faces)
+    assert len(np.unique(cut.faces)) == len(cut.verts)
+    np.testing.assert_allclose(cut.verts[cut.faces],
+                               export.ndc_to_world(plain.verts, *ndc)[plain.faces[keep]], rtol=1e-6)
 
 
 def test_export_constants_match_the_renderer():
