@@ -56,13 +56,18 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
     Grid models: cl/export.cl (see its header for the math; sigma is the raw interpolated
     density, negative where the renderer's ReLU makes it 0). NeRF: the fine network at
     gamma(points) looking along ``dirs`` [n, 3] (unit; default -z, which does not change sigma).
-    ``progress`` (optional) is called with the number of points done after each block.
+    Points go to the device in blocks of ``block`` (NeRF: fewer, so that the MLP's activations
+    stay within clrf.nerf.MAX_RENDER_SCRATCH bytes); ``progress`` (optional) is called with the
+    number of points done after each block.
     """
     p = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
     n = p.shape[0]
     sigma = np.empty(n, np.float32)
     rgb = np.empty((n, 3), np.float32)
     q = model.device.queue
+    if model.kind != "grid":   # the MLP keeps every activation: bound them as its render does
+        from .nerf import MAX_RENDER_SCRATCH
+        block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * model.fine.layout.nslot)))
     for s in range(0, n, block):
         e = min(n, s + block)
         pd = cla.to_device(q, p[s:e])

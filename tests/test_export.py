@@ -142,6 +142,10 @@ def test_nerf_mesh_path(device):
     assert len(mesh.faces) > 0 and mesh.colors.dtype == np.uint8
     assert np.all(np.abs(mesh.verts) <= 1.5 + 1e-5)
     assert export.default_level(model) == pytest.approx(np.log(2) / (4.0 / 64))
+    # blocks are independent: 7 blocks of 100 give the one-block result bit for bit
+    pts = np.random.default_rng(4).uniform(-1.5, 1.5, (650, 3))
+    a, b = export.sample_fields(model, pts, block=100), export.sample_fields(model, pts)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
 # ---- CLI ---------------------------------------------------------------------------------------
