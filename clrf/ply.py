@@ -2,7 +2,8 @@
 
 A PLY file is an ASCII header followed by packed records, so numpy structured arrays write it
 directly (one ``tobytes`` per element); that keeps a dependency out of the install for ~40 lines.
-The files open in MeshLab, Blender, CloudCompare and Open3D.
+Layout: vertex ``x y z`` float32, ``red green blue`` uint8; face ``vertex_indices`` as a list
+with a uchar count and int32 indices (the common layout of mesh tools).
 
 >>> write_ply("mesh.ply", verts, colors, faces)  # [V,3] float, [V,3] uint8, [F,3] int
 """
