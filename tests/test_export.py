@@ -188,6 +188,10 @@ def test_cli_render_video_and_depth(trained, tmp_path, capsys):
     z = np.load(out / "orbit_000_depth.npy")
     assert z.shape == (48, 48) and np.isnan(z).any() and np.nanmin(z) > 2.0
     assert iio.imread(out / "orbit_004_depth.png").shape == (48, 48, 3)
+    assert run_cli("--quiet", "render", "--ckpt", trained, "--views", "spiral", "--frames", 3,
+                   "--out", out, "--video", "--scale", 0.5) == 0
+    assert len(list(out.glob("spiral_*.png"))) == 3
+    assert iio.imread(out / "spiral.mp4", index=None).shape == (3, 32, 32, 3)
 
 
 @pytest.mark.parametrize("args, msg", [
