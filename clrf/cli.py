@@ -1,4 +1,4 @@
-"""clrf train | render | eval | devices | bench.
+"""clrf train | render | eval | export | devices | bench.
 
 Bad input (a missing or malformed dataset, an unknown option, an out-of-range value, an
 unusable device or checkpoint) prints one message naming the file or field and the fix, and
@@ -26,8 +26,10 @@ def _user_errors():
     from .config import ConfigError
     from .data.base import DataError
     from .device import DeviceError
+    from .export import ExportError
     from .programs import BuildError
-    return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError)
+    return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
+            ExportError)
 
 
 def parse_set(items):
@@ -66,6 +68,11 @@ def cmd_train(a):
     from .models import FACTORIES
     from .train import Trainer
 
+    if a.log == "tensorboard":
+        from .tblog import available
+        if not available():
+            raise CliError("--log tensorboard needs tensorboardX: pip install tensorboardX (or "
+                           "clrf[tensorboard])")
     overrides = parse_set(a.set)
     tr = overrides.setdefault("train", {})
     for k, v in (("max_seconds", a.max_seconds), ("model", a.model), ("data", a.data),
@@ -107,7 +114,14 @@ def cmd_train(a):
           f"output {out}", file=sys.stderr)
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=FACTORIES[cfg.train.model],
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
-    res = trainer.run()
+    if a.log == "tensorboard":
+        from .tblog import TensorBoardLog
+        trainer.metric_sinks = (TensorBoardLog(out),)
+    try:
+        res = trainer.run()
+    finally:
+        for sink in trainer.metric_sinks:
+            sink.close()
     if res.get("interrupted"):
         print(f"clrf: interrupted; checkpoint kept at {trainer.ckpt_path} (resume with "
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
@@ -134,8 +148,15 @@ def cmd_eval(a):
     views = np.asarray(ds.split.get("test", ds.split.get("val")))
     if a.max_views:
         views = views[:a.max_views]
+    from .progress import bar
     t = time.perf_counter()
-    ev = evaluate(model, ds, views)
+    per_view = []
+    with bar(len(views), "eval", "view") as b:
+        for v in views:
+            per_view += evaluate(model, ds, [v])["views"]
+            b.update(1)
+    ev = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
+          "ssim": float(np.mean([m["ssim"] for m in per_view])), "views": per_view}
     secs = time.perf_counter() - t
     for m in ev["views"]:
         print(f"view {m['view']:4d}  PSNR {m['psnr']:6.2f}  SSIM {m['ssim']:.4f}")
@@ -157,49 +178,59 @@ def cmd_eval(a):
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import orbit_poses
+    from .cameras import orbit_poses, spiral_poses
+    from .cli_export import check_render_args, depth_outputs, write_video
     from .device import Device
     from .models import load_model
+    from .progress import bar
     from .train import view_rays
 
+    check_render_args(a)
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     meta = state["dataset"]
     H, W = int(meta["H"]), int(meta["W"])
+    if a.scale != 1:   # same field of view at another resolution
+        H, W = max(1, round(H * a.scale)), max(1, round(W * a.scale))
+    sx, sy = W / int(meta["W"]), H / int(meta["H"])
     out = _out_dir(a.out)
-    out.mkdir(parents=True, exist_ok=True)
 
     class _View:  # the bits of a Dataset that view_rays needs
         hw = (H, W)
-        intrinsics = np.asarray(meta["intrinsics"])
+        intrinsics = np.asarray(meta["intrinsics"]) * [sx, sy, sx, sy]
         distortion = None if meta.get("distortion") is None else np.asarray(meta["distortion"])
         ndc = bool(meta["ndc"])
 
     if a.views == "test":
         ds = _ckpt_dataset(state, a.data)
         poses = ds.poses[np.asarray(ds.split.get("test", ds.split.get("val")))]
+    elif a.views == "spiral" or meta["ndc"]:
+        ds = _ckpt_dataset(state, a.data)
+        poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
     else:
-        if meta["ndc"]:
-            from .cameras import spiral_poses
-            ds = _ckpt_dataset(state, a.data)
-            poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
-        else:
-            bbox = np.asarray(meta["bbox"])
-            radius = a.radius or float(np.linalg.norm(bbox[1] - bbox[0])) * 1.15
-            poses = orbit_poses(a.frames, radius=radius, elevation_deg=a.elevation,
-                                center=bbox.mean(0))
+        bbox = np.asarray(meta["bbox"])
+        radius = a.radius or float(np.linalg.norm(bbox[1] - bbox[0])) * 1.15
+        poses = orbit_poses(a.frames, radius=radius, elevation_deg=a.elevation,
+                            center=bbox.mean(0))
     if a.max_views:
         poses = poses[:a.max_views]
+    out.mkdir(parents=True, exist_ok=True)
     frames = []
     t = time.perf_counter()
-    for i, p in enumerate(poses):
-        o, d = view_rays(_View, p[None])
-        img = np.clip(model.render(o, d)["rgb"].reshape(H, W, 3), 0, 1)
-        frame = (img * 255 + 0.5).astype(np.uint8)
-        frames.append(frame)
-        tmp = out / f".{a.views}_{i:03d}.png"
-        iio.imwrite(tmp, frame, extension=".png")
-        tmp.replace(out / f"{a.views}_{i:03d}.png")
+    with bar(len(poses), f"render {a.views}", "view") as b:
+        for i, p in enumerate(poses):
+            o, d = view_rays(_View, p[None])
+            r = model.render(o, d)
+            img = np.clip(r["rgb"].reshape(H, W, 3), 0, 1)
+            frame = (img * 255 + 0.5).astype(np.uint8)
+            frames.append(frame)
+            tmp = out / f".{a.views}_{i:03d}.png"
+            iio.imwrite(tmp, frame, extension=".png")
+            tmp.replace(out / f"{a.views}_{i:03d}.png")
+            if a.depth:
+                depth_outputs(out, f"{a.views}_{i:03d}_depth", r["depth"].reshape(H, W),
+                              r["acc"].reshape(H, W))
+            b.update(1)
     secs = time.perf_counter() - t
     print(f"rendered {len(frames)} {a.views} views at {W}x{H} in {secs:.1f} s to {out}")
     if a.views == "orbit" and frames:
@@ -208,7 +239,16 @@ def cmd_render(a):
         iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000 / 24, loop=0)
         tmp.replace(vid)
         print(f"saved {vid}")
+    if a.video and frames:
+        vid = out / f"{a.views}.mp4"
+        write_video(vid, frames, a.fps)
+        print(f"saved {vid} ({len(frames)} frames at {a.fps:g} fps)")
     return 0
+
+
+def cmd_export(a):
+    from .cli_export import cmd_export as run
+    return run(a)
 
 
 def cmd_devices(a):
@@ -226,6 +266,8 @@ def build_parser():
     p = argparse.ArgumentParser(prog="clrf", description="Portable OpenCL radiance fields.")
     p.add_argument("--device", default=None,
                    help="'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else first working GPU, else CPU)")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars or progress lines (results and errors still print)")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train", help="train on a dataset (default: the built-in procedural scene)")
@@ -240,14 +282,25 @@ def build_parser():
                    help="override one option, e.g. --set grid.batch_size=4000 (repeatable)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out")
     t.add_argument("--force", action="store_true", help="start over in an --out that holds a run")
+    t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
+                   help="metrics.csv always; 'tensorboard' also writes event files to "
+                        "OUT/tensorboard (needs tensorboardX)")
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")
     r.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
-    r.add_argument("--views", choices=["test", "orbit"], default="orbit")
+    r.add_argument("--views", choices=["test", "orbit", "spiral"], default="orbit",
+                   help="test views, an orbit around the box, or a forward-facing spiral (NDC "
+                        "scenes always get the spiral for orbit)")
     r.add_argument("--out", required=True, help="output folder for PNGs (and orbit.gif)")
+    r.add_argument("--video", action="store_true", help="also write VIEWS.mp4 (H.264)")
+    r.add_argument("--fps", type=float, default=24.0, help="video frame rate (default 24)")
+    r.add_argument("--depth", action="store_true",
+                   help="also write colour-mapped depth PNGs and raw depth .npy per view")
+    r.add_argument("--scale", type=float, default=1.0,
+                   help="resolution factor relative to the training images (default 1)")
     r.add_argument("--data", default=None, help="dataset for test views (default: the run's)")
-    r.add_argument("--frames", type=int, default=60, help="orbit frames")
+    r.add_argument("--frames", type=int, default=60, help="orbit / spiral frames")
     r.add_argument("--radius", type=float, default=0.0, help="orbit radius (default from bbox)")
     r.add_argument("--elevation", type=float, default=30.0, help="orbit elevation in degrees")
     r.add_argument("--max-views", type=int, default=0)
@@ -259,6 +312,29 @@ def build_parser():
     e.add_argument("--out", default=None, help="JSON output (default: CKPT/eval_cli.json)")
     e.add_argument("--max-views", type=int, default=0)
     e.set_defaults(func=cmd_eval)
+
+    x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint, "
+                                      "as binary PLY")
+    x.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
+    x.add_argument("--mesh", default=None, metavar="FILE.ply", help="write a coloured mesh")
+    x.add_argument("--points", default=None, metavar="FILE.ply",
+                   help="write a coloured point cloud")
+    x.add_argument("--level", type=float, default=None,
+                   help="density of the surface (default ln 2 / the model's step length: one "
+                        "render step there absorbs half the light)")
+    x.add_argument("--reso", type=int, default=None,
+                   help="mesh cells along the longest side of the box (default: the grid's own "
+                        "resolution; 256 for NeRF)")
+    x.add_argument("--bbox", type=float, nargs=6, default=None,
+                   metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                   help="mesh box in model space (NDC for forward-facing scenes; default: the "
+                        "scene box)")
+    x.add_argument("--n", type=int, default=200_000, help="training rays for --points")
+    x.add_argument("--min-opacity", type=float, default=0.5,
+                   help="keep rays whose accumulated opacity is at least this (--points)")
+    x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
+    x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
+    x.set_defaults(func=cmd_export)
 
     d = sub.add_parser("devices", help="list OpenCL devices and their capabilities")
     d.set_defaults(func=cmd_devices)
@@ -273,6 +349,8 @@ def build_parser():
 def main(argv=None):
     parser = build_parser()
     a = parser.parse_args(argv)   # argparse exits 2 on unknown options, with usage
+    from .progress import set_quiet
+    set_quiet(a.quiet)
     if a.device is not None:
         import os
         os.environ["CLRF_DEVICE"] = a.device

@@ -17,7 +17,6 @@ from __future__ import annotations
 import csv
 import json
 import signal
-import sys
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ from .cameras import pixel_rays, to_ndc
 from .data.io import downscale_image
 from .metrics import image_metrics, psnr_from_mse
 from .programs import launch
+from .progress import TrainProgress
 
 EVAL_MIN_SIDE = 7          # smallest evaluated image side (SSIM's window)
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
@@ -152,33 +152,6 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
     tmp.replace(png_path)
 
 
-class Progress:
-    """One status line: rewritten in place on a terminal, printed every few seconds otherwise."""
-
-    def __init__(self, stream=None):
-        # sys.stderr as it is now, not as it was at import (pytest swaps it per test)
-        self.stream = stream if stream is not None else sys.stderr
-        self.tty = self.stream.isatty()
-        self.last = 0.0
-
-    def update(self, text, force=False):
-        now = time.perf_counter()
-        if self.tty and (force or now - self.last > 0.2):
-            self.stream.write("\r" + text[:150].ljust(150))
-            self.stream.flush()
-            self.last = now
-        elif not self.tty and (force or now - self.last > 10):
-            self.stream.write(text + "\n")
-            self.stream.flush()
-            self.last = now
-
-    def message(self, text):
-        if self.tty:
-            self.stream.write("\r" + " " * 150 + "\r")
-        self.stream.write(text + "\n")
-        self.stream.flush()
-
-
 class Trainer:
     def __init__(self, device, ds, cfg, out_dir, resume=False, model_factory=None, log=print):
         self.device = device
@@ -218,6 +191,8 @@ class Trainer:
     def _row(self, **kw):
         with open(self.csv_path, "a", newline="") as f:
             csv.DictWriter(f, CSV_FIELDS).writerow({k: kw.get(k, "") for k in CSV_FIELDS})
+        for sink in self.metric_sinks:
+            sink.row(kw)
 
     def save(self):
         state = self.model.state_dict()
@@ -228,7 +203,7 @@ class Trainer:
     def run(self):
         t = self.cfg.train
         batch = self.model.batch_size
-        prog = Progress()
+        prog = TrainProgress(t.max_seconds, self.seconds)
         interrupted = False
         old = signal.getsignal(signal.SIGINT)
         losses = []
@@ -277,14 +252,14 @@ class Trainer:
                 self.iteration += 1
                 self._rate = batch / dt if dt > 0 else 0.0
                 losses.append(loss)
-                prog.update(f"it {self.iteration:6d} | {self.seconds:6.1f}/{t.max_seconds:.0f}s | "
-                            f"loss {loss:.5f} | PSNR {psnr_from_mse(loss):5.2f} | "
-                            f"{self._rate / 1e3:6.1f}k rays/s | {self.model.describe()}")
+                prog.update(f"it {self.iteration} loss {loss:.5f} PSNR {psnr_from_mse(loss):5.2f} "
+                            f"{self._rate / 1e3:.1f}k rays/s", self.seconds)
         except KeyboardInterrupt:
             interrupted = True
             prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
         finally:
             signal.signal(signal.SIGINT, old)
+            prog.close()
         self.save()
         result = {"iteration": self.iteration, "seconds": self.seconds,
                   "interrupted": interrupted}
@@ -308,6 +283,7 @@ class Trainer:
         return result
 
     _rate = 0.0
+    metric_sinks = ()   # extra receivers of every metrics.csv row (clrf.tblog.TensorBoardLog)
 
 
 def dataset_meta(ds):

@@ -214,3 +214,14 @@ BG_FD_RTOL = 1e-6
 # to a directional derivative of O(1..10): 1e-2 relative; a wrong sign or factor is O(1).
 BG_KERNEL_FD_EPS = 1e-2
 BG_KERNEL_FD_RTOL = 1e-2
+
+# ============================================================================================
+# Export (clrf/export.py, cl/export.cl)
+# ============================================================================================
+# Fields at points are one 8-corner trilinear interpolation (plus one multiply-add for colour):
+# float32 error a few u times the largest corner value; the render's budget is ample.
+EXPORT_FIELD_ATOL = RENDER_ATOL
+EXPORT_FIELD_RTOL = RENDER_RTOL
+# Geometry: marching cubes and expected depth locate a surface to within the sampling cell,
+# which is what the issue asks ("within one voxel of the exact surfaces").
+EXPORT_GEOMETRY_VOXELS = 1.0

@@ -1,0 +1,176 @@
+"""``clrf export`` (mesh / point cloud PLY) and the video and depth outputs of ``clrf render``.
+
+Options are checked before anything is computed or written; bad ones raise ExportError, which
+the CLI reports as ``clrf: error: ...`` with exit code 2.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .progress import bar
+
+MAX_RESO = 2048          # marching-cubes cells per side (the host volume is reso^3 floats)
+DEPTH_MIN_OPACITY = 0.5  # depth maps are NaN / background where less light is absorbed
+
+
+def _error(msg):
+    from .export import ExportError
+    return ExportError(msg)
+
+
+def _check_ply(opt, path):
+    p = Path(path)
+    if p.suffix.lower() != ".ply":
+        raise _error(f"{opt} {path}: the output must be a .ply file, e.g. {opt} scene.ply")
+    if p.is_dir():
+        raise _error(f"{opt} {path} is a folder: pass a file name ending in .ply")
+    return p
+
+
+def check_export_args(a):
+    """Validate ``clrf export`` options; returns (mesh path | None, points path | None)."""
+    if not a.mesh and not a.points:
+        raise _error("export: nothing to do: pass --mesh FILE.ply and/or --points FILE.ply")
+    mesh = _check_ply("--mesh", a.mesh) if a.mesh else None
+    points = _check_ply("--points", a.points) if a.points else None
+    if a.level is not None and not (math.isfinite(a.level) and a.level > 0):
+        raise _error(f"--level {a.level}: must be a finite density > 0 (default: ln 2 / the "
+                     f"model's step length)")
+    if a.reso is not None and not 2 <= a.reso <= MAX_RESO:
+        raise _error(f"--reso {a.reso}: must be in 2..{MAX_RESO} (cells along the longest side)")
+    if a.bbox is not None:
+        b = np.asarray(a.bbox, np.float64).reshape(2, 3)
+        if not np.all(np.isfinite(b)) or np.any(b[1] <= b[0]):
+            raise _error(f"--bbox {' '.join(map(str, a.bbox))}: need finite X0 Y0 Z0 X1 Y1 Z1 "
+                         f"with X0 < X1, Y0 < Y1, Z0 < Z1")
+    if a.n < 1:
+        raise _error(f"--n {a.n}: the number of rays must be >= 1")
+    if not 0.0 < a.min_opacity <= 1.0:
+        raise _error(f"--min-opacity {a.min_opacity}: must be in (0, 1]")
+    return mesh, points
+
+
+def _ndc_of(meta):
+    return (np.asarray(meta["intrinsics"]), int(meta["H"]), int(meta["W"])) if meta["ndc"] else None
+
+
+def cmd_export(a):
+    from .device import Device
+    from .export import default_reso, extract_mesh, point_cloud
+    from .models import load_model
+    from .ply import write_ply
+
+    mesh_path, points_path = check_export_args(a)
+    dev = Device(a.device)
+    model, state, _ = load_model(dev, a.ckpt)
+    meta = state["dataset"]
+    ndc = _ndc_of(meta)
+    if points_path:   # load the dataset first: a bad one must stop the run before any output
+        from .cli import _ckpt_dataset
+        ds = _ckpt_dataset(state, a.data)
+    if mesh_path:
+        bbox = np.asarray(a.bbox if a.bbox is not None else meta["bbox"], np.float64).reshape(2, 3)
+        if a.reso is not None:
+            ext = bbox[1] - bbox[0]
+            reso = tuple(int(max(2, round(a.reso * e / ext.max()))) for e in ext)
+        else:
+            reso = default_reso(model, bbox)
+        with bar(reso[0], "export mesh", "slab") as b:
+            mesh = extract_mesh(model, bbox, reso, a.level, ndc, progress=b.update)
+        mesh_path.parent.mkdir(parents=True, exist_ok=True)
+        write_ply(mesh_path, mesh.verts, mesh.colors, mesh.faces)
+        print(f"saved {mesh_path}: {len(mesh.verts)} vertices, {len(mesh.faces)} triangles, "
+              f"level {mesh.level:.4g}, {reso[0]}x{reso[1]}x{reso[2]} cells"
+              f"{' (NDC, mapped to world space)' if ndc else ''}")
+    if points_path:
+        o, d = training_ray_sample(ds, a.n, a.seed)
+        with bar(len(o), "export points", "ray") as b:
+            pts, cols = point_cloud(model, o, d, model.background, a.min_opacity, ndc,
+                                    progress=b.update)
+        points_path.parent.mkdir(parents=True, exist_ok=True)
+        write_ply(points_path, pts, cols)
+        print(f"saved {points_path}: {len(pts)} points from {len(o)} training rays "
+              f"(accumulated opacity >= {a.min_opacity})")
+    return 0
+
+
+def training_ray_sample(ds, n, seed=0):
+    """Rays (model space: NDC when the scene uses it) of ``n`` training pixels drawn without
+    replacement (all of them if there are fewer), built one view at a time."""
+    from .train import view_rays
+    H, W = ds.hw
+    views = np.asarray(ds.split["train"])
+    total = len(views) * H * W
+    pick = np.sort(np.random.default_rng(seed).choice(total, min(n, total), replace=False))
+    os_, ds_ = [], []
+    for i, v in enumerate(views):
+        sel = pick[(pick >= i * H * W) & (pick < (i + 1) * H * W)] - i * H * W
+        if len(sel):
+            o, d = view_rays(ds, ds.poses[v:v + 1])
+            os_.append(o[sel])
+            ds_.append(d[sel])
+    return np.concatenate(os_), np.concatenate(ds_)
+
+
+# ---- render: video and depth ---------------------------------------------------------------------
+def check_render_args(a):
+    """Validate the video/depth/resolution options of ``clrf render`` before rendering."""
+    if a.fps <= 0 or not math.isfinite(a.fps):
+        raise _error(f"--fps {a.fps}: the frame rate must be > 0")
+    if not 0 < a.scale <= 8:
+        raise _error(f"--scale {a.scale}: the resolution factor must be in (0, 8]")
+    if a.frames < 1:
+        raise _error(f"--frames {a.frames}: need at least one frame")
+    if a.video:
+        import importlib.util
+        if importlib.util.find_spec("imageio_ffmpeg") is None:
+            raise _error("--video needs the ffmpeg plugin of imageio: pip install "
+                         "imageio-ffmpeg (or clrf[video])")
+
+
+def depth_outputs(out, name, depth, acc):
+    """Save ``name``.npy (float32 [H, W]: expected depth sum w t / sum w along the unit ray,
+    model units; NaN where the accumulated opacity is < DEPTH_MIN_OPACITY) and ``name``.png
+    (turbo colour map between the 1st and 99th percentile of the valid depths; white elsewhere)."""
+    import imageio.v3 as iio
+    from matplotlib import colormaps
+
+    valid = acc >= DEPTH_MIN_OPACITY
+    z = np.where(valid, depth / np.maximum(acc, 1e-12), np.nan).astype(np.float32)
+    tmp = out / f".{name}.tmp.npy"
+    np.save(tmp, z)
+    tmp.replace(out / f"{name}.npy")
+    img = np.ones(z.shape + (3,))
+    if np.any(valid):
+        lo, hi = np.percentile(z[valid], [1, 99])
+        t = np.clip((z[valid] - lo) / max(hi - lo, 1e-12), 0, 1)
+        img[valid] = colormaps["turbo"](t)[:, :3]
+    tmp = out / f".{name}.tmp.png"
+    iio.imwrite(tmp, (img * 255 + 0.5).astype(np.uint8), extension=".png")
+    tmp.replace(out / f"{name}.png")
+
+
+def write_video(path, frames, fps):
+    """H.264 MP4 of uint8 frames [N, H, W, 3] through imageio's ffmpeg plugin, written to a
+    temporary name and renamed. Frames are padded (edge pixels) to even sizes, which H.264
+    (yuv420p) requires."""
+    import imageio.v2 as iio2
+    frames = np.asarray(frames)
+    ph, pw = frames.shape[1] % 2, frames.shape[2] % 2
+    if ph or pw:
+        frames = np.pad(frames, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp.mp4")
+    try:
+        w = iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
+                            pixelformat="yuv420p", macro_block_size=1, quality=8)
+        with w:
+            for f in frames:
+                w.append_data(f)
+        tmp.replace(path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
