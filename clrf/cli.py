@@ -201,8 +201,10 @@ def cmd_render(a):
 
 
 def cmd_devices(a):
-    from .device import format_devices
-    print(format_devices())
+    from .device import check_default, format_devices
+    if a.check:
+        return check_default(refresh=a.reprobe)
+    print(format_devices(refresh=a.reprobe))
     return 0
 
 
@@ -249,7 +251,12 @@ def build_parser():
     e.add_argument("--max-views", type=int, default=0)
     e.set_defaults(func=cmd_eval)
 
-    d = sub.add_parser("devices", help="list OpenCL devices and their capabilities")
+    d = sub.add_parser("devices", help="list OpenCL devices, their probe figures and the default")
+    d.add_argument("--reprobe", action="store_true",
+                   help="measure every device again instead of reading the cached figures")
+    d.add_argument("--check", action="store_true",
+                   help="print only the default device; exit 0 if it is fine, 3 if it is a slow "
+                        "driver (the warning names the fix), 1 if no device works")
     d.set_defaults(func=cmd_devices)
 
     b = sub.add_parser("bench", help="quick renderer throughput on this device")
