@@ -144,7 +144,7 @@ def measure(dev: "cl.Device") -> Probe:
         cl.enqueue_copy(q, a, buf)
         q.finish()
         if not np.all(a == 1.0):
-            return Probe("probe kernel gave wrong results", when=when)
+            return Probe("probe kernel gave wrong results", 0.0, time.perf_counter() - t_start, when)
         gflops, err = _fma_gflops(ctx, q, prg, dev)
     except Exception as e:  # noqa: BLE001 - any driver failure disqualifies the device
         return Probe(_error_text(e), seconds=time.perf_counter() - t_start, when=when)
@@ -323,6 +323,7 @@ def is_generic_target(c: Candidate) -> bool:
             and pocl_cpu_target(c.name) in GENERIC_TARGETS)
 
 
+@functools.lru_cache(maxsize=None)
 def cpu_flags() -> frozenset:
     """The host CPU's feature flags from /proc/cpuinfo (empty where there is none)."""
     try:
