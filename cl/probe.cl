@@ -1,3 +1,44 @@
-/* probe.cl: the smallest kernel that proves a device can compile and run OpenCL C
- * (clrf/device.py builds it on every candidate device; a[i] += 1). */
+/* probe.cl: the kernels clrf/device_probe.py runs once on every candidate device (results are
+ * cached per device and driver version).
+ *
+ *   clrf_probe      the smallest kernel that proves a device can compile and run OpenCL C:
+ *                   a[i] += 1.
+ *   clrf_probe_fma  fp32 throughput. Each work-item runs PROBE_CHAINS independent floatPROBE_WIDTH
+ *                   chains x <- fma(x, m, add) for `iters` steps, chain c starting at x0 + c * dx,
+ *                   and writes the sum of all lanes of all chains:
+ *                     out[i] = PROBE_WIDTH * sum_c (p + (x0 + c dx - p) m^iters),  p = add / (1 - m)
+ *                   flop = 2 * PROBE_WIDTH * PROBE_CHAINS * iters per work-item.
+ *                   Written with explicit vectors because PoCL vectorises only what is written
+ *                   as vectors; float8 is one AVX register (a float16 argument to fma() is split
+ *                   into a call on AVX2); the independent chains cover the FMA latency. A driver
+ *                   that compiles for a generic x86-64 target (SSE2, no hardware FMA) runs it
+ *                   about ten times slower than one that targets the CPU: that is what the
+ *                   device ranking has to see.
+ *
+ * Defines read: PROBE_CHAINS, PROBE_WIDTH (the host passes both and counts flops with them).
+ */
+#ifndef PROBE_CHAINS
+#define PROBE_CHAINS 8  /* independent FMA chains per work-item */
+#endif
+#ifndef PROBE_WIDTH
+#define PROBE_WIDTH 8   /* lanes per chain (float8) */
+#endif
+#if PROBE_CHAINS != 8 || PROBE_WIDTH != 8
+#error "clrf_probe_fma is written out for 8 chains of float8"
+#endif
+
 __kernel void clrf_probe(__global float *a) { a[get_global_id(0)] += 1.0f; }
+
+__kernel void clrf_probe_fma(const int iters, const float m, const float add, const float x0,
+                             const float dx, __global float *out) {
+    const size_t i = get_global_id(0);
+    float8 c0 = (float8)(x0), c1 = c0 + dx, c2 = c1 + dx, c3 = c2 + dx;
+    float8 c4 = c3 + dx, c5 = c4 + dx, c6 = c5 + dx, c7 = c6 + dx;
+    const float8 mv = (float8)(m), av = (float8)(add);
+    for (int k = 0; k < iters; ++k) {
+        c0 = fma(c0, mv, av); c1 = fma(c1, mv, av); c2 = fma(c2, mv, av); c3 = fma(c3, mv, av);
+        c4 = fma(c4, mv, av); c5 = fma(c5, mv, av); c6 = fma(c6, mv, av); c7 = fma(c7, mv, av);
+    }
+    const float8 s = ((c0 + c1) + (c2 + c3)) + ((c4 + c5) + (c6 + c7));
+    out[i] = ((s.s0 + s.s1) + (s.s2 + s.s3)) + ((s.s4 + s.s5) + (s.s6 + s.s7));
+}

@@ -252,8 +252,10 @@ def cmd_export(a):
 
 
 def cmd_devices(a):
-    from .device import format_devices
-    print(format_devices())
+    from .device import check_default, format_devices
+    if a.check:
+        return check_default(refresh=a.reprobe)
+    print(format_devices(refresh=a.reprobe))
     return 0
 
 
@@ -336,7 +338,12 @@ def build_parser():
     x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
     x.set_defaults(func=cmd_export)
 
-    d = sub.add_parser("devices", help="list OpenCL devices and their capabilities")
+    d = sub.add_parser("devices", help="list OpenCL devices, their probe figures and the default")
+    d.add_argument("--reprobe", action="store_true",
+                   help="measure every device again instead of reading the cached figures")
+    d.add_argument("--check", action="store_true",
+                   help="print only the default device; exit 0 if it is fine, 3 if it is a slow "
+                        "driver (the warning names the fix), 1 if no device works")
     d.set_defaults(func=cmd_devices)
 
     b = sub.add_parser("bench", help="quick renderer throughput on this device")

@@ -1,14 +1,17 @@
 """OpenCL device selection, capability probes and the command queue.
 
-Selection is explicit and deterministic. ``Device(spec)`` or the ``CLRF_DEVICE`` variable take:
+``Device(spec)`` or the ``CLRF_DEVICE`` variable take:
 
-- ``"cpu"`` / ``"gpu"``: the first device of that type (platforms in ICD order) that can build
-  and run a probe kernel;
-- ``"P:D"``: platform index P, device index D, as listed by ``clrf devices``;
-- nothing: the first working GPU, else the first working CPU.
+- nothing (or ``"auto"``): the fastest working device of any type;
+- ``"cpu"`` / ``"gpu"``: the fastest working device of that type;
+- ``"P:D"``: platform index P, device index D, as listed by ``clrf devices``.
 
-A machine can carry two PoCL platforms at once (pip's and Debian's); a driver that is listed
-but cannot compile for this CPU is skipped with the reason, never chosen silently.
+"Working" and "fastest" come from a probe run once per device and driver version and cached on
+disk (clrf/device_probe.py: build and run a kernel, then a calibrated fp32 FMA throughput
+figure); figures within 10% count as equal and then platform order decides. A machine can carry
+two PoCL platforms at once (pip's and the distribution's) that differ tenfold on the same CPU;
+a driver that cannot compile is skipped with the reason, and a slow one gets a one-line warning
+naming the fix when it is used.
 """
 from __future__ import annotations
 
@@ -17,11 +20,11 @@ import os
 import sys
 from dataclasses import dataclass, field
 
-import numpy as np
 import pyopencl as cl
 
+from .device_probe import (Candidate, Probe, cache_path, choice_reason, cpu_flags, probe, rank,
+                           slow_reasons, slow_warning, warn_once)
 from .tuning import Tuning
-
 
 
 class DeviceError(RuntimeError):
@@ -93,43 +96,30 @@ def list_devices():
     return out
 
 
-def _probe_works(dev: "cl.Device") -> str | None:
-    """Build and run a one-line kernel; None if it works, else the reason."""
-    try:
-        ctx = cl.Context([dev])
-        q = cl.CommandQueue(ctx)
-        from .programs import cl_dir
-        prg = cl.Program(ctx, (cl_dir() / "probe.cl").read_text()).build()
-        a = np.zeros(4, np.float32)
-        buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
-        prg.clrf_probe(q, (4,), None, buf)
-        cl.enqueue_copy(q, a, buf)
-        q.finish()
-        if not np.all(a == 1.0):
-            return "probe kernel gave wrong results"
-    except Exception as e:  # noqa: BLE001 - any driver failure disqualifies the device
-        lines = [m.strip() for m in str(e).splitlines() if m.strip()]
-        errors = [m for m in lines if m.lower().startswith("error")]
-        return (errors[0] if errors else " ".join(lines)[-200:]) or type(e).__name__
-    return None
-
-
-_probe_cache: dict = {}
-
-
-def _works(pi, di, dev):
-    key = (pi, di)
-    if key not in _probe_cache:
-        _probe_cache[key] = _probe_works(dev)
-    return _probe_cache[key]
+def _candidate(pi: int, di: int, d: "cl.Device", pr: Probe) -> Candidate:
+    return Candidate(pi, di, _type_name(d.type), d.name.strip(), d.platform.name.strip(),
+                     d.platform.version.strip(), d.vendor.strip(), int(d.max_compute_units),
+                     int(d.max_clock_frequency), pr)
 
 
 def _describe(pi, di, dev) -> str:
     return f"{pi}:{di} {_type_name(dev.type)} '{dev.name.strip()}' on '{dev.platform.version.strip()}'"
 
 
-def select_device(spec: str | None = None):
-    """Resolve a device spec to ``(platform_index, device_index, cl.Device)``; see module doc."""
+@dataclass(frozen=True)
+class Choice:
+    """The device a spec resolves to, with what the decision was based on."""
+
+    platform_index: int
+    device_index: int
+    cl_device: "cl.Device"
+    candidate: Candidate    # the chosen device with its probe figure
+    reason: str             # why it was chosen, in words
+    candidates: tuple       # every device whose figure was looked at (slow-driver checks)
+
+
+def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
+    """Resolve a device spec (module doc) by probing the candidates; ``refresh`` re-measures."""
     spec = (spec if spec is not None else os.environ.get("CLRF_DEVICE", "")).strip().lower()
     devs = list_devices()
     if not devs:
@@ -145,34 +135,46 @@ def select_device(spec: str | None = None):
                               f"Devices:\n{listing}") from None
         for d in devs:
             if d[0] == pi and d[1] == di:
-                why = _works(*d)
-                if why:
-                    raise DeviceError(f"device {pi}:{di} cannot build kernels ({why}). "
+                c = _candidate(*d, probe(d[2], refresh))
+                if not c.probe.ok:
+                    raise DeviceError(f"device {pi}:{di} cannot build kernels ({c.probe.error}). "
                                       f"Choose another:\n{listing}")
-                return d
+                known = [_candidate(*o, p) for o in devs if o is not d
+                         for p in [probe(o[2], measure_missing=False)] if p is not None]
+                return Choice(pi, di, d[2], c, f"requested as {spec}", (c, *known))
         raise DeviceError(f"no device {pi}:{di}. Devices:\n{listing}")
     if spec in ("", "auto"):
-        wanted = ["gpu", "accelerator", "cpu"]
+        wanted = ("gpu", "accelerator", "cpu")
     elif spec in ("cpu", "gpu", "accelerator"):
-        wanted = [spec]
+        wanted = (spec,)
     else:
         raise DeviceError(f"device '{spec}' is not 'cpu', 'gpu' or 'P:D'. Devices:\n{listing}")
-    rejected = []
-    for t in wanted:
-        for d in devs:
-            if _type_name(d[2].type) != t:
-                continue
-            why = _works(*d)
-            if why is None:
-                return d
-            rejected.append(f"  {_describe(*d)}: {why}")
+    entries = {(d[0], d[1]): d for d in devs if _type_name(d[2].type) in wanted}
+    cands = tuple(_candidate(*d, probe(d[2], refresh)) for d in entries.values())
+    ranked = rank(list(cands))
+    if ranked:
+        best = ranked[0]
+        d = entries[(best.platform_index, best.device_index)]
+        return Choice(d[0], d[1], d[2], best, choice_reason(ranked), cands)
     msg = f"no working {'/'.join(wanted)} OpenCL device. Devices:\n{listing}"
-    if rejected:
-        msg += "\nRejected:\n" + "\n".join(rejected)
+    if cands:
+        msg += "\nRejected:\n" + "\n".join(
+            f"  {_describe(*entries[(c.platform_index, c.device_index)])}: {c.probe.error}"
+            for c in cands)
     if "cpu" in wanted:
         msg += ("\nOn Debian/Ubuntu `apt-get install pocl-opencl-icd` gives a CPU driver that "
                 "works on current CPUs.")
     raise DeviceError(msg)
+
+
+def select_device(spec: str | None = None):
+    """Resolve a device spec to ``(platform_index, device_index, cl.Device)``; see module doc.
+
+    Warns once per process (stderr, one line) when the device is a slow driver for its CPU.
+    """
+    c = choose_device(spec)
+    warn_once(slow_warning(c.candidate, list(c.candidates), cpu_flags()))
+    return c.platform_index, c.device_index, c.cl_device
 
 
 class Device:
@@ -229,14 +231,24 @@ class Device:
         self.queue.finish()
 
 
-def format_devices() -> str:
-    """Text for ``clrf devices``: every device, whether it works, and its capabilities."""
+def format_devices(refresh: bool = False) -> str:
+    """Text for ``clrf devices``: every device, its probe figure, capabilities and the default."""
+    devs = list_devices()
+    if not devs:
+        return "no OpenCL devices found"
+    cands = [_candidate(*d, probe(d[2], refresh)) for d in devs]
+    flags = cpu_flags()
     lines = []
-    for pi, di, d in list_devices():
-        why = _works(pi, di, d)
+    for (pi, di, d), cand in zip(devs, cands):
         c = probe_capabilities(d)
-        state = "ok" if why is None else f"UNUSABLE: {why}"
+        pr = cand.probe
+        state = "ok" if pr.ok else f"UNUSABLE: {pr.error}"
         lines.append(f"{pi}:{di}  {c.type:4s} {c.name}  [{state}]")
+        if pr.ok:
+            lines.append(f"      probe         {pr.gflops:.1f} GFLOP/s fp32 FMA ("
+                         f"{'cached, ' if pr.cached else ''}measured {pr.when})")
+            for why in slow_reasons(cand, cands, flags):
+                lines.append(f"      SLOW          {why}")
         lines.append(f"      platform      {c.platform_version}")
         lines.append(f"      driver        {c.driver_version}")
         lines.append(f"      compute units {c.compute_units}, max work-group {c.max_work_group_size}, "
@@ -246,11 +258,36 @@ def format_devices() -> str:
         lines.append(f"      fp64 {'yes' if c.fp64 else 'no'}, float atomics "
                      f"{'native' if c.float_atomics else 'emulated (CAS)'}, int64 atomics "
                      f"{'yes' if c.int64_atomics else 'no'}")
-    if not lines:
-        return "no OpenCL devices found"
+    env = os.environ.get("CLRF_DEVICE", "") or "unset"
     try:
-        pi, di, _ = select_device()
-        lines.append(f"default (CLRF_DEVICE={os.environ.get('CLRF_DEVICE', '') or 'unset'}): {pi}:{di}")
+        ch = choose_device()
+        lines.append(f"default (CLRF_DEVICE={env}): {ch.candidate.short()}, "
+                     f"{ch.candidate.probe.gflops:.1f} GFLOP/s: {ch.reason}")
+        warning = slow_warning(ch.candidate, cands, flags)
+        if warning:
+            lines.append(warning.replace("clrf: warning: ", "advice: "))
     except DeviceError as e:
-        lines.append(f"default: none ({str(e).splitlines()[0]})")
+        lines.append(f"default (CLRF_DEVICE={env}): none ({str(e).splitlines()[0]})")
+    lines.append(f"probe figures are cached in {cache_path()}; `clrf devices --reprobe` measures "
+                 f"again")
     return "\n".join(lines)
+
+
+def check_default(refresh: bool = False) -> int:
+    """``clrf devices --check``: one line on the default device and an exit status for scripts.
+
+    0: a working device that is not a slow driver; 3: the best working device is a slow driver
+    (the warning names the fix); 1: no device works.
+    """
+    try:
+        ch = choose_device(refresh=refresh)
+    except DeviceError as e:
+        print(f"clrf: no working OpenCL device: {e}", file=sys.stderr)
+        return 1
+    print(f"clrf: default device {ch.candidate.short()}, {ch.candidate.probe.gflops:.1f} "
+          f"GFLOP/s ({ch.reason})")
+    warning = slow_warning(ch.candidate, list(ch.candidates), cpu_flags())
+    if warning:
+        print(warning, file=sys.stderr)
+        return 3
+    return 0

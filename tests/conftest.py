@@ -1,4 +1,5 @@
-"""Shared fixtures: one device per test session, chosen by CLRF_DEVICE (default: first working)."""
+"""Shared fixtures: one device per test session, chosen by CLRF_DEVICE (default: the fastest
+working device by its cached probe figure)."""
 import os
 from pathlib import Path
 

@@ -1,0 +1,398 @@
+"""Device choice by measurement: a one-time probe of every OpenCL device, cached on disk.
+
+The probe (``cl/probe.cl``) builds and runs a one-line kernel, then measures fp32 throughput with
+8 independent float8 FMA chains per work-item: the iteration count is calibrated so that one run
+takes 20-50 ms, and the figure is the best of 3 such runs, in GFLOP/s. Cold, it costs the build
+plus about 0.2 s per device; the result is cached in ``$XDG_CACHE_HOME/clrf/devices.json``
+(``~/.cache/clrf`` when unset) keyed by host, platform name and version, device name and driver
+version, so later processes read it for free. A change to ``probe.cl`` or to this module's
+method (``PROBE_METHOD``) invalidates every entry.
+
+Ranking rule (``rank``): usable devices by measured GFLOP/s, highest first, whatever their type:
+a GPU comes first only when it measures faster than the CPUs, because the probe is what the
+kernels will see and a slow integrated GPU or an emulating driver exists. Figures within
+``TIE`` (10%) of the best count as equal (the spread of the probe on a shared host) and among
+equals the first in ICD order wins, so the choice does not flip on noise.
+
+A slow driver is flagged (``slow_reasons``) when the device is a PoCL CPU device compiling for a
+generic target (its name carries no LLVM CPU: ``pthread-AMD EPYC`` rather than
+``pthread-haswell-AMD EPYC``), when it measures under ``SLOW_VS_PEAK`` of the CPU's estimated
+peak, or when another driver on the same CPU measures ``SLOW_VS_SIBLING`` times faster.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import math
+import os
+import re
+import socket
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+
+PROBE_METHOD = 1            # bump when the measurement changes meaning (invalidates the cache)
+PROBE_CHAINS = 8            # independent FMA chains per work-item (cl/probe.cl)
+PROBE_WIDTH = 8             # float8 lanes per chain (cl/probe.cl)
+PROBE_MIN_S = 0.020         # a calibrated run lasts at least this long ...
+PROBE_TARGET_S = 0.030      # ... aiming at this
+PROBE_MAX_ITERS = 1 << 24   # cap on the chain length (int32 kernel argument, slow devices)
+PROBE_REPEATS = 3           # best of this many calibrated runs
+PROBE_M, PROBE_ADD = 0.999, 1e-3    # x <- m x + add converges to add / (1 - m) = 1
+PROBE_X0, PROBE_DX = 0.5, 0.25      # chain c starts at x0 + c dx (exact in float32)
+# float32 rounding of each step (~6e-8 relative) is damped by m per step, so the chains carry at
+# most ~6e-8 / (1 - m) = 6e-5 relative error; 1e-3 only rejects a driver that computes wrongly.
+PROBE_RTOL = 1e-3
+TIE = 0.10                  # figures within 10% of the best are equal; ICD order decides
+SLOW_VS_SIBLING = 3.0       # another driver on the same CPU this many times faster: flag
+SLOW_VS_PEAK = 1.0 / 12     # under this fraction of the estimated CPU peak: flag
+INSTALL_HINT = ("install the distribution's PoCL (Debian/Ubuntu: "
+                "`apt-get install pocl-opencl-icd`)")
+
+
+@dataclass(frozen=True)
+class Probe:
+    """What the probe found on one device."""
+
+    error: str | None       # why the device cannot build or run kernels; None when it works
+    gflops: float = 0.0     # fp32 FMA throughput of clrf_probe_fma, GFLOP/s (best of 3)
+    seconds: float = 0.0    # wall time the probe took (build included)
+    when: str = ""          # UTC time of the measurement, ISO 8601
+    cached: bool = False    # read from the cache file rather than measured by this process
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One OpenCL device as the ranking sees it (tests build these with fake probes)."""
+
+    platform_index: int
+    device_index: int
+    type: str               # "cpu", "gpu" or "accelerator"
+    name: str               # device name, e.g. "pthread-haswell-AMD EPYC"
+    platform: str           # platform name, e.g. "Portable Computing Language"
+    platform_version: str   # names the driver, e.g. "OpenCL 3.0 PoCL 3.1+debian ..."
+    vendor: str             # device vendor, e.g. "AuthenticAMD"
+    compute_units: int
+    clock_mhz: int          # CL_DEVICE_MAX_CLOCK_FREQUENCY
+    probe: Probe
+
+    @property
+    def spec(self) -> str:
+        return f"{self.platform_index}:{self.device_index}"
+
+    def short(self) -> str:
+        """``1:0 'pthread-AMD EPYC' (PoCL 3.0-rc2)``: index, name and driver."""
+        m = re.search(r"PoCL \S+", self.platform_version)
+        drv = m.group(0) if m else self.platform_version.split("  ")[0]
+        return f"{self.spec} '{self.name}' ({drv})"
+
+
+# ---- the measurement ---------------------------------------------------------------------------
+
+def _source_path() -> Path:
+    from .programs import cl_dir
+    return cl_dir() / "probe.cl"
+
+
+@functools.lru_cache(maxsize=None)
+def probe_version() -> str:
+    """Hash of ``probe.cl`` and ``PROBE_METHOD``: cache entries with another value are stale."""
+    h = hashlib.sha256(_source_path().read_bytes())
+    h.update(str(PROBE_METHOD).encode())
+    return h.hexdigest()[:16]
+
+
+def _error_text(e: Exception) -> str:
+    lines = [m.strip() for m in str(e).splitlines() if m.strip()]
+    errors = [m for m in lines if m.lower().startswith("error")]
+    return (errors[0] if errors else " ".join(lines)[-200:]) or type(e).__name__
+
+
+def fma_reference(iters: int) -> float:
+    """float64 value of every ``out[i]`` of clrf_probe_fma after ``iters`` steps (see probe.cl)."""
+    m, add = float(np.float32(PROBE_M)), float(np.float32(PROBE_ADD))
+    p = add / (1.0 - m)
+    starts = PROBE_X0 + PROBE_DX * np.arange(PROBE_CHAINS)
+    return float(PROBE_WIDTH * np.sum(p + (starts - p) * m ** iters))
+
+
+def measure(dev: "cl.Device") -> Probe:
+    """Build and run the probe kernels on ``dev`` now (no cache); see the module doc."""
+    t_start = time.perf_counter()
+    when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    try:
+        ctx = cl.Context([dev])
+        q = cl.CommandQueue(ctx)
+        with warnings.catch_warnings():     # PoCL's build log is not the probe's business
+            warnings.simplefilter("ignore")
+            prg = cl.Program(ctx, _source_path().read_text()).build(
+                options=[f"-DPROBE_CHAINS={PROBE_CHAINS}", f"-DPROBE_WIDTH={PROBE_WIDTH}"])
+        a = np.zeros(4, np.float32)
+        buf = cl.Buffer(ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+        prg.clrf_probe(q, (4,), None, buf)
+        cl.enqueue_copy(q, a, buf)
+        q.finish()
+        if not np.all(a == 1.0):
+            return Probe("probe kernel gave wrong results", 0.0, time.perf_counter() - t_start, when)
+        gflops, err = _fma_gflops(ctx, q, prg, dev)
+    except Exception as e:  # noqa: BLE001 - any driver failure disqualifies the device
+        return Probe(_error_text(e), seconds=time.perf_counter() - t_start, when=when)
+    return Probe(err, gflops if err is None else 0.0, time.perf_counter() - t_start, when)
+
+
+def _fma_gflops(ctx, q, prg, dev) -> tuple:
+    """(GFLOP/s, None) from calibrated runs of clrf_probe_fma, or (0, reason)."""
+    gpu = bool(dev.type & (cl.device_type.GPU | cl.device_type.ACCELERATOR))
+    n = int(dev.max_compute_units) * (2048 if gpu else 64)   # GPUs need many work-items in flight
+    out_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, 4 * n)
+    k = prg.clrf_probe_fma
+    consts = (np.float32(PROBE_M), np.float32(PROBE_ADD), np.float32(PROBE_X0),
+              np.float32(PROBE_DX), out_buf)
+
+    def run(iters):
+        t0 = time.perf_counter()
+        k(q, (n,), None, np.int32(iters), *consts)
+        q.finish()
+        return time.perf_counter() - t0
+
+    run(1)                                          # first launch carries the JIT
+    iters = 64
+    t = run(iters)
+    while t < PROBE_MIN_S and iters < PROBE_MAX_ITERS:
+        grow = PROBE_TARGET_S / max(t, 1e-6)
+        iters = int(min(PROBE_MAX_ITERS, iters * min(16.0, max(2.0, grow))))
+        t = run(iters)
+    best = min([t] + [run(iters) for _ in range(PROBE_REPEATS - 1)])
+    out = np.empty(n, np.float32)
+    cl.enqueue_copy(q, out, out_buf)
+    q.finish()
+    if not np.allclose(out, fma_reference(iters), rtol=PROBE_RTOL, atol=0):
+        return 0.0, "FMA probe kernel gave wrong results"
+    return n * iters * 2 * PROBE_WIDTH * PROBE_CHAINS / best / 1e9, None
+
+
+# ---- the cache ---------------------------------------------------------------------------------
+
+def cache_path() -> Path:
+    """``$XDG_CACHE_HOME/clrf/devices.json``, or ``~/.cache/clrf/devices.json``."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "clrf" / "devices.json"
+
+
+def device_key(dev: "cl.Device") -> str:
+    """What a figure is valid for: this host, platform name and version, device, driver."""
+    p = dev.platform
+    return "|".join(s.strip() for s in (socket.gethostname(), p.name, p.version, dev.name,
+                                         dev.driver_version))
+
+
+def _load(path: Path, version: str) -> dict:
+    """Entries of the cache file that belong to ``version``; {} if missing or corrupt."""
+    try:
+        data = json.loads(path.read_text())
+        entries = data["devices"]
+        if not isinstance(entries, dict):
+            return {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    return {k: v for k, v in entries.items() if isinstance(v, dict) and v.get("probe") == version}
+
+
+def _store(path: Path, version: str, key: str, probe: Probe) -> None:
+    """Add one entry and write the file atomically; a cache that cannot be written is skipped."""
+    entries = _load(path, version)
+    entry = asdict(probe)
+    entry.pop("cached")
+    entry["probe"] = version
+    entries[key] = entry
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".devices.", suffix=".tmp", dir=path.parent)
+    except OSError:
+        return
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump({"devices": entries}, f, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    except OSError:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _from_entry(e: dict) -> Probe | None:
+    try:
+        g = float(e["gflops"])
+        err = e["error"]
+        if (err is not None and not isinstance(err, str)) or not math.isfinite(g):
+            return None
+        if err is None and g <= 0:
+            return None
+        return Probe(err, g, float(e.get("seconds", 0.0)), str(e.get("when", "")), cached=True)
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+_memo: dict = {}    # device_key -> Probe, for this process
+
+
+def probe(dev: "cl.Device", refresh: bool = False, measure_missing: bool = True) -> Probe | None:
+    """The device's probe: from this process, else the cache file, else measured and stored.
+
+    ``refresh`` measures again whatever is cached; ``measure_missing=False`` returns None
+    instead of measuring a device that has no figure yet.
+    """
+    key = device_key(dev)
+    if not refresh and key in _memo:
+        return _memo[key]
+    path, version = cache_path(), probe_version()
+    found = None if refresh else _from_entry(_load(path, version).get(key, {}))
+    if found is None:
+        if not measure_missing:
+            return None
+        found = measure(dev)
+        _store(path, version, key, found)
+    _memo[key] = found
+    return found
+
+
+# ---- ranking and slow-driver detection ---------------------------------------------------------
+
+def rank(cands: list) -> list:
+    """Usable candidates, best first (rule in the module doc)."""
+    left = sorted((c for c in cands if c.probe.ok),
+                  key=lambda c: (c.platform_index, c.device_index))
+    out = []
+    while left:
+        top = max(c.probe.gflops for c in left)
+        pick = next(c for c in left if c.probe.gflops >= top * (1 - TIE))
+        out.append(pick)
+        left.remove(pick)
+    return out
+
+
+def choice_reason(ranked: list) -> str:
+    """Why ``ranked[0]`` is the default, in words, given the ranking of the wanted devices."""
+    best = ranked[0]
+    if len(ranked) == 1:
+        return "the only working device"
+    nxt = ranked[1]
+    if nxt.probe.gflops >= best.probe.gflops * (1 - TIE):
+        return (f"within {TIE:.0%} of {nxt.spec} ({nxt.probe.gflops:.1f} GFLOP/s) and first "
+                f"in platform order")
+    return (f"fastest measured, {best.probe.gflops / nxt.probe.gflops:.1f}x the next "
+            f"({nxt.spec}, {nxt.probe.gflops:.1f} GFLOP/s)")
+
+
+_TARGET_RE = re.compile(r"([a-z][a-z0-9_.]*(?:-[a-z0-9_.]+)*?)-(?=[A-Z])")
+GENERIC_TARGETS = ("", "generic", "x86-64")
+
+
+def pocl_cpu_target(name: str) -> str | None:
+    """The LLVM CPU a PoCL CPU device compiles for, from its name.
+
+    ``'pthread-haswell-AMD EPYC'`` -> ``'haswell'``; ``'cpu-znver3-AMD Ryzen 9'`` -> ``'znver3'``;
+    ``'pthread-AMD EPYC'`` -> ``''`` (no CPU named: a generic target); a name that is not a
+    PoCL CPU device's -> None.
+    """
+    m = re.match(r"(?:pthread|cpu|basic|tbb)-(.+)$", name.strip())
+    if not m:
+        return None
+    t = _TARGET_RE.match(m.group(1))
+    return t.group(1) if t else ""
+
+
+def _model(c: Candidate) -> str:
+    """The CPU model part of a PoCL device name (what two drivers on one CPU share)."""
+    target = pocl_cpu_target(c.name)
+    rest = c.name.split("-", 1)[1] if target is not None else c.name
+    return rest[len(target) + 1:] if target else rest
+
+
+def is_generic_target(c: Candidate) -> bool:
+    return (c.type == "cpu" and "portable computing language" in c.platform.lower()
+            and pocl_cpu_target(c.name) in GENERIC_TARGETS)
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_flags() -> frozenset:
+    """The host CPU's feature flags from /proc/cpuinfo (empty where there is none)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def estimated_peak_gflops(c: Candidate, flags: frozenset) -> float | None:
+    """Rough fp32 peak the probe could reach on an x86 CPU device, or None where unknown.
+
+    compute units x clock x lanes x 2 FMA pipes x 2 flop, lanes = min(PROBE_WIDTH, vector
+    width of the widest ISA in ``flags``: avx512f 16, avx2 with fma 8, sse2 4). Clocks under
+    turbo and CPUs with one FMA pipe make it off by up to 2x, which ``SLOW_VS_PEAK`` allows for.
+    """
+    if c.type != "cpu" or c.clock_mhz <= 0 or "sse2" not in flags:
+        return None
+    lanes = 16 if "avx512f" in flags else 8 if {"avx2", "fma"} <= flags else 4
+    return c.compute_units * c.clock_mhz * 1e-3 * min(lanes, PROBE_WIDTH) * 2 * 2
+
+
+def slow_reasons(c: Candidate, cands: list, flags: frozenset) -> list:
+    """Why ``c`` looks like a slow driver for its hardware ([] when it does not)."""
+    if not c.probe.ok:
+        return []
+    out = []
+    if is_generic_target(c):
+        out.append("compiles for a generic CPU target (no LLVM CPU in the device name)")
+    peak = estimated_peak_gflops(c, flags)
+    if peak and c.probe.gflops < peak * SLOW_VS_PEAK:
+        out.append(f"measures {c.probe.gflops:.1f} GFLOP/s, under {SLOW_VS_PEAK:.0%} of this "
+                   f"CPU's estimated peak of {peak:.0f}")
+    sib = faster_sibling(c, cands)
+    if sib is not None:
+        out.append(f"{sib.probe.gflops / c.probe.gflops:.0f}x slower than {sib.spec} "
+                   f"on the same CPU")
+    return out
+
+
+def faster_sibling(c: Candidate, cands: list) -> Candidate | None:
+    """The fastest other driver for the same CPU if it measures SLOW_VS_SIBLING times faster."""
+    same = [o for o in cands if o is not c and o.probe.ok and o.type == c.type == "cpu"
+            and o.vendor == c.vendor and o.compute_units == c.compute_units
+            and _model(o) == _model(c)]
+    best = max(same, key=lambda o: o.probe.gflops, default=None)
+    if best is not None and best.probe.gflops >= SLOW_VS_SIBLING * c.probe.gflops:
+        return best
+    return None
+
+
+def slow_warning(c: Candidate, cands: list, flags: frozenset) -> str | None:
+    """The one-line warning for using ``c``, naming the fix, or None when it is not slow."""
+    why = slow_reasons(c, cands, flags)
+    if not why:
+        return None
+    sib = faster_sibling(c, cands)
+    fix = f"use CLRF_DEVICE={sib.spec} or {INSTALL_HINT}" if sib else INSTALL_HINT
+    return f"clrf: warning: device {c.short()} {why[0]}; {fix}"
+
+
+_warned: set = set()
+
+
+def warn_once(line: str | None) -> None:
+    """Print ``line`` to stderr the first time this process sees it."""
+    if line and line not in _warned:
+        _warned.add(line)
+        print(line, file=sys.stderr)

@@ -1,0 +1,284 @@
+"""Device choice by measurement: ranking, cache, slow-driver detection, `clrf devices`.
+
+Everything but the last test uses fake devices and fake probe figures; the last probes the real
+devices once into a temporary cache.
+"""
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import clrf.device as device
+import clrf.device_probe as dp
+from clrf.cli import main as cli_main
+from clrf.device_probe import Candidate, Probe
+
+DEBIAN = "OpenCL 3.0 PoCL 3.1+debian  Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6"
+PIP = "OpenCL 3.0 PoCL 3.0-rc2  Linux, Release, RELOC, LLVM 14.0.6"
+POCL = "Portable Computing Language"
+
+
+def cand(pi, gflops, type_="cpu", name="pthread-haswell-AMD EPYC", error=None, di=0,
+         version=DEBIAN, cus=2, mhz=2445):
+    return Candidate(pi, di, type_, name, POCL if type_ == "cpu" else "NVIDIA CUDA", version,
+                     "AuthenticAMD" if type_ == "cpu" else "NVIDIA", cus, mhz,
+                     Probe(error, gflops if error is None else 0.0))
+
+
+def specs(cands):
+    return [c.spec for c in cands]
+
+
+# ---- ranking -----------------------------------------------------------------------------------
+
+def test_rank_faster_platform_wins_over_icd_order():
+    # the two-PoCL machine: pip's generic-target PoCL listed first, the distribution's second
+    cands = [cand(0, 5.3, name="pthread-AMD EPYC", version=PIP), cand(1, 65.0)]
+    assert specs(dp.rank(cands)) == ["1:0", "0:0"]
+    assert "fastest measured, 12.3x the next (0:0, 5.3 GFLOP/s)" == dp.choice_reason(
+        dp.rank(cands))
+
+
+def test_rank_gpu_only_when_faster():
+    assert specs(dp.rank([cand(0, 60.0), cand(1, 900.0, "gpu")])) == ["1:0", "0:0"]
+    # an emulated or weak GPU that measures slower than the CPU ranks below it
+    assert specs(dp.rank([cand(0, 60.0), cand(1, 20.0, "gpu")])) == ["0:0", "1:0"]
+
+
+def test_rank_ties_go_to_icd_order_and_unusable_are_dropped():
+    cands = [cand(2, 100.0), cand(0, 95.0), cand(1, 0, error="unknown target CPU")]
+    ranked = dp.rank(cands)
+    assert specs(ranked) == ["0:0", "2:0"]          # 95 is within 10% of 100: platform order
+    assert dp.choice_reason(ranked).startswith("within 10% of 2:0 (100.0 GFLOP/s)")
+    assert dp.choice_reason(ranked[1:]) == "the only working device"
+    assert dp.rank([cand(0, 0, error="x")]) == []
+    # outside the tie band the figure decides
+    assert specs(dp.rank([cand(0, 80.0), cand(1, 100.0)])) == ["1:0", "0:0"]
+
+
+# ---- fake devices behind select_device ---------------------------------------------------------
+
+def fake_dev(name, version, type_="cpu", mhz=2445):
+    plat = SimpleNamespace(name=POCL if type_ == "cpu" else "NVIDIA CUDA", version=version)
+    return SimpleNamespace(
+        name=name, platform=plat, version=version, driver_version=version.split()[3],
+        type=cl.device_type.CPU if type_ == "cpu" else cl.device_type.GPU,
+        vendor="AuthenticAMD" if type_ == "cpu" else "NVIDIA", max_compute_units=2,
+        max_clock_frequency=mhz, extensions="cl_khr_fp64 cl_khr_int64_base_atomics",
+        max_work_group_size=4096, local_mem_size=512 * 1024, global_mem_size=2 ** 34,
+        max_mem_alloc_size=2 ** 33)
+
+
+@pytest.fixture
+def machine(monkeypatch):
+    """Fake platforms: set ``m.devs`` to [(cl-like device, Probe)] in ICD order (one per platform)."""
+    m = SimpleNamespace(devs=[], measured=[])
+
+    def fake_list():
+        return [(pi, 0, d) for pi, (d, _) in enumerate(m.devs)]
+
+    def fake_probe(dev, refresh=False, measure_missing=True):
+        m.measured.append(dev.name)
+        return next(p for d, p in m.devs if d is dev)
+
+    monkeypatch.setattr(device, "list_devices", fake_list)
+    monkeypatch.setattr(device, "probe", fake_probe)
+    monkeypatch.setattr(device, "cpu_flags", lambda: frozenset())
+    monkeypatch.setattr(dp, "_warned", set())
+    monkeypatch.delenv("CLRF_DEVICE", raising=False)
+    return m
+
+
+def two_pocl(m):
+    m.devs = [(fake_dev("pthread-AMD EPYC", PIP), Probe(None, 5.3)),
+              (fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 65.0))]
+
+
+def test_select_picks_faster_pocl_and_env_overrides(machine, monkeypatch, capsys):
+    two_pocl(machine)
+    assert device.select_device()[:2] == (1, 0)
+    assert capsys.readouterr().err == ""            # the chosen device is fine: no warning
+    monkeypatch.setenv("CLRF_DEVICE", "0:0")
+    assert device.select_device()[:2] == (0, 0)     # CLRF_DEVICE beats the measurement
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "generic CPU target" in err
+    assert "CLRF_DEVICE=1:0" in err and "apt-get install pocl-opencl-icd" in err
+    device.select_device()
+    assert capsys.readouterr().err == ""            # once per process
+    assert device.select_device("cpu")[:2] == (1, 0)   # an explicit argument beats CLRF_DEVICE
+
+
+def test_select_by_type(machine, monkeypatch):
+    machine.devs = [(fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 65.0)),
+                    (fake_dev("NVIDIA T4", "OpenCL 3.0 CUDA 12.2.1", "gpu"), Probe(None, 30.0))]
+    assert device.select_device()[:2] == (0, 0)          # the GPU measures slower
+    assert device.select_device("gpu")[:2] == (1, 0)     # asked for by type
+    machine.measured.clear()
+    monkeypatch.setenv("CLRF_DEVICE", "cpu")
+    assert device.select_device()[:2] == (0, 0)
+    assert machine.measured == ["pthread-haswell-AMD EPYC"]   # the GPU is not probed
+
+
+def test_select_errors(machine):
+    machine.devs = [(fake_dev("pthread-AMD EPYC", PIP), Probe("error: unknown target CPU 'znver5'")),
+                    (fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 65.0))]
+    with pytest.raises(device.DeviceError, match="cannot build kernels.*znver5"):
+        device.select_device("0:0")
+    with pytest.raises(device.DeviceError, match="no device 3:0"):
+        device.select_device("3:0")
+    with pytest.raises(device.DeviceError, match="no working gpu"):
+        device.select_device("gpu")
+    assert device.select_device()[:2] == (1, 0)
+    machine.devs = machine.devs[:1]
+    with pytest.raises(device.DeviceError, match="(?s)Rejected.*znver5.*pocl-opencl-icd"):
+        device.select_device()
+
+
+def test_clrf_devices_shows_figures_default_and_reason(machine, capsys):
+    two_pocl(machine)
+    assert cli_main(["devices"]) == 0
+    out = capsys.readouterr().out
+    assert "5.3 GFLOP/s fp32 FMA" in out and "65.0 GFLOP/s fp32 FMA" in out
+    assert ("default (CLRF_DEVICE=unset): 1:0 'pthread-haswell-AMD EPYC' (PoCL 3.1+debian), "
+            "65.0 GFLOP/s: fastest measured, 12.3x the next (0:0, 5.3 GFLOP/s)") in out
+    slow = [ln for ln in out.splitlines() if "SLOW" in ln]
+    assert len(slow) == 2 and "generic CPU target" in slow[0] and "12x slower than 1:0" in slow[1]
+    assert "advice" not in out                      # the default is not the slow one
+
+
+def test_clrf_devices_check_exit_status(machine, capsys):
+    two_pocl(machine)
+    assert cli_main(["devices", "--check"]) == 0
+    assert "default device 1:0" in capsys.readouterr().out
+    machine.devs = machine.devs[:1]                 # only pip's generic-target PoCL
+    assert cli_main(["devices", "--check"]) == 3
+    assert "apt-get install pocl-opencl-icd" in capsys.readouterr().err
+    machine.devs = [(fake_dev("pthread-AMD EPYC", PIP), Probe("error: unknown target CPU"))]
+    assert cli_main(["devices", "--check"]) == 1
+
+
+# ---- slow-driver detection ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, target", [
+    ("pthread-haswell-AMD EPYC", "haswell"),
+    ("pthread-skylake-avx512-AMD EPYC", "skylake-avx512"),
+    ("cpu-znver3-AMD Ryzen 9 5900X 12-Core Processor", "znver3"),
+    ("cpu-x86-64-v3-Intel(R) Xeon(R) CPU", "x86-64-v3"),
+    ("pthread-AMD EPYC", ""),
+    ("pthread-Intel(R) Xeon(R) Platinum 8375C CPU @ 2.90GHz", ""),
+    ("NVIDIA GeForce RTX 3090", None),
+    ("Intel(R) Xeon(R) CPU E5-2680", None),
+])
+def test_pocl_cpu_target(name, target):
+    assert dp.pocl_cpu_target(name) == target
+
+
+def test_slow_reasons():
+    good, generic = cand(0, 65.0), cand(1, 5.3, name="pthread-AMD EPYC", version=PIP)
+    avx2 = frozenset({"sse2", "avx", "avx2", "fma"})
+    # 2 units x 2.445 GHz x 8 lanes x 2 pipes x 2 flop = 156 GFLOP/s
+    assert dp.estimated_peak_gflops(good, avx2) == pytest.approx(156.48)
+    assert dp.estimated_peak_gflops(cand(0, 1.0, "gpu"), avx2) is None
+    assert dp.slow_reasons(good, [good, generic], avx2) == []
+    why = dp.slow_reasons(generic, [good, generic], avx2)
+    assert len(why) == 3 and "generic" in why[0] and "peak of 156" in why[1] and "12x" in why[2]
+    # a CPU-specific target that still measures far below the CPU's peak is flagged too
+    odd = cand(0, 8.0, name="pthread-znver3-AMD EPYC")
+    assert dp.slow_reasons(odd, [odd], avx2) == [
+        "measures 8.0 GFLOP/s, under 8% of this CPU's estimated peak of 156"]
+    assert dp.slow_warning(odd, [odd], frozenset()) is None      # no flags: peak unknown
+    # a different CPU model is not a sibling
+    other = cand(1, 200.0, name="pthread-znver3-AMD EPYC 9B14")
+    assert dp.faster_sibling(good, [good, other]) is None
+    assert dp.slow_warning(generic, [generic], frozenset()) == (
+        "clrf: warning: device 1:0 'pthread-AMD EPYC' (PoCL 3.0-rc2) compiles for a generic CPU "
+        "target (no LLVM CPU in the device name); install the distribution's PoCL "
+        "(Debian/Ubuntu: `apt-get install pocl-opencl-icd`)")
+
+
+# ---- the cache ---------------------------------------------------------------------------------
+
+@pytest.fixture
+def cache(monkeypatch, tmp_path):
+    """An empty cache directory and a fresh in-process memo; ``measure`` counts its calls."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(dp, "_memo", {})
+    calls = []
+
+    def fake_measure(dev):
+        calls.append(dev.name)
+        return Probe(None, 42.5, 0.2, "2026-11-22T21:00:00Z")
+
+    monkeypatch.setattr(dp, "measure", fake_measure)
+    return SimpleNamespace(path=tmp_path / "clrf" / "devices.json", calls=calls)
+
+
+def test_cache_round_trip(cache, monkeypatch):
+    dev = fake_dev("pthread-haswell-AMD EPYC", DEBIAN)
+    p = dp.probe(dev)
+    assert (p.gflops, p.cached, cache.calls) == (42.5, False, ["pthread-haswell-AMD EPYC"])
+    assert dp.probe(dev) is p                                   # memo: no file read
+    monkeypatch.setattr(dp, "_memo", {})                        # a new process
+    q = dp.probe(dev)
+    assert (q.gflops, q.when, q.cached, len(cache.calls)) == (42.5, p.when, True, 1)
+    entry = json.loads(cache.path.read_text())["devices"][dp.device_key(dev)]
+    assert entry["probe"] == dp.probe_version() and entry["error"] is None
+    dp.probe(dev, refresh=True)
+    assert len(cache.calls) == 2
+    # another driver version is another key
+    dev2 = fake_dev("pthread-haswell-AMD EPYC", DEBIAN.replace("3.1+debian", "3.2+debian"))
+    assert dp.probe(dev2, measure_missing=False) is None
+    assert not list(cache.path.parent.glob(".devices.*"))      # no temporaries left behind
+
+
+@pytest.mark.parametrize("content", [
+    "{not json", "[]", '{"devices": 3}',
+    '{"devices": {"KEY": {"probe": "VERSION", "gflops": "fast", "error": null}}}',
+    '{"devices": {"KEY": {"probe": "VERSION", "gflops": -1.0, "error": null}}}',
+    '{"devices": {"KEY": {"probe": "stale", "gflops": 1.0, "error": null}}}',
+])
+def test_corrupt_or_stale_cache_is_ignored_and_rewritten(cache, content):
+    dev = fake_dev("pthread-haswell-AMD EPYC", DEBIAN)
+    cache.path.parent.mkdir(parents=True)
+    cache.path.write_text(content.replace("KEY", dp.device_key(dev).replace('"', '\\"'))
+                          .replace("VERSION", dp.probe_version()))
+    assert dp.probe(dev).gflops == 42.5 and cache.calls == [dev.name]
+    entries = json.loads(cache.path.read_text())["devices"]
+    assert list(entries) == [dp.device_key(dev)] and entries[dp.device_key(dev)]["gflops"] == 42.5
+
+
+def test_unwritable_cache_still_probes(cache, monkeypatch, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))          # clrf/ cannot be made under a file
+    assert dp.probe(fake_dev("pthread-haswell-AMD EPYC", DEBIAN)).gflops == 42.5
+
+
+def test_fma_reference_matches_the_iteration():
+    """The closed form the probe checks the kernel against equals the float64 iteration."""
+    m, add = float(np.float32(dp.PROBE_M)), float(np.float32(dp.PROBE_ADD))
+    x = dp.PROBE_X0 + dp.PROBE_DX * np.arange(dp.PROBE_CHAINS)
+    for _ in range(300):
+        x = x * m + add
+    assert dp.fma_reference(300) == pytest.approx(dp.PROBE_WIDTH * x.sum(), rel=1e-12)
+
+
+# ---- the real devices --------------------------------------------------------------------------
+
+def test_real_devices_probe_and_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(dp, "_memo", {})
+    devs = device.list_devices()
+    if not devs:
+        pytest.skip("no OpenCL device on this machine")
+    first = [dp.probe(d) for _, _, d in devs]
+    ok = [p for p in first if p.ok]
+    assert ok, [p.error for p in first]
+    assert all(p.gflops > 0 and not p.cached for p in ok)
+    monkeypatch.setattr(dp, "_memo", {})
+    again = [dp.probe(d) for _, _, d in devs]
+    assert all(a.cached and a.gflops == p.gflops for a, p in zip(again, first))
+    chosen = device.choose_device("auto")
+    assert chosen.candidate.probe.gflops >= max(p.gflops for p in ok) * (1 - dp.TIE)

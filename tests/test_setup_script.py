@@ -1,0 +1,90 @@
+"""tools/setup.sh decides when to install the distribution's PoCL: run it in a sandbox.
+
+The sandbox's PATH holds only stubs: a fake ``python`` (makes the venv, accepts ``pip install``
+and answers ``clrf devices --check`` with the exit status the scenario sets, before and after
+the install), a fake ``apt-get`` that records what it was asked, and fake ``id``/``sudo``.
+"""
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+TOOLS = ("env", "rm", "dirname", "mkdir", "cp", "cat", "touch", "true")
+
+FAKE_PYTHON = """#!/bin/bash
+case "$1 $2" in
+  "-m venv") mkdir -p "$3/bin" && cp "$0" "$3/bin/python" ;;
+  "-m pip") ;;
+  "-m clrf.cli")
+    echo "$*" >> "$FAKE_STATE/checks"
+    if [ -e "$FAKE_STATE/installed" ]; then exit "$FAKE_AFTER"; else exit "$FAKE_BEFORE"; fi ;;
+  *) exit 99 ;;
+esac
+"""
+FAKE_APT = """#!/bin/bash
+echo "$*" >> "$FAKE_STATE/apt"
+[ -n "$FAKE_APT_FAIL" ] && exit 100
+case "$*" in *install*) touch "$FAKE_STATE/installed" ;; esac
+"""
+FAKE_ID = '#!/bin/bash\necho "$FAKE_UID"\n'
+FAKE_SUDO = """#!/bin/bash
+[ "$1" = "-n" ] || exit 97          # setup.sh must never let sudo prompt
+shift
+[ -n "$FAKE_SUDO_OK" ] || exit 1
+exec "$@"
+"""
+
+
+def _script(path: Path, text: str):
+    path.write_text(text)
+    path.chmod(0o755)
+
+
+def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False):
+    repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
+    for p in (repo / "tools", stubs, state):
+        p.mkdir(parents=True)
+    shutil.copy(ROOT / "tools" / "setup.sh", repo / "tools" / "setup.sh")
+    for tool in TOOLS:
+        os.symlink(shutil.which(tool), stubs / tool)
+    _script(stubs / "python", FAKE_PYTHON)
+    _script(stubs / "id", FAKE_ID)
+    _script(stubs / "sudo", FAKE_SUDO)
+    if apt:
+        _script(stubs / "apt-get", FAKE_APT)
+    env = {"PATH": str(stubs), "PYTHON": "python", "FAKE_STATE": str(state),
+           "FAKE_BEFORE": str(before), "FAKE_AFTER": str(after), "FAKE_UID": str(uid),
+           "FAKE_SUDO_OK": "1" if sudo_ok else "", "FAKE_APT_FAIL": "1" if apt_fail else "",
+           "CLRF_DEVICE": "1:0"}
+    r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), "test"],
+                       env=env, capture_output=True, text=True, timeout=60)
+    apt_log = (state / "apt").read_text() if (state / "apt").exists() else ""
+    checks = (state / "checks").read_text().splitlines() if (state / "checks").exists() else []
+    return r, apt_log, checks
+
+
+@pytest.mark.parametrize("before, after, uid, apt, sudo_ok, apt_fail, rc, installs, says", [
+    (0, 0, 0, True, True, False, 0, False, ""),                     # pip's PoCL is fine
+    (3, 0, 0, True, True, False, 0, True, "slow driver"),          # generic target: install
+    (1, 0, 0, True, True, False, 0, True, "no working"),           # nothing works: install
+    (3, 3, 0, True, True, False, 0, True, "slow driver"),          # still slow: keep going
+    (1, 1, 0, True, True, False, 1, True, "no working"),           # still nothing: fail
+    (3, 0, 1000, True, True, False, 0, True, "slow driver"),       # sudo -n works
+    (1, 0, 1000, True, False, False, 1, False, "sudo needs a password"),
+    (3, 0, 1000, True, False, False, 0, False, "sudo needs a password"),
+    (3, 0, 0, False, True, False, 0, False, "no apt-get"),
+    (1, 0, 0, False, True, False, 1, False, "no apt-get"),
+    (1, 0, 0, True, True, True, 1, False, "apt-get install pocl-opencl-icd failed"),
+])
+def test_setup_installs_distribution_pocl_when_needed(tmp_path, before, after, uid, apt, sudo_ok,
+                                                      apt_fail, rc, installs, says):
+    r, apt_log, checks = run_setup(tmp_path, before, after, uid, apt, sudo_ok, apt_fail)
+    assert r.returncode == rc, r.stderr
+    assert ("install -y -qq pocl-opencl-icd" in apt_log) == installs
+    assert bool(apt_log) == (installs or apt_fail)  # apt-get is never run when not needed
+    assert says in r.stderr
+    assert len(checks) == (2 if installs else 1)    # probed again after an install
+    assert all(c == "-m clrf.cli devices --check" for c in checks)
