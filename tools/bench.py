@@ -12,10 +12,10 @@ repetition (device work finished when it returns), the work it does (samples, ra
 flop) and an optional check against a reference. The runner warms each case up once (JIT),
 then repeats until the timing is stable (relative inter-quartile range below ``--tol`` after
 ``--min-repeats``) or a cap (``--max-repeats``, ``--max-seconds``), and records the median and
-the min-max. The device peaks (copy and triad bandwidth, float16 FMA throughput, cl/bench.cl)
-are measured at the start and at the end of the run; every throughput is also given as a
-ratio to them, because this class of machine sometimes halves everything at once
-(docs/perf-notes.md 1.2).
+the min-max. The device peaks (copy and triad bandwidth, FMA throughput at the device's native
+float vector width, cl/bench.cl) are measured at the start and at the end of the run; every
+throughput is also given as a ratio to them, because this class of machine sometimes halves
+everything at once (docs/perf-notes.md 1.2).
 
 Adding benchmarks: append Specs (and, for a new kind, a factory registered with
 ``@factory("kind")``). Kernels that have not landed are left out by name: a Spec whose
@@ -182,8 +182,8 @@ def _peak_bandwidth(ctx, p):
 @factory("peak.fma")
 def _peak_fma(ctx, p):
     dev = ctx.dev
-    iters, chains = p["iters"], 8
-    prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains})
+    iters, chains, vec = p["iters"], 8, p.get("vec") or dev.caps.vector_width
+    prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains, "FMA_VEC": vec})
     q = dev.queue
     n = p["items"]
     out = cla.empty(q, n, np.float32)
@@ -194,7 +194,7 @@ def _peak_fma(ctx, p):
         cl.enqueue_nd_range_kernel(q, k, (n,), None)
         q.finish()
         return out
-    return Case(run, {"flop": 2 * 16 * chains * iters * n}, {"items": n})
+    return Case(run, {"flop": 2 * vec * chains * iters * n}, {"items": n, "vector_width": vec})
 
 
 # ---- clrf grid renderer ---------------------------------------------------------------------
