@@ -18,7 +18,7 @@ its reduce alone; input gradient = bwd - wgrad.
 
 Tilings: "device" (what an MLP picks here: tuned cache, else the device default), "default"
 (the device default, ignoring the cache), "wide" (8 rows x 32 columns, weight gradient 8 x 32:
-the AVX-512 tile), or rows:cols:dw_rows:dw_cols.
+the AVX-512 tile), or rows:cols:dw_rows:dw_cols[:dw_chunk].
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ import numpy as np
 import pyopencl.array as cla
 
 import clrf
-from clrf.autotune import MLPTiling, device_default
+from clrf.autotune import CHUNK_TILES, MLPTiling, device_default
 from clrf.mlp import MLP, MLPSpec
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)
@@ -133,8 +133,8 @@ def parse_tiling(dev, name) -> MLPTiling | None:
         return device_default(dev.caps)
     if name == "wide":
         return WIDE
-    r, c, dr, dc = (int(v) for v in name.split(":"))
-    return MLPTiling(r, c, dr, dc, 64 * r)
+    v = [int(x) for x in name.split(":")]
+    return MLPTiling(*v[:4], v[4] if len(v) > 4 else CHUNK_TILES * v[0])
 
 
 def interleaved(cases, repeats):
