@@ -137,14 +137,20 @@ def parse_tiling(dev, name) -> MLPTiling | None:
     return MLPTiling(*v[:4], v[4] if len(v) > 4 else CHUNK_TILES * v[0])
 
 
+SETTLE_S = 0.1   # pause before each timed case: BLAS worker threads spin on after a call
+
+
 def interleaved(cases, repeats):
-    """{label: (median s, min s, max s, median CPU s)} over `repeats` rounds of all cases."""
+    """{label: (median s, min s, max s, median CPU s)} over `repeats` rounds of all cases.
+    Each case starts after a SETTLE_S pause, so that the threads numpy's BLAS leaves spinning
+    after a call neither slow the next case down nor add to its CPU time."""
     for run, _ in cases.values():
         run()
     wall = {k: [] for k in cases}
     cpu = {k: [] for k in cases}
     for _ in range(repeats):
         for k, (run, _) in cases.items():
+            time.sleep(SETTLE_S)
             c0 = cpu_seconds()
             t0 = time.perf_counter()
             run()
