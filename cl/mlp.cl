@@ -32,6 +32,9 @@
  * Vectorisation. Every matrix product goes through gemm_tile: a ROWS x (16*CJ) register block
  * of float16 accumulators, each float16 weight row loaded once per ROWS samples and each
  * scalar activation broadcast into CJ FMAs (PoCL does not vectorise loops across work-items).
+ * The tile shape is per device (defines below): the accumulators must fit the register file,
+ * e.g. AVX-512 (32 zmm) takes 8 rows x 32 columns (16 float16 = 16 zmm), AVX2 (16 ymm, one
+ * float16 = 2 ymm) 6 rows x 16 columns (12 ymm + the weight row + one broadcast).
  *   forward      A_out[s, j]  = act(b_j + sum_k A_in[s, k] Wt[k, j])     (rows = samples)
  *   backward     G_in[s, k]   = act'(A_in[s, k]) sum_j G_out[s, j] W[j, k] (rows = samples)
  *   weight grad  dW[j, k]     = sum_s G_out[s, j] A_in[s, k]              (rows = outputs j)
@@ -39,7 +42,7 @@
  * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
  *
  * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
- * SIGMA_ACT, MLP_ROWS, DW_ROWS, DW_CHUNK.
+ * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK.
  */
 #include "common.h"
 
@@ -75,8 +78,14 @@
 #ifndef MLP_ROWS
 #define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
 #endif
+#ifndef MLP_COLS
+#define MLP_COLS 32         /* columns per tile there: 32 (two float16) or 16 (one) */
+#endif
 #ifndef DW_ROWS
 #define DW_ROWS 8           /* output neurons per work-item in mlp_weight_grad; divides 16 */
+#endif
+#ifndef DW_COLS
+#define DW_COLS 32          /* input columns per work-item there: 32 or 16 */
 #endif
 #ifndef DW_CHUNK
 #define DW_CHUNK 512        /* scratch rows per partial weight gradient; multiple of MLP_ROWS */
@@ -103,11 +112,18 @@
 #if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS
 #error "SIGMA_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
 #endif
-#if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 4 && MLP_ROWS != 8 && MLP_ROWS != 16
-#error "MLP_ROWS must be 1, 2, 4, 8 or 16"
+#if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 3 && MLP_ROWS != 4 && MLP_ROWS != 5 && \
+    MLP_ROWS != 6 && MLP_ROWS != 8 && MLP_ROWS != 12 && MLP_ROWS != 16
+#error "MLP_ROWS must be 1, 2, 3, 4, 5, 6, 8, 12 or 16"
+#endif
+#if MLP_COLS != 16 && MLP_COLS != 32
+#error "MLP_COLS must be 16 or 32"
 #endif
 #if DW_ROWS != 1 && DW_ROWS != 2 && DW_ROWS != 4 && DW_ROWS != 8 && DW_ROWS != 16
 #error "DW_ROWS must divide 16"
+#endif
+#if DW_COLS != 16 && DW_COLS != 32
+#error "DW_COLS must be 16 or 32"
 #endif
 #if DW_CHUNK < MLP_ROWS || DW_CHUNK % MLP_ROWS != 0
 #error "DW_CHUNK must be a positive multiple of MLP_ROWS"
@@ -176,9 +192,13 @@ inline int n_params(void) {
  * a per-row statement n times); acc is read once before and written once after the k loop. */
 #define REP1(X) X(0)
 #define REP2(X) REP1(X) X(1)
-#define REP4(X) REP2(X) X(2) X(3)
-#define REP8(X) REP4(X) X(4) X(5) X(6) X(7)
-#define REP16(X) REP8(X) X(8) X(9) X(10) X(11) X(12) X(13) X(14) X(15)
+#define REP3(X) REP2(X) X(2)
+#define REP4(X) REP3(X) X(3)
+#define REP5(X) REP4(X) X(4)
+#define REP6(X) REP5(X) X(5)
+#define REP8(X) REP6(X) X(6) X(7)
+#define REP12(X) REP8(X) X(8) X(9) X(10) X(11)
+#define REP16(X) REP12(X) X(12) X(13) X(14) X(15)
 #define REPN_(n) REP##n
 #define REPN(n) REPN_(n)
 
@@ -216,9 +236,13 @@ inline int n_params(void) {
         }                                                                                   \
         REPN(ROWS)(T1_STORE)                                                                \
     }
+#if MLP_COLS == 32
 DEFINE_GEMM_TILE2(gemm_rows2, MLP_ROWS)
+#endif
 DEFINE_GEMM_TILE1(gemm_rows1, MLP_ROWS)
+#if DW_COLS == 32
 DEFINE_GEMM_TILE2(gemm_dw2, DW_ROWS)
+#endif
 DEFINE_GEMM_TILE1(gemm_dw1, DW_ROWS)
 
 inline float16 act_forward(const float16 x, const int act) {
@@ -246,10 +270,12 @@ inline float act_grad1(const float y, const int act) {
     return 1.0f;
 }
 
-/* Forward of one layer for the MLP_ROWS rows starting at A (row stride NSLOT). */
+/* Forward of one layer for the MLP_ROWS rows starting at A (row stride NSLOT): MLP_COLS-wide
+ * column blocks, then 16-wide ones for the rest (nout is a multiple of 16). */
 inline void layer_forward(const layer_t L, __global const float *Pt, __global float *A,
                           const int act) {
     int j0 = 0;
+#if MLP_COLS == 32
     for (; j0 + 32 <= L.nout; j0 += 32) {
         float16 acc[MLP_ROWS * 2];
         const float16 b0 = vload16(0, Pt + L.b_off + j0), b1 = vload16(0, Pt + L.b_off + j0 + 16);
@@ -260,7 +286,8 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
                 vstore16(act_forward(acc[2 * r + c], act), 0,
                          A + (size_t)r * NSLOT + L.out_off + j0 + 16 * c);
     }
-    if (j0 < L.nout) {
+#endif
+    for (; j0 < L.nout; j0 += 16) {
         float16 acc[MLP_ROWS];
         const float16 b0 = vload16(0, Pt + L.b_off + j0);
         for (int r = 0; r < MLP_ROWS; ++r) acc[r] = b0;
@@ -275,6 +302,7 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
 inline void layer_backward(const layer_t L, __global const float *P, __global float *G,
                            __global const float *A, const int n_act) {
     int k0 = 0;
+#if MLP_COLS == 32
     for (; k0 + 32 <= L.nin; k0 += 32) {
         float16 acc[MLP_ROWS * 2];
         for (int r = 0; r < 2 * MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
@@ -287,7 +315,8 @@ inline void layer_backward(const layer_t L, __global const float *P, __global fl
                 vstore16(d, 0, G + o);
             }
     }
-    if (k0 < L.nin) {
+#endif
+    for (; k0 < L.nin; k0 += 16) {
         float16 acc[MLP_ROWS];
         for (int r = 0; r < MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_rows1(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.nout, acc);
@@ -397,20 +426,22 @@ __kernel void mlp_backward(const int n, __global const float *dsigma, __global c
  *   partial[p, w_off + j*nin + k] = sum_{s in chunk p} G[s, out_off + j] A[s, in_off + k],
  *   partial[p, b_off + j]         = sum_{s in chunk p} G[s, out_off + j]  (items with kb == 0,
  *                                   while the chunk's G rows are still in cache).
- * Work-item gid = (p * nkb + kb) * njb + jb: DW_ROWS outputs j x 32 (or a last 16) inputs k. */
+ * Work-item gid = (p * nkb + kb) * njb + jb: DW_ROWS outputs j x DW_COLS (or a last 16)
+ * inputs k; nkb = ceil(nin / DW_COLS), njb = nout / DW_ROWS. */
 __kernel void mlp_weight_grad(const int layer, const int n_rows, __global const float *A,
                               __global const float *G, __global float *partial) {
     const layer_t L = layer_desc(layer);
-    const int njb = L.nout / DW_ROWS, nkb = (L.nin + 31) / 32;
+    const int njb = L.nout / DW_ROWS, nkb = (L.nin + DW_COLS - 1) / DW_COLS;
     const int n_chunks = (n_rows + DW_CHUNK - 1) / DW_CHUNK;
     const int gid = get_global_id(0);
     if (gid >= njb * nkb * n_chunks) return;
     const int jb = gid % njb, kb = (gid / njb) % nkb, p = gid / (njb * nkb);
-    const int j0 = jb * DW_ROWS, k0 = kb * 32;
+    const int j0 = jb * DW_ROWS, k0 = kb * DW_COLS;
     const int s0 = p * DW_CHUNK, ns = min(DW_CHUNK, n_rows - s0);
     __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;
     __global const float *Mp = A + (size_t)s0 * NSLOT + L.in_off + k0;
     __global float *out = partial + (size_t)p * n_params();
+#if DW_COLS == 32
     if (k0 + 32 <= L.nin) {
         float16 acc[DW_ROWS * 2];
         for (int r = 0; r < 2 * DW_ROWS; ++r) acc[r] = (float16)(0.0f);
@@ -418,7 +449,9 @@ __kernel void mlp_weight_grad(const int layer, const int n_rows, __global const 
         for (int r = 0; r < DW_ROWS; ++r)
             for (int c = 0; c < 2; ++c)
                 vstore16(acc[2 * r + c], 0, out + L.w_off + (size_t)(j0 + r) * L.nin + k0 + 16 * c);
-    } else {
+    } else
+#endif
+    {
         float16 acc[DW_ROWS];
         for (int r = 0; r < DW_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_dw1(Lp, 1, NSLOT, Mp, NSLOT, ns, acc);
@@ -470,15 +503,18 @@ __kernel void mlp_transpose(__global const float *params, __global float *params
 
 /* The layout for the host: out[0..7] = NLAYER, NSLOT, n_params, MLP_ROWS, DW_CHUNK, SL_X,
  * SL_XS (-1 without skip), SL_HD; out[8..11] = SL_FEAT, SL_DV, SL_C, SL_RGB;
- * then 6 ints per layer: in_off, nin, out_off, nout, w_off, b_off. */
+ * out[12..14] = MLP_COLS, DW_ROWS, DW_COLS (the tile, for the host's work split);
+ * then from out[LAYOUT_HEAD] 6 ints per layer: in_off, nin, out_off, nout, w_off, b_off. */
+#define LAYOUT_HEAD 15
 __kernel void mlp_layout(__global int *out) {
     if (get_global_id(0) != 0) return;
     out[0] = NLAYER; out[1] = NSLOT; out[2] = n_params(); out[3] = MLP_ROWS;
     out[4] = DW_CHUNK; out[5] = SL_X; out[6] = MLP_SKIP >= 0 ? SL_XS : -1; out[7] = SL_HD;
     out[8] = SL_FEAT; out[9] = SL_DV; out[10] = SL_C; out[11] = SL_RGB;
+    out[12] = MLP_COLS; out[13] = DW_ROWS; out[14] = DW_COLS;
     for (int l = 0; l < NLAYER; ++l) {
         const layer_t L = layer_desc(l);
-        __global int *o = out + 12 + 6 * l;
+        __global int *o = out + LAYOUT_HEAD + 6 * l;
         o[0] = L.in_off; o[1] = L.nin; o[2] = L.out_off; o[3] = L.nout;
         o[4] = L.w_off; o[5] = L.b_off;
     }

@@ -8,6 +8,18 @@ import pytest
 import clrf
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _own_tuning_cache(tmp_path_factory):
+    """Tests never read the user's tuned tiles (clrf/autotune.py): an empty cache folder."""
+    old = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
+    yield
+    if old is None:
+        del os.environ["XDG_CACHE_HOME"]
+    else:
+        os.environ["XDG_CACHE_HOME"] = old
+
+
 @pytest.fixture(scope="session")
 def device():
     return clrf.Device()

@@ -68,7 +68,7 @@ def fake_dev(name, version, type_="cpu", mhz=2445):
         vendor="AuthenticAMD" if type_ == "cpu" else "NVIDIA", max_compute_units=2,
         max_clock_frequency=mhz, extensions="cl_khr_fp64 cl_khr_int64_base_atomics",
         max_work_group_size=4096, local_mem_size=512 * 1024, global_mem_size=2 ** 34,
-        max_mem_alloc_size=2 ** 33)
+        max_mem_alloc_size=2 ** 33, native_vector_width_float=8 if type_ == "cpu" else 1)
 
 
 @pytest.fixture

@@ -1,4 +1,7 @@
-"""Fused MLP (cl/mlp.cl) vs the float64 reference, finite differences and awkward batch sizes."""
+"""Fused MLP (cl/mlp.cl) vs the float64 reference, finite differences, awkward batch sizes and
+every register tile the kernel allows."""
+from dataclasses import replace
+
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -52,10 +55,6 @@ def run_backward(net, x, d, ds, dr, accumulate=False):
     return net.grad.get(), dx.get(), dd.get()
 
 
-def rows(name):
-    return SPECS[name].rows
-
-
 @pytest.mark.parametrize("name", list(SPECS))
 @pytest.mark.parametrize("n", [0, 1, 7, 8 - 1, 8 + 1, 37])
 def test_forward_matches_reference(device, name, n):
@@ -94,7 +93,7 @@ def test_backward_matches_reference(device, name, n):
 def test_batch_over_many_chunks_and_accumulate(device):
     """n = 100 rows over 16-row chunks (7 partials) in groups of 2 chunks (backward and weight
     gradient interleaved), and accumulate=True adds to grad."""
-    net = MLP(device, SPECS["relu"], seed=5)
+    net = MLP(device, replace(SPECS["relu"], rows=8), seed=5)
     net.group_bytes = 2 * 16 * 8 * net.layout.nslot
     n = 100
     x, d = inputs(net.spec, n, seed=4)
@@ -238,3 +237,64 @@ def test_invalid_shapes_fail_to_build(device):
         MLP(device, MLPSpec(width=40))
     with pytest.raises(BuildError, match="MLP_SKIP"):
         MLP(device, MLPSpec(depth=2, skip=1))
+
+
+# ---- register tiles ---------------------------------------------------------------------------
+# (rows, cols, dw_rows, dw_cols): the AVX-512 and AVX2 defaults, one-row tiles, every other row
+# count, and weight-gradient tiles of each allowed height and both widths.
+TILES = [(8, 32, 8, 32), (6, 16, 4, 32), (1, 16, 1, 16), (1, 32, 16, 32), (2, 32, 2, 16),
+         (3, 32, 4, 16), (4, 16, 16, 16), (5, 16, 8, 16), (8, 16, 1, 32), (12, 16, 2, 32),
+         (16, 32, 8, 16)]
+# width 48 = one 32-wide block + a 16-wide rest; the skip input is 48 + 16 = 64 columns
+TILE_SPEC = MLPSpec(width=48, depth=3, skip=0, color_width=16, in_dim=9, dir_dim=5,
+                    hidden_act="relu", sigma_act="softplus")
+
+
+@pytest.mark.parametrize("tile", TILES, ids=lambda t: "r%d_c%d_dw%dx%d" % t)
+def test_every_tile_matches_reference(device, tile):
+    """Forward, input and parameter gradients of each tile against the float64 reference, for
+    batches of 0, 1, 7, a tile -1, +0, +1 and several partial-gradient chunks (2 tiles)."""
+    r, c, dwr, dwc = tile
+    spec = replace(TILE_SPEC, rows=r, cols=c, dw_rows=dwr, dw_cols=dwc, dw_chunk=2 * r)
+    net = MLP(device, spec, seed=3)
+    assert (net.layout.rows, net.layout.cols, net.layout.dw_rows, net.layout.dw_cols,
+            net.layout.dw_chunk) == (r, c, dwr, dwc, 2 * r)
+    p = net.params.get()
+    rng = np.random.default_rng(5)
+    for L, (rr, _) in zip(net.layout.layers, net.layout.logical_shapes(spec)):
+        p[L["b_off"] + rr] = rng.uniform(-0.3, 0.3, len(rr))
+    net.set_params(p)
+    for n in sorted({0, 1, 7, max(r - 1, 1), r, r + 1, 5 * r + 3}):
+        x, d = inputs(spec, n, seed=n)
+        s, col = run_forward(net, x, d)
+        rs, rc = ref.mlp_forward(p, spec, net.layout, x, d)
+        np.testing.assert_allclose(s, rs, rtol=tol.MLP_RTOL, atol=tol.MLP_ATOL)
+        np.testing.assert_allclose(col, rc, rtol=tol.MLP_RTOL, atol=tol.MLP_ATOL)
+        ds = rng.normal(size=n).astype(np.float32)
+        dr = rng.normal(size=(n, 3)).astype(np.float32)
+        g, dx, dd = run_backward(net, x, d, ds, dr)
+        if n == 0:
+            assert np.all(g == 0) and dx.shape == (0, spec.in_dim)
+            continue
+        want = ref.mlp_backward(p, spec, net.layout, x, d, ds, dr)
+        for L in net.layout.layers:
+            _close_rel_to_max(g[L["w_off"]:L["b_off"]], want["params"][L["w_off"]:L["b_off"]])
+            _close_rel_to_max(g[L["b_off"]:L["b_off"] + L["nout"]],
+                              want["params"][L["b_off"]:L["b_off"] + L["nout"]])
+        _close_rel_to_max(dx, want["x_enc"])
+        _close_rel_to_max(dd, want["d_enc"])
+
+
+def test_chunk_rounds_up_to_whole_tiles(device):
+    """dw_chunk = 16 with 6-row tiles builds with 18-row chunks (whole tiles)."""
+    net = MLP(device, replace(TILE_SPEC, rows=6, cols=16, dw_rows=4, dw_cols=32, dw_chunk=16))
+    assert net.layout.dw_chunk == 18 and net.tiling.dw_chunk == 16
+
+
+@pytest.mark.parametrize("field,value,define", [("rows", 7, "MLP_ROWS"), ("cols", 24, "MLP_COLS"),
+                                                ("dw_rows", 6, "DW_ROWS"),
+                                                ("dw_cols", 8, "DW_COLS")])
+def test_invalid_tiles_fail_to_build(device, field, value, define):
+    from clrf.programs import BuildError
+    with pytest.raises(BuildError, match=define):
+        MLP(device, replace(TILE_SPEC, **{field: value}))

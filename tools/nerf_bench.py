@@ -1,15 +1,24 @@
-"""Fused NeRF MLP benchmark: GFLOP/s and samples/s next to numpy's float32 matmul on the same
-layer shapes and the device's FMA peak, all measured in the same run; JSON output.
+"""Fused NeRF MLP benchmark: GFLOP/s next to numpy's float32 matmul on the same layer shapes and
+the device's FMA peak, for one or more register tiles, all timed in one run; JSON output.
 
-    PYTHONPATH=. python tools/nerf_bench.py [--samples 8192] [--repeats 5] [--out bench.json]
+    PYTHONPATH=. python tools/nerf_bench.py [--samples 8192] [--repeats 7] [--out bench.json]
+        [--tilings device,wide] [--configs nerf-8x256-skip4,small-4x64]
 
-Each figure is the median of --repeats timed runs after a warm-up (wall clock around enqueue +
-finish), with min and max. FLOPs are counted on the logical (unpadded) layer sizes, 2 per MAC;
-forward + backward counts 3 products per layer (forward, input gradient, weight gradient) and
-so includes the input-gradient product of layer 0, which the training step skips.
-The host is shared, so read the ratios: fused/numpy and fused/FMA-peak, by wall clock and by
-CPU time (GFLOP per CPU-second of this process, which does not count the time other processes
-hold the cores).
+Every case (numpy forward / forward+backward, the fused MLP with each tiling, its backward and
+weight-gradient phases, the FMA peak at 16 lanes and at the device's native float width) runs
+once per round, the rounds interleaved, after one warm-up each; each figure is the median over
+--repeats rounds, with min and max. The host is shared: interleaving spreads the contention
+over all cases alike, and GFLOP per CPU-second (CPU time of this process, PoCL's threads
+included) does not count the time other processes hold the cores.
+FLOPs are counted on the logical (unpadded) layer sizes, 2 per MAC; forward + backward counts
+3 products per layer (forward, input gradient, weight gradient) and so includes the
+input-gradient product of layer 0, which the training step skips. The phases: "bwd" is the
+whole backward (input gradients + weight gradients + reduce), "wgrad" the weight gradient and
+its reduce alone; input gradient = bwd - wgrad.
+
+Tilings: "device" (what an MLP picks here: tuned cache, else the device default), "default"
+(the device default, ignoring the cache), "wide" (8 rows x 32 columns, weight gradient 8 x 32:
+the AVX-512 tile), or rows:cols:dw_rows:dw_cols[:dw_chunk].
 """
 from __future__ import annotations
 
@@ -19,12 +28,14 @@ import os
 import platform
 import resource
 import time
+from dataclasses import asdict, replace
 
 import numpy as np
 
 import pyopencl.array as cla
 
 import clrf
+from clrf.autotune import CHUNK_TILES, MLPTiling, device_default
 from clrf.nerf.mlp import MLP, MLPSpec
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)
@@ -32,6 +43,7 @@ CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L
     "small-4x64": MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=15),
     "small-2x128": MLPSpec(width=128, depth=2, skip=-1, color_width=64, in_dim=51, dir_dim=15),
 }
+WIDE = MLPTiling(8, 32, 8, 32, 512)
 
 
 def cpu_seconds() -> float:
@@ -40,40 +52,17 @@ def cpu_seconds() -> float:
     return r.ru_utime + r.ru_stime
 
 
-CPU_TIMES = []   # CPU seconds of the last timed() call, per repeat
-
-
-def timed(fn, repeats):
-    """(median, min, max) wall seconds; the CPU seconds per repeat are left in CPU_TIMES.
-    GFLOP per CPU-second is the contention-robust figure: on a shared host the wall clock
-    also counts the time other processes hold our cores."""
-    fn()
-    ts, cs = [], []
-    for _ in range(repeats):
-        c0 = cpu_seconds()
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        cs.append(cpu_seconds() - c0)
-    CPU_TIMES[:] = cs
-    return float(np.median(ts)), float(np.min(ts)), float(np.max(ts))
-
-
-def fma_peak(dev, repeats):
+def fma_peak_case(dev, vec):
+    """(run, flop): FMA_CHAINS = 8 chains of float<vec> FMAs (cl/bench.cl bench_fma)."""
     n_items, iters = 64 * dev.caps.compute_units, 20000
-    prg = dev.program("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": iters})
+    prg = dev.program("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": iters, "FMA_VEC": vec})
     k = prg.kernel("bench_fma")
     out = cla.empty(dev.queue, n_items, np.float32)
 
     def run():
         k(dev.queue, (n_items,), (1,), out.data, np.float32(0.999), np.float32(1e-3))
         dev.queue.finish()
-
-    med, lo, hi = timed(run, repeats)
-    flop = n_items * iters * 8 * 16 * 2
-    return {"gflops": flop / med / 1e9, "gflops_min": flop / hi / 1e9,
-            "gflops_max": flop / lo / 1e9,
-            "gflop_per_cpu_s": flop / float(np.median(CPU_TIMES)) / 1e9}
+    return run, n_items * iters * 8 * vec * 2
 
 
 def layer_shapes(spec):
@@ -104,22 +93,9 @@ def _matmul_runs(spec, n):
     return fwd, fwdbwd
 
 
-def numpy_matmul(spec, n, repeats):
-    """numpy float32 matmuls with the MLP's shapes: forward (X W) and forward + backward
-    (X W, G W^T, X^T G) per layer, timed as one sequence each."""
-    fwd, fwdbwd = _matmul_runs(spec, n)
-
-    macs = sum(a * b for a, b in layer_shapes(spec)) * n
-    f = timed(fwd, repeats)
-    fc = float(np.median(CPU_TIMES))
-    fb = timed(fwdbwd, repeats)
-    fbc = float(np.median(CPU_TIMES))
-    return {"forward_gflops": 2 * macs / f[0] / 1e9, "fwdbwd_gflops": 6 * macs / fb[0] / 1e9,
-            "forward_gflop_per_cpu_s": 2 * macs / fc / 1e9,
-            "fwdbwd_gflop_per_cpu_s": 6 * macs / fbc / 1e9}
-
-
-def fused(dev, spec, n, repeats):
+def fused_runs(dev, spec, n):
+    """The MLP and its cases: forward, forward+backward, backward alone and weight gradient
+    (+ reduce) alone; the last two reuse the activations of one forward made here."""
     q = dev.queue
     net = MLP(dev, spec)
     rng = np.random.default_rng(0)
@@ -137,70 +113,121 @@ def fused(dev, spec, n, repeats):
         net.backward(ds, dr)
         q.finish()
 
-    macs = sum(a * b for a, b in layer_shapes(spec)) * n
-    f = timed(fwd, repeats)
-    fc = float(np.median(CPU_TIMES))
-    fb = timed(fwdbwd, repeats)
-    fbc = float(np.median(CPU_TIMES))
-    return {"forward_gflops": 2 * macs / f[0] / 1e9, "forward_samples_per_s": n / f[0],
-            "forward_s": f, "forward_gflop_per_cpu_s": 2 * macs / fc / 1e9,
-            "fwdbwd_gflops": 6 * macs / fb[0] / 1e9, "fwdbwd_samples_per_s": n / fb[0],
-            "fwdbwd_s": fb, "fwdbwd_gflop_per_cpu_s": 6 * macs / fbc / 1e9}
+    def bwd():
+        net.backward(ds, dr)
+        q.finish()
+
+    def wgrad():
+        net.weight_grad(net.grad)
+        q.finish()
+    fwd()
+    return net, {"fwd": fwd, "fwdbwd": fwdbwd, "bwd": bwd, "wgrad": wgrad}
+
+
+def parse_tiling(dev, name) -> MLPTiling | None:
+    """None for "device" (the MLP's own choice), else the tiling named (see module doc)."""
+    if name == "device":
+        return None
+    if name == "default":
+        return device_default(dev.caps)
+    if name == "wide":
+        return WIDE
+    v = [int(x) for x in name.split(":")]
+    return MLPTiling(*v[:4], v[4] if len(v) > 4 else CHUNK_TILES * v[0])
+
+
+SETTLE_S = 0.1   # pause before each timed case: BLAS worker threads spin on after a call
+
+
+def interleaved(cases, repeats):
+    """{label: (median s, min s, max s, median CPU s)} over `repeats` rounds of all cases.
+    Each case starts after a SETTLE_S pause, so that the threads numpy's BLAS leaves spinning
+    after a call neither slow the next case down nor add to its CPU time."""
+    for run, _ in cases.values():
+        run()
+    wall = {k: [] for k in cases}
+    cpu = {k: [] for k in cases}
+    for _ in range(repeats):
+        for k, (run, _) in cases.items():
+            time.sleep(SETTLE_S)
+            c0 = cpu_seconds()
+            t0 = time.perf_counter()
+            run()
+            wall[k].append(time.perf_counter() - t0)
+            cpu[k].append(cpu_seconds() - c0)
+    return {k: (float(np.median(wall[k])), float(np.min(wall[k])), float(np.max(wall[k])),
+                float(np.median(cpu[k]))) for k in cases}
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=8192, help="samples per batch")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=7, help="interleaved rounds")
     ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--tilings", default="device,wide", help="comma list, see module doc")
     ap.add_argument("--out", default=None, help="write the JSON here too")
     args = ap.parse_args(argv)
     dev = clrf.Device()
+    n = args.samples
     res = {"device": repr(dev), "driver": dev.caps.driver_version, "host": platform.node(),
-           "cpu_count": os.cpu_count(), "load1_before": os.getloadavg()[0],
-           "samples": args.samples, "repeats": args.repeats, "results": []}
+           "native_float_width": dev.caps.native_float_width, "cpu_count": os.cpu_count(),
+           "load1_before": os.getloadavg()[0], "samples": n, "repeats": args.repeats,
+           "configs": {}}
+    cases, tilings = {}, {}
+    for vec in sorted({16, dev.caps.vector_width}):
+        cases[f"fma_peak/vec{vec}"] = fma_peak_case(dev, vec)
     for name in args.configs.split(","):
         spec = CONFIGS[name]
-        peak_before = fma_peak(dev, args.repeats)     # bracket every measurement with the
-        fu = fused(dev, spec, args.samples, args.repeats)   # reference kernel: the host is
-        npm = numpy_matmul(spec, args.samples, args.repeats)  # shared and swings by 2x
-        peak_after = fma_peak(dev, args.repeats)
-        peak = 0.5 * (peak_before["gflops"] + peak_after["gflops"])
-        peak_cpu = 0.5 * (peak_before["gflop_per_cpu_s"] + peak_after["gflop_per_cpu_s"])
-        entry = {"name": name, "spec": spec.__dict__, "fused": fu, "numpy_matmul": npm,
-                 "fma_peak_before": peak_before, "fma_peak_after": peak_after,
-                 "fma_peak_gflops": peak, "load1": os.getloadavg()[0],
-                 "fwd_ratio_to_numpy": fu["forward_gflops"] / npm["forward_gflops"],
-                 "fwdbwd_ratio_to_numpy": fu["fwdbwd_gflops"] / npm["fwdbwd_gflops"],
-                 "fwd_ratio_to_fma_peak": fu["forward_gflops"] / peak,
-                 "fwdbwd_ratio_to_fma_peak": fu["fwdbwd_gflops"] / peak,
-                 "fma_peak_gflop_per_cpu_s": peak_cpu,
-                 "fwd_cpu_ratio_to_fma_peak": fu["forward_gflop_per_cpu_s"] / peak_cpu,
-                 "fwdbwd_cpu_ratio_to_fma_peak": fu["fwdbwd_gflop_per_cpu_s"] / peak_cpu,
-                 "fwd_cpu_ratio_to_numpy": fu["forward_gflop_per_cpu_s"]
-                 / npm["forward_gflop_per_cpu_s"],
-                 "fwdbwd_cpu_ratio_to_numpy": fu["fwdbwd_gflop_per_cpu_s"]
-                 / npm["fwdbwd_gflop_per_cpu_s"]}
-        res["results"].append(entry)
-        print(f"{name:17s} fused fwd {fu['forward_gflops']:6.1f} GFLOP/s "
-              f"({fu['forward_samples_per_s'] / 1e3:7.1f} k samples/s), fwd+bwd "
-              f"{fu['fwdbwd_gflops']:6.1f} GFLOP/s ({fu['fwdbwd_samples_per_s'] / 1e3:6.1f} k/s)"
-              f" | numpy {npm['forward_gflops']:6.1f} / {npm['fwdbwd_gflops']:6.1f} | fused/numpy "
-              f"{entry['fwd_ratio_to_numpy']:.2f} / {entry['fwdbwd_ratio_to_numpy']:.2f} | "
-              f"FMA peak {peak:6.1f}, fused/peak {entry['fwd_ratio_to_fma_peak']:.2f} / "
-              f"{entry['fwdbwd_ratio_to_fma_peak']:.2f} | load {entry['load1']:.1f}", flush=True)
-        print(f"{'':17s} per CPU-second: fused {fu['forward_gflop_per_cpu_s']:6.1f} / "
-              f"{fu['fwdbwd_gflop_per_cpu_s']:6.1f}, numpy {npm['forward_gflop_per_cpu_s']:6.1f} / "
-              f"{npm['fwdbwd_gflop_per_cpu_s']:6.1f}, FMA kernel {peak_cpu:6.1f} GFLOP; fused/FMA "
-              f"{entry['fwd_cpu_ratio_to_fma_peak']:.2f} / "
-              f"{entry['fwdbwd_cpu_ratio_to_fma_peak']:.2f}",
-              flush=True)
+        macs = sum(a * b for a, b in layer_shapes(spec)) * n
+        fwd, fwdbwd = _matmul_runs(spec, n)
+        cases[f"{name}/numpy/fwd"] = (fwd, 2 * macs)
+        cases[f"{name}/numpy/fwdbwd"] = (fwdbwd, 6 * macs)
+        for tname in args.tilings.split(","):
+            t = parse_tiling(dev, tname)
+            net, runs = fused_runs(dev, spec if t is None else replace(spec, **asdict(t)), n)
+            tilings[f"{name}/{tname}"] = asdict(net.tiling)
+            for mode, flop in (("fwd", 2), ("fwdbwd", 6), ("bwd", 4), ("wgrad", 2)):
+                cases[f"{name}/{tname}/{mode}"] = (runs[mode], flop * macs)
+    times = interleaved(cases, args.repeats)
+    figs = {k: {"gflops": f / times[k][0] / 1e9, "gflops_min": f / times[k][2] / 1e9,
+                "gflops_max": f / times[k][1] / 1e9, "gflop_per_cpu_s": f / times[k][3] / 1e9,
+                "median_s": times[k][0]} for k, (_, f) in cases.items()}
+    res["cases"] = figs
+    res["tilings"] = tilings
     res["load1_after"] = os.getloadavg()[0]
+    for k, v in figs.items():
+        if k.startswith("fma_peak"):
+            print(f"{k:34s} {v['gflops']:7.1f} GFLOP/s  {v['gflop_per_cpu_s']:7.1f} per CPU-s")
+    for name in args.configs.split(","):
+        npm = {m: figs[f"{name}/numpy/{m}"] for m in ("fwd", "fwdbwd")}
+        print(f"{name}: numpy fwd {npm['fwd']['gflops']:.1f}, fwd+bwd "
+              f"{npm['fwdbwd']['gflops']:.1f} GFLOP/s ({npm['fwd']['gflop_per_cpu_s']:.1f} / "
+              f"{npm['fwdbwd']['gflop_per_cpu_s']:.1f} per CPU-s)")
+        ratios = res["configs"][name] = {}
+        for tname in args.tilings.split(","):
+            f = {m: figs[f"{name}/{tname}/{m}"] for m in ("fwd", "fwdbwd", "bwd", "wgrad")}
+            t = tilings[f"{name}/{tname}"]
+            r = ratios[tname] = {
+                "tiling": t,
+                "fwd_ratio_to_numpy": f["fwd"]["gflops"] / npm["fwd"]["gflops"],
+                "fwdbwd_ratio_to_numpy": f["fwdbwd"]["gflops"] / npm["fwdbwd"]["gflops"],
+                "fwd_cpu_ratio_to_numpy":
+                    f["fwd"]["gflop_per_cpu_s"] / npm["fwd"]["gflop_per_cpu_s"],
+                "fwdbwd_cpu_ratio_to_numpy":
+                    f["fwdbwd"]["gflop_per_cpu_s"] / npm["fwdbwd"]["gflop_per_cpu_s"],
+                "seconds": {m: f[m]["median_s"] for m in f}}
+            s = r["seconds"]
+            print(f"  {tname:8s} tile {t['rows']}x{t['cols']} dw {t['dw_rows']}x{t['dw_cols']} "
+                  f"chunk {t['dw_chunk']}: fwd {f['fwd']['gflops']:6.1f} fwd+bwd "
+                  f"{f['fwdbwd']['gflops']:6.1f} GFLOP/s | /numpy {r['fwd_ratio_to_numpy']:.2f} / "
+                  f"{r['fwdbwd_ratio_to_numpy']:.2f} (per CPU-s {r['fwd_cpu_ratio_to_numpy']:.2f}"
+                  f" / {r['fwdbwd_cpu_ratio_to_numpy']:.2f}) | ms: fwd {1e3 * s['fwd']:.1f} "
+                  f"input-grad {1e3 * (s['bwd'] - s['wgrad']):.1f} wgrad+reduce "
+                  f"{1e3 * s['wgrad']:.1f}", flush=True)
     txt = json.dumps(res, indent=1)
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(txt + "\n")
-
+        with open(args.out, "w") as fh:
+            fh.write(txt + "\n")
 
 
 if __name__ == "__main__":
@@ -248,7 +275,8 @@ def bench_suite(api):
             if p["mode"] == "fwdbwd":
                 net.backward(ds, dr)
             q.finish()
-        return api.Case(run, {"samples": n, "flop": (6 if p["mode"] == "fwdbwd" else 2) * macs})
+        return api.Case(run, {"samples": n, "flop": (6 if p["mode"] == "fwdbwd" else 2) * macs},
+                        {"tiling": asdict(net.tiling)})
 
     @api.factory("nerf.numpy_matmul")
     def _npm(ctx, p):

@@ -180,7 +180,7 @@ def render_markdown(doc, pngs=()):
           "(forward: 8 links + 8 rows of 1 + SH_DIM floats; fwd+bwd: two gathers plus the read "
           "and write of 8 gradient rows), divided by the time; % of triad is that over the "
           "triad bandwidth measured in the same run; model GFLOP/s likewise from a per-sample "
-          "flop model (tools/bench_scenes.py), over the float16 FMA peak. Samples count only samples whose cell has "
+          "flop model (tools/bench_scenes.py), over the FMA peak (native vector width). Samples count only samples whose cell has "
           "an allocated corner (empty space is skipped). CPU-normalised: work / (process CPU time / "
           "compute units), what the case would reach with the cores to itself (the host is "
           "shared; see the load average)."]

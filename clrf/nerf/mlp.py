@@ -1,7 +1,10 @@
 """Host side of cl/mlp.cl: the fused NeRF MLP (one contiguous parameter buffer) and its kernels.
 
 The parameter layout is defined once, in ``layer_desc`` of cl/mlp.cl; ``MLP.layout`` reads it
-from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree.
+from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree. So is
+the register tile (rows and columns per work-item): the host's work split reads it back too.
+The tile comes from the MLPSpec fields that are set, else the autotuner's cache, else the
+device's default (clrf/autotune.py).
 
 >>> spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=27)
 >>> net = MLP(dev, spec, seed=0)
@@ -16,6 +19,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from ..autotune import MLPTiling, mlp_tiling_for
 from ..programs import launch
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
@@ -26,7 +30,8 @@ GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of t
 
 @dataclass(frozen=True)
 class MLPSpec:
-    """Shape of the NeRF MLP (all compile-time defines of cl/mlp.cl)."""
+    """Shape of the NeRF MLP and, optionally, its register tile (all compile-time defines of
+    cl/mlp.cl). Tile fields left None come from the tuned cache or the device default."""
 
     width: int = 64            # trunk width W (multiple of 16)
     depth: int = 4             # trunk layers D
@@ -36,11 +41,14 @@ class MLPSpec:
     dir_dim: int = 27          # encoded direction dims
     hidden_act: str = "relu"   # "relu" | "softplus"
     sigma_act: str = "relu"    # "relu" | "softplus"
-    rows: int = 8              # samples per work-item (register block)
-    dw_rows: int = 8           # output neurons per work-item in the weight gradient
-    dw_chunk: int = 512        # rows per partial weight gradient (second pass sums the partials)
+    rows: int | None = None    # samples per work-item (register block); None: per device
+    cols: int | None = None    # columns per tile, 16 or 32; None: per device
+    dw_rows: int | None = None  # output neurons per work-item in the weight gradient
+    dw_cols: int | None = None  # input columns per work-item in the weight gradient, 16 or 32
+    dw_chunk: int | None = None  # rows per partial weight gradient (a second pass sums them)
 
     def defines(self) -> dict:
+        """The shape defines (the tile's come from MLPTiling.defines)."""
         for name in ("hidden_act", "sigma_act"):
             if getattr(self, name) not in ("relu", "softplus"):
                 raise ValueError(f"MLPSpec.{name}: must be 'relu' or 'softplus', got "
@@ -48,8 +56,7 @@ class MLPSpec:
         return {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
                 "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
                 "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
-                "SIGMA_ACT": ACT[self.sigma_act], "MLP_ROWS": self.rows,
-                "DW_ROWS": self.dw_rows, "DW_CHUNK": self.dw_chunk}
+                "SIGMA_ACT": ACT[self.sigma_act]}
 
     def flops_per_sample(self) -> tuple:
         """(forward, forward+backward) multiply-add flops per sample, logical (unpadded) sizes."""
@@ -66,8 +73,11 @@ class Layout:
     n_layers: int
     nslot: int
     n_params: int
-    rows: int
-    dw_chunk: int
+    rows: int                  # MLP_ROWS: samples per forward / backward work-item
+    dw_chunk: int              # DW_CHUNK: scratch rows per partial weight gradient
+    cols: int                  # MLP_COLS
+    dw_rows: int               # DW_ROWS: output neurons per weight-gradient work-item
+    dw_cols: int               # DW_COLS: input columns per weight-gradient work-item
     slots: dict                # SL_X, SL_XS, SL_HD, SL_FEAT, SL_DV, SL_C, SL_RGB
     layers: tuple              # per layer dict(in_off, nin, out_off, nout, w_off, b_off)
 
@@ -95,17 +105,23 @@ class Layout:
         return out
 
 
+LAYOUT_HEAD = 15   # ints before the per-layer records in mlp_layout's output
+
+
 def read_layout(device, program) -> Layout:
-    buf = cla.zeros(device.queue, 12 + 6 * 64, np.int32)
+    buf = cla.zeros(device.queue, LAYOUT_HEAD + 6 * 64, np.int32)
     program.kernel("mlp_layout")(device.queue, (1,), (1,), buf.data)
     a = buf.get()
     nl = int(a[0])
     names = ("in_off", "nin", "out_off", "nout", "w_off", "b_off")
-    layers = tuple({k: int(v) for k, v in zip(names, a[12 + 6 * l: 18 + 6 * l])} for l in range(nl))
+    h = LAYOUT_HEAD
+    layers = tuple({k: int(v) for k, v in zip(names, a[h + 6 * l: h + 6 * l + 6])}
+                   for l in range(nl))
     slots = dict(zip(("SL_X", "SL_XS", "SL_HD", "SL_FEAT", "SL_DV", "SL_C", "SL_RGB"),
                      (int(a[5]), int(a[6]), int(a[7]), int(a[8]), int(a[9]), int(a[10]),
                       int(a[11]))))
-    return Layout(nl, int(a[1]), int(a[2]), int(a[3]), int(a[4]), slots, layers)
+    return Layout(nl, int(a[1]), int(a[2]), int(a[3]), int(a[4]), int(a[12]), int(a[13]),
+                  int(a[14]), slots, layers)
 
 
 def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.ndarray:
@@ -122,12 +138,14 @@ def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.n
 
 
 class MLP:
-    """One NeRF MLP on a device: parameters, their transposed copy, scratch and gradients."""
+    """One NeRF MLP on a device: parameters, their transposed copy, scratch and gradients.
+    ``tiling`` is the register tile it was built with (MLPTiling)."""
 
     def __init__(self, device, spec: MLPSpec, seed: int = 0, params: np.ndarray | None = None):
         self.device = device
         self.spec = spec
-        self.program = device.program("mlp.cl", spec.defines())
+        self.tiling: MLPTiling = mlp_tiling_for(device, spec)
+        self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines()})
         self.layout = read_layout(device, self.program)
         q = device.queue
         if params is None:
@@ -233,10 +251,10 @@ class MLP:
 
     def _weight_grad_chunks(self, rows: int, c0: int, c1: int):
         """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward)."""
-        dwr = self.spec.dw_rows
+        dwr, dwc = self.layout.dw_rows, self.layout.dw_cols
         k = self._k["mlp_weight_grad"]
         for l, L in enumerate(self.layout.layers):
-            per_chunk = (L["nout"] // dwr) * ((L["nin"] + 31) // 32)
+            per_chunk = (L["nout"] // dwr) * ((L["nin"] + dwc - 1) // dwc)
             k.set_args(np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data)
             self._enqueue(k, c0 * per_chunk, (c1 - c0) * per_chunk)
 
@@ -246,6 +264,14 @@ class MLP:
         ng = self.layout.n_params // 16
         ls = self.device.tuning.elementwise_local_size
         cl.enqueue_nd_range_kernel(self.device.queue, k, ((ng + ls - 1) // ls * ls,), (ls,))
+
+    def weight_grad(self, grad, accumulate=False):
+        """Weight and bias gradients of the last forward/backward pair into grad (all chunks;
+        backward() already does this, interleaved; tools/nerf_bench.py times it alone)."""
+        rows = self.n_rows(self._n)
+        n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+        self._weight_grad_chunks(rows, 0, n_chunks)
+        self._reduce(grad, n_chunks, accumulate)
 
     def spec_dict(self) -> dict:
         return asdict(self.spec)

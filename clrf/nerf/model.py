@@ -55,8 +55,8 @@ class NerfConfig:
     beta2: float = 0.999            # Adam beta2
     adam_eps: float = 1e-7          # Adam epsilon (NeRF used TF's 1e-7)
     batch_rays: int = 1024          # rays per training step (used by training drivers)
-    mlp_rows: int = 8               # samples per work-item in the fused MLP (register block)
-    dw_chunk: int = 512             # rows per partial weight gradient
+    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
+    dw_chunk: int | None = None     # rows per partial weight gradient; None: 64 tiles
 
     @staticmethod
     def preset(name: str, **overrides) -> "NerfConfig":

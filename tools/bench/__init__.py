@@ -12,9 +12,10 @@ repetition (device work finished when it returns), the work it does (samples, ra
 flop) and an optional check against a reference. The runner warms each case up once (JIT),
 then repeats until the timing is stable (relative inter-quartile range below ``--tol`` after
 ``--min-repeats``) or a cap (``--max-repeats``, ``--max-seconds``), and records the median and
-the min-max. The device peaks (copy and triad bandwidth, float16 FMA throughput, cl/bench.cl)
-are measured at the start and at the end of the run; every throughput is also given as a
-ratio to them, because this class of machine sometimes halves everything at once.
+the min-max. The device peaks (copy and triad bandwidth, FMA throughput at the device's native
+float vector width, cl/bench.cl) are measured at the start and at the end of the run; every
+throughput is also given as a ratio to them, because this class of machine sometimes halves
+everything at once.
 
 Adding benchmarks: append Specs (and, for a new kind, a factory registered with
 ``@factory("kind")``, cases.py). Kernels that have not landed are left out by name: a Spec whose

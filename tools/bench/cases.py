@@ -43,8 +43,8 @@ def _peak_bandwidth(ctx, p):
 @factory("peak.fma")
 def _peak_fma(ctx, p):
     dev = ctx.dev
-    iters, chains = p["iters"], 8
-    prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains})
+    iters, chains, vec = p["iters"], 8, p.get("vec") or dev.caps.vector_width
+    prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains, "FMA_VEC": vec})
     q = dev.queue
     n = p["items"]
     out = cla.empty(q, n, np.float32)
@@ -55,7 +55,7 @@ def _peak_fma(ctx, p):
         cl.enqueue_nd_range_kernel(q, k, (n,), None)
         q.finish()
         return out
-    return Case(run, {"flop": 2 * 16 * chains * iters * n}, {"items": n})
+    return Case(run, {"flop": 2 * vec * chains * iters * n}, {"items": n, "vector_width": vec})
 
 
 # ---- clrf grid renderer ---------------------------------------------------------------------

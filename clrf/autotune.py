@@ -1,0 +1,242 @@
+"""Register tiles of the fused MLP (cl/mlp.cl) per device: defaults from the device's vector
+width, and a small autotuner whose results are cached per device and MLP shape.
+
+Choice order for each tile field (``MLPTiling``): a value set in ``MLPSpec`` > the tuned cache
+entry for (platform, device, driver, MLP shape) > ``device_default(caps)``.
+
+Defaults by device class (``device_default``; accumulators = rows x cols / 16 float16):
+
+=====================================  ====  ====  =======  =======  ===============================
+device                                 rows  cols  dw_rows  dw_cols  why
+=====================================  ====  ====  =======  =======  ===============================
+CPU, native float width >= 16 (AVX-512)   8    32        8       32  16 float16 = 16 of 32 zmm
+CPU, native float width 8 (AVX2)          6    16        8       16  12 of 16 ymm (+ weight row)
+CPU, native float width <= 4 (SSE, NEON)  2    16        2       16  8 xmm-sized registers
+GPU / accelerator                         4    16        4       16  64 scalar registers per item
+=====================================  ====  ====  =======  =======  ===============================
+
+On AVX2 a float16 takes two ymm registers, so the AVX-512 tile (16 float16) spills. The AVX2
+weight-gradient tile was the fastest of 2x32, 4x16, 4x32 and 8x16 on a Zen 3 (its CPU time,
+interleaved rounds). The GPU row is a register-budget guess (one work-item per tile, no local
+memory), not a measurement: run the tuner there. ``dw_chunk`` (rows per partial weight
+gradient) defaults to 64 tiles of ``rows`` samples.
+
+    python -m clrf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
+        --dir-dim 27     # times the candidates, prints them, caches the best
+
+The cache is JSON at ``$XDG_CACHE_HOME/clrf/mlp_tiling.json`` (default ``~/.cache/clrf``),
+written atomically; an unreadable or malformed file is ignored (and replaced on the next tune).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
+CHUNK_TILES = 64            # default dw_chunk = CHUNK_TILES * rows
+CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MLPTiling:
+    """The register tiles of cl/mlp.cl (its defines MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS,
+    DW_CHUNK; the kernel rejects invalid values with #error)."""
+
+    rows: int = 8          # samples per work-item in forward / input gradient: 1-6, 8, 12, 16
+    cols: int = 32         # columns per tile there: 32 (two float16) or 16 (one)
+    dw_rows: int = 8       # output neurons per work-item in the weight gradient; divides 16
+    dw_cols: int = 32      # input columns per work-item there: 32 or 16
+    dw_chunk: int = 512    # scratch rows per partial weight gradient; rounded up to rows
+
+    def defines(self) -> dict:
+        chunk = -(-self.dw_chunk // self.rows) * self.rows
+        return {"MLP_ROWS": self.rows, "MLP_COLS": self.cols, "DW_ROWS": self.dw_rows,
+                "DW_COLS": self.dw_cols, "DW_CHUNK": chunk}
+
+
+def device_default(caps) -> MLPTiling:
+    """The tile for a device class (table in the module docstring), from Capabilities."""
+    if caps.type != "cpu":
+        rows, cols, dwr, dwc = 4, 16, 4, 16
+    elif caps.native_float_width >= 16:
+        rows, cols, dwr, dwc = 8, 32, 8, 32
+    elif caps.native_float_width >= 8:
+        rows, cols, dwr, dwc = 6, 16, 8, 16
+    else:
+        rows, cols, dwr, dwc = 2, 16, 2, 16
+    return MLPTiling(rows, cols, dwr, dwc, CHUNK_TILES * rows)
+
+
+def candidates(caps) -> list:
+    """The tiles the tuner times: the device default first, then a few neighbours."""
+    shapes = [(8, 32, 8, 32), (6, 16, 8, 16), (6, 16, 4, 32), (6, 16, 4, 16), (4, 16, 8, 16),
+              (8, 16, 8, 16), (3, 32, 8, 16), (4, 32, 4, 32)]
+    out = [device_default(caps)]
+    for r, c, dr, dc in shapes:
+        t = MLPTiling(r, c, dr, dc, CHUNK_TILES * r)
+        if t not in out:
+            out.append(t)
+    return out
+
+
+# ---- cache ----------------------------------------------------------------------------------
+def cache_path() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "clrf" / "mlp_tiling.json"
+
+
+def device_key(caps) -> str:
+    return f"{caps.platform} | {caps.name} | {caps.driver_version}"
+
+
+def shape_key(spec) -> str:
+    """The MLP shape (every MLPSpec field that is not a tile field) as a stable string."""
+    return json.dumps({f.name: getattr(spec, f.name) for f in fields(spec)
+                       if f.name not in TILE_FIELDS}, sort_keys=True)
+
+
+def load_cache(path: Path | None = None) -> dict:
+    """{device_key: {shape_key: entry}}; {} when missing, unreadable or malformed."""
+    path = path or cache_path()
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(data, dict) or data.get("version") != CACHE_VERSION:
+        return {}
+    entries = data.get("entries")
+    if not isinstance(entries, dict) or not all(isinstance(v, dict) for v in entries.values()):
+        return {}
+    return entries
+
+
+def cached_tiling(caps, spec, path: Path | None = None) -> MLPTiling | None:
+    """The tuned tile for this device and MLP shape, or None (absent or malformed entry)."""
+    e = load_cache(path).get(device_key(caps), {}).get(shape_key(spec))
+    if not isinstance(e, dict):
+        return None
+    vals = [e.get(k) for k in TILE_FIELDS]
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in vals):
+        return None
+    return MLPTiling(*vals)
+
+
+def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = None):
+    """Record ``tiling`` (and ``info``: timings) for this device and shape; atomic replace."""
+    path = path or cache_path()
+    entries = load_cache(path)
+    entries.setdefault(device_key(caps), {})[shape_key(spec)] = {**asdict(tiling), **info}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump({"version": CACHE_VERSION, "entries": entries}, f, indent=1, sort_keys=True)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
+
+
+def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
+    """The tile an MLP of ``spec`` uses on ``device``: MLPSpec fields that are set, then the
+    tuned cache entry, then the device default. dw_chunk, when not set anywhere, is
+    CHUNK_TILES * rows."""
+    base = cached_tiling(device.caps, spec, path) or device_default(device.caps)
+    chosen = {k: getattr(spec, k) for k in TILE_FIELDS if getattr(spec, k) is not None}
+    if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
+        chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
+    return replace(base, **chosen)
+
+
+# ---- tuner ----------------------------------------------------------------------------------
+def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list:
+    """Median wall seconds of one forward + backward (n samples) per tile, timed in
+    interleaved rounds (each round runs every tile once) after one warm-up each."""
+    from .nerf.mlp import MLP   # nerf/mlp.py imports this module for its defaults
+    import pyopencl.array as cla
+    q = device.queue
+    rng = np.random.default_rng(0)
+    x = cla.to_device(q, rng.random((n, spec.in_dim), np.float32))
+    d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
+    ds = cla.to_device(q, rng.random(n, np.float32))
+    dr = cla.to_device(q, rng.random((n, 3), np.float32))
+    nets = [MLP(device, replace(spec, **asdict(t))) for t in tiles]
+
+    def run(net):
+        net.forward(x, d)
+        net.backward(ds, dr)
+        q.finish()
+
+    for net in nets:
+        run(net)
+    times = [[] for _ in nets]
+    for _ in range(rounds):
+        for i, net in enumerate(nets):
+            t0 = time.perf_counter()
+            run(net)
+            times[i].append(time.perf_counter() - t0)
+    return [float(np.median(t)) for t in times]
+
+
+def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None):
+    """Time ``candidates`` for ``spec`` on ``device``, cache the fastest and return
+    (best MLPTiling, [(tiling, median seconds)])."""
+    tiles = candidates(device.caps)
+    secs = time_candidates(device, spec, tiles, n, rounds)
+    best = min(range(len(tiles)), key=secs.__getitem__)
+    store_tiling(device.caps, spec, tiles[best],
+                 {"fwdbwd_s": secs[best], "samples": n, "rounds": rounds,
+                  "tuned_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, path)
+    return tiles[best], list(zip(tiles, secs))
+
+
+def main(argv=None) -> int:
+    from .device import Device, DeviceError
+    from .nerf.mlp import MLPSpec
+    ap = argparse.ArgumentParser(prog="python -m clrf.autotune",
+                                 description="Time fused-MLP tiles on a device; cache the best.")
+    ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
+    ap.add_argument("--width", type=int, default=256)
+    ap.add_argument("--depth", type=int, default=8)
+    ap.add_argument("--skip", type=int, default=4)
+    ap.add_argument("--color-width", type=int, default=128)
+    ap.add_argument("--in-dim", type=int, default=63)
+    ap.add_argument("--dir-dim", type=int, default=27)
+    ap.add_argument("--hidden-act", default="relu", choices=("relu", "softplus"))
+    ap.add_argument("--sigma-act", default="relu", choices=("relu", "softplus"))
+    ap.add_argument("--samples", type=int, default=4096, help="samples per timed pass")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
+    a = ap.parse_args(argv)
+    if a.samples < 1 or a.rounds < 1:
+        print("clrf: error: --samples and --rounds must be >= 1", file=sys.stderr)
+        return 2
+    spec = MLPSpec(width=a.width, depth=a.depth, skip=a.skip, color_width=a.color_width,
+                   in_dim=a.in_dim, dir_dim=a.dir_dim, hidden_act=a.hidden_act,
+                   sigma_act=a.sigma_act)
+    from .programs import BuildError
+    try:
+        dev = Device(a.device)
+        best, res = tune(dev, spec, a.samples, a.rounds)
+    except (DeviceError, BuildError) as e:
+        print(f"clrf: error: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
+    flop = spec.flops_per_sample()[1] * a.samples
+    print(f"device {dev}")
+    for t, s in res:
+        mark = "*" if t == best else " "
+        print(f"{mark} rows {t.rows:2d} cols {t.cols} dw_rows {t.dw_rows:2d} dw_cols {t.dw_cols} "
+              f"dw_chunk {t.dw_chunk:4d}: fwd+bwd {s * 1e3:8.2f} ms  {flop / s / 1e9:7.1f} GFLOP/s")
+    print(f"cached in {cache_path()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,134 @@
+"""Fused-MLP tiles per device (clrf/autotune.py): defaults, the tuner's cache, the choice order,
+and a smoke run of the tuner and of tools/nerf_bench.py at tiny sizes."""
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from clrf import autotune as at
+from clrf.device import Capabilities
+from clrf.nerf.mlp import MLP, MLPSpec
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
+import nerf_bench  # noqa: E402
+
+SPEC = MLPSpec(width=32, depth=2, skip=-1, color_width=16, in_dim=9, dir_dim=5)
+
+
+def caps(type_="cpu", width=8, name="fake", driver="1.0"):
+    return Capabilities(name=name, platform="FakeCL", platform_version="FakeCL 1", type=type_,
+                        driver_version=driver, compute_units=2, max_work_group_size=1024,
+                        local_mem_size=65536, global_mem_size=1 << 30, max_alloc_size=1 << 28,
+                        fp64=True, float_atomics=False, int64_atomics=True,
+                        native_float_width=width)
+
+
+class FakeDevice:
+    def __init__(self, c):
+        self.caps = c
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    return tmp_path / "clrf" / "mlp_tiling.json"
+
+
+def test_device_defaults_by_vector_width():
+    wide = at.device_default(caps(width=16))
+    assert (wide.rows, wide.cols, wide.dw_rows, wide.dw_cols) == (8, 32, 8, 32)
+    avx2 = at.device_default(caps(width=8))
+    assert (avx2.rows, avx2.cols) == (6, 16) and avx2.dw_chunk == at.CHUNK_TILES * 6
+    assert at.device_default(caps(width=4)).rows == 2
+    gpu = at.device_default(caps(type_="gpu", width=1))
+    assert (gpu.rows, gpu.cols) == (4, 16)
+    assert caps(width=8).vector_width == 8 and caps(width=32).vector_width == 16
+    assert caps(type_="gpu", width=1).vector_width == 4
+
+
+def test_cache_round_trip_and_keys(cache):
+    c = caps()
+    assert at.cached_tiling(c, SPEC) is None
+    t = at.MLPTiling(4, 16, 2, 32, 256)
+    at.store_tiling(c, SPEC, t, {"fwdbwd_s": 0.5})
+    assert at.cache_path() == cache and cache.is_file()
+    assert at.cached_tiling(c, SPEC) == t
+    # other driver, device or shape: not this entry; tile fields are not part of the shape
+    assert at.cached_tiling(caps(driver="2.0"), SPEC) is None
+    assert at.cached_tiling(caps(name="other"), SPEC) is None
+    assert at.cached_tiling(c, replace(SPEC, width=48)) is None
+    assert at.cached_tiling(c, replace(SPEC, rows=8)) == t
+    # a second entry keeps the first; no temporary files are left behind
+    at.store_tiling(c, replace(SPEC, width=48), at.MLPTiling(), {})
+    assert at.cached_tiling(c, SPEC) == t
+    assert [p.name for p in cache.parent.iterdir()] == [cache.name]
+
+
+@pytest.mark.parametrize("text", ["{not json", "[]", '{"version": 99, "entries": {}}',
+                                  '{"version": 1, "entries": {"d": 3}}', ""])
+def test_corrupt_cache_is_ignored_and_replaced(cache, text):
+    cache.parent.mkdir(parents=True)
+    cache.write_text(text)
+    c = caps()
+    assert at.load_cache() == {} and at.cached_tiling(c, SPEC) is None
+    assert at.mlp_tiling_for(FakeDevice(c), SPEC) == at.device_default(c)
+    at.store_tiling(c, SPEC, at.MLPTiling(4, 16, 2, 32, 256), {})
+    assert at.cached_tiling(c, SPEC).rows == 4
+
+
+def test_malformed_entry_is_ignored(cache):
+    c = caps()
+    at.store_tiling(c, SPEC, at.MLPTiling(), {})
+    data = json.loads(cache.read_text())
+    entry = data["entries"][at.device_key(c)][at.shape_key(SPEC)]
+    entry["rows"] = "eight"
+    cache.write_text(json.dumps(data))
+    assert at.cached_tiling(c, SPEC) is None
+
+
+def test_choice_order_spec_then_cache_then_default(cache):
+    c = caps(width=8)
+    dev = FakeDevice(c)
+    assert at.mlp_tiling_for(dev, SPEC) == at.device_default(c)
+    tuned = at.MLPTiling(4, 32, 2, 16, 256)
+    at.store_tiling(c, SPEC, tuned, {})
+    assert at.mlp_tiling_for(dev, SPEC) == tuned
+    got = at.mlp_tiling_for(dev, replace(SPEC, cols=16, dw_rows=8))
+    assert got == replace(tuned, cols=16, dw_rows=8)
+    # rows set alone: the chunk follows it (64 tiles), unless set too
+    assert at.mlp_tiling_for(dev, replace(SPEC, rows=8)).dw_chunk == 8 * at.CHUNK_TILES
+    assert at.mlp_tiling_for(dev, replace(SPEC, rows=8, dw_chunk=40)).dw_chunk == 40
+
+
+def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
+    best, res = at.tune(device, SPEC, n=64, rounds=1)
+    assert [t for t, _ in res] == at.candidates(device.caps)
+    assert all(s > 0 for _, s in res) and best == min(res, key=lambda r: r[1])[0]
+    assert at.cached_tiling(device.caps, SPEC) == best
+    assert MLP(device, SPEC).tiling == best
+
+
+def test_tuner_cli(device, cache, capsys):
+    assert at.main(["--samples", "0"]) == 2
+    assert "clrf: error: --samples" in capsys.readouterr().err
+    assert at.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
+                    "--rounds", "1"]) == 2
+    assert "clrf: error:" in capsys.readouterr().err and not cache.exists()
+    assert at.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
+                    "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("GFLOP/s") == len(at.candidates(device.caps)) and cache.is_file()
+
+
+def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
+    out = tmp_path / "b.json"
+    nerf_bench.main(["--samples", "16", "--repeats", "1", "--configs", "small-4x64",
+                     "--tilings", "device,wide,6:16:8:16", "--out", str(out)])
+    res = json.loads(out.read_text())
+    t = res["configs"]["small-4x64"]
+    assert t["wide"]["tiling"]["cols"] == 32 and t["6:16:8:16"]["tiling"]["dw_cols"] == 16
+    assert t["device"]["tiling"]["rows"] == at.device_default(device.caps).rows
+    assert f"fma_peak/vec{device.caps.vector_width}" in res["cases"]
+    assert all(v["gflops"] > 0 for v in res["cases"].values())
