@@ -90,9 +90,13 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
     return out
 
 
-def nerf_stage(nc, n_rays: int) -> StageEstimate:
-    """StageEstimate of a NeRF run with NerfConfig ``nc``."""
+def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
+    """StageEstimate of a NeRF run with NerfConfig ``nc`` on a device described by ``caps``
+    (its default register tile sets the weight-gradient chunk when the config leaves it open)."""
+    from .autotune import CHUNK_TILES, device_default
     spec = nc.mlp_spec()
+    dw_chunk = spec.dw_chunk or (CHUNK_TILES * spec.rows if spec.rows
+                                 else device_default(caps).dw_chunk)
     W, D, WC = spec.width, spec.depth, spec.color_width
     pad = lambda x: -(-x // 16) * 16                           # noqa: E731 - kernel padding
     params = (pad(spec.in_dim) * W + (D - 1) * W * W + (pad(spec.in_dim) * W if spec.skip >= 0
@@ -103,7 +107,7 @@ def nerf_stage(nc, n_rays: int) -> StageEstimate:
     nets = [nc.n_coarse, nc.n_coarse + nc.n_fine] if nc.n_fine else [nc.n_coarse]
     if nc.shared_net:
         nets = [max(nets)]
-    act = sum(2 * 4 * pad(B * s) * nslot + 4 * (-(-B * s // spec.dw_chunk)) * params
+    act = sum(2 * 4 * pad(B * s) * nslot + 4 * (-(-B * s // dw_chunk)) * params
               for s in nets)
     samples = B * (nc.n_coarse + nc.n_fine)
     per_sample = 4 * samples * (2 * (spec.in_dim + spec.dir_dim) + 16)
@@ -119,7 +123,7 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int) -> list:
     StageEstimates otherwise."""
     if cfg.train.model == "nerf":
         from .models import nerf_config
-        stages = [nerf_stage(nerf_config(cfg), n_rays)]
+        stages = [nerf_stage(nerf_config(cfg), n_rays, caps)]
         fix = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
                "rays with train.downscale / train.max_train_images")
     else:
