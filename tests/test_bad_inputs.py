@@ -21,6 +21,7 @@ import pytest
 from PIL import Image
 
 from clrf.cli import main as cli
+from test_colmap import F, H, W, _colmap_scene, _images, _scene
 from test_data_errors import _edit, _llff, _ngp, _npz, _png, make_blender
 
 FIX_WORDS = ("pass", "add", "use", "fix", "remove", "replace", "regenerate", "re-", "restore",
@@ -244,6 +245,49 @@ def _set(pb, idx, v):
     pb[idx] = v
 
 
+def colmap(edit=None, fmt="txt", **kw):
+    """A valid forward-facing COLMAP folder (images/ + sparse/0/, text or binary model), then
+    ``edit(root)``."""
+    def build(t):
+        poses, points = _scene("forward_facing")
+        root = _colmap_scene(t / "scene", poses, points, fmt, **kw)
+        if edit is not None:
+            edit(root)
+        return train(root)
+    return build
+
+
+def colmap_text(name, fn):
+    """Rewrite sparse/0/NAME with ``fn(text)``."""
+    def edit(root):
+        p = root / "sparse" / "0" / name
+        p.write_text(fn(p.read_text()))
+    return colmap(edit)
+
+
+def colmap_image_field(i, k, value):
+    """images.txt: field k of image i's record line set to ``value``."""
+    def fn(text):
+        lines = text.splitlines()
+        rec = [n for n, line in enumerate(lines) if line and not line.startswith("#")][2 * i]
+        parts = lines[rec].split()
+        parts[k] = value
+        lines[rec] = " ".join(parts)
+        return "\n".join(lines) + "\n"
+    return colmap_text("images.txt", fn)
+
+
+def colmap_bytes(name, cut):
+    def edit(root):
+        p = root / "sparse" / "0" / name
+        p.write_bytes(p.read_bytes()[:cut])
+    return colmap(edit, fmt="bin")
+
+
+def pinhole(*params):
+    return {1: ("PINHOLE", W, H, list(params))}
+
+
 # ---------------------------------------------------------------- the corpus
 
 NAN_POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, float("nan")], [0, 0, 0, 1]]
@@ -358,6 +402,43 @@ CASES = [
     ("ngp-no-images", ngp(present=set()), ["transforms.json", "none of the 4 frames"]),
     ("ngp-size-mismatch", ngp(lambda m: m.update(w=8)), ["transforms.json", "'w', 'h'"]),
     ("ngp-frames-not-list", ngp(lambda m: m.update(frames="all")), ["'frames'", "list"]),
+    # ---- COLMAP (images/ + sparse/0/ cameras, images, points3D as .txt or .bin)
+    ("colmap-fov-camera", colmap(cams={1: ("FOV", W, H, [F, F, W / 2, H / 2, 0.1])}),
+     ["cameras.txt", "FOV", "image_undistorter"]),
+    ("colmap-focal-negative", colmap(cams=pinhole(-F, F, W / 2, H / 2)),
+     ["cameras.txt", "camera 1", "positive"]),
+    ("colmap-focal-nan", colmap(cams=pinhole(float("nan"), F, W / 2, H / 2)),
+     ["cameras.txt", "camera 1", "finite"]),
+    ("colmap-camera-params-missing", colmap(cams=pinhole(F, F)),
+     ["cameras.txt", "PINHOLE needs 4 parameters"]),
+    ("colmap-camera-non-numeric", colmap_text("cameras.txt",
+                                              lambda s: s.replace(f"PINHOLE {W}", "PINHOLE wide")),
+     ["cameras.txt", "non-numeric"]),
+    ("colmap-quaternion-nan", colmap_image_field(1, 1, "nan"), ["images.txt", "quaternion"]),
+    ("colmap-quaternion-not-unit", colmap_image_field(1, 1, "3.0"),
+     ["images.txt", "quaternion", "unit length"]),
+    ("colmap-unknown-camera", colmap_image_field(1, 8, "7"),
+     ["images.txt", "camera 7", "does not define"]),
+    ("colmap-dotdot-escape", colmap_image_field(1, 9, "../x.png"),
+     ["images.txt", "'NAME'", "outside the dataset folder"]),
+    ("colmap-absolute-path", colmap_image_field(1, 9, "/etc/hostname"),
+     ["images.txt", "'NAME'", "absolute path"]),
+    ("colmap-no-registered-images", colmap_text("images.txt", lambda s: "# empty\n"),
+     ["images.txt", "no registered images"]),
+    ("colmap-point-nan", colmap_text("points3D.txt", lambda s: s.replace(s.split()[1], "nan", 1)),
+     ["points3D.txt", "non-finite"]),
+    ("colmap-points-missing", colmap(lambda r: (r / "sparse" / "0" / "points3D.txt").unlink()),
+     ["points3D.bin / points3D.txt", "missing"]),
+    ("colmap-images-bin-truncated", colmap_bytes("images.bin", 100), ["images.bin", "truncated"]),
+    ("colmap-cameras-bin-empty", colmap_bytes("cameras.bin", 0), ["cameras.bin", "truncated"]),
+    ("colmap-image-missing", colmap(lambda r: (r / "images" / "IMG_004.png").unlink()),
+     ["IMG_004.png", "does not exist"]),
+    ("colmap-image-not-an-image",
+     colmap(lambda r: (r / "images" / "IMG_004.png").write_bytes(b"not a png")),
+     ["IMG_004.png", "unreadable image"]),
+    ("colmap-image-other-aspect",
+     colmap(lambda r: _images(r / "images", ["IMG_004.png"], h=8, w=8)),
+     ["IMG_004.png", "camera 1 is 16x12"]),
     # ---- dataset path
     ("data-missing", lambda t: train(t / "nowhere"), ["nowhere", "does not exist"]),
     ("data-no-layout", empty_folder,

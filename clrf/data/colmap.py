@@ -39,7 +39,7 @@ import numpy as np
 from ..cameras import camera_dirs, distort
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale_image,
-                 holdout_split, limit_split, parse_background, read_image, require_dir, warn)
+                 holdout_split, inside, limit_split, parse_background, read_image, require_dir, warn)
 from .llff import normalize_capture, scene_extent
 
 # model id -> (name, number of parameters); the models clrf reads
@@ -47,6 +47,8 @@ CAMERA_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL
                  3: ("RADIAL", 5), 4: ("OPENCV", 8)}
 MODEL_IDS = {name: mid for mid, (name, _) in CAMERA_MODELS.items()}
 NEAR_PERCENTILE, FAR_PERCENTILE = 0.1, 99.9     # LLFF's imgs2poses depth bounds
+UNDISTORT = ("undistort the images first with `colmap image_undistorter` (it writes a PINHOLE "
+             "model) and use its output folder")
 MIN_POINTS = 1            # an image must see at least this many 3D points for its bounds
 MAX_LISTED = 5            # file names shown in a warning
 PARAM_TOL = 1e-9          # relative difference below which two cameras count as the same
@@ -112,8 +114,7 @@ def _camera(cid, model, w, h, params, path, where):
     """Checked camera dict: model name, size, (fx, fy, cx, cy), (k1, k2, p1, p2)."""
     if model not in MODEL_IDS:
         raise DataError(f"{path}: {where}: camera model {model} is not supported (clrf reads "
-                        f"{', '.join(MODEL_IDS)}); undistort the images first with `colmap "
-                        f"image_undistorter` (it writes a PINHOLE model)")
+                        f"{', '.join(MODEL_IDS)}); {UNDISTORT}")
     want = CAMERA_MODELS[MODEL_IDS[model]][1]
     if len(params) != want:
         raise DataError(f"{path}: {where}: {model} needs {want} parameters, got {len(params)}; "
@@ -147,8 +148,7 @@ def read_cameras(path: Path) -> dict:
             cid, mid, w, h = r.read("iiQQ", f"camera {i}")
             if mid not in CAMERA_MODELS:
                 raise DataError(f"{path}: camera {cid}: model id {mid} is not supported (clrf "
-                                f"reads {', '.join(MODEL_IDS)}); undistort the images first "
-                                f"with `colmap image_undistorter`")
+                                f"reads {', '.join(MODEL_IDS)}); {UNDISTORT}")
             name, k = CAMERA_MODELS[mid]
             cams[cid] = _camera(cid, name, w, h, r.read("d" * k, f"camera {cid}'s parameters"),
                                 path, f"camera {cid}")
@@ -221,7 +221,12 @@ def read_points(path: Path):
                                 f"TRACK..., got {' '.join(f)}; {MODEL_FIX}")
             ids.append(_numbers(f[:1], path, no, "the point", int)[0])
             xyz.append(_numbers(f[1:4], path, no, "the point"))
-    return np.asarray(xyz, np.float64).reshape(-1, 3), {p: i for i, p in enumerate(ids)}
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    bad = np.flatnonzero(~np.isfinite(xyz).all(1))
+    if bad.size:
+        raise DataError(f"{path}: point {ids[bad[0]]} has non-finite coordinates "
+                        f"{xyz[bad[0]].tolist()} ({bad.size} such points); {MODEL_FIX}")
+    return xyz, {p: i for i, p in enumerate(ids)}
 
 
 def _w2c(qt, path, where):
@@ -292,8 +297,8 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     records = read_images(ipath)
     xyz, row_of = read_points(_model_file(model, "points3D"))
     if not records:
-        raise DataError(f"{ipath}: no registered images; COLMAP could not pose any photo (more "
-                        f"overlap between the photos usually helps)")
+        raise DataError(f"{ipath}: no registered images; COLMAP could not pose any photo: check "
+                        f"the mapper's log and add photos with more overlap")
     folder = root / "images"
     extra = factor
     if factor > 1 and (root / f"images_{factor}").is_dir():
@@ -302,6 +307,7 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
 
     recs = sorted(records.values(), key=lambda r: r[0])
     for name, cid, _, _ in recs:
+        inside(folder, name, ipath, "NAME")   # no '..', absolute paths or symlinks out of it
         if cid not in cams:
             raise DataError(f"{ipath}: image {name} uses camera {cid}, which "
                             f"{_model_file(model, 'cameras').name} does not define; {MODEL_FIX}")
@@ -351,7 +357,7 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
             raise DataError(f"{folder / name}: the image is {a.shape[1]}x{a.shape[0]} (WxH "
                             f"after downscaling) but camera {cid} is {cam['wh'][0]}x"
                             f"{cam['wh'][1]}; the aspect ratios differ, so this is not the "
-                            f"photo COLMAP posed")
+                            f"photo COLMAP posed; restore that photo or re-run COLMAP")
         scaled = dict(cam, intr=cam["intr"] * s)
         if hw is None:
             hw, ref = a.shape[:2], scaled
