@@ -102,3 +102,110 @@ def test_per_ray_fused_mse_backward(render_device):
     np.testing.assert_allclose(kd, ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     np.testing.assert_allclose(ks, ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     np.testing.assert_allclose(gbg.get(), ana["background"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+
+
+# ---- GridModel with an MSI background ---------------------------------------------------
+from clrf import checkpoint  # noqa: E402
+from clrf.config import GridConfig  # noqa: E402
+from clrf.grid.background import GridBackground, msi_geometry  # noqa: E402
+from clrf.grid.model import GridModel  # noqa: E402
+from clrf.testing import reference_background as ref_bg  # noqa: E402
+from clrf.testing.tolerances import (BG_ATOL, BG_GRAD_ATOL, BG_GRAD_RTOL, BG_RTOL,  # noqa: E402
+                                     MODEL_LOSS_RTOL)
+
+CUBE = np.array([[-1.0] * 3, [1.0] * 3])
+BG_CONST = (0.9, 0.8, 0.7)
+
+
+def tiny_cfg(**kw):
+    base = dict(reso=[[3, 4, 3]], upsample_at=[], sh_degree=1, step=0.4, batch_size=64,
+                lambda_tv=0.0, lambda_tv_sh=0.0, lambda_sparsity=0.0, lambda_beta=1e-2,
+                background_layers=4, background_height=3)
+    base.update(kw)
+    return GridConfig(**base)
+
+
+def bg_model(dev, cfg, rng):
+    """A GridModel on a random dense 3x4x3 grid in CUBE with a random MSI behind it."""
+    dens, sh = random_grid(rng, tuple(cfg.reso[0]), cfg.sh_degree, dens_hi=1.0)
+    grid = clrf.SparseGrid.from_dense(dev, dens, sh, CUBE)
+    bgm = GridBackground.create(dev, cfg, CUBE, BG_CONST)
+    L, H, W = bgm.msi.shape
+    bgm.msi.set_params(rng.uniform(0.0, 0.2, (L, H, W)), rng.normal(0, 0.3, (L, H, W, 3)))
+    return GridModel(dev, cfg, grid, BG_CONST, bg_model=bgm), dens, sh
+
+
+def camera_rays(rng, n):
+    """Origins inside the box's circumscribed sphere (cameras of a 360 capture), random
+    directions: every ray leaves the box and crosses every MSI sphere."""
+    o = rng.uniform(-0.9, 0.9, (n, 3))
+    d = rng.normal(size=(n, 3))
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+def capture_grads(opt, into, name):
+    """Record the gradient an optimiser step consumes (the step zeroes it)."""
+    step = opt.step
+
+    def wrapped(*a, **kw):
+        into[name] = opt.grad.get().copy()
+        return step(*a, **kw)
+    opt.step = wrapped
+
+
+def test_train_step_matches_float64_composition(render_device):
+    """One GridModel step with a background == the float64 pieces chained by hand:
+    t_start = ray_exit, bg = MSI forward, pixel = C_fg + T_fg bg, MSE + beta prior; gradients of
+    the grid and of the MSI (dL/d bg = T_fg g into the MSI backward)."""
+    rng = np.random.default_rng(70)
+    cfg = tiny_cfg()
+    model, dens, sh = bg_model(render_device, cfg, rng)
+    msi = model.bg_model.msi
+    bg_d, bg_c = msi.density.get().astype(np.float64), msi.color.get().astype(np.float64)
+    B = cfg.batch_size
+    o, d = camera_rays(rng, B)
+    target = rng.uniform(0, 1, (B, 3)).astype(np.float32)
+    grads = {}
+    capture_grads(model.opt_density, grads, "density")
+    capture_grads(model.opt_sh, grads, "sh")
+    capture_grads(model.bg_model.opt_density, grads, "bg_density")
+    capture_grads(model.bg_model.opt_color, grads, "bg_color")
+    q = render_device.queue
+    mse = model.train_step(0, cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, target))
+
+    center, r_inner = msi_geometry(CUBE)
+    t_start = ref.ray_exit(o, d, dens.shape, CUBE, cfg.step)
+    assert np.all(t_start > 0)
+    bg_rgb, _ = ref_bg.forward(bg_d, bg_c, msi.r_inner, o, d, t_start, center, BG_CONST)
+    f = ref.render_forward(dens, sh, CUBE, o, d, cfg.step, bg_rgb, record=True)
+    g = 2.0 / (3 * B) * (f["rgb"] - target)
+    ana = ref.render_backward(dens, sh, CUBE, o, d, g, cfg.step, bg_rgb,
+                              grad_T=ref.beta_grad_T(f["T_end"], cfg.lambda_beta / B))
+    ana_bd, ana_bc = ref_bg.backward(bg_d, bg_c, msi.r_inner, o, d, t_start, ana["background"],
+                                     center, BG_CONST)
+    np.testing.assert_allclose(mse, np.mean((f["rgb"] - target) ** 2), rtol=MODEL_LOSS_RTOL)
+    kd, ks = model.grid.rows_to_dense(grads["density"], grads["sh"])
+    np.testing.assert_allclose(kd, ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(ks, ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(grads["bg_density"].reshape(msi.shape), ana_bd,
+                               atol=BG_GRAD_ATOL, rtol=BG_GRAD_RTOL)
+    np.testing.assert_allclose(grads["bg_color"].reshape(msi.shape + (3,)), ana_bc,
+                               atol=BG_GRAD_ATOL, rtol=BG_GRAD_RTOL)
+    assert np.abs(ana_bd).max() > 1e-4 and np.abs(ana_bc).max() > 1e-4
+    # the step: RMSProp (float64 twin of update_rows) on the texels with a gradient
+    lr_d, lr_c = model.bg_model.learning_rates(0)
+    for name, before, arr, lr in (("bg_density", bg_d, msi.density, lr_d),
+                                  ("bg_color", bg_c, msi.color, lr_c)):
+        gr = grads[name].reshape(before.shape[0] * before.shape[1] * before.shape[2], -1)
+        want, _ = ref.update_rows(before.reshape(gr.shape), gr, np.zeros(gr.shape),
+                                  np.ones(gr.shape[0], bool), lr, cfg.rms_beta)
+        np.testing.assert_allclose(arr.get().reshape(gr.shape), want, atol=RENDER_ATOL,
+                                   err_msg=name)
+    # the model's render shows the float64 composition of its updated parameters
+    n = model.grid.n_rows
+    dens1, sh1 = model.grid.rows_to_dense(model.grid.density.get()[:n], model.grid.sh.get()[:n])
+    bg1, _ = ref_bg.forward(msi.density.get(), msi.color.get(), msi.r_inner, o, d, t_start,
+                            center, BG_CONST)
+    out = model.render(o, d)
+    want = ref.render_forward(dens1, sh1, CUBE, o, d, cfg.step, bg1)
+    np.testing.assert_allclose(out["rgb"], want["rgb"], atol=BG_ATOL, rtol=BG_RTOL)
