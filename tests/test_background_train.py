@@ -104,6 +104,25 @@ def test_per_ray_fused_mse_backward(render_device):
     np.testing.assert_allclose(gbg.get(), ana["background"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
 
 
+
+@pytest.mark.parametrize("scale", [0.0, 1e-30, 1e-10, 1.0, 1e10, 1e30])
+def test_per_ray_density_scale_sweep_finite(render_device, scale):
+    """Densities from 0 to 1e30 with a per-ray background: finite pixels and gradients, and
+    dL/d background = T_end g never exceeds g (0 <= T_end <= 1)."""
+    rng = np.random.default_rng(65)
+    dens, sh = random_grid(rng, (4, 3, 5), 1)
+    grid = clrf.SparseGrid.from_dense(render_device, dens * np.float32(scale), sh, BBOX)
+    o, d = random_rays(rng, 50)
+    bg = rng.uniform(0, 1, (50, 3)).astype(np.float32)
+    g = rng.normal(size=(50, 3)).astype(np.float32)
+    out = clrf.render_rays(grid, o, d, step=0.5, background=bg)
+    kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=bg)
+    for k, v in list(out.items()) + list(kern.items()):
+        assert np.all(np.isfinite(v)), k
+    assert np.all(np.abs(kern["background"]) <= np.abs(g))
+    if scale == 0.0:
+        assert np.array_equal(out["rgb"], bg) and np.array_equal(kern["background"], g)
+
 # ---- GridModel with an MSI background ---------------------------------------------------
 from clrf import checkpoint  # noqa: E402
 from clrf.config import GridConfig  # noqa: E402
