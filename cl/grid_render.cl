@@ -52,11 +52,21 @@
  * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
  * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
  *
+ * Per-ray background (BG_PER_RAY 1, unbounded scenes with a background model such as
+ * background.cl's MSI): the constant `bg` argument is replaced by bg_rays float [n_rays, 3],
+ * and everything above holds with bg -> bg_rays[i] per ray (pixel = C_fg + T_end bg_i, and
+ * R_k's last term T_end (g.bg_i)). The backward also writes
+ *   grad_bg [n_rays, 3] = dL/d bg_i = T_end g   (g = dL/dpixel, as above, in both GRAD_MODEs)
+ * which is what the background model's own backward takes. ray_exit gives the background's
+ * starting distance: t_exit[i] = world distance along the unit direction at which the ray
+ * leaves the grid box (0 for a ray that misses it).
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h),
- * CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the signature:
- * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
- * buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD.
+ * BG_PER_RAY, BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
+ * (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the
+ * signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
+ * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
+ * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh.
  */
 #include "march.h"
 
@@ -77,12 +87,25 @@
 #ifndef TRACK_TOUCHED
 #define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
 #endif
+#ifndef BG_PER_RAY
+#define BG_PER_RAY 0     /* 1: a background colour per ray (bg_rays [n, 3]) instead of the constant
+                            bg, the backward writes dL/d bg_rays, and ray_exit is built */
+#endif
+
+/* The background argument of render_forward / render_backward and its value for ray i. */
+#if BG_PER_RAY
+#define BG_ARG __global const float *bg_rays
+#define BG_OF(i) load3(bg_rays, (i))
+#else
+#define BG_ARG const float4 bg
+#define BG_OF(i) (bg.xyz)
+#endif
 
 __kernel void render_forward(const int n_rays, __global const float *origins,
                              __global const float *dirs, __global const int *links,
                              __global const float *density, __global const float *sh,
                              const int4 reso, const float4 bmin, const float4 scale,
-                             const float step, const float4 bg, __global float *out_rgb,
+                             const float step, BG_ARG, __global float *out_rgb,
                              __global float *out_depth, __global float *out_acc,
                              __global const uchar *occ, const int4 oreso) {
     const int i = get_global_id(0);
@@ -98,7 +121,7 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
         march_forward(&m, reso, links, density, sh, Y, &f);
         t0 = m.t0;
     }
-    float3 rgb = f.rgb + exp(f.logT) * bg.xyz;
+    float3 rgb = f.rgb + exp(f.logT) * BG_OF(i);
     out_rgb[3 * i] = rgb.x;
     out_rgb[3 * i + 1] = rgb.y;
     out_rgb[3 * i + 2] = rgb.z;
@@ -159,12 +182,15 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global const float *dirs, __global const int *links,
                               __global const float *density, __global const float *sh,
                               const int4 reso, const float4 bmin, const float4 scale,
-                              const float step, const float4 bg, __global const float *ray_in,
+                              const float step, BG_ARG, __global const float *ray_in,
 #if GRAD_MODE == 1
                               __global float *ray_out, const float loss_scale,
                               const float beta_scale,
 #endif
                               __global float *grad_density, __global float *grad_sh,
+#if BG_PER_RAY
+                              __global float *grad_bg,
+#endif
 #if TRACK_TOUCHED
                               __global uchar *touched,
 #endif
@@ -224,7 +250,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         march_forward_rec(&m, reso, links, density, sh, Y, rec, rec_len, &n_rec, &f);
     }
     const float Tend = exp(f.logT);
-    const float3 rgb = f.rgb + Tend * bg.xyz;
+    const float3 rgb = f.rgb + Tend * BG_OF(i);
 #if GRAD_MODE == 1
     const float3 diff = rgb - load3(ray_in, i);
     ray_out[i] = dot(diff, diff);
@@ -238,6 +264,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #else
     const float3 g = load3(ray_in, i);
     const float gT = 0.0f;
+#endif
+#if BG_PER_RAY
+    vstore3(Tend * g, i, grad_bg);   /* dL/d bg_i: the pixel is C_fg + T_end bg_i */
 #endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
@@ -408,6 +437,21 @@ __kernel void block_occupancy(const int4 reso, const int4 oreso, __global const 
     occ[b] = any;
 #endif
 }
+
+#if BG_PER_RAY
+/* t_exit[i] = where ray i leaves the grid box: world distance along its unit direction
+ * (march_setup's t0 + len, the end of its last segment), 0 for a ray that misses the box.
+ * The background model starts there. */
+__kernel void ray_exit(const int n_rays, __global const float *origins,
+                       __global const float *dirs, const int4 reso, const float4 bmin,
+                       const float4 scale, const float step, __global float *t_exit) {
+    const int i = get_global_id(0);
+    if (i >= n_rays) return;
+    march_t m;
+    t_exit[i] = march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)
+        ? m.t0 + m.len : 0.0f;
+}
+#endif
 
 /* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every
  * kernel of this file uses. */

@@ -84,12 +84,16 @@ class MSIBackground:
         return (origins_d.data, dirs_d.data, t_start_d.data, self.density.data, self.color.data,
                 _float4(self.center), np.float32(self.r_inner), _float4(self.background))
 
-    def forward_device(self, origins_d, dirs_d, t_start_d):
+    def forward_device(self, origins_d, dirs_d, t_start_d, out=None):
         """(bg_rgb [n, 3], bg_T [n]) device arrays for origins/dirs [n, 3] and t_start [n]
-        (device float32; t_start = where the foreground ends along the unit direction, or 0)."""
+        (device float32; t_start = where the foreground ends along the unit direction, or 0).
+        out: optional (bg_rgb, bg_T) float32 device arrays to write into (reused per batch)."""
         n = int(origins_d.shape[0])
-        rgb = cla.empty(self.device.queue, (n, 3), np.float32)
-        T = cla.empty(self.device.queue, (n,), np.float32)
+        if out is not None:
+            rgb, T = out
+        else:
+            rgb = cla.empty(self.device.queue, (n, 3), np.float32)
+            T = cla.empty(self.device.queue, (n,), np.float32)
         launch(self.device, self._program().kernel("bg_forward"), n,
                (np.int32(n),) + self._common_args(origins_d, dirs_d, t_start_d)
                + (rgb.data, T.data), PER_RAY_LOCAL_SIZE)

@@ -51,6 +51,15 @@ class GridConfig:
     weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
     prune_dilate: bool = True     # also keep every row within one voxel of a kept one
     prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
+    background_layers: int = 0    # MSI background behind the grid (unbounded scenes): number of
+                                  # spheres, >= 2; 0: off, a constant background colour only
+    background_height: int = 128  # rows (latitude) of each MSI sphere image; columns = 2 x rows
+    background_init_density: float = 0.1  # initial raw density of every MSI texel (svox2: 0.1)
+    background_init_color: float = 0.0    # initial raw MSI colour (0: grey 0.5)
+    lr_bg_density: float = 3.0    # MSI density learning rate (svox2: 3e0 -> 3e-3), decayed
+    lr_bg_density_final: float = 3e-3     # log-linearly over lr_decay_steps like the grid's
+    lr_bg_color: float = 0.1      # MSI colour learning rate (svox2: 1e-1 -> 5e-6)
+    lr_bg_color_final: float = 5e-6
 
 
 @dataclass
@@ -93,10 +102,13 @@ PRESETS = {
                                 "lambda_tv_sh": 5e-3, "tv_early_only": False,
                                 "lambda_sparsity": 1e-10, "prune_dilate": False},
                        "train": {"eval_downscale": 4}},
-    # Unbounded real 360: no sphere bound, sparsity prior (no background model yet).
+    # Unbounded real 360: no sphere bound, sparsity prior, and an MSI background behind the
+    # grid box (32 spheres of 128 x 256 texels from the box's circumscribed sphere outwards;
+    # svox2's 360 configs use 64 layers at a finer resolution for 100k+ GPU iterations).
     "real360": {"grid": {"sphere_bound": False, "lambda_tv": 5e-5, "lambda_tv_sh": 5e-3,
                          "tv_early_only": False, "lambda_sparsity": 1e-10,
-                         "lambda_beta": 1e-5}},
+                         "lambda_beta": 1e-5, "background_layers": 32,
+                         "background_height": 128}},
 }
 
 
@@ -149,6 +161,17 @@ class Config:
             (0 < g.tv_fraction <= 1, "grid.tv_fraction", "must be in (0, 1]"),
             (g.weight_thresh >= 0, "grid.weight_thresh", "must be >= 0"),
             (g.prune_rays >= 1, "grid.prune_rays", "must be >= 1"),
+            (g.background_layers == 0 or 2 <= g.background_layers <= 256,
+             "grid.background_layers", "must be 0 (off) or in 2..256 (samples lie between "
+             "consecutive spheres)"),
+            (1 <= g.background_height <= 4096, "grid.background_height", "must be in 1..4096"),
+            (g.background_init_density >= 0, "grid.background_init_density", "must be >= 0"),
+            (abs(g.background_init_color) <= 1e3, "grid.background_init_color",
+             "must be a finite colour offset (|x| <= 1000)"),
+            (g.lr_bg_density > 0 and g.lr_bg_density_final > 0, "grid.lr_bg_density",
+             "must be > 0 (with lr_bg_density_final)"),
+            (g.lr_bg_color > 0 and g.lr_bg_color_final > 0, "grid.lr_bg_color",
+             "must be > 0 (with lr_bg_color_final)"),
         ]
         for ok, name, msg in checks:
             if not ok:

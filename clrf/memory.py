@@ -16,6 +16,10 @@ stage 0 over the grid grown by one previous-stage voxel on each side, at most V_
                                                        units, dropped when > global / 4)
     upsample   the previous stage's grid + optimiser, + 8 V_k (flags, links) + 4 n_k (1 + C)
     rays       36 N + 44 B                             ray store (o, d, rgb) + batch buffers
+    background 49 T + 32 B   (grid.background_layers L > 0: T = 2 L H^2 MSI texels, H =
+                             background_height) density + colour (4 floats a texel) with their
+                             gradients and RMSProp states, a touched flag per texel; per batch
+                             ray t_start, bg colour, bg transmittance, dL/d bg colour
 
 NeRF (P parameters per network, s samples per ray, B rays per step, nslot activation slots
 per sample): 5 P per network (params, transposed copy, gradient, Adam m and v), activations
@@ -60,12 +64,21 @@ def ray_store_bytes(n_rays: int, batch: int) -> int:
     return 36 * int(n_rays) + 44 * int(batch)
 
 
+def background_bytes(g) -> tuple:
+    """(total, colour buffer) bytes of the MSI background of GridConfig g (0, 0 when off)."""
+    if g.background_layers <= 0:
+        return 0, 0
+    T = 2 * int(g.background_layers) * int(g.background_height) ** 2
+    return 49 * T + 32 * int(g.batch_size), 12 * T
+
+
 def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
     """StageEstimate per resolution of cfg.grid (see the module docstring for the terms)."""
     g = cfg.grid
     C = 3 * (g.sh_degree + 1) ** 2
     row = 4 * (1 + C)
-    rays = ray_store_bytes(n_rays, g.batch_size)
+    bg, bg_color = background_bytes(g)
+    rays = ray_store_bytes(n_rays, g.batch_size) + bg
     out, prev, frac = [], 0, 1.0
     for k, reso in enumerate(g.reso):
         V = int(np.prod([int(r) for r in reso]))
@@ -81,7 +94,8 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
         train = grid + opt + s * n * (row + 1) + rays
         upsample = prev + 8 * V + row * n + rays if k > 0 else 0
         buffers = [(4 * n * C, "SH values"), (4 * V, "voxel links"),
-                   (s * n * 4 * C, "per-slot SH gradient copies")]
+                   (s * n * 4 * C, "per-slot SH gradient copies"),
+                   (bg_color, "MSI background colour")]
         big, what = max(buffers)
         label = "x".join(str(int(r)) for r in reso)
         out.append(StageEstimate(f"grid stage {k} ({label}, SH degree {g.sh_degree})",

@@ -20,6 +20,9 @@ def _grid_render():
         yield {**base, "GRAD_MODE": mode, "GRAD_SLOTS": slots, "SAMPLE_RECORD": rec,
                "TRACK_TOUCHED": touched}
     yield {**base, "COMPENSATED_SUMS": 1, "CLRF_PREFETCH": 0, "BLOCK": 0}
+    for mode, (slots, rec) in itertools.product((0, 1), ((0, 0), (2, 1))):   # GridModel + MSI
+        yield {**base, "BG_PER_RAY": 1, "GRAD_MODE": mode, "GRAD_SLOTS": slots,
+               "SAMPLE_RECORD": rec, "TRACK_TOUCHED": 1}
 
 
 # (file, defines) for every program the library and tools build, grid_render.cl over the
@@ -31,6 +34,7 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
          + [("sample.cl", {}), ("batch.cl", {}), ("probe.cl", {}), ("bench.cl", {}),
             ("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": 20000})]
          + [("optim.cl", {"OPT_MODE": m}) for m in (0, 1, 2)]
+         + [("background.cl", {"BG_LAYERS": 32, "BG_H": 128})]
          + [("mlp.cl", MLPSpec().defines())])
 
 

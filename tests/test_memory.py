@@ -60,3 +60,18 @@ def test_too_large_scene_exits_2_before_allocating(tmp_path, capsys, monkeypatch
     err = capsys.readouterr().err
     assert rc == 2 and "grid stage 0 (1024x1024x1024, SH degree 3) needs about" in err, err
     assert not out.exists()
+
+
+def test_background_adds_its_texels():
+    # MSI background: 2 L H^2 texels, 49 bytes each (4 floats x param, grad, state + a flag),
+    # 32 bytes per batch ray; its colour buffer is 12 bytes a texel
+    over = {"reso": [[10, 10, 10]], "upsample_at": [], "sh_degree": 0, "sphere_bound": False,
+            "batch_size": 100}
+    (off,) = grid_stages(build_config(overrides={"grid": over}), 1000, 0, GiB)
+    on_cfg = build_config(overrides={"grid": {**over, "background_layers": 4,
+                                              "background_height": 8}})
+    (on,) = grid_stages(on_cfg, 1000, 0, GiB)
+    T = 2 * 4 * 8 * 8
+    assert on.total - off.total == 49 * T + 32 * 100
+    assert build_config("real360").grid.background_layers > 0
+    assert build_config("synthetic").grid.background_layers == 0

@@ -16,7 +16,10 @@ Processing (as NeRF's load_llff_data):
 4. real 360 (Mip-NeRF 360): the bounds are not used (bonsai's are placeholders); the world is
    re-centred on the focus point (the point closest to all optical axes) with z along the mean
    camera up, and scaled so the farthest camera is at distance 1. bbox = [-1, 1]^3, the cube
-   enclosing the sphere through the farthest camera; near 0.02, far = its diagonal.
+   enclosing the sphere through the farthest camera; near 0.02, far = its diagonal. The
+   voxel grid fills that box (the central region, as svox2's unit cube) and the real360
+   preset's MSI background (clrf/grid/background.py) starts at the box's circumscribed
+   sphere, radius sqrt(3), so the room beyond the cameras lives in the background.
 
 Every ``holdout``-th view (0, 8, 16, ...) is the test split (NeRF's llffhold = 8).
 """

@@ -3,6 +3,10 @@
 Implements the model interface the trainer drives (shared with clrf.nerf.NerfModel):
 ``train_step(it, origins, dirs, target) -> mse``, ``render(origins, dirs) -> dict``,
 ``state_dict()``, ``from_state_dict(device, state)``, ``on_iteration(it, trainer)``.
+
+With ``cfg.background_layers > 0`` an MSI background (clrf/grid/background.py) sits behind the
+grid: each ray's pixel is C_fg + T_fg * bg_rgb, trained jointly. With 0 (the default) no
+background kernel is built or launched and every call is the constant-background one.
 """
 from __future__ import annotations
 
@@ -11,6 +15,7 @@ import pyopencl.array as cla
 
 from . import ops as grid_ops
 from ..config import GridConfig
+from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
@@ -36,16 +41,19 @@ class GridModel:
     kind = "grid"
 
     def __init__(self, device, cfg: GridConfig, grid: SparseGrid, background, stage: int = 0,
-                 opt_state=None):
+                 opt_state=None, bg_model: GridBackground | None = None):
         self.device = device
         self.cfg = cfg
         self.background = tuple(float(b) for b in background)
         self.stage = stage          # index into cfg.reso of the current grid
+        self.bg_model = bg_model    # GridBackground, or None: constant background only
         self._set_grid(grid, opt_state)
 
     @classmethod
     def create(cls, device, cfg: GridConfig, bbox, background):
-        return cls(device, cfg, initial_grid(device, cfg, bbox), background)
+        bg_model = (GridBackground.create(device, cfg, bbox, background)
+                    if cfg.background_layers > 0 else None)
+        return cls(device, cfg, initial_grid(device, cfg, bbox), background, bg_model=bg_model)
 
     def _set_grid(self, grid, opt_state=None):
         self.grid = grid
@@ -72,10 +80,19 @@ class GridModel:
         q = self.device.queue
         if self._sqerr is None or self._sqerr.shape[0] != B:
             self._sqerr = cla.empty(q, B, np.float32)
-        render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
-                               self.opt_density.grad, self.opt_sh.grad, grad_mode=1,
-                               loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
-                               touched=self.touched, beta_scale=c.lambda_beta / B)
+        bgm = self.bg_model
+        if bgm is None:
+            render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
+                                   self.opt_density.grad, self.opt_sh.grad, grad_mode=1,
+                                   loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
+                                   touched=self.touched, beta_scale=c.lambda_beta / B)
+        else:
+            t_start, bg_rgb = bgm.forward(self.grid, origins, dirs, c.step)
+            grad_bg = render_backward_device(
+                self.grid, origins, dirs, target, c.step, bg_rgb, self.opt_density.grad,
+                self.opt_sh.grad, grad_mode=1, loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
+                touched=self.touched, beta_scale=c.lambda_beta / B, grad_bg=bgm.grad_buffer(B))
+            bgm.backward_step(it, origins, dirs, t_start, grad_bg)
         if not (c.tv_early_only and self.stage > 0):
             self._tv(it)
         lr_d, lr_s = self.learning_rates(it)
@@ -133,21 +150,29 @@ class GridModel:
                "acc": np.empty(n, np.float32)}
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
-            r = render_forward_device(self.grid, cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
-                                      cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
-                                      self.cfg.step, self.background)
+            o = cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32))
+            d = cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32))
+            bg = self.background
+            if self.bg_model is not None:
+                bg = self.bg_model.forward(self.grid, o, d, self.cfg.step, reuse=False)[1]
+            r = render_forward_device(self.grid, o, d, self.cfg.step, bg)
             for k in out:
                 out[k][s:e] = r[k].get()
         return out
 
     def describe(self):
         r = self.grid.reso
-        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows"
+        bg = ""
+        if self.bg_model is not None:
+            m = self.bg_model.msi
+            bg = f", MSI background {m.layers}x{m.height}x{m.width}"
+        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows{bg}"
 
     # ---- state -------------------------------------------------------------------------
     def state_dict(self):
         n = self.grid.n_rows
-        return {
+        bg = self.bg_model.state_dict() if self.bg_model is not None else {}
+        return {**bg,
             "kind": "grid", "stage": self.stage, "sh_degree": self.grid.sh_degree,
             "background": list(self.background),
             "links": self.grid.links.get(), "bbox": self.grid.bbox,
@@ -166,4 +191,12 @@ class GridModel:
         osh = np.concatenate([state["opt_sh"], np.zeros((pad, grid.sh_dim), np.float32)])
         opt = {"density": cla.to_device(q, od.astype(np.float32)),
                "sh": cla.to_device(q, osh.astype(np.float32))}
-        return cls(device, cfg, grid, state["background"], int(state["stage"]), opt)
+        has_bg = "bg_density" in state
+        if has_bg != (cfg.background_layers > 0):
+            raise ValueError(
+                f"the checkpoint {'has' if has_bg else 'has no'} MSI background but the "
+                f"configuration sets grid.background_layers = {cfg.background_layers}; resume "
+                f"with the run's own configuration")
+        bg_model = GridBackground.from_state_dict(device, state, cfg) if has_bg else None
+        return cls(device, cfg, grid, state["background"], int(state["stage"]), opt,
+                   bg_model=bg_model)

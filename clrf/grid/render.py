@@ -33,11 +33,16 @@ def check_step(grid, step) -> float:
 
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
-                 slots: int = 0, step: float = 0.5, record: bool = False):
+                 slots: int = 0, step: float = 0.5, record: bool = False,
+                 bg_per_ray: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
-    record: the backward reads the forward's per-sample record, needs slots > 0)."""
+    record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
+    a background colour per ray, BG_PER_RAY). The constant-background build has no BG_PER_RAY
+    define at all, so it is the same program as before per-ray backgrounds existed."""
     t = grid.device.tuning
+    extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
     return grid.device.program("grid_render.cl", {
+        **extra,
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
         "SAMPLE_RECORD": int(bool(record) and slots > 0),
@@ -51,6 +56,22 @@ def _bg4(background):
     if not np.all(np.isfinite(bg)):
         raise ValueError("background: must be finite")
     return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+
+
+def _per_ray(background, n) -> bool:
+    """True when ``background`` is a device array of per-ray colours [n, 3] (BG_PER_RAY), False
+    for a constant colour (three numbers)."""
+    if not isinstance(background, cla.Array):
+        return False
+    if background.dtype != np.float32 or background.shape != (n, 3) or not background.flags.c_contiguous:
+        raise ValueError(f"background: a per-ray background must be a contiguous float32 device "
+                         f"array of shape ({n}, 3), got {background.dtype} {background.shape}")
+    return True
+
+
+def _bg_arg(background, n):
+    """The kernels' background argument: the per-ray buffer or the constant float4."""
+    return background.data if _per_ray(background, n) else _bg4(background)
 
 
 def grad_slots(grid) -> int:
@@ -115,25 +136,41 @@ def _record_buffer(grid, slots, rec_max):
 
 
 def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
-    """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n]."""
+    """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n].
+    background: three numbers, or a float32 device array [n, 3] of per-ray colours."""
     dev = grid.device
     n = origins_d.shape[0]
     q = dev.queue
     if out is None:
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
-    k = grid_program(grid, step=step).kernel("render_forward")
+    k = grid_program(grid, step=step, bg_per_ray=_per_ray(background, n)).kernel("render_forward")
     occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
-                       np.float32(step), _bg4(background), out["rgb"].data, out["depth"].data,
-                       out["acc"].data, occ.data, oreso), dev.tuning.grid_local_size)
+                       np.float32(step), _bg_arg(background, n), out["rgb"].data,
+                       out["depth"].data, out["acc"].data, occ.data, oreso),
+           dev.tuning.grid_local_size)
+    return out
+
+
+def ray_exit_device(grid, origins_d, dirs_d, step, out=None):
+    """t_exit [n] (device float32): where each ray leaves the grid box, as a world distance
+    along its unit direction; 0 for rays that miss the box. The start of a background model
+    behind the grid (cl/grid_render.cl ray_exit)."""
+    dev = grid.device
+    n = origins_d.shape[0]
+    if out is None:
+        out = cla.empty(dev.queue, max(n, 1), np.float32)
+    k = grid_program(grid, step=step, bg_per_ray=True).kernel("ray_exit")
+    launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, *grid.geometry_args(),
+                       np.float32(step), out.data), dev.tuning.grid_local_size)
     return out
 
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
                            grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
-                           beta_scale=0.0):
+                           beta_scale=0.0, grad_bg=None):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
@@ -141,16 +178,21 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     (T the ray's final transmittance: the beta prior) and ray_out receives the per-ray squared
     error.
     touched (uint8 [N]) gets 1 for every row that received a gradient, if given.
+    background: three numbers, or a float32 device array [n, 3] of per-ray colours; then
+    grad_bg (float32 device [n, 3], overwritten) receives dL/d background = T_end dL/dpixel
+    per ray (allocated if None). Returns grad_bg (None for a constant background).
     """
     dev = grid.device
     n = origins_d.shape[0]
+    per_ray = _per_ray(background, n)
     if n == 0:
-        return
+        return grad_bg
     slots = grad_slots(grid)
     record = slots > 0 and dev.tuning.sample_record
-    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step, record=record)
+    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step, record=record,
+                       bg_per_ray=per_ray)
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
-            grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
+            grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
             ray_in_d.data]
     if grad_mode == 1:
         # the per-ray loss: never aliased onto ray_in (the targets), which other work-items
@@ -159,6 +201,10 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
             ray_out = cla.empty(dev.queue, max(n, 1), np.float32)
         args += [ray_out.data, np.float32(loss_scale), np.float32(beta_scale)]
     args += [grad_density.data, grad_sh.data]
+    if per_ray:
+        if grad_bg is None:
+            grad_bg = cla.empty(dev.queue, (n, 3), np.float32)
+        args.append(grad_bg.data)
     if touched is not None:
         args.append(touched.data)
     n_rows = grid.density.shape[0]
@@ -176,14 +222,27 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
                 tch.data), dev.tuning.reduce_local_size)
+    return grad_bg
+
+
+def _host_background(background, n, q):
+    """A numpy per-ray background [n, 3] goes to the device; three numbers stay as they are."""
+    if np.ndim(background) < 2:
+        return background
+    bg = check_array("background", background, ndim=2, shape_tail=(3,))
+    if bg.shape[0] != n:
+        raise ValueError(f"background has {bg.shape[0]} rows for {n} rays")
+    return cla.to_device(q, bg)
 
 
 def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
     """Render rays through a SparseGrid.
 
     origins, dirs: float32 [n, 3] (dirs need not be unit length). step: voxels per sample.
+    background: three numbers, or [n, 3] colours, one per ray.
     Returns numpy ``rgb`` [n,3], ``depth`` [n] (sum of weight x distance, background at 0) and
-    ``acc`` [n] (opacity, sum of weights); rgb includes ``(1 - acc) * background``.
+    ``acc`` [n] (opacity, sum of weights); rgb includes ``T_end * background`` (T_end the
+    ray's final transmittance, ~ 1 - acc).
 
     >>> out = clrf.render_rays(grid, np.zeros((1, 3)), np.array([[0, 0, 1.0]]))
     >>> sorted(out)
@@ -196,14 +255,16 @@ def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
     if n == 0:
         return {"rgb": np.zeros((0, 3), np.float32), "depth": np.zeros(0, np.float32),
                 "acc": np.zeros(0, np.float32)}
-    out = render_forward_device(grid, cla.to_device(q, o), cla.to_device(q, d), step, background)
+    bg = _host_background(background, n, q)
+    out = render_forward_device(grid, cla.to_device(q, o), cla.to_device(q, d), step, bg)
     return {k: v.get() for k, v in out.items()}
 
 
 def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.0, 1.0, 1.0)):
     """Gradient of ``sum(grad_rgb * rgb)`` with respect to the grid's values.
 
-    Returns dense numpy ``density`` [X,Y,Z] and ``sh`` [X,Y,Z,C] (zeros at empty voxels).
+    Returns dense numpy ``density`` [X,Y,Z] and ``sh`` [X,Y,Z,C] (zeros at empty voxels); with
+    a per-ray ``background`` [n, 3] also ``background`` [n, 3] = T_end * grad_rgb, its gradient.
     """
     o, d = check_rays(origins, dirs)
     g = check_array("grad_rgb", grad_rgb, ndim=2, shape_tail=(3,))
@@ -211,13 +272,19 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
         raise ValueError(f"grad_rgb has {g.shape[0]} rows for {o.shape[0]} rays")
     step = check_step(grid, step)
     q = grid.device.queue
+    n = o.shape[0]
+    bg = _host_background(background, n, q)
     gd = cla.zeros(q, grid.density.shape[0], np.float32)
     gs = cla.zeros(q, grid.sh.shape, np.float32)
-    if o.shape[0]:
-        render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
-                               cla.to_device(q, g), step, background, gd, gs)
+    gbg = None
+    if n:
+        gbg = render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
+                                     cla.to_device(q, g), step, bg, gd, gs)
     dens, sh = grid.rows_to_dense(gd.get(), gs.get())
-    return {"density": dens, "sh": sh}
+    out = {"density": dens, "sh": sh}
+    if np.ndim(background) == 2:
+        out["background"] = gbg.get() if gbg is not None else np.zeros((0, 3), np.float32)
+    return out
 
 
 def render_max_weight_device(grid, origins_d, dirs_d, step, maxw):

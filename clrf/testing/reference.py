@@ -123,7 +123,9 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
                    t_stop=T_STOP, record=False):
     """Float64 render of dense density [X,Y,Z] and sh [X,Y,Z,3B]. Returns rgb, depth, acc.
 
-    With record=True also returns the per-sample arrays the backward reference needs.
+    background: three numbers, or [n, 3] (one colour per ray: BG_PER_RAY); rgb includes
+    T_end * background. With record=True also returns the per-sample arrays the backward
+    reference needs and ``T_end`` [n].
     """
     density = np.asarray(density, np.float64)
     sh = np.asarray(sh, np.float64)
@@ -132,7 +134,7 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
     m = march_setup(origins, dirs, density.shape, bbox, step)
     n = m["p0"].shape[0]
     Y = sh_basis(m["dir"], degree)
-    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    bg = np.broadcast_to(np.asarray(background, np.float64), (n, 3))
     rgb = np.zeros((n, 3))
     acc = np.zeros(n)
     depth = np.zeros(n)
@@ -163,13 +165,15 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
     rgb = rgb + T_end[:, None] * bg
     out = dict(rgb=rgb, depth=depth, acc=acc)
     if record:
-        out.update(_rec=rec, _Y=Y, _T_end=T_end, _bg=bg)
+        out.update(_rec=rec, _Y=Y, _T_end=T_end, _bg=bg, T_end=T_end)
     return out
 
 
 def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, background=(1, 1, 1),
                     t_stop=T_STOP, mask=None, grad_T=None):
-    """Analytic gradient of sum(grad_rgb * rgb) w.r.t. dense density and sh (float64).
+    """Analytic gradient of sum(grad_rgb * rgb) w.r.t. dense density and sh (float64), and
+    ``background`` [n, 3] = T_end g, the gradient w.r.t. a per-ray background (background
+    may be three numbers or [n, 3]; summed over rays this is the constant's gradient).
 
     Uses explicit suffix sums S_k = sum_{j>k} w_j (g.c_j) + T_end (g.bg). ``mask`` [X,Y,Z]
     marks the allocated voxels (default: where any value is non-zero, as SparseGrid.from_dense
@@ -190,7 +194,8 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
         wgc[r["rays"], k] = r["wgt"] * np.sum(g[r["rays"]] * r["c"], axis=1)
     suffix = np.cumsum(wgc[:, ::-1], axis=1)[:, ::-1]           # sum_{j>=k}
     after = suffix - wgc                                        # sum_{j>k}
-    bgterm = T_end * (g @ bg + (0.0 if grad_T is None else np.asarray(grad_T, np.float64)))
+    bgterm = T_end * (np.sum(g * bg, axis=1)
+                      + (0.0 if grad_T is None else np.asarray(grad_T, np.float64)))
     gd = np.zeros_like(density)
     gs = np.zeros_like(sh)
     for k, r in enumerate(rec):
@@ -205,7 +210,14 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
         np.add.at(gs, (idx[..., 0], idx[..., 1], idx[..., 2]), w[..., None] * dco[:, None, :])
     if mask is None:
         mask = (density != 0) | np.any(sh != 0, axis=-1)
-    return dict(density=gd * mask, sh=gs * mask[..., None])
+    return dict(density=gd * mask, sh=gs * mask[..., None], background=T_end[:, None] * g)
+
+
+def ray_exit(origins, dirs, reso, bbox, step=0.5):
+    """Float64 twin of cl/grid_render.cl ray_exit: box exit distance along the unit direction,
+    0 where the ray misses the box."""
+    m = march_setup(origins, dirs, reso, bbox, step)
+    return np.where(m["hit"], m["t0"] + m["len"], 0.0)
 
 
 BETA_EPS = 1e-3
@@ -237,12 +249,17 @@ def max_weight(density, bbox, origins, dirs, step=0.5, t_stop=T_STOP):
 
 def finite_difference(density, sh, bbox, origins, dirs, grad_rgb, which, index, eps=1e-4,
                       **kw):
-    """Central difference of sum(grad_rgb * rgb) w.r.t. one dense entry (float64)."""
+    """Central difference of sum(grad_rgb * rgb) w.r.t. one dense entry (float64); which is
+    "density", "sh" or "background" (a per-ray background [n, 3] passed as background=)."""
     arrs = {"density": np.array(density, np.float64), "sh": np.array(sh, np.float64)}
+    if which == "background":
+        arrs["background"] = np.array(kw.pop("background"), np.float64)
 
     def loss(delta):
         a = {k: v.copy() for k, v in arrs.items()}
         a[which][index] += delta
+        if "background" in a:
+            kw["background"] = a["background"]
         out = render_forward(a["density"], a["sh"], bbox, origins, dirs, **kw)
         return float(np.sum(np.asarray(grad_rgb, np.float64) * out["rgb"]))
 
