@@ -2,7 +2,9 @@
 
 The probe (``cl/probe.cl``) builds and runs a one-line kernel, then measures fp32 throughput with
 8 independent float8 FMA chains per work-item: the iteration count is calibrated so that one run
-takes 20-50 ms, and the figure is the best of 3 such runs, in GFLOP/s. Cold, it costs the build
+takes 20-50 ms, and the figure is the best of 3 such runs, in GFLOP/s. On a CPU device a run's
+time is the smaller of its wall time and its process CPU time over the compute units, so other
+load on the host at probe time does not lower the (cached) figure. Cold, it costs the build
 plus about 0.2 s per device; the result is cached in ``$XDG_CACHE_HOME/clrf/devices.json``
 (``~/.cache/clrf`` when unset) keyed by host, platform name and version, device name and driver
 version, so later processes read it for free. A change to ``probe.cl`` or to this module's
@@ -38,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 
-PROBE_METHOD = 1            # bump when the measurement changes meaning (invalidates the cache)
+PROBE_METHOD = 2            # bump when the measurement changes meaning (invalidates the cache)
 PROBE_CHAINS = 8            # independent FMA chains per work-item (cl/probe.cl)
 PROBE_WIDTH = 8             # float8 lanes per chain (cl/probe.cl)
 PROBE_MIN_S = 0.020         # a calibrated run lasts at least this long ...
@@ -151,6 +153,17 @@ def measure(dev: "cl.Device") -> Probe:
     return Probe(err, gflops if err is None else 0.0, time.perf_counter() - t_start, when)
 
 
+def run_seconds(wall: float, cpu: float, compute_units: int, gpu: bool) -> float:
+    """The seconds a probe run counts. A CPU device runs in this process's threads: on a busy
+    host they wait for a core, which wall time counts and process CPU time does not, so the
+    CPU time over the compute units is what the device does with its cores to itself (a cached
+    figure must not depend on what else ran at probe time); never more than the wall time (a
+    spinning host thread adds CPU time). GPUs: wall time."""
+    if gpu:
+        return wall
+    return min(wall, max(cpu / max(1, compute_units), 1e-9))
+
+
 def _fma_gflops(ctx, q, prg, dev) -> tuple:
     """(GFLOP/s, None) from calibrated runs of clrf_probe_fma, or (0, reason)."""
     gpu = bool(dev.type & (cl.device_type.GPU | cl.device_type.ACCELERATOR))
@@ -160,11 +173,13 @@ def _fma_gflops(ctx, q, prg, dev) -> tuple:
     consts = (np.float32(PROBE_M), np.float32(PROBE_ADD), np.float32(PROBE_X0),
               np.float32(PROBE_DX), out_buf)
 
+    ncu = max(1, int(dev.max_compute_units))
+
     def run(iters):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         k(q, (n,), None, np.int32(iters), *consts)
         q.finish()
-        return time.perf_counter() - t0
+        return run_seconds(time.perf_counter() - t0, time.process_time() - c0, ncu, gpu)
 
     run(1)                                          # first launch carries the JIT
     iters = 64

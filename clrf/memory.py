@@ -136,8 +136,7 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int) -> list:
     ``n_rays`` training rays exceeds the device described by ``caps`` (DeviceCaps); returns the
     StageEstimates otherwise."""
     if cfg.train.model == "nerf":
-        from .models import nerf_config
-        stages = [nerf_stage(nerf_config(cfg), n_rays, caps)]
+        stages = [nerf_stage(cfg.nerf, n_rays, caps)]
         fix = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
                "rays with train.downscale / train.max_train_images")
     else:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from . import checkpoint
-from .config import Config, ConfigError, _merge
+from .config import Config, _merge
 
 
 class GridFactory:
@@ -21,7 +21,7 @@ class NerfFactory:
     @staticmethod
     def create(device, cfg, ds, background):
         from .nerf import NerfModel
-        return NerfModel(device, nerf_config(cfg), ds.near, ds.far, background, cfg.train.seed)
+        return NerfModel(device, cfg.nerf, ds.near, ds.far, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
@@ -30,18 +30,6 @@ class NerfFactory:
 
 
 FACTORIES = {"grid": GridFactory, "nerf": NerfFactory}
-
-
-def nerf_config(cfg):
-    """NerfConfig from the run config's ``nerf`` section: ``preset`` (default "tiny") plus
-    overrides of any NerfConfig field."""
-    from .nerf import NerfConfig
-    d = dict(cfg.nerf)
-    name = d.pop("preset", "tiny")
-    try:
-        return NerfConfig.preset(name, **d)
-    except (ValueError, TypeError) as e:
-        raise ConfigError(f"nerf: {e}. Fields: {', '.join(f for f in NerfConfig.__dataclass_fields__)}") from None
 
 
 def config_from_state(state) -> Config:

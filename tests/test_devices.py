@@ -282,3 +282,13 @@ def test_real_devices_probe_and_cache(monkeypatch, tmp_path):
     assert all(a.cached and a.gflops == p.gflops for a, p in zip(again, first))
     chosen = device.choose_device("auto")
     assert chosen.candidate.probe.gflops >= max(p.gflops for p in ok) * (1 - dp.TIE)
+
+
+def test_probe_time_discounts_other_load():
+    """A CPU probe run that waited for its cores (wall 3x its CPU time per compute unit) counts
+    its CPU time; a quiet run or a spinning host thread counts wall time; a GPU always wall."""
+    from clrf.device_probe import run_seconds
+    assert run_seconds(0.090, 0.060, 2, gpu=False) == pytest.approx(0.030)   # contended
+    assert run_seconds(0.030, 0.060, 2, gpu=False) == pytest.approx(0.030)   # quiet
+    assert run_seconds(0.030, 0.090, 2, gpu=False) == pytest.approx(0.030)   # host spinning
+    assert run_seconds(0.090, 0.001, 2, gpu=True) == pytest.approx(0.090)

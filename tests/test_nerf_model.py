@@ -8,7 +8,7 @@ from clrf.optim import Optimizer
 from clrf.testing import tolerances as tol
 
 # a very small model so that each step takes milliseconds
-TEST_CFG = NerfConfig.preset("tiny", width=32, depth=2, color_width=16, pos_freqs=4,
+TEST_CFG = NerfConfig.from_preset("tiny", width=32, depth=2, color_width=16, pos_freqs=4,
                              dir_freqs=1, n_coarse=16, n_fine=16, lr=1e-2, batch_rays=64,
                              dw_chunk=64)
 
@@ -65,7 +65,7 @@ def train(model, o, d, c, steps, batch, seed=0):
 @pytest.mark.parametrize("shared", [False, True])
 def test_training_reduces_loss_on_synthetic_scene(device, shared):
     o, d, c = synthetic_scene(2048)
-    model = NerfModel(device, NerfConfig.preset("tiny", **{**TEST_CFG.__dict__,
+    model = NerfModel(device, NerfConfig.from_preset("tiny", **{**TEST_CFG.__dict__,
                                                            "shared_net": shared}),
                       near=2.0, far=6.0, background=(0, 0, 0), seed=1)
     before = np.mean((model.render(o[:256], d[:256])["rgb"] - c[:256]) ** 2)
@@ -79,7 +79,7 @@ def test_training_reduces_loss_on_synthetic_scene(device, shared):
 def test_train_step_loss_is_fine_mse(device):
     """The returned loss equals the MSE of a render with the same samples (no jitter)."""
     o, d, c = synthetic_scene(64, seed=3)
-    cfg = NerfConfig.preset("tiny", **{**TEST_CFG.__dict__, "perturb": False, "lr": 0.0})
+    cfg = NerfConfig.from_preset("tiny", **{**TEST_CFG.__dict__, "perturb": False, "lr": 0.0})
     model = NerfModel(device, cfg, near=2.0, far=6.0, background=(1, 1, 1), seed=2)
     q = device.queue
     loss = model.train_step(0, cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, c))
@@ -115,7 +115,7 @@ def test_bad_inputs_fail_loudly(device):
     with pytest.raises(ValueError, match="near/far"):
         NerfModel(device, TEST_CFG, near=3.0, far=2.0)
     with pytest.raises(ValueError, match="preset"):
-        NerfConfig.preset("huge")
+        NerfConfig.from_preset("huge")
 
 
 def test_near_equals_far_renders_background(device):
@@ -137,7 +137,7 @@ def test_short_training_on_tiny_lego(device, data_dir):
     imgs, poses, focal = z["images"][:10], z["poses"][:10], float(z["focal"])
     o, d = camera_rays(poses, 100, 100, focal)
     c = imgs.reshape(-1, 3)
-    model = NerfModel(device, NerfConfig.preset("tiny", **{**TEST_CFG.__dict__, "lr": 5e-3,
+    model = NerfModel(device, NerfConfig.from_preset("tiny", **{**TEST_CFG.__dict__, "lr": 5e-3,
                                                            "batch_rays": 256}),
                       near=2.0, far=6.0, background=(0, 0, 0))
     losses = train(model, o, d, c, 40, 256)

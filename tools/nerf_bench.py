@@ -293,7 +293,7 @@ def bench_suite(api):
         """One NerfModel.train_step (coarse + fine, Adam) on a batch of random rays: rays/s."""
         from clrf.nerf import NerfConfig, NerfModel
         dev = ctx.dev
-        cfg = NerfConfig.preset(p["preset"], batch_rays=p["rays"])
+        cfg = NerfConfig.from_preset(p["preset"], batch_rays=p["rays"])
         model = NerfModel(dev, cfg, 2.0, 6.0, (1, 1, 1))
         rng = np.random.default_rng(0)
         n = p["rays"]

@@ -76,7 +76,7 @@ def main(argv=None):
     for s in args.set:
         k, v = s.split("=", 1)
         overrides[k] = json.loads(v)
-    cfg = NerfConfig.preset(args.preset, **overrides)
+    cfg = NerfConfig.from_preset(args.preset, **overrides)
     dev = clrf.Device()
     model = NerfModel(dev, cfg, near=2.0, far=6.0, background=(0, 0, 0), seed=args.seed)
     q = dev.queue

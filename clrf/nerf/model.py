@@ -11,85 +11,23 @@ One training step on B rays (nothing per sample crosses to the host):
   Adam on both, exponential lr decay; refresh the transposed weights.
 Loss = MSE(fine) + coarse_loss_weight * MSE(coarse), MSE = mean over rays and channels.
 
->>> model = NerfModel(dev, NerfConfig.preset("tiny"), near=2.0, far=6.0, background=(0, 0, 0))
+>>> model = NerfModel(dev, NerfConfig.from_preset("tiny"), near=2.0, far=6.0, background=(0, 0, 0))
 >>> loss = model.train_step(0, origins_d, dirs_d, target_d)     # pyopencl arrays [B, 3]
 >>> out = model.render(origins, dirs)                           # numpy: rgb [n,3], depth, acc
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict
 
 import numpy as np
 import pyopencl.array as cla
 
 from . import ops
 from ..optim import Optimizer
-from .mlp import MLP, MLPSpec
+from ..config import NerfConfig
+from .mlp import MLP
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
-
-
-@dataclass(frozen=True)
-class NerfConfig:
-    """Everything that defines a NeRF model and its optimiser (presets: ``NerfConfig.preset``)."""
-
-    width: int = 64                 # trunk width (multiple of 16); NeRF: 256
-    depth: int = 4                  # trunk layers; NeRF: 8
-    skip: int = -1                  # encoded position re-enters at layer skip+1; NeRF: 4; -1 none
-    color_width: int = 32           # view-dependent colour layer; NeRF: 128
-    pos_freqs: int = 8              # position frequencies L; NeRF: 10
-    dir_freqs: int = 2              # view-direction frequencies; NeRF: 4
-    include_input: bool = True      # encoding starts with the scaled input itself (NeRF: yes)
-    pos_scale: float = 1.0 / np.pi  # gamma(p) uses sin(2^k pi s p): 1/pi gives NeRF's 2^k rad/unit
-    dir_scale: float = 1.0 / np.pi  # the same for the unit view direction
-    hidden_act: str = "relu"        # "relu" | "softplus"
-    sigma_act: str = "relu"         # "relu" (NeRF) | "softplus" (never dead at initialisation)
-    n_coarse: int = 32              # stratified samples per ray; NeRF: 64
-    n_fine: int = 32                # importance samples per ray (0: coarse only); NeRF: 128
-    shared_net: bool = False        # True: one network evaluated on both sample sets
-    perturb: bool = True            # jitter samples during training (never when rendering)
-    coarse_loss_weight: float = 1.0 # weight of the coarse MSE in the loss (NeRF: 1)
-    lr: float = 5e-4                # Adam learning rate at step 0; NeRF: 5e-4
-    lr_decay_steps: int = 500_000   # lr = lr * 0.1^(step / lr_decay_steps); NeRF: 500k (Blender)
-    beta1: float = 0.9              # Adam beta1
-    beta2: float = 0.999            # Adam beta2
-    adam_eps: float = 1e-7          # Adam epsilon (NeRF used TF's 1e-7)
-    batch_rays: int = 1024          # rays per training step (used by training drivers)
-    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
-    dw_chunk: int | None = None     # rows per partial weight gradient; None: 64 tiles
-
-    @staticmethod
-    def preset(name: str, **overrides) -> "NerfConfig":
-        """``"tiny"``: CPU-friendly (4 x 64, 32 + 32 samples) for 100 x 100 scenes such as
-        tiny_lego; ``"original"``: NeRF's 8 x 256 with skip at 4, 10/4 frequencies, 64 + 128."""
-        if name == "tiny":
-            base = NerfConfig(width=64, depth=4, skip=-1, color_width=32, pos_freqs=8,
-                              dir_freqs=2, sigma_act="softplus", n_coarse=32, n_fine=32,
-                              lr=3e-3, lr_decay_steps=6000, batch_rays=1024)
-        elif name == "original":
-            base = NerfConfig(width=256, depth=8, skip=4, color_width=128, pos_freqs=10,
-                              dir_freqs=4, sigma_act="relu", n_coarse=64, n_fine=128, lr=5e-4,
-                              lr_decay_steps=500_000, batch_rays=1024)
-        else:
-            raise ValueError(f"NerfConfig.preset: unknown preset {name!r}; use 'tiny' or "
-                             f"'original'")
-        return replace(base, **overrides)
-
-    @staticmethod
-    def from_dict(d: dict) -> "NerfConfig":
-        names = {f.name for f in fields(NerfConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"NerfConfig: unknown fields {sorted(unknown)}")
-        return NerfConfig(**d)
-
-    def mlp_spec(self) -> MLPSpec:
-        return MLPSpec(width=self.width, depth=self.depth, skip=self.skip,
-                       color_width=self.color_width,
-                       in_dim=ops.enc_dim(self.pos_freqs, self.include_input),
-                       dir_dim=ops.enc_dim(self.dir_freqs, self.include_input),
-                       hidden_act=self.hidden_act, sigma_act=self.sigma_act,
-                       rows=self.mlp_rows, dw_chunk=self.dw_chunk)
 
 
 def _key(seed: int, it: int, stream: int) -> int:
