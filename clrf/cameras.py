@@ -186,6 +186,24 @@ def orbit_poses(n: int, radius: float = 4.0, elevation_deg: float = 30.0, center
     return look_at(eye, c)
 
 
+def camera_orbit_poses(poses, n: int, center) -> np.ndarray:
+    """``n`` cameras on the circle the capture's own cameras lie near, looking at ``center``: the
+    up axis is the cameras' mean y axis, the circle sits at their median height along it and
+    their median distance from that axis (a 360 capture walked around a scene at eye level).
+    Returns float64 [n, 4, 4]."""
+    p = _as_poses(poses)
+    c = np.asarray(center, np.float64)
+    up = _normalize(p[:, :3, 1].sum(0))
+    rel = p[:, :3, 3] - c
+    h = rel @ up
+    radius = float(np.median(np.linalg.norm(rel - h[:, None] * up, axis=-1)))
+    e1 = _normalize(np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    e2 = np.cross(up, e1)
+    az = 2.0 * np.pi * np.arange(n) / n
+    eye = c + np.median(h) * up + radius * (np.cos(az)[:, None] * e1 + np.sin(az)[:, None] * e2)
+    return look_at(eye, c, up)
+
+
 def average_pose(poses) -> np.ndarray:
     """The LLFF "average" camera: mean position, summed viewing axis and up vector, [4, 4]."""
     p = _as_poses(poses)

@@ -183,7 +183,7 @@ def cmd_eval(a):
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import orbit_poses, spiral_poses
+    from .cameras import camera_orbit_poses, orbit_poses, spiral_poses
     from .cli_export import check_render_args, depth_outputs, write_video
     from .device import Device
     from .models import load_model
@@ -212,6 +212,11 @@ def cmd_render(a):
     elif a.views == "spiral" or meta["ndc"]:
         ds = _ckpt_dataset(state, a.data)
         poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
+    elif meta.get("preset") == "real360" and not a.radius:
+        # an unbounded capture: the box-based orbit would leave the scene; follow the cameras
+        ds = _ckpt_dataset(state, a.data)
+        poses = camera_orbit_poses(ds.poses[ds.split["train"]], a.frames,
+                                   np.asarray(meta["bbox"]).mean(0))
     else:
         bbox = np.asarray(meta["bbox"])
         radius = a.radius or float(np.linalg.norm(bbox[1] - bbox[0])) * 1.15
@@ -308,7 +313,7 @@ def build_parser():
                    help="resolution factor relative to the training images (default 1)")
     r.add_argument("--data", default=None, help="dataset for test views (default: the run's)")
     r.add_argument("--frames", type=int, default=60, help="orbit / spiral frames")
-    r.add_argument("--radius", type=float, default=0.0, help="orbit radius (default from bbox)")
+    r.add_argument("--radius", type=float, default=0.0, help="orbit radius (default: from the box; real360 scenes: the cameras' own circle)")
     r.add_argument("--elevation", type=float, default=30.0, help="orbit elevation in degrees")
     r.add_argument("--max-views", type=int, default=0)
     r.set_defaults(func=cmd_render)

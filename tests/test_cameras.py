@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from clrf.cameras import (distort, look_at, orbit_poses, pixel_rays, spiral_poses, to_ndc,
-                          undistort)
+from clrf.cameras import (camera_orbit_poses, distort, look_at, orbit_poses, pixel_rays,
+                          spiral_poses, to_ndc, undistort)
 from clrf.testing.tolerances import CAMERA_ATOL, UNDISTORT_ATOL
 
 # The fox capture's OpenCV coefficients (instant-ngp data/nerf/fox/transforms.json).
@@ -118,6 +118,30 @@ def test_orbit_poses():
     look = (c - poses[:, :3, 3]) / 3.0
     np.testing.assert_allclose(-poses[:, :3, 2], look, atol=1e-12)          # -z at the centre
     assert np.all(poses[:, 2, 1] > 0)                                       # camera up is up
+
+
+def test_camera_orbit_follows_a_tilted_capture():
+    """A capture walked around a point on a circle of radius 2 at height 0.5 above it, about an
+    up axis tilted away from z: the render orbit lies on that circle, looks at the centre and
+    keeps the capture's up."""
+    up = np.array([0.3, -0.2, 1.0])
+    up /= np.linalg.norm(up)
+    e1 = np.cross(up, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    c = np.array([0.1, 0.2, -0.3])
+    a = np.linspace(0, 2 * np.pi, 12, endpoint=False) + 0.1
+    eyes = c + 0.5 * up + 2.0 * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+    capture = look_at(eyes, c, up)
+    path = camera_orbit_poses(capture, 7, c)
+    assert path.shape == (7, 4, 4) and _rigid(path)
+    rel = path[:, :3, 3] - c
+    np.testing.assert_allclose(rel @ up, 0.5, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(rel - np.outer(rel @ up, up), axis=-1), 2.0,
+                               atol=1e-12)
+    to_c = -rel / np.linalg.norm(rel, axis=-1, keepdims=True)
+    np.testing.assert_allclose(-path[:, :3, 2], to_c, atol=1e-12)
+    assert np.all(path[:, :3, 1] @ up > 0.9)
 
 
 def test_spiral_poses():
