@@ -33,17 +33,21 @@ def check_step(grid, step) -> float:
 
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
-                 slots: int = 0, step: float = 0.5, record: bool = False):
+                 slots: int = 0, step: float = 0.5, record: bool = False, brick: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
-    record: the backward reads the forward's per-sample record, needs slots > 0)."""
+    record: the backward reads the forward's per-sample record, needs slots > 0; brick: the
+    BRICK variant for one brick of a distributed grid, clrf/grid/bricks.py, which has no
+    prefetching and is built with t_stop 0)."""
     t = grid.device.tuning
+    reso = getattr(grid, "march_reso", grid.reso)
     return grid.device.program("grid_render.cl", {
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
         "SAMPLE_RECORD": int(bool(record) and slots > 0),
-        "COMPENSATED_SUMS": int(max_samples_per_ray(grid.reso, step) > LONG_RAY_SAMPLES),
-        "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
-        "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block})
+        "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
+        "CLRF_PREFETCH": int(t.prefetch and not brick), "PREFETCH_AHEAD": t.prefetch_ahead,
+        "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
+        "BRICK": int(bool(brick))})
 
 
 def _bg4(background):
@@ -92,8 +96,10 @@ def block_occupancy(grid):
         occ = cla.zeros(grid.device.queue, int(np.prod(ob)), np.uint8)
         oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], 0)
         if block > 0:
+            r = grid.reso   # the links array's own shape (a brick's, for bricks)
             launch(grid.device, grid_program(grid).kernel("block_occupancy"), occ.size,
-                   (grid.geometry_args()[0], oreso, grid.links.data, occ.data), 64)
+                   (cl.cltypes.make_int4(r[0], r[1], r[2], 0), oreso, grid.links.data, occ.data),
+                   64)
         cached = (key, occ, oreso)
         grid.scratch["block_occupancy"] = cached
     return cached[1], cached[2]
@@ -114,15 +120,16 @@ def _record_buffer(grid, slots, rec_max):
     return cache[key]
 
 
-def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
-    """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n]."""
+def render_forward_device(grid, origins_d, dirs_d, step, background, out=None, t_stop=T_STOP):
+    """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n].
+    t_stop: early-termination transmittance (0: none, as distributed rendering)."""
     dev = grid.device
     n = origins_d.shape[0]
     q = dev.queue
     if out is None:
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
-    k = grid_program(grid, step=step).kernel("render_forward")
+    k = grid_program(grid, step=step, t_stop=t_stop).kernel("render_forward")
     occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
@@ -133,7 +140,7 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
                            grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
-                           beta_scale=0.0):
+                           beta_scale=0.0, t_stop=T_STOP):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
@@ -148,7 +155,8 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         return
     slots = grad_slots(grid)
     record = slots > 0 and dev.tuning.sample_record
-    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step, record=record)
+    prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots, step=step,
+                       record=record)
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg4(background),
             ray_in_d.data]
