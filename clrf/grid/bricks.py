@@ -32,6 +32,7 @@ import pyopencl.array as cla
 
 from ..programs import launch
 from .grid import SparseGrid
+from .ops import TV_EPS
 from .render import (_record_buffer, _slot_buffers, block_occupancy, grad_slots, grid_program,
                      max_samples_per_ray)
 
@@ -291,3 +292,23 @@ def max_weight_partial_device(bgrid: BrickGrid, origins_d, dirs_d, ray_T_d, step
             *bgrid.geometry_args(), np.float32(step), maxw.data, occ.data, oreso,
             ray_T_d.data, *bgrid.brick.kernel_args()),
            dev.tuning.grid_local_size)
+
+
+def tv_grad_brick(bgrid: BrickGrid, param, grad, touched, start: int, n_cells: int, scale: float,
+                  empty_is_zero: bool, lambda_sparsity: float = 0.0):
+    """ops.tv_grad for one brick: the same window of the whole grid's cells (start, n_cells in
+    its C order), over the brick's own voxels (cl/grid_ops.cl, BRICK)."""
+    dev = bgrid.device
+    D = 1 if param.ndim == 1 else param.shape[1]
+    b = bgrid.brick
+    total = int(np.prod(b.reso))
+    n_cells = int(min(n_cells, total))
+    own = tuple(h - l for l, h in zip(b.lo, b.hi))
+    prg = dev.program("grid_ops.cl", {"SH_DEGREE": bgrid.sh_degree, "TV_EPS": TV_EPS, "BRICK": 1})
+    mk = cl.cltypes.make_int4
+    r = bgrid.reso
+    launch(dev, prg.kernel("tv_grad"), int(np.prod(own)),
+           (np.int32(n_cells), np.int32(start % total), mk(r[0], r[1], r[2], 0),
+            bgrid.links.data, param.data, np.int32(D), grad.data, touched.data,
+            np.float32(scale), np.int32(bool(empty_is_zero)), np.float32(lambda_sparsity),
+            mk(*b.reso, 0), mk(*b.lo, 0), mk(*own, 0)))

@@ -13,6 +13,7 @@ from ..programs import launch
 from ..validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
+BETA_EPS = 1e-3        # guard inside the beta prior's logs (cl/grid_render.cl BETA_EPS)
 # Rays that can have more samples than this get compensated (Kahan) accumulators (COMPENSATED_SUMS
 # in cl/march.h): plain float32 sums drift like n * 6e-8, 5e-4 relative at 8192 samples.
 LONG_RAY_SAMPLES = 8192
@@ -47,7 +48,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
         "CLRF_PREFETCH": int(t.prefetch and not brick), "PREFETCH_AHEAD": t.prefetch_ahead,
         "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
-        "BRICK": int(bool(brick))})
+        "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS})
 
 
 def _bg4(background):
