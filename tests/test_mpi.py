@@ -86,3 +86,117 @@ def test_render_and_gradients_equal_single_device(single, tmp_path, ranks):
             sj = tuple(slice(a - o, b - o) for a, b, o in zip(lo, hi, r[f"lo{j}"]))
             np.testing.assert_array_equal(r[f"gd{i}"][si], r[f"gd{j}"][sj])
             np.testing.assert_array_equal(r[f"gs{i}"][si], r[f"gs{j}"][sj])
+
+
+def _scene(path):
+    """A small .npz scene (16 views of 16x16 pixels): quick to load in every process."""
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4), (16, 1, 1))
+    poses[:, 0, 3] = np.linspace(-0.5, 0.5, 16)
+    poses[:, 2, 3] = 4.0
+    np.savez(path, images=rng.uniform(size=(16, 16, 16, 3)).astype(np.float32), poses=poses,
+             focal=20.0)
+    return path
+
+
+TRAIN = ["--set", "grid.reso=[[16,16,16]]", "--set", "grid.upsample_at=[]",
+         "--set", "grid.batch_size=512", "--set", "train.eval_views=2"]
+
+
+def _csv(path):
+    import csv
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_training_matches_single_process(tmp_path):
+    """`mpirun -n 2 clrf train` on the same batches as one process: the same loss and PSNR,
+    rank 0 alone writes the run files, and a single process evaluates the merged bricks."""
+    from clrf.cli import main as cli
+    from clrf.testing.tolerances import DIST_TRAIN_RTOL
+    data = _scene(tmp_path / "scene.npz")
+    args = ["--data", str(data), "--max-seconds", "600", *TRAIN, "--set", "train.max_iters=20",
+            "--set", "train.eval_every=1e6"]
+    dist, single = tmp_path / "dist", tmp_path / "single"
+    p = mpirun(2, "-m", "clrf.cli", "train", "--out", str(dist), *args)
+    assert p.stdout.count('"iteration": 20') == 1      # one result line: rank 0's
+    assert cli(["train", "--out", str(single), *args]) == 0
+    rd, rs = _csv(dist / "metrics.csv"), _csv(single / "metrics.csv")
+    assert [r["iteration"] for r in rd] == [r["iteration"] for r in rs] == ["0", "20", "20"]
+    for a, b in zip(rd, rs):
+        for k in ("train_loss", "eval_psnr", "eval_ssim"):
+            if b[k]:
+                np.testing.assert_allclose(float(a[k]), float(b[k]), rtol=DIST_TRAIN_RTOL)
+    assert rd[1]["train_loss"] != rd[0]["train_loss"]
+    files = sorted(x.name for x in dist.iterdir())
+    assert files == ["ckpt.it000000020.rank0of2.npz", "ckpt.it000000020.rank1of2.npz",
+                     "ckpt.npz", "config.json", "error_vs_time.png", "eval.json", "metrics.csv"]
+    # the merged checkpoint in one process: same rows and values as the single-process run's
+    from clrf import checkpoint
+    a, b = checkpoint.load(dist), checkpoint.load(single)
+    np.testing.assert_array_equal(a["links"], b["links"])
+    # RMSProp normalises each row's step, so rows with near-zero gradients may move apart;
+    # compare the whole field
+    for k in ("density", "sh"):
+        assert np.linalg.norm(a[k] - b[k]) <= DIST_TRAIN_RTOL * np.linalg.norm(b[k])
+    assert cli(["eval", "--ckpt", str(dist)]) == 0
+
+
+def _children(pid):
+    """PIDs of the processes whose parent is pid (Linux /proc)."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d.name))
+    return out
+
+
+def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
+    """SIGKILL one rank while a checkpoint is being written: mpirun ends the job with an error
+    naming the rank and the signal, the manifest still names a complete set of brick files,
+    a single process evaluates it and `mpirun clrf train --resume` continues from it."""
+    import signal
+    import time
+    from clrf import checkpoint
+    from clrf.cli import main as cli
+    data = _scene(tmp_path / "scene.npz")
+    out = tmp_path / "run"
+    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-m",
+           "clrf.cli", "train", "--out", str(out), "--data", str(data), "--max-seconds", "600",
+           *TRAIN, "--set", "train.max_iters=100000", "--set", "train.checkpoint_every=0.2",
+           "--set", "train.eval_every=1e6"]
+    env = dict(os.environ, CLRF_TEST_CKPT_DELAY="0.5")
+    p = subprocess.Popen(cmd, cwd=HERE.parent, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.time()
+        # a complete checkpoint first, then a rank caught inside its next brick write
+        while not (out / "ckpt.npz").exists() or not list(out.glob("ckpt.it*.tmp*")):
+            assert p.poll() is None, p.communicate()
+            assert time.time() - t0 < MPI_TIMEOUT, "no checkpoint write seen"
+            time.sleep(0.02)
+        ranks = _children(p.pid)
+        assert len(ranks) == 2, ranks
+        os.kill(max(ranks), signal.SIGKILL)
+        _, err = p.communicate(timeout=MPI_TIMEOUT)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode != 0
+    assert "signal 9" in err, err
+    st = checkpoint.load(out)          # the manifest's set is complete
+    assert st["iteration"] > 0
+    assert cli(["eval", "--ckpt", str(out)]) == 0
+    # resume (two ranks) to a few iterations past the checkpoint: stale files are removed
+    it = int(st["iteration"])
+    mpirun(2, "-m", "clrf.cli", "train", "--out", str(out), "--resume", "--max-seconds", "600",
+           "--set", f"train.max_iters={it + 3}")
+    assert not list(out.glob("*.tmp*"))
+    assert checkpoint.load(out)["iteration"] == it + 3
+    names = sorted(x.name for x in out.glob(checkpoint.BRICK_GLOB))
+    assert names == [checkpoint.brick_file_name(it + 3, r, 2) for r in range(2)]

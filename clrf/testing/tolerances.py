@@ -239,3 +239,9 @@ BRICK_DEPTH_ATOL = 1e-5
 # Composition of float64 reference partials vs the float64 single-grid reference: the same
 # sums regrouped; float64 roundoff only.
 BRICK_REF_ATOL = 1e-12
+# A short distributed training run vs the same run in one process (same batches, same
+# optimiser): the single process stops rays at T < T_STOP = 1e-4 (the distributed one does
+# not), which changes each colour by <= 1e-4, and float sums run in another order. Over 20
+# steps on the procedural scene the mean losses and PSNRs agreed to 1e-5 relative; 1e-3 is
+# 100x that and still 50x below the loss's change over those steps.
+DIST_TRAIN_RTOL = 1e-3
