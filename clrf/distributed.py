@@ -140,10 +140,24 @@ class DistGrid:
                                               step, grad_density, grad_sh, touched)
 
     # ---- halo ---------------------------------------------------------------------------
+    def _exchange(self, mine):
+        """Send this rank's values of the shared rows (mine [len(union), W]) to each neighbour
+        holding them; returns {rank: its values of the rows shared with it}."""
+        from mpi4py import MPI
+        reqs, recv = [], {}
+        for r, pos in sorted(self.halo.pos.items()):
+            send = np.ascontiguousarray(mine[pos])
+            recv[r] = np.empty_like(send)
+            reqs.append(self.comm.Irecv(recv[r], source=r, tag=7))
+            reqs.append(self.comm.Isend(send, dest=r, tag=7))
+            self.bytes_sent += send.nbytes
+            self.bytes_received += send.nbytes
+        MPI.Request.Waitall(reqs)
+        return recv
+
     def sum_halo(self, grad_density, grad_sh, touched=None):
         """Sum the overlap rows' gradients over every rank holding them (rank order, so all
         replicas agree bit for bit) and OR their touched flags."""
-        from mpi4py import MPI
         h = self.halo
         C = self.grid.sh_dim
         u = h.union
@@ -153,15 +167,7 @@ class DistGrid:
             mine[:, 1:C + 1] = cla.take(grad_sh.reshape(-1), self._union_sh_d).get().reshape(-1, C)
             if touched is not None:
                 mine[:, C + 1] = cla.take(touched, self._union_d).get()
-        reqs, recv = [], {}
-        for r, pos in sorted(h.pos.items()):
-            send = np.ascontiguousarray(mine[pos])
-            recv[r] = np.empty_like(send)
-            reqs.append(self.comm.Irecv(recv[r], source=r, tag=7))
-            reqs.append(self.comm.Isend(send, dest=r, tag=7))
-            self.bytes_sent += send.nbytes
-            self.bytes_received += send.nbytes
-        MPI.Request.Waitall(reqs)
+        recv = self._exchange(mine)
         if not u.size:
             return
         total = np.zeros_like(mine)
@@ -177,3 +183,18 @@ class DistGrid:
         if touched is not None:
             touched.setitem(self._union_d, cla.to_device(
                 q, (total[:, C + 1] > 0).astype(np.uint8)))
+
+    def max_halo(self, values):
+        """values[k] = max over the holders of row k, for the overlap rows (pruning weights)."""
+        u = self.halo.union
+        mine = np.zeros((u.size, 1), np.float32)
+        if u.size:
+            mine[:, 0] = cla.take(values, self._union_d).get()
+        recv = self._exchange(mine)
+        if not u.size:
+            return
+        m = mine.copy()
+        for r, pos in self.halo.pos.items():
+            m[pos] = np.maximum(m[pos], recv[r])
+        values.setitem(self._union_d, cla.to_device(self.grid.device.queue,
+                                                    np.ascontiguousarray(m[:, 0])))

@@ -15,8 +15,9 @@ older brick files. ``checkpoint.load`` merges a manifest's bricks into one grid,
 process renders and evaluates a distributed run when it fits, and a distributed resume slices
 its bricks from that merged grid.
 
-Not done: coarse-to-fine upsampling and pruning across bricks (``check_schedule`` refuses a
-configuration that schedules them), and rebalancing the bricks as occupancy changes.
+Coarse-to-fine: at each scheduled iteration the grid is pruned and resampled across bricks and
+split again at the new resolution (clrf/grid/dist_ops.py). Not done: rebalancing the bricks as
+pruning changes their occupancy (the split is by volume, not by rows).
 """
 from __future__ import annotations
 
@@ -34,13 +35,10 @@ from .render import BETA_EPS
 
 
 def check_schedule(cfg, ranks: int):
-    """Refuse what distributed training cannot do yet: a coarse-to-fine schedule."""
-    g = cfg.grid
-    if g.upsample_at:
-        raise ValueError(f"grid.upsample_at: distributed training ({ranks} ranks) does not "
-                         f"upsample or prune across bricks yet; train at one resolution: "
-                         f"--set 'grid.upsample_at=[]' --set 'grid.reso=[[X,Y,Z]]'")
-    B.split(g.reso[0], ranks)   # raises with the fix when the grid is too small for the ranks
+    """Every resolution of the schedule must split into ``ranks`` bricks (ValueError with the
+    fix otherwise)."""
+    for r in cfg.grid.reso[:len(cfg.grid.upsample_at) + 1]:
+        B.split(r, ranks)
 
 
 def initial_brick(device, cfg, bbox, brick) -> B.BrickGrid:
@@ -158,7 +156,24 @@ class DistGridModel:
                             c.lambda_tv_sh / n, False)
 
     def on_iteration(self, it, trainer):
-        return None   # no upsampling across bricks (check_schedule)
+        """Prune and upsample at the scheduled iterations (collective). Returns a log message."""
+        c = self.cfg
+        if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
+            o, d = trainer.rays.strided(c.prune_rays)
+            return self.upsample(o, d)
+        return None
+
+    def upsample(self, origins, dirs):
+        """GridModel.upsample across the bricks (clrf/grid/dist_ops.py)."""
+        from .dist_ops import upsample
+        new_reso = tuple(self.cfg.reso[self.stage + 1])
+        nb, bgrid, before, kept = upsample(self, origins, dirs, new_reso)
+        self.bricks = nb
+        self.dist.bricks = nb
+        self._set_grid(bgrid)
+        self.stage += 1
+        return (f"pruned {before} -> {kept} rows, upsampled to {new_reso[0]}x{new_reso[1]}x"
+                f"{new_reso[2]} in {len(nb)} bricks")
 
     @property
     def batch_size(self) -> int:

@@ -240,8 +240,11 @@ BRICK_DEPTH_ATOL = 1e-5
 # sums regrouped; float64 roundoff only.
 BRICK_REF_ATOL = 1e-12
 # A short distributed training run vs the same run in one process (same batches, same
-# optimiser): the single process stops rays at T < T_STOP = 1e-4 (the distributed one does
-# not), which changes each colour by <= 1e-4, and float sums run in another order. Over 20
-# steps on the procedural scene the mean losses and PSNRs agreed to 1e-5 relative; 1e-3 is
-# 100x that and still 50x below the loss's change over those steps.
-DIST_TRAIN_RTOL = 1e-3
+# optimiser, a prune + upsample midway): the single process stops rays at T < T_STOP = 1e-4
+# (the distributed one does not), which changes each colour by <= 1e-4, and float sums run in
+# another order; RMSProp's first steps after the upsample (about lr * sign(gradient)) amplify
+# that for rows with near-zero gradients. On the procedural scene (20 steps, 16^3 -> 32^3) the
+# mean training losses agreed to 1e-4 relative and the PSNRs to 0.005 dB (SSIM 1e-4); these
+# bounds are 10x / 4x that and still 20x below what the 20 steps change (loss -70%, PSNR +13).
+DIST_TRAIN_RTOL = 1e-3   # mean training loss, relative
+DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
