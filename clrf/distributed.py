@@ -143,6 +143,8 @@ class DistGrid:
     def _exchange(self, mine):
         """Send this rank's values of the shared rows (mine [len(union), W]) to each neighbour
         holding them; returns {rank: its values of the rows shared with it}."""
+        if not self.halo.pos:
+            return {}
         from mpi4py import MPI
         reqs, recv = [], {}
         for r, pos in sorted(self.halo.pos.items()):
