@@ -127,3 +127,91 @@ def test_composed_matches_reference_with_background(device):
     want = ref.render_forward(dens, sh, BBOX, o, d, STEP, BACKGROUND, t_stop=0.0)
     np.testing.assert_allclose(comp["rgb"], want["rgb"], atol=RENDER_ATOL, rtol=RENDER_RTOL)
     np.testing.assert_allclose(comp["depth"], want["depth"], atol=DEPTH_ATOL, rtol=DEPTH_RTOL)
+
+
+def _edge_rays():
+    """Rays whose samples sit on brick faces and cell boundaries: axis-aligned rays in the
+    planes where a brick starts (box units lo + 0.5, the exact lerp_axis boundary), along the
+    faces and across them, plus the scene's random rays."""
+    _, _, o, d, _ = scene(n_rays=64)
+    scale = np.array(SHAPE) / (BBOX[1] - BBOX[0])
+    world = lambda p: BBOX[0] + np.asarray(p, np.float64) / scale   # box units -> world
+    oo, dd = [o], [d]
+    for b in B.split(SHAPE, 3):
+        for a in range(3):
+            if b.lo[a] == 0:
+                continue
+            for other in range(3):          # along the other axes, in the plane u_a = lo
+                if other == a:
+                    continue
+                p = np.array(SHAPE) / 2.0 + 0.25
+                p[a] = b.lo[a] + 0.5
+                p[other] = -3.0
+                v = np.zeros(3)
+                v[other] = 1.0
+                oo.append(world(p)[None].astype(np.float32))
+                dd.append(v[None].astype(np.float32))
+            p = np.array(SHAPE) / 2.0 + 0.25      # straight across the face
+            p[a] = -3.0
+            v = np.zeros(3)
+            v[a] = 1.0
+            oo.append(world(p)[None].astype(np.float32))
+            dd.append(v[None].astype(np.float32))
+    return np.concatenate(oo), np.concatenate(dd)
+
+
+@pytest.mark.parametrize("n_bricks", [2, 3])
+def test_rays_on_brick_faces(device, n_bricks):
+    """Samples exactly on the planes where bricks meet are owned once: the composed render
+    equals the single-device one."""
+    dens, sh, _, _, _ = scene()
+    o, d = _edge_rays()
+    q = device.queue
+    od, dd = cla.to_device(q, o), cla.to_device(q, d)
+    grid = SparseGrid.from_dense(device, dens, sh, BBOX)
+    single = render_forward_device(grid, od, dd, STEP, BACKGROUND, t_stop=0.0)
+    bgs = _grids(device, dens, sh, B.split(SHAPE, n_bricks))
+    comp = B.compose(np.stack([B.pack_partials(B.render_partial_device(b, od, dd, STEP))
+                               for b in bgs]), BACKGROUND)
+    np.testing.assert_allclose(comp["rgb"], single["rgb"].get(), rtol=0, atol=BRICK_COMPOSE_ATOL)
+    np.testing.assert_allclose(comp["acc"], single["acc"].get(), rtol=0, atol=BRICK_COMPOSE_ATOL)
+    assert np.all(single["acc"].get()[64:] > 0)    # the edge rays do cross matter
+
+
+def test_empty_brick(device):
+    """A brick without rows (pruned empty) renders the identity partial."""
+    dens, sh, o, d, g = scene()
+    dens[:5] = 0
+    sh[:5] = 0
+    q = device.queue
+    od, dd = cla.to_device(q, o), cla.to_device(q, d)
+    bl = B.split(SHAPE, 2)
+    assert bl[0].local_hi[0] == 5           # voxels 0..4 held, halo included: all empty
+    bgs = _grids(device, dens, sh, bl)
+    assert bgs[0].n_rows == 0
+    part = B.render_partial_device(bgs[0], od, dd, STEP)
+    lt = part["logT"].get()
+    np.testing.assert_array_equal(part["rgb"].get()[lt == 0], 0)
+    grid = SparseGrid.from_dense(device, dens, sh, BBOX)
+    single = render_forward_device(grid, od, dd, STEP, BACKGROUND, t_stop=0.0)
+    comp = B.compose(np.stack([B.pack_partials(B.render_partial_device(b, od, dd, STEP))
+                               for b in bgs]), BACKGROUND)
+    np.testing.assert_allclose(comp["rgb"], single["rgb"].get(), rtol=0, atol=BRICK_COMPOSE_ATOL)
+
+
+def test_world_is_none_without_a_launcher(monkeypatch):
+    """A single process never imports mpi4py; a launcher without mpi4py is a clear error."""
+    import subprocess
+    import sys
+    from clrf import distributed
+    for v in distributed.LAUNCHER_SIZE_VARS:
+        monkeypatch.delenv(v, raising=False)
+    code = ("import sys, clrf.distributed as d; assert d.world() is None; "
+            "assert 'mpi4py' not in sys.modules")
+    env = {k: v for k, v in __import__('os').environ.items()
+           if k not in distributed.LAUNCHER_SIZE_VARS}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
+    monkeypatch.setitem(sys.modules, "mpi4py", None)     # import fails as if not installed
+    with pytest.raises(RuntimeError, match="mpi4py is not installed"):
+        distributed.world()
