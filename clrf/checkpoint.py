@@ -121,7 +121,11 @@ def merge_bricks(path, manifest) -> dict:
     return state
 
 
-def load(path) -> dict:
+def load(path, brick=None) -> dict:
+    """The state saved at ``path`` (a run directory or checkpoint file). A distributed
+    checkpoint's bricks are merged into one grid, unless ``brick`` = (rank, ranks) names a
+    brick of a run with that many ranks: then only that rank's file is read (with the
+    manifest's iteration, seconds and configuration), as a distributed resume does."""
     path = Path(path)
     if path.is_dir():
         path = path / CKPT_NAME
@@ -130,5 +134,14 @@ def load(path) -> dict:
                               f"`clrf train --out DIR` (it holds {CKPT_NAME})")
     state = _read(path)
     if "distributed" in state:
+        d = state["distributed"]
+        if brick is not None and int(d["ranks"]) == int(brick[1]):
+            f = path.parent / d["files"][int(brick[0])]
+            if not f.is_file():
+                raise CheckpointError(f"checkpoint {path} names brick file {f.name}, which is "
+                                      f"missing: copy the whole run directory")
+            own = _read(f)
+            own.update({k: v for k, v in state.items() if k != "distributed"})
+            return own
         state = merge_bricks(path, state)
     return state

@@ -22,6 +22,7 @@ class DistGridFactory:
 
     def __init__(self, comm):
         self.comm = comm
+        self.brick = (comm.Get_rank(), comm.Get_size())   # checkpoint.load(brick=...)
 
     def create(self, device, cfg, ds, background):
         from .grid.dist_model import DistGridModel

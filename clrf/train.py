@@ -179,7 +179,8 @@ class Trainer:
         if self.comm is not None:
             self.comm.Barrier()
         if resume:
-            state = checkpoint.load(self.ckpt_path)
+            # a distributed run reads its own brick file when the rank count is the same
+            state = checkpoint.load(self.ckpt_path, brick=getattr(model_factory, "brick", None))
             self.model = model_factory.from_state(device, state, cfg)
             self.iteration = int(state["iteration"])
             self.seconds = float(state["seconds"])

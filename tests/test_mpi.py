@@ -202,6 +202,12 @@ def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
     assert checkpoint.load(out)["iteration"] == it + 3
     names = sorted(x.name for x in out.glob(checkpoint.BRICK_GLOB))
     assert names == [checkpoint.brick_file_name(it + 3, r, 2) for r in range(2)]
+    # another rank count resumes from the merged bricks
+    mpirun(3, "-m", "clrf.cli", "train", "--out", str(out), "--resume", "--max-seconds", "600",
+           "--set", f"train.max_iters={it + 5}")
+    names = sorted(x.name for x in out.glob(checkpoint.BRICK_GLOB))
+    assert names == [checkpoint.brick_file_name(it + 5, r, 3) for r in range(3)]
+    assert checkpoint.load(out)["iteration"] == it + 5
 
 
 @pytest.mark.parametrize("ranks", [2, 3])

@@ -82,12 +82,23 @@ class DistGridModel:
 
     @classmethod
     def from_state_dict(cls, device, state, cfg, comm):
-        """The rank's brick of a merged whole-grid state (checkpoint.load of a manifest or of a
-        single-process checkpoint), optimiser state included."""
+        """The rank's brick from its own brick file's state (checkpoint.load with brick=, same
+        rank count) or from a whole-grid state (a merged manifest or a single-process
+        checkpoint, sliced), optimiser state included."""
         links = np.asarray(state["links"])
-        bl = B.split(links.shape, comm.Get_size())
-        br = bl[comm.Get_rank()]
-        local = links[br.local_slices]
+        if "brick" in state:     # this rank's own file
+            reso = tuple(state["brick"]["reso"])
+            bl = B.split(reso, comm.Get_size())
+            br = bl[comm.Get_rank()]
+            if [list(br.lo), list(br.hi)] != [state["brick"]["lo"], state["brick"]["hi"]]:
+                raise checkpoint.CheckpointError(
+                    f"brick file of rank {comm.Get_rank()} holds {state['brick']['lo']}.."
+                    f"{state['brick']['hi']}, but this split gives {br.lo}..{br.hi}")
+            local = links
+        else:
+            bl = B.split(links.shape, comm.Get_size())
+            br = bl[comm.Get_rank()]
+            local = links[br.local_slices]
         rows = local[local >= 0]
         new = np.full(local.shape, -1, np.int32)
         new[local >= 0] = np.arange(rows.size, dtype=np.int32)
