@@ -38,9 +38,6 @@
 #ifndef BRICK
 #define BRICK 0      /* 1: march one brick of a distributed grid (see above) */
 #endif
-#if BRICK && CLRF_PREFETCH
-#error "BRICK: prefetching reads links ahead, possibly outside the brick; build with CLRF_PREFETCH 0"
-#endif
 #if CLRF_PREFETCH
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #else
@@ -157,6 +154,9 @@ inline int brick_owns(const march_t *m, float3 p, int4 reso) {
     return q.x0 >= m->blo.x && q.x0 < m->bhi.x && q.y0 >= m->blo.y && q.y0 < m->bhi.y &&
            q.z0 >= m->blo.z && q.z0 < m->bhi.z;
 }
+#define BRICK_OWNS(m, p, reso) brick_owns((m), (p), (reso))
+#else
+#define BRICK_OWNS(m, p, reso) 1
 #endif
 
 /* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
@@ -444,13 +444,13 @@ inline int march_visit(const march_t *m, int4 reso, __global const int *links,
 #endif
     if (skip_block(m, p, reso, k)) return 0;
 #if CLRF_PREFETCH
-    if (pf) {
-        if (*k + PREFETCH_LINKS_AHEAD < m->nsteps)
-            prefetch_links(m, m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
-                           &pf[1]);
-        if (*k + PREFETCH_AHEAD < m->nsteps)
-            prefetch_cell_grad(m, m->p0 + (*mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links,
-                               density, sh, grad_d, grad_s, &pf[0]);
+    if (pf) {   /* a brick prefetches only points it owns: their corners are in its links */
+        const float3 pl = m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg;
+        if (*k + PREFETCH_LINKS_AHEAD < m->nsteps && BRICK_OWNS(m, pl, reso))
+            prefetch_links(m, pl, reso, links, &pf[1]);
+        const float3 pr = m->p0 + (*mid + PREFETCH_AHEAD * m->dt) * m->dg;
+        if (*k + PREFETCH_AHEAD < m->nsteps && BRICK_OWNS(m, pr, reso))
+            prefetch_cell_grad(m, pr, reso, links, density, sh, grad_d, grad_s, &pf[0]);
     }
 #endif
     if (!lerp_setup_cached(m, p, reso, links, L)) {

@@ -20,9 +20,9 @@ def _grid_render():
         yield {**base, "GRAD_MODE": mode, "GRAD_SLOTS": slots, "SAMPLE_RECORD": rec,
                "TRACK_TOUCHED": touched}
     yield {**base, "COMPENSATED_SUMS": 1, "CLRF_PREFETCH": 0, "BLOCK": 0}
-    # the distributed bricks (clrf/grid/bricks.py): no prefetch, no early termination
-    for (slots, rec), touched in itertools.product(((0, 0), (2, 1)), (0, 1)):
-        yield {**base, "BRICK": 1, "CLRF_PREFETCH": 0, "T_STOP": 0.0, "GRAD_SLOTS": slots,
+    # the distributed bricks (clrf/grid/bricks.py): no early termination
+    for (slots, rec), touched, pf in itertools.product(((0, 0), (2, 1)), (0, 1), (0, 1)):
+        yield {**base, "BRICK": 1, "CLRF_PREFETCH": pf, "T_STOP": 0.0, "GRAD_SLOTS": slots,
                "SAMPLE_RECORD": rec, "TRACK_TOUCHED": touched}
 
 

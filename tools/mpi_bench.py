@@ -70,14 +70,55 @@ class _Solo:
         pass
 
 
-def best(fn, repeat):
-    fn()
-    ts = []
-    for _ in range(repeat):
+def phases(model, od, dd, target, repeat):
+    """Seconds of each part of one training step (best of repeat), as DistGridModel.train_step
+    runs them, with the queue drained between parts."""
+    c = model.cfg
+    q = model.device.queue
+    dist = model.dist
+    n = od.shape[0]
+    t = {}
+
+    def tick(name, t0):
+        q.finish()
+        t[name] = min(t.get(name, 1e9), time.perf_counter() - t0)
+        return time.perf_counter()
+
+    for _ in range(repeat + 1):
         t0 = time.perf_counter()
+        part = B.render_partial_device(model.grid, od, dd, c.step)
+        t0 = tick("forward kernel", t0)
+        local = B.pack_partials(part)
+        t0 = tick("partials to host", t0)
+        packed = dist.allgather(local)
+        t0 = tick("Allgather", t0)
+        comp = B.compose(packed, model.background)
+        diff = comp["rgb"] - target.get().astype(np.float64)
+        inp = B.backward_inputs(packed, comp, (2.0 / (3 * n)) * diff, model.background)[dist.rank]
+        inp_d = cla.to_device(q, np.ascontiguousarray(inp))
+        t0 = tick("compose + loss + inputs (host)", t0)
+        B.render_backward_partial_device(model.grid, od, dd, inp_d, c.step,
+                                         model.opt_density.grad, model.opt_sh.grad, model.touched)
+        t0 = tick("backward kernel", t0)
+        dist.sum_halo(model.opt_density.grad, model.opt_sh.grad, model.touched)
+        t0 = tick("halo gradient sum", t0)
+        model.opt_density.step(model.touched, 0.0, clear_touched=False)
+        model.opt_sh.step(model.touched, 0.0, clear_touched=True)
+        tick("optimiser", t0)
+    return t
+
+
+def best(fn, repeat):
+    """(wall seconds, CPU seconds of this process, all its threads), each the best of repeat
+    after a warm-up. On a shared machine the CPU time is the steadier measure of the work."""
+    fn()
+    ts, cs = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         ts.append(time.perf_counter() - t0)
-    return min(ts)
+        cs.append(time.process_time() - c0)
+    return min(ts), min(cs)
 
 
 def main():
@@ -122,8 +163,9 @@ def main():
     d0 = model.dist.bytes_sent
     step()
     step_bytes = model.dist.bytes_sent - d0
-    t_fwd = best(fwd, a.repeat)
-    t_step = best(step, a.repeat)
+    t_fwd, c_fwd = best(fwd, a.repeat)
+    t_step, c_step = best(step, a.repeat)
+    t_phases = phases(model, od, dd, target, a.repeat)
     g = model.grid
     C = g.sh_dim
     rows = g.n_rows
@@ -132,7 +174,9 @@ def main():
     rec = {"rank": rank, "ranks": P, "brick_lo": list(bl[rank].lo), "brick_hi": list(bl[rank].hi),
            "rows": int(rows), "halo_rows": int(model.dist.halo.n_rows()),
            "device_bytes": int(mem), "fwd_s": t_fwd, "step_s": t_step,
-           "fwd_bytes_sent": int(fwd_bytes), "step_bytes_sent": int(step_bytes)}
+           "fwd_cpu_s": c_fwd, "step_cpu_s": c_step,
+           "fwd_bytes_sent": int(fwd_bytes), "step_bytes_sent": int(step_bytes),
+           "step_phases_s": t_phases}
     if P == 1:   # the single-device path (prefetch, early termination) for comparison
         from clrf.grid.grid import SparseGrid
         from clrf.grid.model import GridModel
@@ -147,8 +191,8 @@ def main():
         def sstep():
             gm.train_step(1000, od, dd, target)
             q.finish()
-        rec["single_device_fwd_s"] = best(sfwd, a.repeat)
-        rec["single_device_step_s"] = best(sstep, a.repeat)
+        rec["single_device_fwd_s"], rec["single_device_fwd_cpu_s"] = best(sfwd, a.repeat)
+        rec["single_device_step_s"], rec["single_device_step_cpu_s"] = best(sstep, a.repeat)
     allrec = comm.allgather(rec) if P > 1 else [rec]
     if rank == 0:
         t_f = max(r["fwd_s"] for r in allrec)
@@ -159,6 +203,9 @@ def main():
             "bind": os.environ.get("OMPI_MCA_hwloc_base_binding_policy", ""),
             "reso": a.reso, "sh_degree": a.degree, "rays": a.rays, "ranks": P,
             "fwd_rays_per_s": a.rays / t_f, "step_rays_per_s": a.rays / t_s,
+            "fwd_cpu_s_per_rank": [r["fwd_cpu_s"] for r in allrec],
+            "step_cpu_s_per_rank": [r["step_cpu_s"] for r in allrec],
+            "load_average": os.getloadavg()[0],
             "fwd_bytes_per_ray_per_rank": max(r["fwd_bytes_sent"] for r in allrec) / a.rays,
             "step_bytes_per_rank": max(r["step_bytes_sent"] for r in allrec),
             "per_rank": allrec,

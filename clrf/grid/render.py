@@ -37,8 +37,8 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
                  slots: int = 0, step: float = 0.5, record: bool = False, brick: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
     record: the backward reads the forward's per-sample record, needs slots > 0; brick: the
-    BRICK variant for one brick of a distributed grid, clrf/grid/bricks.py, which has no
-    prefetching and is built with t_stop 0)."""
+    BRICK variant for one brick of a distributed grid, clrf/grid/bricks.py, built with
+    t_stop 0)."""
     t = grid.device.tuning
     reso = getattr(grid, "march_reso", grid.reso)
     return grid.device.program("grid_render.cl", {
@@ -46,7 +46,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
         "SAMPLE_RECORD": int(bool(record) and slots > 0),
         "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
-        "CLRF_PREFETCH": int(t.prefetch and not brick), "PREFETCH_AHEAD": t.prefetch_ahead,
+        "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
         "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
         "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS})
 
