@@ -186,8 +186,9 @@ class Trainer:
             self.seconds = float(state["seconds"])
             if self.primary:
                 rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
-            self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
-                     f"({self.seconds:.1f} s)")
+            if self.primary:
+                self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
+                         f"({self.seconds:.1f} s)")
         else:
             self.model = model_factory.create(device, cfg, ds, self.background)
             if self.primary:

@@ -34,6 +34,27 @@ def test_split_partitions_the_voxels():
         B.split((3, 1, 1), 3)
 
 
+def test_split_balances_a_weight():
+    """With a weight per block of cells (expected rows), cuts split the weight, not the volume:
+    here all rows sit in the first quarter of x."""
+    reso = (65, 33, 33)                    # 64 x 32 x 32 cells
+    w = np.zeros((64, 32, 32))             # blocks of one cell
+    w[:16] = 1.0
+    for n in (2, 3, 4):
+        bl = B.split(reso, n, w, 1)
+        count = np.zeros(reso, int)
+        for b in bl:
+            count[tuple(slice(l, h) for l, h in zip(b.lo, b.hi))] += 1
+        assert np.all(count == 1)
+        share = [w[tuple(slice(l, h) for l, h in zip(b.lo, b.hi))].sum() / w.sum() for b in bl]
+        assert max(share) <= 1.0 / n + 1.0 / 16, share     # cuts fall on whole cells
+    assert B.split(reso, 2, w, 1)[0].hi[0] == 8            # by volume it would be 32
+    assert B.split(reso, 2, np.zeros_like(w), 1)[0].hi[0] == 32   # no weight: by volume
+    # coarse blocks: cuts on block boundaries (multiples of 4 cells)
+    wb = w.reshape(16, 4, 8, 4, 8, 4).sum(axis=(1, 3, 5))
+    assert B.split(reso, 2, wb, 4)[0].hi[0] == 8
+
+
 @pytest.mark.parametrize("n_bricks", [2, 3, 4])
 def test_reference_partials_compose_to_single_grid(n_bricks):
     """The math alone, float64: partials over the bricks, composed, are the single-grid render,

@@ -141,6 +141,15 @@ def test_training_matches_single_process(tmp_path):
     a, b = checkpoint.load(dist), checkpoint.load(single)
     assert a["links"].shape == (32, 32, 32)
     np.testing.assert_array_equal(a["links"], b["links"])
+    # the upsample split the pruned grid by rows, not by volume
+    own = []
+    for r in range(2):
+        st = checkpoint.load(dist, brick=(r, 2))
+        lo, hi = st["brick"]["lo"], st["brick"]["hi"]
+        own.append(int(np.count_nonzero(st["links"][tuple(slice(0, h - l) for l, h in
+                                                          zip(lo, hi))] >= 0)))
+    assert sum(own) == int(np.count_nonzero(b["links"] >= 0))
+    assert abs(own[0] - own[1]) <= 0.1 * sum(own), own
     assert cli(["eval", "--ckpt", str(dist)]) == 0
 
 

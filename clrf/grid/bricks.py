@@ -72,29 +72,56 @@ class Brick:
         return (mk(*self.lo, 0), mk(*self.hi, 0), mk(*self.local_reso, 0))
 
 
-def split(reso, n: int) -> list:
+def split(reso, n: int, weight=None, block: int = 1) -> list:
     """``n`` bricks covering a grid of resolution ``reso``: recursive bisection of the cells
-    (lower corners 0 .. reso - 2) along the longest axis, sizes in proportion to the ranks on
-    each side. Raises ValueError when an axis has too few cells for its share."""
+    (lower corners 0 .. reso - 2) along the longest axis. Without ``weight`` each side gets
+    cells in proportion to its ranks; with ``weight`` (per block of ``block``^3 cells, shape
+    ceil(cells / block) per axis, e.g. expected rows) the cut, at a block boundary, splits the
+    weight in that proportion instead (rebalancing after pruning), keeping at least one cell
+    per rank on each side. Raises ValueError when an axis has too few cells for its share."""
     reso = tuple(int(r) for r in reso)
     n = int(n)
     if n < 1:
         raise ValueError(f"bricks: need at least one, got {n}")
+    ncell = [max(r - 1, 1) for r in reso]
+    W = None if weight is None else np.asarray(weight, np.float64)
     out = []
+
+    def weighted_cut(lo, hi, a, k1, k):
+        """Block-aligned cut along axis a splitting the box's weight k1 : k - k1, or None."""
+        if W is None:
+            return None
+        blo = [l // block for l in lo]
+        bhi = [-(-min(h, c) // block) for h, c in zip(hi, ncell)]
+        sub = W[blo[0]:bhi[0], blo[1]:bhi[1], blo[2]:bhi[2]]
+        marg = sub.sum(axis=tuple(i for i in range(3) if i != a))
+        total = marg.sum()
+        if not total > 0:
+            return None
+        cum = np.cumsum(marg)[:-1]                  # weight below each inner block boundary
+        cuts = (np.arange(blo[a] + 1, bhi[a]) * block)
+        end = min(hi[a], ncell[a])
+        ok = (cuts - lo[a] >= k1) & (end - cuts >= k - k1)
+        if not ok.any():
+            return None
+        j = np.argmin(np.where(ok, np.abs(cum - total * k1 / k), np.inf))
+        return int(cuts[j])
 
     def rec(lo, hi, k):
         if k == 1:
             out.append((tuple(lo), tuple(hi)))
             return
         # cells along each axis in [lo, hi): lower corners up to reso - 2
-        cells = [min(h, max(r - 1, 1)) - l for l, h, r in zip(lo, hi, reso)]
+        cells = [min(h, c) - l for l, h, c in zip(lo, hi, ncell)]
         a = int(np.argmax(cells))
         if cells[a] < k:
             raise ValueError(f"bricks: a {reso} grid cannot be split into {n} bricks (a brick "
                              f"of {cells[a]} cells along its longest axis for {k} ranks); "
                              f"use fewer ranks or a finer grid")
         k1 = k // 2
-        cut = lo[a] + int(round(cells[a] * k1 / k))
+        cut = weighted_cut(lo, hi, a, k1, k)
+        if cut is None:
+            cut = lo[a] + int(round(cells[a] * k1 / k))
         hi1, lo2 = list(hi), list(lo)
         hi1[a] = cut
         lo2[a] = cut
@@ -103,6 +130,12 @@ def split(reso, n: int) -> list:
 
     rec([0, 0, 0], list(reso), n)
     return [Brick(i, lo, hi, reso) for i, (lo, hi) in enumerate(out)]
+
+
+def from_boxes(boxes, reso) -> list:
+    """Bricks from saved [[lo, hi], ...] (a distributed checkpoint's manifest)."""
+    return [Brick(i, tuple(int(v) for v in lo), tuple(int(v) for v in hi),
+                  tuple(int(r) for r in reso)) for i, (lo, hi) in enumerate(boxes)]
 
 
 def owner_of(bricks, voxels) -> np.ndarray:

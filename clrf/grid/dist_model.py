@@ -16,8 +16,8 @@ process renders and evaluates a distributed run when it fits, and a distributed 
 its bricks from that merged grid.
 
 Coarse-to-fine: at each scheduled iteration the grid is pruned and resampled across bricks and
-split again at the new resolution (clrf/grid/dist_ops.py). Not done: rebalancing the bricks as
-pruning changes their occupancy (the split is by volume, not by rows).
+split again at the new resolution, balanced by the rows the pruned grid will have
+(clrf/grid/dist_ops.py). Between upsamples the bricks stay as they are.
 """
 from __future__ import annotations
 
@@ -86,9 +86,10 @@ class DistGridModel:
         rank count) or from a whole-grid state (a merged manifest or a single-process
         checkpoint, sliced), optimiser state included."""
         links = np.asarray(state["links"])
-        if "brick" in state:     # this rank's own file
+        if "brick" in state:     # this rank's own file; the manifest lists every brick
             reso = tuple(state["brick"]["reso"])
-            bl = B.split(reso, comm.Get_size())
+            bl = (B.from_boxes(state["bricks"], reso) if "bricks" in state
+                  else B.split(reso, comm.Get_size()))
             br = bl[comm.Get_rank()]
             if [list(br.lo), list(br.hi)] != [state["brick"]["lo"], state["brick"]["hi"]]:
                 raise checkpoint.CheckpointError(
@@ -238,7 +239,8 @@ class DistGridModel:
         if r == 0:
             meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
             meta.pop("brick")
-            meta.update(distributed={"ranks": P, "files": names, "reso": list(self.grid.march_reso)})
+            meta.update(distributed={"ranks": P, "files": names, "reso": list(self.grid.march_reso)},
+                        bricks=[[list(b.lo), list(b.hi)] for b in self.bricks])
             checkpoint.save(path, meta)
             checkpoint.remove_unreferenced_bricks(path.parent)
         self.comm.Barrier()

@@ -7,7 +7,10 @@ resampling across bricks, with the single grid's rules (clrf/grid/ops.py, cl/gri
 2. keep = allocated and (max weight >= threshold), dilated by one voxel (26-neighbourhood): each
    rank dilates its own voxels with its neighbours' flags one voxel around its box
    (``gather_box``).
-3. The new grid is split again (bricks.split at the new resolution); each rank evaluates its new
+3. The new grid is split again (bricks.split at the new resolution, weighted by the rows each
+   block of cells is expected to hold: the kept old voxels, each worth (new / old)^3 new ones,
+   summed over the ranks; so pruning does not leave some ranks with most of the rows and
+   others idle); each rank evaluates its new
    voxels (own and halo) by trilinear interpolation of the kept old rows at their centres, in
    float32 with the operation order of resample_corners / resample_fill, from the old voxels
    around them (``gather_box`` from their owners). A new voxel is allocated iff a kept old row
@@ -137,8 +140,8 @@ def upsample(model, origins, dirs, new_reso):
         keep_own = keep0_own
     before = comm.allreduce(int(alloc_own.sum()))
     kept = comm.allreduce(int(keep_own.sum()))
-    # the new bricks and the old voxels their centres interpolate
-    nb = B.split(new_reso, comm.Get_size())
+    # the new bricks, balanced by expected rows, and the old voxels their centres interpolate
+    nb = B.split(new_reso, comm.Get_size(), *expected_rows(comm, br, keep_own, new))
     me = nb[comm.Get_rank()]
     ax = []
     for a in range(3):
@@ -175,3 +178,26 @@ def upsample(model, origins, dirs, new_reso):
         ns += wk[..., None] * sh[sel]
     sg = SparseGrid.from_dense(model.device, nd, ns, g.bbox, mask=alloc)
     return nb, B.BrickGrid.from_grid(sg, me), before, kept
+
+
+# Blocks per axis of the weights the new split balances (bricks.split ``weight``): fine enough to
+# place cuts within 1/64 of an axis, small enough to allreduce (64^3 float64 = 2 MB).
+BALANCE_BLOCKS = 64
+
+
+def expected_rows(comm, brick, keep_own, new):
+    """(weight, block) for bricks.split at resolution ``new``: per block of new cells, the
+    number of new voxels the kept old voxels (``keep_own``, this rank's own) will give, summed
+    over the ranks (Allreduce)."""
+    from mpi4py import MPI
+    old = np.array(brick.reso)
+    ncell = np.maximum(new - 1, 1)
+    block = max(1, int(-(-ncell.max() // BALANCE_BLOCKS)))
+    shape = tuple(int(-(-c // block)) for c in ncell)
+    w = np.zeros(shape, np.float64)
+    pos = np.argwhere(keep_own) + np.array(brick.lo)           # kept old voxels, global
+    if pos.size:
+        cell = np.minimum(((pos + 0.5) * new / old).astype(np.int64), ncell - 1)
+        np.add.at(w, tuple((cell // block).T), float(np.prod(new / old)))
+    comm.Allreduce(MPI.IN_PLACE, w, op=MPI.SUM)
+    return w, block
