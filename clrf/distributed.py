@@ -23,9 +23,10 @@ import os
 import numpy as np
 import pyopencl.array as cla
 
-# Environment variables MPI launchers set in every process they start (Open MPI, PMI/PMIx:
-# MPICH, Intel MPI, Slurm's srun). Without one, the process is alone and mpi4py is not imported.
-LAUNCHER_SIZE_VARS = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE", "MPI_LOCALNRANKS")
+# The world size MPI launchers put in the environment of every process they start (Open MPI's
+# mpirun; PMI launchers: MPICH and Intel MPI's Hydra, srun --mpi=pmi2). Without one, the
+# process is alone and mpi4py is not imported.
+LAUNCHER_SIZE_VARS = ("OMPI_COMM_WORLD_SIZE", "PMI_SIZE")
 
 
 def launched_size() -> int:
