@@ -20,7 +20,13 @@
  *   old rows at its centre, and is allocated iff a kept old row has weight > 0 there.
  *   With the same resolution this is exactly pruning.
  *
- * Defines read: SH_DEGREE (march.h, unused here), TV_EPS. Mirrored by reference.tv_grad,
+ * tv_grad with BRICK 1 (one brick of a distributed grid, clrf/grid/bricks.py): links is the
+ *   brick's array (its voxels from blo plus the one-voxel halo, shape reso); the work-items
+ *   cover the brick's own voxels (bown per axis) and keep those whose whole-grid cell index
+ *   (greso) lies in the window, so the bricks together do exactly the single grid's window;
+ *   gradients for halo neighbours go to the halo rows (summed over holders by the host).
+ *
+ * Defines read: SH_DEGREE (march.h, unused here), TV_EPS, BRICK. Mirrored by reference.tv_grad,
  * reference.prune_keep, reference.resample.
  */
 #include "march.h"
@@ -32,12 +38,25 @@
 __kernel void tv_grad(const int n_cells, const int start, const int4 reso,
                       __global const int *links, __global const float *data, const int D,
                       __global float *grad, __global uchar *touched, const float scale,
-                      const int empty_is_zero, const float lambda_sparsity) {
+                      const int empty_is_zero, const float lambda_sparsity
+#if BRICK
+                      , const int4 greso, const int4 blo, const int4 bown
+#endif
+                      ) {
     const int i = get_global_id(0);
+#if BRICK
+    if (i >= bown.x * bown.y * bown.z) return;
+    const int z = i % bown.z, y = (i / bown.z) % bown.y, x = i / (bown.y * bown.z);
+    const long gtotal = (long)greso.x * greso.y * greso.z;
+    const long gcell = ((long)(x + blo.x) * greso.y + (y + blo.y)) * greso.z + (z + blo.z);
+    if ((gcell - start + gtotal) % gtotal >= n_cells) return;
+    const int cell = cell_of(x, y, z, reso);
+#else
     if (i >= n_cells) return;
     const int total = reso.x * reso.y * reso.z;
     const int cell = (int)(((long)start + i) % total);
     const int z = cell % reso.z, y = (cell / reso.z) % reso.y, x = cell / (reso.y * reso.z);
+#endif
     const int k = links[cell];
     if (k < 0) return;
     /* neighbour rows: >= 0 allocated, -1 unallocated, -2 outside the grid */

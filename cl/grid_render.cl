@@ -61,8 +61,24 @@
  * starting distance: t_exit[i] = world distance along the unit direction at which the ray
  * leaves the grid box (0 for a ray that misses it).
  *
+ * Bricks (BRICK 1; march.h, clrf/grid/bricks.py): the grid is split into bricks, one per
+ * process, and each kernel marches only the samples its brick owns, with the whole grid's
+ * geometry (reso, bmin, scale) and the brick's links (voxels blo .. blo + lreso - 1). The
+ * march starts with T = 1 at the brick's first sample, so render_forward returns a partial:
+ *   out_rgb = sum_k T_k' w_k' c_k (premultiplied, no background), out_logT = -sum_k tau_k,
+ *   out_acc = sum_k w_k', out_depth = sum_k w_k' t_k,  out_key = first segment evaluated (-1:
+ *   none, the partial is the identity),
+ * with T_k' the transmittance from the brick's entry. Sorted by key along the ray, the partials
+ * compose with the over operator into the single-grid result: rgb = sum_b T_b rgb_b + T_end bg,
+ * T_b = exp(sum_{b'<b} logT_b'). For the backward pass ray_in holds per ray the float4
+ * (T_b g, R_b), R_b = g.(everything behind the brick, background included) (+ T_end dL/dT_end):
+ * with total = (T_b g).rgb_b + R_b, the remaining-radiance recursion above gives each sample
+ * of the brick exactly the single-grid gradient (T_k = T_b T_k', w_k = T_b w_k'). No early
+ * termination: the host builds with T_STOP 0 (a brick cannot know T_b in the forward pass).
+ * render_max_weight multiplies by ray_T = T_b.
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BG_PER_RAY, BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
+ * BG_PER_RAY, BRICK, BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
  * (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the
  * signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
  * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
@@ -100,6 +116,22 @@
 #define BG_ARG const float4 bg
 #define BG_OF(i) (bg.xyz)
 #endif
+#if BRICK && GRAD_MODE != 0
+#error "BRICK: the loss is taken on the composed rays (host); build with GRAD_MODE 0"
+#endif
+
+/* BRICK: the brick's place in the grid (march.h), the last arguments of every march kernel;
+ * BRICK_SETUP copies them into the march state. */
+#if BRICK
+#define BRICK_ARGS , const int4 blo, const int4 bhi, const int4 lreso
+#define BRICK_SETUP(m) do { (m).blo = blo; (m).bhi = bhi; (m).lreso = lreso; } while (0)
+#else
+#define BRICK_ARGS
+#define BRICK_SETUP(m) do { } while (0)
+#endif
+#if BRICK && BG_PER_RAY
+#error "BRICK with BG_PER_RAY: the distributed grid has no background model"
+#endif
 
 __kernel void render_forward(const int n_rays, __global const float *origins,
                              __global const float *dirs, __global const int *links,
@@ -107,21 +139,32 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
                              const int4 reso, const float4 bmin, const float4 scale,
                              const float step, BG_ARG, __global float *out_rgb,
                              __global float *out_depth, __global float *out_acc,
-                             __global const uchar *occ, const int4 oreso) {
+#if BRICK
+                             __global float *out_logT, __global int *out_key,
+#endif
+                             __global const uchar *occ, const int4 oreso BRICK_ARGS) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
     m.occ = occ;
     m.oreso = oreso;
+    BRICK_SETUP(m);
     fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
     float t0 = 0.0f;
+    int kfirst = -1;
     if (march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) {
         float Y[SH_BASIS];
         sh_basis(m.dir, Y);
-        march_forward(&m, reso, links, density, sh, Y, &f);
+        march_forward(&m, reso, links, density, sh, Y, &kfirst, &f);
         t0 = m.t0;
     }
-    float3 rgb = f.rgb + exp(f.logT) * BG_OF(i);
+#if BRICK
+    const float3 rgb = f.rgb;
+    out_logT[i] = f.logT;
+    out_key[i] = kfirst;
+#else
+    const float3 rgb = f.rgb + exp(f.logT) * BG_OF(i);
+#endif
     out_rgb[3 * i] = rgb.x;
     out_rgb[3 * i + 1] = rgb.y;
     out_rgb[3 * i + 2] = rgb.z;
@@ -202,12 +245,13 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global float *slot_rec, const int rec_max,
 #endif
 #endif
-                              __global const uchar *occ, const int4 oreso) {
+                              __global const uchar *occ, const int4 oreso BRICK_ARGS) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
     m.occ = occ;
     m.oreso = oreso;
+    BRICK_SETUP(m);
     const int hit = march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m);
 
     /* where this work-item's gradients go; a slot also brings a private sample record */
@@ -244,11 +288,16 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 
     float Y[SH_BASIS];
     fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
-    int n_rec = -1;
+    int n_rec = -1, kfirst = -1;
     if (hit) {
         sh_basis(m.dir, Y);
-        march_forward_rec(&m, reso, links, density, sh, Y, rec, rec_len, &n_rec, &f);
+        march_forward_rec(&m, reso, links, density, sh, Y, rec, rec_len, &n_rec, &kfirst, &f);
     }
+#if BRICK   /* (T_b g, R_b): see the header */
+    const float4 gin = vload4(i, ray_in);
+    const float3 g = gin.xyz;
+    const float total = dot(g, f.rgb) + gin.w;
+#else
     const float Tend = exp(f.logT);
     const float3 rgb = f.rgb + Tend * BG_OF(i);
 #if GRAD_MODE == 1
@@ -268,9 +317,10 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #if BG_PER_RAY
     vstore3(Tend * g, i, grad_bg);   /* dL/d bg_i: the pixel is C_fg + T_end bg_i */
 #endif
+    const float total = dot(g, rgb) + Tend * gT;
+#endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
-    const float total = dot(g, rgb) + Tend * gT;
     shy_t S;
     shy_setup(Y, &S);
 
@@ -292,7 +342,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     ksum_t prefix = {0.0f, 0.0f};
     float T = 1.0f;
     int j = 0;   /* index of the non-empty sample in the record */
-    for (int k = 0; k < m.nsteps; ++k) {
+    for (int k = MARCH_K0(&m); k < m.nsteps; ++k) {
         float mid, delta;
         if (!march_visit(&m, reso, links, density, sh, dst_d, dst_s, pf, &k, &mid, &delta, &L))
             continue;
@@ -393,24 +443,34 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
                                 __global const float *density, const int4 reso,
                                 const float4 bmin, const float4 scale, const float step,
                                 __global float *maxw, __global const uchar *occ,
-                                const int4 oreso) {
+                                const int4 oreso
+#if BRICK
+                                , __global const float *ray_T
+#endif
+                                BRICK_ARGS) {
     const int i = get_global_id(0);
     if (i >= n_rays) return;
     march_t m;
     m.occ = occ;
     m.oreso = oreso;
+    BRICK_SETUP(m);
     if (!march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) return;
     ksum_t logT = {0.0f, 0.0f};
+#if BRICK
+    const float Tb = ray_T[i];   /* transmittance in front of the brick */
+#else
+    const float Tb = 1.0f;
+#endif
     float T = 1.0f;
     lerp_t L;
     L.cell = -1;
-    for (int k = 0; k < m.nsteps; ++k) {
+    for (int k = MARCH_K0(&m); k < m.nsteps; ++k) {
         float mid, delta;
         if (!march_visit(&m, reso, links, density, 0, 0, 0, 0, &k, &mid, &delta, &L)) continue;
         const float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) continue;
         float Tnext;
-        const float w = vr_step(&logT, T, sigma * delta, &Tnext);
+        const float w = Tb * vr_step(&logT, T, sigma * delta, &Tnext);
         for (int c = 0; c < 8; ++c)
             if (L.idx[c] >= 0 && L.w[c] > 0.0f) atomic_max_nonneg_f(maxw + L.idx[c], w * L.w[c]);
         T = Tnext;

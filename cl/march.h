@@ -1,7 +1,18 @@
 /* march.h: the ray march over a sparse SH grid shared by every kernel that walks rays
  * (render forward/backward, pruning weights). Conventions are documented in grid_render.cl.
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, CLRF_HAS_FP64 (ray.h).
+ * Bricks (BRICK 1, distributed rendering, clrf/grid/bricks.py): the kernel holds one brick of
+ * the grid. The march is set up on the whole grid (global reso, bmin, scale), so the segments
+ * and sample positions are those of the single-grid march bit for bit; a sample is evaluated
+ * only when the brick owns it: when the lower corner of its cell (cell_locate) lies in
+ * [blo, bhi) on every axis. Cells are convex and the corner index is monotone along a ray, so
+ * a brick owns one contiguous run of segments, and every sample has exactly one owner. The
+ * links array holds the brick's voxels plus a one-voxel halo on its high sides: voxels blo ..
+ * blo + lreso - 1 (lreso = min(bhi + 1, reso) - blo), all the corners its cells touch.
+ * march_setup narrows the loop to the segments [k0, nsteps) around the brick (with a slack,
+ * the ownership test being the exact one).
+ *
+ * Defines read: SH_DEGREE (sh.h), T_STOP, BRICK, CLRF_HAS_FP64 (ray.h).
  */
 #ifndef CLRF_MARCH_H
 #define CLRF_MARCH_H
@@ -24,6 +35,9 @@
 #ifndef PREFETCH_LINKS_AHEAD
 #define PREFETCH_LINKS_AHEAD (2 * PREFETCH_AHEAD) /* samples ahead for the links of a cell */
 #endif
+#ifndef BRICK
+#define BRICK 0      /* 1: march one brick of a distributed grid (see above) */
+#endif
 #if CLRF_PREFETCH
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #else
@@ -40,7 +54,19 @@ typedef struct {
     int nsteps;  /* number of segments, the last one clipped to len */
     __global const uchar *occ; /* BLOCK > 0: occupancy of BLOCK^3 blocks of cells, set by the kernel */
     int4 oreso;  /* blocks per axis */
+#if BRICK
+    int k0;      /* first segment that may lie in the brick (the loop starts there) */
+    int4 blo, bhi;  /* the brick owns the cells with lower corner in [blo, bhi) per axis */
+    int4 lreso;  /* the links array: voxels blo .. blo + lreso - 1 */
+#endif
 } march_t;
+
+/* First segment of the march loop: 0, or the brick's k0. */
+#if BRICK
+#define MARCH_K0(m) ((m)->k0)
+#else
+#define MARCH_K0(m) 0
+#endif
 
 typedef struct {
     int idx[8];   /* rows of the 8 corners (< 0: empty); corner c = (cx << 2) | (cy << 1) | cz */
@@ -48,33 +74,6 @@ typedef struct {
     int cell;     /* linear index of the lower corner: identifies the cell */
     int3 lo;      /* lower corner */
 } lerp_t;
-
-/* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
-inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
-                       march_t *m) {
-    real3 dd = REAL3(d);
-    real_t mx = fmax(fabs(dd.x), fmax(fabs(dd.y), fabs(dd.z)));
-    if (!(mx > 0) || !isfinite(mx)) return 0;
-    dd /= mx;                       /* scale first: |d| may under/overflow when squared */
-    dd /= sqrt(dot(dd, dd));
-    real3 sc = (real3)(scale.x, scale.y, scale.z);
-    real3 og = (REAL3(o) - (real3)(bmin.x, bmin.y, bmin.z)) * sc;
-    real3 dg = dd * sc;
-    real3 hi = (real3)(reso.x, reso.y, reso.z);
-    real_t t0, t1;
-    if (!ray_box(og, dg, (real3)(0, 0, 0), hi, &t0, &t1)) return 0;
-    real_t dt = (real_t)step / sqrt(dot(dg, dg));
-    real_t len = t1 - t0;
-    real3 p0 = clamp(og + t0 * dg, (real3)(0, 0, 0), hi);
-    m->p0 = (float3)(p0.x, p0.y, p0.z);
-    m->dg = (float3)(dg.x, dg.y, dg.z);
-    m->dir = (float3)(dd.x, dd.y, dd.z);
-    m->t0 = (float)t0;
-    m->len = (float)len;
-    m->dt = (float)dt;
-    m->nsteps = (int)ceil(len / dt);
-    return m->nsteps > 0;
-}
 
 /* Segment k: midpoint distance from the entry and length. */
 inline void march_segment(const march_t *m, int k, float *mid, float *delta) {
@@ -104,6 +103,92 @@ inline void cell_locate(float3 p, int4 reso, cellpos_t *q) {
     lerp_axis(p.y, reso.y, &q->y0, &q->y1, &q->fy);
     lerp_axis(p.z, reso.z, &q->z0, &q->z1, &q->fz);
 }
+
+/* Index into the links array of voxel (x, y, z) (global voxel indices): the whole grid's
+ * array, or the brick's (voxels from blo, lreso per axis). */
+#if BRICK
+#define LINK_AT(m_, ix, iy, iz, reso_) \
+    cell_of((ix) - (m_)->blo.x, (iy) - (m_)->blo.y, (iz) - (m_)->blo.z, (m_)->lreso)
+#else
+#define LINK_AT(m_, ix, iy, iz, reso_) cell_of((ix), (iy), (iz), (reso_))
+#endif
+
+#if BRICK
+/* Narrow [k0, nsteps) to the segments whose midpoints can lie in the brick: the brick's cells
+ * are the points p (box units) with p - 0.5 in [blo, bhi) per axis (unbounded below blo = 0 and
+ * above bhi >= reso - 1, where lerp_axis clamps). The slab bounds are widened by BRICK_SLACK
+ * box units, more than the float rounding of p = p0 + mid dg, and by one segment, so no owned
+ * sample is left out; march_visit's ownership test is the exact one. An axis the ray does not
+ * move along (dg = 0) is owned for all samples or none, decided at p0 as march_visit would. */
+#define BRICK_SLACK(reso) (1e-5f * (1.0f + (float)max((reso).x, max((reso).y, (reso).z))))
+inline void brick_range(march_t *m, int4 reso) {
+    const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
+    const int lo[3] = {m->blo.x, m->blo.y, m->blo.z}, hi[3] = {m->bhi.x, m->bhi.y, m->bhi.z};
+    const int r[3] = {reso.x, reso.y, reso.z};
+    const float slack = BRICK_SLACK(reso);
+    float s0 = -INFINITY, s1 = INFINITY;
+    for (int a = 0; a < 3; ++a) {
+        const float b0 = lo[a] == 0 ? -INFINITY : (float)lo[a] + 0.5f - slack;
+        const float b1 = hi[a] >= r[a] - 1 ? INFINITY : (float)hi[a] + 0.5f + slack;
+        if (d[a] == 0.0f) {
+            int i0, i1;
+            float f;
+            lerp_axis(p[a], r[a], &i0, &i1, &f);
+            if (i0 < lo[a] || i0 >= hi[a]) s1 = -INFINITY;
+            continue;
+        }
+        const float ta = (b0 - p[a]) / d[a], tb = (b1 - p[a]) / d[a];
+        s0 = fmax(s0, fmin(ta, tb));
+        s1 = fmin(s1, fmax(ta, tb));
+    }
+    const float n = (float)m->nsteps;
+    if (!(s1 >= s0)) { m->k0 = m->nsteps; return; }
+    m->k0 = (int)clamp(floor(s0 / m->dt - 0.5f) - 1.0f, 0.0f, n);
+    m->nsteps = (int)clamp(floor(s1 / m->dt - 0.5f) + 2.0f, 0.0f, n);
+}
+
+/* 1 if the brick owns the sample at p (box units): its cell's lower corner is in [blo, bhi). */
+inline int brick_owns(const march_t *m, float3 p, int4 reso) {
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    return q.x0 >= m->blo.x && q.x0 < m->bhi.x && q.y0 >= m->blo.y && q.y0 < m->bhi.y &&
+           q.z0 >= m->blo.z && q.z0 < m->bhi.z;
+}
+#define BRICK_OWNS(m, p, reso) brick_owns((m), (p), (reso))
+#else
+#define BRICK_OWNS(m, p, reso) 1
+#endif
+
+/* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
+inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
+                       march_t *m) {
+    real3 dd = REAL3(d);
+    real_t mx = fmax(fabs(dd.x), fmax(fabs(dd.y), fabs(dd.z)));
+    if (!(mx > 0) || !isfinite(mx)) return 0;
+    dd /= mx;                       /* scale first: |d| may under/overflow when squared */
+    dd /= sqrt(dot(dd, dd));
+    real3 sc = (real3)(scale.x, scale.y, scale.z);
+    real3 og = (REAL3(o) - (real3)(bmin.x, bmin.y, bmin.z)) * sc;
+    real3 dg = dd * sc;
+    real3 hi = (real3)(reso.x, reso.y, reso.z);
+    real_t t0, t1;
+    if (!ray_box(og, dg, (real3)(0, 0, 0), hi, &t0, &t1)) return 0;
+    real_t dt = (real_t)step / sqrt(dot(dg, dg));
+    real_t len = t1 - t0;
+    real3 p0 = clamp(og + t0 * dg, (real3)(0, 0, 0), hi);
+    m->p0 = (float3)(p0.x, p0.y, p0.z);
+    m->dg = (float3)(dg.x, dg.y, dg.z);
+    m->dir = (float3)(dd.x, dd.y, dd.z);
+    m->t0 = (float)t0;
+    m->len = (float)len;
+    m->dt = (float)dt;
+    m->nsteps = (int)ceil(len / dt);
+#if BRICK
+    brick_range(m, reso);
+#endif
+    return m->nsteps > 0;
+}
+
 
 /* Find the 8 corners and weights of point p (box units). Returns 1 if any corner is allocated. */
 inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L) {
@@ -165,9 +250,14 @@ inline int skip_block(const march_t *m, float3 p, int4 reso, int *k) {
 #if BLOCK > 0
     cellpos_t q;
     cell_locate(p, reso, &q);
-    const int3 b = (int3)(q.x0, q.y0, q.z0) / BLOCK;
+#if BRICK   /* the table covers the brick's links: blocks of local cells */
+    const int3 org = (int3)(m->blo.x, m->blo.y, m->blo.z);
+#else
+    const int3 org = (int3)(0);
+#endif
+    const int3 b = ((int3)(q.x0, q.y0, q.z0) - org) / BLOCK;
     if (m->occ[cell_of(b.x, b.y, b.z, m->oreso)]) return 0;
-    *k = skip_region(m, *k, b * BLOCK, BLOCK, reso) - 1;
+    *k = skip_region(m, *k, b * BLOCK + org, BLOCK, reso) - 1;
     return 1;
 #else
     return 0;
@@ -261,7 +351,7 @@ inline float3 color_pre(shv_t co, const shy_t *S) {
 
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
-inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, lerp_t *L) {
+inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links, lerp_t *L) {
     cellpos_t q;
     cell_locate(p, reso, &q);
     const int cell = cell_of(q.x0, q.y0, q.z0, reso);
@@ -275,7 +365,7 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
 #pragma unroll
         for (int c = 0; c < 8; ++c) {
             int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
-            L->idx[c] = links[cell_of(xs[cx], ys[cy], zs[cz], reso)];
+            L->idx[c] = links[LINK_AT(m, xs[cx], ys[cy], zs[cz], reso)];
         }
     }
 #pragma unroll
@@ -289,17 +379,17 @@ inline int lerp_setup_cached(float3 p, int4 reso, __global const int *links, ler
 
 /* Start loading the 8 links of the cell around point p (4 pairs adjacent along z) into the
  * cache, a few samples before prefetch_cell needs them to find the rows. */
-inline void prefetch_links(float3 p, int4 reso, __global const int *links, int *last) {
+inline void prefetch_links(const march_t *m, float3 p, int4 reso, __global const int *links, int *last) {
 #if CLRF_PREFETCH
     cellpos_t q;
     cell_locate(p, reso, &q);
     const int cell = cell_of(q.x0, q.y0, q.z0, reso);
     if (cell == *last) return;
     *last = cell;
-    CLRF_PREFETCH_LINE(links + cell);
-    CLRF_PREFETCH_LINE(links + cell_of(q.x0, q.y1, q.z0, reso));
-    CLRF_PREFETCH_LINE(links + cell_of(q.x1, q.y0, q.z0, reso));
-    CLRF_PREFETCH_LINE(links + cell_of(q.x1, q.y1, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + LINK_AT(m, q.x0, q.y0, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + LINK_AT(m, q.x0, q.y1, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + LINK_AT(m, q.x1, q.y0, q.z0, reso));
+    CLRF_PREFETCH_LINE(links + LINK_AT(m, q.x1, q.y1, q.z0, reso));
 #endif
 }
 
@@ -308,7 +398,7 @@ inline void prefetch_links(float3 p, int4 reso, __global const int *links, int *
  * grad_d[k], grad_s[k * SH_DIM ...] that the backward pass will read-modify-write. Only when
  * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
  * read here and again later (then from the cache). */
-inline void prefetch_cell_grad(float3 p, int4 reso, __global const int *links,
+inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global const int *links,
                                __global const float *density, __global const float *sh,
                                __global const float *grad_d, __global const float *grad_s,
                                int *last) {
@@ -320,7 +410,7 @@ inline void prefetch_cell_grad(float3 p, int4 reso, __global const int *links,
     *last = cell;
     const int xs[2] = {q.x0, q.x1}, ys[2] = {q.y0, q.y1}, zs[2] = {q.z0, q.z1};
     for (int c = 0; c < 8; ++c) {
-        int k = links[cell_of(xs[c >> 2], ys[(c >> 1) & 1], zs[c & 1], reso)];
+        int k = links[LINK_AT(m, xs[c >> 2], ys[(c >> 1) & 1], zs[c & 1], reso)];
         if (k < 0) continue;
         __global const float *row = sh + (size_t)k * SH_DIM;
         for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
@@ -348,18 +438,22 @@ inline int march_visit(const march_t *m, int4 reso, __global const int *links,
                        __global const float *grad_d, __global const float *grad_s, int *pf,
                        int *k, float *mid, float *delta, lerp_t *L) {
     march_segment(m, *k, mid, delta);
-    if (skip_block(m, m->p0 + *mid * m->dg, reso, k)) return 0;
+    const float3 p = m->p0 + *mid * m->dg;
+#if BRICK
+    if (!brick_owns(m, p, reso)) return 0;
+#endif
+    if (skip_block(m, p, reso, k)) return 0;
 #if CLRF_PREFETCH
-    if (pf) {
-        if (*k + PREFETCH_LINKS_AHEAD < m->nsteps)
-            prefetch_links(m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg, reso, links,
-                           &pf[1]);
-        if (*k + PREFETCH_AHEAD < m->nsteps)
-            prefetch_cell_grad(m->p0 + (*mid + PREFETCH_AHEAD * m->dt) * m->dg, reso, links,
-                               density, sh, grad_d, grad_s, &pf[0]);
+    if (pf) {   /* a brick prefetches only points it owns: their corners are in its links */
+        const float3 pl = m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg;
+        if (*k + PREFETCH_LINKS_AHEAD < m->nsteps && BRICK_OWNS(m, pl, reso))
+            prefetch_links(m, pl, reso, links, &pf[1]);
+        const float3 pr = m->p0 + (*mid + PREFETCH_AHEAD * m->dt) * m->dg;
+        if (*k + PREFETCH_AHEAD < m->nsteps && BRICK_OWNS(m, pr, reso))
+            prefetch_cell_grad(m, pr, reso, links, density, sh, grad_d, grad_s, &pf[0]);
     }
 #endif
-    if (!lerp_setup_cached(m->p0 + *mid * m->dg, reso, links, L)) {
+    if (!lerp_setup_cached(m, p, reso, links, L)) {
         *k = skip_empty(m, *k, L->lo, reso) - 1;
         return 0;
     }
@@ -394,11 +488,13 @@ inline void csum_add(float *s, float *c, float x) {
 #define REC_TNEXT 2
 #define REC_PRE 3
 
-/* The forward march shared by every kernel (rec: see above; 0 for no record). */
+/* The forward march shared by every kernel (rec: see above; 0 for no record). With BRICK,
+ * *kfirst is set to the first segment the brick evaluates (left as it was when none): it
+ * orders the bricks' partial results along the ray. */
 inline void march_forward_rec(const march_t *m, int4 reso, __global const int *links,
                               __global const float *density, __global const float *sh,
                               const float *Y, __global float *rec, const int rec_max,
-                              int *n_rec, fwd_t *out) {
+                              int *n_rec, int *kfirst, fwd_t *out) {
     int j = 0;
     shy_t S;
     shy_setup(Y, &S);
@@ -409,9 +505,12 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
     lerp_t L;
     L.cell = -1;
     int pf[2] = {-1, -1};
-    for (int k = 0; k < m->nsteps; ++k) {
+    for (int k = MARCH_K0(m); k < m->nsteps; ++k) {
         float mid, delta;
         if (!march_visit(m, reso, links, density, sh, 0, 0, pf, &k, &mid, &delta, &L)) continue;
+#if BRICK
+        if (*kfirst < 0) *kfirst = k;
+#endif
         float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) {
             if (rec && j < rec_max) rec[8 * j + REC_SIGMA] = sigma;
@@ -443,9 +542,9 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
 
 inline void march_forward(const march_t *m, int4 reso, __global const int *links,
                           __global const float *density, __global const float *sh,
-                          const float *Y, fwd_t *out) {
+                          const float *Y, int *kfirst, fwd_t *out) {
     int n_rec;
-    march_forward_rec(m, reso, links, density, sh, Y, 0, 0, &n_rec, out);
+    march_forward_rec(m, reso, links, density, sh, Y, 0, 0, &n_rec, kfirst, out);
 }
 
 #endif /* CLRF_MARCH_H */

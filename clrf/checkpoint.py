@@ -1,4 +1,10 @@
-"""Checkpoints: one .npz per run directory, written atomically (temporary file, then rename)."""
+"""Checkpoints: one .npz per run directory, written atomically (temporary file, then rename).
+
+A distributed run (clrf/grid/dist_model.py) writes one file per brick,
+``ckpt.it<iteration>.rank<r>of<P>.npz``, and then ``ckpt.npz`` as a manifest naming them; a
+kill at any moment leaves the previous manifest and its complete set of brick files. ``load``
+merges a manifest's bricks into one whole-grid state (as a single-process run would have
+saved it)."""
 from __future__ import annotations
 
 import json
@@ -11,6 +17,7 @@ import numpy as np
 from .rundir import checkpoint_write_delay
 
 CKPT_NAME = "ckpt.npz"
+BRICK_GLOB = "ckpt.it*.rank*of*.npz"
 
 
 class CheckpointError(ValueError):
@@ -43,13 +50,30 @@ def save(path, state: dict):
             tmp.unlink()
 
 
-def load(path) -> dict:
-    path = Path(path)
-    if path.is_dir():
-        path = path / CKPT_NAME
-    if not path.is_file():
-        raise CheckpointError(f"no checkpoint at {path}: pass a run directory written by "
-                              f"`clrf train --out DIR` (it holds {CKPT_NAME})")
+def brick_file_name(iteration: int, rank: int, ranks: int) -> str:
+    return f"ckpt.it{int(iteration):09d}.rank{int(rank)}of{int(ranks)}.npz"
+
+
+def remove_unreferenced_bricks(out) -> list:
+    """Delete brick files of run directory ``out`` that its manifest does not name (an older
+    set, or an incomplete one a kill left behind); returns them."""
+    out = Path(out)
+    keep = set()
+    man = out / CKPT_NAME
+    if man.is_file():
+        try:
+            keep = set(_read(man).get("distributed", {}).get("files", []))
+        except CheckpointError:
+            return []   # an unreadable manifest: leave the files for the user
+    gone = []
+    for p in out.glob(BRICK_GLOB):
+        if p.name not in keep and p.is_file():
+            p.unlink()
+            gone.append(p)
+    return gone
+
+
+def _read(path) -> dict:
     try:
         with np.load(path) as z:
             state = {k: z[k] for k in z.files if k != "__meta__"}
@@ -58,4 +82,66 @@ def load(path) -> dict:
         raise CheckpointError(f"checkpoint {path} is unreadable ({e}); it may be from an "
                               f"interrupted copy: use a complete run directory") from None
     state.update(meta)
+    return state
+
+
+def merge_bricks(path, manifest) -> dict:
+    """The whole-grid state of a distributed checkpoint: the owned voxels of every brick file,
+    rows in C order of the voxels (as SparseGrid builds them)."""
+    d = manifest["distributed"]
+    reso = tuple(int(r) for r in d["reso"])
+    parts = []
+    for name in d["files"]:
+        f = Path(path).parent / name
+        if not f.is_file():
+            raise CheckpointError(f"checkpoint {path} names brick file {name}, which is missing: "
+                                  f"copy the whole run directory")
+        parts.append(_read(f))
+    keys = ("density", "sh", "opt_density", "opt_sh")
+    chunks = {k: [] for k in keys}
+    gidx = []
+    for st in parts:
+        b = st["brick"]
+        lo, hi = np.array(b["lo"]), np.array(b["hi"])
+        own = st["links"][tuple(slice(0, h - l) for l, h in zip(lo, hi))]
+        pos = np.argwhere(own >= 0)
+        gidx.append(np.ravel_multi_index(tuple((pos + lo).T), reso))
+        for k in keys:
+            chunks[k].append(st[k][own[own >= 0]])
+    gidx = np.concatenate(gidx)
+    order = np.argsort(gidx, kind="stable")
+    links = np.full(int(np.prod(reso)), -1, np.int32)
+    links[gidx[order]] = np.arange(gidx.size, dtype=np.int32)
+    state = {k: v for k, v in manifest.items() if k != "distributed"}
+    state["links"] = links.reshape(reso)
+    for k in keys:
+        state[k] = np.concatenate(chunks[k])[order]
+    for k in ("bbox", "sh_degree", "stage", "background", "kind"):
+        state.setdefault(k, parts[0][k])
+    return state
+
+
+def load(path, brick=None) -> dict:
+    """The state saved at ``path`` (a run directory or checkpoint file). A distributed
+    checkpoint's bricks are merged into one grid, unless ``brick`` = (rank, ranks) names a
+    brick of a run with that many ranks: then only that rank's file is read (with the
+    manifest's iteration, seconds and configuration), as a distributed resume does."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CKPT_NAME
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}: pass a run directory written by "
+                              f"`clrf train --out DIR` (it holds {CKPT_NAME})")
+    state = _read(path)
+    if "distributed" in state:
+        d = state["distributed"]
+        if brick is not None and int(d["ranks"]) == int(brick[1]):
+            f = path.parent / d["files"][int(brick[0])]
+            if not f.is_file():
+                raise CheckpointError(f"checkpoint {path} names brick file {f.name}, which is "
+                                      f"missing: copy the whole run directory")
+            own = _read(f)
+            own.update({k: v for k, v in state.items() if k != "distributed"})
+            return own
+        state = merge_bricks(path, state)
     return state

@@ -108,16 +108,51 @@ def cmd_train(a):
     if cfg.train.downscale != first and data_path:
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
+    comm = _mpi_world()
+    if comm is not None:
+        from .grid.dist_model import check_schedule
+        if cfg.train.model != "grid":
+            raise CliError(f"train.model: distributed training ({comm.Get_size()} MPI ranks) "
+                           f"is for the grid model; run '{cfg.train.model}' as one process")
+        if cfg.grid.background_layers > 0:
+            raise CliError(f"grid.background_layers = {cfg.grid.background_layers}: the "
+                           f"distributed grid ({comm.Get_size()} MPI ranks) has no background "
+                           f"model; pass --set grid.background_layers=0 or run as one process")
+        try:
+            check_schedule(cfg, comm.Get_size())
+        except ValueError as e:
+            raise CliError(str(e)) from None
+        if comm.Get_rank() > 0:
+            from .progress import set_quiet
+            set_quiet(True)
     dev = Device(a.device)
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
-    check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1])
-    print(f"clrf: device {dev}", file=sys.stderr)
-    print(f"clrf: scene '{ds.name}' ({len(ds.split['train'])} train / "
-          f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "
-          f"'{cfg.train.preset}', model {cfg.train.model}, budget {cfg.train.max_seconds:.0f} s, "
-          f"output {out}", file=sys.stderr)
-    trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=FACTORIES[cfg.train.model],
+    if comm is None:
+        check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1])
+    else:   # each rank holds its brick: estimate with the largest brick's box per stage
+        import copy
+        from .grid.bricks import split
+        bcfg = copy.deepcopy(cfg)
+        bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
+                                   key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
+        try:
+            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_views * ds.hw[0] * ds.hw[1])
+        except ValueError as e:
+            raise CliError(f"per MPI rank (the largest brick of each stage, "
+                           f"{comm.Get_size()} ranks): {e}") from None
+    rank_note = f" (MPI rank {comm.Get_rank()} of {comm.Get_size()})" if comm is not None else ""
+    print(f"clrf: device {dev}{rank_note}", file=sys.stderr)
+    if comm is None or comm.Get_rank() == 0:
+        print(f"clrf: scene '{ds.name}' ({len(ds.split['train'])} train / "
+              f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "
+              f"'{cfg.train.preset}', model {cfg.train.model}, budget {cfg.train.max_seconds:.0f} s, "
+              f"output {out}", file=sys.stderr)
+    factory = FACTORIES[cfg.train.model]
+    if comm is not None:
+        from .models import DistGridFactory
+        factory = DistGridFactory(comm)
+    trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if a.log == "tensorboard":
         from .tblog import TensorBoardLog
@@ -131,8 +166,18 @@ def cmd_train(a):
         print(f"clrf: interrupted; checkpoint kept at {trainer.ckpt_path} (resume with "
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
         return 130
-    print(json.dumps({k: v for k, v in res.items() if k != "views"}))
+    if trainer.primary:
+        print(json.dumps({k: v for k, v in res.items() if k != "views"}))
     return 0
+
+
+def _mpi_world():
+    """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None (clrf.distributed)."""
+    from .distributed import world
+    try:
+        return world()
+    except RuntimeError as e:
+        raise CliError(str(e)) from None
 
 
 def _ckpt_dataset(state, data_override):

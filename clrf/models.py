@@ -17,6 +17,22 @@ class GridFactory:
         return GridModel.from_state_dict(device, state, cfg.grid)
 
 
+class DistGridFactory:
+    """Plenoxels over MPI ranks, one brick each (clrf/grid/dist_model.py)."""
+
+    def __init__(self, comm):
+        self.comm = comm
+        self.brick = (comm.Get_rank(), comm.Get_size())   # checkpoint.load(brick=...)
+
+    def create(self, device, cfg, ds, background):
+        from .grid.dist_model import DistGridModel
+        return DistGridModel.create(device, cfg.grid, ds.bbox, background, self.comm)
+
+    def from_state(self, device, state, cfg):
+        from .grid.dist_model import DistGridModel
+        return DistGridModel.from_state_dict(device, state, cfg.grid, self.comm)
+
+
 class NerfFactory:
     @staticmethod
     def create(device, cfg, ds, background):

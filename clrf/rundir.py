@@ -17,8 +17,9 @@ import io
 import os
 from pathlib import Path
 
-# temporary names of the run's files (checkpoint.save, plot_error_vs_time, the JSON outputs)
-TEMP_PATTERNS = ("ckpt.npz.tmp*", "*.tmp", ".*.tmp", "*.tmp.png")
+# temporary names of the run's files (checkpoint.save, plot_error_vs_time, the JSON outputs;
+# the per-rank brick checkpoints of a distributed run)
+TEMP_PATTERNS = ("ckpt.npz.tmp*", "ckpt.it*.npz.tmp*", "*.tmp", ".*.tmp", "*.tmp.png")
 
 
 def remove_stale_temps(out: Path) -> list:

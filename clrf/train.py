@@ -11,6 +11,11 @@ pure training time. Outputs in the run directory:
 - ``error_vs_time.png`` eval PSNR against training seconds
 - ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
 - ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation
+
+Under MPI (a model with ``comm``, clrf/grid/dist_model.py) every rank runs this loop in step:
+the step times are the slowest rank's (allreduce), so evaluations, checkpoints and the stop
+happen at the same iteration everywhere; rank 0 writes the run's files, the model writes the
+checkpoint (one file per rank plus the manifest ckpt.npz).
 """
 from __future__ import annotations
 
@@ -166,20 +171,31 @@ class Trainer:
         self.background = tuple(t.background) if t.background else tuple(ds.background)
         self.iteration = 0
         self.seconds = 0.0
-        rundir.remove_stale_temps(self.out)
+        self.comm = getattr(model_factory, "comm", None)
+        self.primary = self.comm is None or self.comm.Get_rank() == 0   # writes the run's files
+        if self.primary:
+            rundir.remove_stale_temps(self.out)
+            checkpoint.remove_unreferenced_bricks(self.out)
+        if self.comm is not None:
+            self.comm.Barrier()
         if resume:
-            state = checkpoint.load(self.ckpt_path)
+            # a distributed run reads its own brick file when the rank count is the same
+            state = checkpoint.load(self.ckpt_path, brick=getattr(model_factory, "brick", None))
             self.model = model_factory.from_state(device, state, cfg)
             self.iteration = int(state["iteration"])
             self.seconds = float(state["seconds"])
-            rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
-            self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
-                     f"({self.seconds:.1f} s)")
+            if self.primary:
+                rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
+            if self.primary:
+                self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
+                         f"({self.seconds:.1f} s)")
         else:
             self.model = model_factory.create(device, cfg, ds, self.background)
-            with open(self.csv_path, "w", newline="") as f:
-                csv.DictWriter(f, CSV_FIELDS).writeheader()
-        rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
+            if self.primary:
+                with open(self.csv_path, "w", newline="") as f:
+                    csv.DictWriter(f, CSV_FIELDS).writeheader()
+        if self.primary:
+            rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         self.rays = training_rays(device, ds, t.max_train_images)
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)
@@ -189,6 +205,8 @@ class Trainer:
         self.eval_downscale = max(1, min(t.eval_downscale, min(ds.hw) // EVAL_MIN_SIDE))
 
     def _row(self, **kw):
+        if not self.primary:
+            return
         with open(self.csv_path, "a", newline="") as f:
             csv.DictWriter(f, CSV_FIELDS).writerow({k: kw.get(k, "") for k in CSV_FIELDS})
         for sink in self.metric_sinks:
@@ -198,12 +216,21 @@ class Trainer:
         state = self.model.state_dict()
         state.update(iteration=self.iteration, seconds=self.seconds,
                      run_config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
-        checkpoint.save(self.ckpt_path, state)
+        if hasattr(self.model, "save_checkpoint"):
+            self.model.save_checkpoint(self.ckpt_path, state)   # collective (every rank)
+        else:
+            checkpoint.save(self.ckpt_path, state)
+
+    def _plot(self, title, downscale):
+        if self.primary:
+            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title, downscale)
 
     def run(self):
         t = self.cfg.train
         batch = self.model.batch_size
         prog = TrainProgress(t.max_seconds, self.seconds)
+        if not self.primary:   # one voice per run: rank 0's
+            prog.message = lambda text: None
         interrupted = False
         old = signal.getsignal(signal.SIGINT)
         losses = []
@@ -227,8 +254,7 @@ class Trainer:
                               eval_views=len(self.periodic_views), rays_per_s=f"{self._rate:.0f}" if losses else "",
                               model=self.model.describe())
                     losses = []
-                    plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title,
-                                       t.eval_downscale)
+                    self._plot(title, t.eval_downscale)
                     prog.message(f"it {self.iteration:6d}  {self.seconds:7.1f}s  eval PSNR "
                                  f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
                                  f"({len(self.periodic_views)} views)  {self.model.describe()}")
@@ -245,6 +271,9 @@ class Trainer:
                 bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, batch)
                 loss = self.model.train_step(self.iteration, bo, bd, bc)
                 dt = time.perf_counter() - t0
+                if self.comm is not None:   # the slowest rank's time, the same on every rank
+                    from mpi4py import MPI
+                    dt = self.comm.allreduce(dt, op=MPI.MAX)
                 if not np.isfinite(loss):
                     raise FloatingPointError(f"training loss became {loss} at iteration "
                                              f"{self.iteration}; the last checkpoint is kept")
@@ -270,11 +299,11 @@ class Trainer:
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
-            plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title,
-                                       t.eval_downscale)
-            tmp = self.out / "eval.json.tmp"
-            tmp.write_text(json.dumps(result, indent=2))
-            tmp.replace(self.out / "eval.json")
+            self._plot(title, t.eval_downscale)
+            if self.primary:
+                tmp = self.out / "eval.json.tmp"
+                tmp.write_text(json.dumps(result, indent=2))
+                tmp.replace(self.out / "eval.json")
             prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
                          f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
                          f"({self.iteration} iterations)")

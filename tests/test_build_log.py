@@ -23,6 +23,10 @@ def _grid_render():
     for mode, (slots, rec) in itertools.product((0, 1), ((0, 0), (2, 1))):   # GridModel + MSI
         yield {**base, "BG_PER_RAY": 1, "GRAD_MODE": mode, "GRAD_SLOTS": slots,
                "SAMPLE_RECORD": rec, "TRACK_TOUCHED": 1}
+    # the distributed bricks (clrf/grid/bricks.py): no early termination
+    for (slots, rec), touched, pf in itertools.product(((0, 0), (2, 1)), (0, 1), (0, 1)):
+        yield {**base, "BRICK": 1, "CLRF_PREFETCH": pf, "T_STOP": 0.0, "GRAD_SLOTS": slots,
+               "SAMPLE_RECORD": rec, "TRACK_TOUCHED": touched}
 
 
 # (file, defines) for every program the library and tools build, grid_render.cl over the

@@ -43,7 +43,8 @@ def _script(path: Path, text: str):
     path.chmod(0o755)
 
 
-def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False):
+def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False,
+              extras="test", mpi_tools=False):
     repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
     for p in (repo / "tools", stubs, state):
         p.mkdir(parents=True)
@@ -55,11 +56,14 @@ def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail
     _script(stubs / "sudo", FAKE_SUDO)
     if apt:
         _script(stubs / "apt-get", FAKE_APT)
+    if mpi_tools:                       # an MPI library already installed
+        for tool in ("mpicc", "mpirun"):
+            _script(stubs / tool, "#!/bin/bash\n")
     env = {"PATH": str(stubs), "PYTHON": "python", "FAKE_STATE": str(state),
            "FAKE_BEFORE": str(before), "FAKE_AFTER": str(after), "FAKE_UID": str(uid),
            "FAKE_SUDO_OK": "1" if sudo_ok else "", "FAKE_APT_FAIL": "1" if apt_fail else "",
            "CLRF_DEVICE": "1:0"}
-    r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), "test"],
+    r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), extras],
                        env=env, capture_output=True, text=True, timeout=60)
     apt_log = (state / "apt").read_text() if (state / "apt").exists() else ""
     checks = (state / "checks").read_text().splitlines() if (state / "checks").exists() else []
@@ -88,3 +92,25 @@ def test_setup_installs_distribution_pocl_when_needed(tmp_path, before, after, u
     assert says in r.stderr
     assert len(checks) == (2 if installs else 1)    # probed again after an install
     assert all(c == "-m clrf.cli devices --check" for c in checks)
+
+
+@pytest.mark.parametrize("mpi_tools, uid, sudo_ok, apt_fail, rc, installs, says", [
+    (False, 0, True, False, 0, True, "installing Open MPI"),      # root: apt-get installs it
+    (False, 1000, True, False, 0, True, "installing Open MPI"),   # sudo -n works
+    (True, 0, True, False, 0, False, ""),                         # mpicc and mpirun exist
+    (False, 1000, False, False, 1, False, "sudo apt-get install openmpi-bin libopenmpi-dev"),
+    (False, 0, True, True, 1, False, "apt-get install openmpi-bin libopenmpi-dev failed"),
+])
+def test_setup_installs_open_mpi_for_the_mpi_extra(tmp_path, mpi_tools, uid, sudo_ok, apt_fail,
+                                                   rc, installs, says):
+    r, apt_log, _ = run_setup(tmp_path, 0, uid=uid, sudo_ok=sudo_ok, apt_fail=apt_fail,
+                              extras="test,mpi", mpi_tools=mpi_tools)
+    assert r.returncode == rc, r.stderr
+    assert ("install -y -qq openmpi-bin libopenmpi-dev" in apt_log) == installs
+    assert says in r.stderr
+    assert "pocl-opencl-icd" not in apt_log
+
+
+def test_setup_without_the_mpi_extra_installs_no_mpi(tmp_path):
+    r, apt_log, _ = run_setup(tmp_path, 0, extras="test")
+    assert r.returncode == 0 and apt_log == ""

@@ -8,12 +8,48 @@
 # when not root), probes again and prints the device clrf now picks.
 #   bash tools/setup.sh          # runtime only
 #   bash tools/setup.sh test     # plus the test dependencies
+#   bash tools/setup.sh test,mpi # plus mpi4py for `mpirun -n N clrf train`; installs Debian's
+#                                # Open MPI first (openmpi-bin libopenmpi-dev) when mpicc or
+#                                # mpirun is missing
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="pocl${1:+,$1}"
 py=${PYTHON:-python3}
+
+sudo=""
+if [ "$(id -u)" -ne 0 ]; then sudo="sudo -n"; fi
+# apt_install WHAT PKG...: install distribution packages without prompting (sudo -n when not
+# root); prints why not and returns 1 when it cannot. WHAT names them for the message.
+apt_install() {
+    local what=$1
+    shift
+    if ! command -v apt-get >/dev/null; then
+        echo "clrf: no apt-get here; install $what and rerun" >&2
+        return 1
+    elif [ -n "$sudo" ] && ! sudo -n true 2>/dev/null; then
+        echo "clrf: not root and sudo needs a password; run" \
+             "\`sudo apt-get install $*\` and rerun" >&2
+        return 1
+    elif $sudo env DEBIAN_FRONTEND=noninteractive apt-get update -qq &&
+         $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null; then
+        return 0
+    fi
+    echo "clrf: apt-get install $* failed" >&2
+    return 1
+}
+
+# extra "mpi": mpi4py is built against the system's MPI, so that comes first
+case ",${1:-}," in
+    *,mpi,*)
+        if ! command -v mpicc >/dev/null || ! command -v mpirun >/dev/null; then
+            echo "clrf: extra 'mpi': installing Open MPI (openmpi-bin libopenmpi-dev)" >&2
+            apt_install "an MPI library with mpicc and mpirun (Open MPI, MPICH)" \
+                openmpi-bin libopenmpi-dev || exit 1
+        fi ;;
+esac
+
 rm -rf .venv
 "$py" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
@@ -31,20 +67,9 @@ if [ "$status" -ne 0 ]; then
     else
         echo "clrf: no working OpenCL device; installing the distribution's PoCL" >&2
     fi
-    sudo=""
-    if [ "$(id -u)" -ne 0 ]; then sudo="sudo -n"; fi
-    if ! command -v apt-get >/dev/null; then
-        echo "clrf: no apt-get here; install your distribution's PoCL (or another OpenCL CPU" \
-             "driver) and rerun" >&2
-    elif [ -n "$sudo" ] && ! sudo -n true 2>/dev/null; then
-        echo "clrf: not root and sudo needs a password; run" \
-             "\`sudo apt-get install pocl-opencl-icd\` and rerun" >&2
-    elif $sudo env DEBIAN_FRONTEND=noninteractive apt-get update -qq &&
-         $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq pocl-opencl-icd >/dev/null; then
+    if apt_install "your distribution's PoCL (or another OpenCL CPU driver)" pocl-opencl-icd; then
         status=0
         check || status=$?
-    else
-        echo "clrf: apt-get install pocl-opencl-icd failed" >&2
     fi
 fi
 if [ "$status" -ne 0 ] && [ "$status" -ne 3 ]; then

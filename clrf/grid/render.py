@@ -13,6 +13,7 @@ from ..programs import launch
 from ..validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
+BETA_EPS = 1e-3        # guard inside the beta prior's logs (cl/grid_render.cl BETA_EPS)
 # Rays that can have more samples than this get compensated (Kahan) accumulators (COMPENSATED_SUMS
 # in cl/march.h): plain float32 sums drift like n * 6e-8, 5e-4 relative at 8192 samples.
 LONG_RAY_SAMPLES = 8192
@@ -34,21 +35,24 @@ def check_step(grid, step) -> float:
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
                  slots: int = 0, step: float = 0.5, record: bool = False,
-                 bg_per_ray: bool = False):
+                 bg_per_ray: bool = False, brick: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
     record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
-    a background colour per ray, BG_PER_RAY). The constant-background build has no BG_PER_RAY
-    define at all, so it is the same program as before per-ray backgrounds existed."""
+    a background colour per ray, BG_PER_RAY; brick: the BRICK variant for one brick of a
+    distributed grid, clrf/grid/bricks.py, built with t_stop 0). The constant-background build
+    has no BG_PER_RAY define at all, so it is the same program as before per-ray backgrounds."""
     t = grid.device.tuning
     extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
+    reso = getattr(grid, "march_reso", grid.reso)
     return grid.device.program("grid_render.cl", {
         **extra,
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
         "SAMPLE_RECORD": int(bool(record) and slots > 0),
-        "COMPENSATED_SUMS": int(max_samples_per_ray(grid.reso, step) > LONG_RAY_SAMPLES),
+        "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
         "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
-        "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block})
+        "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
+        "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS})
 
 
 def _bg4(background):
@@ -113,8 +117,10 @@ def block_occupancy(grid):
         occ = cla.zeros(grid.device.queue, int(np.prod(ob)), np.uint8)
         oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], 0)
         if block > 0:
+            r = grid.reso   # the links array's own shape (a brick's, for bricks)
             launch(grid.device, grid_program(grid).kernel("block_occupancy"), occ.size,
-                   (grid.geometry_args()[0], oreso, grid.links.data, occ.data), 64)
+                   (cl.cltypes.make_int4(r[0], r[1], r[2], 0), oreso, grid.links.data, occ.data),
+                   64)
         cached = (key, occ, oreso)
         grid.scratch["block_occupancy"] = cached
     return cached[1], cached[2]
@@ -135,16 +141,18 @@ def _record_buffer(grid, slots, rec_max):
     return cache[key]
 
 
-def render_forward_device(grid, origins_d, dirs_d, step, background, out=None):
+def render_forward_device(grid, origins_d, dirs_d, step, background, out=None, t_stop=T_STOP):
     """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n].
-    background: three numbers, or a float32 device array [n, 3] of per-ray colours."""
+    background: three numbers, or a float32 device array [n, 3] of per-ray colours. t_stop:
+    early-termination transmittance (0: none, as distributed rendering)."""
     dev = grid.device
     n = origins_d.shape[0]
     q = dev.queue
     if out is None:
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
-    k = grid_program(grid, step=step, bg_per_ray=_per_ray(background, n)).kernel("render_forward")
+    k = grid_program(grid, step=step, t_stop=t_stop,
+                     bg_per_ray=_per_ray(background, n)).kernel("render_forward")
     occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
@@ -170,7 +178,7 @@ def ray_exit_device(grid, origins_d, dirs_d, step, out=None):
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
                            grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
-                           beta_scale=0.0, grad_bg=None):
+                           beta_scale=0.0, grad_bg=None, t_stop=T_STOP):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
@@ -189,8 +197,8 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         return grad_bg
     slots = grad_slots(grid)
     record = slots > 0 and dev.tuning.sample_record
-    prg = grid_program(grid, grad_mode, touched is not None, slots=slots, step=step, record=record,
-                       bg_per_ray=per_ray)
+    prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots,
+                       step=step, record=record, bg_per_ray=per_ray)
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
             ray_in_d.data]

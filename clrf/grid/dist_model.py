@@ -1,0 +1,246 @@
+"""DistGridModel: GridModel's training interface over the bricks of a distributed grid (one
+brick per MPI rank; clrf/grid/bricks.py, clrf/distributed.py).
+
+Every rank runs the same training loop on the same batches; per step it renders its partials,
+exchanges them (Allgather), composes the rays, takes the loss on the composed colours (every
+rank gets the same value), runs the backward over its own brick, sums the overlap rows'
+gradients with its neighbours and steps the optimisers on its own rows (the overlap replicas
+get identical updates). TV and sparsity use the single grid's cell window, each brick over its
+own voxels. No early termination (T_STOP 0): a brick cannot know the transmittance in front of
+it during its forward march.
+
+Checkpoints: each rank writes its brick (``ckpt.it<iteration>.rank<r>of<P>.npz``, atomically);
+once all have, rank 0 replaces ``ckpt.npz`` by a manifest naming them (atomically) and removes
+older brick files. ``checkpoint.load`` merges a manifest's bricks into one grid, so a single
+process renders and evaluates a distributed run when it fits, and a distributed resume slices
+its bricks from that merged grid.
+
+Coarse-to-fine: at each scheduled iteration the grid is pruned and resampled across bricks and
+split again at the new resolution, balanced by the rows the pruned grid will have
+(clrf/grid/dist_ops.py). Between upsamples the bricks stay as they are.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyopencl.array as cla
+
+from .. import checkpoint
+from ..distributed import DistGrid
+from ..optim import Optimizer, expon_lr
+from . import bricks as B
+from .grid import sh_dim
+from .render import BETA_EPS
+
+
+def check_schedule(cfg, ranks: int):
+    """Every resolution of the schedule must split into ``ranks`` bricks (ValueError with the
+    fix otherwise)."""
+    for r in cfg.grid.reso[:len(cfg.grid.upsample_at) + 1]:
+        B.split(r, ranks)
+
+
+def initial_brick(device, cfg, bbox, brick) -> B.BrickGrid:
+    """The brick's part of GridModel's first grid (clrf/grid/model.py initial_grid): constant
+    density, grey colour, optionally only voxels inside the inscribed ellipsoid; the mask is
+    evaluated on the brick's voxels only."""
+    reso = tuple(cfg.reso[0])
+    sl = brick.local_slices
+    if cfg.sphere_bound:
+        c = [((np.arange(r) + 0.5) / r * 2 - 1)[s] for r, s in zip(reso, sl)]
+        x, y, z = np.meshgrid(*c, indexing="ij")
+        mask = x * x + y * y + z * z <= 1.0
+    else:
+        mask = np.ones(brick.local_reso, bool)
+    n = int(mask.sum())
+    links = np.full(brick.local_reso, -1, np.int32)
+    links[mask] = np.arange(n, dtype=np.int32)
+    g = B.SparseGrid.from_arrays(device, links, np.full(n, cfg.init_density, np.float32),
+                                 np.zeros((n, sh_dim(cfg.sh_degree)), np.float32), bbox)
+    return B.BrickGrid.from_grid(g, brick)
+
+
+class DistGridModel:
+    kind = "grid"
+
+    def __init__(self, device, cfg, comm, bgrid, bricks, background, stage=0, opt_state=None):
+        self.device = device
+        self.cfg = cfg
+        self.comm = comm
+        self.bricks = bricks
+        self.background = tuple(float(b) for b in background)
+        self.stage = stage
+        self.dist = DistGrid(comm, bgrid, bricks)
+        self._set_grid(bgrid, opt_state)
+
+    @classmethod
+    def create(cls, device, cfg, bbox, background, comm):
+        bl = B.split(cfg.reso[0], comm.Get_size())
+        return cls(device, cfg, comm, initial_brick(device, cfg, bbox, bl[comm.Get_rank()]), bl,
+                   background)
+
+    @classmethod
+    def from_state_dict(cls, device, state, cfg, comm):
+        """The rank's brick from its own brick file's state (checkpoint.load with brick=, same
+        rank count) or from a whole-grid state (a merged manifest or a single-process
+        checkpoint, sliced), optimiser state included."""
+        links = np.asarray(state["links"])
+        if "brick" in state:     # this rank's own file; the manifest lists every brick
+            reso = tuple(state["brick"]["reso"])
+            bl = (B.from_boxes(state["bricks"], reso) if "bricks" in state
+                  else B.split(reso, comm.Get_size()))
+            br = bl[comm.Get_rank()]
+            if [list(br.lo), list(br.hi)] != [state["brick"]["lo"], state["brick"]["hi"]]:
+                raise checkpoint.CheckpointError(
+                    f"brick file of rank {comm.Get_rank()} holds {state['brick']['lo']}.."
+                    f"{state['brick']['hi']}, but this split gives {br.lo}..{br.hi}")
+            local = links
+        else:
+            bl = B.split(links.shape, comm.Get_size())
+            br = bl[comm.Get_rank()]
+            local = links[br.local_slices]
+        rows = local[local >= 0]
+        new = np.full(local.shape, -1, np.int32)
+        new[local >= 0] = np.arange(rows.size, dtype=np.int32)
+        g = B.SparseGrid.from_arrays(device, new, state["density"][rows], state["sh"][rows],
+                                     state["bbox"])
+        q = device.queue
+        pad = g.density.shape[0] - rows.size
+        od = np.concatenate([state["opt_density"][rows], np.zeros(pad, np.float32)])
+        osh = np.concatenate([state["opt_sh"][rows], np.zeros((pad, g.sh_dim), np.float32)])
+        opt = {"density": cla.to_device(q, od.astype(np.float32)),
+               "sh": cla.to_device(q, osh.astype(np.float32))}
+        return cls(device, cfg, comm, B.BrickGrid.from_grid(g, br), bl, state["background"],
+                   int(state["stage"]), opt)
+
+    def _set_grid(self, bgrid, opt_state=None):
+        self.grid = bgrid
+        self.dist.set_grid(bgrid)
+        st = opt_state or {}
+        self.opt_density = Optimizer(self.device, bgrid.density, self.cfg.optimizer,
+                                     self.cfg.rms_beta, state=st.get("density"))
+        self.opt_sh = Optimizer(self.device, bgrid.sh, self.cfg.optimizer, self.cfg.rms_beta,
+                                state=st.get("sh"))
+        self.touched = cla.zeros(self.device.queue, bgrid.density.shape[0], np.uint8)
+
+    # ---- training ----------------------------------------------------------------------
+    def learning_rates(self, it):
+        c = self.cfg
+        return (expon_lr(it, c.lr_density, c.lr_density_final, c.lr_decay_steps,
+                         c.lr_density_delay_steps, c.lr_density_delay_mult),
+                expon_lr(it, c.lr_sh, c.lr_sh_final, c.lr_decay_steps))
+
+    def train_step(self, it, origins, dirs, target) -> float:
+        """One step on a batch (device arrays [B, 3], the same on every rank); returns the
+        batch MSE of the composed colours (the same on every rank)."""
+        c = self.cfg
+        n = origins.shape[0]
+        comp, packed = self.dist.forward(origins, dirs, c.step, self.background)
+        diff = comp["rgb"] - target.get().astype(np.float64)
+        sq = float(np.sum(diff * diff))
+        g = (2.0 / (3 * n)) * diff
+        gT = None
+        if c.lambda_beta:
+            T = comp["T_end"]
+            gT = (c.lambda_beta / n) * (1.0 / (T + BETA_EPS) - 1.0 / (1.0 - T + BETA_EPS))
+        self.dist.backward(origins, dirs, c.step, self.background, packed, comp, g,
+                           self.opt_density.grad, self.opt_sh.grad, self.touched, gT)
+        if not (c.tv_early_only and self.stage > 0):
+            self._tv(it)
+        self.dist.sum_halo(self.opt_density.grad, self.opt_sh.grad, self.touched)
+        lr_d, lr_s = self.learning_rates(it)
+        self.opt_density.step(self.touched, lr_d, clear_touched=False)
+        self.opt_sh.step(self.touched, lr_s, clear_touched=True)
+        return sq / (3 * n)
+
+    def _tv(self, it):
+        c = self.cfg
+        g = self.grid
+        total = int(np.prod(g.march_reso))
+        n = max(1, int(c.tv_fraction * total))
+        start = int(np.random.default_rng(it).integers(total))
+        if c.lambda_tv > 0 or c.lambda_sparsity > 0:
+            B.tv_grad_brick(g, g.density, self.opt_density.grad, self.touched, start, n,
+                            c.lambda_tv / n, True, c.lambda_sparsity / n)
+        if c.lambda_tv_sh > 0:
+            B.tv_grad_brick(g, g.sh, self.opt_sh.grad, self.touched, start, n,
+                            c.lambda_tv_sh / n, False)
+
+    def on_iteration(self, it, trainer):
+        """Prune and upsample at the scheduled iterations (collective). Returns a log message."""
+        c = self.cfg
+        if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
+            o, d = trainer.rays.strided(c.prune_rays)
+            return self.upsample(o, d)
+        return None
+
+    def upsample(self, origins, dirs):
+        """GridModel.upsample across the bricks (clrf/grid/dist_ops.py)."""
+        from .dist_ops import upsample
+        new_reso = tuple(self.cfg.reso[self.stage + 1])
+        nb, bgrid, before, kept = upsample(self, origins, dirs, new_reso)
+        self.bricks = nb
+        self.dist.bricks = nb
+        self._set_grid(bgrid)
+        self.stage += 1
+        return (f"pruned {before} -> {kept} rows, upsampled to {new_reso[0]}x{new_reso[1]}x"
+                f"{new_reso[2]} in {len(nb)} bricks")
+
+    @property
+    def batch_size(self) -> int:
+        return self.cfg.batch_size
+
+    # ---- evaluation (collective: every rank calls it with the same rays) ----------------
+    def render(self, origins, dirs, chunk=1 << 16):
+        q = self.device.queue
+        n = origins.shape[0]
+        out = {"rgb": np.empty((n, 3), np.float32), "depth": np.empty(n, np.float32),
+               "acc": np.empty(n, np.float32)}
+        for s in range(0, n, chunk):
+            e = min(n, s + chunk)
+            comp, _ = self.dist.forward(
+                cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
+                self.cfg.step, self.background)
+            for k in out:
+                out[k][s:e] = comp[k]
+        return out
+
+    def describe(self):
+        r = self.grid.march_reso
+        own = self.grid.links.get()[self.grid.brick.own_slices]
+        rows = self.comm.allreduce(int(np.count_nonzero(own >= 0)))
+        return f"{r[0]}x{r[1]}x{r[2]} grid, {rows} rows in {len(self.bricks)} bricks"
+
+    # ---- state -------------------------------------------------------------------------
+    def state_dict(self):
+        g = self.grid
+        n = g.n_rows
+        b = g.brick
+        return {
+            "kind": "grid", "stage": self.stage, "sh_degree": g.sh_degree,
+            "background": list(self.background), "bbox": g.bbox,
+            "links": g.links.get(), "density": g.density.get()[:n], "sh": g.sh.get()[:n],
+            "opt_density": self.opt_density.state.get()[:n],
+            "opt_sh": self.opt_sh.state.get()[:n],
+            "brick": {"rank": b.index, "ranks": len(self.bricks), "lo": list(b.lo),
+                      "hi": list(b.hi), "reso": list(b.reso)},
+        }
+
+    def save_checkpoint(self, path, state):
+        """Collective: every rank writes its brick, then rank 0 the manifest ``path``."""
+        path = Path(path)
+        it = int(state["iteration"])
+        r, P = self.comm.Get_rank(), self.comm.Get_size()
+        mine = checkpoint.brick_file_name(it, r, P)
+        checkpoint.save(path.parent / mine, state)
+        names = self.comm.gather(mine, root=0)
+        if r == 0:
+            meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
+            meta.pop("brick")
+            meta.update(distributed={"ranks": P, "files": names, "reso": list(self.grid.march_reso)},
+                        bricks=[[list(b.lo), list(b.hi)] for b in self.bricks])
+            checkpoint.save(path, meta)
+            checkpoint.remove_unreferenced_bricks(path.parent)
+        self.comm.Barrier()
