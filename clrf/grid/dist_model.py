@@ -28,9 +28,10 @@ import pyopencl.array as cla
 
 from .. import checkpoint
 from ..distributed import DistGrid
-from ..optim import Optimizer, expon_lr
+from ..optim import Optimizer
 from . import bricks as B
 from .grid import sh_dim
+from .model import GridModel
 from .render import BETA_EPS
 
 
@@ -61,7 +62,10 @@ def initial_brick(device, cfg, bbox, brick) -> B.BrickGrid:
     return B.BrickGrid.from_grid(g, brick)
 
 
-class DistGridModel:
+class DistGridModel(GridModel):
+    """GridModel over one brick per rank: the learning-rate schedule, the TV window and the
+    upsample schedule are GridModel's; the step, prune/upsample, render and state are the
+    bricks' own."""
     kind = "grid"
 
     def __init__(self, device, cfg, comm, bgrid, bricks, background, stage=0, opt_state=None):
@@ -71,6 +75,7 @@ class DistGridModel:
         self.bricks = bricks
         self.background = tuple(float(b) for b in background)
         self.stage = stage
+        self.bg_model = None        # the bricks carry no background model (the CLI refuses one)
         self.dist = DistGrid(comm, bgrid, bricks)
         self._set_grid(bgrid, opt_state)
 
@@ -125,12 +130,6 @@ class DistGridModel:
         self.touched = cla.zeros(self.device.queue, bgrid.density.shape[0], np.uint8)
 
     # ---- training ----------------------------------------------------------------------
-    def learning_rates(self, it):
-        c = self.cfg
-        return (expon_lr(it, c.lr_density, c.lr_density_final, c.lr_decay_steps,
-                         c.lr_density_delay_steps, c.lr_density_delay_mult),
-                expon_lr(it, c.lr_sh, c.lr_sh_final, c.lr_decay_steps))
-
     def train_step(self, it, origins, dirs, target) -> float:
         """One step on a batch (device arrays [B, 3], the same on every rank); returns the
         batch MSE of the composed colours (the same on every rank)."""
@@ -154,26 +153,12 @@ class DistGridModel:
         self.opt_sh.step(self.touched, lr_s, clear_touched=True)
         return sq / (3 * n)
 
-    def _tv(self, it):
-        c = self.cfg
-        g = self.grid
-        total = int(np.prod(g.march_reso))
-        n = max(1, int(c.tv_fraction * total))
-        start = int(np.random.default_rng(it).integers(total))
-        if c.lambda_tv > 0 or c.lambda_sparsity > 0:
-            B.tv_grad_brick(g, g.density, self.opt_density.grad, self.touched, start, n,
-                            c.lambda_tv / n, True, c.lambda_sparsity / n)
-        if c.lambda_tv_sh > 0:
-            B.tv_grad_brick(g, g.sh, self.opt_sh.grad, self.touched, start, n,
-                            c.lambda_tv_sh / n, False)
+    def _tv_cells(self):
+        return self.grid.march_reso    # the single grid's cells: the same window on every rank
 
-    def on_iteration(self, it, trainer):
-        """Prune and upsample at the scheduled iterations (collective). Returns a log message."""
-        c = self.cfg
-        if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
-            o, d = trainer.rays.strided(c.prune_rays)
-            return self.upsample(o, d)
-        return None
+    @staticmethod
+    def _tv_grad(*args):
+        B.tv_grad_brick(*args)
 
     def upsample(self, origins, dirs):
         """GridModel.upsample across the bricks (clrf/grid/dist_ops.py)."""
@@ -186,10 +171,6 @@ class DistGridModel:
         self.stage += 1
         return (f"pruned {before} -> {kept} rows, upsampled to {new_reso[0]}x{new_reso[1]}x"
                 f"{new_reso[2]} in {len(nb)} bricks")
-
-    @property
-    def batch_size(self) -> int:
-        return self.cfg.batch_size
 
     # ---- evaluation (collective: every rank calls it with the same rays) ----------------
     def render(self, origins, dirs, chunk=1 << 16):

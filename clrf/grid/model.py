@@ -101,17 +101,27 @@ class GridModel:
         return float(cla.sum(self._sqerr).get()) / (3 * B)
 
     def _tv(self, it):
+        """TV (and the sparsity prior) over one random contiguous window of the grid's cells;
+        ``_tv_cells`` / ``_tv_grad`` are the distributed model's hooks (its window is over the
+        whole grid, each brick covering its own voxels)."""
         c = self.cfg
         g = self.grid
-        total = int(np.prod(g.reso))
+        total = int(np.prod(self._tv_cells()))
         n = max(1, int(c.tv_fraction * total))
         start = int(np.random.default_rng(it).integers(total))
         if c.lambda_tv > 0 or c.lambda_sparsity > 0:
-            grid_ops.tv_grad(g, g.density, self.opt_density.grad, self.touched, start, n,
-                             c.lambda_tv / n, True, c.lambda_sparsity / n)
+            self._tv_grad(g, g.density, self.opt_density.grad, self.touched, start, n,
+                          c.lambda_tv / n, True, c.lambda_sparsity / n)
         if c.lambda_tv_sh > 0:
-            grid_ops.tv_grad(g, g.sh, self.opt_sh.grad, self.touched, start, n,
-                             c.lambda_tv_sh / n, False)
+            self._tv_grad(g, g.sh, self.opt_sh.grad, self.touched, start, n,
+                          c.lambda_tv_sh / n, False)
+
+    def _tv_cells(self):
+        return self.grid.reso
+
+    @staticmethod
+    def _tv_grad(*args):
+        grid_ops.tv_grad(*args)
 
     def on_iteration(self, it, trainer):
         """Prune and upsample at the scheduled iterations. Returns a log message or None."""
