@@ -136,7 +136,7 @@ def test_ndc_to_world_inverts_to_ndc():
 
 def test_nerf_mesh_path(device):
     from clrf.nerf import NerfConfig, NerfModel
-    model = NerfModel(device, NerfConfig.preset("tiny"), 2.0, 6.0, (1, 1, 1))
+    model = NerfModel(device, NerfConfig.from_preset("tiny"), 2.0, 6.0, (1, 1, 1))
     vol = export.density_volume(model, BBOX, (12, 12, 12))
     level = float(np.median(vol))
     mesh = export.extract_mesh(model, BBOX, (12, 12, 12), level)

@@ -33,8 +33,7 @@ import pyopencl.array as cla
 from ..programs import launch
 from .grid import SparseGrid
 from .ops import TV_EPS
-from .render import (_record_buffer, _slot_buffers, block_occupancy, grad_slots, grid_program,
-                     max_samples_per_ray)
+from .render import block_occupancy, grad_slots, grid_program, launch_backward
 
 # Per-ray floats a brick contributes to the exchange: rgb (3), logT, depth, acc, key.
 PARTIAL_FLOATS = 7
@@ -293,23 +292,8 @@ def render_backward_partial_device(bgrid: BrickGrid, origins_d, dirs_d, ray_in4_
     args = [np.int32(n), origins_d.data, dirs_d.data, bgrid.links.data, bgrid.density.data,
             bgrid.sh.data, *bgrid.geometry_args(), np.float32(step), bg, ray_in4_d.data,
             grad_density.data, grad_sh.data]
-    if touched is not None:
-        args.append(touched.data)
-    n_rows = bgrid.density.shape[0]
-    if slots:
-        sd, ss, st, lock = _slot_buffers(bgrid, slots)
-        args += [np.int32(n_rows), sd.data, ss.data, st.data, lock.data]
-        if record:
-            rec_max = max_samples_per_ray(bgrid.march_reso, step)
-            args += [_record_buffer(bgrid, slots, rec_max).data, np.int32(rec_max)]
-    occ, oreso = block_occupancy(bgrid)
-    args += [occ.data, oreso, *bgrid.brick.kernel_args()]
-    launch(dev, prg.kernel("render_backward"), n, args, dev.tuning.grid_local_size)
-    if slots:
-        tch = touched if touched is not None else st
-        launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
-               (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
-                tch.data), dev.tuning.reduce_local_size)
+    launch_backward(bgrid, prg, n, args, grad_density, grad_sh, touched, slots, record,
+                    bgrid.march_reso, step, bgrid.brick.kernel_args())
 
 
 def max_weight_partial_device(bgrid: BrickGrid, origins_d, dirs_d, ray_T_d, step, maxw):

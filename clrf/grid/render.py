@@ -213,6 +213,18 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         if grad_bg is None:
             grad_bg = cla.empty(dev.queue, (n, 3), np.float32)
         args.append(grad_bg.data)
+    launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
+                    grid.reso, step)
+    return grad_bg
+
+
+def launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
+                    march_reso, step, extra_args=()):
+    """The tail every render_backward launch shares (single grid and bricks): ``args`` up to
+    the gradient buffers, then touched, the slot buffers and sample records, the block
+    occupancy and ``extra_args``; launch, and reduce the slots into the gradients."""
+    dev = grid.device
+    args = list(args)
     if touched is not None:
         args.append(touched.data)
     n_rows = grid.density.shape[0]
@@ -220,17 +232,16 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         sd, ss, st, lock = _slot_buffers(grid, slots)
         args += [np.int32(n_rows), sd.data, ss.data, st.data, lock.data]
         if record:
-            rec_max = max_samples_per_ray(grid.reso, step)
+            rec_max = max_samples_per_ray(march_reso, step)
             args += [_record_buffer(grid, slots, rec_max).data, np.int32(rec_max)]
     occ, oreso = block_occupancy(grid)
-    args += [occ.data, oreso]
+    args += [occ.data, oreso, *extra_args]
     launch(dev, prg.kernel("render_backward"), n, args, dev.tuning.grid_local_size)
     if slots:
         tch = touched if touched is not None else st   # not read without TRACK_TOUCHED
         launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
                 tch.data), dev.tuning.reduce_local_size)
-    return grad_bg
 
 
 def _host_background(background, n, q):
