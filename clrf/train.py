@@ -186,7 +186,6 @@ class Trainer:
             self.seconds = float(state["seconds"])
             if self.primary:
                 rundir.trim_metrics(self.csv_path, CSV_FIELDS, self.iteration)
-            if self.primary:
                 self.log(f"resumed from {self.ckpt_path} at iteration {self.iteration} "
                          f"({self.seconds:.1f} s)")
         else:
