@@ -18,6 +18,7 @@ from clrf.testing.tolerances import (BRICK_COMPOSE_ATOL, BRICK_DEPTH_ATOL, GRAD_
                                      GRAD_RTOL)
 
 from mpi_script import BACKGROUND, BBOX, STEP, scene
+from test_kill import _scene
 
 HERE = Path(__file__).resolve().parent
 MPIRUN = shutil.which("mpirun")
@@ -86,17 +87,6 @@ def test_render_and_gradients_equal_single_device(single, tmp_path, ranks):
             sj = tuple(slice(a - o, b - o) for a, b, o in zip(lo, hi, r[f"lo{j}"]))
             np.testing.assert_array_equal(r[f"gd{i}"][si], r[f"gd{j}"][sj])
             np.testing.assert_array_equal(r[f"gs{i}"][si], r[f"gs{j}"][sj])
-
-
-def _scene(path):
-    """A small .npz scene (16 views of 16x16 pixels): quick to load in every process."""
-    rng = np.random.default_rng(0)
-    poses = np.tile(np.eye(4), (16, 1, 1))
-    poses[:, 0, 3] = np.linspace(-0.5, 0.5, 16)
-    poses[:, 2, 3] = 4.0
-    np.savez(path, images=rng.uniform(size=(16, 16, 16, 3)).astype(np.float32), poses=poses,
-             focal=20.0)
-    return path
 
 
 TRAIN = ["--set", "grid.reso=[[16,16,16]]", "--set", "grid.upsample_at=[]",

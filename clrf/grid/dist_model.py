@@ -173,20 +173,9 @@ class DistGridModel(GridModel):
                 f"{new_reso[2]} in {len(nb)} bricks")
 
     # ---- evaluation (collective: every rank calls it with the same rays) ----------------
-    def render(self, origins, dirs, chunk=1 << 16):
-        q = self.device.queue
-        n = origins.shape[0]
-        out = {"rgb": np.empty((n, 3), np.float32), "depth": np.empty(n, np.float32),
-               "acc": np.empty(n, np.float32)}
-        for s in range(0, n, chunk):
-            e = min(n, s + chunk)
-            comp, _ = self.dist.forward(
-                cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
-                cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
-                self.cfg.step, self.background)
-            for k in out:
-                out[k][s:e] = comp[k]
-        return out
+    def _render_chunk(self, o, d):
+        """GridModel.render's chunks, composed over the bricks."""
+        return self.dist.forward(o, d, self.cfg.step, self.background)[0]
 
     def describe(self):
         r = self.grid.march_reso

@@ -160,15 +160,20 @@ class GridModel:
                "acc": np.empty(n, np.float32)}
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
-            o = cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32))
-            d = cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32))
-            bg = self.background
-            if self.bg_model is not None:
-                bg = self.bg_model.forward(self.grid, o, d, self.cfg.step, reuse=False)[1]
-            r = render_forward_device(self.grid, o, d, self.cfg.step, bg)
+            r = self._render_chunk(
+                cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)))
             for k in out:
-                out[k][s:e] = r[k].get()
+                out[k][s:e] = r[k]
         return out
+
+    def _render_chunk(self, o, d):
+        """numpy rgb, depth, acc of device rays o, d (the distributed model's hook)."""
+        bg = self.background
+        if self.bg_model is not None:
+            bg = self.bg_model.forward(self.grid, o, d, self.cfg.step, reuse=False)[1]
+        return {k: v.get() for k, v in
+                render_forward_device(self.grid, o, d, self.cfg.step, bg).items()}
 
     def describe(self):
         r = self.grid.reso
