@@ -341,13 +341,34 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     ksum_t logT = {0.0f, 0.0f};
     ksum_t prefix = {0.0f, 0.0f};
     float T = 1.0f;
-    int j = 0;   /* index of the non-empty sample in the record */
-    for (int k = MARCH_K0(&m); k < m.nsteps; ++k) {
-        float mid, delta;
-        if (!march_visit(&m, reso, links, density, sh, dst_d, dst_s, pf, &k, &mid, &delta, &L))
-            continue;
-        const float sigma = use_rec ? rec[8 * j + REC_SIGMA] : lerp_density(&L, density);
-        ++j;
+    /* k: the record's entries in order (use_rec), or the segments, re-marched */
+    const int kend = use_rec ? n_rec : m.nsteps;
+    for (int k = use_rec ? 0 : MARCH_K0(&m); k < kend; ++k) {
+        float mid, delta, sigma;
+        if (use_rec) {
+            sigma = rec[8 * k + REC_SIGMA];
+            if (!(sigma > 0.0f)) continue;
+            march_segment(&m, as_int(rec[8 * k + REC_K]), &mid, &delta);
+#if CLRF_PREFETCH   /* the links, then the gradient rows, of entries ahead */
+            float pmid, pdelta;
+            if (k + PREFETCH_LINKS_AHEAD < n_rec) {
+                march_segment(&m, as_int(rec[8 * (k + PREFETCH_LINKS_AHEAD) + REC_K]), &pmid,
+                              &pdelta);
+                prefetch_links(&m, m.p0 + pmid * m.dg, reso, links, &pf[1]);
+            }
+            if (k + PREFETCH_AHEAD < n_rec) {
+                march_segment(&m, as_int(rec[8 * (k + PREFETCH_AHEAD) + REC_K]), &pmid, &pdelta);
+                prefetch_cell_grad(&m, m.p0 + pmid * m.dg, reso, links, 0, 0, dst_d, dst_s,
+                                   &pf[0]);
+            }
+#endif
+            lerp_setup_cached(&m, m.p0 + mid * m.dg, reso, links, &L);
+        } else {
+            if (!march_visit(&m, reso, links, density, sh, dst_d, dst_s, pf, &k, &mid, &delta,
+                             &L))
+                continue;
+            sigma = lerp_density(&L, density);
+        }
         if (!(sigma > 0.0f)) continue;
         if (L.cell != cur_cell) {
             if (cur_cell >= 0) {
@@ -364,7 +385,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         float w, Tnext;
         float3 pre;
         if (use_rec) {
-            const float8 r = vload8(j - 1, rec);
+            const float8 r = vload8(k, rec);   /* entry k of the record */
             w = r.s1;
             Tnext = r.s2;
             pre = (float3)(r.s3, r.s4, r.s5);

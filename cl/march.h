@@ -394,7 +394,8 @@ inline void prefetch_links(const march_t *m, float3 p, int4 reso, __global const
 }
 
 /* Start loading the corner rows of the cell around point p (box units) into the cache, so the
- * gathers of a later sample do not wait for DRAM; when grad_d is not 0, also the gradient rows
+ * gathers of a later sample do not wait for DRAM (not when sh is 0); when grad_d is not 0,
+ * also the gradient rows
  * grad_d[k], grad_s[k * SH_DIM ...] that the backward pass will read-modify-write. Only when
  * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
  * read here and again later (then from the cache). */
@@ -412,10 +413,12 @@ inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global c
     for (int c = 0; c < 8; ++c) {
         int k = links[LINK_AT(m, xs[c >> 2], ys[(c >> 1) & 1], zs[c & 1], reso)];
         if (k < 0) continue;
-        __global const float *row = sh + (size_t)k * SH_DIM;
-        for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
-        CLRF_PREFETCH_LINE(row + SH_DIM - 1);
-        CLRF_PREFETCH_LINE(density + k);
+        if (sh) {
+            __global const float *row = sh + (size_t)k * SH_DIM;
+            for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(row + j);
+            CLRF_PREFETCH_LINE(row + SH_DIM - 1);
+            CLRF_PREFETCH_LINE(density + k);
+        }
         if (grad_d) {
             __global const float *grow = grad_s + (size_t)k * SH_DIM;
             for (int j = 0; j < SH_DIM; j += 16) CLRF_PREFETCH_LINE(grow + j);
@@ -479,14 +482,16 @@ inline void csum_add(float *s, float *c, float x) {
 
 /* Per-sample record written by the forward march for the backward march (rec != 0): one
  * float8 per non-empty sample j, in march order: (sigma, w, T after the sample, pre.x, pre.y,
- * pre.z, 0, 0), w and T only where sigma > 0. The backward march visits the same samples in
- * the same order and reads them instead of re-gathering and recomputing (bitwise the same
- * values). rec_max bounds the count; a march that would exceed it records nothing usable
+ * pre.z, k, 0) with k the segment index (int bits), w, T and pre only where sigma > 0. The
+ * backward walks the record instead of re-marching: it jumps to segment k (no empty-space
+ * skipping, no density or SH gathers), recomputes the corner links and weights there and
+ * reads the rest (bitwise the same values). rec_max bounds the count; a march that would exceed it records nothing usable
  * (*n_rec < 0) and the backward recomputes. */
 #define REC_SIGMA 0
 #define REC_W 1
 #define REC_TNEXT 2
 #define REC_PRE 3
+#define REC_K 6
 
 /* The forward march shared by every kernel (rec: see above; 0 for no record). With BRICK,
  * *kfirst is set to the first segment the brick evaluates (left as it was when none): it
@@ -513,7 +518,10 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
 #endif
         float sigma = lerp_density(&L, density);
         if (!(sigma > 0.0f)) {
-            if (rec && j < rec_max) rec[8 * j + REC_SIGMA] = sigma;
+            if (rec && j < rec_max) {
+                rec[8 * j + REC_SIGMA] = sigma;
+                rec[8 * j + REC_K] = as_float(k);
+            }
             ++j;
             continue;
         }
@@ -529,7 +537,7 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
         csum_add(&depth, &cdepth, w * mid);
         T = Tnext;
         if (rec && j < rec_max)
-            vstore8((float8)(sigma, w, T, pre.x, pre.y, pre.z, 0.0f, 0.0f), j, rec);
+            vstore8((float8)(sigma, w, T, pre.x, pre.y, pre.z, as_float(k), 0.0f), j, rec);
         ++j;
         if (T < T_STOP) break;
     }

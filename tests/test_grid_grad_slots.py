@@ -17,10 +17,10 @@ from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
-def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6):
+def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6, dmin=0.0):
     rng = np.random.default_rng(seed)
     C = 3 * (degree + 1) ** 2
-    dens = rng.uniform(0.0, 2.0, reso).astype(np.float32)
+    dens = rng.uniform(dmin, 2.0, reso).astype(np.float32)
     sh = rng.normal(0, 0.3, reso + (C,)).astype(np.float32)
     mask = rng.uniform(size=reso) < keep
     n = 300
@@ -33,9 +33,12 @@ def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6):
 @pytest.mark.parametrize("slots", [0, 1, 2, 3])
 @pytest.mark.parametrize("grad_mode", [0, 1])
 @pytest.mark.parametrize("record", [False, True])
-def test_grad_slots_match_reference(device, slots, grad_mode, record):
+@pytest.mark.parametrize("dmin", [0.0, -1.5])
+def test_grad_slots_match_reference(device, slots, grad_mode, record, dmin):
+    """dmin < 0: allocated voxels with negative density, so that some samples have sigma <= 0
+    (recorded, then passed over by the backward) between ones that have sigma > 0."""
     device = device.with_tuning(grad_slots=slots, sample_record=record)
-    dens, sh, mask, o, d = _scene()
+    dens, sh, mask, o, d = _scene(dmin=dmin)
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
     assert grad_slots(grid) == slots
     rng = np.random.default_rng(4)
