@@ -78,7 +78,7 @@
  * render_max_weight multiplies by ray_T = T_b.
  *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BG_PER_RAY, BRICK, BLOCK, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
+ * BG_PER_RAY, BRICK, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
  * (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the
  * signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
  * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
@@ -499,24 +499,23 @@ __kernel void render_max_weight(const int n_rays, __global const float *origins,
     }
 }
 
-/* occ[b] = 1 if block b (cells with lower corner in [b*BLOCK, b*BLOCK + BLOCK - 1] per axis)
- * has an allocated corner voxel, i.e. any links >= 0 in [b*BLOCK, b*BLOCK + BLOCK] (clamped):
- * the table skip_block reads. One work-item per block, blocks in C order. */
-__kernel void block_occupancy(const int4 reso, const int4 oreso, __global const int *links,
-                              __global uchar *occ) {
+/* occ[off + b] = 1 if block b of nb^3 cells (cells with lower corner in [b*nb, b*nb + nb - 1]
+ * per axis) has an allocated corner voxel, i.e. any links >= 0 in [b*nb, b*nb + nb] (clamped):
+ * the tables skip_block reads (nb = BLOCK at offset 0, nb = BLOCK_FINE at offset oreso.w).
+ * One work-item per block, blocks in C order, oreso blocks per axis. */
+__kernel void block_occupancy(const int4 reso, const int4 oreso, const int nb, const int off,
+                              __global const int *links, __global uchar *occ) {
     const int b = get_global_id(0);
     if (b >= oreso.x * oreso.y * oreso.z) return;
-#if BLOCK > 0
     const int bz = b % oreso.z, by = (b / oreso.z) % oreso.y, bx = b / (oreso.y * oreso.z);
-    const int3 lo = (int3)(bx, by, bz) * BLOCK;
-    const int3 hi = min(lo + BLOCK, (int3)(reso.x, reso.y, reso.z) - 1);
+    const int3 lo = (int3)(bx, by, bz) * nb;
+    const int3 hi = min(lo + nb, (int3)(reso.x, reso.y, reso.z) - 1);
     uchar any = 0;
     for (int x = lo.x; x <= hi.x && !any; ++x)
         for (int y = lo.y; y <= hi.y && !any; ++y)
             for (int z = lo.z; z <= hi.z; ++z)
                 if (links[cell_of(x, y, z, reso)] >= 0) { any = 1; break; }
-    occ[b] = any;
-#endif
+    occ[off + b] = any;
 }
 
 #if BG_PER_RAY

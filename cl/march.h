@@ -52,8 +52,10 @@ typedef struct {
     float len;   /* world length inside the box */
     float dt;    /* world length of one step */
     int nsteps;  /* number of segments, the last one clipped to len */
-    __global const uchar *occ; /* BLOCK > 0: occupancy of BLOCK^3 blocks of cells, set by the kernel */
-    int4 oreso;  /* blocks per axis */
+    __global const uchar *occ; /* BLOCK > 0: occupancy of BLOCK^3 blocks of cells, then (BLOCK_FINE
+                                  > 0) of BLOCK_FINE^3 blocks from entry oreso.w on */
+    int4 oreso;  /* BLOCK blocks per axis; .w: where the BLOCK_FINE table starts */
+    float3 idg;  /* 1 / dg per axis (inf where dg is 0): region_exit's divisions */
 #if BRICK
     int k0;      /* first segment that may lie in the brick (the loop starts there) */
     int4 blo, bhi;  /* the brick owns the cells with lower corner in [blo, bhi) per axis */
@@ -147,12 +149,16 @@ inline void brick_range(march_t *m, int4 reso) {
     m->nsteps = (int)clamp(floor(s1 / m->dt - 0.5f) + 2.0f, 0.0f, n);
 }
 
-/* 1 if the brick owns the sample at p (box units): its cell's lower corner is in [blo, bhi). */
+/* 1 if the brick owns the sample whose cell is q: its lower corner is in [blo, bhi). */
+inline int brick_owns_q(const march_t *m, const cellpos_t *q) {
+    return q->x0 >= m->blo.x && q->x0 < m->bhi.x && q->y0 >= m->blo.y && q->y0 < m->bhi.y &&
+           q->z0 >= m->blo.z && q->z0 < m->bhi.z;
+}
+/* The same for the sample at p (box units). */
 inline int brick_owns(const march_t *m, float3 p, int4 reso) {
     cellpos_t q;
     cell_locate(p, reso, &q);
-    return q.x0 >= m->blo.x && q.x0 < m->bhi.x && q.y0 >= m->blo.y && q.y0 < m->bhi.y &&
-           q.z0 >= m->blo.z && q.z0 < m->bhi.z;
+    return brick_owns_q(m, &q);
 }
 #define BRICK_OWNS(m, p, reso) brick_owns((m), (p), (reso))
 #else
@@ -183,6 +189,7 @@ inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale,
     m->len = (float)len;
     m->dt = (float)dt;
     m->nsteps = (int)ceil(len / dt);
+    m->idg = 1.0f / m->dg;
 #if BRICK
     brick_range(m, reso);
 #endif
@@ -216,12 +223,13 @@ inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L)
 inline float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
     float s = INFINITY;
     const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
+    const float id[3] = {m->idg.x, m->idg.y, m->idg.z};
     const int l[3] = {lo.x, lo.y, lo.z}, r[3] = {reso.x, reso.y, reso.z};
     for (int a = 0; a < 3; ++a) {
         float bound_lo = l[a] == 0 ? -INFINITY : (float)l[a] + 0.5f;
         float bound_hi = l[a] + nb - 1 >= r[a] - 2 ? INFINITY : (float)(l[a] + nb) + 0.5f;
-        if (d[a] > 0.0f) s = fmin(s, (bound_hi - p[a]) / d[a]);
-        else if (d[a] < 0.0f) s = fmin(s, (bound_lo - p[a]) / d[a]);
+        if (d[a] > 0.0f) s = fmin(s, (bound_hi - p[a]) * id[a]);
+        else if (d[a] < 0.0f) s = fmin(s, (bound_lo - p[a]) * id[a]);
     }
     return s;
 }
@@ -243,25 +251,39 @@ inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
 #ifndef BLOCK
 #define BLOCK 0  /* > 0: skip BLOCK^3-cell blocks with no allocated corner (occupancy array) */
 #endif
+#ifndef BLOCK_FINE
+#define BLOCK_FINE 0  /* > 0 (with BLOCK > 0, dividing it): inside an occupied block, skip
+                         BLOCK_FINE^3-cell blocks with no allocated corner (a second table) */
+#endif
 
-/* Empty-space skipping by blocks: if the block of sample point p has no allocated voxel,
- * set *k to the segment before the next one to evaluate (the loop's ++k follows) and return 1. */
-inline int skip_block(const march_t *m, float3 p, int4 reso, int *k) {
+/* Empty-space skipping by blocks: if the block (then, with BLOCK_FINE, the fine block) of the
+ * sample whose cell is q has no allocated voxel, set *k to the segment before the next one to
+ * evaluate (the loop's ++k follows) and return 1. */
+inline int skip_block(const march_t *m, const cellpos_t *q, int4 reso, int *k) {
 #if BLOCK > 0
-    cellpos_t q;
-    cell_locate(p, reso, &q);
-#if BRICK   /* the table covers the brick's links: blocks of local cells */
+#if BRICK   /* the tables cover the brick's links: blocks of local cells */
     const int3 org = (int3)(m->blo.x, m->blo.y, m->blo.z);
+    const int4 lr = m->lreso;
 #else
     const int3 org = (int3)(0);
+    const int4 lr = reso;
 #endif
-    const int3 b = ((int3)(q.x0, q.y0, q.z0) - org) / BLOCK;
-    if (m->occ[cell_of(b.x, b.y, b.z, m->oreso)]) return 0;
-    *k = skip_region(m, *k, b * BLOCK + org, BLOCK, reso) - 1;
-    return 1;
-#else
+    const int3 c = (int3)(q->x0, q->y0, q->z0) - org;
+    const int3 b = c / BLOCK;
+    if (!m->occ[cell_of(b.x, b.y, b.z, m->oreso)]) {
+        *k = skip_region(m, *k, b * BLOCK + org, BLOCK, reso) - 1;
+        return 1;
+    }
+#if BLOCK_FINE > 0
+    const int4 fr = (lr + (BLOCK_FINE - 1)) / BLOCK_FINE;
+    const int3 f = c / BLOCK_FINE;
+    if (!m->occ[m->oreso.w + cell_of(f.x, f.y, f.z, fr)]) {
+        *k = skip_region(m, *k, f * BLOCK_FINE + org, BLOCK_FINE, reso) - 1;
+        return 1;
+    }
+#endif
+#endif
     return 0;
-#endif
 }
 
 inline float lerp_density(const lerp_t *L, __global const float *density) {
@@ -351,9 +373,9 @@ inline float3 color_pre(shv_t co, const shy_t *S) {
 
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
-inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links, lerp_t *L) {
-    cellpos_t q;
-    cell_locate(p, reso, &q);
+inline int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
+                               __global const int *links, lerp_t *L) {
+    const cellpos_t q = *qp;
     const int cell = cell_of(q.x0, q.y0, q.z0, reso);
     const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
                 wz[2] = {1.0f - q.fz, q.fz};
@@ -375,6 +397,13 @@ inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global con
         any |= (L->idx[c] >= 0);
     }
     return any;
+}
+
+inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links,
+                             lerp_t *L) {
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    return lerp_setup_cached_q(m, &q, reso, links, L);
 }
 
 /* Start loading the 8 links of the cell around point p (4 pairs adjacent along z) into the
@@ -430,22 +459,27 @@ inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global c
 }
 
 /* The march loop's visit of segment *k, shared by every grid march: the segment's midpoint
- * and length, the empty-block skip, the prefetch of a later sample's rows (pf != 0: pf[0] the
- * cell, pf[1] the links last prefetched; grad_d / grad_s as in prefetch_cell_grad) and the
- * trilinear set-up with the empty-cell skip. Returns 1 when segment *k has a sample to
- * evaluate (L set up for it); 0 when the caller continues, *k then being the segment before
- * the next one to visit (the loop's ++k follows). Prefetching happens only where the march
- * evaluates samples, never across empty blocks. */
+ * and length, the empty-block skips (on entering a new cell: the last one passed them), the
+ * prefetch of a later sample's rows (pf != 0: pf[0] the cell, pf[1] the links last
+ * prefetched; grad_d / grad_s as in prefetch_cell_grad) and the trilinear set-up with the
+ * empty-cell skip. Returns 1 when segment *k has a sample to evaluate (L set up for it); 0
+ * when the caller continues, *k then being the segment before the next one to visit (the
+ * loop's ++k follows). Prefetching happens only where the march evaluates samples, never
+ * across empty blocks. */
 inline int march_visit(const march_t *m, int4 reso, __global const int *links,
                        __global const float *density, __global const float *sh,
                        __global const float *grad_d, __global const float *grad_s, int *pf,
                        int *k, float *mid, float *delta, lerp_t *L) {
     march_segment(m, *k, mid, delta);
     const float3 p = m->p0 + *mid * m->dg;
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    if (cell_of(q.x0, q.y0, q.z0, reso) != L->cell) {   /* the last cell passed both tests */
 #if BRICK
-    if (!brick_owns(m, p, reso)) return 0;
+        if (!brick_owns_q(m, &q)) return 0;
 #endif
-    if (skip_block(m, p, reso, k)) return 0;
+        if (skip_block(m, &q, reso, k)) return 0;
+    }
 #if CLRF_PREFETCH
     if (pf) {   /* a brick prefetches only points it owns: their corners are in its links */
         const float3 pl = m->p0 + (*mid + PREFETCH_LINKS_AHEAD * m->dt) * m->dg;
@@ -456,7 +490,7 @@ inline int march_visit(const march_t *m, int4 reso, __global const int *links,
             prefetch_cell_grad(m, pr, reso, links, density, sh, grad_d, grad_s, &pf[0]);
     }
 #endif
-    if (!lerp_setup_cached(m, p, reso, links, L)) {
+    if (!lerp_setup_cached_q(m, &q, reso, links, L)) {
         *k = skip_empty(m, *k, L->lo, reso) - 1;
         return 0;
     }

@@ -11,6 +11,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_PREFETCH_AHEAD        prefetch_ahead
   CLRF_PREFETCH_LINKS_AHEAD  prefetch_links_ahead
   CLRF_BLOCK                 block (0 = no empty-block skipping)
+  CLRF_BLOCK_FINE            block_fine (0 = no second, finer level)
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
   CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print every non-empty compiler log)
 
@@ -30,6 +31,7 @@ ENV = {
     "CLRF_PREFETCH_AHEAD": ("prefetch_ahead", int),
     "CLRF_PREFETCH_LINKS_AHEAD": ("prefetch_links_ahead", int),
     "CLRF_BLOCK": ("block", int),
+    "CLRF_BLOCK_FINE": ("block_fine", int),
     "CLRF_FAST_MATH": ("fast_math", lambda v: v != "0"),
     "CLRF_VERBOSE_BUILD": ("verbose_build", lambda v: v != "0"),
 }
@@ -49,6 +51,8 @@ class Tuning:
     prefetch_ahead: int = 3        # samples ahead for a cell's rows (~1.5 voxels at step 0.5)
     prefetch_links_ahead: int = 6  # samples ahead for a cell's links
     block: int = 8                 # empty-space skipping over block^3-cell blocks (0: off)
+    block_fine: int = 2            # then over block_fine^3-cell blocks inside occupied ones
+    #                                (0: off; must divide block)
     reduce_local_size: int = 256   # rows per work-group of grad_slots_reduce
     mlp_fused_local_size: int = 1  # work-items per group of the fused MLP kernels (big tiles)
     elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group

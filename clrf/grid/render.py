@@ -52,6 +52,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
         "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
         "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
+        "BLOCK_FINE": t.block_fine if t.block > 0 else 0,
         "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS})
 
 
@@ -107,20 +108,27 @@ def _slot_buffers(grid, slots):
 
 def block_occupancy(grid):
     """(occ uint8 device array, oreso int4): which BLOCK^3-cell blocks have an allocated corner
-    (cl/grid_render.cl block_occupancy). Built once per links buffer and cached on the grid;
-    a grid whose links are rewritten in place must drop ``grid.scratch["block_occupancy"]``."""
-    block = grid.device.tuning.block
-    ob = [max(1, -(-r // block)) if block > 0 else 1 for r in grid.reso]
-    key = (grid.links.data.int_ptr, block, tuple(grid.reso))
+    and, from entry oreso.w on, which BLOCK_FINE^3-cell blocks (cl/grid_render.cl
+    block_occupancy). Built once per links buffer and cached on the grid; a grid whose links
+    are rewritten in place must drop ``grid.scratch["block_occupancy"]``."""
+    t = grid.device.tuning
+    block, fine = t.block, t.block_fine if t.block > 0 else 0
+    r = grid.reso   # the links array's own shape (a brick's, for bricks)
+    ob = [max(1, -(-x // block)) if block > 0 else 1 for x in r]
+    of = [max(1, -(-x // fine)) if fine > 0 else 0 for x in r]
+    key = (grid.links.data.int_ptr, block, fine, tuple(r))
     cached = grid.scratch.get("block_occupancy")
     if cached is None or cached[0] != key:
-        occ = cla.zeros(grid.device.queue, int(np.prod(ob)), np.uint8)
-        oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], 0)
-        if block > 0:
-            r = grid.reso   # the links array's own shape (a brick's, for bricks)
-            launch(grid.device, grid_program(grid).kernel("block_occupancy"), occ.size,
-                   (cl.cltypes.make_int4(r[0], r[1], r[2], 0), oreso, grid.links.data, occ.data),
-                   64)
+        n_coarse = int(np.prod(ob))
+        occ = cla.zeros(grid.device.queue, n_coarse + int(np.prod(of)), np.uint8)
+        oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], n_coarse)
+        k = grid_program(grid).kernel("block_occupancy")
+        r4 = cl.cltypes.make_int4(r[0], r[1], r[2], 0)
+        for nb, shape, off in ((block, ob, 0), (fine, of, n_coarse)):
+            if nb > 0:
+                launch(grid.device, k, int(np.prod(shape)),
+                       (r4, cl.cltypes.make_int4(*shape, 0), np.int32(nb), np.int32(off),
+                        grid.links.data, occ.data), 64)
         cached = (key, occ, oreso)
         grid.scratch["block_occupancy"] = cached
     return cached[1], cached[2]
