@@ -37,8 +37,9 @@
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
  * sample before the cell's exit; with BLOCK > 0 (the host uses 8) it first checks a table of
- * BLOCK^3-cell blocks (block_occupancy) and jumps over a whole empty block. Those samples
- * have sigma = 0, so the result is unchanged.
+ * BLOCK^3-cell blocks (block_occupancy) and jumps over a whole empty block, then, with
+ * BLOCK_FINE > 0 (the host uses 2), a table of BLOCK_FINE^3-cell blocks. The tables are read
+ * on entering a new cell only. Those samples have sigma = 0, so the result is unchanged.
  *
  * Prefetch (CLRF_PREFETCH, PoCL CPU): PREFETCH_LINKS_AHEAD samples ahead the links of the
  * cell there are prefetched, PREFETCH_AHEAD samples ahead its rows (and, in the backward

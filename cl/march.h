@@ -235,11 +235,15 @@ inline float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
 }
 
 /* Index of the next segment to evaluate after segment k found its region (nb^3 cells from
- * lo) empty: the last one whose midpoint is still inside it (a skipped sample is never
- * outside it). */
+ * lo) empty: the first one whose midpoint lies at least SKIP_MARGIN steps before the region's
+ * exit s is not skipped, so every skipped midpoint is inside the region by that margin, far
+ * more than the float rounding of s and of the sample positions (~1e-5 voxels against 5e-4
+ * at step 0.5). A segment just inside is visited again and skipped on its own; the last,
+ * clipped segment has its midpoint earlier than (j + 0.5) dt, so it is inside too. */
+#define SKIP_MARGIN 1e-3f
 inline int skip_region(const march_t *m, int k, int3 lo, int nb, int4 reso) {
     float s = region_exit(m, lo, nb, reso);
-    float j = fmin(ceil(s / m->dt - 0.5f) - 1.0f, (float)m->nsteps);
+    float j = fmin(ceil(s / m->dt - 0.5f - SKIP_MARGIN), (float)m->nsteps);
     return max(k + 1, (int)j);
 }
 
