@@ -257,7 +257,7 @@ def cmd_render(a):
     elif a.views == "spiral" or meta["ndc"]:
         ds = _ckpt_dataset(state, a.data)
         poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
-    elif meta.get("preset") == "real360" and not a.radius:
+    elif str(meta.get("preset", "")).startswith("real360") and not a.radius:
         # an unbounded capture: the box-based orbit would leave the scene; follow the cameras
         ds = _ckpt_dataset(state, a.data)
         poses = camera_orbit_poses(ds.poses[ds.split["train"]], a.frames,

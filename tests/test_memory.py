@@ -74,4 +74,5 @@ def test_background_adds_its_texels():
     T = 2 * 4 * 8 * 8
     assert on.total - off.total == 49 * T + 32 * 100
     assert build_config("real360").grid.background_layers > 0
+    assert build_config("real360_box").grid.background_layers == 0
     assert build_config("synthetic").grid.background_layers == 0

@@ -127,4 +127,4 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
     return Dataset(name=root.name, images=images, poses=np.stack(poses)[keep].astype(np.float32),
                    intrinsics=intr, split=split, background=bg, bbox=bbox, near=NEAR,
                    far=float(np.linalg.norm(bbox[1] - bbox[0])), ndc=False,
-                   distortion=dist if np.any(dist != 0) else None, preset="real360")
+                   distortion=dist if np.any(dist != 0) else None, preset="real360_box")
