@@ -79,9 +79,9 @@
  * render_max_weight multiplies by ray_T = T_b.
  *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BG_PER_RAY, BRICK, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
- * (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused are not in the
- * signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
+ * BG_PER_RAY, BRICK, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD,
+ * PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused
+ * are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
  * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
  * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh.
  */

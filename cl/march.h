@@ -256,8 +256,8 @@ inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
 #define BLOCK 0  /* > 0: skip BLOCK^3-cell blocks with no allocated corner (occupancy array) */
 #endif
 #ifndef BLOCK_FINE
-#define BLOCK_FINE 0  /* > 0 (with BLOCK > 0, dividing it): inside an occupied block, skip
-                         BLOCK_FINE^3-cell blocks with no allocated corner (a second table) */
+#define BLOCK_FINE 0  /* > 0 (with BLOCK > 0): inside an occupied block, skip BLOCK_FINE^3-cell
+                         blocks with no allocated corner (a second table) */
 #endif
 
 /* Empty-space skipping by blocks: if the block (then, with BLOCK_FINE, the fine block) of the
@@ -428,8 +428,8 @@ inline void prefetch_links(const march_t *m, float3 p, int4 reso, __global const
 
 /* Start loading the corner rows of the cell around point p (box units) into the cache, so the
  * gathers of a later sample do not wait for DRAM (not when sh is 0); when grad_d is not 0,
- * also the gradient rows
- * grad_d[k], grad_s[k * SH_DIM ...] that the backward pass will read-modify-write. Only when
+ * also the gradient rows grad_d[k], grad_s[k * SH_DIM ...] that the backward pass will
+ * read-modify-write. Only when
  * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
  * read here and again later (then from the cache). */
 inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global const int *links,
@@ -523,8 +523,8 @@ inline void csum_add(float *s, float *c, float x) {
  * pre.z, k, 0) with k the segment index (int bits), w, T and pre only where sigma > 0. The
  * backward walks the record instead of re-marching: it jumps to segment k (no empty-space
  * skipping, no density or SH gathers), recomputes the corner links and weights there and
- * reads the rest (bitwise the same values). rec_max bounds the count; a march that would exceed it records nothing usable
- * (*n_rec < 0) and the backward recomputes. */
+ * reads the rest (bitwise the same values). rec_max bounds the count; a march that would
+ * exceed it records nothing usable (*n_rec < 0) and the backward re-marches. */
 #define REC_SIGMA 0
 #define REC_W 1
 #define REC_TNEXT 2

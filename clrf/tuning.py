@@ -52,7 +52,7 @@ class Tuning:
     prefetch_links_ahead: int = 6  # samples ahead for a cell's links
     block: int = 8                 # empty-space skipping over block^3-cell blocks (0: off)
     block_fine: int = 2            # then over block_fine^3-cell blocks inside occupied ones
-    #                                (0: off; must divide block)
+    #                                (0: off)
     reduce_local_size: int = 256   # rows per work-group of grad_slots_reduce
     mlp_fused_local_size: int = 1  # work-items per group of the fused MLP kernels (big tiles)
     elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group
