@@ -25,14 +25,14 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch
+from .programs import launch, upload
 
 PER_RAY_LOCAL_SIZE = 16  # one ray per work-item with a loop over its L - 1 samples
 
 
 def _f32(device, a, shape):
     a = np.ascontiguousarray(np.asarray(a, np.float32).reshape(shape))
-    return cla.to_device(device.queue, a)
+    return upload(device.queue, a)
 
 
 def _float4(v):

@@ -22,6 +22,7 @@ import os
 
 import numpy as np
 import pyopencl.array as cla
+from .programs import upload
 
 # The world size MPI launchers put in the environment of every process they start (Open MPI's
 # mpirun; PMI launchers: MPICH and Intel MPI's Hydra, srun --mpi=pmi2). Without one, the
@@ -106,9 +107,9 @@ class DistGrid:
         self.halo = Halo(self.bricks, self.rank, bgrid.links.get())
         q = bgrid.device.queue
         u = self.halo.union
-        self._union_d = cla.to_device(q, u.astype(np.int32)) if u.size else None
+        self._union_d = upload(q, u.astype(np.int32)) if u.size else None
         C = bgrid.sh_dim
-        self._union_sh_d = (cla.to_device(q, (u[:, None] * C + np.arange(C)).reshape(-1)
+        self._union_sh_d = (upload(q, (u[:, None] * C + np.arange(C)).reshape(-1)
                                           .astype(np.int64)) if u.size else None)
 
     # ---- forward / backward -------------------------------------------------------------
@@ -137,7 +138,7 @@ class DistGrid:
         inp = bricks.backward_inputs(packed, comp, grad_rgb, background, grad_T)[self.rank]
         q = self.grid.device.queue
         bricks.render_backward_partial_device(self.grid, origins_d, dirs_d,
-                                              cla.to_device(q, np.ascontiguousarray(inp)),
+                                              upload(q, np.ascontiguousarray(inp)),
                                               step, grad_density, grad_sh, touched)
 
     # ---- halo ---------------------------------------------------------------------------
@@ -180,11 +181,11 @@ class DistGrid:
             else:
                 total[h.pos[r]] += recv[r]
         q = self.grid.device.queue
-        grad_density.setitem(self._union_d, cla.to_device(q, np.ascontiguousarray(total[:, 0])))
-        grad_sh.reshape(-1).setitem(self._union_sh_d, cla.to_device(
+        grad_density.setitem(self._union_d, upload(q, np.ascontiguousarray(total[:, 0])))
+        grad_sh.reshape(-1).setitem(self._union_sh_d, upload(
             q, np.ascontiguousarray(total[:, 1:C + 1]).reshape(-1)))
         if touched is not None:
-            touched.setitem(self._union_d, cla.to_device(
+            touched.setitem(self._union_d, upload(
                 q, (total[:, C + 1] > 0).astype(np.uint8)))
 
     def max_halo(self, values):
@@ -199,5 +200,5 @@ class DistGrid:
         m = mine.copy()
         for r, pos in self.halo.pos.items():
             m[pos] = np.maximum(m[pos], recv[r])
-        values.setitem(self._union_d, cla.to_device(self.grid.device.queue,
+        values.setitem(self._union_d, upload(self.grid.device.queue,
                                                     np.ascontiguousarray(m[:, 0])))

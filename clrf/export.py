@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cla
 
-from .programs import launch
+from .programs import launch, upload
 
 BLOCK = 1 << 20          # points per device evaluation (12 MB of coordinates)
 NDC_MAX_DEPTH = 0.99     # NDC z' beyond this (world depth > 200 x near) is "at infinity": dropped
@@ -68,13 +68,13 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
         block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * model.fine.layout.nslot)))
     for s in range(0, n, block):
         e = min(n, s + block)
-        pd = cla.to_device(q, p[s:e])
+        pd = upload(q, p[s:e])
         if model.kind == "grid":
             sd, cd = _grid_fields(model.grid, pd)
         else:
             d = (np.tile(np.float32([0, 0, -1]), (e - s, 1)) if dirs is None
                  else np.ascontiguousarray(dirs[s:e], np.float32))
-            sd, cd = _nerf_fields(model, pd, cla.to_device(q, d))
+            sd, cd = _nerf_fields(model, pd, upload(q, d))
         sigma[s:e], rgb[s:e] = sd.get(), cd.get()
         if progress:
             progress(e - s)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cla
 
 
 class BuildError(RuntimeError):
@@ -93,6 +94,16 @@ class Program:
         if k is None:
             k = self._kernels[name] = getattr(self.cl_program, name)
         return k
+
+
+def upload(queue, ary):
+    """``cla.to_device`` without keeping the host array alive. pyopencl's to_device leaves an
+    event that holds ``ary`` in the new array's event list until that array's own finish(),
+    which kernels launched on its ``.data`` never call: every uploaded grid, ray store and
+    optimiser state kept a second copy in host memory for its whole life."""
+    arr = cla.to_device(queue, ary)
+    arr.finish()
+    return arr
 
 
 def launch(device, kernel, n: int, args, local_size: int | None = None, wait_for=None):

@@ -32,7 +32,7 @@ from . import checkpoint, rundir
 from .cameras import pixel_rays, to_ndc
 from .data.io import downscale_image
 from .metrics import image_metrics, psnr_from_mse
-from .programs import launch
+from .programs import launch, upload
 from .progress import TrainProgress
 
 EVAL_MIN_SIDE = 7          # smallest evaluated image side (SSIM's window)
@@ -48,9 +48,9 @@ class RayStore:
         self.device = device
         self.n = int(origins.shape[0])
         self.host = (origins, dirs)
-        self.o = cla.to_device(q, np.ascontiguousarray(origins, np.float32))
-        self.d = cla.to_device(q, np.ascontiguousarray(dirs, np.float32))
-        self.c = cla.to_device(q, np.ascontiguousarray(colors, np.float32))
+        self.o = upload(q, np.ascontiguousarray(origins, np.float32))
+        self.d = upload(q, np.ascontiguousarray(dirs, np.float32))
+        self.c = upload(q, np.ascontiguousarray(colors, np.float32))
         self._bufs = {}
 
     def batch(self, seed: int, n: int):

@@ -76,3 +76,23 @@ def test_background_adds_its_texels():
     assert build_config("real360").grid.background_layers > 0
     assert build_config("real360_box").grid.background_layers == 0
     assert build_config("synthetic").grid.background_layers == 0
+
+
+def test_uploads_keep_no_host_copy(device):
+    """pyopencl's to_device keeps the host array alive (an event in the new array's list)
+    until that array's own finish(), which kernels launched on its buffer never call: a grid
+    held a second copy of itself in host memory. clrf's uploads leave no such event."""
+    import sys
+    import numpy as np
+    from clrf import SparseGrid
+    from clrf.programs import upload
+    from clrf.train import RayStore
+    a = np.ones(1000, np.float32)
+    refs = sys.getrefcount(a)
+    arr = upload(device.queue, a)
+    assert sys.getrefcount(a) == refs and not arr.events
+    grid = SparseGrid.from_dense(device, np.ones((3, 4, 5)), np.zeros((3, 4, 5, 3)),
+                                 [[0, 0, 0], [1, 1, 1]])
+    store = RayStore(device, np.zeros((7, 3)), np.ones((7, 3)), np.zeros((7, 3)))
+    for x in (grid.links, grid.density, grid.sh, store.o, store.d, store.c):
+        assert not x.events

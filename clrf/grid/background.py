@@ -29,6 +29,7 @@ import pyopencl.array as cla
 from ..background import MSIBackground
 from ..optim import Optimizer, expon_lr
 from .render import ray_exit_device
+from ..programs import upload
 
 
 def msi_geometry(bbox):
@@ -119,7 +120,7 @@ class GridBackground:
                 f"grid.background_height = {cfg.background_height}; resume with the run's own "
                 f"configuration")
         q = device.queue
-        opt = {k: cla.to_device(q, np.ascontiguousarray(state[f"opt_bg_{k}"], np.float32)
+        opt = {k: upload(q, np.ascontiguousarray(state[f"opt_bg_{k}"], np.float32)
                                 .reshape((-1,) if k == "density" else (-1, 3)))
                for k in ("density", "color") if f"opt_bg_{k}" in state}
         return cls(device, cfg, msi, opt)

@@ -33,6 +33,7 @@ from . import bricks as B
 from .grid import sh_dim
 from .model import GridModel
 from .render import BETA_EPS
+from ..programs import upload
 
 
 def check_schedule(cfg, ranks: int):
@@ -114,8 +115,8 @@ class DistGridModel(GridModel):
         pad = g.density.shape[0] - rows.size
         od = np.concatenate([state["opt_density"][rows], np.zeros(pad, np.float32)])
         osh = np.concatenate([state["opt_sh"][rows], np.zeros((pad, g.sh_dim), np.float32)])
-        opt = {"density": cla.to_device(q, od.astype(np.float32)),
-               "sh": cla.to_device(q, osh.astype(np.float32))}
+        opt = {"density": upload(q, od.astype(np.float32)),
+               "sh": upload(q, osh.astype(np.float32))}
         return cls(device, cfg, comm, B.BrickGrid.from_grid(g, br), bl, state["background"],
                    int(state["stage"]), opt)
 

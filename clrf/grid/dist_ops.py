@@ -27,6 +27,7 @@ import pyopencl.array as cla
 from . import bricks as B
 from .ops import prune_keep
 from .grid import SparseGrid
+from ..programs import upload
 
 
 def _inter(alo, ahi, blo, bhi):
@@ -82,10 +83,10 @@ def max_weight(model, origins, dirs, chunk=1 << 16):
     maxw = cla.zeros(q, g.density.shape[0], np.float32)
     for s in range(0, origins.shape[0], chunk):
         e = min(origins.shape[0], s + chunk)
-        od = cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32))
-        dd = cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32))
+        od = upload(q, np.ascontiguousarray(origins[s:e], np.float32))
+        dd = upload(q, np.ascontiguousarray(dirs[s:e], np.float32))
         comp, _ = dist.forward(od, dd, model.cfg.step, model.background)
-        tb = cla.to_device(q, comp["T_before"][dist.rank].astype(np.float32))
+        tb = upload(q, comp["T_before"][dist.rank].astype(np.float32))
         B.max_weight_partial_device(g, od, dd, tb, model.cfg.step, maxw)
     dist.max_halo(maxw)
     return maxw

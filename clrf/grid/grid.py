@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 import pyopencl as cl
-import pyopencl.array as cla
 
 from ..validate import as_bbox, check_array
+from ..programs import upload
 
 SH_DIMS = {3 * (d + 1) ** 2: d for d in range(4)}
 
@@ -96,7 +96,7 @@ class SparseGrid:
         pad = 1 if n == 0 else 0
         dens = np.concatenate([density_rows, np.zeros(pad, np.float32)])
         shr = np.concatenate([sh_rows, np.zeros((pad, sh_rows.shape[1]), np.float32)])
-        return cls(device, cla.to_device(q, links), cla.to_device(q, dens), cla.to_device(q, shr),
+        return cls(device, upload(q, links), upload(q, dens), upload(q, shr),
                    bbox, SH_DIMS[sh_rows.shape[1]], n_rows=n)
 
     # ---- properties ---------------------------------------------------------------------

@@ -19,6 +19,7 @@ from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
+from ..programs import upload
 
 
 def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
@@ -161,8 +162,8 @@ class GridModel:
         for s in range(0, n, chunk):
             e = min(n, s + chunk)
             r = self._render_chunk(
-                cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
-                cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)))
+                upload(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                upload(q, np.ascontiguousarray(dirs[s:e], np.float32)))
             for k in out:
                 out[k][s:e] = r[k]
         return out
@@ -204,8 +205,8 @@ class GridModel:
         pad = grid.density.shape[0] - state["density"].shape[0]
         od = np.concatenate([state["opt_density"], np.zeros(pad, np.float32)])
         osh = np.concatenate([state["opt_sh"], np.zeros((pad, grid.sh_dim), np.float32)])
-        opt = {"density": cla.to_device(q, od.astype(np.float32)),
-               "sh": cla.to_device(q, osh.astype(np.float32))}
+        opt = {"density": upload(q, od.astype(np.float32)),
+               "sh": upload(q, osh.astype(np.float32))}
         has_bg = "bg_density" in state
         if has_bg != (cfg.background_layers > 0):
             raise ValueError(

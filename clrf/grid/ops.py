@@ -6,7 +6,7 @@ import pyopencl.array as cla
 from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
-from ..programs import launch
+from ..programs import launch, upload
 from .render import render_max_weight_device
 
 TV_EPS = 1e-9
@@ -35,8 +35,8 @@ def max_weight(grid, origins, dirs, step, chunk=1 << 18):
     n = origins.shape[0]
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        render_max_weight_device(grid, cla.to_device(q, np.ascontiguousarray(origins[s:e], np.float32)),
-                                 cla.to_device(q, np.ascontiguousarray(dirs[s:e], np.float32)),
+        render_max_weight_device(grid, upload(q, np.ascontiguousarray(origins[s:e], np.float32)),
+                                 upload(q, np.ascontiguousarray(dirs[s:e], np.float32)),
                                  step, mw)
     return mw
 

@@ -9,7 +9,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch
+from ..programs import launch, upload
 from ..validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
@@ -259,7 +259,7 @@ def _host_background(background, n, q):
     bg = check_array("background", background, ndim=2, shape_tail=(3,))
     if bg.shape[0] != n:
         raise ValueError(f"background has {bg.shape[0]} rows for {n} rays")
-    return cla.to_device(q, bg)
+    return upload(q, bg)
 
 
 def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
@@ -283,7 +283,7 @@ def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
         return {"rgb": np.zeros((0, 3), np.float32), "depth": np.zeros(0, np.float32),
                 "acc": np.zeros(0, np.float32)}
     bg = _host_background(background, n, q)
-    out = render_forward_device(grid, cla.to_device(q, o), cla.to_device(q, d), step, bg)
+    out = render_forward_device(grid, upload(q, o), upload(q, d), step, bg)
     return {k: v.get() for k, v in out.items()}
 
 
@@ -305,8 +305,8 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
     gs = cla.zeros(q, grid.sh.shape, np.float32)
     gbg = None
     if n:
-        gbg = render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
-                                     cla.to_device(q, g), step, bg, gd, gs)
+        gbg = render_backward_device(grid, upload(q, o), upload(q, d),
+                                     upload(q, g), step, bg, gd, gs)
     dens, sh = grid.rows_to_dense(gd.get(), gs.get())
     out = {"density": dens, "sh": sh}
     if np.ndim(background) == 2:

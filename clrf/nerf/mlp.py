@@ -20,7 +20,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..autotune import MLPTiling, mlp_tiling_for
-from ..programs import launch
+from ..programs import launch, upload
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
 GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of this much A + G
@@ -154,7 +154,7 @@ class MLP:
         if params.shape != (self.layout.n_params,):
             raise ValueError(f"params: expected {self.layout.n_params} floats for {spec}, got "
                              f"shape {params.shape}")
-        self.params = cla.to_device(q, params)
+        self.params = upload(q, params)
         self.params_t = cla.empty_like(self.params)
         self.grad = cla.zeros_like(self.params)
         self._scratch_rows = 0

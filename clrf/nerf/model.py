@@ -26,6 +26,7 @@ from . import ops
 from ..optim import Optimizer
 from ..config import NerfConfig
 from .mlp import MLP
+from ..programs import upload
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
@@ -136,7 +137,7 @@ class NerfModel:
                "acc": np.zeros(n, np.float32)}
         for s in range(0, n, step):
             e = min(n, s + step)
-            od, dd = cla.to_device(q, o[s:e]), cla.to_device(q, d[s:e])
+            od, dd = upload(q, o[s:e]), upload(q, d[s:e])
             t = ops.sample_stratified(dev, e - s, c.n_coarse, self.near, self.far, False)
             sig, rgb = self._eval(self.coarse, od, dd, t)
             res = ops.composite_forward(dev, t, sig, rgb, self.far, self.background,
