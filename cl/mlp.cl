@@ -422,20 +422,37 @@ __kernel void mlp_backward(const int n, __global const float *dsigma, __global c
     }
 }
 
-/* Partial weight and bias gradients of layer `layer` over chunk p of the scratch rows:
+/* Work-items of one chunk in mlp_weight_grad: per layer (nout / DW_ROWS) x ceil(nin / DW_COLS). */
+inline int wgrad_items(const layer_t L) {
+    return (L.nout / DW_ROWS) * ((L.nin + DW_COLS - 1) / DW_COLS);
+}
+
+inline int wgrad_items_per_chunk(void) {
+    int n = 0;
+    for (int l = 0; l < NLAYER; ++l) n += wgrad_items(layer_desc(l));
+    return n;
+}
+
+/* Partial weight and bias gradients of every layer over chunk p of the scratch rows:
  *   partial[p, w_off + j*nin + k] = sum_{s in chunk p} G[s, out_off + j] A[s, in_off + k],
  *   partial[p, b_off + j]         = sum_{s in chunk p} G[s, out_off + j]  (items with kb == 0,
  *                                   while the chunk's G rows are still in cache).
- * Work-item gid = (p * nkb + kb) * njb + jb: DW_ROWS outputs j x DW_COLS (or a last 16)
- * inputs k; nkb = ceil(nin / DW_COLS), njb = nout / DW_ROWS. */
-__kernel void mlp_weight_grad(const int layer, const int n_rows, __global const float *A,
+ * One launch for all layers (PoCL pays a launch and a queue drain per kernel): work-item
+ * gid = p * wgrad_items_per_chunk() + e, chunk-major so that a chunk's rows of A and G are
+ * read by all its layers while in cache; e runs over the layers in order, within a layer
+ * e' = kb * njb + jb: DW_ROWS outputs j x DW_COLS (or a last 16) inputs k, njb = nout / DW_ROWS. */
+__kernel void mlp_weight_grad(const int n_rows, __global const float *A,
                               __global const float *G, __global float *partial) {
-    const layer_t L = layer_desc(layer);
-    const int njb = L.nout / DW_ROWS, nkb = (L.nin + DW_COLS - 1) / DW_COLS;
+    const int ipc = wgrad_items_per_chunk();
     const int n_chunks = (n_rows + DW_CHUNK - 1) / DW_CHUNK;
     const int gid = get_global_id(0);
-    if (gid >= njb * nkb * n_chunks) return;
-    const int jb = gid % njb, kb = (gid / njb) % nkb, p = gid / (njb * nkb);
+    if (gid >= ipc * n_chunks) return;
+    const int p = gid / ipc;
+    int e = gid % ipc, layer = 0;
+    while (e >= wgrad_items(layer_desc(layer))) e -= wgrad_items(layer_desc(layer++));
+    const layer_t L = layer_desc(layer);
+    const int njb = L.nout / DW_ROWS;
+    const int jb = e % njb, kb = e / njb;
     const int j0 = jb * DW_ROWS, k0 = kb * DW_COLS;
     const int s0 = p * DW_CHUNK, ns = min(DW_CHUNK, n_rows - s0);
     __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;

@@ -23,7 +23,9 @@ from ..autotune import MLPTiling, mlp_tiling_for
 from ..programs import launch, upload
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
-GROUP_BYTES = 16 << 20    # backward + weight gradient interleaved per rows of this much A + G
+GROUP_BYTES = None   # interleave backward and weight gradient per rows of this much A + G;
+# None: one launch each. Measured on PoCL (Zen 4, AVX-512, n = 8192): launches cost more than
+# the cache misses that interleaving saves (8x256: 16 MB groups 0.93x numpy, one launch 0.99x).
 # Work-group sizes come from device.tuning (clrf/tuning.py): mlp_fused_local_size (big private
 # tiles: 1) and elementwise_local_size.
 
@@ -147,6 +149,9 @@ class MLP:
         self.tiling: MLPTiling = mlp_tiling_for(device, spec)
         self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines()})
         self.layout = read_layout(device, self.program)
+        dwr, dwc = self.layout.dw_rows, self.layout.dw_cols
+        self.wgrad_items_per_chunk = sum((L["nout"] // dwr) * -(-L["nin"] // dwc)
+                                         for L in self.layout.layers)
         q = device.queue
         if params is None:
             params = init_params(spec, self.layout, np.random.default_rng(seed))
@@ -227,13 +232,15 @@ class MLP:
         kb.set_args(np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data,
                     self.G.data, np.int32(bool(want_input)), dx.data if dx is not None else dummy,
                     dd.data if dd is not None else dummy)
-        # Interleave the backward and the weight gradient by groups of rows, so that the weight
-        # gradient reads A and G while they are still in the last-level cache.
+        # The backward, then the weight gradient: in one launch each, or (group_bytes set)
+        # interleaved by groups of rows so that the weight gradient reads A and G while they
+        # are still in the last-level cache.
         rows, R = self.n_rows(n), self.layout.rows
         chunk = self.layout.dw_chunk
         n_chunks = (rows + chunk - 1) // chunk
-        group_rows = self.group_bytes // (8 * self.layout.nslot)
-        per_group = max(1, group_rows // chunk)
+        per_group = max(1, n_chunks)
+        if self.group_bytes is not None:
+            per_group = max(1, self.group_bytes // (8 * self.layout.nslot) // chunk)
         for c0 in range(0, n_chunks, per_group):
             c1 = min(n_chunks, c0 + per_group)
             t0, t1 = c0 * chunk // R, min(rows, c1 * chunk) // R
@@ -250,13 +257,12 @@ class MLP:
                                        global_work_offset=(start,))
 
     def _weight_grad_chunks(self, rows: int, c0: int, c1: int):
-        """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward)."""
-        dwr, dwc = self.layout.dw_rows, self.layout.dw_cols
+        """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward), all
+        layers in one launch."""
         k = self._k["mlp_weight_grad"]
-        for l, L in enumerate(self.layout.layers):
-            per_chunk = (L["nout"] // dwr) * ((L["nin"] + dwc - 1) // dwc)
-            k.set_args(np.int32(l), np.int32(rows), self.A.data, self.G.data, self.partial.data)
-            self._enqueue(k, c0 * per_chunk, (c1 - c0) * per_chunk)
+        k.set_args(np.int32(rows), self.A.data, self.G.data, self.partial.data)
+        ipc = self.wgrad_items_per_chunk
+        self._enqueue(k, c0 * ipc, (c1 - c0) * ipc)
 
     def _reduce(self, grad, n_chunks: int, accumulate: bool):
         k = self._k["mlp_reduce"]
