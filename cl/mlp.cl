@@ -11,7 +11,11 @@
  * columns is one float16: inputs MLP_IN -> IN_P, MLP_DIR_IN -> DIN_P; the head has 16 + W
  * outputs (sigma, 15 zero rows, feature) and the rgb layer 16 outputs (r, g, b, 13 zero rows).
  * Padded weights are zero and stay zero: their inputs are 0 and their output gradients are
- * set to 0, so their weight gradients are exactly 0.
+ * set to 0, so their weight gradients are exactly 0. The products skip what padding they can
+ * without breaking the float16 blocks: the forward sums over the live inputs only (layer_t.kin),
+ * the backward over the live outputs (kout1, ko2, kout2: sigma and the feature of the head,
+ * r, g, b of the rgb layer), and it computes the input gradients of layer 0 and of the encoded
+ * direction only when they are asked for (want_input).
  *
  * Parameters: ONE contiguous float buffer. Layer l (l = 0..NLAYER-1, NLAYER = D + 3) holds
  *   W_l [nout_l, nin_l] row-major at w_off_l, then b_l [nout_l] at b_off_l = w_off_l + nout*nin,
@@ -153,25 +157,34 @@ typedef struct {
     int in_off, nin;    /* input slot range */
     int out_off, nout;  /* output slot range */
     int w_off, b_off;   /* parameter offsets */
+    int kin;            /* live inputs: the forward's sum runs over inputs 0 .. kin-1 only */
+    int kout1, ko2, kout2;  /* live outputs 0 .. kout1-1 and ko2 .. ko2+kout2-1: the backward's
+                               sum skips the padding rows (their gradients are 0) */
 } layer_t;
 
 /* The layout of layer l: the one definition of slot and parameter offsets. */
 inline layer_t layer_desc(const int l) {
-    layer_t L = {0, 0, 0, 0, 0, 0};
+    layer_t L = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
     int w_off = 0;
     for (int i = 0; i <= l; ++i) {
+        L.ko2 = 0; L.kout2 = 0;
         if (i == 0) {
             L.in_off = SL_X; L.nin = IN_P; L.out_off = SL_H(0); L.nout = MW;
+            L.kin = MLP_IN; L.kout1 = MW;
         } else if (i < MLP_DEPTH) {
             L.in_off = SL_H(i - 1);
             L.nin = MW + (i == MLP_SKIP + 1 ? IN_P : 0);
             L.out_off = SL_H(i); L.nout = MW;
+            L.kin = MW + (i == MLP_SKIP + 1 ? MLP_IN : 0); L.kout1 = MW;
         } else if (i == MLP_DEPTH) {
             L.in_off = SL_H(MLP_DEPTH - 1); L.nin = MW; L.out_off = SL_HD; L.nout = HEAD_PAD + MW;
+            L.kin = MW; L.kout1 = 1; L.ko2 = HEAD_PAD; L.kout2 = MW;   /* sigma, feature */
         } else if (i == MLP_DEPTH + 1) {
             L.in_off = SL_FEAT; L.nin = MW + DIN_P; L.out_off = SL_C; L.nout = MLP_COLOR_WIDTH;
+            L.kin = MW + MLP_DIR_IN; L.kout1 = MLP_COLOR_WIDTH;
         } else {
             L.in_off = SL_C; L.nin = MLP_COLOR_WIDTH; L.out_off = SL_RGB; L.nout = RGB_P;
+            L.kin = MLP_COLOR_WIDTH; L.kout1 = 3;
         }
         L.w_off = w_off;
         L.b_off = w_off + L.nout * L.nin;
@@ -280,7 +293,7 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
         float16 acc[MLP_ROWS * 2];
         const float16 b0 = vload16(0, Pt + L.b_off + j0), b1 = vload16(0, Pt + L.b_off + j0 + 16);
         for (int r = 0; r < MLP_ROWS; ++r) { acc[2 * r] = b0; acc[2 * r + 1] = b1; }
-        gemm_rows2(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.nin, acc);
+        gemm_rows2(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.kin, acc);
         for (int r = 0; r < MLP_ROWS; ++r)
             for (int c = 0; c < 2; ++c)
                 vstore16(act_forward(acc[2 * r + c], act), 0,
@@ -291,22 +304,26 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
         float16 acc[MLP_ROWS];
         const float16 b0 = vload16(0, Pt + L.b_off + j0);
         for (int r = 0; r < MLP_ROWS; ++r) acc[r] = b0;
-        gemm_rows1(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.nin, acc);
+        gemm_rows1(A + L.in_off, NSLOT, 1, Pt + L.w_off + j0, L.nout, L.kin, acc);
         for (int r = 0; r < MLP_ROWS; ++r)
             vstore16(act_forward(acc[r], act), 0, A + (size_t)r * NSLOT + L.out_off + j0);
     }
 }
 
 /* Backward through one layer's weights for MLP_ROWS rows: G[in] = (G[out] W) * act'(A[in])
- * where the (hidden) activation derivative applies to the first n_act input columns only. */
+ * for the first nin input columns (a multiple of 16), where the (hidden) activation derivative
+ * applies to the first n_act of them only. The sum runs over the live outputs (layer_t). */
 inline void layer_backward(const layer_t L, __global const float *P, __global float *G,
-                           __global const float *A, const int n_act) {
+                           __global const float *A, const int n_act, const int nin) {
     int k0 = 0;
 #if MLP_COLS == 32
-    for (; k0 + 32 <= L.nin; k0 += 32) {
+    for (; k0 + 32 <= nin; k0 += 32) {
         float16 acc[MLP_ROWS * 2];
         for (int r = 0; r < 2 * MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
-        gemm_rows2(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.nout, acc);
+        gemm_rows2(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.kout1, acc);
+        if (L.kout2 > 0)
+            gemm_rows2(G + L.out_off + L.ko2, NSLOT, 1, P + L.w_off + L.ko2 * L.nin + k0, L.nin,
+                       L.kout2, acc);
         for (int r = 0; r < MLP_ROWS; ++r)
             for (int c = 0; c < 2; ++c) {
                 const size_t o = (size_t)r * NSLOT + L.in_off + k0 + 16 * c;
@@ -316,10 +333,13 @@ inline void layer_backward(const layer_t L, __global const float *P, __global fl
             }
     }
 #endif
-    for (; k0 < L.nin; k0 += 16) {
+    for (; k0 < nin; k0 += 16) {
         float16 acc[MLP_ROWS];
         for (int r = 0; r < MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
-        gemm_rows1(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.nout, acc);
+        gemm_rows1(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.kout1, acc);
+        if (L.kout2 > 0)
+            gemm_rows1(G + L.out_off + L.ko2, NSLOT, 1, P + L.w_off + L.ko2 * L.nin + k0, L.nin,
+                       L.kout2, acc);
         for (int r = 0; r < MLP_ROWS; ++r) {
             const size_t o = (size_t)r * NSLOT + L.in_off + k0;
             float16 d = acc[r];
@@ -401,12 +421,14 @@ __kernel void mlp_backward(const int n, __global const float *dsigma, __global c
         for (int c = 0; c < 3; ++c)
             g[SL_RGB + c] = drgb[3 * row + c] * sigmoid_grad_from_y(a[SL_RGB + c]);
     }
-    layer_backward(layer_desc(MLP_DEPTH + 2), params, G, A, MLP_COLOR_WIDTH);
-    layer_backward(layer_desc(MLP_DEPTH + 1), params, G, A, 0);
-    layer_backward(layer_desc(MLP_DEPTH), params, G, A, MW);
-    for (int l = MLP_DEPTH - 1; l >= 1; --l) layer_backward(layer_desc(l), params, G, A, MW);
+    layer_backward(layer_desc(MLP_DEPTH + 2), params, G, A, MLP_COLOR_WIDTH, MLP_COLOR_WIDTH);
+    /* the encoded direction's columns only when asked for */
+    layer_backward(layer_desc(MLP_DEPTH + 1), params, G, A, 0, want_input ? MW + DIN_P : MW);
+    layer_backward(layer_desc(MLP_DEPTH), params, G, A, MW, MW);
+    for (int l = MLP_DEPTH - 1; l >= 1; --l)
+        layer_backward(layer_desc(l), params, G, A, MW, layer_desc(l).nin);
     if (!want_input) return;
-    layer_backward(layer_desc(0), params, G, A, 0);
+    layer_backward(layer_desc(0), params, G, A, 0, IN_P);
     for (int r = 0; r < MLP_ROWS; ++r) {
         const int row = r0 + r;
         if (row >= n) break;

@@ -90,6 +90,27 @@ def test_backward_matches_reference(device, name, n):
     _close_rel_to_max(dd, r["d_enc"])
 
 
+@pytest.mark.parametrize("name", list(SPECS))
+def test_backward_without_input_gradients(device, name):
+    """want_input=False (what training runs) skips layer 0's and the encoded direction's input
+    columns: the parameter gradients must still match the float64 reference."""
+    net = get_net(device, name)
+    n = 37
+    x, d = inputs(net.spec, n, seed=3)
+    rng = np.random.default_rng(3)
+    ds = rng.normal(size=n).astype(np.float32)
+    dr = rng.normal(size=(n, 3)).astype(np.float32)
+    q = net.device.queue
+    net.G = None   # fresh scratch: nothing left from a want_input=True call
+    net.forward(cla.to_device(q, x), cla.to_device(q, d))
+    assert net.backward(cla.to_device(q, ds), cla.to_device(q, dr)) is None
+    g = net.grad.get()
+    r = ref.mlp_backward(net.params.get(), net.spec, net.layout, x, d, ds, dr)["params"]
+    for L in net.layout.layers:
+        _close_rel_to_max(g[L["w_off"]:L["b_off"] + L["nout"]],
+                          r[L["w_off"]:L["b_off"] + L["nout"]])
+
+
 def test_batch_over_many_chunks_and_accumulate(device):
     """n = 100 rows over 16-row chunks (7 partials) in groups of 2 chunks (backward and weight
     gradient interleaved), and accumulate=True adds to grad."""
