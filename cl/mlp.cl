@@ -476,7 +476,9 @@ __kernel void mlp_weight_grad(const int n_rows, __global const float *A,
     const int njb = L.nout / DW_ROWS;
     const int jb = e % njb, kb = e / njb;
     const int j0 = jb * DW_ROWS, k0 = kb * DW_COLS;
-    const int s0 = p * DW_CHUNK, ns = min(DW_CHUNK, n_rows - s0);
+    /* a block of padding outputs only (head rows 1..15, rgb rows 3..15) writes its zeros */
+    const int live = j0 < L.kout1 || (j0 + DW_ROWS > L.ko2 && j0 < L.ko2 + L.kout2);
+    const int s0 = p * DW_CHUNK, ns = live ? min(DW_CHUNK, n_rows - s0) : 0;
     __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;
     __global const float *Mp = A + (size_t)s0 * NSLOT + L.in_off + k0;
     __global float *out = partial + (size_t)p * n_params();

@@ -137,14 +137,23 @@ def parse_tiling(dev, name) -> MLPTiling | None:
 
 
 SETTLE_S = 0.1   # pause before each timed case: BLAS worker threads spin on after a call
+MIN_SAMPLE_S = 0.05   # a timed sample repeats its case back to back for at least this long
 
 
-def interleaved(cases, repeats):
-    """{label: (median s, min s, max s, median CPU s)} over `repeats` rounds of all cases.
-    Each case starts after a SETTLE_S pause, so that the threads numpy's BLAS leaves spinning
-    after a call neither slow the next case down nor add to its CPU time."""
-    for run, _ in cases.values():
+def interleaved(cases, repeats, min_sample_s=None):
+    """{label: (median s, min s, max s, median CPU s)} per call, over `repeats` rounds of all
+    cases. Each case starts after a SETTLE_S pause, so that the threads numpy's BLAS leaves
+    spinning after a call neither slow the next case down nor add to its CPU time. A sample
+    runs its case back to back as many times as fill min_sample_s (from the warm-up's time), so
+    that a short case (a 4x64 batch takes ~4 ms) is not timed on the wake-up of the thread
+    pools after the pause: numpy's and PoCL's alike."""
+    min_sample_s = MIN_SAMPLE_S if min_sample_s is None else min_sample_s
+    calls = {}
+    for k, (run, _) in cases.items():
         run()
+        t0 = time.perf_counter()
+        run()
+        calls[k] = max(1, int(np.ceil(min_sample_s / max(time.perf_counter() - t0, 1e-6))))
     wall = {k: [] for k in cases}
     cpu = {k: [] for k in cases}
     for _ in range(repeats):
@@ -152,9 +161,10 @@ def interleaved(cases, repeats):
             time.sleep(SETTLE_S)
             c0 = cpu_seconds()
             t0 = time.perf_counter()
-            run()
-            wall[k].append(time.perf_counter() - t0)
-            cpu[k].append(cpu_seconds() - c0)
+            for _ in range(calls[k]):
+                run()
+            wall[k].append((time.perf_counter() - t0) / calls[k])
+            cpu[k].append((cpu_seconds() - c0) / calls[k])
     return {k: (float(np.median(wall[k])), float(np.min(wall[k])), float(np.max(wall[k])),
                 float(np.median(cpu[k]))) for k in cases}
 
@@ -165,6 +175,8 @@ def main(argv=None):
     ap.add_argument("--repeats", type=int, default=7, help="interleaved rounds")
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--tilings", default="device,wide", help="comma list, see module doc")
+    ap.add_argument("--min-sample-s", type=float, default=MIN_SAMPLE_S,
+                    help="a timed sample repeats its case back to back at least this long")
     ap.add_argument("--out", default=None, help="write the JSON here too")
     args = ap.parse_args(argv)
     dev = clrf.Device()
@@ -172,6 +184,7 @@ def main(argv=None):
     res = {"device": repr(dev), "driver": dev.caps.driver_version, "host": platform.node(),
            "native_float_width": dev.caps.native_float_width, "cpu_count": os.cpu_count(),
            "load1_before": os.getloadavg()[0], "samples": n, "repeats": args.repeats,
+           "min_sample_s": args.min_sample_s,
            "configs": {}}
     cases, tilings = {}, {}
     for vec in sorted({16, dev.caps.vector_width}):
@@ -188,7 +201,7 @@ def main(argv=None):
             tilings[f"{name}/{tname}"] = asdict(net.tiling)
             for mode, flop in (("fwd", 2), ("fwdbwd", 6), ("bwd", 4), ("wgrad", 2)):
                 cases[f"{name}/{tname}/{mode}"] = (runs[mode], flop * macs)
-    times = interleaved(cases, args.repeats)
+    times = interleaved(cases, args.repeats, args.min_sample_s)
     figs = {k: {"gflops": f / times[k][0] / 1e9, "gflops_min": f / times[k][2] / 1e9,
                 "gflops_max": f / times[k][1] / 1e9, "gflop_per_cpu_s": f / times[k][3] / 1e9,
                 "median_s": times[k][0]} for k, (_, f) in cases.items()}
