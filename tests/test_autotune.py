@@ -67,7 +67,8 @@ def test_cache_round_trip_and_keys(cache):
 
 
 @pytest.mark.parametrize("text", ["{not json", "[]", '{"version": 99, "entries": {}}',
-                                  '{"version": 1, "entries": {"d": 3}}', ""])
+                                  '{"version": %d, "entries": {"d": 3}}' % at.CACHE_VERSION,
+                                  '{"version": %d, "entries": {}}' % (at.CACHE_VERSION - 1), ""])
 def test_corrupt_cache_is_ignored_and_replaced(cache, text):
     cache.parent.mkdir(parents=True)
     cache.write_text(text)
