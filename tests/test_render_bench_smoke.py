@@ -77,3 +77,26 @@ def test_bench_configs_match_reference(device, degree, occupancy, rays, grad_mod
     if grad_mode == 1:
         np.testing.assert_allclose(loss.get(), np.sum((ref["rgb"] - ray_in) ** 2, axis=1),
                                    atol=10 * RENDER_ATOL, rtol=RENDER_RTOL)
+
+
+def test_interleaved_rounds_alternate_cases(device):
+    """--interleave: every case set up first, warmed up once, then each round runs every case
+    once in order; the records carry one time per round."""
+    from bench.framework import FACTORIES, Case, Spec
+    log = []
+
+    def make(ctx, p):
+        return Case(lambda: log.append(p["tag"]), {"samples": 10})
+    FACTORIES["test.fake"] = make
+    try:
+        specs = [Spec("fake/a", "test.fake", {"tag": "a"}), Spec("fake/b", "test.fake", {"tag": "b"}),
+                 Spec("fake/skipped", "test.fake", {"tag": "s"}, requires=(("no_such_mod", "x"),))]
+        recs = bench.run_interleaved(bench.Context(device, quick=False), specs, 3)
+    finally:
+        del FACTORIES["test.fake"]
+    assert log == ["a", "b"] + ["a", "b"] * 3
+    assert [r["name"] for r in recs] == ["fake/a", "fake/b", "fake/skipped"]
+    for r in recs[:2]:
+        assert r["time_s"]["interleaved"] and len(r["time_s"]["rounds"]) == 3
+        assert r["metrics"]["samples/s"] > 0
+    assert "skipped" in recs[2] and "time_s" not in recs[2]

@@ -4,6 +4,7 @@
     python tools/bench.py --only 'grid.*128*'   # fnmatch pattern(s) on the benchmark names
     python tools/bench.py --quick               # smoke mode: tiny sizes, one repeat, checks only
     python tools/bench.py --list                # names and parameters, nothing run
+    python tools/bench.py --only 'grid/fwdbwd/*' --only 'peer.taichi/fwdbwd/*' --interleave 9
     python tools/report.py bench-results/bench-*.json   # Markdown table + plots
 
 Every benchmark is a ``Spec`` (name, kind, parameters, metric) in ``SPECS`` (specs.py); ``kind`` names a
@@ -12,7 +13,9 @@ repetition (device work finished when it returns), the work it does (samples, ra
 flop) and an optional check against a reference. The runner warms each case up once (JIT),
 then repeats until the timing is stable (relative inter-quartile range below ``--tol`` after
 ``--min-repeats``) or a cap (``--max-repeats``, ``--max-seconds``), and records the median and
-the min-max. The device peaks (copy and triad bandwidth, FMA throughput at the device's native
+the min-max. With ``--interleave ROUNDS`` every selected case is set up first and then timed in
+ROUNDS rounds that run each case once, so that a ratio between two cases (clrf against a peer)
+is measured over the same minutes. The device peaks (copy and triad bandwidth, FMA throughput at the device's native
 float vector width, cl/bench.cl) are measured at the start and at the end of the run; every
 throughput is also given as a ratio to them, because this class of machine sometimes halves
 everything at once.
@@ -39,8 +42,8 @@ import os
 os.environ.setdefault("POCL_MEMORY_LIMIT", "16")
 
 from .framework import Case, Context, Skip, Spec, factory  # noqa: E402
-from .runner import main, run_spec  # noqa: E402
+from .runner import main, run_interleaved, run_spec  # noqa: E402
 from .specs import SPECS, _peak_specs, external_specs  # noqa: E402
 
 __all__ = ["Case", "Context", "SPECS", "Skip", "Spec", "external_specs", "factory", "main",
-           "run_spec", "_peak_specs"]
+           "run_interleaved", "run_spec", "_peak_specs"]

@@ -98,7 +98,8 @@ def host_info():
             "pyopencl": cl.VERSION_TEXT}
 
 
-def run_spec(ctx, spec, args):
+def build_spec(ctx, spec):
+    """(record so far, Case or None): the case set up and checked, or why it is not timed."""
     params = dict(spec.params)
     if ctx.quick:
         params.update(spec.quick)
@@ -106,23 +107,23 @@ def run_spec(ctx, spec, args):
     why = _requires_ok(spec)
     if why:
         rec["skipped"] = why
-        return rec
+        return rec, None
     try:
         t0 = time.perf_counter()
         case = FACTORIES[spec.kind](ctx, params)
         rec["setup_s"] = time.perf_counter() - t0
     except Skip as e:
         rec["skipped"] = str(e)
-        return rec
+        return rec, None
     rec.update(work=case.work, info=case.info, check=case.check)
     if case.check is not None and not case.check.get("ok", True):
         rec["failed"] = "check against the reference failed"
-        return rec
-    if ctx.quick:
-        case.run()
-        return rec
-    ts, cpu = time_case(case, spec.min_repeats or args.min_repeats, args.max_repeats,
-                        args.max_seconds, args.tol)
+        return rec, None
+    return rec, case
+
+
+def record_times(ctx, rec, case, ts, cpu):
+    """Add the timing figures of repetitions ts (wall s) and cpu (process CPU s) to rec."""
     med = float(np.median(ts))
     rec["time_s"] = {"median": med, "min": float(min(ts)), "max": float(max(ts)),
                      "repeats": len(ts)}
@@ -136,6 +137,42 @@ def run_spec(ctx, spec, args):
     rec["metrics_min_max"] = {k: [metrics(case.work, max(ts))[k], metrics(case.work, min(ts))[k]]
                               for k in rec["metrics"]}
     return rec
+
+
+def run_spec(ctx, spec, args):
+    rec, case = build_spec(ctx, spec)
+    if case is None:
+        return rec
+    if ctx.quick:
+        case.run()
+        return rec
+    ts, cpu = time_case(case, spec.min_repeats or args.min_repeats, args.max_repeats,
+                        args.max_seconds, args.tol)
+    return record_times(ctx, rec, case, ts, cpu)
+
+
+def run_interleaved(ctx, specs, rounds):
+    """Every spec set up first, then `rounds` rounds that run each case once, in order: a ratio
+    of two cases (clrf against a peer) is then measured over the same minutes of a shared or
+    drifting machine. Records as run_spec's, plus the round-by-round times."""
+    built = [build_spec(ctx, s) for s in specs]
+    live = [(rec, case) for rec, case in built if case is not None]
+    for _, case in live:
+        case.run()   # warm-up
+    ts = [[] for _ in live]
+    cpu = [[] for _ in live]
+    for _ in range(rounds):
+        for i, (_, case) in enumerate(live):
+            t = time.perf_counter()
+            c = time.process_time()
+            case.run()
+            ts[i].append(time.perf_counter() - t)
+            cpu[i].append(time.process_time() - c)
+    for i, (rec, case) in enumerate(live):
+        record_times(ctx, rec, case, ts[i], cpu[i])
+        rec["time_s"]["rounds"] = ts[i]
+        rec["time_s"]["interleaved"] = True
+    return [rec for rec, _ in built]
 
 
 def summarise_peaks(results):
@@ -178,6 +215,9 @@ def main(argv=None):
                     help="stop repeating a case after this long even if not stable")
     ap.add_argument("--tol", type=float, default=0.05,
                     help="stable when (q3 - q1) / median < tol")
+    ap.add_argument("--interleave", type=int, default=0, metavar="ROUNDS",
+                    help="set every selected case up first, then time ROUNDS rounds that run "
+                         "each case once (ratios between cases over the same minutes)")
     args = ap.parse_args(argv)
 
     specs = SPECS + external_specs()
@@ -201,9 +241,14 @@ def main(argv=None):
             _print(results[-1])
 
     run_peaks("start")
-    for s in specs:
-        results.append(run_spec(ctx, s, args))
-        _print(results[-1])
+    if args.interleave > 0 and not args.quick:
+        for rec in run_interleaved(ctx, specs, args.interleave):
+            results.append(rec)
+            _print(rec)
+    else:
+        for s in specs:
+            results.append(run_spec(ctx, s, args))
+            _print(results[-1])
     run_peaks("end")
     peaks = summarise_peaks(results)
     add_ratios(results, peaks)
