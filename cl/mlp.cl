@@ -544,15 +544,16 @@ __kernel void mlp_transpose(__global const float *params, __global float *params
 
 /* The layout for the host: out[0..7] = NLAYER, NSLOT, n_params, MLP_ROWS, DW_CHUNK, SL_X,
  * SL_XS (-1 without skip), SL_HD; out[8..11] = SL_FEAT, SL_DV, SL_C, SL_RGB;
- * out[12..14] = MLP_COLS, DW_ROWS, DW_COLS (the tile, for the host's work split);
+ * out[12..15] = MLP_COLS, DW_ROWS, DW_COLS (the tile), wgrad_items_per_chunk() (the host's
+ * work split of mlp_weight_grad);
  * then from out[LAYOUT_HEAD] 6 ints per layer: in_off, nin, out_off, nout, w_off, b_off. */
-#define LAYOUT_HEAD 15
+#define LAYOUT_HEAD 16
 __kernel void mlp_layout(__global int *out) {
     if (get_global_id(0) != 0) return;
     out[0] = NLAYER; out[1] = NSLOT; out[2] = n_params(); out[3] = MLP_ROWS;
     out[4] = DW_CHUNK; out[5] = SL_X; out[6] = MLP_SKIP >= 0 ? SL_XS : -1; out[7] = SL_HD;
     out[8] = SL_FEAT; out[9] = SL_DV; out[10] = SL_C; out[11] = SL_RGB;
-    out[12] = MLP_COLS; out[13] = DW_ROWS; out[14] = DW_COLS;
+    out[12] = MLP_COLS; out[13] = DW_ROWS; out[14] = DW_COLS; out[15] = wgrad_items_per_chunk();
     for (int l = 0; l < NLAYER; ++l) {
         const layer_t L = layer_desc(l);
         __global int *o = out + LAYOUT_HEAD + 6 * l;

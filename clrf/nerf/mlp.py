@@ -80,6 +80,7 @@ class Layout:
     cols: int                  # MLP_COLS
     dw_rows: int               # DW_ROWS: output neurons per weight-gradient work-item
     dw_cols: int               # DW_COLS: input columns per weight-gradient work-item
+    wgrad_items_per_chunk: int  # mlp_weight_grad work-items per chunk of DW_CHUNK rows
     slots: dict                # SL_X, SL_XS, SL_HD, SL_FEAT, SL_DV, SL_C, SL_RGB
     layers: tuple              # per layer dict(in_off, nin, out_off, nout, w_off, b_off)
 
@@ -107,7 +108,7 @@ class Layout:
         return out
 
 
-LAYOUT_HEAD = 15   # ints before the per-layer records in mlp_layout's output
+LAYOUT_HEAD = 16   # ints before the per-layer records in mlp_layout's output
 
 
 def read_layout(device, program) -> Layout:
@@ -123,7 +124,7 @@ def read_layout(device, program) -> Layout:
                      (int(a[5]), int(a[6]), int(a[7]), int(a[8]), int(a[9]), int(a[10]),
                       int(a[11]))))
     return Layout(nl, int(a[1]), int(a[2]), int(a[3]), int(a[4]), int(a[12]), int(a[13]),
-                  int(a[14]), slots, layers)
+                  int(a[14]), int(a[15]), slots, layers)
 
 
 def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.ndarray:
@@ -149,9 +150,6 @@ class MLP:
         self.tiling: MLPTiling = mlp_tiling_for(device, spec)
         self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines()})
         self.layout = read_layout(device, self.program)
-        dwr, dwc = self.layout.dw_rows, self.layout.dw_cols
-        self.wgrad_items_per_chunk = sum((L["nout"] // dwr) * -(-L["nin"] // dwc)
-                                         for L in self.layout.layers)
         q = device.queue
         if params is None:
             params = init_params(spec, self.layout, np.random.default_rng(seed))
@@ -261,7 +259,7 @@ class MLP:
         layers in one launch."""
         k = self._k["mlp_weight_grad"]
         k.set_args(np.int32(rows), self.A.data, self.G.data, self.partial.data)
-        ipc = self.wgrad_items_per_chunk
+        ipc = self.layout.wgrad_items_per_chunk
         self._enqueue(k, c0 * ipc, (c1 - c0) * ipc)
 
     def _reduce(self, grad, n_chunks: int, accumulate: bool):
