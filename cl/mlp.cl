@@ -46,7 +46,7 @@
  * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
  *
  * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
- * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK.
+ * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK, MLP_PREFETCH, DW_PREFETCH_AHEAD.
  */
 #include "common.h"
 
@@ -131,6 +131,19 @@
 #endif
 #if DW_CHUNK < MLP_ROWS || DW_CHUNK % MLP_ROWS != 0
 #error "DW_CHUNK must be a positive multiple of MLP_ROWS"
+#endif
+
+#ifndef MLP_PREFETCH
+#define MLP_PREFETCH 0      /* 1: software prefetch (__builtin_prefetch; clang CPU compilers, PoCL)
+                               of what the backward and weight gradient read from DRAM */
+#endif
+#ifndef DW_PREFETCH_AHEAD
+#define DW_PREFETCH_AHEAD 16/* rows ahead in the weight gradient's sum over samples */
+#endif
+#if MLP_PREFETCH
+#define MLP_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
+#else
+#define MLP_PREFETCH_LINE(p)
 #endif
 
 #define LPAD 16                                   /* padding unit: one float16 */
@@ -253,10 +266,29 @@ inline int n_params(void) {
 DEFINE_GEMM_TILE2(gemm_rows2, MLP_ROWS)
 #endif
 DEFINE_GEMM_TILE1(gemm_rows1, MLP_ROWS)
+/* The weight gradient's tiles: the same, and (MLP_PREFETCH) DW_PREFETCH_AHEAD rows ahead the
+ * lines of L and M that row k + DW_PREFETCH_AHEAD will read (rows are NSLOT floats apart, too
+ * far for the hardware's stream prefetcher to run ahead of). */
+#define DEFINE_GEMM_DW(NAME, ROWS, NV, LOADS, FMA)                                         \
+    inline void NAME(__global const float *restrict Lp, const int lr, const int lk,         \
+                     __global const float *restrict Mp, const int ms, const int K,          \
+                     float16 *acc) {                                                        \
+        REPN(ROWS)(NV##_LOAD)                                                               \
+        for (int k = 0; k < K; ++k) {                                                       \
+            MLP_PREFETCH_LINE(Lp + (size_t)(k + DW_PREFETCH_AHEAD) * lk);                   \
+            MLP_PREFETCH_LINE(Mp + (size_t)(k + DW_PREFETCH_AHEAD) * ms);                   \
+            LOADS                                                                           \
+            REPN(ROWS)(FMA)                                                                 \
+        }                                                                                   \
+        REPN(ROWS)(NV##_STORE)                                                              \
+    }
+#define DW_LOADS2 const float16 m0 = vload16(0, Mp + (size_t)k * ms);                       \
+                  const float16 m1 = vload16(0, Mp + (size_t)k * ms + 16);
+#define DW_LOADS1 const float16 m0 = vload16(0, Mp + (size_t)k * ms);
 #if DW_COLS == 32
-DEFINE_GEMM_TILE2(gemm_dw2, DW_ROWS)
+DEFINE_GEMM_DW(gemm_dw2, DW_ROWS, T2, DW_LOADS2, T2_FMA)
 #endif
-DEFINE_GEMM_TILE1(gemm_dw1, DW_ROWS)
+DEFINE_GEMM_DW(gemm_dw1, DW_ROWS, T1, DW_LOADS1, T1_FMA)
 
 inline float16 act_forward(const float16 x, const int act) {
     if (act == ACT_RELU) return fmax(x, (float16)(0.0f));
@@ -310,6 +342,17 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
     }
 }
 
+/* MLP_PREFETCH: the lines of columns k0 .. k1-1 (multiples of 16) of the MLP_ROWS rows of A,
+ * which the backward's activation derivative reads after the next column block's product. A
+ * was written by the forward long before (from DRAM), and each row's few lines per layer are
+ * too short a stream for the hardware prefetcher. */
+inline void prefetch_act(__global const float *A, const int k0, const int k1) {
+#if MLP_PREFETCH
+    for (int r = 0; r < MLP_ROWS; ++r)
+        for (int k = k0; k < k1; k += 16) MLP_PREFETCH_LINE(A + (size_t)r * NSLOT + k);
+#endif
+}
+
 /* Backward through one layer's weights for MLP_ROWS rows: G[in] = (G[out] W) * act'(A[in])
  * for the first nin input columns (a multiple of 16), where the (hidden) activation derivative
  * applies to the first n_act of them only. The sum runs over the live outputs (layer_t). */
@@ -318,6 +361,7 @@ inline void layer_backward(const layer_t L, __global const float *P, __global fl
     int k0 = 0;
 #if MLP_COLS == 32
     for (; k0 + 32 <= nin; k0 += 32) {
+        prefetch_act(A + L.in_off, k0 + 32, min(k0 + 64, n_act));
         float16 acc[MLP_ROWS * 2];
         for (int r = 0; r < 2 * MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_rows2(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.kout1, acc);
@@ -334,6 +378,7 @@ inline void layer_backward(const layer_t L, __global const float *P, __global fl
     }
 #endif
     for (; k0 < nin; k0 += 16) {
+        prefetch_act(A + L.in_off, k0 + 16, min(k0 + 32, n_act));
         float16 acc[MLP_ROWS];
         for (int r = 0; r < MLP_ROWS; ++r) acc[r] = (float16)(0.0f);
         gemm_rows1(G + L.out_off, NSLOT, 1, P + L.w_off + k0, L.nin, L.kout1, acc);

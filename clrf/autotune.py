@@ -42,7 +42,8 @@ import numpy as np
 
 TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
 CHUNK_TILES = 64            # default dw_chunk = CHUNK_TILES * rows
-CACHE_VERSION = 2   # bumped when cl/mlp.cl's work split changes: older timings do not carry over
+CACHE_VERSION = 3   # bumped when cl/mlp.cl's kernels change (work split, v2; software prefetch,
+                    # v3): older timings do not carry over
 
 
 @dataclass(frozen=True)

@@ -148,7 +148,8 @@ class MLP:
         self.device = device
         self.spec = spec
         self.tiling: MLPTiling = mlp_tiling_for(device, spec)
-        self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines()})
+        self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines(),
+                                                   "MLP_PREFETCH": int(device.tuning.prefetch)})
         self.layout = read_layout(device, self.program)
         q = device.queue
         if params is None:
