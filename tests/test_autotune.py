@@ -38,7 +38,8 @@ def cache(tmp_path, monkeypatch):
 
 def test_device_defaults_by_vector_width():
     wide = at.device_default(caps(width=16))
-    assert (wide.rows, wide.cols, wide.dw_rows, wide.dw_cols) == (8, 32, 8, 32)
+    assert (wide.rows, wide.cols, wide.dw_rows, wide.dw_cols) == (12, 16, 8, 32)
+    assert wide.dw_chunk == at.CHUNK_TILES * 12
     avx2 = at.device_default(caps(width=8))
     assert (avx2.rows, avx2.cols) == (6, 16) and avx2.dw_chunk == at.CHUNK_TILES * 6
     assert at.device_default(caps(width=4)).rows == 2

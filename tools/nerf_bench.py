@@ -18,7 +18,7 @@ its reduce alone; input gradient = bwd - wgrad.
 
 Tilings: "device" (what an MLP picks here: tuned cache, else the device default), "default"
 (the device default, ignoring the cache), "wide" (8 rows x 32 columns, weight gradient 8 x 32:
-the AVX-512 tile), or rows:cols:dw_rows:dw_cols[:dw_chunk].
+the former AVX-512 default), or rows:cols:dw_rows:dw_cols[:dw_chunk].
 """
 from __future__ import annotations
 
