@@ -27,16 +27,20 @@ import json
 import os
 import platform
 import resource
+import sys
 import time
 from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 
 import pyopencl.array as cla
 
-import clrf
-from clrf.autotune import CHUNK_TILES, MLPTiling, device_default
-from clrf.nerf.mlp import MLP, MLPSpec
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # this checkout's clrf first
+
+import clrf  # noqa: E402
+from clrf.autotune import CHUNK_TILES, MLPTiling, device_default  # noqa: E402
+from clrf.nerf.mlp import MLP, MLPSpec  # noqa: E402
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)
     "nerf-8x256-skip4": MLPSpec(width=256, depth=8, skip=4, color_width=128, in_dim=63, dir_dim=27),
