@@ -78,12 +78,21 @@
  * termination: the host builds with T_STOP 0 (a brick cannot know T_b in the forward pass).
  * render_max_weight multiplies by ray_T = T_b.
  *
+ * Ray order (RAY_ORDER 1, CPU devices, batches of many rays): work-item g renders ray
+ * ray_order[g], a permutation of 0..n_rays-1 that the host makes by sorting ray_order_keys:
+ * the Morton code of the block that holds the midpoint of each ray's path through the box. A
+ * compute unit runs its work-items one after another, so consecutive rays that cross
+ * neighbouring cells find the rows of the previous ray still in cache. Every output stays at
+ * its ray's own index, so the results are those of the given order (gradients up to the
+ * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BG_PER_RAY, BRICK, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD,
+ * BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD,
  * PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused
  * are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
  * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
- * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh.
+ * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
+ * render_forward and render_backward end with ray_order.
  */
 #include "march.h"
 
@@ -134,6 +143,20 @@
 #error "BRICK with BG_PER_RAY: the distributed grid has no background model"
 #endif
 
+#ifndef RAY_ORDER
+#define RAY_ORDER 0      /* 1: work-item g renders ray ray_order[g] (see the header) */
+#endif
+#if RAY_ORDER && BRICK
+#error "RAY_ORDER with BRICK: bricks march their rays in the given order"
+#endif
+#if RAY_ORDER
+#define RAY_ORDER_ARG , __global const int *ray_order
+#define RAY_OF(g) ray_order[g]
+#else
+#define RAY_ORDER_ARG
+#define RAY_OF(g) (g)
+#endif
+
 __kernel void render_forward(const int n_rays, __global const float *origins,
                              __global const float *dirs, __global const int *links,
                              __global const float *density, __global const float *sh,
@@ -143,9 +166,11 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
 #if BRICK
                              __global float *out_logT, __global int *out_key,
 #endif
-                             __global const uchar *occ, const int4 oreso BRICK_ARGS) {
-    const int i = get_global_id(0);
-    if (i >= n_rays) return;
+                             __global const uchar *occ, const int4 oreso BRICK_ARGS
+                             RAY_ORDER_ARG) {
+    const int gid = get_global_id(0);
+    if (gid >= n_rays) return;
+    const int i = RAY_OF(gid);
     march_t m;
     m.occ = occ;
     m.oreso = oreso;
@@ -246,9 +271,11 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global float *slot_rec, const int rec_max,
 #endif
 #endif
-                              __global const uchar *occ, const int4 oreso BRICK_ARGS) {
-    const int i = get_global_id(0);
-    if (i >= n_rays) return;
+                              __global const uchar *occ, const int4 oreso BRICK_ARGS
+                              RAY_ORDER_ARG) {
+    const int gid = get_global_id(0);
+    if (gid >= n_rays) return;
+    const int i = RAY_OF(gid);
     march_t m;
     m.occ = occ;
     m.oreso = oreso;
@@ -536,6 +563,39 @@ __kernel void ray_exit(const int n_rays, __global const float *origins,
 
 /* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every
  * kernel of this file uses. */
+/* Sort keys for RAY_ORDER: keys[i] = the Morton code (10 bits per axis, interleaved x, y, z
+ * from the top bit down) of the cell that holds the midpoint of ray i's path through the grid
+ * box, its coordinates divided by 2^shift (the host quantises to 32 blocks per axis); rays
+ * that miss the box get 0xffffffff and go last. */
+#if !BRICK
+inline uint morton_spread10(uint v) {
+    v &= 0x3ffu;
+    v = (v | (v << 16)) & 0x030000ffu;
+    v = (v | (v << 8)) & 0x0300f00fu;
+    v = (v | (v << 4)) & 0x030c30c3u;
+    v = (v | (v << 2)) & 0x09249249u;
+    return v;
+}
+
+__kernel void ray_order_keys(const int n_rays, __global const float *origins,
+                             __global const float *dirs, const int4 reso, const float4 bmin,
+                             const float4 scale, const float step, const int shift,
+                             __global uint *keys) {
+    const int i = get_global_id(0);
+    if (i >= n_rays) return;
+    march_t m;
+    if (!march_setup(load3(origins, i), load3(dirs, i), reso, bmin, scale, step, &m)) {
+        keys[i] = 0xffffffffu;
+        return;
+    }
+    const int3 hi = (int3)(reso.x - 1, reso.y - 1, reso.z - 1);
+    const float3 mid = m.p0 + (0.5f * m.len) * m.dg;
+    const int3 c = clamp(convert_int3_rtn(mid), (int3)(0), hi) >> shift;
+    keys[i] = (morton_spread10((uint)c.x) << 2) | (morton_spread10((uint)c.y) << 1) |
+              morton_spread10((uint)c.z);
+}
+#endif
+
 __kernel void march_alpha_eval(const int n, __global const float *tau, __global float *out) {
     const int i = get_global_id(0);
     if (i < n) out[i] = alpha_of_tau(tau[i]);

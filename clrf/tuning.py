@@ -12,6 +12,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_PREFETCH_LINKS_AHEAD  prefetch_links_ahead
   CLRF_BLOCK                 block (0 = no empty-block skipping)
   CLRF_BLOCK_FINE            block_fine (0 = no second, finer level)
+  CLRF_RAY_ORDER             ray_order (0 = render rays in the order given)
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
   CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print every non-empty compiler log)
 
@@ -24,6 +25,10 @@ import dataclasses
 import os
 from dataclasses import dataclass
 
+# CPU devices sort batches of at least this many rays (the sort and its host round trip cost
+# ~0.1 ms; a ray costs tens of microseconds).
+RAY_ORDER_MIN_RAYS = 256
+
 ENV = {
     "CLRF_GRAD_SLOTS": ("grad_slots", int),
     "CLRF_SAMPLE_RECORD": ("sample_record", lambda v: v != "0"),
@@ -32,6 +37,7 @@ ENV = {
     "CLRF_PREFETCH_LINKS_AHEAD": ("prefetch_links_ahead", int),
     "CLRF_BLOCK": ("block", int),
     "CLRF_BLOCK_FINE": ("block_fine", int),
+    "CLRF_RAY_ORDER": ("ray_order", int),
     "CLRF_FAST_MATH": ("fast_math", lambda v: v != "0"),
     "CLRF_VERBOSE_BUILD": ("verbose_build", lambda v: v != "0"),
 }
@@ -53,6 +59,9 @@ class Tuning:
     block: int = 8                 # empty-space skipping over block^3-cell blocks (0: off)
     block_fine: int = 2            # then over block_fine^3-cell blocks inside occupied ones
     #                                (0: off)
+    ray_order: int = 0             # render_forward / render_backward of >= ray_order rays
+    #                                (0: never) run them sorted by the cell where they enter the
+    #                                grid (RAY_ORDER), so consecutive rays share cached rows
     reduce_local_size: int = 256   # rows per work-group of grad_slots_reduce
     mlp_fused_local_size: int = 1  # work-items per group of the fused MLP kernels (big tiles)
     elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group
@@ -64,10 +73,12 @@ class Tuning:
     @classmethod
     def for_device(cls, caps) -> "Tuning":
         """Defaults from capabilities: CPU devices get one private gradient copy per compute
-        unit and the per-sample record; PoCL CPU devices (clang) get software prefetch."""
+        unit, the per-sample record and sorted rays from RAY_ORDER_MIN_RAYS on; PoCL CPU
+        devices (clang) get software prefetch."""
         cpu = caps.type == "cpu"
         return cls(grad_slots=caps.compute_units if cpu else 0, sample_record=cpu,
-                   prefetch=cpu and "pocl" in caps.platform_version.lower())
+                   prefetch=cpu and "pocl" in caps.platform_version.lower(),
+                   ray_order=RAY_ORDER_MIN_RAYS if cpu else 0)
 
     @classmethod
     def from_env(cls, caps, environ=None) -> "Tuning":

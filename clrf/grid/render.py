@@ -35,14 +35,17 @@ def check_step(grid, step) -> float:
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
                  slots: int = 0, step: float = 0.5, record: bool = False,
-                 bg_per_ray: bool = False, brick: bool = False):
+                 bg_per_ray: bool = False, brick: bool = False, ray_order: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
     record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
     a background colour per ray, BG_PER_RAY; brick: the BRICK variant for one brick of a
-    distributed grid, clrf/grid/bricks.py, built with t_stop 0). The constant-background build
-    has no BG_PER_RAY define at all, so it is the same program as before per-ray backgrounds."""
+    distributed grid, clrf/grid/bricks.py, built with t_stop 0; ray_order: the render kernels
+    take a ray permutation, RAY_ORDER). The constant-background build has no BG_PER_RAY define
+    at all, so it is the same program as before per-ray backgrounds; likewise RAY_ORDER."""
     t = grid.device.tuning
     extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
+    if ray_order:
+        extra["RAY_ORDER"] = 1
     reso = getattr(grid, "march_reso", grid.reso)
     return grid.device.program("grid_render.cl", {
         **extra,
@@ -149,6 +152,34 @@ def _record_buffer(grid, slots, rec_max):
     return cache[key]
 
 
+# Sort rays (tuning.ray_order) only on grids with at least this fraction of cells allocated:
+# in-process A/B on the Zen 4, 128^3 SH2, 4,096 camera rays, forward + backward: dense 8 %
+# faster (forward 26 %), 5 %-occupied 13 % slower (the sort's ~0.6 ms and a slower order).
+RAY_ORDER_MIN_OCCUPANCY = 0.25
+
+
+def ray_order(grid, origins_d, dirs_d, step):
+    """A permutation of the n rays (int32 device array) that sorts them by the Morton code of
+    the block (1/32 of the grid per axis) that holds the midpoint of their path through the
+    grid box (cl/grid_render.cl ray_order_keys), or None when the device's
+    ``tuning.ray_order`` does not ask for one at this n or the grid is sparse
+    (RAY_ORDER_MIN_OCCUPANCY). Rendering in that order gives the same per-ray results; it only
+    changes which rays run one after another."""
+    dev = grid.device
+    n = origins_d.shape[0]
+    if dev.tuning.ray_order <= 0 or n < dev.tuning.ray_order:
+        return None
+    if grid.n_rows < RAY_ORDER_MIN_OCCUPANCY * float(np.prod(grid.reso)):
+        return None
+    keys = cla.empty(dev.queue, n, np.uint32)
+    shift = max(0, int(np.ceil(np.log2(max(grid.reso)))) - 5)
+    launch(dev, grid_program(grid, step=step).kernel("ray_order_keys"), n,
+           (np.int32(n), origins_d.data, dirs_d.data, *grid.geometry_args(), np.float32(step),
+            np.int32(shift), keys.data), dev.tuning.elementwise_local_size)
+    order = np.argsort(keys.get(), kind="stable").astype(np.int32)
+    return upload(dev.queue, order)
+
+
 def render_forward_device(grid, origins_d, dirs_d, step, background, out=None, t_stop=T_STOP):
     """Forward render of device rays; returns dict of device arrays rgb [n,3], depth, acc [n].
     background: three numbers, or a float32 device array [n, 3] of per-ray colours. t_stop:
@@ -159,13 +190,15 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None, t
     if out is None:
         out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
                "acc": cla.empty(q, n, np.float32)}
-    k = grid_program(grid, step=step, t_stop=t_stop,
-                     bg_per_ray=_per_ray(background, n)).kernel("render_forward")
+    order = ray_order(grid, origins_d, dirs_d, step)
+    k = grid_program(grid, step=step, t_stop=t_stop, bg_per_ray=_per_ray(background, n),
+                     ray_order=order is not None).kernel("render_forward")
     occ, oreso = block_occupancy(grid)
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, grid.links.data,
                        grid.density.data, grid.sh.data, *grid.geometry_args(),
                        np.float32(step), _bg_arg(background, n), out["rgb"].data,
-                       out["depth"].data, out["acc"].data, occ.data, oreso),
+                       out["depth"].data, out["acc"].data, occ.data, oreso,
+                       *([] if order is None else [order.data])),
            dev.tuning.grid_local_size)
     return out
 
@@ -205,8 +238,10 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         return grad_bg
     slots = grad_slots(grid)
     record = slots > 0 and dev.tuning.sample_record
+    order = ray_order(grid, origins_d, dirs_d, step)
     prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots,
-                       step=step, record=record, bg_per_ray=per_ray)
+                       step=step, record=record, bg_per_ray=per_ray,
+                       ray_order=order is not None)
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
             ray_in_d.data]
@@ -222,7 +257,7 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
             grad_bg = cla.empty(dev.queue, (n, 3), np.float32)
         args.append(grad_bg.data)
     launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
-                    grid.reso, step)
+                    grid.reso, step, () if order is None else (order.data,))
     return grad_bg
 
 
