@@ -561,8 +561,6 @@ __kernel void ray_exit(const int n_rays, __global const float *origins,
 }
 #endif
 
-/* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every
- * kernel of this file uses. */
 /* Sort keys for RAY_ORDER: keys[i] = the Morton code (10 bits per axis, interleaved x, y, z
  * from the top bit down) of the cell that holds the midpoint of ray i's path through the grid
  * box, its coordinates divided by 2^shift (the host quantises to 32 blocks per axis); rays
@@ -596,6 +594,8 @@ __kernel void ray_order_keys(const int n_rays, __global const float *origins,
 }
 #endif
 
+/* Test hook (tests/test_march_alpha.py): out[i] = alpha_of_tau(tau[i]), the opacity every
+ * kernel of this file uses. */
 __kernel void march_alpha_eval(const int n, __global const float *tau, __global float *out) {
     const int i = get_global_id(0);
     if (i < n) out[i] = alpha_of_tau(tau[i]);

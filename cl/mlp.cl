@@ -138,7 +138,7 @@
                                of what the backward and weight gradient read from DRAM */
 #endif
 #ifndef DW_PREFETCH_AHEAD
-#define DW_PREFETCH_AHEAD 16/* rows ahead in the weight gradient's sum over samples */
+#define DW_PREFETCH_AHEAD 16 /* rows ahead in the weight gradient's sum over samples */
 #endif
 #if MLP_PREFETCH
 #define MLP_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)

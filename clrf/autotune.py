@@ -9,7 +9,7 @@ Defaults by device class (``device_default``; accumulators = rows x cols / 16 fl
 =====================================  ====  ====  =======  =======  ===============================
 device                                 rows  cols  dw_rows  dw_cols  why
 =====================================  ====  ====  =======  =======  ===============================
-CPU, native float width >= 16 (AVX-512)  12    16        8       32  12 + 16 of 32 zmm, see below
+CPU, native float width >= 16 (AVX-512)  12    16        8       32  12 of 32 zmm (see below)
 CPU, native float width 8 (AVX2)          6    16        8       16  12 of 16 ymm (+ weight row)
 CPU, native float width <= 4 (SSE, NEON)  2    16        2       16  8 xmm-sized registers
 GPU / accelerator                         4    16        4       16  64 scalar registers per item
@@ -83,8 +83,8 @@ def device_default(caps) -> MLPTiling:
 
 def candidates(caps) -> list:
     """The tiles the tuner times: the device default first, then a few neighbours."""
-    shapes = [(12, 16, 8, 32), (16, 16, 8, 32), (8, 32, 8, 32), (6, 16, 8, 16), (6, 16, 4, 32), (6, 16, 4, 16), (4, 16, 8, 16),
-              (8, 16, 8, 16), (3, 32, 8, 16), (4, 32, 4, 32)]
+    shapes = [(12, 16, 8, 32), (16, 16, 8, 32), (8, 32, 8, 32), (6, 16, 8, 16), (6, 16, 4, 32),
+              (6, 16, 4, 16), (4, 16, 8, 16), (8, 16, 8, 16), (3, 32, 8, 16), (4, 32, 4, 32)]
     out = [device_default(caps)]
     for r, c, dr, dc in shapes:
         t = MLPTiling(r, c, dr, dc, CHUNK_TILES * r)

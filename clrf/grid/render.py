@@ -153,8 +153,8 @@ def _record_buffer(grid, slots, rec_max):
 
 
 # Sort rays (tuning.ray_order) only on grids with at least this fraction of cells allocated:
-# in-process A/B on the Zen 4, 128^3 SH2, 4,096 camera rays, forward + backward: dense 8 %
-# faster (forward 26 %), 5 %-occupied 13 % slower (the sort's ~0.6 ms and a slower order).
+# in-process A/B on the Zen 4, 128^3 SH2, 4,096 camera rays, forward + backward: dense 9-10 %
+# faster, 5 %-occupied 13 % slower (the sort's ~0.6 ms, and that order was slower there).
 RAY_ORDER_MIN_OCCUPANCY = 0.25
 
 
