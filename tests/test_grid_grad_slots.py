@@ -2,8 +2,9 @@
 against the float64 reference, for every slot count including 0 (float atomics only) and 1
 (with two compute units, concurrently running work-items fall back to the atomic scratch).
 
-Two backward calls into the same buffers must give twice the gradient: the scratch copies
-are left zero after each call. ``touched`` must mark every row with a non-zero gradient.
+Two backward calls into the same buffers must give twice the gradient, and a batch after
+another one through other cells only its own: the scratch copies are left zero after each
+call. ``touched`` must mark every row with a non-zero gradient.
 """
 import numpy as np
 import pyopencl.array as cla
@@ -65,3 +66,29 @@ def test_grad_slots_match_reference(device, slots, grad_mode, record, dmin):
     t = touched.get()[:grid.n_rows].astype(bool)
     nonzero = (gd.get()[:grid.n_rows] != 0) | np.any(gs.get()[:grid.n_rows] != 0, axis=1)
     assert np.all(t[nonzero])
+
+
+@pytest.mark.parametrize("slots", [1, 2, 3])
+def test_scratch_left_over_from_another_batch(device, slots):
+    """Nothing of one batch's scratch copies leaks into the next: a batch after another batch
+    through other cells gets exactly its own gradient (enough rays that every compute unit
+    holds a private copy)."""
+    device = device.with_tuning(grad_slots=slots)
+    dens, sh, mask, o, d = _scene(seed=5)
+    o, d = np.tile(o, (6, 1)), np.tile(d, (6, 1))   # enough work-groups for every compute unit
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
+    q = device.queue
+    rng = np.random.default_rng(6)
+    n = o.shape[0]
+    half = n // 2
+    for lo, hi in ((0, half), (half, n), (0, n)):
+        g = rng.normal(size=(hi - lo, 3)).astype(np.float32)
+        gd = cla.zeros(q, grid.density.shape[0], np.float32)
+        gs = cla.zeros(q, grid.sh.shape, np.float32)
+        render_backward_device(grid, cla.to_device(q, o[lo:hi]), cla.to_device(q, d[lo:hi]),
+                               cla.to_device(q, g), 0.5, (1, 1, 1), gd, gs)
+        want = reference.render_backward(dens, sh, BBOX, o[lo:hi], d[lo:hi], g, 0.5, (1, 1, 1),
+                                         mask=mask)
+        gdd, gsd = grid.rows_to_dense(gd.get(), gs.get())
+        np.testing.assert_allclose(gdd, want["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+        np.testing.assert_allclose(gsd, want["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
