@@ -15,11 +15,13 @@ CPU, native float width <= 4 (SSE, NEON)  2    16        2       16  8 xmm-sized
 GPU / accelerator                         4    16        4       16  64 scalar registers per item
 =====================================  ====  ====  =======  =======  ===============================
 
-On AVX-512, 12 rows x 16 columns (12 float16 accumulators) beat the former 8 x 32 (16) in two
+On AVX-512, 12 rows x 16 columns (12 float16 accumulators) beat the former 8 x 32 (16) in
 interleaved tools/nerf_bench.py runs on a Zen 4 (forward + backward against numpy at 8,192
-samples, 8x256 skip 4: 1.06x / 0.97x against 0.99x / 0.91x; 4x64: 0.81x / 0.99x against
-0.64x / 0.71x): each weight row loaded serves 12 samples instead of 8, and the tile count
-(work-groups) falls by a third. 16 x 16 measured the same within noise.
+samples; two runs before the MLP's software prefetch, 8x256 skip 4: 1.06x / 0.97x against
+0.99x / 0.91x, 4x64: 0.81x / 0.99x against 0.64x / 0.71x; two with it, 8x256: 1.09x / 1.08x
+against 1.03x / 1.04x, 4x64: 0.99x / 1.01x against 0.93x / 1.00x): each weight row loaded
+serves 12 samples instead of 8, and the tile count (work-groups) falls by a third. 16 x 16
+measured the same as 12 x 16 within noise.
 On AVX2 a float16 takes two ymm registers, so the AVX-512 tiles spill. The AVX2
 weight-gradient tile was the fastest of 2x32, 4x16, 4x32 and 8x16 on a Zen 3 (its CPU time,
 interleaved rounds). The GPU row is a register-budget guess (one work-item per tile, no local

@@ -1,8 +1,10 @@
 """Grid renderer: kernels against the float64 reference, finite differences and closed forms."""
 import numpy as np
+import pyopencl.array as cla
 import pytest
 
 import clrf
+from clrf.grid import render as grid_render
 from clrf.testing import reference as ref
 from clrf.tuning import Tuning
 
@@ -283,9 +285,6 @@ def test_ray_order(render_device, per_ray_bg):
     sorts the kernel's keys with the rays that miss last; every per-ray output (colour, depth,
     opacity, squared error, background gradient) is bitwise that of the given order, and the
     grid gradients match the float64 reference, on both backward code paths."""
-    import pyopencl.array as cla
-
-    from clrf.grid import render as R
     rng = np.random.default_rng(31)
     shape = (12, 9, 14)
     dens, sh = random_grid(rng, shape, 2, empty_frac=0.3, dens_hi=1.5)
@@ -302,26 +301,27 @@ def test_ray_order(render_device, per_ray_bg):
         q = dev.queue
         od, dd, td = (cla.to_device(q, a) for a in (o, d, target))
         bg = cla.to_device(q, bg_np) if per_ray_bg else (0.3, 0.6, 0.1)
-        order = R.ray_order(grid, od, dd, 0.5)
+        order = grid_render.ray_order(grid, od, dd, 0.5)
         if k:
             perm = order.get()
             assert sorted(perm.tolist()) == list(range(n))
             keys = cla.empty(q, n, np.uint32)
-            R.launch(dev, R.grid_program(grid).kernel("ray_order_keys"), n,
-                     (np.int32(n), od.data, dd.data, *grid.geometry_args(), np.float32(0.5),
-                      np.int32(0), keys.data))
+            grid_render.launch(dev, grid_render.grid_program(grid).kernel("ray_order_keys"), n,
+                               (np.int32(n), od.data, dd.data, *grid.geometry_args(),
+                                np.float32(0.5), np.int32(0), keys.data))
             kk = keys.get()
             assert np.all(np.diff(kk[perm].astype(np.int64)) >= 0)
             assert np.all(kk[30:40] == 0xFFFFFFFF)   # the largest key: misses go last
             assert np.all(kk[:30] < 0xFFFFFFFF) and len(np.unique(kk)) > 50
         else:
             assert order is None
-        fwd = {key: v.get() for key, v in R.render_forward_device(grid, od, dd, 0.5, bg).items()}
+        fwd = {key: v.get()
+               for key, v in grid_render.render_forward_device(grid, od, dd, 0.5, bg).items()}
         gd = cla.zeros(q, grid.density.shape[0], np.float32)
         gs = cla.zeros(q, grid.sh.shape, np.float32)
         ro = cla.empty(q, n, np.float32)
-        gbg = R.render_backward_device(grid, od, dd, td, 0.5, bg, gd, gs, grad_mode=1,
-                                       loss_scale=1.0, ray_out=ro)
+        gbg = grid_render.render_backward_device(grid, od, dd, td, 0.5, bg, gd, gs,
+                                                 grad_mode=1, loss_scale=1.0, ray_out=ro)
         bg_host = bg_np if per_ray_bg else bg
         out[name] = dict(fwd, loss=ro.get(), gbg=None if gbg is None else gbg.get(),
                          bwd=clrf.render_rays_backward(grid, o, d, 2 * (fwd["rgb"] - target),
