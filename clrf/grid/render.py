@@ -164,7 +164,8 @@ def ray_order(grid, origins_d, dirs_d, step):
     grid box (cl/grid_render.cl ray_order_keys), or None when the device's
     ``tuning.ray_order`` does not ask for one at this n or the grid is sparse
     (RAY_ORDER_MIN_OCCUPANCY). Rendering in that order gives the same per-ray results; it only
-    changes which rays run one after another."""
+    changes which rays run one after another. The keys are read back and argsorted on the
+    host, so the call waits for the queue."""
     dev = grid.device
     n = origins_d.shape[0]
     if dev.tuning.ray_order <= 0 or n < dev.tuning.ray_order:
