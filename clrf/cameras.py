@@ -150,6 +150,32 @@ def to_ndc(origins, dirs, intrinsics, H: int, W: int, near: float = 1.0):
     return o_ndc.astype(np.float32), d_ndc.astype(np.float32)
 
 
+def ndc_extent(poses, intrinsics, H: int, W: int, distortion=None, near: float = 1.0):
+    """(max |x|, max |y|) of every view's rays in NDC, from the near plane (t = 0) to infinity
+    (t = 1): the half-widths of the NDC box that holds each camera's whole frustum.
+
+    The NDC cube [-1, 1]^3 holds only the frustum of the reference (average) camera; a camera
+    turned or moved from it sees beyond x, y = +-1 (on fern ~15 % of the training rays start
+    outside the cube). NDC maps lines to lines, so the extremes lie on the image border:
+    only rays through the border pixels' outer edges are traced.
+    """
+    fx, fy, cx, cy = _as_intrinsics(intrinsics)
+    u = np.concatenate([np.arange(W + 1.0), np.zeros(H + 1), np.arange(W + 1.0),
+                        np.full(H + 1, float(W))])
+    v = np.concatenate([np.zeros(W + 1), np.arange(H + 1.0), np.full(W + 1, float(H)),
+                        np.arange(H + 1.0)])
+    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
+    if distortion is not None and np.any(_as_distortion(distortion) != 0):
+        xy = undistort(xy, distortion)
+    d_cam = np.stack([xy[:, 0], -xy[:, 1], -np.ones_like(u)], axis=-1)
+    p = _as_poses(poses)
+    dirs = np.einsum("nij,pj->npi", p[:, :3, :3], d_cam).reshape(-1, 3)
+    origins = np.repeat(p[:, :3, 3], len(u), axis=0)
+    o, d = to_ndc(origins, dirs, intrinsics, H, W, near)
+    ends = np.concatenate([o, o + d]).astype(np.float64)
+    return float(np.abs(ends[:, 0]).max()), float(np.abs(ends[:, 1]).max())
+
+
 def _normalize(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 

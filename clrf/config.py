@@ -201,7 +201,9 @@ PRESETS = {
     # tiny_lego (100x100 images): a 160^3 final grid is as fine as the pixels can resolve.
     "tiny": {"grid": {"reso": [[64, 64, 64], [128, 128, 128]], "upsample_at": [250],
                       "batch_size": 4000}},
-    # Forward-facing (LLFF): NDC rays, stronger TV, sparsity prior (svox2 llff.json).
+    # Forward-facing (LLFF): NDC rays, stronger TV, sparsity prior (svox2 llff.json). The
+    # resolutions are over the dataset's box, which in x, y is as wide as every view's frustum
+    # (fern: 1.45 x 1.31 NDC units a side; clrf.data.llff.scene_extent).
     # The z-resolution stays fixed (as in svox2's LLFF schedule): NDC rays run along z, so the
     # samples per ray, and with them the cost of a step, stay those of the coarse stage. No
     # dilation at pruning: the density is scattered through the frustum at the upsample, so a

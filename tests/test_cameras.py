@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from clrf.cameras import (camera_orbit_poses, distort, look_at, orbit_poses, pixel_rays,
-                          spiral_poses, to_ndc, undistort)
+from clrf.cameras import (camera_orbit_poses, distort, look_at, ndc_extent, orbit_poses,
+                          pixel_rays, spiral_poses, to_ndc, undistort)
 from clrf.testing.tolerances import CAMERA_ATOL, UNDISTORT_ATOL
 
 # The fox capture's OpenCV coefficients (instant-ngp data/nerf/fox/transforms.json).
@@ -107,6 +107,32 @@ def test_ndc_image_edge_maps_to_one():
     on, dn = to_ndc(o, d, (f, f, W / 2, H / 2), H, W, near=1.0)
     np.testing.assert_allclose(on[0, 0], 1.0, atol=CAMERA_ATOL)
     np.testing.assert_allclose(dn[0, 0], 0.0, atol=CAMERA_ATOL)
+
+
+def test_ndc_extent_of_the_reference_camera_is_the_cube():
+    # the camera at the NDC reference pose sees exactly x, y in [-1, 1] (pixel edges 0 and W)
+    H, W, f = 30, 40, 35.0
+    ex, ey = ndc_extent(np.eye(4)[None], (f, f, W / 2, H / 2), H, W)
+    np.testing.assert_allclose([ex, ey], [1.0, 1.0], atol=CAMERA_ATOL)
+
+
+@pytest.mark.parametrize("distortion", [None, FOX_DISTORTION])
+def test_ndc_extent_holds_every_pixel_ray(distortion):
+    # turned and shifted forward-facing cameras: every pixel-centre ray of every view lies inside
+    # the extent from the near plane to infinity, and the extent is reached within a pixel
+    H, W, f = 30, 40, 35.0
+    intr = (f, f, W / 2, H / 2)
+    rng = np.random.default_rng(3)
+    poses = np.stack([look_at(rng.uniform(-0.3, 0.3, 3) * [1, 1, 0.2],
+                              np.array([*rng.uniform(-0.4, 0.4, 2), -4.0]), up=(0, 1, 0))
+                      for _ in range(6)])
+    ex, ey = ndc_extent(poses, intr, H, W, distortion)
+    assert ex > 1.05 and ey > 1.05                       # the cube would cut these views
+    o, d = to_ndc(*pixel_rays(poses, intr, H, W, distortion), intr, H, W)
+    ends = np.concatenate([o, o + d])
+    mx, my = np.abs(ends[:, 0]).max(), np.abs(ends[:, 1]).max()
+    assert mx <= ex and my <= ey
+    assert ex - mx < 3.0 / W and ey - my < 3.0 / H      # half a pixel, in NDC units, plus warp
 
 
 def test_orbit_poses():

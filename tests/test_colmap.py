@@ -147,6 +147,7 @@ def _llff_scene(root, poses, points):
 
 def _same_rays(a, b):
     assert a.ndc == b.ndc and a.preset == b.preset and a.hw == b.hw
+    np.testing.assert_allclose(a.bbox, b.bbox, atol=CAMERA_ATOL)
     np.testing.assert_allclose(a.intrinsics, b.intrinsics, atol=CAMERA_ATOL)
     for k in ("train", "test"):
         np.testing.assert_array_equal(a.split[k], b.split[k])

@@ -5,6 +5,7 @@ import pytest
 
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.synthetic import ProceduralScene, load_procedural
+from clrf.train import view_rays
 from clrf.testing.tolerances import PROCEDURAL_ATOL
 
 
@@ -158,6 +159,13 @@ def test_llff_fern(data_dir):
     assert np.all(d.poses[:, 2, 2] > 0.95)
     # bounds rescale: the nearest scene depth is 1/0.75 -> translations are O(0.1..1)
     assert 0.05 < np.abs(d.poses[:, :3, 3]).max() < 2.0
+    # the NDC box holds every view's rays from the near plane to infinity: wider than the cube
+    # in x, y (the cube cut ~15 % of fern's training rays short), and no wider than needed
+    o, dd = view_rays(d, d.poses)
+    ends = np.abs(np.concatenate([o, o + dd]))
+    assert np.all(ends <= d.bbox[1] + 1e-6) and np.all(d.bbox[0] == -d.bbox[1])
+    assert d.bbox[1, 2] == 1.0 and np.all(d.bbox[1, :2] > 1.2)
+    assert np.all(d.bbox[1, :2] < ends.max(0)[:2] * 1.02)
 
 
 def test_llff_bonsai_real360(data_dir):

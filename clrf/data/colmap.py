@@ -367,10 +367,12 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     if any(cams[recs[i][1]]["id"] != ref["id"] for i in keep):
         warn(f"{ipath}: images use {len({recs[i][1] for i in keep})} cameras; those differing "
              f"from camera {ref['id']} were resampled onto it")
-    return Dataset(name=root.name, images=np.stack(imgs).astype(np.float32),
-                   poses=poses[keep].astype(np.float32), intrinsics=ref["intr"], split=split,
-                   background=bg, distortion=ref["dist"] if np.any(ref["dist"] != 0) else None,
-                   **scene_extent(kind))
+    images = np.stack(imgs).astype(np.float32)
+    dist = ref["dist"] if np.any(ref["dist"] != 0) else None
+    poses = poses[keep].astype(np.float32)
+    return Dataset(name=root.name, images=images, poses=poses, intrinsics=ref["intr"],
+                   split=split, background=bg, distortion=dist,
+                   **scene_extent(kind, poses, ref["intr"], images.shape[1:3], dist))
 
 
 __all__ = ["load_colmap", "is_colmap", "read_cameras", "read_images", "read_points",
