@@ -10,6 +10,7 @@ Defaults by device class (``device_default``; accumulators = rows x cols / 16 fl
 device                                 rows  cols  dw_rows  dw_cols  why
 =====================================  ====  ====  =======  =======  ===============================
 CPU, native float width >= 16 (AVX-512)  12    16        8       32  12 of 32 zmm (see below)
+  the same, every layer <= NARROW_WIDTH     8    16        8       16  more, smaller tiles
 CPU, native float width 8 (AVX2)          6    16        8       16  12 of 16 ymm (+ weight row)
 CPU, native float width <= 4 (SSE, NEON)  2    16        2       16  8 xmm-sized registers
 GPU / accelerator                         4    16        4       16  64 scalar registers per item
@@ -22,6 +23,13 @@ samples; two runs before the MLP's software prefetch, 8x256 skip 4: 1.06x / 0.97
 against 1.03x / 1.04x, 4x64: 0.99x / 1.01x against 0.93x / 1.00x): each weight row loaded
 serves 12 samples instead of 8, and the tile count (work-groups) falls by a third. 16 x 16
 measured the same as 12 x 16 within noise.
+Narrow MLPs (every layer at most NARROW_WIDTH = 128 wide: the tiny preset's 4 x 64) have too
+few tiles for that: a 64 x 64 weight gradient in 8 x 32 tiles is 16 tiles a chunk. There 8 x 16
+with an 8 x 16 weight-gradient tile (chunk 512) was the fastest in three interleaved
+tools/nerf_bench.py runs on the Zen 4 (4x64 at 8,192 samples, forward + backward against numpy: 1.13x / 1.13x / 1.04x against
+0.98x / 0.95x / 0.96x for 12 x 16 / 8 x 32; the tuner picked it, or 6 x 16 with the same
+weight-gradient tile, on its own), and 2x128 1.22x against 1.12x; for 8x256 skip 4 it was
+slower (1.04x / 1.06x against 1.06x / 1.09x), so wide MLPs keep 12 x 16 / 8 x 32.
 On AVX2 a float16 takes two ymm registers, so the AVX-512 tiles spill. The AVX2
 weight-gradient tile was the fastest of 2x32, 4x16, 4x32 and 8x16 on a Zen 3 (its CPU time,
 interleaved rounds). The GPU row is a register-budget guess (one work-item per tile, no local
@@ -70,10 +78,17 @@ class MLPTiling:
                 "DW_COLS": self.dw_cols, "DW_CHUNK": chunk}
 
 
-def device_default(caps) -> MLPTiling:
-    """The tile for a device class (table in the module docstring), from Capabilities."""
+NARROW_WIDTH = 128   # AVX-512: MLPs no wider than this get the narrow tile (module docstring)
+
+
+def device_default(caps, spec=None) -> MLPTiling:
+    """The tile for a device class (table in the module docstring), from Capabilities; on
+    AVX-512 it also depends on the widest layer of ``spec`` (None: a wide MLP)."""
+    narrow = spec is not None and max(spec.width, spec.color_width) <= NARROW_WIDTH
     if caps.type != "cpu":
         rows, cols, dwr, dwc = 4, 16, 4, 16
+    elif caps.native_float_width >= 16 and narrow:
+        rows, cols, dwr, dwc = 8, 16, 8, 16
     elif caps.native_float_width >= 16:
         rows, cols, dwr, dwc = 12, 16, 8, 32
     elif caps.native_float_width >= 8:
@@ -83,11 +98,11 @@ def device_default(caps) -> MLPTiling:
     return MLPTiling(rows, cols, dwr, dwc, CHUNK_TILES * rows)
 
 
-def candidates(caps) -> list:
+def candidates(caps, spec=None) -> list:
     """The tiles the tuner times: the device default first, then a few neighbours."""
     shapes = [(12, 16, 8, 32), (16, 16, 8, 32), (8, 32, 8, 32), (6, 16, 8, 16), (6, 16, 4, 32),
               (6, 16, 4, 16), (4, 16, 8, 16), (8, 16, 8, 16), (3, 32, 8, 16), (4, 32, 4, 32)]
-    out = [device_default(caps)]
+    out = [device_default(caps, spec)]
     for r, c, dr, dc in shapes:
         t = MLPTiling(r, c, dr, dc, CHUNK_TILES * r)
         if t not in out:
@@ -157,7 +172,7 @@ def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
     """The tile an MLP of ``spec`` uses on ``device``: MLPSpec fields that are set, then the
     tuned cache entry, then the device default. dw_chunk, when not set anywhere, is
     CHUNK_TILES * rows."""
-    base = cached_tiling(device.caps, spec, path) or device_default(device.caps)
+    base = cached_tiling(device.caps, spec, path) or device_default(device.caps, spec)
     chosen = {k: getattr(spec, k) for k in TILE_FIELDS if getattr(spec, k) is not None}
     if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
         chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
@@ -197,7 +212,7 @@ def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list
 def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None):
     """Time ``candidates`` for ``spec`` on ``device``, cache the fastest and return
     (best MLPTiling, [(tiling, median seconds)])."""
-    tiles = candidates(device.caps)
+    tiles = candidates(device.caps, spec)
     secs = time_candidates(device, spec, tiles, n, rounds)
     best = min(range(len(tiles)), key=secs.__getitem__)
     store_tiling(device.caps, spec, tiles[best],
@@ -212,23 +227,36 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m clrf.autotune",
                                  description="Time fused-MLP tiles on a device; cache the best.")
     ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
-    ap.add_argument("--width", type=int, default=256)
-    ap.add_argument("--depth", type=int, default=8)
-    ap.add_argument("--skip", type=int, default=4)
-    ap.add_argument("--color-width", type=int, default=128)
-    ap.add_argument("--in-dim", type=int, default=63)
-    ap.add_argument("--dir-dim", type=int, default=27)
-    ap.add_argument("--hidden-act", default="relu", choices=("relu", "softplus"))
-    ap.add_argument("--sigma-act", default="relu", choices=("relu", "softplus"))
+    ap.add_argument("--preset", default="original", choices=("tiny", "original"),
+                    help="the NeRF preset whose MLP shape to tune (the flags below override it); "
+                         "'tiny' is what `clrf train --model nerf` uses by default")
+    ap.add_argument("--width", type=int, default=None)
+    ap.add_argument("--depth", type=int, default=None)
+    ap.add_argument("--skip", type=int, default=None, help="-1: no skip connection")
+    ap.add_argument("--color-width", type=int, default=None)
+    ap.add_argument("--in-dim", type=int, default=None, help="encoded position dims")
+    ap.add_argument("--dir-dim", type=int, default=None, help="encoded direction dims")
+    ap.add_argument("--hidden-act", default=None, choices=("relu", "softplus"))
+    ap.add_argument("--sigma-act", default=None, choices=("relu", "softplus"))
     ap.add_argument("--samples", type=int, default=4096, help="samples per timed pass")
     ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
     a = ap.parse_args(argv)
     if a.samples < 1 or a.rounds < 1:
         print("clrf: error: --samples and --rounds must be >= 1", file=sys.stderr)
         return 2
-    spec = MLPSpec(width=a.width, depth=a.depth, skip=a.skip, color_width=a.color_width,
-                   in_dim=a.in_dim, dir_dim=a.dir_dim, hidden_act=a.hidden_act,
-                   sigma_act=a.sigma_act)
+    from .config import NerfConfig
+    over = {k: getattr(a, k) for k in ("width", "depth", "skip", "color_width", "hidden_act",
+                                       "sigma_act") if getattr(a, k) is not None}
+    cfg = NerfConfig.from_preset(a.preset, **over)
+    bad = [(f, m) for ok, f, m in cfg.checks() if not ok]
+    if bad:
+        f, m = bad[0]
+        print(f"clrf: error: --{f.split('.')[-1].replace('_', '-')} {m} (got "
+              f"{getattr(cfg, f.split('.')[-1])})", file=sys.stderr)
+        return 2
+    spec = cfg.mlp_spec()
+    spec = replace(spec, **{k: getattr(a, k) for k in ("in_dim", "dir_dim")
+                                        if getattr(a, k) is not None})
     from .programs import BuildError
     try:
         dev = Device(a.device)

@@ -110,7 +110,7 @@ def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
     from .autotune import CHUNK_TILES, device_default
     spec = nc.mlp_spec()
     dw_chunk = spec.dw_chunk or (CHUNK_TILES * spec.rows if spec.rows
-                                 else device_default(caps).dw_chunk)
+                                 else device_default(caps, spec).dw_chunk)
     W, D, WC = spec.width, spec.depth, spec.color_width
     pad = lambda x: -(-x // 16) * 16                           # noqa: E731 - kernel padding
     params = (pad(spec.in_dim) * W + (D - 1) * W * W + (pad(spec.in_dim) * W if spec.skip >= 0

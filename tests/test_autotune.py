@@ -40,6 +40,17 @@ def test_device_defaults_by_vector_width():
     wide = at.device_default(caps(width=16))
     assert (wide.rows, wide.cols, wide.dw_rows, wide.dw_cols) == (12, 16, 8, 32)
     assert wide.dw_chunk == at.CHUNK_TILES * 12
+    # AVX-512 and an MLP no wider than NARROW_WIDTH (the tiny preset's 4x64): 8 x 16, 8 x 16
+    big = MLPSpec(width=256, depth=8, skip=4, color_width=128, in_dim=63, dir_dim=27)
+    assert at.device_default(caps(width=16), big) == wide
+    assert at.device_default(caps(width=16), replace(big, width=at.NARROW_WIDTH + 16,
+                                                     color_width=16)) == wide
+    for spec in (SPEC, replace(big, width=64, color_width=32),
+                 replace(big, width=at.NARROW_WIDTH, color_width=at.NARROW_WIDTH)):
+        n = at.device_default(caps(width=16), spec)
+        assert (n.rows, n.cols, n.dw_rows, n.dw_cols, n.dw_chunk) == (8, 16, 8, 16,
+                                                                      at.CHUNK_TILES * 8)
+        assert at.device_default(caps(width=8), spec) == at.device_default(caps(width=8))
     avx2 = at.device_default(caps(width=8))
     assert (avx2.rows, avx2.cols) == (6, 16) and avx2.dw_chunk == at.CHUNK_TILES * 6
     assert at.device_default(caps(width=4)).rows == 2
@@ -106,7 +117,7 @@ def test_choice_order_spec_then_cache_then_default(cache):
 
 def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
     best, res = at.tune(device, SPEC, n=64, rounds=1)
-    assert [t for t, _ in res] == at.candidates(device.caps)
+    assert [t for t, _ in res] == at.candidates(device.caps, SPEC)
     assert all(s > 0 for _, s in res) and best == min(res, key=lambda r: r[1])[0]
     assert at.cached_tiling(device.caps, SPEC) == best
     assert MLP(device, SPEC).tiling == best
@@ -121,7 +132,7 @@ def test_tuner_cli(device, cache, capsys):
     assert at.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
                     "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1"]) == 0
     out = capsys.readouterr().out
-    assert out.count("GFLOP/s") == len(at.candidates(device.caps)) and cache.is_file()
+    assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
 
 
 def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
@@ -131,6 +142,7 @@ def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
     res = json.loads(out.read_text())
     t = res["configs"]["small-4x64"]
     assert t["wide"]["tiling"]["cols"] == 32 and t["6:16:8:16"]["tiling"]["dw_cols"] == 16
-    assert t["device"]["tiling"]["rows"] == at.device_default(device.caps).rows
+    assert t["device"]["tiling"]["rows"] == at.device_default(device.caps,
+                                                              nerf_bench.CONFIGS["small-4x64"]).rows
     assert f"fma_peak/vec{device.caps.vector_width}" in res["cases"]
     assert all(v["gflops"] > 0 for v in res["cases"].values())

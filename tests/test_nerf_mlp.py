@@ -261,9 +261,11 @@ def test_invalid_shapes_fail_to_build(device):
 
 
 # ---- register tiles ---------------------------------------------------------------------------
-# (rows, cols, dw_rows, dw_cols): the AVX-512 default and the former one, the AVX2 default, one-row tiles, every other row
-# count, and weight-gradient tiles of each allowed height and both widths.
-TILES = [(12, 16, 8, 32), (8, 32, 8, 32), (6, 16, 4, 32), (1, 16, 1, 16), (1, 32, 16, 32), (2, 32, 2, 16),
+# (rows, cols, dw_rows, dw_cols): the AVX-512 defaults (wide and narrow MLPs) and the former
+# one, the AVX2 default, one-row tiles, every other row count, and weight-gradient tiles of
+# each allowed height and both widths.
+TILES = [(12, 16, 8, 32), (8, 16, 8, 16), (8, 32, 8, 32), (6, 16, 8, 16), (6, 16, 4, 32),
+         (1, 16, 1, 16), (1, 32, 16, 32), (2, 32, 2, 16),
          (3, 32, 4, 16), (4, 16, 16, 16), (5, 16, 8, 16), (8, 16, 1, 32), (12, 16, 2, 32),
          (16, 32, 8, 16)]
 # width 48 = one 32-wide block + a 16-wide rest; the skip input is 48 + 16 = 64 columns

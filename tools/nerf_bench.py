@@ -128,12 +128,12 @@ def fused_runs(dev, spec, n):
     return net, {"fwd": fwd, "fwdbwd": fwdbwd, "bwd": bwd, "wgrad": wgrad}
 
 
-def parse_tiling(dev, name) -> MLPTiling | None:
+def parse_tiling(dev, name, spec) -> MLPTiling | None:
     """None for "device" (the MLP's own choice), else the tiling named (see module doc)."""
     if name == "device":
         return None
     if name == "default":
-        return device_default(dev.caps)
+        return device_default(dev.caps, spec)
     if name == "wide":
         return WIDE
     v = [int(x) for x in name.split(":")]
@@ -200,7 +200,7 @@ def main(argv=None):
         cases[f"{name}/numpy/fwd"] = (fwd, 2 * macs)
         cases[f"{name}/numpy/fwdbwd"] = (fwdbwd, 6 * macs)
         for tname in args.tilings.split(","):
-            t = parse_tiling(dev, tname)
+            t = parse_tiling(dev, tname, spec)
             net, runs = fused_runs(dev, spec if t is None else replace(spec, **asdict(t)), n)
             tilings[f"{name}/{tname}"] = asdict(net.tiling)
             for mode, flop in (("fwd", 2), ("fwdbwd", 6), ("bwd", 4), ("wgrad", 2)):
