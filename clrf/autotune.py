@@ -26,10 +26,11 @@ measured the same as 12 x 16 within noise.
 Narrow MLPs (every layer at most NARROW_WIDTH = 128 wide: the tiny preset's 4 x 64) have too
 few tiles for that: a 64 x 64 weight gradient in 8 x 32 tiles is 16 tiles a chunk. There 8 x 16
 with an 8 x 16 weight-gradient tile (chunk 512) was the fastest in three interleaved
-tools/nerf_bench.py runs on the Zen 4 (4x64 at 8,192 samples, forward + backward against numpy: 1.13x / 1.13x / 1.04x against
-0.98x / 0.95x / 0.96x for 12 x 16 / 8 x 32; the tuner picked it, or 6 x 16 with the same
-weight-gradient tile, on its own), and 2x128 1.22x against 1.12x; for 8x256 skip 4 it was
-slower (1.04x / 1.06x against 1.06x / 1.09x), so wide MLPs keep 12 x 16 / 8 x 32.
+tools/nerf_bench.py runs on the Zen 4 (4x64 at 8,192 samples, forward + backward against
+numpy: 1.13x / 1.13x / 1.04x against 0.98x / 0.95x / 0.96x for 12 x 16 / 8 x 32; the tuner
+picked it, or 6 x 16 with the same weight-gradient tile, on its own), and 2x128 1.22x against
+1.12x; for 8x256 skip 4 it was slower (1.04x / 1.06x against 1.06x / 1.09x), so wide MLPs keep
+12 x 16 / 8 x 32.
 On AVX2 a float16 takes two ymm registers, so the AVX-512 tiles spill. The AVX2
 weight-gradient tile was the fastest of 2x32, 4x16, 4x32 and 8x16 on a Zen 3 (its CPU time,
 interleaved rounds). The GPU row is a register-budget guess (one work-item per tile, no local
@@ -223,7 +224,6 @@ def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None)
 
 def main(argv=None) -> int:
     from .device import Device, DeviceError
-    from .nerf.mlp import MLPSpec
     ap = argparse.ArgumentParser(prog="python -m clrf.autotune",
                                  description="Time fused-MLP tiles on a device; cache the best.")
     ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
@@ -248,15 +248,14 @@ def main(argv=None) -> int:
     over = {k: getattr(a, k) for k in ("width", "depth", "skip", "color_width", "hidden_act",
                                        "sigma_act") if getattr(a, k) is not None}
     cfg = NerfConfig.from_preset(a.preset, **over)
-    bad = [(f, m) for ok, f, m in cfg.checks() if not ok]
-    if bad:
-        f, m = bad[0]
-        print(f"clrf: error: --{f.split('.')[-1].replace('_', '-')} {m} (got "
-              f"{getattr(cfg, f.split('.')[-1])})", file=sys.stderr)
-        return 2
-    spec = cfg.mlp_spec()
-    spec = replace(spec, **{k: getattr(a, k) for k in ("in_dim", "dir_dim")
-                                        if getattr(a, k) is not None})
+    for ok, name, msg in cfg.checks():   # the ranges a run config would be held to
+        if not ok:
+            key = name.split(".")[-1]
+            print(f"clrf: error: --{key.replace('_', '-')} {msg} (got {getattr(cfg, key)})",
+                  file=sys.stderr)
+            return 2
+    dims = {k: getattr(a, k) for k in ("in_dim", "dir_dim") if getattr(a, k) is not None}
+    spec = replace(cfg.mlp_spec(), **dims)
     from .programs import BuildError
     try:
         dev = Device(a.device)

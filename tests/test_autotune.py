@@ -128,11 +128,20 @@ def test_tuner_cli(device, cache, capsys):
     assert "clrf: error: --samples" in capsys.readouterr().err
     assert at.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
                     "--rounds", "1"]) == 2
-    assert "clrf: error:" in capsys.readouterr().err and not cache.exists()
+    assert "clrf: error: --width must be" in capsys.readouterr().err and not cache.exists()
+    # the tiny preset's shape with NeRF's skip (layer 4 of 4): rejected by name, not a build error
+    assert at.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
+    assert "clrf: error: --skip must be" in capsys.readouterr().err and not cache.exists()
     assert at.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
                     "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1"]) == 0
     out = capsys.readouterr().out
     assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
+    # --preset tiny tunes the shape `clrf train --model nerf` builds (its cache entry)
+    from clrf.config import NerfConfig
+    tiny = NerfConfig.from_preset("tiny").mlp_spec()
+    assert at.cached_tiling(device.caps, tiny) is None
+    assert at.main(["--preset", "tiny", "--samples", "8", "--rounds", "1"]) == 0
+    assert at.cached_tiling(device.caps, tiny) is not None
 
 
 def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
