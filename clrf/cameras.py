@@ -95,14 +95,19 @@ def camera_dirs(intrinsics, H: int, W: int, distortion=None) -> np.ndarray:
     Pixel (v, u) centre -> ((u + 0.5 - cx) / fx, -(v + 0.5 - cy) / fy, -1), after undistorting the
     normalised coordinates when ``distortion`` is given.
     """
-    fx, fy, cx, cy = _as_intrinsics(intrinsics)
     u = np.arange(W, dtype=np.float64) + PIXEL_CENTER
     v = np.arange(H, dtype=np.float64) + PIXEL_CENTER
     uu, vv = np.meshgrid(u, v, indexing="xy")                     # [H, W]
-    xy = np.stack([(uu - cx) / fx, (vv - cy) / fy], axis=-1)      # OpenCV normalised, y down
+    return _pixel_dirs(uu, vv, intrinsics, distortion)
+
+
+def _pixel_dirs(u, v, intrinsics, distortion=None) -> np.ndarray:
+    """Camera-axes directions (z = -1) through image points (u, v) (pixels, any shape)."""
+    fx, fy, cx, cy = _as_intrinsics(intrinsics)
+    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)        # OpenCV normalised, y down
     if distortion is not None and np.any(_as_distortion(distortion) != 0):
         xy = undistort(xy, distortion)
-    return np.stack([xy[..., 0], -xy[..., 1], -np.ones_like(uu)], axis=-1)
+    return np.stack([xy[..., 0], -xy[..., 1], -np.ones_like(u)], axis=-1)
 
 
 def pixel_rays(poses, intrinsics, H: int, W: int, distortion=None, normalize: bool = False):
@@ -159,15 +164,11 @@ def ndc_extent(poses, intrinsics, H: int, W: int, distortion=None, near: float =
     outside the cube). NDC maps lines to lines, so the extremes lie on the image border:
     only rays through the border pixels' outer edges are traced.
     """
-    fx, fy, cx, cy = _as_intrinsics(intrinsics)
     u = np.concatenate([np.arange(W + 1.0), np.zeros(H + 1), np.arange(W + 1.0),
                         np.full(H + 1, float(W))])
     v = np.concatenate([np.zeros(W + 1), np.arange(H + 1.0), np.full(W + 1, float(H)),
                         np.arange(H + 1.0)])
-    xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)
-    if distortion is not None and np.any(_as_distortion(distortion) != 0):
-        xy = undistort(xy, distortion)
-    d_cam = np.stack([xy[:, 0], -xy[:, 1], -np.ones_like(u)], axis=-1)
+    d_cam = _pixel_dirs(u, v, intrinsics, distortion)
     p = _as_poses(poses)
     dirs = np.einsum("nij,pj->npi", p[:, :3, :3], d_cam).reshape(-1, 3)
     origins = np.repeat(p[:, :3, 3], len(u), axis=0)
