@@ -114,7 +114,7 @@ def normalize_capture(poses, bounds, kind, path, bounds_name="bounds (columns 15
     return poses, kind
 
 
-def scene_extent(kind, poses=None, intrinsics=None, hw=None, distortion=None) -> dict:
+def scene_extent(kind, poses, intrinsics, hw, distortion=None) -> dict:
     """Dataset fields (bbox, near, far, ndc, preset) of a normalised LLFF-style scene.
 
     Forward-facing: the NDC box is [-1, 1] in z and, in x and y, wide enough for every view's
@@ -122,10 +122,8 @@ def scene_extent(kind, poses=None, intrinsics=None, hw=None, distortion=None) ->
     NDC_BOX_MARGIN), never narrower than [-1, 1]: the cube itself holds only the average
     camera's frustum, and rays leaving the box sideways could not be fitted."""
     if kind == "forward_facing":
-        ex = ey = 1.0
-        if poses is not None:
-            ex, ey = ndc_extent(poses, intrinsics, hw[0], hw[1], distortion)
-            ex, ey = max(1.0, ex * NDC_BOX_MARGIN), max(1.0, ey * NDC_BOX_MARGIN)
+        ex, ey = ndc_extent(poses, intrinsics, hw[0], hw[1], distortion)
+        ex, ey = max(1.0, ex * NDC_BOX_MARGIN), max(1.0, ey * NDC_BOX_MARGIN)
         return dict(bbox=np.array([[-ex, -ey, -1.0], [ex, ey, 1.0]]), near=0.0, far=1.0,
                     ndc=True, preset="forward_facing")
     return dict(bbox=np.array([[-1.0] * 3, [1.0] * 3]), near=REAL360_NEAR,
