@@ -110,6 +110,14 @@
 #define SAMPLE_RECORD 0  /* 1 (needs GRAD_SLOTS > 0): a slot's forward march records every sample
                             and the backward reads the record instead of recomputing */
 #endif
+#ifndef GRAD_LOCKS
+#define GRAD_LOCKS 0     /* > 0 (needs GRAD_SLOTS > 0): every work-item adds into the caller's
+                            buffers under try-locks of 2^GRAD_LOCKS-voxel blocks (see
+                            render_backward); 0: private copies per slot */
+#endif
+#if GRAD_LOCKS && GRAD_SLOTS == 0
+#error "GRAD_LOCKS needs GRAD_SLOTS > 0 (the CPU path)"
+#endif
 #ifndef TRACK_TOUCHED
 #define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
 #endif
@@ -231,6 +239,45 @@ inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *g
     }
 }
 
+#if GRAD_LOCKS
+#define LOCK_STRIDE 16   /* ints between two locks: one lock per 64-byte cache line */
+/* The lock of voxel block (x, y, z) (blocks of 2^GRAD_LOCKS voxels per axis, (reso >>
+ * GRAD_LOCKS) + 1 of them per axis) in grad_locks. */
+inline int lock_of(int x, int y, int z, int4 reso) {
+    const int ny = (reso.y >> GRAD_LOCKS) + 1, nz = (reso.z >> GRAD_LOCKS) + 1;
+    return ((x * ny + y) * nz + z) * LOCK_STRIDE;
+}
+
+/* Scatter one cell's merged corner gradients into the caller's buffers (gdens, gsh_rows,
+ * mark) under the locks of every voxel block that holds one of its corners (lo .. lo + 1 per
+ * axis: 1, 2, 4 or 8 blocks), taken in increasing order with compare-and-swap and never waited
+ * for. If another work-item holds one of them, the values go with float atomics into the
+ * scratch copy (sdens, ssh, smark: no plain stores ever touch it), which grad_slots_reduce adds
+ * in afterwards. Either way each value is added exactly once. */
+inline void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks, const int *idx,
+                              const float *gsig, const shv_t *gsh, __global float *gdens,
+                              __global float *gsh_rows, __global uchar *mark, const int do_mark,
+                              __global float *sdens, __global float *ssh, __global uchar *smark) {
+    const int3 a = lo >> GRAD_LOCKS, b = (lo + 1) >> GRAD_LOCKS;
+    int held[8];
+    int n = 0, ok = 1;
+    for (int x = a.x; x <= b.x && ok; ++x)
+        for (int y = a.y; y <= b.y && ok; ++y)
+            for (int z = a.z; z <= b.z; ++z) {
+                const int id = lock_of(x, y, z, reso);
+                if (atomic_cmpxchg(locks + id, 0, 1) != 0) { ok = 0; break; }
+                held[n++] = id;
+            }
+    if (ok) {
+        mem_fence(CLK_GLOBAL_MEM_FENCE);
+        flush_cell_private(idx, gsig, gsh, gdens, gsh_rows, mark, do_mark);
+        mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
+    }
+    for (int j = n - 1; j >= 0; --j) atomic_xchg(locks + held[j], 0);
+    if (!ok) flush_cell_atomic(idx, gsig, gsh, sdens, ssh, smark, 1);
+}
+#endif
+
 /* Backward pass. GRAD_MODE 0: ray_in = dL/drgb [n,3]. GRAD_MODE 1: ray_in = target rgb [n,3],
  * g = 2 (rgb - target) * loss_scale, and ray_out[i] = |rgb - target|^2 (summed over channels).
  * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM].
@@ -267,6 +314,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               const int n_rows, __global float *slot_density,
                               __global float *slot_sh, __global uchar *slot_touched,
                               __global volatile int *slot_lock,
+#if GRAD_LOCKS
+                              __global volatile int *grad_locks,
+#endif
 #if SAMPLE_RECORD
                               __global float *slot_rec, const int rec_max,
 #endif
@@ -305,6 +355,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         rec_len = rec_max;
     }
 #endif
+#if !GRAD_LOCKS   /* with GRAD_LOCKS every work-item adds into the caller's buffers */
     if (slot != 0) {   /* a scratch entry: its own (slot - 1), or the shared atomic one */
         const size_t e = slot > 0 ? (size_t)(slot - 1) : (size_t)(GRAD_SLOTS - 1);
         dst_d = slot_density + e * n_rows;
@@ -312,6 +363,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         mark = slot_touched + e * n_rows;
         do_mark = 1;
     }
+#endif
 #endif
 
     float Y[SH_BASIS];
@@ -362,6 +414,16 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
     int cur_idx[8];
     int cur_cell = -1;
+    int3 cur_lo = (int3)(0);
+#if GRAD_LOCKS
+#define FLUSH_CELL() flush_cell_locked(cur_lo, reso, grad_locks, cur_idx, gsig, gsh, dst_d, \
+                                       dst_s, mark, do_mark, slot_density, slot_sh, slot_touched)
+#else
+#define FLUSH_CELL() do { \
+        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark); \
+        else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark); \
+    } while (0)
+#endif
     lerp_t L;
     L.cell = -1;
     int pf[2] = {-1, -1};
@@ -400,14 +462,14 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         if (!(sigma > 0.0f)) continue;
         if (L.cell != cur_cell) {
             if (cur_cell >= 0) {
-                if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
-                else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
+                FLUSH_CELL();
                 for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
 #if COMPENSATED_SUMS
                 for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = shv_zero(); }
 #endif
             }
             cur_cell = L.cell;
+            cur_lo = L.lo;
             for (int c = 0; c < 8; ++c) cur_idx[c] = L.idx[c];
         }
         float w, Tnext;
@@ -445,10 +507,8 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         T = Tnext;
         if (Tnext < T_STOP) break;
     }
-    if (cur_cell >= 0) {
-        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
-        else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark);
-    }
+    if (cur_cell >= 0) FLUSH_CELL();
+#undef FLUSH_CELL
 #if GRAD_SLOTS > 0
     if (slot >= 0) {
         mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
@@ -457,29 +517,45 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
 }
 
-/* After render_backward with GRAD_SLOTS > 0: for every row k marked in a slot, add the slot's
- * gradient into grad_density / grad_sh, zero it and clear the mark (so the slots are zero
- * again for the next call), and set touched[k] (TRACK_TOUCHED). One work-item per row. */
+/* After render_backward with GRAD_SLOTS > 0: for every row k marked in a scratch copy, add the
+ * copy's gradient into grad_density / grad_sh, zero it and clear the mark (so the copies are
+ * zero again for the next call), and set touched[k] (TRACK_TOUCHED). One work-item per
+ * REDUCE_ROWS consecutive rows, which it passes over with one vector load of their marks when
+ * none is set (with GRAD_LOCKS almost all of them). */
+#define REDUCE_ROWS 16
+inline void reduce_row(const int k, const size_t r, __global float *slot_density,
+                       __global float *slot_sh, __global uchar *slot_touched,
+                       __global float *grad_density, __global float *grad_sh,
+                       __global uchar *touched) {
+    if (!slot_touched[r]) return;
+    grad_density[k] += slot_density[r];
+    slot_density[r] = 0.0f;
+    __global float *src = slot_sh + r * SH_DIM;
+    __global float *dst = grad_sh + (size_t)k * SH_DIM;
+    shv_store(shv_add(shv_load(dst), shv_load(src)), dst);
+    shv_store(shv_zero(), src);
+    slot_touched[r] = 0;
+#if TRACK_TOUCHED
+    touched[k] = 1;
+#endif
+}
+
 __kernel void grad_slots_reduce(const int n_rows, __global float *slot_density,
                                 __global float *slot_sh, __global uchar *slot_touched,
                                 __global float *grad_density, __global float *grad_sh,
                                 __global uchar *touched) {
-    const int k = get_global_id(0);
-    if (k >= n_rows) return;
+    const int k0 = get_global_id(0) * REDUCE_ROWS;
+    if (k0 >= n_rows) return;
 #if GRAD_SLOTS > 0
-    for (int s = 0; s < GRAD_SLOTS; ++s) {
-        const size_t r = (size_t)s * n_rows + k;
-        if (!slot_touched[r]) continue;
-        grad_density[k] += slot_density[r];
-        slot_density[r] = 0.0f;
-        __global float *src = slot_sh + r * SH_DIM;
-        __global float *dst = grad_sh + (size_t)k * SH_DIM;
-        shv_store(shv_add(shv_load(dst), shv_load(src)), dst);
-        shv_store(shv_zero(), src);
-        slot_touched[r] = 0;
-#if TRACK_TOUCHED
-        touched[k] = 1;
-#endif
+    for (int s = 0; s < (GRAD_LOCKS ? 1 : GRAD_SLOTS); ++s) {
+        const size_t r0 = (size_t)s * n_rows + k0;
+        if (k0 + REDUCE_ROWS <= n_rows) {
+            const uchar16 m = vload16(0, slot_touched + r0);
+            if (!any(as_char16(m) != (char16)(0))) continue;
+        }
+        for (int k = k0; k < min(k0 + REDUCE_ROWS, n_rows); ++k)
+            reduce_row(k, r0 + (k - k0), slot_density, slot_sh, slot_touched, grad_density,
+                       grad_sh, touched);
     }
 #endif
 }

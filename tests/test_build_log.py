@@ -15,18 +15,20 @@ def _grid_render():
             "BLOCK": 8}
     for deg in (0, 1, 3):
         yield {**base, "SH_DEGREE": deg}
-    for mode, (slots, rec), touched in itertools.product((0, 1), ((0, 0), (2, 0), (2, 1)),
-                                                         (0, 1)):
+    for mode, (slots, rec, locks), touched in itertools.product(
+            (0, 1), ((0, 0, 0), (2, 0, 0), (2, 1, 0), (2, 0, 4), (2, 1, 4)), (0, 1)):
         yield {**base, "GRAD_MODE": mode, "GRAD_SLOTS": slots, "SAMPLE_RECORD": rec,
-               "TRACK_TOUCHED": touched}
+               "GRAD_LOCKS": locks, "TRACK_TOUCHED": touched}
     yield {**base, "COMPENSATED_SUMS": 1, "CLRF_PREFETCH": 0, "BLOCK": 0}
-    for mode, (slots, rec) in itertools.product((0, 1), ((0, 0), (2, 1))):   # GridModel + MSI
+    for mode, (slots, rec, locks) in itertools.product(
+            (0, 1), ((0, 0, 0), (2, 1, 0), (2, 1, 4))):   # GridModel + MSI
         yield {**base, "BG_PER_RAY": 1, "GRAD_MODE": mode, "GRAD_SLOTS": slots,
-               "SAMPLE_RECORD": rec, "TRACK_TOUCHED": 1}
+               "SAMPLE_RECORD": rec, "GRAD_LOCKS": locks, "TRACK_TOUCHED": 1}
     # the distributed bricks (clrf/grid/bricks.py): no early termination
-    for (slots, rec), touched, pf in itertools.product(((0, 0), (2, 1)), (0, 1), (0, 1)):
+    for (slots, rec, locks), touched, pf in itertools.product(
+            ((0, 0, 0), (2, 1, 0), (2, 1, 4)), (0, 1), (0, 1)):
         yield {**base, "BRICK": 1, "CLRF_PREFETCH": pf, "T_STOP": 0.0, "GRAD_SLOTS": slots,
-               "SAMPLE_RECORD": rec, "TRACK_TOUCHED": touched}
+               "SAMPLE_RECORD": rec, "GRAD_LOCKS": locks, "TRACK_TOUCHED": touched}
 
 
 # (file, defines) for every program the library and tools build, grid_render.cl over the

@@ -1,6 +1,7 @@
-"""The CPU gradient path of render_backward (GRAD_SLOTS private copies + grad_slots_reduce)
-against the float64 reference, for every slot count including 0 (float atomics only) and 1
-(with two compute units, concurrently running work-items fall back to the atomic scratch).
+"""The CPU gradient path of render_backward (GRAD_SLOTS private copies + grad_slots_reduce, or
+with GRAD_LOCKS adds under block locks + one atomic scratch copy) against the float64
+reference, for every slot count including 0 (float atomics only) and 1 (with two compute units,
+concurrently running work-items fall back to the atomic scratch).
 
 Two backward calls into the same buffers must give twice the gradient, and a batch after
 another one through other cells only its own: the scratch copies are left zero after each
@@ -31,14 +32,17 @@ def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6, dmin=0.0):
     return dens * mask, sh * mask[..., None], mask, o.astype(np.float32), d.astype(np.float32)
 
 
-@pytest.mark.parametrize("slots", [0, 1, 2, 3])
+@pytest.mark.parametrize("slots,locks", [(0, 0), (1, 0), (2, 0), (3, 0), (1, 1), (2, 1),
+                                         (2, 4), (3, 1)])
 @pytest.mark.parametrize("grad_mode", [0, 1])
 @pytest.mark.parametrize("record", [False, True])
 @pytest.mark.parametrize("dmin", [0.0, -1.5])
-def test_grad_slots_match_reference(device, slots, grad_mode, record, dmin):
+def test_grad_slots_match_reference(device, slots, locks, grad_mode, record, dmin):
     """dmin < 0: allocated voxels with negative density, so that some samples have sigma <= 0
-    (recorded, then passed over by the backward) between ones that have sigma > 0."""
-    device = device.with_tuning(grad_slots=slots, sample_record=record)
+    (recorded, then passed over by the backward) between ones that have sigma > 0. locks:
+    tuning.grad_locks (0: private copies; 1: 2-voxel blocks, where the two compute units'
+    work-items often want the same lock; 4: the CPU default, one block here)."""
+    device = device.with_tuning(grad_slots=slots, sample_record=record, grad_locks=locks)
     dens, sh, mask, o, d = _scene(dmin=dmin)
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
     assert grad_slots(grid) == slots
@@ -69,11 +73,12 @@ def test_grad_slots_match_reference(device, slots, grad_mode, record, dmin):
 
 
 @pytest.mark.parametrize("slots", [1, 2, 3])
-def test_scratch_left_over_from_another_batch(device, slots):
+@pytest.mark.parametrize("locks", [0, 1])
+def test_scratch_left_over_from_another_batch(device, slots, locks):
     """Nothing of one batch's scratch copies leaks into the next: a batch after another batch
     through other cells gets exactly its own gradient (enough rays that every compute unit
     holds a private copy)."""
-    device = device.with_tuning(grad_slots=slots)
+    device = device.with_tuning(grad_slots=slots, grad_locks=locks)
     dens, sh, mask, o, d = _scene(seed=5)
     o, d = np.tile(o, (6, 1)), np.tile(d, (6, 1))   # enough work-groups for every compute unit
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
@@ -92,3 +97,57 @@ def test_scratch_left_over_from_another_batch(device, slots):
         gdd, gsd = grid.rows_to_dense(gd.get(), gs.get())
         np.testing.assert_allclose(gdd, want["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
         np.testing.assert_allclose(gsd, want["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+
+
+@pytest.mark.parametrize("held", ["none", "some", "all"])
+def test_block_lock_held_elsewhere(device, held):
+    """A cell whose block lock another work-item holds goes with atomics into the scratch copy,
+    and grad_slots_reduce adds it in: with some or all of the locks held (set to 1 in the lock
+    buffer for the whole call) the gradient is still the reference's, the scratch copy is used
+    exactly when a lock was held, and it is left zero. The rays fit one work-group, so one
+    work-item runs at a time and no lock is ever taken by the call itself."""
+    from clrf.grid.render import _slot_buffers, launch
+    import clrf.grid.render as render
+
+    device = device.with_tuning(grad_slots=2, sample_record=True, grad_locks=1,
+                                grid_local_size=64)
+    dens, sh, mask, o, d = _scene(seed=7)
+    o, d = o[:64], d[:64]
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
+    q = device.queue
+    g = np.random.default_rng(8).normal(size=(o.shape[0], 3)).astype(np.float32)
+    want = reference.render_backward(dens, sh, BBOX, o, d, g, 0.5, (1, 1, 1), mask=mask)
+    sd, ss, st, _, locks = _slot_buffers(grid, grad_slots(grid))
+    n_locks = locks.shape[0] // 16
+    pick = {"none": np.zeros(n_locks, bool), "all": np.ones(n_locks, bool),
+            "some": np.arange(n_locks) % 3 == 0}[held]
+    hold = np.zeros((n_locks, 16), np.int32)
+    hold[pick, 0] = 1
+    locks.set(hold.ravel())
+    seen = {}
+
+    def spy(dev, kernel, *args, **kw):   # the scratch marks just before the reduction
+        if kernel.function_name == "grad_slots_reduce":
+            seen["scratch_rows"] = int(st.get().astype(bool).sum())
+        return launch(dev, kernel, *args, **kw)
+
+    gd = cla.zeros(q, grid.density.shape[0], np.float32)
+    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    orig, render.launch = render.launch, spy
+    try:
+        render_backward_device(grid, cla.to_device(q, o), cla.to_device(q, d),
+                               cla.to_device(q, g), 0.5, (1, 1, 1), gd, gs)
+    finally:
+        render.launch = orig
+        locks.fill(0)
+    gdd, gsd = grid.rows_to_dense(gd.get(), gs.get())
+    np.testing.assert_allclose(gdd, want["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(gsd, want["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    if held == "none":
+        assert seen["scratch_rows"] == 0
+    else:
+        assert seen["scratch_rows"] > 0
+    if held == "all":   # every row with a gradient went through the scratch copy
+        nonzero = (gd.get()[:grid.n_rows] != 0) | np.any(gs.get()[:grid.n_rows] != 0, axis=1)
+        assert seen["scratch_rows"] >= int(nonzero.sum())
+    assert not st.get().any() and not sd.get().any() and not ss.get().any()

@@ -14,17 +14,20 @@ def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1"):
 def test_defaults_follow_capabilities():
     cpu = Tuning.for_device(caps("cpu", cu=6))
     assert (cpu.grad_slots, cpu.sample_record, cpu.prefetch) == (6, True, True)
+    assert cpu.grad_locks == 4
     gpu = Tuning.for_device(caps("gpu", cu=80, platform="OpenCL 3.0 CUDA"))
     assert (gpu.grad_slots, gpu.sample_record, gpu.prefetch) == (0, False, False)
+    assert gpu.grad_locks == 0
     other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 Intel"))
     assert other_cpu.prefetch is False and other_cpu.fast_math is False
 
 
 def test_environment_overrides():
     env = {"CLRF_GRAD_SLOTS": "0", "CLRF_SAMPLE_RECORD": "0", "CLRF_PREFETCH": "0",
-           "CLRF_PREFETCH_AHEAD": "4", "CLRF_BLOCK": "16", "CLRF_FAST_MATH": ""}
+           "CLRF_PREFETCH_AHEAD": "4", "CLRF_BLOCK": "16", "CLRF_FAST_MATH": "",
+           "CLRF_GRAD_LOCKS": "0"}
     t = Tuning.from_env(caps("cpu"), env)
-    assert (t.grad_slots, t.sample_record, t.prefetch) == (0, False, False)
+    assert (t.grad_slots, t.sample_record, t.prefetch, t.grad_locks) == (0, False, False, 0)
     assert (t.prefetch_ahead, t.prefetch_links_ahead, t.block, t.fast_math) == (4, 8, 16, False)
     assert Tuning.from_env(caps("cpu"), {}) == Tuning.for_device(caps("cpu"))
     with pytest.raises(ValueError, match="CLRF_BLOCK"):

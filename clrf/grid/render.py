@@ -17,6 +17,7 @@ BETA_EPS = 1e-3        # guard inside the beta prior's logs (cl/grid_render.cl B
 # Rays that can have more samples than this get compensated (Kahan) accumulators (COMPENSATED_SUMS
 # in cl/march.h): plain float32 sums drift like n * 6e-8, 5e-4 relative at 8192 samples.
 LONG_RAY_SAMPLES = 8192
+REDUCE_ROWS = 16       # rows per work-item of grad_slots_reduce (cl/grid_render.cl)
 # The kernels count samples in int; a step that would need more than this per ray is rejected.
 MAX_SAMPLES_PER_RAY = 2.0 ** 30
 # Work-group sizes, prefetch, block skipping and the gradient path come from grid.device.tuning
@@ -51,6 +52,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         **extra,
         "SH_DEGREE": grid.sh_degree, "T_STOP": float(t_stop), "GRAD_MODE": int(grad_mode),
         "TRACK_TOUCHED": int(track_touched), "GRAD_SLOTS": int(slots),
+        "GRAD_LOCKS": int(t.grad_locks) if slots > 0 else 0,
         "SAMPLE_RECORD": int(bool(record) and slots > 0),
         "COMPENSATED_SUMS": int(max_samples_per_ray(reso, step) > LONG_RAY_SAMPLES),
         "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
@@ -83,29 +85,46 @@ def _bg_arg(background, n):
 
 
 def grad_slots(grid) -> int:
-    """Private gradient copies for render_backward (GRAD_SLOTS): ``tuning.grad_slots`` (one
-    per compute unit on CPU devices, where PoCL runs one work-item at a time per compute unit
-    so no atomics are needed; 0, float atomics, elsewhere), 0 when the copies would not fit in
-    a quarter of the device memory."""
+    """Slots of render_backward (GRAD_SLOTS): ``tuning.grad_slots`` (one per compute unit on
+    CPU devices, where PoCL runs one work-item at a time per compute unit so no atomics are
+    needed; 0, float atomics, elsewhere), 0 when the scratch copies (scratch_entries) would
+    not fit in a quarter of the device memory."""
     caps = grid.device.caps
     s = max(0, int(grid.device.tuning.grad_slots))
     row_bytes = 4 * (1 + grid.sh_dim) + 1
-    if s > 0 and s * grid.density.shape[0] * row_bytes > caps.global_mem_size // 4:
+    if s > 0 and scratch_entries(grid, s) * grid.density.shape[0] * row_bytes > caps.global_mem_size // 4:
         s = 0
     return s
 
 
+def scratch_entries(grid, slots) -> int:
+    """Scratch gradient copies render_backward needs: one per slot (private copies), or one
+    shared by the work-items that find a block lock taken (tuning.grad_locks)."""
+    return 1 if grid.device.tuning.grad_locks > 0 else slots
+
+
+def _lock_count(reso, lock_log2) -> int:
+    """Ints of the block-lock buffer (cl/grid_render.cl lock_of: one per 64-byte line)."""
+    return 16 * int(np.prod([(r >> lock_log2) + 1 for r in reso]))
+
+
 def _slot_buffers(grid, slots):
-    """Zeroed slot buffers (allocated once per grid and row count; the kernels leave them zero)."""
+    """Zeroed slot buffers: scratch density, SH and marks (scratch_entries copies), the slot
+    locks and, with tuning.grad_locks, the block locks over the whole grid's voxels (allocated
+    once per grid and row count; the kernels leave them all zero)."""
     n = grid.density.shape[0]
-    key = (slots, n, grid.sh_dim)
+    e = scratch_entries(grid, slots)
+    locks = grid.device.tuning.grad_locks
+    key = (slots, e, locks, n, grid.sh_dim)
     cache = grid.scratch.setdefault("grad_slot_buffers", {})
     if key not in cache:
         cache.clear()
         q = grid.device.queue
-        cache[key] = (cla.zeros(q, slots * n, np.float32),
-                      cla.zeros(q, slots * n * grid.sh_dim, np.float32),
-                      cla.zeros(q, slots * n, np.uint8), cla.zeros(q, slots, np.int32))
+        cache[key] = (cla.zeros(q, e * n, np.float32),
+                      cla.zeros(q, e * n * grid.sh_dim, np.float32),
+                      cla.zeros(q, e * n, np.uint8), cla.zeros(q, slots, np.int32),
+                      cla.zeros(q, _lock_count(getattr(grid, "march_reso", grid.reso), locks), np.int32)
+                      if locks > 0 else None)
     return cache[key]
 
 
@@ -273,8 +292,10 @@ def launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, r
         args.append(touched.data)
     n_rows = grid.density.shape[0]
     if slots:
-        sd, ss, st, lock = _slot_buffers(grid, slots)
+        sd, ss, st, lock, block_locks = _slot_buffers(grid, slots)
         args += [np.int32(n_rows), sd.data, ss.data, st.data, lock.data]
+        if block_locks is not None:
+            args.append(block_locks.data)
         if record:
             rec_max = max_samples_per_ray(march_reso, step)
             args += [_record_buffer(grid, slots, rec_max).data, np.int32(rec_max)]
@@ -283,7 +304,7 @@ def launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, r
     launch(dev, prg.kernel("render_backward"), n, args, dev.tuning.grid_local_size)
     if slots:
         tch = touched if touched is not None else st   # not read without TRACK_TOUCHED
-        launch(dev, prg.kernel("grad_slots_reduce"), n_rows,
+        launch(dev, prg.kernel("grad_slots_reduce"), -(-n_rows // REDUCE_ROWS),
                (np.int32(n_rows), sd.data, ss.data, st.data, grad_density.data, grad_sh.data,
                 tch.data), dev.tuning.reduce_local_size)
 
