@@ -15,12 +15,21 @@
 #pragma clang diagnostic ignored "-Wpsabi"
 #endif
 
+/* The helpers of the grid march (march.h, volrend.h, sh.h, ray.h, grid_render.cl) are always
+ * inlined: PoCL's LLVM kept march_visit, lerp_setup_cached_q, lerp_sh, prefetch_cell_grad and
+ * march_forward_rec as calls, their state passed through memory (~45 % of the backward's
+ * samples sat in them). In-process A/B on the Zen 4 (128^3 SH2 dense, 4,096 camera rays):
+ * forward 11-13 % and fused forward + backward 10-11 % faster. */
+#ifndef CLRF_INLINE   /* -D CLRF_INLINE=inline: the compiler's own choice, for comparison */
+#define CLRF_INLINE inline __attribute__((always_inline))
+#endif
+
 #ifndef CLRF_NATIVE_FLOAT_ATOMICS
 #define CLRF_NATIVE_FLOAT_ATOMICS 0  /* 1: use atomic_fetch_add on floats (OpenCL C 2.0+) */
 #endif
 
 /* a / b, 0 when b == 0 (used where the numerator is also 0 in the limit). */
-inline float safe_div(float a, float b) { return b != 0.0f ? a / b : 0.0f; }
+CLRF_INLINE float safe_div(float a, float b) { return b != 0.0f ? a / b : 0.0f; }
 
 /* Opacity 1 - exp(-tau) of a segment with optical depth tau >= 0, the one opacity function of
  * every renderer (grid and NeRF). As accurate as -expm1(-tau) but without its out-of-line
@@ -29,7 +38,7 @@ inline float safe_div(float a, float b) { return b != 0.0f ? a / b : 0.0f; }
  * (truncation < tau^10/10! <= 2.7e-10, far below float rounding); above: 1 - exp(-tau), whose
  * rounding error is at most ulp(exp(-tau)) / (1 - exp(-0.5)) ~ 1.3 ulp of the result. */
 #define ALPHA_SERIES_MAX 0.5f
-inline float alpha_of_tau(float tau) {
+CLRF_INLINE float alpha_of_tau(float tau) {
     if (tau > ALPHA_SERIES_MAX) return 1.0f - exp(-tau);
     float r = -1.0f / 362880.0f;           /* -1/9! ... alternating coefficients 1/k! */
     r = fma(r, -tau, 1.0f / 40320.0f);
@@ -45,7 +54,7 @@ inline float alpha_of_tau(float tau) {
 
 /* Kahan-compensated s += x: c carries the lost low-order part (s + c is the sum). The one
  * compensated add; ksum_t bundles s and c for running sums. */
-inline void kahan_add(float *s, float *c, float x) {
+CLRF_INLINE void kahan_add(float *s, float *c, float x) {
     const float y = x - *c;
     const float t = *s + y;
     *c = (t - *s) - y;
@@ -53,16 +62,16 @@ inline void kahan_add(float *s, float *c, float x) {
 }
 
 typedef struct { float s; float c; } ksum_t;
-inline void ksum_add(ksum_t *k, float x) { kahan_add(&k->s, &k->c, x); }
+CLRF_INLINE void ksum_add(ksum_t *k, float x) { kahan_add(&k->s, &k->c, x); }
 
 /* Element i of an array of float triples [n, 3]. */
-inline float3 load3(__global const float *a, const size_t i) {
+CLRF_INLINE float3 load3(__global const float *a, const size_t i) {
     return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
 }
 
 /* Atomic float add on global memory. Native where the device has it, else a
  * compare-and-swap loop on the bit pattern (portable to every OpenCL 1.2 device). */
-inline void atomic_add_f(volatile __global float *p, float v) {
+CLRF_INLINE void atomic_add_f(volatile __global float *p, float v) {
 #if CLRF_NATIVE_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
     atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
                               memory_scope_device);
@@ -79,7 +88,7 @@ inline void atomic_add_f(volatile __global float *p, float v) {
 }
 
 /* Atomic max for non-negative floats: their bit patterns order like signed ints. */
-inline void atomic_max_nonneg_f(volatile __global float *p, float v) {
+CLRF_INLINE void atomic_max_nonneg_f(volatile __global float *p, float v) {
     atomic_max((volatile __global int *)p, as_int(fmax(v, 0.0f)));
 }
 

@@ -208,7 +208,7 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
 
 /* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
  * one float atomic add per non-zero value; mark[k] = 1 if do_mark. */
-inline void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
+CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
                               __global float *gdens, __global float *gsh_rows,
                               __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
@@ -226,7 +226,7 @@ inline void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gs
 
 /* Scatter into a gradient copy that this work-item holds alone (GRAD_SLOTS): plain vector
  * read-modify-write; mark[k] = 1 if do_mark. */
-inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
+CLRF_INLINE void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
                                __global float *gdens, __global float *gsh_rows,
                                __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
@@ -243,7 +243,7 @@ inline void flush_cell_private(const int *idx, const float *gsig, const shv_t *g
 #define LOCK_STRIDE 16   /* ints between two locks: one lock per 64-byte cache line */
 /* The lock of voxel block (x, y, z) (blocks of 2^GRAD_LOCKS voxels per axis, (reso >>
  * GRAD_LOCKS) + 1 of them per axis) in grad_locks. */
-inline int lock_of(int x, int y, int z, int4 reso) {
+CLRF_INLINE int lock_of(int x, int y, int z, int4 reso) {
     const int ny = (reso.y >> GRAD_LOCKS) + 1, nz = (reso.z >> GRAD_LOCKS) + 1;
     return ((x * ny + y) * nz + z) * LOCK_STRIDE;
 }
@@ -254,7 +254,7 @@ inline int lock_of(int x, int y, int z, int4 reso) {
  * for. If another work-item holds one of them, the values go with float atomics into the
  * scratch copy (sdens, ssh, smark: no plain stores ever touch it), which grad_slots_reduce adds
  * in afterwards. Either way each value is added exactly once. */
-inline void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks, const int *idx,
+CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks, const int *idx,
                               const float *gsig, const shv_t *gsh, __global float *gdens,
                               __global float *gsh_rows, __global uchar *mark, const int do_mark,
                               __global float *sdens, __global float *ssh, __global uchar *smark) {
@@ -523,7 +523,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
  * REDUCE_ROWS consecutive rows, which it passes over with one vector load of their marks when
  * none is set (with GRAD_LOCKS almost all of them). */
 #define REDUCE_ROWS 16
-inline void reduce_row(const int k, const size_t r, __global float *slot_density,
+CLRF_INLINE void reduce_row(const int k, const size_t r, __global float *slot_density,
                        __global float *slot_sh, __global uchar *slot_touched,
                        __global float *grad_density, __global float *grad_sh,
                        __global uchar *touched) {
@@ -642,7 +642,7 @@ __kernel void ray_exit(const int n_rays, __global const float *origins,
  * box, its coordinates divided by 2^shift (the host quantises to 32 blocks per axis); rays
  * that miss the box get 0xffffffff and go last. */
 #if !BRICK
-inline uint morton_spread10(uint v) {
+CLRF_INLINE uint morton_spread10(uint v) {
     v &= 0x3ffu;
     v = (v | (v << 16)) & 0x030000ffu;
     v = (v | (v << 8)) & 0x0300f00fu;

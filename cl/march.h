@@ -78,7 +78,7 @@ typedef struct {
 } lerp_t;
 
 /* Segment k: midpoint distance from the entry and length. */
-inline void march_segment(const march_t *m, int k, float *mid, float *delta) {
+CLRF_INLINE void march_segment(const march_t *m, int k, float *mid, float *delta) {
     float s0 = (float)k * m->dt;
     float s1 = fmin((float)(k + 1) * m->dt, m->len);
     *mid = 0.5f * (s0 + s1);
@@ -86,7 +86,7 @@ inline void march_segment(const march_t *m, int k, float *mid, float *delta) {
 }
 
 /* One axis of the interpolation set-up: position in box units -> lower index, fraction. */
-inline void lerp_axis(float p, int r, int *i0, int *i1, float *f) {
+CLRF_INLINE void lerp_axis(float p, int r, int *i0, int *i1, float *f) {
     float u = clamp(p - 0.5f, 0.0f, (float)(r - 1));
     int i = min((int)u, max(r - 2, 0));
     *i0 = i;
@@ -95,12 +95,12 @@ inline void lerp_axis(float p, int r, int *i0, int *i1, float *f) {
 }
 
 /* Linear index of cell / voxel (x, y, z) in a C-order [RX, RY, RZ] array (links). */
-inline int cell_of(int x, int y, int z, int4 r) { return (x * r.y + y) * r.z + z; }
+CLRF_INLINE int cell_of(int x, int y, int z, int4 r) { return (x * r.y + y) * r.z + z; }
 
 /* The cell around point p (box units): corners x0..x1, y0..y1, z0..z1 (clamped at the grid
  * edges) and fractions fx, fy, fz along each axis; lerp_axis on the three axes. */
 typedef struct { int x0, x1, y0, y1, z0, z1; float fx, fy, fz; } cellpos_t;
-inline void cell_locate(float3 p, int4 reso, cellpos_t *q) {
+CLRF_INLINE void cell_locate(float3 p, int4 reso, cellpos_t *q) {
     lerp_axis(p.x, reso.x, &q->x0, &q->x1, &q->fx);
     lerp_axis(p.y, reso.y, &q->y0, &q->y1, &q->fy);
     lerp_axis(p.z, reso.z, &q->z0, &q->z1, &q->fz);
@@ -123,7 +123,7 @@ inline void cell_locate(float3 p, int4 reso, cellpos_t *q) {
  * sample is left out; march_visit's ownership test is the exact one. An axis the ray does not
  * move along (dg = 0) is owned for all samples or none, decided at p0 as march_visit would. */
 #define BRICK_SLACK(reso) (1e-5f * (1.0f + (float)max((reso).x, max((reso).y, (reso).z))))
-inline void brick_range(march_t *m, int4 reso) {
+CLRF_INLINE void brick_range(march_t *m, int4 reso) {
     const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
     const int lo[3] = {m->blo.x, m->blo.y, m->blo.z}, hi[3] = {m->bhi.x, m->bhi.y, m->bhi.z};
     const int r[3] = {reso.x, reso.y, reso.z};
@@ -150,12 +150,12 @@ inline void brick_range(march_t *m, int4 reso) {
 }
 
 /* 1 if the brick owns the sample whose cell is q: its lower corner is in [blo, bhi). */
-inline int brick_owns_q(const march_t *m, const cellpos_t *q) {
+CLRF_INLINE int brick_owns_q(const march_t *m, const cellpos_t *q) {
     return q->x0 >= m->blo.x && q->x0 < m->bhi.x && q->y0 >= m->blo.y && q->y0 < m->bhi.y &&
            q->z0 >= m->blo.z && q->z0 < m->bhi.z;
 }
 /* The same for the sample at p (box units). */
-inline int brick_owns(const march_t *m, float3 p, int4 reso) {
+CLRF_INLINE int brick_owns(const march_t *m, float3 p, int4 reso) {
     cellpos_t q;
     cell_locate(p, reso, &q);
     return brick_owns_q(m, &q);
@@ -166,7 +166,7 @@ inline int brick_owns(const march_t *m, float3 p, int4 reso) {
 #endif
 
 /* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
-inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
+CLRF_INLINE int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
                        march_t *m) {
     real3 dd = REAL3(d);
     real_t mx = fmax(fabs(dd.x), fmax(fabs(dd.y), fabs(dd.z)));
@@ -198,7 +198,7 @@ inline int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale,
 
 
 /* Find the 8 corners and weights of point p (box units). Returns 1 if any corner is allocated. */
-inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L) {
+CLRF_INLINE int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L) {
     cellpos_t q;
     cell_locate(p, reso, &q);
     L->lo = (int3)(q.x0, q.y0, q.z0);
@@ -220,7 +220,7 @@ inline int lerp_setup(float3 p, int4 reso, __global const int *links, lerp_t *L)
 /* Distance (from the entry) at which the ray leaves the region of points whose cell (lower
  * corner) lies in [lo, lo + nb - 1] per axis. Unbounded sides (the clamped outer half voxels)
  * are +-inf, so the region is convex and contains the current point. */
-inline float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
+CLRF_INLINE float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
     float s = INFINITY;
     const float p[3] = {m->p0.x, m->p0.y, m->p0.z}, d[3] = {m->dg.x, m->dg.y, m->dg.z};
     const float id[3] = {m->idg.x, m->idg.y, m->idg.z};
@@ -241,14 +241,14 @@ inline float region_exit(const march_t *m, int3 lo, int nb, int4 reso) {
  * at step 0.5). A segment just inside is visited again and skipped on its own; the last,
  * clipped segment has its midpoint earlier than (j + 0.5) dt, so it is inside too. */
 #define SKIP_MARGIN 1e-3f
-inline int skip_region(const march_t *m, int k, int3 lo, int nb, int4 reso) {
+CLRF_INLINE int skip_region(const march_t *m, int k, int3 lo, int nb, int4 reso) {
     float s = region_exit(m, lo, nb, reso);
     float j = fmin(ceil(s / m->dt - 0.5f - SKIP_MARGIN), (float)m->nsteps);
     return max(k + 1, (int)j);
 }
 
 /* The same for one empty cell. */
-inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
+CLRF_INLINE int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
     return skip_region(m, k, lo, 1, reso);
 }
 
@@ -263,7 +263,7 @@ inline int skip_empty(const march_t *m, int k, int3 lo, int4 reso) {
 /* Empty-space skipping by blocks: if the block (then, with BLOCK_FINE, the fine block) of the
  * sample whose cell is q has no allocated voxel, set *k to the segment before the next one to
  * evaluate (the loop's ++k follows) and return 1. */
-inline int skip_block(const march_t *m, const cellpos_t *q, int4 reso, int *k) {
+CLRF_INLINE int skip_block(const march_t *m, const cellpos_t *q, int4 reso, int *k) {
 #if BLOCK > 0
 #if BRICK   /* the tables cover the brick's links: blocks of local cells */
     const int3 org = (int3)(m->blo.x, m->blo.y, m->blo.z);
@@ -290,7 +290,7 @@ inline int skip_block(const march_t *m, const cellpos_t *q, int4 reso, int *k) {
     return 0;
 }
 
-inline float lerp_density(const lerp_t *L, __global const float *density) {
+CLRF_INLINE float lerp_density(const lerp_t *L, __global const float *density) {
     float s = 0.0f;
 #pragma unroll
     for (int c = 0; c < 8; ++c)
@@ -319,28 +319,28 @@ typedef struct { float16 a; float16 b; float16 c; } shv_t;
 #endif
 
 #define SHV_ZERO_(f, n, o) r.f = (float##n)(0.0f);
-inline shv_t shv_zero(void) { shv_t r; SHV_MAP(SHV_ZERO_) return r; }
+CLRF_INLINE shv_t shv_zero(void) { shv_t r; SHV_MAP(SHV_ZERO_) return r; }
 #define SHV_LOAD_(f, n, o) r.f = vload##n(0, p + (o));
-inline shv_t shv_load(__global const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
-inline shv_t shv_load_private(const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
+CLRF_INLINE shv_t shv_load(__global const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
+CLRF_INLINE shv_t shv_load_private(const float *p) { shv_t r; SHV_MAP(SHV_LOAD_) return r; }
 #define SHV_STORE_(f, n, o) vstore##n(v.f, 0, p + (o));
-inline void shv_store(shv_t v, __global float *p) { SHV_MAP(SHV_STORE_) }
-inline void shv_store_private(shv_t v, float *p) { SHV_MAP(SHV_STORE_) }
+CLRF_INLINE void shv_store(shv_t v, __global float *p) { SHV_MAP(SHV_STORE_) }
+CLRF_INLINE void shv_store_private(shv_t v, float *p) { SHV_MAP(SHV_STORE_) }
 /* acc += w * x */
 #define SHV_AXPY_(f, n, o) acc->f += w * x.f;
-inline void shv_axpy(shv_t *acc, float w, shv_t x) { SHV_MAP(SHV_AXPY_) }
+CLRF_INLINE void shv_axpy(shv_t *acc, float w, shv_t x) { SHV_MAP(SHV_AXPY_) }
 #define SHV_ADD_(f, n, o) r.f = x.f + y.f;
-inline shv_t shv_add(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_ADD_) return r; }
+CLRF_INLINE shv_t shv_add(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_ADD_) return r; }
 #define SHV_MUL_(f, n, o) r.f = x.f * y.f;
-inline shv_t shv_mul(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_MUL_) return r; }
+CLRF_INLINE shv_t shv_mul(shv_t x, shv_t y) { shv_t r; SHV_MAP(SHV_MUL_) return r; }
 #define SHV_SCALE_(f, n, o) r.f = s * x.f;
-inline shv_t shv_scale(shv_t x, float s) { shv_t r; SHV_MAP(SHV_SCALE_) return r; }
+CLRF_INLINE shv_t shv_scale(shv_t x, float s) { shv_t r; SHV_MAP(SHV_SCALE_) return r; }
 
 /* Per-ray SH factors: Ych[ch] holds Y_b at positions ch*SH_BASIS + b and 0 elsewhere, so
  * that dot(coefficients, Ych[ch]) is channel ch's SH value and sum_ch d_ch Ych[ch] is the
  * gradient of sum_ch d_ch * value_ch with respect to the coefficients. */
 typedef struct { shv_t ych[3]; shv_t yall; } shy_t;
-inline void shy_setup(const float *Y, shy_t *S) {
+CLRF_INLINE void shy_setup(const float *Y, shy_t *S) {
     float tmp[SH_DIM];
     for (int ch = 0; ch < 3; ++ch) {
         for (int j = 0; j < SH_DIM; ++j) tmp[j] = 0.0f;
@@ -352,7 +352,7 @@ inline void shy_setup(const float *Y, shy_t *S) {
 }
 
 /* Interpolated SH coefficients of the sample (8 corner rows, vector loads). */
-inline shv_t lerp_sh(const lerp_t *L, __global const float *sh) {
+CLRF_INLINE shv_t lerp_sh(const lerp_t *L, __global const float *sh) {
     shv_t co = shv_zero();
 #pragma unroll
     for (int c = 0; c < 8; ++c)
@@ -361,7 +361,7 @@ inline shv_t lerp_sh(const lerp_t *L, __global const float *sh) {
 }
 
 /* Pre-activation colour from interpolated coefficients: per channel sum_b co Y + offset. */
-inline float3 color_pre(shv_t co, const shy_t *S) {
+CLRF_INLINE float3 color_pre(shv_t co, const shy_t *S) {
     float t[SH_DIM];
     shv_store_private(shv_mul(co, S->yall), t);
     float pre[3];
@@ -377,7 +377,7 @@ inline float3 color_pre(shv_t co, const shy_t *S) {
 
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
-inline int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
+CLRF_INLINE int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
                                __global const int *links, lerp_t *L) {
     const cellpos_t q = *qp;
     const int cell = cell_of(q.x0, q.y0, q.z0, reso);
@@ -403,7 +403,7 @@ inline int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
     return any;
 }
 
-inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links,
+CLRF_INLINE int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links,
                              lerp_t *L) {
     cellpos_t q;
     cell_locate(p, reso, &q);
@@ -412,7 +412,7 @@ inline int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global con
 
 /* Start loading the 8 links of the cell around point p (4 pairs adjacent along z) into the
  * cache, a few samples before prefetch_cell needs them to find the rows. */
-inline void prefetch_links(const march_t *m, float3 p, int4 reso, __global const int *links, int *last) {
+CLRF_INLINE void prefetch_links(const march_t *m, float3 p, int4 reso, __global const int *links, int *last) {
 #if CLRF_PREFETCH
     cellpos_t q;
     cell_locate(p, reso, &q);
@@ -432,7 +432,7 @@ inline void prefetch_links(const march_t *m, float3 p, int4 reso, __global const
  * read-modify-write. Only when
  * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
  * read here and again later (then from the cache). */
-inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global const int *links,
+CLRF_INLINE void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global const int *links,
                                __global const float *density, __global const float *sh,
                                __global const float *grad_d, __global const float *grad_s,
                                int *last) {
@@ -470,7 +470,7 @@ inline void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global c
  * when the caller continues, *k then being the segment before the next one to visit (the
  * loop's ++k follows). Prefetching happens only where the march evaluates samples, never
  * across empty blocks. */
-inline int march_visit(const march_t *m, int4 reso, __global const int *links,
+CLRF_INLINE int march_visit(const march_t *m, int4 reso, __global const int *links,
                        __global const float *density, __global const float *sh,
                        __global const float *grad_d, __global const float *grad_s, int *pf,
                        int *k, float *mid, float *delta, lerp_t *L) {
@@ -509,7 +509,7 @@ inline int march_visit(const march_t *m, int4 reso, __global const int *links,
 #endif
 
 /* s += x, compensated when COMPENSATED_SUMS (c carries the lost low-order part). */
-inline void csum_add(float *s, float *c, float x) {
+CLRF_INLINE void csum_add(float *s, float *c, float x) {
 #if COMPENSATED_SUMS
     kahan_add(s, c, x);
 #else
@@ -534,7 +534,7 @@ inline void csum_add(float *s, float *c, float x) {
 /* The forward march shared by every kernel (rec: see above; 0 for no record). With BRICK,
  * *kfirst is set to the first segment the brick evaluates (left as it was when none): it
  * orders the bricks' partial results along the ray. */
-inline void march_forward_rec(const march_t *m, int4 reso, __global const int *links,
+CLRF_INLINE void march_forward_rec(const march_t *m, int4 reso, __global const int *links,
                               __global const float *density, __global const float *sh,
                               const float *Y, __global float *rec, const int rec_max,
                               int *n_rec, int *kfirst, fwd_t *out) {
@@ -586,7 +586,7 @@ inline void march_forward_rec(const march_t *m, int4 reso, __global const int *l
     out->logT = logT.s;
 }
 
-inline void march_forward(const march_t *m, int4 reso, __global const int *links,
+CLRF_INLINE void march_forward(const march_t *m, int4 reso, __global const int *links,
                           __global const float *density, __global const float *sh,
                           const float *Y, int *kfirst, fwd_t *out) {
     int n_rec;

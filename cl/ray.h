@@ -25,7 +25,7 @@ typedef float3 real3;
 #endif
 
 /* One slab [lo, hi] on one axis; narrows [*t0, *t1]. */
-inline void ray_slab(real_t o, real_t d, real_t lo, real_t hi, real_t *t0, real_t *t1) {
+CLRF_INLINE void ray_slab(real_t o, real_t d, real_t lo, real_t hi, real_t *t0, real_t *t1) {
     if (d == 0.0f) {
         if (o < lo || o > hi) { *t0 = INFINITY; *t1 = -INFINITY; }
         return;
@@ -37,7 +37,7 @@ inline void ray_slab(real_t o, real_t d, real_t lo, real_t hi, real_t *t0, real_
 
 /* Intersect o + t d, t >= 0, with the box [lo, hi]. Returns 1 and [t0, t1] on a hit of
  * positive length, else 0. */
-inline int ray_box(real3 o, real3 d, real3 lo, real3 hi, real_t *t0, real_t *t1) {
+CLRF_INLINE int ray_box(real3 o, real3 d, real3 lo, real3 hi, real_t *t0, real_t *t1) {
     *t0 = 0.0f;
     *t1 = INFINITY;
     ray_slab(o.x, d.x, lo.x, hi.x, t0, t1);

@@ -33,7 +33,7 @@
 #define SH_C3_5 1.445305721320277f
 #define SH_C3_6 -0.5900435899266435f
 
-inline void sh_basis(float3 d, float *Y) {
+CLRF_INLINE void sh_basis(float3 d, float *Y) {
     Y[0] = SH_C0;
 #if SH_DEGREE >= 1
     const float x = d.x, y = d.y, z = d.z;

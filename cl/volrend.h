@@ -25,7 +25,7 @@ typedef struct {
 
 /* One compositing step: the weight T alpha(tau) of a sample with optical depth tau seen
  * through transmittance T = exp(logT->s); advances logT past it and sets *Tnext = exp(logT). */
-inline float vr_step(ksum_t *logT, const float T, const float tau, float *Tnext) {
+CLRF_INLINE float vr_step(ksum_t *logT, const float T, const float tau, float *Tnext) {
     const float w = T * alpha_of_tau(tau);
     ksum_add(logT, -tau);
     *Tnext = exp(logT->s);
@@ -35,7 +35,7 @@ inline float vr_step(ksum_t *logT, const float T, const float tau, float *Tnext)
 /* One remaining-radiance backward step for a sample of weight w, transmittance behind it
  * Tnext, segment length delta and gc = g.c (its colour dotted with dL/drgb): adds w gc to
  * the prefix and returns dL/dsigma = delta (Tnext gc - (total - prefix)). */
-inline float vr_dsigma(ksum_t *prefix, const float total, const float w, const float Tnext,
+CLRF_INLINE float vr_dsigma(ksum_t *prefix, const float total, const float w, const float Tnext,
                        const float gc, const float delta) {
     ksum_add(prefix, w * gc);
     return delta * (Tnext * gc - (total - prefix->s));
