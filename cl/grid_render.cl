@@ -45,10 +45,12 @@
  * cell there are prefetched, PREFETCH_AHEAD samples ahead its rows (and, in the backward
  * march, its gradient rows), so the gathers do not wait for DRAM.
  *
- * Gradient accumulation: atomics (GRAD_SLOTS 0, any device) or, on CPU devices, private copies
- * per running work-item without atomics, added into the caller's buffers by grad_slots_reduce
- * (GRAD_SLOTS > 0; see render_backward). Both add the same values; only the order of the
- * float additions differs.
+ * Gradient accumulation: atomics (GRAD_SLOTS 0, any device) or, on CPU devices (GRAD_SLOTS >
+ * 0; see render_backward), either private copies per running work-item without atomics, added
+ * into the caller's buffers by grad_slots_reduce, or (GRAD_LOCKS) plain vector adds into the
+ * caller's buffers under try-locks of voxel blocks, a cell whose lock is taken going with
+ * atomics into one scratch copy. All add the same values; only the order of the float
+ * additions differs.
  *
  * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
  * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
@@ -86,11 +88,12 @@
  * its ray's own index, so the results are those of the given order (gradients up to the
  * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, SAMPLE_RECORD, TRACK_TOUCHED,
- * BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE, COMPENSATED_SUMS, CLRF_PREFETCH, PREFETCH_AHEAD,
- * PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h). Arguments that a define leaves unused
- * are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with
- * TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0, slot_rec / rec_max with SAMPLE_RECORD;
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, SAMPLE_RECORD,
+ * TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE, COMPENSATED_SUMS,
+ * CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h),
+ * CLRF_INLINE (common.h). Arguments that a define leaves unused are not in the signature:
+ * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
+ * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
  * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
  * render_forward and render_backward end with ray_order.
  */
@@ -293,7 +296,16 @@ CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *lo
  * sample there (march.h, march_forward_rec) and the backward march reads it instead of
  * re-gathering the rows. PoCL runs one work-item at a time per compute unit, so with
  * S = compute units no atomics are used in practice, and the result is correct under any
- * scheduling. */
+ * scheduling.
+ *
+ * GRAD_LOCKS = L > 0 (with GRAD_SLOTS > 0; the slots then only hand out the records): no
+ * private copies. Every work-item adds each cell's merged gradients straight into
+ * grad_density / grad_sh, holding the locks grad_locks of the 2^L-voxel blocks that contain
+ * the cell's corners (flush_cell_locked, compare-and-swap, never waited for). When one of them
+ * is held by another work-item, that cell's values go with float atomics into the single
+ * scratch entry 0 (slot_density [n_rows], slot_sh, marked in slot_touched), which
+ * grad_slots_reduce adds in. Nothing is reduced for the cells that got their locks: on the
+ * Zen 4 (2 compute units, 16^3-voxel blocks) 8 of 1.67 M rows went through the scratch. */
 __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global const float *dirs, __global const int *links,
                               __global const float *density, __global const float *sh,

@@ -129,7 +129,8 @@ def cmd_train(a):
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
     if comm is None:
-        check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1])
+        check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1],
+                            dev.tuning)
     else:   # each rank holds its brick: estimate with the largest brick's box per stage
         import copy
         from .grid.bricks import split
@@ -137,7 +138,8 @@ def cmd_train(a):
         bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
                                    key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
         try:
-            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_views * ds.hw[0] * ds.hw[1])
+            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_views * ds.hw[0] * ds.hw[1],
+                                dev.tuning)
         except ValueError as e:
             raise CliError(f"per MPI rank (the largest brick of each stage, "
                            f"{comm.Get_size()} ranks): {e}") from None

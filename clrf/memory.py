@@ -12,8 +12,9 @@ stage 0 over the grid grown by one previous-stage voxel on each side, at most V_
 
     grid       4 V_k (links) + 4 n_k (1 + C)            values
     optimiser  2 * 4 n_k (1 + C) + n_k                 gradient + RMSProp state + touched flags
-    slots      S n_k (4 (1 + C) + 1)                   private gradient copies (CPU: S = compute
-                                                       units, dropped when > global / 4)
+    slots      S n_k (4 (1 + C) + 1)                   scratch gradient copies (CPU: S = 1 with
+                                                       the block locks, else compute units;
+                                                       dropped when > global / 4)
     upsample   the previous stage's grid + optimiser, + 8 V_k (flags, links) + 4 n_k (1 + C)
     rays       36 N + 44 B                             ray store (o, d, rgb) + batch buffers
     background 49 T + 32 B   (grid.background_layers L > 0: T = 2 L H^2 MSI texels, H =
@@ -94,7 +95,7 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
         train = grid + opt + s * n * (row + 1) + rays
         upsample = prev + 8 * V + row * n + rays if k > 0 else 0
         buffers = [(4 * n * C, "SH values"), (4 * V, "voxel links"),
-                   (s * n * 4 * C, "per-slot SH gradient copies"),
+                   (s * n * 4 * C, "scratch SH gradient copies"),
                    (bg_color, "MSI background colour")]
         big, what = max(buffers)
         label = "x".join(str(int(r)) for r in reso)
@@ -131,17 +132,28 @@ def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
                          big, "MLP activations")
 
 
-def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int) -> list:
+def scratch_copies(is_cpu: bool, caps, tuning=None) -> int:
+    """Scratch gradient copies the grid backward holds (clrf/grid/render.py scratch_entries):
+    none on the atomic path (GPUs), one with block locks (the CPU default), else one per
+    slot. ``tuning``: the device's Tuning; None means its defaults."""
+    if tuning is None:
+        return 1 if is_cpu else 0
+    if tuning.grad_slots <= 0:
+        return 0
+    return 1 if tuning.grad_locks > 0 else int(tuning.grad_slots)
+
+
+def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None) -> list:
     """Raise MemoryBudgetError when a stage of the run configured by ``cfg`` (a Config) on
-    ``n_rays`` training rays exceeds the device described by ``caps`` (DeviceCaps); returns the
-    StageEstimates otherwise."""
+    ``n_rays`` training rays exceeds the device described by ``caps`` (DeviceCaps; ``tuning``
+    its Tuning, None for the defaults); returns the StageEstimates otherwise."""
     if cfg.train.model == "nerf":
         stages = [nerf_stage(cfg.nerf, n_rays, caps)]
         fix = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
                "rays with train.downscale / train.max_train_images")
     else:
-        slots = int(caps.compute_units) if is_cpu else 0
-        stages = grid_stages(cfg, n_rays, slots, int(caps.global_mem_size))
+        stages = grid_stages(cfg, n_rays, scratch_copies(is_cpu, caps, tuning),
+                             int(caps.global_mem_size))
         fix = ("lower grid.reso (e.g. --set 'grid.reso=[[128,128,128]]' "
                "--set 'grid.upsample_at=[]'), grid.sh_degree or grid.batch_size, or load fewer "
                "rays with train.downscale / train.max_train_images")

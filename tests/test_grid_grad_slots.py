@@ -151,3 +151,19 @@ def test_block_lock_held_elsewhere(device, held):
         nonzero = (gd.get()[:grid.n_rows] != 0) | np.any(gs.get()[:grid.n_rows] != 0, axis=1)
         assert seen["scratch_rows"] >= int(nonzero.sum())
     assert not st.get().any() and not sd.get().any() and not ss.get().any()
+
+
+def test_scratch_memory_rule():
+    """The slot path is used while its scratch copies fit in a quarter of the device memory:
+    with block locks one copy per grid, without them one per slot (1 M rows of SH2: 113 MB a
+    copy, 150 MB allowed)."""
+    from types import SimpleNamespace
+    from clrf.tuning import Tuning
+
+    def grid(locks):
+        caps = SimpleNamespace(global_mem_size=4 * 150 * 2 ** 20)
+        dev = SimpleNamespace(caps=caps, tuning=Tuning(grad_slots=2, grad_locks=locks))
+        return SimpleNamespace(device=dev, sh_dim=27, density=np.zeros(2 ** 20, np.float32))
+
+    assert grad_slots(grid(4)) == 2
+    assert grad_slots(grid(0)) == 0

@@ -206,7 +206,6 @@ def test_prune_vs_reference_and_to_nothing(device):
     grid, dens, sh, alloc = sparse_grid(device, rng, (6, 6, 6), degree=0)
     o = (rng.normal(0, 2.5, (200, 3))).astype(np.float32)
     d = (rng.uniform(-0.5, 0.5, (200, 3)) - o).astype(np.float32)
-    q = device.queue
     mw = grid_ops.max_weight(grid, o, d, 0.5)
     mw_dense = grid.rows_to_dense(mw.get(), np.zeros((mw.shape[0], 3), np.float32))[0]
     thr = float(np.quantile(mw_dense[alloc], 0.8))

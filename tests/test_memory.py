@@ -96,3 +96,14 @@ def test_uploads_keep_no_host_copy(device):
     store = RayStore(device, np.zeros((7, 3)), np.ones((7, 3)), np.zeros((7, 3)))
     for x in (grid.links, grid.density, grid.sh, store.o, store.d, store.c):
         assert not x.events
+
+
+def test_scratch_copies_follow_the_tuning():
+    """The grid estimate counts the scratch gradient copies the backward really holds: one on
+    CPU devices with block locks, one per slot without them, none on the atomic path."""
+    from clrf.memory import scratch_copies
+    from clrf.tuning import Tuning
+    assert scratch_copies(True, None) == 1 and scratch_copies(False, None) == 0
+    assert scratch_copies(True, None, Tuning(grad_slots=8, grad_locks=4)) == 1
+    assert scratch_copies(True, None, Tuning(grad_slots=8, grad_locks=0)) == 8
+    assert scratch_copies(False, None, Tuning(grad_slots=0, grad_locks=4)) == 0

@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import clrf
 from clrf import checkpoint
 from clrf.cli import main as cli
 from clrf.config import ConfigError, build_config

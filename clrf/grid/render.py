@@ -92,7 +92,8 @@ def grad_slots(grid) -> int:
     caps = grid.device.caps
     s = max(0, int(grid.device.tuning.grad_slots))
     row_bytes = 4 * (1 + grid.sh_dim) + 1
-    if s > 0 and scratch_entries(grid, s) * grid.density.shape[0] * row_bytes > caps.global_mem_size // 4:
+    scratch = scratch_entries(grid, s) * grid.density.shape[0] * row_bytes
+    if s > 0 and scratch > caps.global_mem_size // 4:
         s = 0
     return s
 
@@ -120,11 +121,11 @@ def _slot_buffers(grid, slots):
     if key not in cache:
         cache.clear()
         q = grid.device.queue
+        reso = getattr(grid, "march_reso", grid.reso)   # a brick locks in the whole grid
         cache[key] = (cla.zeros(q, e * n, np.float32),
                       cla.zeros(q, e * n * grid.sh_dim, np.float32),
                       cla.zeros(q, e * n, np.uint8), cla.zeros(q, slots, np.int32),
-                      cla.zeros(q, _lock_count(getattr(grid, "march_reso", grid.reso), locks), np.int32)
-                      if locks > 0 else None)
+                      cla.zeros(q, _lock_count(reso, locks), np.int32) if locks > 0 else None)
     return cache[key]
 
 
