@@ -32,8 +32,9 @@
  * with SAMPLE_RECORD) records each sample's (sigma, w, T_{k+1}, pre-activation colour) in the
  * slot's private buffer during the forward march and reads them back in the backward march
  * (the same values bit for bit); otherwise it recomputes them. Corner gradients of
- * consecutive samples in the same cell are merged in registers and scattered when the march leaves the cell: one
- * atomic add per corner value, or plain vector adds into a private copy (GRAD_SLOTS).
+ * consecutive samples in the same cell are merged in registers and scattered when the march
+ * leaves the cell: one atomic add per corner value, or plain vector adds into a private copy
+ * or, under the block locks, into the caller's buffers (GRAD_SLOTS, GRAD_LOCKS).
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
  * sample before the cell's exit; with BLOCK > 0 (the host uses 8) it first checks a table of
@@ -212,8 +213,8 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
 /* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
  * one float atomic add per non-zero value; mark[k] = 1 if do_mark. */
 CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
-                              __global float *gdens, __global float *gsh_rows,
-                              __global uchar *mark, const int do_mark) {
+                                   __global float *gdens, __global float *gsh_rows,
+                                   __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
@@ -230,8 +231,8 @@ CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const shv_
 /* Scatter into a gradient copy that this work-item holds alone (GRAD_SLOTS): plain vector
  * read-modify-write; mark[k] = 1 if do_mark. */
 CLRF_INLINE void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
-                               __global float *gdens, __global float *gsh_rows,
-                               __global uchar *mark, const int do_mark) {
+                                    __global float *gdens, __global float *gsh_rows,
+                                    __global uchar *mark, const int do_mark) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
@@ -257,10 +258,11 @@ CLRF_INLINE int lock_of(int x, int y, int z, int4 reso) {
  * for. If another work-item holds one of them, the values go with float atomics into the
  * scratch copy (sdens, ssh, smark: no plain stores ever touch it), which grad_slots_reduce adds
  * in afterwards. Either way each value is added exactly once. */
-CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks, const int *idx,
-                              const float *gsig, const shv_t *gsh, __global float *gdens,
-                              __global float *gsh_rows, __global uchar *mark, const int do_mark,
-                              __global float *sdens, __global float *ssh, __global uchar *smark) {
+CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks,
+                                   const int *idx, const float *gsig, const shv_t *gsh,
+                                   __global float *gdens, __global float *gsh_rows,
+                                   __global uchar *mark, const int do_mark, __global float *sdens,
+                                   __global float *ssh, __global uchar *smark) {
     const int3 a = lo >> GRAD_LOCKS, b = (lo + 1) >> GRAD_LOCKS;
     int held[8];
     int n = 0, ok = 1;
@@ -536,9 +538,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
  * none is set (with GRAD_LOCKS almost all of them). */
 #define REDUCE_ROWS 16
 CLRF_INLINE void reduce_row(const int k, const size_t r, __global float *slot_density,
-                       __global float *slot_sh, __global uchar *slot_touched,
-                       __global float *grad_density, __global float *grad_sh,
-                       __global uchar *touched) {
+                            __global float *slot_sh, __global uchar *slot_touched,
+                            __global float *grad_density, __global float *grad_sh,
+                            __global uchar *touched) {
     if (!slot_touched[r]) return;
     grad_density[k] += slot_density[r];
     slot_density[r] = 0.0f;

@@ -167,7 +167,7 @@ CLRF_INLINE int brick_owns(const march_t *m, float3 p, int4 reso) {
 
 /* Set up the march of ray (o, d); returns 0 when the ray misses the box. */
 CLRF_INLINE int march_setup(float3 o, float3 d, int4 reso, float4 bmin, float4 scale, float step,
-                       march_t *m) {
+                            march_t *m) {
     real3 dd = REAL3(d);
     real_t mx = fmax(fabs(dd.x), fmax(fabs(dd.y), fabs(dd.z)));
     if (!(mx > 0) || !isfinite(mx)) return 0;
@@ -378,7 +378,7 @@ CLRF_INLINE float3 color_pre(shv_t co, const shy_t *S) {
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
 CLRF_INLINE int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
-                               __global const int *links, lerp_t *L) {
+                                    __global const int *links, lerp_t *L) {
     const cellpos_t q = *qp;
     const int cell = cell_of(q.x0, q.y0, q.z0, reso);
     const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
@@ -404,7 +404,7 @@ CLRF_INLINE int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 
 }
 
 CLRF_INLINE int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __global const int *links,
-                             lerp_t *L) {
+                                  lerp_t *L) {
     cellpos_t q;
     cell_locate(p, reso, &q);
     return lerp_setup_cached_q(m, &q, reso, links, L);
@@ -412,7 +412,8 @@ CLRF_INLINE int lerp_setup_cached(const march_t *m, float3 p, int4 reso, __globa
 
 /* Start loading the 8 links of the cell around point p (4 pairs adjacent along z) into the
  * cache, a few samples before prefetch_cell needs them to find the rows. */
-CLRF_INLINE void prefetch_links(const march_t *m, float3 p, int4 reso, __global const int *links, int *last) {
+CLRF_INLINE void prefetch_links(const march_t *m, float3 p, int4 reso, __global const int *links,
+                                int *last) {
 #if CLRF_PREFETCH
     cellpos_t q;
     cell_locate(p, reso, &q);
@@ -432,10 +433,10 @@ CLRF_INLINE void prefetch_links(const march_t *m, float3 p, int4 reso, __global 
  * read-modify-write. Only when
  * CLRF_PREFETCH; *last holds the cell prefetched last time (skip if unchanged). The links are
  * read here and again later (then from the cache). */
-CLRF_INLINE void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __global const int *links,
-                               __global const float *density, __global const float *sh,
-                               __global const float *grad_d, __global const float *grad_s,
-                               int *last) {
+CLRF_INLINE void prefetch_cell_grad(const march_t *m, float3 p, int4 reso,
+                                    __global const int *links, __global const float *density,
+                                    __global const float *sh, __global const float *grad_d,
+                                    __global const float *grad_s, int *last) {
 #if CLRF_PREFETCH
     cellpos_t q;
     cell_locate(p, reso, &q);
@@ -471,9 +472,9 @@ CLRF_INLINE void prefetch_cell_grad(const march_t *m, float3 p, int4 reso, __glo
  * loop's ++k follows). Prefetching happens only where the march evaluates samples, never
  * across empty blocks. */
 CLRF_INLINE int march_visit(const march_t *m, int4 reso, __global const int *links,
-                       __global const float *density, __global const float *sh,
-                       __global const float *grad_d, __global const float *grad_s, int *pf,
-                       int *k, float *mid, float *delta, lerp_t *L) {
+                            __global const float *density, __global const float *sh,
+                            __global const float *grad_d, __global const float *grad_s, int *pf,
+                            int *k, float *mid, float *delta, lerp_t *L) {
     march_segment(m, *k, mid, delta);
     const float3 p = m->p0 + *mid * m->dg;
     cellpos_t q;
@@ -535,9 +536,9 @@ CLRF_INLINE void csum_add(float *s, float *c, float x) {
  * *kfirst is set to the first segment the brick evaluates (left as it was when none): it
  * orders the bricks' partial results along the ray. */
 CLRF_INLINE void march_forward_rec(const march_t *m, int4 reso, __global const int *links,
-                              __global const float *density, __global const float *sh,
-                              const float *Y, __global float *rec, const int rec_max,
-                              int *n_rec, int *kfirst, fwd_t *out) {
+                                   __global const float *density, __global const float *sh,
+                                   const float *Y, __global float *rec, const int rec_max,
+                                   int *n_rec, int *kfirst, fwd_t *out) {
     int j = 0;
     shy_t S;
     shy_setup(Y, &S);
@@ -587,8 +588,8 @@ CLRF_INLINE void march_forward_rec(const march_t *m, int4 reso, __global const i
 }
 
 CLRF_INLINE void march_forward(const march_t *m, int4 reso, __global const int *links,
-                          __global const float *density, __global const float *sh,
-                          const float *Y, int *kfirst, fwd_t *out) {
+                               __global const float *density, __global const float *sh,
+                               const float *Y, int *kfirst, fwd_t *out) {
     int n_rec;
     march_forward_rec(m, reso, links, density, sh, Y, 0, 0, &n_rec, kfirst, out);
 }

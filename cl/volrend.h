@@ -36,7 +36,7 @@ CLRF_INLINE float vr_step(ksum_t *logT, const float T, const float tau, float *T
  * Tnext, segment length delta and gc = g.c (its colour dotted with dL/drgb): adds w gc to
  * the prefix and returns dL/dsigma = delta (Tnext gc - (total - prefix)). */
 CLRF_INLINE float vr_dsigma(ksum_t *prefix, const float total, const float w, const float Tnext,
-                       const float gc, const float delta) {
+                            const float gc, const float delta) {
     ksum_add(prefix, w * gc);
     return delta * (Tnext * gc - (total - prefix->s));
 }

@@ -7,14 +7,18 @@ Two backward calls into the same buffers must give twice the gradient, and a bat
 another one through other cells only its own: the scratch copies are left zero after each
 call. ``touched`` must mark every row with a non-zero gradient.
 """
+from types import SimpleNamespace
+
 import numpy as np
 import pyopencl.array as cla
 import pytest
 
 import clrf
 from clrf.testing import reference
-from clrf.grid.render import grad_slots, render_backward_device
+import clrf.grid.render as render
+from clrf.grid.render import _slot_buffers, grad_slots, launch, render_backward_device
 from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL
+from clrf.tuning import Tuning
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -106,9 +110,6 @@ def test_block_lock_held_elsewhere(device, held):
     buffer for the whole call) the gradient is still the reference's, the scratch copy is used
     exactly when a lock was held, and it is left zero. The rays fit one work-group, so one
     work-item runs at a time and no lock is ever taken by the call itself."""
-    from clrf.grid.render import _slot_buffers, launch
-    import clrf.grid.render as render
-
     device = device.with_tuning(grad_slots=2, sample_record=True, grad_locks=1,
                                 grid_local_size=64)
     dens, sh, mask, o, d = _scene(seed=7)
@@ -157,9 +158,6 @@ def test_scratch_memory_rule():
     """The slot path is used while its scratch copies fit in a quarter of the device memory:
     with block locks one copy per grid, without them one per slot (1 M rows of SH2: 113 MB a
     copy, 150 MB allowed)."""
-    from types import SimpleNamespace
-    from clrf.tuning import Tuning
-
     def grid(locks):
         caps = SimpleNamespace(global_mem_size=4 * 150 * 2 ** 20)
         dev = SimpleNamespace(caps=caps, tuning=Tuning(grad_slots=2, grad_locks=locks))
