@@ -132,15 +132,13 @@ def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
                          big, "MLP activations")
 
 
-def scratch_copies(is_cpu: bool, caps, tuning=None) -> int:
-    """Scratch gradient copies the grid backward holds (clrf/grid/render.py scratch_entries):
-    none on the atomic path (GPUs), one with block locks (the CPU default), else one per
-    slot. ``tuning``: the device's Tuning; None means its defaults."""
+def scratch_copies(is_cpu: bool, tuning=None) -> int:
+    """Scratch gradient copies the grid backward holds on a device with Tuning ``tuning``
+    (Tuning.scratch_copies of its slots); None means the defaults: one on CPU devices (block
+    locks), none elsewhere (atomics)."""
     if tuning is None:
         return 1 if is_cpu else 0
-    if tuning.grad_slots <= 0:
-        return 0
-    return 1 if tuning.grad_locks > 0 else int(tuning.grad_slots)
+    return tuning.scratch_copies(tuning.grad_slots)
 
 
 def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None) -> list:
@@ -152,7 +150,7 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None) -> li
         fix = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
                "rays with train.downscale / train.max_train_images")
     else:
-        stages = grid_stages(cfg, n_rays, scratch_copies(is_cpu, caps, tuning),
+        stages = grid_stages(cfg, n_rays, scratch_copies(is_cpu, tuning),
                              int(caps.global_mem_size))
         fix = ("lower grid.reso (e.g. --set 'grid.reso=[[128,128,128]]' "
                "--set 'grid.upsample_at=[]'), grid.sh_degree or grid.batch_size, or load fewer "

@@ -112,6 +112,14 @@ class Tuning:
             kw["prefetch_links_ahead"] = 2 * kw["prefetch_ahead"]
         return t.replace(**kw)
 
+    def scratch_copies(self, slots: int) -> int:
+        """Scratch gradient copies the grid backward holds with ``slots`` slots: none on the
+        atomic path (0 slots), one shared by the work-items that find a block lock taken
+        (grad_locks), else one per slot."""
+        if slots <= 0:
+            return 0
+        return 1 if self.grad_locks > 0 else int(slots)
+
     def replace(self, **kw) -> "Tuning":
         """A copy with the given fields changed."""
         return dataclasses.replace(self, **kw)

@@ -103,7 +103,7 @@ def test_scratch_copies_follow_the_tuning():
     CPU devices with block locks, one per slot without them, none on the atomic path."""
     from clrf.memory import scratch_copies
     from clrf.tuning import Tuning
-    assert scratch_copies(True, None) == 1 and scratch_copies(False, None) == 0
-    assert scratch_copies(True, None, Tuning(grad_slots=8, grad_locks=4)) == 1
-    assert scratch_copies(True, None, Tuning(grad_slots=8, grad_locks=0)) == 8
-    assert scratch_copies(False, None, Tuning(grad_slots=0, grad_locks=4)) == 0
+    assert scratch_copies(True) == 1 and scratch_copies(False) == 0
+    assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1
+    assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=0)) == 8
+    assert scratch_copies(False, Tuning(grad_slots=0, grad_locks=4)) == 0

@@ -87,21 +87,15 @@ def _bg_arg(background, n):
 def grad_slots(grid) -> int:
     """Slots of render_backward (GRAD_SLOTS): ``tuning.grad_slots`` (one per compute unit on
     CPU devices, where PoCL runs one work-item at a time per compute unit so no atomics are
-    needed; 0, float atomics, elsewhere), 0 when the scratch copies (scratch_entries) would
+    needed; 0, float atomics, elsewhere), 0 when the scratch copies (tuning.scratch_copies) would
     not fit in a quarter of the device memory."""
     caps = grid.device.caps
     s = max(0, int(grid.device.tuning.grad_slots))
     row_bytes = 4 * (1 + grid.sh_dim) + 1
-    scratch = scratch_entries(grid, s) * grid.density.shape[0] * row_bytes
+    scratch = grid.device.tuning.scratch_copies(s) * grid.density.shape[0] * row_bytes
     if s > 0 and scratch > caps.global_mem_size // 4:
         s = 0
     return s
-
-
-def scratch_entries(grid, slots) -> int:
-    """Scratch gradient copies render_backward needs: one per slot (private copies), or one
-    shared by the work-items that find a block lock taken (tuning.grad_locks)."""
-    return 1 if grid.device.tuning.grad_locks > 0 else slots
 
 
 def _lock_count(reso, lock_log2) -> int:
@@ -110,11 +104,11 @@ def _lock_count(reso, lock_log2) -> int:
 
 
 def _slot_buffers(grid, slots):
-    """Zeroed slot buffers: scratch density, SH and marks (scratch_entries copies), the slot
+    """Zeroed slot buffers: scratch density, SH and marks (tuning.scratch_copies), the slot
     locks and, with tuning.grad_locks, the block locks over the whole grid's voxels (allocated
     once per grid and row count; the kernels leave them all zero)."""
     n = grid.density.shape[0]
-    e = scratch_entries(grid, slots)
+    e = grid.device.tuning.scratch_copies(slots)
     locks = grid.device.tuning.grad_locks
     key = (slots, e, locks, n, grid.sh_dim)
     cache = grid.scratch.setdefault("grad_slot_buffers", {})
