@@ -4,6 +4,7 @@
  *
  * Defines read (all optional, each with its default):
  *   CLRF_NATIVE_FLOAT_ATOMICS  1 if the device reports cl_ext_float_atomics (set by the host)
+ *   CLRF_ACQ_REL               1: try-locks with OpenCL C 3.0 acquire/release atomics (host)
  */
 #ifndef CLRF_COMMON_H
 #define CLRF_COMMON_H
@@ -69,23 +70,62 @@ CLRF_INLINE float3 load3(__global const float *a, const size_t i) {
     return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
 }
 
-/* Atomic float add on global memory. Native where the device has it, else a
- * compare-and-swap loop on the bit pattern (portable to every OpenCL 1.2 device). */
+/* Atomic float add on global memory. Native where the device has it, else a compare-and-swap
+ * loop on the bit pattern (portable to every OpenCL 1.2 device). Every access to *p is atomic:
+ * the loop starts from a guess of 0.0f (the value of a freshly zeroed gradient buffer) instead
+ * of a plain read, which would race with other work-items' atomics (OpenCL memory model;
+ * Oclgrind --data-races reports it). A wrong guess costs one compare-and-swap, which returns
+ * the current value atomically. */
 CLRF_INLINE void atomic_add_f(volatile __global float *p, float v) {
 #if CLRF_NATIVE_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
     atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
                               memory_scope_device);
 #else
     union { unsigned int u; float f; } old, upd;
-    old.f = *p;
+    old.u = 0u;
     do {
         upd.f = old.f + v;
-        unsigned int seen = atomic_cmpxchg((volatile __global unsigned int *)p, old.u, upd.u);
+        const unsigned int seen = atomic_cmpxchg((volatile __global unsigned int *)p, old.u,
+                                                 upd.u);
         if (seen == old.u) break;
         old.u = seen;
     } while (1);
 #endif
 }
+
+/* Try-locks (0 free, 1 held) that order the plain loads and stores made while holding them.
+ * CLRF_ACQ_REL 1 (the host sets it, and builds with -cl-std=CL3.0, on devices with the
+ * OpenCL C 3.0 features __opencl_c_atomic_order_acq_rel and __opencl_c_atomic_scope_device):
+ * compare-and-swap with acquire and a release store, so under the OpenCL memory model what one
+ * holder wrote happens-before what the next holder reads, in any work-group. CLRF_ACQ_REL 0:
+ * OpenCL 1.2 atomics and fences, which order nothing between work-groups by the specification;
+ * the host then does not choose the paths that take these locks (clrf/tuning.py) unless a
+ * user forces them. lock_try returns 1 when the lock was taken. */
+#ifndef CLRF_ACQ_REL
+#define CLRF_ACQ_REL 0
+#endif
+#if CLRF_ACQ_REL
+CLRF_INLINE int lock_try(volatile __global int *l) {
+    int expected = 0;
+    return atomic_compare_exchange_strong_explicit((volatile __global atomic_int *)l, &expected,
+                                                   1, memory_order_acquire, memory_order_relaxed,
+                                                   memory_scope_device);
+}
+CLRF_INLINE void lock_release(volatile __global int *l) {
+    atomic_store_explicit((volatile __global atomic_int *)l, 0, memory_order_release,
+                          memory_scope_device);
+}
+#else
+CLRF_INLINE int lock_try(volatile __global int *l) {
+    const int got = atomic_cmpxchg(l, 0, 1) == 0;
+    mem_fence(CLK_GLOBAL_MEM_FENCE);
+    return got;
+}
+CLRF_INLINE void lock_release(volatile __global int *l) {
+    mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
+    atomic_xchg(l, 0);
+}
+#endif
 
 /* Atomic max for non-negative floats: their bit patterns order like signed ints. */
 CLRF_INLINE void atomic_max_nonneg_f(volatile __global float *p, float v) {

@@ -270,15 +270,11 @@ CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *lo
         for (int y = a.y; y <= b.y && ok; ++y)
             for (int z = a.z; z <= b.z; ++z) {
                 const int id = lock_of(x, y, z, reso);
-                if (atomic_cmpxchg(locks + id, 0, 1) != 0) { ok = 0; break; }
+                if (!lock_try(locks + id)) { ok = 0; break; }
                 held[n++] = id;
             }
-    if (ok) {
-        mem_fence(CLK_GLOBAL_MEM_FENCE);
-        flush_cell_private(idx, gsig, gsh, gdens, gsh_rows, mark, do_mark);
-        mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
-    }
-    for (int j = n - 1; j >= 0; --j) atomic_xchg(locks + held[j], 0);
+    if (ok) flush_cell_private(idx, gsig, gsh, gdens, gsh_rows, mark, do_mark);
+    for (int j = n - 1; j >= 0; --j) lock_release(locks + held[j]);
     if (!ok) flush_cell_atomic(idx, gsig, gsh, sdens, ssh, smark, 1);
 }
 #endif
@@ -361,7 +357,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #if GRAD_SLOTS > 0
     if (hit) {
         for (int s = 0; s < GRAD_SLOTS && slot < 0; ++s)
-            if (atomic_cmpxchg(slot_lock + s, 0, 1) == 0) slot = s;
+            if (lock_try(slot_lock + s)) slot = s;
     }
 #if SAMPLE_RECORD
     if (slot >= 0) {
@@ -524,10 +520,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     if (cur_cell >= 0) FLUSH_CELL();
 #undef FLUSH_CELL
 #if GRAD_SLOTS > 0
-    if (slot >= 0) {
-        mem_fence(CLK_GLOBAL_MEM_FENCE);   /* the plain stores before the release */
-        atomic_xchg(slot_lock + slot, 0);
-    }
+    if (slot >= 0) lock_release(slot_lock + slot);
 #endif
 }
 

@@ -24,6 +24,7 @@ import pyopencl as cl
 
 from .device_probe import (Candidate, Probe, cache_path, choice_reason, cpu_flags, probe, rank,
                            slow_reasons, slow_warning, warn_once)
+from .selfcheck import known_wrong
 from .tuning import Tuning
 
 
@@ -50,6 +51,9 @@ class Capabilities:
     int64_atomics: bool
     native_float_width: int = 1  # native float vector width: 4 SSE/NEON, 8 AVX2, 16 AVX-512
     extensions: tuple = field(default=(), repr=False)
+    acq_rel: bool = False      # OpenCL C 3.0 with __opencl_c_atomic_order_acq_rel and
+    #                            __opencl_c_atomic_scope_device: locks that order plain memory
+    #                            between work-groups (cl/common.h lock_try, CLRF_ACQ_REL)
 
     @property
     def vector_width(self) -> int:
@@ -64,6 +68,23 @@ def _type_name(t: int) -> str:
     if t & cl.device_type.ACCELERATOR:
         return "accelerator"
     return "cpu"
+
+
+ACQ_REL_FEATURES = ("__opencl_c_atomic_order_acq_rel", "__opencl_c_atomic_scope_device")
+
+
+def _opencl_c_features(dev: "cl.Device") -> frozenset:
+    """The OpenCL C 3.0 optional features the device compiles (empty before OpenCL 3.0)."""
+    try:
+        return frozenset(f.name for f in dev.opencl_c_features)
+    except (cl.Error, AttributeError):
+        return frozenset()
+
+
+def has_acq_rel(dev: "cl.Device") -> bool:
+    """Whether ``-cl-std=CL3.0`` builds may use acquire/release atomics at device scope."""
+    feats = _opencl_c_features(dev)
+    return all(f in feats for f in ACQ_REL_FEATURES)
 
 
 def probe_capabilities(dev: "cl.Device") -> Capabilities:
@@ -84,6 +105,7 @@ def probe_capabilities(dev: "cl.Device") -> Capabilities:
         int64_atomics="cl_khr_int64_base_atomics" in ext,
         native_float_width=max(1, int(dev.native_vector_width_float)),
         extensions=ext,
+        acq_rel=has_acq_rel(dev),
     )
 
 
@@ -159,7 +181,9 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
         raise DeviceError(f"device '{spec}' is not 'cpu', 'gpu' or 'P:D'. Devices:\n{listing}")
     entries = {(d[0], d[1]): d for d in devs if _type_name(d[2].type) in wanted}
     cands = tuple(_candidate(*d, probe(d[2], refresh)) for d in entries.values())
-    ranked = rank(list(cands))
+    # a device known to compute wrong gradients (clrf/selfcheck.py) is never the default
+    ranked = [c for c in rank(list(cands))
+              if known_wrong(entries[(c.platform_index, c.device_index)][2]) is None]
     if ranked:
         best = ranked[0]
         d = entries[(best.platform_index, best.device_index)]

@@ -40,21 +40,28 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 
-PROBE_METHOD = 2            # bump when the measurement changes meaning (invalidates the cache)
+PROBE_METHOD = 3            # bump when the measurement changes meaning (invalidates the cache)
 PROBE_CHAINS = 8            # independent FMA chains per work-item (cl/probe.cl)
 PROBE_WIDTH = 8             # float8 lanes per chain (cl/probe.cl)
 PROBE_MIN_S = 0.020         # a calibrated run lasts at least this long ...
 PROBE_TARGET_S = 0.030      # ... aiming at this
 PROBE_MAX_ITERS = 1 << 24   # cap on the chain length (int32 kernel argument, slow devices)
 PROBE_REPEATS = 3           # best of this many calibrated runs
-PROBE_M, PROBE_ADD = 0.999, 1e-3    # x <- m x + add converges to add / (1 - m) = 1
-PROBE_X0, PROBE_DX = 0.5, 0.25      # chain c starts at x0 + c dx (exact in float32)
+# Lane l of every chain iterates x <- m_l x + a_l, which converges to a_l / (1 - m_l); the
+# m_l and a_l differ per lane, the starts per chain and per work-item (cl/probe.cl), all exact
+# in float32 and all read from a buffer.
+PROBE_M = 0.999 - 0.0001 * np.arange(8)             # m_l, lanes 0..7
+PROBE_ADD = 1e-3 * (1.0 + 0.125 * np.arange(8))     # a_l
+PROBE_X0, PROBE_DX = 0.5, 0.25      # chain c starts at x0 + c dx ...
+PROBE_DI = 1.0 / 64                 # ... plus (i & 63) / 64 for work-item i
 # float32 rounding of each step (~6e-8 relative) is damped by m per step, so the chains carry at
 # most ~6e-8 / (1 - m) = 6e-5 relative error; 1e-3 only rejects a driver that computes wrongly.
 PROBE_RTOL = 1e-3
 TIE = 0.10                  # figures within 10% of the best are equal; ICD order decides
 SLOW_VS_SIBLING = 3.0       # another driver on the same CPU this many times faster: flag
 SLOW_VS_PEAK = 1.0 / 12     # under this fraction of the estimated CPU peak: flag
+OVER_PEAK = 1.5             # a figure above this multiple of the physical peak is impossible
+#                             (turbo clocks over the reported base clock stay well under it)
 INSTALL_HINT = ("install the distribution's PoCL (Debian/Ubuntu: "
                 "`apt-get install pocl-opencl-icd`)")
 
@@ -121,12 +128,24 @@ def _error_text(e: Exception) -> str:
     return (errors[0] if errors else " ".join(lines)[-200:]) or type(e).__name__
 
 
-def fma_reference(iters: int) -> float:
-    """float64 value of every ``out[i]`` of clrf_probe_fma after ``iters`` steps (see probe.cl)."""
-    m, add = float(np.float32(PROBE_M)), float(np.float32(PROBE_ADD))
-    p = add / (1.0 - m)
+def probe_coefficients() -> np.ndarray:
+    """The float32 buffer clrf_probe_fma reads: m_l [8], a_l [8], chain starts [8], the
+    per-work-item step (cl/probe.cl)."""
     starts = PROBE_X0 + PROBE_DX * np.arange(PROBE_CHAINS)
-    return float(PROBE_WIDTH * np.sum(p + (starts - p) * m ** iters))
+    return np.concatenate([PROBE_M, PROBE_ADD, starts, [PROBE_DI]]).astype(np.float32)
+
+
+def fma_reference(iters: int, n: int = 1) -> np.ndarray:
+    """float64 values of ``out[0..n-1]`` of clrf_probe_fma after ``iters`` steps (closed form,
+    see probe.cl), from the float32 coefficients the kernel reads."""
+    c = probe_coefficients().astype(np.float64)
+    m, a, starts, di = c[:8], c[8:16], c[16:24], c[24]
+    p = a / (1.0 - m)
+    base = np.float32(di) * (np.arange(n) & 63).astype(np.float32)          # float32 as in C
+    x0 = (starts[None, :].astype(np.float32) + base[:, None]).astype(np.float64)   # [n, c]
+    mk = m ** iters
+    return np.sum(p[None, None, :] + (x0[:, :, None] - p[None, None, :]) * mk[None, None, :],
+                  axis=(1, 2))
 
 
 def measure(dev: "cl.Device") -> Probe:
@@ -168,16 +187,20 @@ def _fma_gflops(ctx, q, prg, dev) -> tuple:
     """(GFLOP/s, None) from calibrated runs of clrf_probe_fma, or (0, reason)."""
     gpu = bool(dev.type & (cl.device_type.GPU | cl.device_type.ACCELERATOR))
     n = int(dev.max_compute_units) * (2048 if gpu else 64)   # GPUs need many work-items in flight
-    out_buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, 4 * n)
+    mf = cl.mem_flags
+    out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * n)
+    coef = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=probe_coefficients())
+    trip = np.zeros(1, np.int32)
+    trip_buf = cl.Buffer(ctx, mf.READ_ONLY, 4)
     k = prg.clrf_probe_fma
-    consts = (np.float32(PROBE_M), np.float32(PROBE_ADD), np.float32(PROBE_X0),
-              np.float32(PROBE_DX), out_buf)
-
     ncu = max(1, int(dev.max_compute_units))
 
     def run(iters):
+        trip[0] = iters
+        cl.enqueue_copy(q, trip_buf, trip)
+        q.finish()
         t0, c0 = time.perf_counter(), time.process_time()
-        k(q, (n,), None, np.int32(iters), *consts)
+        k(q, (n,), None, trip_buf, coef, out_buf)
         q.finish()
         return run_seconds(time.perf_counter() - t0, time.process_time() - c0, ncu, gpu)
 
@@ -192,9 +215,27 @@ def _fma_gflops(ctx, q, prg, dev) -> tuple:
     out = np.empty(n, np.float32)
     cl.enqueue_copy(q, out, out_buf)
     q.finish()
-    if not np.allclose(out, fma_reference(iters), rtol=PROBE_RTOL, atol=0):
+    if not np.allclose(out, fma_reference(iters, n), rtol=PROBE_RTOL, atol=0):
         return 0.0, "FMA probe kernel gave wrong results"
-    return n * iters * 2 * PROBE_WIDTH * PROBE_CHAINS / best / 1e9, None
+    gflops = n * iters * 2 * PROBE_WIDTH * PROBE_CHAINS / best / 1e9
+    peak = physical_peak_gflops(dev)
+    if peak is not None and gflops > OVER_PEAK * peak:
+        return 0.0, (f"FMA probe measured {gflops:.0f} GFLOP/s, above this CPU's physical "
+                     f"peak of {peak:.0f} (the compiler removed work): figure refused")
+    return gflops, None
+
+
+def physical_peak_gflops(dev: "cl.Device") -> float | None:
+    """fp32 peak of a CPU device where it can be known: compute units x clock x the widest
+    vector ISA's lanes x 2 FMA pipes x 2 flop; None for other devices or without a clock."""
+    if not dev.type & cl.device_type.CPU:
+        return None
+    flags = cpu_flags()
+    mhz = int(getattr(dev, "max_clock_frequency", 0) or 0)
+    if mhz <= 0 or "sse2" not in flags:
+        return None
+    lanes = 16 if "avx512f" in flags else 8 if {"avx2", "fma"} <= flags else 4
+    return int(dev.max_compute_units) * mhz * 1e-3 * lanes * 2 * 2
 
 
 # ---- the cache ---------------------------------------------------------------------------------

@@ -59,7 +59,11 @@ def build(device, source: str, defines: dict, fast_math: bool = False, verbose: 
         src = path.read_text()
     except OSError as e:
         raise BuildError(f"cannot read kernel source {path}: {e}") from e
+    if int(allopts.get("GRAD_SLOTS", 0)) > 0 and device.caps.acq_rel:
+        allopts["CLRF_ACQ_REL"] = 1      # the slot and block locks order plain memory
     opts = [f"-I{cl_dir()}"] + [f"-D{k}={_fmt(v)}" for k, v in sorted(allopts.items())]
+    if allopts.get("CLRF_ACQ_REL"):
+        opts.append("-cl-std=CL3.0")     # C11-style atomics with memory order and scope
     if fast_math:
         opts.append("-cl-fast-relaxed-math")
     try:

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from . import checkpoint, rundir
+from . import checkpoint, rundir, selfcheck
 from .cameras import pixel_rays, to_ndc
 from .data.io import downscale_image
 from .metrics import image_metrics, psnr_from_mse
@@ -159,6 +159,7 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
 
 class Trainer:
     def __init__(self, device, ds, cfg, out_dir, resume=False, model_factory=None, log=print):
+        selfcheck.ensure_trusted(device, log)   # never train on wrong gradients
         self.device = device
         self.ds = ds
         self.cfg = cfg

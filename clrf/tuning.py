@@ -91,8 +91,12 @@ class Tuning:
         per compute unit, block-locked gradient adds (GRAD_LOCKS_LOG2) and sorted rays from
         RAY_ORDER_MIN_RAYS on; PoCL CPU devices (clang) get software prefetch."""
         cpu = caps.type == "cpu"
-        return cls(grad_slots=caps.compute_units if cpu else 0, sample_record=cpu,
-                   grad_locks=GRAD_LOCKS_LOG2 if cpu else 0,
+        # the slots and block locks need locks that order plain memory between work-groups,
+        # which OpenCL 1.2 atomics do not promise: without acquire/release atomics a CPU
+        # device takes the float-atomic path, correct by the specification alone
+        slots = cpu and getattr(caps, "acq_rel", False)
+        return cls(grad_slots=caps.compute_units if slots else 0, sample_record=slots,
+                   grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
                    prefetch=cpu and "pocl" in caps.platform_version.lower(),
                    ray_order=RAY_ORDER_MIN_RAYS if cpu else 0)
 

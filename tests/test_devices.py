@@ -257,12 +257,34 @@ def test_unwritable_cache_still_probes(cache, monkeypatch, tmp_path):
 
 
 def test_fma_reference_matches_the_iteration():
-    """The closed form the probe checks the kernel against equals the float64 iteration."""
-    m, add = float(np.float32(dp.PROBE_M)), float(np.float32(dp.PROBE_ADD))
-    x = dp.PROBE_X0 + dp.PROBE_DX * np.arange(dp.PROBE_CHAINS)
+    """The closed form the probe checks the kernel against equals the float64 iteration of
+    every lane of every chain of each work-item (lanes, chains and work-items all differ)."""
+    c = dp.probe_coefficients().astype(np.float64)
+    m, a, starts, di = c[:8], c[8:16], c[16:24], c[24]
+    n = 70                                     # past 64: the per-work-item offset wraps
+    base = (np.float32(di) * (np.arange(n) & 63).astype(np.float32)).astype(np.float64)
+    x = starts[None, :, None] + base[:, None, None] + 0 * m[None, None, :]   # [n, chain, lane]
     for _ in range(300):
-        x = x * m + add
-    assert dp.fma_reference(300) == pytest.approx(dp.PROBE_WIDTH * x.sum(), rel=1e-12)
+        x = x * m + a
+    ref = dp.fma_reference(300, n)
+    assert ref == pytest.approx(x.sum(axis=(1, 2)), rel=1e-12)
+    assert len(set(np.round(ref, 9))) == 64     # no two work-items of a group compute alike
+    assert len(set(m)) == 8 and len(set(a)) == 8
+
+
+def test_physical_peak_refuses_an_impossible_figure(monkeypatch):
+    """A CPU device's peak is compute units x clock x lanes x 2 pipes x 2 flop; the probe
+    refuses a figure above OVER_PEAK times it."""
+    import pyopencl as cl
+    monkeypatch.setattr(dp, "cpu_flags", lambda: frozenset({"sse2", "avx2", "fma", "avx512f"}))
+
+    class Dev:
+        type = cl.device_type.CPU
+        max_compute_units = 2
+        max_clock_frequency = 2000
+    assert dp.physical_peak_gflops(Dev()) == pytest.approx(2 * 2.0 * 16 * 2 * 2)
+    Dev.type = cl.device_type.GPU
+    assert dp.physical_peak_gflops(Dev()) is None
 
 
 # ---- the real devices --------------------------------------------------------------------------

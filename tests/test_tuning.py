@@ -7,8 +7,9 @@ import pytest
 from clrf.tuning import Tuning
 
 
-def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1"):
-    return SimpleNamespace(type=kind, compute_units=cu, platform_version=platform)
+def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True):
+    return SimpleNamespace(type=kind, compute_units=cu, platform_version=platform,
+                           acq_rel=acq_rel)
 
 
 def test_defaults_follow_capabilities():
@@ -20,6 +21,9 @@ def test_defaults_follow_capabilities():
     assert gpu.grad_locks == 0
     other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 Intel"))
     assert other_cpu.prefetch is False and other_cpu.fast_math is False
+    # OpenCL 1.2 atomics only (rusticl, Oclgrind): the float-atomic path
+    old = Tuning.for_device(caps("cpu", platform="OpenCL 3.0 rusticl", acq_rel=False))
+    assert (old.grad_slots, old.sample_record, old.grad_locks) == (0, False, 0)
 
 
 def test_environment_overrides():

@@ -11,6 +11,12 @@
 #   bash tools/setup.sh test,mpi # plus mpi4py for `mpirun -n N clrf train`; installs Debian's
 #                                # Open MPI first (openmpi-bin libopenmpi-dev) when mpicc or
 #                                # mpirun is missing
+#   bash tools/setup.sh intel    # plus Intel's oneAPI OpenCL CPU runtime, from PyPI into the
+#                                # venv, registered for the venv's Python only (clrf/icd.py:
+#                                # no root, no system file changed, the system's drivers stay)
+#   bash tools/setup.sh impls    # plus Mesa's rusticl and the Oclgrind simulator (Debian
+#                                # mesa-opencl-icd oclgrind), the other implementations the
+#                                # tests run every kernel on when present
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
@@ -50,10 +56,24 @@ case ",${1:-}," in
         fi ;;
 esac
 
+# extra "impls": the other OpenCL implementations the tests check the kernels on
+case ",${1:-}," in
+    *,impls,*)
+        if [ ! -e /etc/OpenCL/vendors/rusticl.icd ] || ! command -v oclgrind >/dev/null; then
+            echo "clrf: extra 'impls': installing Mesa's rusticl and Oclgrind" \
+                 "(mesa-opencl-icd oclgrind)" >&2
+            apt_install "Mesa's OpenCL and Oclgrind" mesa-opencl-icd oclgrind || exit 1
+        fi ;;
+esac
+extras=${extras//,impls/}
+
 rm -rf .venv
 "$py" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q ".[${extras}]"
+case ",${1:-}," in
+    *,intel,*) .venv/bin/python -m clrf.icd register ;;
+esac
 
 # `clrf devices --check` prints the default device and its probe figure; exit 0: fine,
 # 3: the best device is a slow driver, anything else: no working device. Run outside the
