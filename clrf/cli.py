@@ -230,7 +230,7 @@ def cmd_eval(a):
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import camera_orbit_poses, orbit_poses, spiral_poses
+    from .cameras import as_distortion, camera_orbit_poses, orbit_poses, spiral_poses
     from .cli_export import check_render_args, depth_outputs, write_video
     from .device import Device
     from .models import load_model
@@ -250,7 +250,7 @@ def cmd_render(a):
     class _View:  # the bits of a Dataset that view_rays needs
         hw = (H, W)
         intrinsics = np.asarray(meta["intrinsics"]) * [sx, sy, sx, sy]
-        distortion = None if meta.get("distortion") is None else np.asarray(meta["distortion"])
+        distortion = as_distortion(meta.get("distortion"))   # also the older [k1, k2, p1, p2]
         ndc = bool(meta["ndc"])
 
     if a.views == "test":
