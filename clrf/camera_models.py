@@ -170,6 +170,18 @@ def _theta_poly(theta, c):
     return theta * poly, dpoly
 
 
+def _fisheye_theta(theta_d, c, iters=NEWTON_ITERS):
+    """theta with theta_d(theta) = ``theta_d``, by Newton's method from theta = theta_d."""
+    theta = np.array(theta_d, np.float64)
+    for _ in range(iters):
+        f, df = _theta_poly(theta, c)
+        step = (f - theta_d) / df
+        theta = theta - step
+        if float(np.max(np.abs(step), initial=0.0)) < NEWTON_TOL:
+            break
+    return theta
+
+
 def distort(xy, distortion) -> np.ndarray:
     """Distorted normalised points [..., 2] of undistorted ones ``xy`` [..., 2] (float64).
 
@@ -204,13 +216,7 @@ def undistort(xy_d, distortion, iters: int = NEWTON_ITERS) -> np.ndarray:
         return xy_d.copy()
     if d.family == "fisheye":
         theta_d = np.hypot(xy_d[..., 0], xy_d[..., 1])
-        theta = theta_d.copy()
-        for _ in range(iters):
-            f, df = _theta_poly(theta, d.coeffs)
-            step = (f - theta_d) / df
-            theta = theta - step
-            if float(np.max(np.abs(step), initial=0.0)) < NEWTON_TOL:
-                break
+        theta = _fisheye_theta(theta_d, d.coeffs, iters)
         scale = np.where(theta_d > SMALL_R, np.tan(theta) / np.maximum(theta_d, SMALL_R), 1.0)
         return xy_d * scale[..., None]
     x, y = xy_d[..., 0].copy(), xy_d[..., 1].copy()
@@ -251,21 +257,26 @@ def check_camera(distortion, intrinsics, H: int, W: int):
     if d is None:
         return None
     pd = _border(intrinsics, H, W)
-    p = undistort(pd, d)
-    err = float(np.max(np.abs(distort(p, d) - pd)))
-    if not np.isfinite(err) or err > ROUNDTRIP_TOL:
-        return (f"undistortion does not converge at the image border (re-distortion error "
-                f"{err:.3g} in normalised units): the coefficients fold the image over")
-    s = np.linspace(0.0, 1.0, FOLD_SAMPLES)[:, None, None]
-    line = s * p[None]                                            # [S, B, 2]
+    fold = ("undistortion does not converge at the image border (re-distortion error {:.3g} in "
+            "normalised units): the coefficients fold the image over")
+    s = np.linspace(0.0, 1.0, FOLD_SAMPLES)[:, None]
     if d.family == "fisheye":
-        theta = np.arctan(np.hypot(line[..., 0], line[..., 1]))
+        theta_d = np.hypot(pd[:, 0], pd[:, 1])
+        theta = _fisheye_theta(theta_d, d.coeffs)
+        err = float(np.max(np.abs(_theta_poly(theta, d.coeffs)[0] - theta_d)))
+        if not np.isfinite(err) or err > ROUNDTRIP_TOL:
+            return fold.format(err)
         if float(theta.max()) >= FISHEYE_MAX_THETA:
             return (f"the image border is {np.degrees(theta.max()):.1f} degrees off the optical "
                     f"axis; clrf traces rays up to {np.degrees(FISHEYE_MAX_THETA):.0f} degrees: "
                     f"crop the images")
-        slope = _theta_poly(theta, d.coeffs)[1]
+        slope = _theta_poly(s * theta[None], d.coeffs)[1]              # [S, B]
     else:
+        p = undistort(pd, d)
+        err = float(np.max(np.abs(distort(p, d) - pd)))
+        if not np.isfinite(err) or err > ROUNDTRIP_TOL:
+            return fold.format(err)
+        line = s[..., None] * p[None]                                 # [S, B, 2]
         a, b, c, e = _radtan_jacobian(line[..., 0], line[..., 1], d.coeffs)
         slope = a * e - b * c
     if float(slope.min()) <= 0.0:
