@@ -73,7 +73,8 @@ def cmd_train(a):
         if not available():
             raise CliError("--log tensorboard needs tensorboardX: pip install tensorboardX (or "
                            "clrf[tensorboard])")
-    overrides = parse_set(a.set)
+    from .cli_config import config_flags, merge_overrides
+    overrides = merge_overrides(parse_set(a.set), config_flags(a))   # --set, then --SECTION.KEY
     tr = overrides.setdefault("train", {})
     for k, v in (("max_seconds", a.max_seconds), ("model", a.model), ("data", a.data),
                  ("seed", a.seed)):
@@ -324,7 +325,9 @@ def cmd_bench(a):
 def build_parser():
     p = argparse.ArgumentParser(prog="clrf", description="Portable OpenCL radiance fields.")
     p.add_argument("--device", default=None,
-                   help="'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else first working GPU, else CPU)")
+                   help="'auto', 'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else 'auto': the "
+                        "fastest working device of any type by a measured throughput probe, "
+                        "cached per driver; `clrf devices` lists the figures and the choice)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bars or progress lines (results and errors still print)")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -344,6 +347,8 @@ def build_parser():
     t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
                    help="metrics.csv always; 'tensorboard' also writes event files to "
                         "OUT/tensorboard (needs tensorboardX)")
+    from .cli_config import add_config_flags
+    add_config_flags(t)   # --grid.reso, --train.max_seconds, --nerf.width, ...
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")
