@@ -66,8 +66,8 @@ def _lens(meta, path):
     if not isinstance(model, str) or model not in NGP_MODELS:
         raise DataError(f"{path}: field 'camera_model' is {model!r}, which clrf does not "
                         f"support (supported: {', '.join(NGP_MODELS)}); undistort the images "
-                        f"to PINHOLE (e.g. `colmap image_undistorter`) and set camera_model "
-                        f"to PINHOLE")
+                        f"to PINHOLE (e.g. `colmap image_undistorter`) and use camera_model "
+                        f"PINHOLE")
     if fisheye and model != "OPENCV_FISHEYE":
         raise DataError(f"{path}: fields 'is_fisheye' (true) and 'camera_model' ({model}) "
                         f"disagree; remove one of them")
