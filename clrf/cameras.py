@@ -3,8 +3,9 @@
 Conventions (the same as :class:`clrf.data.Dataset`): poses are camera-to-world 4x4 matrices in
 OpenGL/Blender camera axes (x right, y up, the camera looks down -z); ``intrinsics`` is
 (fx, fy, cx, cy) in pixels with the image origin at the top-left corner of the top-left pixel,
-so the centre of pixel (row v, column u) is at (u + 0.5, v + 0.5). Distortion coefficients are
-OpenCV's radial-tangential (k1, k2, p1, p2), applied in OpenCV normalised coordinates (y down).
+so the centre of pixel (row v, column u) is at (u + 0.5, v + 0.5). Lens distortion is a
+:class:`clrf.camera_models.Distortion` (radial-tangential or fisheye; a plain (k1, k2, p1, p2)
+is OpenCV's radial-tangential), applied in OpenCV normalised coordinates (y down).
 
 Everything is vectorised numpy; nothing loops over pixels in Python.
 """
@@ -12,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .camera_models import Distortion, as_distortion, distort, undistort  # noqa: F401
+
 PIXEL_CENTER = 0.5        # offset from a pixel's corner to its centre, in pixels
-UNDISTORT_ITERS = 20      # fixed-point iterations cap; converges to ~1e-12 in <10 for |k| < 0.3
-UNDISTORT_TOL = 1e-12     # stop early once the largest update is below this (normalised units)
 
 
 def _as_intrinsics(intrinsics) -> np.ndarray:
@@ -35,60 +36,6 @@ def _as_poses(poses) -> np.ndarray:
     return p
 
 
-def _as_distortion(distortion) -> np.ndarray:
-    d = np.asarray(distortion, np.float64).reshape(-1)
-    if d.shape != (4,):
-        raise ValueError(f"distortion: expected (k1, k2, p1, p2), got shape {np.shape(distortion)}")
-    return d
-
-
-def distort(xy: np.ndarray, distortion) -> np.ndarray:
-    """OpenCV radial-tangential distortion of normalised image points.
-
-    xy: [..., 2] undistorted normalised coordinates (x = (u - cx) / fx, y = (v - cy) / fy, y down).
-    With r2 = x^2 + y^2 and radial = 1 + k1 r2 + k2 r2^2::
-
-        x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
-        y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
-
-    Example: distort([[0.1, 0.0]], (0.1, 0, 0, 0)) -> [[0.1001, 0.0]].
-    """
-    k1, k2, p1, p2 = _as_distortion(distortion)
-    xy = np.asarray(xy, np.float64)
-    x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
-
-
-def undistort(xy_d: np.ndarray, distortion, iters: int = UNDISTORT_ITERS) -> np.ndarray:
-    """Invert :func:`distort` by fixed-point iteration (as OpenCV's undistortPoints).
-
-    x <- (x_d - tangential(x, y)) / radial(x, y), starting from x = x_d; stops after ``iters``
-    iterations or once the largest update is below UNDISTORT_TOL. Converges for the mild
-    distortion of real lenses (|k1| r^2 well below 1).
-    """
-    k1, k2, p1, p2 = _as_distortion(distortion)
-    xy_d = np.asarray(xy_d, np.float64)
-    xd, yd = xy_d[..., 0], xy_d[..., 1]
-    x, y = xd.copy(), yd.copy()
-    for _ in range(iters):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + k2 * r2)
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        xn = (xd - dx) / radial
-        yn = (yd - dy) / radial
-        step = max(float(np.max(np.abs(xn - x), initial=0.0)),
-                   float(np.max(np.abs(yn - y), initial=0.0)))
-        x, y = xn, yn
-        if step < UNDISTORT_TOL:
-            break
-    return np.stack([x, y], axis=-1)
-
-
 def camera_dirs(intrinsics, H: int, W: int, distortion=None) -> np.ndarray:
     """Per-pixel ray directions in camera (OpenGL) axes, [H, W, 3], with z = -1 (not unit length).
 
@@ -105,8 +52,7 @@ def _pixel_dirs(u, v, intrinsics, distortion=None) -> np.ndarray:
     """Camera-axes directions (z = -1) through image points (u, v) (pixels, any shape)."""
     fx, fy, cx, cy = _as_intrinsics(intrinsics)
     xy = np.stack([(u - cx) / fx, (v - cy) / fy], axis=-1)        # OpenCV normalised, y down
-    if distortion is not None and np.any(_as_distortion(distortion) != 0):
-        xy = undistort(xy, distortion)
+    xy = undistort(xy, distortion)                                # a copy when None
     return np.stack([xy[..., 0], -xy[..., 1], -np.ones_like(u)], axis=-1)
 
 
@@ -114,7 +60,7 @@ def pixel_rays(poses, intrinsics, H: int, W: int, distortion=None, normalize: bo
     """Rays through every pixel centre of every camera.
 
     poses: [N, 4, 4] (or [N, 3, 4], or one [4, 4]) camera-to-world, OpenGL axes.
-    intrinsics: (fx, fy, cx, cy). distortion: None or OpenCV (k1, k2, p1, p2).
+    intrinsics: (fx, fy, cx, cy). distortion: None, a Distortion or OpenCV (k1, k2, p1, p2).
     Returns origins, dirs: float32 [N*H*W, 3], ordered image, row, column. Directions have
     camera-space z = -1 (the NeRF convention, which :func:`to_ndc` expects) unless ``normalize``.
 

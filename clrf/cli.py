@@ -73,7 +73,8 @@ def cmd_train(a):
         if not available():
             raise CliError("--log tensorboard needs tensorboardX: pip install tensorboardX (or "
                            "clrf[tensorboard])")
-    overrides = parse_set(a.set)
+    from .cli_config import config_flags, merge_overrides
+    overrides = merge_overrides(parse_set(a.set), config_flags(a))   # --set, then --SECTION.KEY
     tr = overrides.setdefault("train", {})
     for k, v in (("max_seconds", a.max_seconds), ("model", a.model), ("data", a.data),
                  ("seed", a.seed)):
@@ -230,7 +231,7 @@ def cmd_eval(a):
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import camera_orbit_poses, orbit_poses, spiral_poses
+    from .cameras import as_distortion, camera_orbit_poses, orbit_poses, spiral_poses
     from .cli_export import check_render_args, depth_outputs, write_video
     from .device import Device
     from .models import load_model
@@ -250,7 +251,7 @@ def cmd_render(a):
     class _View:  # the bits of a Dataset that view_rays needs
         hw = (H, W)
         intrinsics = np.asarray(meta["intrinsics"]) * [sx, sy, sx, sy]
-        distortion = None if meta.get("distortion") is None else np.asarray(meta["distortion"])
+        distortion = as_distortion(meta.get("distortion"))   # also the older [k1, k2, p1, p2]
         ndc = bool(meta["ndc"])
 
     if a.views == "test":
@@ -324,7 +325,9 @@ def cmd_bench(a):
 def build_parser():
     p = argparse.ArgumentParser(prog="clrf", description="Portable OpenCL radiance fields.")
     p.add_argument("--device", default=None,
-                   help="'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else first working GPU, else CPU)")
+                   help="'auto', 'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else 'auto': the "
+                        "fastest working device of any type by a measured throughput probe, "
+                        "cached per driver; `clrf devices` lists the figures and the choice)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bars or progress lines (results and errors still print)")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -344,6 +347,8 @@ def build_parser():
     t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
                    help="metrics.csv always; 'tensorboard' also writes event files to "
                         "OUT/tensorboard (needs tensorboardX)")
+    from .cli_config import add_config_flags
+    add_config_flags(t)   # --grid.reso, --train.max_seconds, --nerf.width, ...
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")

@@ -36,11 +36,11 @@ class GridConfig:
     optimizer: str = "rmsprop"    # "rmsprop" (svox2) or "sgd"
     rms_beta: float = 0.95        # RMSProp decay
     lr_density: float = 30.0      # density learning rate (svox2: 3e1)
-    lr_density_final: float = 0.05
+    lr_density_final: float = 0.05  # density learning rate at lr_decay_steps (svox2: 5e-2)
     lr_density_delay_steps: int = 100   # reverse-cosine warm-up of the density lr
-    lr_density_delay_mult: float = 0.01
+    lr_density_delay_mult: float = 0.01  # warm-up starts at this fraction of lr_density
     lr_sh: float = 1e-2           # SH learning rate (svox2: 1e-2)
-    lr_sh_final: float = 5e-6
+    lr_sh_final: float = 5e-6     # SH learning rate at lr_decay_steps (svox2: 5e-6)
     lr_decay_steps: int = 20000   # horizon of the log-linear decay
     lambda_tv: float = 1e-5       # TV weight on density (svox2 syn: 1e-5)
     lambda_tv_sh: float = 1e-3    # TV weight on SH (svox2 syn: 1e-3)
@@ -58,9 +58,10 @@ class GridConfig:
     background_init_density: float = 0.1  # initial raw density of every MSI texel (svox2: 0.1)
     background_init_color: float = 0.0    # initial raw MSI colour (0: grey 0.5)
     lr_bg_density: float = 3.0    # MSI density learning rate (svox2: 3e0 -> 3e-3), decayed
-    lr_bg_density_final: float = 3e-3     # log-linearly over lr_decay_steps like the grid's
+                                  # log-linearly over lr_decay_steps like the grid's
+    lr_bg_density_final: float = 3e-3     # MSI density learning rate at lr_decay_steps
     lr_bg_color: float = 0.1      # MSI colour learning rate (svox2: 1e-1 -> 5e-6)
-    lr_bg_color_final: float = 5e-6
+    lr_bg_color_final: float = 5e-6       # MSI colour learning rate at lr_decay_steps
 
 
 @dataclass
@@ -79,7 +80,7 @@ class TrainConfig:
     seed: int = 0                 # batch sampling and initialisation seed
     background: list = field(default_factory=list)  # override the dataset background [r,g,b]
     downscale: int = 1            # load images downscaled by this integer factor
-    max_train_images: int = 0     # 0: all
+    max_train_images: int = 0     # train on the first this-many training images; 0: all
 
 
 @dataclass(frozen=True)
@@ -112,8 +113,9 @@ class NerfConfig:
     beta2: float = 0.999            # Adam beta2
     adam_eps: float = 1e-7          # Adam epsilon (NeRF used TF's 1e-7)
     batch_rays: int = 1024          # rays per training step
-    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
-    dw_chunk: int | None = None     # rows per partial weight gradient; None: 64 tiles
+    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None (null): per
+                                    # device
+    dw_chunk: int | None = None     # rows per partial weight gradient; None (null): 64 tiles
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "NerfConfig":
@@ -230,8 +232,8 @@ PRESETS["real360_box"] = {"grid": dict(PRESETS["real360"]["grid"], background_la
 
 @dataclass
 class Config:
-    grid: GridConfig = field(default_factory=GridConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
+    grid: GridConfig = field(default_factory=GridConfig)   # Plenoxels grid options (train.model grid)
+    train: TrainConfig = field(default_factory=TrainConfig)   # the run: data, budget, evaluation
     nerf: NerfConfig = field(default_factory=NerfConfig)   # NeRF options (train.model nerf)
 
     def to_dict(self):

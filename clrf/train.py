@@ -29,7 +29,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import checkpoint, rundir, selfcheck
-from .cameras import pixel_rays, to_ndc
+from .cameras import as_distortion, pixel_rays, to_ndc
 from .data.io import downscale_image
 from .metrics import image_metrics, psnr_from_mse
 from .programs import launch, upload
@@ -321,4 +321,5 @@ def dataset_meta(ds):
             "background": list(map(float, ds.background)), "ndc": bool(ds.ndc),
             "near": float(ds.near), "far": float(min(ds.far, 1e10)), "preset": ds.preset,
             "bbox": np.asarray(ds.bbox).tolist(),
-            "distortion": None if ds.distortion is None else list(map(float, ds.distortion))}
+            "distortion": None if as_distortion(ds.distortion) is None
+            else as_distortion(ds.distortion).to_json()}

@@ -402,6 +402,10 @@ CASES = [
     ("ngp-no-images", ngp(present=set()), ["transforms.json", "none of the 4 frames"]),
     ("ngp-size-mismatch", ngp(lambda m: m.update(w=8)), ["transforms.json", "'w', 'h'"]),
     ("ngp-frames-not-list", ngp(lambda m: m.update(frames="all")), ["'frames'", "list"]),
+    ("ngp-camera-model-unknown", ngp(lambda m: m.update(camera_model="FOV")),
+     ["transforms.json", "'camera_model'", "'FOV'", "OPENCV_FISHEYE"]),
+    ("ngp-fisheye-field-in-opencv", ngp(lambda m: m.update(camera_model="OPENCV", k4=0.01)),
+     ["transforms.json", "k4", "not part of camera_model OPENCV"]),
     # ---- COLMAP (images/ + sparse/0/ cameras, images, points3D as .txt or .bin)
     ("colmap-fov-camera", colmap(cams={1: ("FOV", W, H, [F, F, W / 2, H / 2, 0.1])}),
      ["cameras.txt", "FOV", "image_undistorter"]),

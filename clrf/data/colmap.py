@@ -4,9 +4,12 @@ The model (COLMAP's documented output format) is three files, each either ``.txt
 
 - cameras: id, model, width, height, parameters. Models read here (parameters in order):
   SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy), SIMPLE_RADIAL (f, cx, cy, k),
-  RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2). Their distortion is the
-  OpenCV radial-tangential (k1, k2, p1, p2) of ``clrf.cameras`` with the missing terms 0, and
-  COLMAP's pixel convention (centre of the top-left pixel at (0.5, 0.5)) is clrf's.
+  RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2), OPENCV_FISHEYE
+  (fx, fy, cx, cy, k1, k2, k3, k4), FULL_OPENCV (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5,
+  k6), SIMPLE_RADIAL_FISHEYE (f, cx, cy, k), RADIAL_FISHEYE (f, cx, cy, k1, k2); their
+  distortion is a ``clrf.camera_models.Distortion`` (the equations are there). FOV,
+  THIN_PRISM_FISHEYE and RAD_TAN_THIN_PRISM_FISHEYE are refused by name. COLMAP's pixel
+  convention (centre of the top-left pixel at (0.5, 0.5)) is clrf's.
 - images: per registered image its id, world-to-camera rotation as a unit quaternion
   (qw, qx, qy, qz), translation t, camera id and file name (relative to ``images/``), then its
   2D observations (x, y, point3D id or -1).
@@ -36,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera_models import MODELS, UNSUPPORTED, check_camera, from_colmap
 from ..cameras import camera_dirs, distort
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale_image,
@@ -43,8 +47,7 @@ from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale
 from .llff import normalize_capture, scene_extent
 
 # model id -> (name, number of parameters); the models clrf reads
-CAMERA_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4),
-                 3: ("RADIAL", 5), 4: ("OPENCV", 8)}
+CAMERA_MODELS = {mid: (name, len(params)) for name, (mid, params) in MODELS.items()}
 MODEL_IDS = {name: mid for mid, (name, _) in CAMERA_MODELS.items()}
 NEAR_PERCENTILE, FAR_PERCENTILE = 0.1, 99.9     # LLFF's imgs2poses depth bounds
 UNDISTORT = ("undistort the images first with `colmap image_undistorter` (it writes a PINHOLE "
@@ -110,31 +113,26 @@ def _numbers(fields, path, no, what, kind=float):
                         f"; {MODEL_FIX}") from None
 
 
+def _unsupported(model, path, where):
+    return DataError(f"{path}: {where}: camera model {model} is not supported (clrf reads "
+                     f"{', '.join(MODEL_IDS)}); {UNDISTORT}")
+
+
 def _camera(cid, model, w, h, params, path, where):
-    """Checked camera dict: model name, size, (fx, fy, cx, cy), (k1, k2, p1, p2)."""
+    """Checked camera dict: model name, size, (fx, fy, cx, cy), Distortion or None."""
     if model not in MODEL_IDS:
-        raise DataError(f"{path}: {where}: camera model {model} is not supported (clrf reads "
-                        f"{', '.join(MODEL_IDS)}); {UNDISTORT}")
-    want = CAMERA_MODELS[MODEL_IDS[model]][1]
-    if len(params) != want:
-        raise DataError(f"{path}: {where}: {model} needs {want} parameters, got {len(params)}; "
-                        f"{MODEL_FIX}")
-    p = list(params)
-    if model == "SIMPLE_PINHOLE":
-        intr, dist = [p[0], p[0], p[1], p[2]], [0, 0, 0, 0]
-    elif model == "PINHOLE":
-        intr, dist = p[:4], [0, 0, 0, 0]
-    elif model == "SIMPLE_RADIAL":
-        intr, dist = [p[0], p[0], p[1], p[2]], [p[3], 0, 0, 0]
-    elif model == "RADIAL":
-        intr, dist = [p[0], p[0], p[1], p[2]], [p[3], p[4], 0, 0]
-    else:
-        intr, dist = p[:4], p[4:8]
-    intr, dist = np.array(intr, np.float64), np.array(dist, np.float64)
-    if not (np.all(np.isfinite(intr)) and np.all(np.isfinite(dist)) and intr[0] > 0
-            and intr[1] > 0 and w > 0 and h > 0):
+        raise _unsupported(model, path, where)
+    try:
+        intr, dist = from_colmap(model, params)
+    except ValueError as e:
+        raise DataError(f"{path}: {where}: {e}; {MODEL_FIX}") from None
+    if not (np.all(np.isfinite(params)) and intr[0] > 0 and intr[1] > 0 and w > 0 and h > 0):
         raise DataError(f"{path}: {where}: needs a positive size and focal length and finite "
-                        f"parameters, got {w}x{h} {params}; {MODEL_FIX}")
+                        f"parameters, got {w}x{h} {list(params)}; {MODEL_FIX}")
+    bad = check_camera(dist, intr, int(h), int(w))
+    if bad:
+        raise DataError(f"{path}: {where}: the {model} parameters {list(params)} are not a "
+                        f"usable lens: {bad}; {MODEL_FIX}, or {UNDISTORT}")
     return dict(id=cid, model=model, wh=(int(w), int(h)), intr=intr, dist=dist)
 
 
@@ -147,8 +145,8 @@ def read_cameras(path: Path) -> dict:
         for i in range(n):
             cid, mid, w, h = r.read("iiQQ", f"camera {i}")
             if mid not in CAMERA_MODELS:
-                raise DataError(f"{path}: camera {cid}: model id {mid} is not supported (clrf "
-                                f"reads {', '.join(MODEL_IDS)}); {UNDISTORT}")
+                name = UNSUPPORTED.get(mid, ("unknown to COLMAP",))[0]
+                raise _unsupported(f"id {mid} ({name})", path, f"camera {cid}")
             name, k = CAMERA_MODELS[mid]
             cams[cid] = _camera(cid, name, w, h, r.read("d" * k, f"camera {cid}'s parameters"),
                                 path, f"camera {cid}")
@@ -267,11 +265,18 @@ def _resample(img, cam, ref, hw):
     from scipy.ndimage import map_coordinates
 
     d = camera_dirs(ref["intr"], hw[0], hw[1], ref["dist"])
-    xy = distort(np.stack([d[..., 0], -d[..., 1]], -1), cam["dist"])
+    xy = distort(np.stack([d[..., 0], -d[..., 1]], -1), cam["dist"])    # y down again
     u = xy[..., 0] * cam["intr"][0] + cam["intr"][2] - 0.5
     v = xy[..., 1] * cam["intr"][1] + cam["intr"][3] - 0.5
     return np.stack([map_coordinates(img[..., c], [v, u], order=1, mode="nearest")
                      for c in range(img.shape[-1])], -1).astype(np.float32)
+
+
+def _same_lens(a, b) -> bool:
+    """Two Distortions (or None) equal within PARAM_TOL."""
+    if a is None or b is None:
+        return a is b
+    return a.family == b.family and np.allclose(a.coeffs, b.coeffs, rtol=PARAM_TOL, atol=0)
 
 
 def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
@@ -362,13 +367,13 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
         if hw is None:
             hw, ref = a.shape[:2], scaled
         same = (a.shape[:2] == hw and np.allclose(scaled["intr"], ref["intr"], rtol=PARAM_TOL)
-                and np.allclose(cam["dist"], ref["dist"], rtol=PARAM_TOL, atol=0))
+                and _same_lens(cam["dist"], ref["dist"]))
         imgs.append(composite(a if same else _resample(a, scaled, ref, hw), bg))
     if any(cams[recs[i][1]]["id"] != ref["id"] for i in keep):
         warn(f"{ipath}: images use {len({recs[i][1] for i in keep})} cameras; those differing "
              f"from camera {ref['id']} were resampled onto it")
     images = np.stack(imgs).astype(np.float32)
-    dist = ref["dist"] if np.any(ref["dist"] != 0) else None
+    dist = ref["dist"]
     poses = poses[keep].astype(np.float32)
     return Dataset(name=root.name, images=images, poses=poses, intrinsics=ref["intr"],
                    split=split, background=bg, distortion=dist,

@@ -1,8 +1,8 @@
 """instant-ngp's ``transforms.json`` (a user's own capture, e.g. from colmap2nerf.py).
 
 Fields: fl_x, fl_y (or camera_angle_x / camera_angle_y), cx, cy (default: image centre), w, h
-(default: the images' size), OpenCV distortion k1, k2, p1, p2 (default 0; kept in
-``Dataset.distortion``, None when all are 0), aabb_scale (default 1), optional scale (default
+(default: the images' size), camera_model with its distortion fields (below; kept in
+``Dataset.distortion``, None without distortion), aabb_scale (default 1), optional scale (default
 0.33) and offset (default [0.5, 0.5, 0.5]) of instant-ngp's world -> unit-cube map, and
 ``frames`` with file_path (relative to the JSON's folder) and a 4x4 camera-to-world
 transform_matrix in OpenGL axes (instant-ngp's "NeRF" convention, used as is).
@@ -12,11 +12,19 @@ exist). No split is stored in the file, so every ``holdout``-th kept frame (0, 8
 bbox: instant-ngp's scene box -- the cube of side aabb_scale centred at 0.5 in its unit-cube
 space, mapped back to world: x_world = (x_ngp - offset) / scale (ngp permutes axes x,y,z <-
 y,z,x, which only matters for a non-uniform offset).
+
+camera_model (COLMAP's names, as nerfstudio writes them; the equations are in
+``clrf.camera_models``) and the distortion fields each reads (missing fields are 0):
+PINHOLE and SIMPLE_PINHOLE none; SIMPLE_RADIAL k1; RADIAL k1, k2; OPENCV k1, k2, p1, p2 and
+k3 (OpenCV's r^6 term); OPENCV_FISHEYE k1, k2, k3, k4. Without camera_model it is OPENCV, or
+OPENCV_FISHEYE when instant-ngp's ``is_fisheye`` is true. Any other model, or a non-zero
+distortion field the model does not read, is an error rather than a guess.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from ..camera_models import FAMILIES, Distortion, as_distortion, check_camera
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
                  get_field, holdout_split, inside, limit_split, load_images, parse_background,
@@ -27,6 +35,12 @@ NGP_OFFSET = 0.5          # ... and offset (the unit cube's centre)
 NEAR = 0.1                # world units; instant-ngp's default near distance is of this order
 ASPECT_TOL = 0.02
 MAX_LISTED = 5            # missing file names shown in the warning
+# camera_model -> (distortion family, the fields it reads in that family's argument names)
+NGP_MODELS = {"PINHOLE": ("radtan", ()), "SIMPLE_PINHOLE": ("radtan", ()),
+              "SIMPLE_RADIAL": ("radtan", ("k1",)), "RADIAL": ("radtan", ("k1", "k2")),
+              "OPENCV": ("radtan", ("k1", "k2", "p1", "p2", "k3")),
+              "OPENCV_FISHEYE": ("fisheye", ("k1", "k2", "k3", "k4"))}
+DIST_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
 def _num(meta, key, path, default=None):
@@ -43,6 +57,37 @@ def _fov_focal(angle, size, path, name) -> float:
     return 0.5 * size / np.tan(0.5 * angle)
 
 
+def _lens(meta, path):
+    """The Distortion (or None) of camera_model / is_fisheye and the k*, p* fields."""
+    fisheye = meta.get("is_fisheye", False)
+    if not isinstance(fisheye, bool):
+        raise DataError(f"{path}: field 'is_fisheye' must be true or false, got {fisheye!r}")
+    model = meta.get("camera_model", "OPENCV_FISHEYE" if fisheye else "OPENCV")
+    if not isinstance(model, str) or model not in NGP_MODELS:
+        raise DataError(f"{path}: field 'camera_model' is {model!r}, which clrf does not "
+                        f"support (supported: {', '.join(NGP_MODELS)}); undistort the images "
+                        f"to PINHOLE (e.g. `colmap image_undistorter`) and use camera_model "
+                        f"PINHOLE")
+    if fisheye and model != "OPENCV_FISHEYE":
+        raise DataError(f"{path}: fields 'is_fisheye' (true) and 'camera_model' ({model}) "
+                        f"disagree; remove one of them")
+    family, reads = NGP_MODELS[model]
+    k = {f: _num(meta, f, path, 0.0) for f in DIST_FIELDS}
+    stray = [f"{f} = {v:g}" for f, v in k.items() if v != 0 and f not in reads]
+    if stray:
+        raise DataError(f"{path}: field(s) {', '.join(stray)} are not part of camera_model "
+                        f"{model} (it reads {', '.join(reads) or 'no distortion fields'}); "
+                        f"remove them or set the camera_model they belong to")
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        fx, fy = _num(meta, "fl_x", path), _num(meta, "fl_y", path)
+        if fx is not None and fy is not None and fx != fy:
+            raise DataError(f"{path}: camera_model {model} has one focal length but 'fl_x' "
+                            f"({fx:g}) and 'fl_y' ({fy:g}) differ; use PINHOLE/OPENCV or make "
+                            f"them equal")
+    return as_distortion(Distortion(family, tuple(k[f] if f in reads else 0.0
+                                                  for f in FAMILIES[family])))
+
+
 def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white") -> Dataset:
     """Load an instant-ngp scene folder (transforms.json + images).
 
@@ -56,6 +101,7 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
     factor = check_downscale(downscale)
     bg = parse_background(background)
     frames = get_field(meta, "frames", jpath, kind=list)
+    dist = _lens(meta, jpath)
 
     files, poses, missing = [], [], []
     for i, fr in enumerate(frames):
@@ -64,7 +110,7 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
         m = as_matrix(get_field(fr, "transform_matrix", jpath, where), jpath,
                       f"{where}.transform_matrix")
         check_poses(m[None], jpath, f"{where}.transform_matrix")
-        for key in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2"):
+        for key in ("fl_x", "fl_y", "cx", "cy", "camera_model", "is_fisheye") + DIST_FIELDS:
             if key in fr and fr[key] != meta.get(key):
                 raise DataError(f"{jpath}: {where}.{key} is set per frame (and differs from the "
                                 f"top-level '{key}'); clrf supports one camera per scene: put "
@@ -113,7 +159,11 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
                         f"fl_y {fl_y:g}, w {w:g}, h {h:g}); fix the calibration fields")
     s = W0 / w / factor                                        # file intrinsics -> loaded pixels
     intr = np.array([fl_x * s, fl_y * s, cx * s, cy * s])
-    dist = np.array([_num(meta, k, jpath, 0.0) for k in ("k1", "k2", "p1", "p2")])
+    bad = check_camera(dist, intr, *images.shape[1:3])
+    if bad:
+        raise DataError(f"{jpath}: the distortion fields of camera_model "
+                        f"{meta.get('camera_model', 'OPENCV')} are not a usable lens: {bad}; "
+                        f"check k1..k4, p1, p2 or undistort the images")
 
     aabb = _num(meta, "aabb_scale", jpath, 1.0)
     scale = _num(meta, "scale", jpath, NGP_SCALE)
@@ -127,4 +177,4 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
     return Dataset(name=root.name, images=images, poses=np.stack(poses)[keep].astype(np.float32),
                    intrinsics=intr, split=split, background=bg, bbox=bbox, near=NEAR,
                    far=float(np.linalg.norm(bbox[1] - bbox[0])), ndc=False,
-                   distortion=dist if np.any(dist != 0) else None, preset="real360_box")
+                   distortion=dist, preset="real360_box")

@@ -35,9 +35,18 @@ CLOSED_FORM_ATOL = T_STOP + 1e-6
 # a rounding error <= 10 * 6e-8 = 6e-7, so 2e-6 absolute; a convention error (half-pixel shift,
 # flipped axis) is >= 1e-2 on the toy cameras the tests use.
 CAMERA_ATOL = 2e-6
-# Undistortion by fixed-point iteration stops at 1e-12 in float64; 1e-6 (normalised units, i.e.
-# ~1e-3 px at f = 1000) is the accuracy the data layer promises.
+# Undistortion by Newton's method stops at a 1e-14 update in float64; 1e-6 (normalised units,
+# i.e. ~1e-3 px at f = 1000) is the accuracy the data layer promises.
 UNDISTORT_ATOL = 1e-6
+# Camera models (clrf.camera_models) against the float64 COLMAP forward projection
+# (clrf.testing.reference_cameras): Newton stops once its update is below 1e-14 in normalised
+# units and the polynomials carry ~1e-15 relative rounding, so a ray is off by ~1e-14 rad; 1e-10
+# rad leaves 1e4 of margin and still catches a misread model (fisheye read as radial-tangential,
+# a dropped k3) by 1e-4 rad or more at the image border of the test cameras.
+CAMERA_MODEL_ANGLE = 1e-10
+# The same in pixels for border round trips (pixel -> ray -> reference projection): f <= 100 px
+# times 1e-10 rad.
+CAMERA_MODEL_PX = 1e-8
 # Resampling a second COLMAP camera's image onto the first: the source is a 16-bit PNG
 # (quantisation <= 0.5 / 65535 = 7.6e-6), bilinear weights are a convex combination (no growth),
 # float32 storage adds 6e-8; a wrong focal or half-pixel shift moves values by >= 1e-2.
