@@ -40,8 +40,11 @@ CHATTER = (
     (r"Linking (started|done|failed)", "Intel oneAPI CPU"),
     (r"Device build (started|done|failed)", "Intel oneAPI CPU"),
     (r"Options used by backend compiler:.*", "Intel oneAPI CPU"),
-    (r"remark: <unknown>:0:0: \d+ instructions in function", "Intel oneAPI CPU"),
+    # its backend's optimisation remarks, all at <unknown>:0:0 ("loop not vectorized: ...",
+    # "Kernel was 16-way vectorized", "11398 instructions in function")
+    (r"remark: <unknown>:0:0: .*", "Intel oneAPI CPU"),
     (r'Kernel "?\w+"? was (successfully vectorized( \(\d+\))?|not vectorized)', "Intel oneAPI CPU"),
+    (r"Reload Program Binary Object\.", "Intel oneAPI CPU"),   # a program from its binary
     (r"Done\.", "Intel oneAPI CPU"),
     # PoCL 3.x: closes the log of a failed build (the errors come before it).
     (r"Device .* failed to build the program", "PoCL"),
@@ -137,12 +140,12 @@ def split_log(log: str) -> SplitLog:
         if d is None and current is not None and not context:
             current.lines.append(line)          # source excerpt, caret or fix-it
             continue
-        if d is None:
+        if d is None:           # each unrecognised line stands alone
             d = Diagnostic("unknown", line.strip(), lines=[line])
         d.lines[:0] = context
         context = []
         diags.append(d)
-        current = d
+        current = d if d.severity != "unknown" else None
     for line in context:        # include context with no diagnostic after it: show it
         diags.append(Diagnostic("unknown", line.strip(), lines=[line]))
     return SplitLog(diags, chatter)
