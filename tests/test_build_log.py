@@ -111,7 +111,8 @@ FIXTURE_CASES = sorted(p.stem for p in FIXTURES.glob("*.txt"))
 
 
 def _fixture(stem):
-    return (FIXTURES / f"{stem}.txt").read_text(), json.loads((FIXTURES / f"{stem}.json").read_text())
+    meta = json.loads((FIXTURES / f"{stem}.json").read_text())
+    return (FIXTURES / f"{stem}.txt").read_text(), meta
 
 
 def test_fixtures_cover_each_implementation():
