@@ -38,7 +38,10 @@
 #ifndef BRICK
 #define BRICK 0      /* 1: march one brick of a distributed grid (see above) */
 #endif
-#if CLRF_PREFETCH
+/* SPIR targets (Mesa rusticl, Intel's CPU runtime, Oclgrind define __SPIR__ or __SPIR64__)
+   get no software prefetch: SPIR-V has no counterpart of llvm.prefetch, and rusticl 22.3's SPIR-V
+   translator ends the host process on llvm.prefetch instead of failing the build. */
+#if CLRF_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #else
 #define CLRF_PREFETCH_LINE(p)

@@ -140,7 +140,10 @@
 #ifndef DW_PREFETCH_AHEAD
 #define DW_PREFETCH_AHEAD 16 /* rows ahead in the weight gradient's sum over samples */
 #endif
-#if MLP_PREFETCH
+/* SPIR targets (Mesa rusticl, Intel's CPU runtime, Oclgrind define __SPIR__ or __SPIR64__)
+   get no software prefetch: SPIR-V has no counterpart of llvm.prefetch, and rusticl 22.3's SPIR-V
+   translator ends the host process on llvm.prefetch instead of failing the build. */
+#if MLP_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
 #define MLP_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #else
 #define MLP_PREFETCH_LINE(p)

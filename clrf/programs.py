@@ -3,9 +3,12 @@
 ``Device.program`` caches the built programs per (source file, defines, options); across
 processes pyopencl's binary cache (keyed on source, included headers, options and driver) and
 PoCL's own kernel cache make a rebuild cost tens of milliseconds. A failed build raises
-``BuildError`` carrying the compiler log; a successful one prints nothing unless the device's
-tuning has ``verbose_build`` (``CLRF_VERBOSE_BUILD=1``), which shows every non-empty build log.
-The kernels build without warnings on PoCL (tests/test_build_log.py).
+``BuildError`` carrying the compiler log. A successful build prints the compiler's diagnostics
+(warnings, with their notes and source excerpts) to stderr, and nothing else: the progress lines
+some implementations write into every log ("Compilation started" ...) are dropped by
+clrf/buildlog.py. With the device tuning's ``verbose_build`` (``CLRF_VERBOSE_BUILD=1``) the raw
+log is shown instead, whenever it is non-empty. The kernels build without diagnostics on every
+implementation tested (tests/test_build_log.py).
 """
 from __future__ import annotations
 
@@ -16,6 +19,8 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+
+from .buildlog import diagnostics
 
 
 class BuildError(RuntimeError):
@@ -48,17 +53,14 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def build(device, source: str, defines: dict, fast_math: bool = False, verbose: bool = False):
-    """The program for ``cl/<source>`` built for ``device`` with ``defines`` (the capability
-    defines of build_options added), not cached: callers use ``Device.program``. verbose:
-    print a non-empty compiler log to stderr."""
+def build_flags(device, defines: dict, fast_math: bool = False) -> list:
+    """The build options ``build`` passes for ``defines`` on ``device``: ``-I cl/``, then
+    ``-DNAME=value`` for the capability defines of build_options updated by ``defines``
+    (sorted by name; floats as float literals), ``-cl-std=CL3.0`` where the gradient slots'
+    locks use acquire/release atomics (CLRF_ACQ_REL), then ``-cl-fast-relaxed-math`` if
+    asked."""
     allopts = dict(build_options(device))
     allopts.update(defines)
-    path = cl_dir() / source
-    try:
-        src = path.read_text()
-    except OSError as e:
-        raise BuildError(f"cannot read kernel source {path}: {e}") from e
     if int(allopts.get("GRAD_SLOTS", 0)) > 0 and device.caps.acq_rel:
         allopts["CLRF_ACQ_REL"] = 1      # the slot and block locks order plain memory
     opts = [f"-I{cl_dir()}"] + [f"-D{k}={_fmt(v)}" for k, v in sorted(allopts.items())]
@@ -66,18 +68,32 @@ def build(device, source: str, defines: dict, fast_math: bool = False, verbose: 
         opts.append("-cl-std=CL3.0")     # C11-style atomics with memory order and scope
     if fast_math:
         opts.append("-cl-fast-relaxed-math")
+    return opts
+
+
+def build(device, source: str, defines: dict, fast_math: bool = False, verbose: bool = False):
+    """The program for ``cl/<source>`` built for ``device`` with ``defines`` (the capability
+    defines of build_options added), not cached: callers use ``Device.program``. The compiler's
+    diagnostics go to stderr; verbose: the whole log instead, when non-empty."""
+    path = cl_dir() / source
+    try:
+        src = path.read_text()
+    except OSError as e:
+        raise BuildError(f"cannot read kernel source {path}: {e}") from e
+    opts = build_flags(device, defines, fast_math)
     try:
         with warnings.catch_warnings():
-            # pyopencl warns on any non-empty log; the sources build clean, and the log is
-            # shown below when asked for.
+            # pyopencl warns on any non-empty log, chatter included; what matters is shown
+            # below.
             warnings.simplefilter("ignore", cl.CompilerWarning)
             prg = cl.Program(device.context, src).build(options=opts)
     except cl.RuntimeError as e:
         raise BuildError(f"building {path} with {' '.join(opts)} failed:\n{e}") from e
-    if verbose:
-        log = build_log(prg, device)
-        if log:
-            print(f"clrf: build log of {source} ({' '.join(opts[1:])}):\n{log}", file=sys.stderr)
+    log = build_log(prg, device)
+    shown = log if verbose else "\n".join(d.text for d in diagnostics(log))
+    if shown:
+        what = "build log" if verbose else "compiler diagnostics"
+        print(f"clrf: {what} of {source} ({' '.join(opts[1:])}):\n{shown}", file=sys.stderr)
     return Program(prg)
 
 

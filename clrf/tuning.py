@@ -15,7 +15,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_BLOCK_FINE            block_fine (0 = no second, finer level)
   CLRF_RAY_ORDER             ray_order (0 = render rays in the order given)
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
-  CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print every non-empty compiler log)
+  CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print the raw compiler logs)
 
 >>> t = Tuning.for_device(dev.caps)
 >>> gpu_path = t.replace(grad_slots=0, sample_record=False)
@@ -83,7 +83,7 @@ class Tuning:
     per_ray_local_size: int = 16   # one ray per work-item with a loop over its samples
     encode_local_size: int = 8     # encode_forward: explicitly vectorised items (16 points)
     fast_math: bool = False        # -cl-fast-relaxed-math (off: results follow the references)
-    verbose_build: bool = False    # print non-empty compiler logs (they are empty on PoCL)
+    verbose_build: bool = False    # print the raw compiler log (else only its diagnostics)
 
     @classmethod
     def for_device(cls, caps) -> "Tuning":

@@ -1,12 +1,20 @@
-"""Every kernel file builds with an empty compiler log (no warnings) on this device, with the
-defines the library and tools use: users never see compiler output, and a warning introduced
-in cl/ fails here instead of being hidden by the filter in clrf/programs.py."""
+"""Build logs: every kernel file builds without compiler diagnostics on this device, with the
+defines the library and tools use (a warning introduced in cl/ fails here), and the split of a
+log into diagnostics and implementation chatter (clrf/buildlog.py) holds on real logs of each
+OpenCL implementation, stored in tests/fixtures/build_logs/ by tools/capture_build_logs.py."""
 import itertools
+from collections import Counter
+import json
+from pathlib import Path
 
 import pytest
 
+from clrf.buildlog import CHATTER, diagnostics, is_chatter, split_log
 from clrf.nerf.mlp import MLPSpec
 from clrf.programs import build, build_log
+
+FIXTURES = Path(__file__).parent / "fixtures" / "build_logs"
+KERNELS = FIXTURES / "kernels"
 
 
 def _grid_render():
@@ -46,14 +54,155 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
 
 @pytest.mark.parametrize("source,defines", CASES,
                          ids=[f"{s}-{i}" for i, (s, _) in enumerate(CASES)])
-def test_build_log_empty(device, source, defines):
+def test_build_without_diagnostics(device, source, defines):
     prg = build(device, source, defines)
-    assert build_log(prg.cl_program, device) == "", f"{source} {defines}"
+    found = diagnostics(build_log(prg.cl_program, device))
+    assert found == [], f"{source} {defines}:\n" + "\n".join(d.text for d in found)
 
 
-def test_verbose_build_prints_only_non_empty_logs(device, capsys, monkeypatch):
+def _kernels_dir(monkeypatch):
+    """Point programs.build at the fixture kernels (tests/fixtures/build_logs/kernels)."""
+    monkeypatch.setattr("clrf.programs.cl_dir", lambda: KERNELS)
+
+
+def test_clean_build_prints_nothing(device, capsys):
+    """Chatter (Intel writes it into every log) is not shown; the log is there, verbose."""
+    prg = build(device, "probe.cl", {})
+    assert capsys.readouterr().err == ""
+    log = build_log(prg.cl_program, device)
     build(device, "probe.cl", {}, verbose=True)
-    assert capsys.readouterr().err == ""     # clean build: nothing shown even when verbose
-    monkeypatch.setattr("clrf.programs.build_log", lambda prg, dev: "warning: stand-in log")
+    err = capsys.readouterr().err
+    assert (log in err and "probe.cl" in err) if log else err == ""
+
+
+def test_warnings_are_printed_with_location(device, capsys, monkeypatch):
+    """A kernel with three warnings: on stderr with file:line:col, no chatter. Mesa rusticl
+    22.3 drops warnings from the log of a successful build: then nothing is shown."""
+    _kernels_dir(monkeypatch)
+    prg = build(device, "warning.cl", {})
+    log = build_log(prg.cl_program, device)
+    err = capsys.readouterr().err
+    if "warning" not in log.lower():
+        assert err == ""
+        return
+    assert "warning.cl" in err.splitlines()[0]
+    for loc in WARNING_SITES:
+        assert f":{loc[0]}:{loc[1]}:" in err, (loc, err)
+    assert not any(is_chatter(line) for line in err.splitlines()), err
+
+
+def test_verbose_shows_raw_log(device, capsys, monkeypatch):
+    monkeypatch.setattr("clrf.programs.build_log", lambda prg, dev: "Compilation started\nDone.")
+    build(device, "probe.cl", {})
+    assert capsys.readouterr().err == ""
     build(device, "probe.cl", {}, verbose=True)
-    assert "probe.cl" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "probe.cl" in err and "Compilation started\nDone." in err
+
+
+# ---- the split, on stored logs of each implementation ------------------------------------
+
+# Where the fixture kernels' diagnostics are, (line, column) in the file (see their comments).
+WARNING_SITES = {(7, 1), (12, 13), (13, 11)}   # kernels/warning.cl; (13, 11) has two notes
+HEADER_SITE = (4, 12)                           # kernels/header_warning.h
+ERROR_SITE = (4, 33)                            # kernels/error.cl
+
+FIXTURE_CASES = sorted(p.stem for p in FIXTURES.glob("*.txt"))
+
+
+def _fixture(stem):
+    meta = json.loads((FIXTURES / f"{stem}.json").read_text())
+    return (FIXTURES / f"{stem}.txt").read_text(), meta
+
+
+def test_fixtures_cover_each_implementation():
+    impls = {json.loads(p.read_text())["implementation"] for p in FIXTURES.glob("*.json")}
+    assert len(impls) >= 4, impls
+    for impl in impls:
+        cases = {p.stem.split("_", 1)[1] for p in FIXTURES.glob(f"{impl}_*.json")}
+        assert {"clean", "warning", "werror", "header_warning", "error"} <= cases, (impl, cases)
+
+
+@pytest.mark.parametrize("stem", FIXTURE_CASES)
+def test_split_partitions_the_log(stem):
+    """Every non-blank line is either chatter or part of exactly one diagnostic."""
+    log, _ = _fixture(stem)
+    s = split_log(log)
+    n_diag = sum(len(d.lines) for d in s.diagnostics)
+    assert n_diag + len(s.chatter) == sum(1 for line in log.splitlines() if line.strip())
+
+
+@pytest.mark.parametrize("stem", FIXTURE_CASES)
+def test_fixture_diagnostics(stem):
+    log, meta = _fixture(stem)
+    case = meta["case"]
+    found = diagnostics(log)
+    if case.startswith("clean"):
+        assert found == [], [d.text for d in found]
+        return
+    if case == "error":
+        assert not meta["built"]
+        assert len(found) == 1, [d.text for d in found]
+        d = found[0]
+        assert (d.severity, (d.line, d.col)) == ("error", ERROR_SITE)
+        assert d.message.startswith("expected ';'"), d.message
+        return
+    if "warning" not in log.lower() and meta["built"]:
+        # rusticl 22.3: no warnings in the log of a successful build
+        assert found == [], [d.text for d in found]
+        return
+    if case == "header_warning":
+        assert len(found) == 1, [d.text for d in found]
+        d = found[0]
+        assert (d.severity, (d.line, d.col)) == ("warning", HEADER_SITE)
+        assert d.file.endswith("header_warning.h"), d.file
+        if "In file included from" in log:
+            assert d.lines[0].startswith("In file included from"), d.lines
+        return
+    # warning, werror (an error unless the implementation ignores -Werror: Oclgrind 21.10)
+    severity = "warning" if meta["built"] else "error"
+    assert Counter((d.line, d.col) for d in found) == Counter(WARNING_SITES), \
+        [d.text for d in found]
+    assert {d.severity for d in found} == {severity}
+    assert len({d.file for d in found}) == 1
+    n_notes = log.count("note:")
+    for d in found:
+        assert len(d.notes) == (n_notes if (d.line, d.col) == (13, 11) else 0), d.text
+        assert all((n.line, n.col) == (13, 11) for n in d.notes)
+
+
+# ---- the split, on hand-written lines ----------------------------------------------------
+
+def test_split_shapes():
+    log = "\n".join([
+        "Compilation started",
+        "<stdin>:3:9: warning: unused variable 'x'",
+        "    int x;",
+        "        ^",
+        "<source>:5:1: note: declared here",
+        "warning: /tmp/k.cl:8:2: implicit conversion",
+        "error: unknown option '-cl-foo'",
+        "2 warnings and 1 error generated.",
+        "Done."])
+    s = split_log(log)
+    assert [(d.severity, d.location) for d in s.diagnostics] == [
+        ("warning", "<stdin>:3:9"), ("warning", "/tmp/k.cl:8:2"), ("error", "")]
+    first = s.diagnostics[0]
+    assert first.lines[1:3] == ["    int x;", "        ^"]
+    assert [(n.file, n.line, n.message) for n in first.notes] == [("<source>", 5, "declared here")]
+    assert s.chatter == ["Compilation started", "2 warnings and 1 error generated.", "Done."]
+
+
+def test_unrecognised_lines_are_diagnostics():
+    """A line no pattern knows is shown (never hidden as chatter), as is an orphan note."""
+    s = split_log("Compilation started\nSomething new went wrong\nnote: k.cl:1:1: see here\nDone.")
+    assert [(d.severity, d.message) for d in s.diagnostics] == [
+        ("unknown", "Something new went wrong"), ("note", "see here")]
+    assert diagnostics("") == []
+
+
+def test_chatter_patterns_name_their_implementation():
+    assert all(isinstance(p, str) and who for p, who in CHATTER)
+    # a warning never reads as chatter, whatever its wording
+    assert not is_chatter("input.cl:1:1: warning: Compilation started")
+    assert not is_chatter("remark: input.cl:3:1: loop not vectorized")
