@@ -53,7 +53,9 @@ __kernel void encode_forward(const int n, const float scale, __global const floa
 #endif
 #if ENC_FREQS > 0
     float16 s, co;
-    sincospi_v(ldexp(vload16(0, pa), k), &s, &co);   /* 2^k p is exact */
+    /* 2^k p is exact: a product with a power of two (k <= 30). Written as a product, not as
+     * ldexp(float16, int), which Oclgrind 21.10 computes wrongly for vectors. */
+    sincospi_v(vload16(0, pa) * (float)(1u << k), &s, &co);
     float sa[ENC_BLOCK], ca[ENC_BLOCK];
     vstore16(s, 0, sa);
     vstore16(co, 0, ca);

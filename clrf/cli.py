@@ -126,7 +126,13 @@ def cmd_train(a):
         if comm.Get_rank() > 0:
             from .progress import set_quiet
             set_quiet(True)
-    dev = Device(a.device)
+    if comm is None:   # the device that runs this model kind fastest (clrf/workload.py)
+        from .workload import device_for
+        dev = device_for(cfg.train.model, a.device)
+        if getattr(dev, "choice", None):
+            print(f"clrf: device {dev}: {dev.choice}", file=sys.stderr)
+    else:
+        dev = Device(a.device)
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
     if comm is None:
@@ -311,9 +317,10 @@ def cmd_export(a):
 
 def cmd_devices(a):
     from .device import check_default, format_devices
+    from .workload import format_choices
     if a.check:
         return check_default(refresh=a.reprobe)
-    print(format_devices(refresh=a.reprobe))
+    print(format_devices(refresh=a.reprobe, workloads=format_choices(measure=a.workloads)))
     return 0
 
 
@@ -403,6 +410,9 @@ def build_parser():
     d = sub.add_parser("devices", help="list OpenCL devices, their probe figures and the default")
     d.add_argument("--reprobe", action="store_true",
                    help="measure every device again instead of reading the cached figures")
+    d.add_argument("--workloads", action="store_true",
+                   help="time each model kind's kernels on every working device (cached) and "
+                        "show which device each --model gets by default")
     d.add_argument("--check", action="store_true",
                    help="print only the default device; exit 0 if it is fine, 3 if it is a slow "
                         "driver (the warning names the fix), 1 if no device works")

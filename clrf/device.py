@@ -74,7 +74,10 @@ ACQ_REL_FEATURES = ("__opencl_c_atomic_order_acq_rel", "__opencl_c_atomic_scope_
 
 
 def _opencl_c_features(dev: "cl.Device") -> frozenset:
-    """The OpenCL C 3.0 optional features the device compiles (empty before OpenCL 3.0)."""
+    """The OpenCL C 3.0 optional features the device compiles (empty before OpenCL 3.0, which
+    has no such query: asking a 1.2 device is an API error, which Oclgrind reports)."""
+    if not dev.version.startswith("OpenCL 3."):
+        return frozenset()
     try:
         return frozenset(f.name for f in dev.opencl_c_features)
     except (cl.Error, AttributeError):
@@ -146,6 +149,7 @@ class Choice:
     candidate: Candidate    # the chosen device with its probe figure
     reason: str             # why it was chosen, in words
     candidates: tuple       # every device whose figure was looked at (slow-driver checks)
+    ranked: tuple = ()      # the usable wanted devices, best probe first (auto/cpu/gpu specs)
 
 
 def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
@@ -187,7 +191,7 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
     if ranked:
         best = ranked[0]
         d = entries[(best.platform_index, best.device_index)]
-        return Choice(d[0], d[1], d[2], best, choice_reason(ranked), cands)
+        return Choice(d[0], d[1], d[2], best, choice_reason(ranked), cands, tuple(ranked))
     msg = f"no working {'/'.join(wanted)} OpenCL device. Devices:\n{listing}"
     if cands:
         msg += "\nRejected:\n" + "\n".join(
@@ -263,8 +267,9 @@ class Device:
         self.queue.finish()
 
 
-def format_devices(refresh: bool = False) -> str:
-    """Text for ``clrf devices``: every device, its probe figure, capabilities and the default."""
+def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
+    """Text for ``clrf devices``: every device, its probe figure, capabilities and the default;
+    ``workloads``: lines on each model kind's default (clrf/workload.py format_choices)."""
     devs = list_devices()
     if not devs:
         return "no OpenCL devices found"
@@ -301,6 +306,8 @@ def format_devices(refresh: bool = False) -> str:
             lines.append(warning.replace("clrf: warning: ", "advice: "))
     except DeviceError as e:
         lines.append(f"default (CLRF_DEVICE={env}): none ({str(e).splitlines()[0]})")
+    if workloads is not None:
+        lines.extend(workloads)
     lines.append(f"probe figures are cached in {cache_path()}; `clrf devices --reprobe` measures "
                  f"again")
     return "\n".join(lines)

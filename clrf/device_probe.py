@@ -60,6 +60,7 @@ PROBE_RTOL = 1e-3
 TIE = 0.10                  # figures within 10% of the best are equal; ICD order decides
 SLOW_VS_SIBLING = 3.0       # another driver on the same CPU this many times faster: flag
 SLOW_VS_PEAK = 1.0 / 12     # under this fraction of the estimated CPU peak: flag
+SIMULATOR_GFLOPS = 1e-3     # the figure a simulator gets: ranks below any real device
 OVER_PEAK = 1.5             # a figure above this multiple of the physical peak is impossible
 #                             (turbo clocks over the reported base clock stay well under it)
 INSTALL_HINT = ("install the distribution's PoCL (Debian/Ubuntu: "
@@ -166,10 +167,20 @@ def measure(dev: "cl.Device") -> Probe:
         q.finish()
         if not np.all(a == 1.0):
             return Probe("probe kernel gave wrong results", 0.0, time.perf_counter() - t_start, when)
+        if is_simulator(dev):
+            return Probe(None, SIMULATOR_GFLOPS, time.perf_counter() - t_start, when)
         gflops, err = _fma_gflops(ctx, q, prg, dev)
     except Exception as e:  # noqa: BLE001 - any driver failure disqualifies the device
         return Probe(_error_text(e), seconds=time.perf_counter() - t_start, when=when)
     return Probe(err, gflops if err is None else 0.0, time.perf_counter() - t_start, when)
+
+
+def is_simulator(dev: "cl.Device") -> bool:
+    """A device that simulates every work-item (Oclgrind): it runs the kernels to check them,
+    never to be fast, so it gets no FMA figure. (Oclgrind 21.10 with --uninitialized also
+    crashes on any kernel that adds two elements of one vector, e.g. ``float4 c = vload4(0, a);
+    o[i] = c.s0 + c.s1;``, which the FMA probe does.)"""
+    return "oclgrind" in dev.platform.name.lower()
 
 
 def run_seconds(wall: float, cpu: float, compute_units: int, gpu: bool) -> float:

@@ -1,11 +1,39 @@
-"""Shared fixtures: one device per test session, chosen by CLRF_DEVICE (default: the fastest
-working device by its cached probe figure)."""
+"""Shared fixtures: the session's device, chosen by CLRF_DEVICE (default: the fastest working
+device by its cached probe figure), and the same kernel tests on every OpenCL implementation.
+
+The kernel-vs-reference modules (EVERY_IMPL_MODULES) run once per OpenCL implementation
+present: the session device, then one device of each other implementation (PoCL, Intel's CPU
+runtime, Mesa's rusticl, ...; clrf/testing/impls.py), as the ``device`` fixture's parameter.
+CLRF_TEST_IMPLS narrows it: ``default`` (the session device only) or a comma list of
+implementation names (``pocl,intel``). Oclgrind is not among them: the simulator runs every
+kernel once, small, under its race and API checks (tests/test_oclgrind.py).
+"""
 import os
 from pathlib import Path
 
 import pytest
 
 import clrf
+from clrf.testing import impls
+
+# Mesa's rusticl shows its software device only when asked; set before any platform listing
+os.environ.setdefault("RUSTICL_ENABLE", "llvmpipe")
+
+EVERY_IMPL_MODULES = {
+    "test_render", "test_grid_ops", "test_grid_grad_slots", "test_march_alpha", "test_background",
+    "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
+    "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
+}
+
+
+def pytest_generate_tests(metafunc):
+    """The kernel modules' tests take every implementation as the ``device`` parameter."""
+    if metafunc.module.__name__.rsplit(".", 1)[-1] not in EVERY_IMPL_MODULES:
+        return
+    if "device" not in metafunc.fixturenames:
+        return
+    names = ["default"] + [n for n in impls.others(os.environ.get("CLRF_TEST_IMPLS", "all"))]
+    metafunc.parametrize("device", names, indirect=True, scope="session")
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -21,8 +49,12 @@ def _own_tuning_cache(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def device():
-    return clrf.Device()
+def device(request):
+    """The session device ("default") or one device of another implementation, by name."""
+    name = getattr(request, "param", "default")
+    if name == "default":
+        return clrf.Device()
+    return impls.device_of(name)
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,67 @@
+"""The OpenCL implementations present on this machine, one device each, for the tests.
+
+An implementation is a driver family (PoCL, Intel's CPU runtime, Mesa's rusticl, Oclgrind,
+a GPU vendor's driver), named from the platform. Two platforms of one family (pip's PoCL
+beside the distribution's) count once: the one whose probe figure is higher. Oclgrind is
+left out of ``present()``: it simulates every work-item and is run by its own test.
+"""
+from __future__ import annotations
+
+import functools
+
+from ..device import Device, choose_device, list_devices
+from ..device_probe import probe
+
+SIMULATORS = ("oclgrind",)
+
+
+def implementation(platform_name: str) -> str:
+    """Short name of the implementation behind a platform name."""
+    p = platform_name.strip().lower()
+    for key, name in (("portable computing language", "pocl"), ("intel(r) opencl", "intel"),
+                      ("rusticl", "rusticl"), ("oclgrind", "oclgrind"), ("clover", "clover"),
+                      ("nvidia", "nvidia"), ("amd accelerated", "amd"), ("intel(r) opencl hd",
+                                                                          "intel-gpu")):
+        if key in p:
+            return name
+    return p.split()[0] if p else "unknown"
+
+
+@functools.lru_cache(maxsize=None)
+def present() -> dict:
+    """{implementation: "P:D"} for every working implementation here, simulators excepted."""
+    best = {}
+    for pi, di, d in list_devices():
+        name = implementation(d.platform.name)
+        if name in SIMULATORS:
+            continue
+        pr = probe(d)
+        if pr is None or not pr.ok:
+            continue
+        if name not in best or pr.gflops > best[name][1]:
+            best[name] = (f"{pi}:{di}", pr.gflops)
+    return {k: v[0] for k, v in best.items()}
+
+
+@functools.lru_cache(maxsize=None)
+def default_implementation() -> str:
+    return implementation(choose_device().cl_device.platform.name)
+
+
+def others(spec: str = "all") -> list:
+    """Implementations present other than the session device's, narrowed by ``spec``: "all",
+    "default" (none) or a comma list of names."""
+    spec = (spec or "all").strip().lower()
+    if spec == "default":
+        return []
+    names = [n for n in sorted(present()) if n != default_implementation()]
+    if spec != "all":
+        wanted = {s.strip() for s in spec.split(",") if s.strip()}
+        names = [n for n in names if n in wanted]
+    return names
+
+
+@functools.lru_cache(maxsize=None)
+def device_of(name: str) -> Device:
+    """A Device of implementation ``name`` (one per process)."""
+    return Device(present()[name])

@@ -1,0 +1,86 @@
+"""Every kernel family runs under the Oclgrind simulator's checks with no report.
+
+Oclgrind (Debian ``oclgrind``; ``bash tools/setup.sh impls``) simulates an OpenCL 1.2 device
+and reports out-of-bounds accesses, data races between work-items (``OCLGRIND_DATA_RACES``),
+barrier divergence and API misuse (``OCLGRIND_CHECK_API``): bugs that PoCL tolerates and a GPU
+may not. It is a device of its own here, through a vendors folder that names only its ICD, and
+runs a small test of each kernel family (CASES) in a child pytest: grid forward and backward
+in both loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample,
+prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
+forward and backward. The child's tests must pass and Oclgrind must report nothing.
+
+One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
+building a program and looking up a kernel, and a 1.2 device answers CL_INVALID_VALUE, which
+pyopencl handles (``clGetDeviceInfo`` / ``CL_INVALID_VALUE`` / ``param_name``). Those reports
+are counted apart and must be the only API reports. ``--uninitialized`` is not used: Oclgrind
+21.10's plugin stops on LLVM's ``freeze`` instruction ("Unsupported instruction: freeze") and
+crashes on kernels that add two elements of one vector (clrf/device_probe.py is_simulator).
+"""
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ICD = Path("/usr/lib/oclgrind/liboclgrind-rt-icd.so")
+
+CASES = [
+    "tests/test_render.py::test_forward_vs_reference",
+    "tests/test_render.py::test_backward_vs_finite_differences",
+    "tests/test_render.py::test_empty_grid",
+    "tests/test_render.py::test_max_weight_vs_reference",
+    "tests/test_grid_ops.py::test_update_rows_vs_reference",
+    "tests/test_grid_ops.py::test_tv_grad_vs_reference",
+    "tests/test_grid_ops.py::test_resample_vs_reference",
+    "tests/test_grid_ops.py::test_prune_vs_reference_and_to_nothing",
+    "tests/test_grid_ops.py::test_gather_batch_vs_reference",
+    "tests/test_grid_ops.py::test_fused_mse_and_beta_prior_vs_reference",
+    "tests/test_background.py::test_awkward_sizes",
+    "tests/test_background.py::test_backward_matches_reference",
+    "tests/test_bricks.py::test_partial_kernel_vs_reference",
+    "tests/test_nerf_encode.py::test_encode_matches_reference",
+    "tests/test_nerf_encode.py::test_encode_backward_matches_reference",
+    "tests/test_nerf_sample.py::test_stratified_matches_reference",
+    "tests/test_nerf_sample.py::test_importance_matches_reference",
+    "tests/test_nerf_composite.py::test_forward_matches_reference",
+    "tests/test_nerf_composite.py::test_backward_matches_reference",
+    "tests/test_nerf_composite.py::test_mse_mode_loss_and_gradient",
+    "tests/test_nerf_mlp.py::test_forward_matches_reference",
+    "tests/test_nerf_mlp.py::test_backward_matches_reference",
+]
+PYOPENCL_QUERY = re.compile(r"Function: clGetDeviceInfo\s+Error:\s+CL_INVALID_VALUE\s+"
+                            r"For argument 'param_name'")
+REPORT = re.compile(r"^(Oclgrind - .*|.*(Invalid (read|write)|data race|Data race|"
+                    r"divergence|Uninitialized|OCLGRIND FATAL).*)$", re.MULTILINE)
+
+
+@pytest.mark.slow
+def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
+    if not ICD.exists() or shutil.which("oclgrind") is None:
+        pytest.skip("Oclgrind is not installed (`bash tools/setup.sh impls` or "
+                    "`apt-get install oclgrind`)")
+    vendors = tmp_path / "vendors"
+    vendors.mkdir()
+    (vendors / "oclgrind.icd").write_text(f"{ICD}\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("CLRF_", "OCLGRIND_"))}
+    env.update(OCL_ICD_VENDORS=str(vendors), CLRF_DEVICE="0:0", CLRF_TEST_IMPLS="default",
+               OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path),
+               PYTHONPATH=str(ROOT))
+    # -k default: the session device (Oclgrind) only, not the other implementations
+    cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-s", "-p", "no:cacheprovider",
+           "-k", "default", *CASES]
+    out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0, text[-4000:]
+    assert re.search(r"\d+ passed", out.stdout), out.stdout[-2000:]
+    # every API report is one of pyopencl's OpenCL 3.0 queries (module doc) ...
+    headers = text.count("Oclgrind - OpenCL runtime error detected")
+    assert headers == len(PYOPENCL_QUERY.findall(text)), text[-4000:]
+    # ... and nothing else is reported: no race, invalid access, divergence
+    reports = [m.group(0) for m in REPORT.finditer(text)
+               if m.group(0) != "Oclgrind - OpenCL runtime error detected"]
+    assert not reports, "\n".join(reports[:20])
