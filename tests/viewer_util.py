@@ -1,0 +1,68 @@
+"""Helpers of the viewer tests: a tiny checkpoint, and `clrf view` as a subprocess."""
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from clrf.cli import main as cli
+
+ROOT = Path(__file__).resolve().parent.parent
+# the built-in procedural scene, 16^3 -> 32^3 after 8 iterations (as tests/test_train.py)
+FAST = ["--set", "grid.reso=[[16,16,16],[32,32,32]]", "--set", "grid.upsample_at=[8]",
+        "--set", "grid.batch_size=1024", "--set", "train.eval_every=1.0",
+        "--set", "train.eval_views=2", "--set", "train.final_eval=false"]
+START_TIMEOUT = 120.0   # seconds for `clrf view` to build its kernels and print its URL
+
+
+def train_tiny(out, seconds=2.0):
+    assert cli(["--quiet", "train", "--out", str(out), "--max-seconds", str(seconds), *FAST]) == 0
+    return out
+
+
+class ViewProcess:
+    """`clrf view --ckpt CK --port 0 ...` in a subprocess; .url once it has printed it."""
+
+    def __init__(self, ckpt, *extra, exit_after=300):
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        self.p = subprocess.Popen(
+            [sys.executable, "-m", "clrf.cli", "view", "--ckpt", str(ckpt), "--port", "0",
+             "--exit-after", str(exit_after), *extra],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=str(ROOT))
+        self.lines = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.output = []
+        self.url = None
+        deadline = time.monotonic() + START_TIMEOUT
+        while self.url is None and time.monotonic() < deadline:
+            try:
+                line = self.lines.get(timeout=1.0)
+            except queue.Empty:
+                if self.p.poll() is not None:
+                    break
+                continue
+            self.output.append(line)
+            if "viewer at " in line:
+                self.url = line.split("viewer at ", 1)[1].split()[0]
+        if self.url is None:
+            self.close()
+            raise AssertionError("clrf view did not start:\n" + "".join(self.output))
+        self.port = int(self.url.rstrip("/").rsplit(":", 1)[1])
+
+    def _read(self):
+        for line in self.p.stdout:
+            self.lines.put(line)
+
+    def alive(self):
+        return self.p.poll() is None
+
+    def close(self):
+        if self.p.poll() is None:
+            self.p.terminate()
+            try:
+                self.p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait(timeout=10)
