@@ -63,13 +63,19 @@ def run_view(a):
     warn_host(a.host)
     srv = ViewerServer(core, a.host, a.port, ck if ck.is_dir() else ck.parent).start()
     print(f"clrf: viewer at {srv.url} (Ctrl-C to stop)", flush=True)
-    t_end = time.monotonic() + a.exit_after if a.exit_after else math.inf
     try:
-        while time.monotonic() < t_end:
-            if core.wait(min(0.5, max(0.0, t_end - time.monotonic()))):
-                core.serve_pending(max_frames=8, max_seconds=2.0, budget=False)
+        render_loop(core, a.exit_after or math.inf)
     except KeyboardInterrupt:
         pass
     finally:
         srv.stop()
     return 0
+
+
+def render_loop(core, seconds=math.inf, stop=None):
+    """Render the core's pending frames on this thread (the only one that touches the model)
+    for ``seconds`` or until the threading.Event ``stop`` is set."""
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end and not (stop is not None and stop.is_set()):
+        if core.wait(min(0.25, max(0.0, t_end - time.monotonic()))):
+            core.serve_pending(max_frames=8, max_seconds=2.0, budget=False)
