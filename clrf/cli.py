@@ -110,6 +110,9 @@ def cmd_train(a):
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     comm = _mpi_world()
+    if comm is not None and a.view:
+        raise CliError("--view: the viewer runs with single-process training; drop --view "
+                       "under mpirun (view the checkpoint afterwards with `clrf view`)")
     if comm is not None:
         from .grid.dist_model import check_schedule
         if cfg.train.model != "grid":
@@ -160,11 +163,16 @@ def cmd_train(a):
     if a.log == "tensorboard":
         from .tblog import TensorBoardLog
         trainer.metric_sinks = (TensorBoardLog(out),)
+    if a.view:
+        from .viewer.live import LiveViewer
+        trainer.viewer = LiveViewer(trainer, a.host, a.port, a.view_share)
     try:
         res = trainer.run()
     finally:
         for sink in trainer.metric_sinks:
             sink.close()
+        if trainer.viewer is not None:
+            trainer.viewer.close()
     if res.get("interrupted"):
         print(f"clrf: interrupted; checkpoint kept at {trainer.ckpt_path} (resume with "
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
@@ -353,6 +361,14 @@ def build_parser():
     t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
                    help="metrics.csv always; 'tensorboard' also writes event files to "
                         "OUT/tensorboard (needs tensorboardX)")
+    t.add_argument("--view", action="store_true",
+                   help="serve the interactive viewer while training (needs clrf[view])")
+    t.add_argument("--port", type=int, default=8080, help="--view: TCP port (default 8080)")
+    t.add_argument("--host", default="127.0.0.1",
+                   help="--view: address to listen on (default 127.0.0.1; others warn)")
+    t.add_argument("--view-share", type=float, default=0.2, metavar="FRACTION",
+                   help="--view: largest fraction of wall time spent rendering for the viewer "
+                        "(default 0.2)")
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")

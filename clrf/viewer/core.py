@@ -161,7 +161,7 @@ class ViewerCore:
     share: the largest fraction of wall time that :meth:`serve_pending` may spend rendering
     (``clrf train --view``; 1.0 for ``clrf view``), measured since the core was made."""
 
-    MAX_CURVE = 2000   # curve points kept (older ones thinned by half when full)
+    MAX_CURVE = 600   # curve points kept (every other one dropped when full)
 
     def __init__(self, model, meta, cameras=(), share: float = 1.0, training: bool = False):
         self.model = model
@@ -292,7 +292,7 @@ class ViewerCore:
         f = (lambda v: None if not math.isfinite(v) else v)
         return {"type": "stats", "iteration": s.iteration, "seconds": s.seconds,
                 "loss": f(s.loss), "psnr": f(s.psnr), "rays_per_s": s.rays_per_s,
-                "model": s.model, "paused": self.paused, "curve": s.curve[-400:],
+                "model": s.model, "paused": self.paused, "curve": s.curve,
                 "render_share": self.render_seconds / max(1e-9, time.perf_counter() - self._t0)}
 
     def broadcast(self, msg: dict):
