@@ -11,6 +11,10 @@
 #   bash tools/setup.sh test,mpi # plus mpi4py for `mpirun -n N clrf train`; installs Debian's
 #                                # Open MPI first (openmpi-bin libopenmpi-dev) when mpicc or
 #                                # mpirun is missing
+#   bash tools/setup.sh view      # plus the web viewer (`clrf view`, `clrf train --view`)
+#   bash tools/setup.sh view,test # plus headless Chromium for the viewer's browser test:
+#                                # Debian's chromium and chromium-driver when chromium or
+#                                # chromedriver is missing (Selenium drives it; no download)
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
@@ -48,6 +52,21 @@ case ",${1:-}," in
             apt_install "an MPI library with mpicc and mpirun (Open MPI, MPICH)" \
                 openmpi-bin libopenmpi-dev || exit 1
         fi ;;
+esac
+
+# extras "view" and "test" together: the browser test needs a system Chromium and its driver
+case ",${1:-}," in
+    *,view,*)
+        case ",${1:-}," in
+            *,test,*)
+                if ! { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; } ||
+                   ! command -v chromedriver >/dev/null; then
+                    echo "clrf: extras 'view,test': installing headless Chromium" \
+                         "(chromium chromium-driver)" >&2
+                    apt_install "Chromium and its WebDriver (chromium, chromedriver)" \
+                        chromium chromium-driver || exit 1
+                fi ;;
+        esac ;;
 esac
 
 rm -rf .venv
