@@ -298,3 +298,18 @@ def test_loopback_by_default_and_a_warning_otherwise(capsys):
     assert capsys.readouterr().err == ""
     warn_host("0.0.0.0")
     assert "warning" in capsys.readouterr().err
+
+
+def test_viewer_speed_tool_runs(ckpt, tmp_path):
+    import subprocess
+    import sys
+    from viewer_util import ROOT
+    out = tmp_path / "speed.json"
+    r = subprocess.run([sys.executable, str(ROOT / "tools" / "viewer_speed.py"), "--ckpt",
+                        str(ckpt), "--frames", "3", "--repeats", "2", "--warmup", "1",
+                        "--move-size", "24", "--rest-size", "40", "--json", str(out)],
+                       capture_output=True, text=True, timeout=600, cwd=str(ROOT))
+    assert r.returncode == 0, r.stderr
+    res = json.loads(out.read_text())
+    assert res["moving_fps"] > 0 and res["time_to_full_s_median"] > 0
+    assert (res["moving_size"], res["rest_size"]) == (24, 40)
