@@ -5,7 +5,7 @@ to zoom); the image the page displays is read back from its canvas and compared 
 installed (`bash tools/setup.sh view,test` installs one).
 
 CLRF_VIEWER_SCREENSHOT=FILE.png also saves a larger screenshot of the page there (the README's
-docs/img/viewer.png is made this way)."""
+docs/img/viewer.png is made this way; the model then trains 20 s instead of 2)."""
 import importlib.util
 import os
 import shutil
@@ -89,7 +89,8 @@ def _clrf_render(ckpt, pose, fov, out):
 
 def test_browser_shows_what_clrf_render_renders(tmp_path):
     d = _browser()
-    ckpt = train_tiny(tmp_path / "run")
+    shot = os.environ.get("CLRF_VIEWER_SCREENSHOT")
+    ckpt = train_tiny(tmp_path / "run", 20.0 if shot else 2.0)   # a clearer model to show
     view = ViewProcess(ckpt)
     try:
         from selenium.webdriver.common.action_chains import ActionChains
@@ -121,7 +122,6 @@ def test_browser_shows_what_clrf_render_renders(tmp_path):
                               tmp_path / "b")
         assert np.abs(px[..., :3].astype(int) - before.astype(int)).max() > 10 * VIEWER_PIXEL_ATOL
         d.save_screenshot(str(tmp_path / "viewer.png"))
-        shot = os.environ.get("CLRF_VIEWER_SCREENSHOT")
         if shot:   # a larger view for the README
             d.execute_script("clrfViewer.setSize(640, 480)")
             _rest_frame_any(d)

@@ -29,7 +29,8 @@ import numpy as np
 from .core import DEFAULT_CAP, DEFAULT_MOVE_CAP, RequestError, ViewerCore
 
 MAX_MESSAGE = 1 << 20      # largest client message, bytes (a request is < 1 KiB)
-SEND_TIMEOUT = 10.0        # seconds a blocked send may take before the client is dropped
+SENDER_JOIN = 10.0         # seconds a leaving client's handler waits for its sender thread
+PING = 20.0                # keepalive ping interval and timeout: a dead client is dropped
 MAX_OUTBOX = 8             # text messages waiting for a client's sender thread
 MAX_KEYFRAMES = 1000
 MAX_PATH_FRAMES = 100_000
@@ -128,7 +129,7 @@ class ViewerServer:
         try:
             self._server = serve(self._handler, self.host, self.port, max_size=MAX_MESSAGE,
                                  process_request=self._http, compression=None,
-                                 ping_interval=20, ping_timeout=20)
+                                 ping_interval=PING, ping_timeout=PING)
         except OSError as e:
             from ..cli import CliError
             raise CliError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e}); pass "
@@ -171,11 +172,6 @@ class ViewerServer:
 
     def _handler(self, ws):
         box = _Outbox()
-        sock = ws.socket
-        try:
-            sock.settimeout(SEND_TIMEOUT)   # a send blocked this long drops the client
-        except OSError:
-            pass
         sender = threading.Thread(target=self._sender, args=(ws, box), daemon=True,
                                   name="clrf-viewer-send")
         sender.start()
@@ -194,7 +190,7 @@ class ViewerServer:
         finally:
             self.core.remove_client(cid)
             box.close()
-            sender.join(timeout=SEND_TIMEOUT + 1)
+            sender.join(timeout=SENDER_JOIN)
 
     @staticmethod
     def _sender(ws, box):
