@@ -167,7 +167,8 @@ class ViewerServer:
                           "ndc": bool(m.get("ndc", False)), "H": int(m["H"]), "W": int(m["W"]),
                           "background": list(map(float, getattr(self.core.model, "background",
                                                                 (1, 1, 1))))},
-                "cameras": self.core.cameras, "up": list(self.core.up), "cap": DEFAULT_CAP, "move_cap": DEFAULT_MOVE_CAP,
+                "cameras": self.core.cameras, "up": list(self.core.up), "cap": DEFAULT_CAP,
+                "move_cap": DEFAULT_MOVE_CAP,
                 "can_save_path": self.path_dir is not None}
 
     def _handler(self, ws):
