@@ -289,7 +289,7 @@ def cmd_render(a):
     with bar(len(poses), f"render {a.views}", "view") as b:
         for i, p in enumerate(poses):
             if fovs is not None:
-                spec = spec_from_fov(float(fovs[i]), pw, ph, bool(meta["ndc"]))
+                spec = spec_from_fov(float(fovs[i]), pw, ph, meta)
             r = render_pose(model, spec, p)
             frame = to_uint8(r["rgb"])
             frames.append(frame)

@@ -21,11 +21,16 @@ MAX_SIDE = 4096   # largest image side a camera may ask for (a 4096^2 frame is 1
 
 @dataclass
 class ViewSpec:
-    """hw = (H, W); intrinsics = (fx, fy, cx, cy) px; distortion None or (k1, k2, p1, p2)."""
+    """hw = (H, W); intrinsics = (fx, fy, cx, cy) px; distortion None or (k1, k2, p1, p2).
+
+    ndc_frame: for a camera other than the training camera of an NDC scene, the training
+    camera's (intrinsics, H, W): the NDC map (x' = -2 fx / W * x / z, ...) is the model's
+    coordinate system, fixed by the camera it was trained with, not by the viewing camera."""
     hw: Tuple[int, int]
     intrinsics: np.ndarray
     distortion: Optional[np.ndarray] = None
     ndc: bool = False
+    ndc_frame: Optional[tuple] = None
 
 
 def spec_from_meta(meta, scale: float = 1.0) -> ViewSpec:
@@ -45,17 +50,21 @@ def focal_from_fov(fov_y_deg: float, height: int) -> float:
     return 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
 
 
-def spec_from_fov(fov_y_deg: float, width: int, height: int, ndc: bool = False) -> ViewSpec:
+def spec_from_fov(fov_y_deg: float, width: int, height: int, meta=None) -> ViewSpec:
     """An undistorted pinhole camera of W x H pixels, square pixels, principal point at the
-    centre, vertical field of view ``fov_y_deg`` degrees in (0, 180)."""
+    centre, vertical field of view ``fov_y_deg`` degrees in (0, 180). ``meta``: the checkpoint's
+    dataset metadata; in an NDC scene its training camera fixes the NDC map (ndc_frame)."""
     if not (math.isfinite(fov_y_deg) and 0 < fov_y_deg < 180):
         raise ValueError(f"fov: must be a vertical field of view in (0, 180) degrees, got "
                          f"{fov_y_deg}")
     if not (1 <= int(width) <= MAX_SIDE and 1 <= int(height) <= MAX_SIDE):
         raise ValueError(f"image size {width}x{height}: each side must be in 1..{MAX_SIDE}")
     f = focal_from_fov(fov_y_deg, int(height))
+    ndc = bool(meta is not None and meta.get("ndc"))
+    frame = ((np.asarray(meta["intrinsics"], np.float64), int(meta["H"]), int(meta["W"]))
+             if ndc else None)
     return ViewSpec((int(height), int(width)),
-                    np.array([f, f, 0.5 * int(width), 0.5 * int(height)]), None, bool(ndc))
+                    np.array([f, f, 0.5 * int(width), 0.5 * int(height)]), None, ndc, frame)
 
 
 def check_pose(pose) -> np.ndarray:
@@ -79,15 +88,28 @@ def check_pose(pose) -> np.ndarray:
     return p
 
 
+def frame_rays(spec: ViewSpec, pose):
+    """Rays of every pixel of one camera, float32 [H*W, 3] origins and directions, rows first:
+    ``view_rays`` (as evaluation), or for a viewing camera of an NDC scene the world rays of
+    that camera through the training camera's NDC map (``spec.ndc_frame``)."""
+    from .cameras import pixel_rays, to_ndc
+    from .train import view_rays
+    if spec.ndc and spec.ndc_frame is not None:
+        H, W = spec.hw
+        o, d = pixel_rays(check_pose(pose)[None], spec.intrinsics, H, W, spec.distortion)
+        k, nh, nw = spec.ndc_frame
+        return to_ndc(o, d, k, nh, nw)
+    return view_rays(spec, check_pose(pose)[None])
+
+
 def render_pose(model, spec: ViewSpec, pose, near: float = 0.0) -> dict:
     """Render one camera: rgb [H, W, 3], depth [H, W], acc [H, W] float32 numpy.
 
     near > 0 moves every ray's origin ``near`` along its direction first (direction z = -1 in
     camera axes, so near is a distance along the viewing axis): matter closer to the camera than
     that is cut away. Ignored in NDC scenes (their rays start on the near plane already)."""
-    from .train import view_rays
     H, W = spec.hw
-    o, d = view_rays(spec, check_pose(pose)[None])
+    o, d = frame_rays(spec, pose)
     if near > 0 and not spec.ndc:
         o = (o + np.float32(near) * d).astype(np.float32)
     r = model.render(o, d)

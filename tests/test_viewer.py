@@ -164,7 +164,7 @@ def test_frame_equals_the_shared_render_path(server, loaded):
     with connect(ws_url(srv), open_timeout=WAIT) as ws:
         ws.send(json.dumps(m))
         hdr, img = frame_of(ws, 7)
-    spec = spec_from_fov(m["fov"], 40, 30, bool(state["dataset"]["ndc"]))
+    spec = spec_from_fov(m["fov"], 40, 30, state["dataset"])
     ref = to_uint8(render_pose(model, spec, np.reshape(m["c2w"], (4, 4)))["rgb"])
     np.testing.assert_array_equal(img, ref)   # the same code path: identical bytes
     assert img.std() > 5, "a blank frame proves nothing"
@@ -267,11 +267,13 @@ def test_background_and_near_controls(loaded):
     model, state = loaded
     base = Frame(1, look_at([3.0, 1.0, 2.0], [0, 0, 0]), 40.0, 32, 24, False, "rgb", None, 0.0)
     r = render_pose(model, spec_from_fov(40.0, 32, 24), base.pose)
-    red = frame_image(model, Frame(**{**base.__dict__, "background": (1.0, 0.0, 0.0)}), False)
+    red = frame_image(model, Frame(**{**base.__dict__, "background": (1.0, 0.0, 0.0)}),
+                      state["dataset"])
     bg = np.asarray(model.background, np.float32)
     want = to_uint8(r["rgb"] + (1 - r["acc"])[..., None] * (np.array([1, 0, 0], np.float32) - bg))
     np.testing.assert_array_equal(red, want)
-    far = frame_image(model, Frame(**{**base.__dict__, "near": 100.0, "output": "acc"}), False)
+    far = frame_image(model, Frame(**{**base.__dict__, "near": 100.0, "output": "acc"}),
+                      state["dataset"])
     assert far.max() == 0, "a near plane beyond the scene leaves nothing to see"
 
 

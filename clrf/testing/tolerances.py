@@ -257,3 +257,8 @@ DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
 # colour handling rounds differently; a wrong camera (half-pixel shift, transposed matrix, fov in
 # radians, the frame before the last mouse move) changes edge pixels by tens of levels.
 VIEWER_PIXEL_ATOL = 1
+# An NDC point of a world ray against the viewer's NDC ray (tests/test_frames.py): the ray is
+# float32 (components <= ~3 here, rounding <= 3 * 6e-8) and the projection onto it multiplies
+# that by the point's parameter (<= ~10): ~2e-6; 1e-5 leaves 5x. Using the viewing camera's own
+# NDC map instead of the training camera's moves the points by ~0.2.
+NDC_LINE_ATOL = 1e-5

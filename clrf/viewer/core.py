@@ -116,9 +116,10 @@ def depth_image(depth, acc, lo=None, hi=None):
     return to_uint8(rgb)
 
 
-def frame_image(model, fr: Frame, ndc: bool):
-    """Render one validated frame with the shared render path; uint8 [h, w, 3]."""
-    spec = spec_from_fov(fr.fov, fr.width, fr.height, ndc)
+def frame_image(model, fr: Frame, meta):
+    """Render one validated frame with the shared render path; uint8 [h, w, 3]. meta: the
+    checkpoint's dataset metadata (its NDC frame, if the scene has one)."""
+    spec = spec_from_fov(fr.fov, fr.width, fr.height, meta)
     r = render_pose(model, spec, fr.pose, fr.near)
     if fr.output == "depth":
         return depth_image(r["depth"], r["acc"])
@@ -166,7 +167,6 @@ class ViewerCore:
     def __init__(self, model, meta, cameras=(), share: float = 1.0, training: bool = False):
         self.model = model
         self.meta = meta
-        self.ndc = bool(meta.get("ndc", False))
         self.cameras = list(cameras)
         self.share = float(share)
         self.training = training
@@ -251,7 +251,7 @@ class ViewerCore:
                 fr, c.pending = c.pending, None
             t = time.perf_counter()
             try:
-                img = frame_image(self.model, fr, self.ndc)
+                img = frame_image(self.model, fr, self.meta)
             except Exception as e:   # noqa: BLE001 - a bad frame must not stop the server
                 self.errors += 1
                 self._send(c, {"type": "error", "seq": fr.seq, "message": f"render failed: {e}"},
