@@ -78,8 +78,8 @@ def _rot(q):
 
 def interpolate(keyframes, n: int) -> tuple:
     """``n`` cameras evenly spaced in time through ``keyframes`` [(pose [4, 4], fov)], each
-    segment taking the same time: positions and fov linearly, rotations by slerp. Returns
-    (poses [n, 4, 4], fovs [n])."""
+    segment taking the same time: positions and fov linearly, rotations by slerp; a camera at a
+    keyframe's time is that keyframe exactly. Returns (poses [n, 4, 4], fovs [n])."""
     if not keyframes:
         raise CameraPathError("camera path: no keyframes to interpolate")
     if len(keyframes) == 1 or n == 1:
@@ -92,6 +92,10 @@ def interpolate(keyframes, n: int) -> tuple:
         t = s - i
         (p0, f0), (p1, f1) = keyframes[i], keyframes[i + 1]
         p0, p1 = np.asarray(p0, np.float64), np.asarray(p1, np.float64)
+        if t == 0 or t == 1:   # a keyframe's time: its own pose, bit for bit
+            poses.append((p0 if t == 0 else p1).copy())
+            fovs.append(float(f0 if t == 0 else f1))
+            continue
         m = np.eye(4)
         m[:3, :3] = _rot(_slerp(_quat(p0[:3, :3]), _quat(p1[:3, :3]), t))
         m[:3, 3] = (1 - t) * p0[:3, 3] + t * p1[:3, 3]

@@ -121,6 +121,34 @@ def test_browser_shows_what_clrf_render_renders(tmp_path):
         before = _clrf_render(ckpt, np.reshape(first["c2w"], (4, 4)), first["fov"],
                               tmp_path / "b")
         assert np.abs(px[..., :3].astype(int) - before.astype(int)).max() > 10 * VIEWER_PIXEL_ATOL
+        # a camera from the list: the page takes its pose and field of view
+        button = d.find_element(By.XPATH, "//div[@id='cams']/button[starts-with(., 'test')]")
+        name = button.text
+        button.click()
+        cam = next(c for c in d.execute_script("return clrfViewer.state.cameras")
+                   if c["name"] == name)
+        now = _rest_frame(d)
+        assert now["c2w"] == cam["c2w"] and now["fov"] == pytest.approx(cam["fov"])
+        # record two keyframes with an orbit between them, save the camera path
+        d.find_element(By.ID, "addkey").click()
+        ActionChains(d).move_to_element(canvas).click_and_hold().move_by_offset(-30, 0) \
+            .release().perform()
+        _rest_frame(d)
+        d.find_element(By.ID, "addkey").click()
+        keys = d.execute_script("return clrfViewer.state.keys")
+        for field, value in (("fps", "4"), ("secs", "1")):
+            el = d.find_element(By.ID, field)
+            el.clear()
+            el.send_keys(value)
+        d.find_element(By.ID, "savepath").click()
+        _wait("the saved path", lambda: "camera_path.json" in d.find_element(By.ID, "saved").text)
+        saved = camera_path.load(ckpt / "camera_path.json")
+        assert (saved.width, saved.height, saved.fps, len(saved.poses)) == (W, H, 4.0, 4)
+        assert len(keys) == len(saved.keyframes) == 2
+        for k, (pose, fov) in zip(keys, saved.keyframes):
+            np.testing.assert_array_equal(pose.reshape(-1), k["c2w"])
+            assert fov == k["fov"]
+        np.testing.assert_array_equal(saved.poses[0], saved.keyframes[0][0])
         d.save_screenshot(str(tmp_path / "viewer.png"))
         if shot:   # a larger view for the README
             d.execute_script("clrfViewer.setSize(640, 480)")
