@@ -315,3 +315,41 @@ def test_viewer_speed_tool_runs(ckpt, tmp_path):
     res = json.loads(out.read_text())
     assert res["moving_fps"] > 0 and res["time_to_full_s_median"] > 0
     assert (res["moving_size"], res["rest_size"]) == (24, 40)
+
+
+def test_nerf_checkpoint_in_the_viewer(device, tmp_path):
+    """The viewer renders a NeRF checkpoint through the same path (and swaps its background)."""
+    from clrf.cli import main as cli
+    out = tmp_path / "n"
+    tiny = ["--set", "nerf.width=16", "--set", "nerf.depth=2", "--set", "nerf.color_width=16",
+            "--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8", "--set", "nerf.batch_rays=256",
+            "--set", "train.eval_every=1.0", "--set", "train.eval_views=2",
+            "--set", "train.final_eval=false"]
+    assert cli(["--quiet", "train", "--model", "nerf", "--out", str(out), "--max-seconds", "1",
+                *tiny]) == 0
+    model, state, _ = load_model(device, out)
+    core = ViewerCore(model, state["dataset"])
+    got = []
+    cid = core.add_client(lambda h, img: got.append((h, img)))
+    core.submit(cid, request(seq=1, background=[0.0, 1.0, 0.0]))
+    assert core.serve_pending(budget=False) == 1 and core.errors == 0
+    hdr, img = got[0]
+    r = render_pose(model, spec_from_fov(40.0, 32, 24, state["dataset"]),
+                    np.reshape(request()["c2w"], (4, 4)))
+    bg = np.asarray(model.background, np.float32)
+    want = to_uint8(r["rgb"] + (1 - r["acc"])[..., None] * (np.float32([0, 1, 0]) - bg))
+    np.testing.assert_array_equal(img, want)
+
+
+def test_view_usage_errors(tmp_path, loaded, capsys):
+    from clrf.cli import CliError
+    from clrf.cli import main as cli
+    assert cli(["view", "--ckpt", str(tmp_path / "nothing"), "--port", "0"]) == 2
+    assert "no checkpoint" in capsys.readouterr().err
+    model, state = loaded
+    with socket.socket() as busy:
+        busy.bind((HOST, 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        with pytest.raises(CliError, match="another --port"):
+            ViewerServer(ViewerCore(model, state["dataset"]), HOST, port).start()
