@@ -6,10 +6,7 @@ installed (`bash tools/setup.sh view,test` installs one).
 
 CLRF_VIEWER_SCREENSHOT=FILE.png also saves a larger screenshot of the page there (the README's
 docs/img/viewer.png is made this way; the model then trains 20 s instead of 2)."""
-import importlib.util
 import os
-import shutil
-import time
 
 import imageio.v3 as iio
 import numpy as np
@@ -18,43 +15,12 @@ import pytest
 from clrf import camera_path
 from clrf.cli import main as cli
 from clrf.testing.tolerances import VIEWER_PIXEL_ATOL
-from viewer_util import ViewProcess, train_tiny
+from viewer_util import ViewProcess, browser as _browser, console_errors, train_tiny
+from viewer_util import wait as _wait
 
 pytestmark = pytest.mark.slow
 
 W, H = 96, 72           # canvas pixels: below the default resolution cap, so shown 1:1
-WAIT = 120.0            # seconds for any one wait on the page (PoCL on a loaded machine)
-
-
-def _browser():
-    if importlib.util.find_spec("selenium") is None:
-        pytest.skip("selenium is not installed (bash tools/setup.sh view,test)")
-    if importlib.util.find_spec("websockets") is None:
-        pytest.skip("websockets is not installed (clrf[view])")
-    binary = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")
-                   if shutil.which(n)), None)
-    driver = shutil.which("chromedriver")
-    if binary is None or driver is None:
-        pytest.skip("no headless Chromium here: install Debian's chromium and chromium-driver "
-                    "(bash tools/setup.sh view,test)")
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = binary
-    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-              "--window-size=1100,720", "--force-device-scale-factor=1"):
-        opts.add_argument(a)
-    return webdriver.Chrome(options=opts, service=Service(driver))
-
-
-def _wait(what, fn, timeout=WAIT):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = fn()
-        if v:
-            return v
-        time.sleep(0.2)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 def _rest_frame(d):
@@ -150,6 +116,7 @@ def test_browser_shows_what_clrf_render_renders(tmp_path):
             assert fov == k["fov"]
         np.testing.assert_array_equal(saved.poses[0], saved.keyframes[0][0])
         d.save_screenshot(str(tmp_path / "viewer.png"))
+        assert console_errors(d) == []
         if shot:   # a larger view for the README
             d.execute_script("clrfViewer.setSize(640, 480)")
             _rest_frame_any(d)

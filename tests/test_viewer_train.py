@@ -16,7 +16,7 @@ from websockets.sync.client import connect  # noqa: E402
 from clrf import checkpoint  # noqa: E402
 from clrf.cameras import look_at  # noqa: E402
 from clrf.viewer.server import decode_frame  # noqa: E402
-from viewer_util import FAST, ROOT, START_TIMEOUT  # noqa: E402
+from viewer_util import FAST, ROOT, START_TIMEOUT, browser, console_errors, wait  # noqa: E402
 
 WAIT = 60.0
 
@@ -38,27 +38,36 @@ def is_stats(m):
     return isinstance(m, dict) and m["type"] == "stats"
 
 
-@pytest.mark.slow
-def test_train_with_the_viewer(tmp_path):
-    out = tmp_path / "run"
+def start_training(out, seconds):
+    """`clrf train --view --port 0` in a subprocess; (process, page URL)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     p = subprocess.Popen([sys.executable, "-m", "clrf.cli", "--quiet", "train", "--out", str(out),
-                          "--max-seconds", "10", "--view", "--port", "0", *FAST],
+                          "--max-seconds", str(seconds), "--view", "--port", "0", *FAST],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
                          cwd=str(ROOT))
     lines = queue.Queue()
     threading.Thread(target=lambda: [lines.put(x) for x in p.stderr], daemon=True).start()
+    url, seen, deadline = None, [], time.monotonic() + START_TIMEOUT
+    while url is None and time.monotonic() < deadline and p.poll() is None:
+        try:
+            line = lines.get(timeout=1.0)
+        except queue.Empty:
+            continue
+        seen.append(line)
+        if "viewer at " in line:
+            url = line.split("viewer at ", 1)[1].split()[0]
+    if url is None:
+        p.kill()
+        p.wait(timeout=10)
+        raise AssertionError("".join(seen))
+    return p, url
+
+
+@pytest.mark.slow
+def test_train_with_the_viewer(tmp_path):
+    p, url = start_training(tmp_path / "run", 10)
+    out = tmp_path / "run"
     try:
-        url, seen, deadline = None, [], time.monotonic() + START_TIMEOUT
-        while url is None and time.monotonic() < deadline and p.poll() is None:
-            try:
-                line = lines.get(timeout=1.0)
-            except queue.Empty:
-                continue
-            seen.append(line)
-            if "viewer at " in line:
-                url = line.split("viewer at ", 1)[1].split()[0]
-        assert url, "".join(seen)
         with connect(url.replace("http://", "ws://") + "ws", open_timeout=WAIT) as ws:
             hello = messages(ws, lambda m: m.get("type") == "hello", "hello")
             assert hello["training"] and hello["cameras"]
@@ -85,11 +94,42 @@ def test_train_with_the_viewer(tmp_path):
             # pause, then leave: training must not stay paused
             ws.send(json.dumps({"type": "pause"}))
             messages(ws, lambda m: is_stats(m) and m["paused"], "paused again")
-        rc = p.wait(timeout=START_TIMEOUT + 60)
-        assert rc == 0, p.stderr.read() if p.stderr else ""
+        assert p.wait(timeout=START_TIMEOUT + 60) == 0
         st = checkpoint.load(out)
         assert st["seconds"] >= 10 and st["iteration"] > it
     finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=10)
+
+
+@pytest.mark.slow
+def test_training_page_in_a_browser(tmp_path):
+    """The page in training mode: stats, the curve, pause and resume by its button."""
+    from selenium.webdriver.common.by import By
+    d = browser()
+    p, url = start_training(tmp_path / "run", 10)
+    try:
+        d.get(url)
+        stats = d.find_element(By.ID, "stats")
+        wait("training stats", lambda: "iteration" in stats.text and "grid" in stats.text)
+        button = d.find_element(By.ID, "pause")
+        button.click()
+        wait("the paused state", lambda: "PAUSED" in stats.text and button.text == "resume")
+        button.click()
+        wait("training again", lambda: "PAUSED" not in stats.text and button.text == "pause")
+        wait("a curve", lambda: d.execute_script(
+            "return clrfViewer.state.stats.curve.length > 1"))
+        wait("a frame", lambda: d.execute_script("return clrfViewer.displayed() !== null"))
+        assert console_errors(d) == []
+        assert d.execute_script("return clrfViewer.state.errors") == []
+        d.quit()   # closing the page does not stop training
+        d = None
+        assert p.wait(timeout=START_TIMEOUT + 60) == 0
+        assert checkpoint.load(tmp_path / "run")["seconds"] >= 10
+    finally:
+        if d is not None:
+            d.quit()
         if p.poll() is None:
             p.kill()
             p.wait(timeout=10)

@@ -1,11 +1,15 @@
 """Helpers of the viewer tests: a tiny checkpoint, and `clrf view` as a subprocess."""
+import importlib.util
 import os
 import queue
+import shutil
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
+
+import pytest
 
 from clrf.cli import main as cli
 
@@ -15,6 +19,7 @@ FAST = ["--set", "grid.reso=[[16,16,16],[32,32,32]]", "--set", "grid.upsample_at
         "--set", "grid.batch_size=1024", "--set", "train.eval_every=1.0",
         "--set", "train.eval_views=2", "--set", "train.final_eval=false"]
 START_TIMEOUT = 120.0   # seconds for `clrf view` to build its kernels and print its URL
+BROWSER_WAIT = 120.0    # seconds for any one wait on the page (PoCL on a loaded machine)
 
 
 def train_tiny(out, seconds=2.0):
@@ -66,3 +71,40 @@ class ViewProcess:
             except subprocess.TimeoutExpired:
                 self.p.kill()
                 self.p.wait(timeout=10)
+
+
+def browser():
+    """Headless Chromium through Selenium; skips the test with the reason when missing."""
+    if importlib.util.find_spec("selenium") is None:
+        pytest.skip("selenium is not installed (bash tools/setup.sh view,test)")
+    if importlib.util.find_spec("websockets") is None:
+        pytest.skip("websockets is not installed (clrf[view])")
+    binary = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")
+                   if shutil.which(n)), None)
+    driver = shutil.which("chromedriver")
+    if binary is None or driver is None:
+        pytest.skip("no headless Chromium here: install Debian's chromium and chromium-driver "
+                    "(bash tools/setup.sh view,test)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = binary
+    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+              "--window-size=1100,720", "--force-device-scale-factor=1"):
+        opts.add_argument(a)
+    return webdriver.Chrome(options=opts, service=Service(driver))
+
+
+def wait(what, fn, timeout=BROWSER_WAIT):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = fn()
+        if v:
+            return v
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def console_errors(d):
+    """The page's JavaScript errors so far (Chromium's SEVERE console entries)."""
+    return [e["message"] for e in d.get_log("browser") if e.get("level") == "SEVERE"]

@@ -157,6 +157,8 @@ class ViewerServer:
             return Response(200, "OK", Headers([("Content-Type", "text/html; charset=utf-8"),
                                                 ("Content-Length", str(len(body))),
                                                 ("Cache-Control", "no-store")]), body)
+        if request.path == "/favicon.ico":
+            return Response(204, "No Content", Headers([("Content-Length", "0")]), b"")
         return conn.respond(404, "not found\n")
 
     # ---- WebSocket: one thread per client --------------------------------------------------
@@ -169,7 +171,9 @@ class ViewerServer:
                                                                 (1, 1, 1))))},
                 "cameras": self.core.cameras, "up": list(self.core.up), "cap": DEFAULT_CAP,
                 "move_cap": DEFAULT_MOVE_CAP,
-                "can_save_path": self.path_dir is not None}
+                "can_save_path": self.path_dir is not None,
+                # an MSI background is not one colour: the background control cannot swap it
+                "background_control": getattr(self.core.model, "bg_model", None) is None}
 
     def _handler(self, ws):
         box = _Outbox()
