@@ -103,7 +103,7 @@ def ws_url(srv):
     ({"fov": "50"}, "fov"), ({"width": 0}, "width"), ({"height": 1e12}, "height"),
     ({"width": True}, "width"), ({"output": "normals"}, "output"),
     ({"background": [2, 0, 0]}, "background"), ({"near": -1}, "near"),
-    ({"near": float("inf")}, "near"), ({"cap": 1}, "cap"),
+    ({"near": float("inf")}, "near"), ({"cap": 1}, "cap"), ({"cap": 5000}, "cap"),
 ])
 def test_bad_requests_name_the_field(bad, field):
     with pytest.raises(RequestError, match=field):

@@ -115,6 +115,13 @@ def test_browser_shows_what_clrf_render_renders(tmp_path):
             np.testing.assert_array_equal(pose.reshape(-1), k["c2w"])
             assert fov == k["fov"]
         np.testing.assert_array_equal(saved.poses[0], saved.keyframes[0][0])
+        # a refused request (a resolution below the minimum) does not leave the page stuck
+        d.execute_script("document.getElementById('movecap').value = '1'; "
+                         "clrfViewer.request(true)")
+        _wait("the refusal", lambda: d.execute_script("return clrfViewer.state.errors.length"))
+        d.execute_script("document.getElementById('movecap').value = '200'; "
+                         "clrfViewer.request(false)")
+        _rest_frame(d)
         d.save_screenshot(str(tmp_path / "viewer.png"))
         assert console_errors(d) == []
         if shot:   # a larger view for the README

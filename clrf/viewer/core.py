@@ -32,6 +32,7 @@ from ..frames import MAX_SIDE, check_pose, render_pose, spec_from_fov, to_uint8
 OUTPUTS = ("rgb", "depth", "acc")
 DEFAULT_CAP = 800        # largest frame side at rest
 DEFAULT_MOVE_CAP = 200   # largest frame side while the camera moves
+MAX_CAP = 2048           # largest frame side the viewer renders (4 M rays; camera paths: 4096)
 MAX_NEAR = 1e6
 
 
@@ -79,7 +80,7 @@ def parse_request(msg) -> Frame:
     w = _num(msg, "width", 1, MAX_SIDE, integer=True)
     h = _num(msg, "height", 1, MAX_SIDE, integer=True)
     moving = bool(msg.get("moving", False))
-    cap = _num(msg, "move_cap" if moving else "cap", 8, MAX_SIDE,
+    cap = _num(msg, "move_cap" if moving else "cap", 8, MAX_CAP,
                DEFAULT_MOVE_CAP if moving else DEFAULT_CAP, integer=True)
     s = min(1.0, cap / max(w, h))
     w, h = max(1, round(w * s)), max(1, round(h * s))
