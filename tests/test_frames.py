@@ -60,3 +60,14 @@ def test_check_pose_names_the_problem(pose, words):
 def test_spec_from_fov_rejects(fov, w, h, words):
     with pytest.raises(ValueError, match=words):
         spec_from_fov(fov, w, h)
+
+
+def test_viewer_without_websockets_says_how_to_install(monkeypatch):
+    import sys
+
+    from clrf.cli import CliError
+    from clrf.viewer.server import need_websockets
+    monkeypatch.setitem(sys.modules, "websockets", None)
+    monkeypatch.setitem(sys.modules, "websockets.sync.server", None)
+    with pytest.raises(CliError, match=r"pip install websockets.*clrf\[view\]"):
+        need_websockets()
