@@ -381,8 +381,8 @@ def build_parser():
     r.add_argument("--fps", type=float, default=None,
                    help="video frame rate (default 24; with --camera-path the file's fps)")
     r.add_argument("--camera-path", default=None, metavar="FILE",
-                   help="render the cameras of a camera_path.json (saved by `clrf view`, or "
-                        "nerfstudio's layout) to path_NNN.png (and path.mp4 with --video), at "
+                   help="render the cameras of a camera_path.json instead of --views (saved by "
+                        "`clrf view`, or nerfstudio's layout) to path_NNN.png (and path.mp4 with --video), at "
                         "the file's render_width x render_height times --scale")
     r.add_argument("--depth", action="store_true",
                    help="also write colour-mapped depth PNGs and raw depth .npy per view")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -56,7 +57,6 @@ def run_view(a):
             cams = dataset_cameras(_ckpt_dataset(state, a.data))
         except Exception as e:   # noqa: BLE001 - the viewer works without the dataset
             print(f"clrf: note: no dataset cameras in the viewer ({e})", file=sys.stderr)
-    from pathlib import Path
     ck = Path(a.ckpt)
     core = ViewerCore(model, meta, cams)
     core.up = up_vector(cams)
