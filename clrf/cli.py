@@ -1,4 +1,4 @@
-"""clrf train | render | eval | export | devices | bench.
+"""clrf train | render | eval | view | export | devices | bench.
 
 Bad input (a missing or malformed dataset, an unknown option, an out-of-range value, an
 unusable device or checkpoint) prints one message naming the file or field and the fix, and
@@ -27,9 +27,10 @@ def _user_errors():
     from .data.base import DataError
     from .device import DeviceError
     from .export import ExportError
+    from .camera_path import CameraPathError
     from .programs import BuildError
     return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
-            ExportError)
+            ExportError, CameraPathError)
 
 
 def parse_set(items):
@@ -110,6 +111,9 @@ def cmd_train(a):
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     comm = _mpi_world()
+    if comm is not None and a.view:
+        raise CliError("--view: the viewer runs with single-process training; drop --view "
+                       "under mpirun (view the checkpoint afterwards with `clrf view`)")
     if comm is not None:
         from .grid.dist_model import check_schedule
         if cfg.train.model != "grid":
@@ -166,11 +170,16 @@ def cmd_train(a):
     if a.log == "tensorboard":
         from .tblog import TensorBoardLog
         trainer.metric_sinks = (TensorBoardLog(out),)
+    if a.view:
+        from .viewer.live import LiveViewer
+        trainer.viewer = LiveViewer(trainer, a.host, a.port, a.view_share)
     try:
         res = trainer.run()
     finally:
         for sink in trainer.metric_sinks:
             sink.close()
+        if trainer.viewer is not None:
+            trainer.viewer.close()
     if res.get("interrupted"):
         print(f"clrf: interrupted; checkpoint kept at {trainer.ckpt_path} (resume with "
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
@@ -237,30 +246,33 @@ def cmd_eval(a):
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import as_distortion, camera_orbit_poses, orbit_poses, spiral_poses
+    from .cameras import camera_orbit_poses, orbit_poses, spiral_poses
     from .cli_export import check_render_args, depth_outputs, write_video
     from .device import Device
+    from .frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
     from .models import load_model
     from .progress import bar
-    from .train import view_rays
 
+    path = None
+    if a.camera_path:
+        from .camera_path import load as load_path
+        path = load_path(a.camera_path)
+        a.views = "path"
+        if a.fps is None:
+            a.fps = path.fps
+    if a.fps is None:
+        a.fps = 24.0
     check_render_args(a)
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     meta = state["dataset"]
-    H, W = int(meta["H"]), int(meta["W"])
-    if a.scale != 1:   # same field of view at another resolution
-        H, W = max(1, round(H * a.scale)), max(1, round(W * a.scale))
-    sx, sy = W / int(meta["W"]), H / int(meta["H"])
     out = _out_dir(a.out)
-
-    class _View:  # the bits of a Dataset that view_rays needs
-        hw = (H, W)
-        intrinsics = np.asarray(meta["intrinsics"]) * [sx, sy, sx, sy]
-        distortion = as_distortion(meta.get("distortion"))   # also the older [k1, k2, p1, p2]
-        ndc = bool(meta["ndc"])
-
-    if a.views == "test":
+    spec = spec_from_meta(meta, a.scale)
+    fovs = None
+    if path is not None:
+        poses, fovs = path.poses, path.fovs
+        pw, ph = max(1, round(path.width * a.scale)), max(1, round(path.height * a.scale))
+    elif a.views == "test":
         ds = _ckpt_dataset(state, a.data)
         poses = ds.poses[np.asarray(ds.split.get("test", ds.split.get("val")))]
     elif a.views == "spiral" or meta["ndc"]:
@@ -283,19 +295,19 @@ def cmd_render(a):
     t = time.perf_counter()
     with bar(len(poses), f"render {a.views}", "view") as b:
         for i, p in enumerate(poses):
-            o, d = view_rays(_View, p[None])
-            r = model.render(o, d)
-            img = np.clip(r["rgb"].reshape(H, W, 3), 0, 1)
-            frame = (img * 255 + 0.5).astype(np.uint8)
+            if fovs is not None:
+                spec = spec_from_fov(float(fovs[i]), pw, ph, meta)
+            r = render_pose(model, spec, p)
+            frame = to_uint8(r["rgb"])
             frames.append(frame)
             tmp = out / f".{a.views}_{i:03d}.png"
             iio.imwrite(tmp, frame, extension=".png")
             tmp.replace(out / f"{a.views}_{i:03d}.png")
             if a.depth:
-                depth_outputs(out, f"{a.views}_{i:03d}_depth", r["depth"].reshape(H, W),
-                              r["acc"].reshape(H, W))
+                depth_outputs(out, f"{a.views}_{i:03d}_depth", r["depth"], r["acc"])
             b.update(1)
     secs = time.perf_counter() - t
+    H, W = frames[0].shape[:2] if frames else spec.hw
     print(f"rendered {len(frames)} {a.views} views at {W}x{H} in {secs:.1f} s to {out}")
     if a.views == "orbit" and frames:
         vid = out / "orbit.gif"
@@ -313,6 +325,11 @@ def cmd_render(a):
 def cmd_export(a):
     from .cli_export import cmd_export as run
     return run(a)
+
+
+def cmd_view(a):
+    from .viewer import run_view
+    return run_view(a)
 
 
 def cmd_devices(a):
@@ -354,6 +371,14 @@ def build_parser():
     t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
                    help="metrics.csv always; 'tensorboard' also writes event files to "
                         "OUT/tensorboard (needs tensorboardX)")
+    t.add_argument("--view", action="store_true",
+                   help="serve the interactive viewer while training (needs clrf[view])")
+    t.add_argument("--port", type=int, default=8080, help="--view: TCP port (default 8080)")
+    t.add_argument("--host", default="127.0.0.1",
+                   help="--view: address to listen on (default 127.0.0.1; others warn)")
+    t.add_argument("--view-share", type=float, default=0.2, metavar="FRACTION",
+                   help="--view: largest fraction of wall time spent rendering for the viewer "
+                        "(default 0.2)")
     from .cli_config import add_config_flags
     add_config_flags(t)   # --grid.reso, --train.max_seconds, --nerf.width, ...
     t.set_defaults(func=cmd_train)
@@ -365,7 +390,12 @@ def build_parser():
                         "scenes always get the spiral for orbit)")
     r.add_argument("--out", required=True, help="output folder for PNGs (and orbit.gif)")
     r.add_argument("--video", action="store_true", help="also write VIEWS.mp4 (H.264)")
-    r.add_argument("--fps", type=float, default=24.0, help="video frame rate (default 24)")
+    r.add_argument("--fps", type=float, default=None,
+                   help="video frame rate (default 24; with --camera-path the file's fps)")
+    r.add_argument("--camera-path", default=None, metavar="FILE",
+                   help="render the cameras of a camera_path.json instead of --views (saved by "
+                        "`clrf view`, or nerfstudio's layout) to path_NNN.png (and path.mp4 with --video), at "
+                        "the file's render_width x render_height times --scale")
     r.add_argument("--depth", action="store_true",
                    help="also write colour-mapped depth PNGs and raw depth .npy per view")
     r.add_argument("--scale", type=float, default=1.0,
@@ -406,6 +436,19 @@ def build_parser():
     x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
     x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
     x.set_defaults(func=cmd_export)
+
+    v = sub.add_parser("view", help="interactive web viewer of a checkpoint (needs clrf[view])")
+    v.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
+    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0: any free)")
+    v.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1, this machine only; another "
+                        "address exposes the viewer to the network, with a warning)")
+    v.add_argument("--data", default=None, help="dataset for the camera list (default: the run's)")
+    v.add_argument("--no-cameras", action="store_true",
+                   help="do not load the dataset to list its cameras")
+    v.add_argument("--exit-after", type=float, default=0.0, metavar="SECONDS",
+                   help="stop after this many seconds (scripts, tests; default: run until Ctrl-C)")
+    v.set_defaults(func=cmd_view)
 
     d = sub.add_parser("devices", help="list OpenCL devices, their probe figures and the default")
     d.add_argument("--reprobe", action="store_true",

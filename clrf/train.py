@@ -259,6 +259,8 @@ class Trainer:
                                  f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
                                  f"({len(self.periodic_views)} views)  {self.model.describe()}")
                     next_eval = self.seconds + t.eval_every
+                    if self.viewer is not None:
+                        self.viewer.evaluated(self, ev)
                 if self.seconds >= t.max_seconds or self.iteration >= t.max_iters:
                     break
                 if self.seconds >= next_ckpt:
@@ -283,6 +285,8 @@ class Trainer:
                 losses.append(loss)
                 prog.update(f"it {self.iteration} loss {loss:.5f} PSNR {psnr_from_mse(loss):5.2f} "
                             f"{self._rate / 1e3:.1f}k rays/s", self.seconds)
+                if self.viewer is not None:   # clrf train --view (clrf/viewer/live.py)
+                    self.viewer.step(self, loss)
         except KeyboardInterrupt:
             interrupted = True
             prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
@@ -312,6 +316,7 @@ class Trainer:
         return result
 
     _rate = 0.0
+    viewer = None       # clrf.viewer.live.LiveViewer of `clrf train --view`
     metric_sinks = ()   # extra receivers of every metrics.csv row (clrf.tblog.TensorBoardLog)
 
 

@@ -44,7 +44,7 @@ def _script(path: Path, text: str):
 
 
 def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False,
-              extras="test", mpi_tools=False):
+              extras="test", mpi_tools=False, browser=False):
     repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
     for p in (repo / "tools", stubs, state):
         p.mkdir(parents=True)
@@ -58,6 +58,9 @@ def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail
         _script(stubs / "apt-get", FAKE_APT)
     if mpi_tools:                       # an MPI library already installed
         for tool in ("mpicc", "mpirun"):
+            _script(stubs / tool, "#!/bin/bash\n")
+    if browser:                         # Chromium and its driver already installed
+        for tool in ("chromium", "chromedriver"):
             _script(stubs / tool, "#!/bin/bash\n")
     env = {"PATH": str(stubs), "PYTHON": "python", "FAKE_STATE": str(state),
            "FAKE_BEFORE": str(before), "FAKE_AFTER": str(after), "FAKE_UID": str(uid),
@@ -114,3 +117,20 @@ def test_setup_installs_open_mpi_for_the_mpi_extra(tmp_path, mpi_tools, uid, sud
 def test_setup_without_the_mpi_extra_installs_no_mpi(tmp_path):
     r, apt_log, _ = run_setup(tmp_path, 0, extras="test")
     assert r.returncode == 0 and apt_log == ""
+
+
+@pytest.mark.parametrize("extras, browser, sudo_ok, rc, installs", [
+    ("view,test", False, True, 0, True),     # the browser test needs Chromium: install it
+    ("test,view", False, True, 0, True),
+    ("view,test", True, True, 0, False),     # already there
+    ("view", False, True, 0, False),         # the viewer alone needs no browser
+    ("test", False, True, 0, False),
+    ("view,test", False, False, 1, False),   # cannot install: say so and fail
+])
+def test_setup_installs_chromium_for_view_and_test(tmp_path, extras, browser, sudo_ok, rc,
+                                                   installs):
+    r, apt_log, _ = run_setup(tmp_path, 0, uid=0 if sudo_ok else 1000, sudo_ok=sudo_ok,
+                              extras=extras, browser=browser)
+    assert r.returncode == rc, r.stderr
+    assert ("install -y -qq chromium chromium-driver" in apt_log) == installs
+    assert ("headless Chromium" in r.stderr) == (installs or rc == 1)

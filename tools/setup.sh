@@ -17,6 +17,10 @@
 #   bash tools/setup.sh impls    # plus Mesa's rusticl and the Oclgrind simulator (Debian
 #                                # mesa-opencl-icd oclgrind), the other implementations the
 #                                # tests run every kernel on when present
+#   bash tools/setup.sh view      # plus the web viewer (`clrf view`, `clrf train --view`)
+#   bash tools/setup.sh view,test # plus headless Chromium for the viewer's browser test:
+#                                # Debian's chromium and chromium-driver when chromium or
+#                                # chromedriver is missing (Selenium drives it; no download)
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
@@ -66,6 +70,20 @@ case ",${1:-}," in
         fi ;;
 esac
 extras=${extras//,impls/}
+# extras "view" and "test" together: the browser test needs a system Chromium and its driver
+case ",${1:-}," in
+    *,view,*)
+        case ",${1:-}," in
+            *,test,*)
+                if ! { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; } ||
+                   ! command -v chromedriver >/dev/null; then
+                    echo "clrf: extras 'view,test': installing headless Chromium" \
+                         "(chromium chromium-driver)" >&2
+                    apt_install "Chromium and its WebDriver (chromium, chromedriver)" \
+                        chromium chromium-driver || exit 1
+                fi ;;
+        esac ;;
+esac
 
 rm -rf .venv
 "$py" -m venv .venv

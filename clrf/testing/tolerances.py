@@ -257,3 +257,17 @@ BRICK_REF_ATOL = 1e-12
 # bounds are 10x / 4x that and still 20x below what the 20 steps change (loss -70%, PSNR +13).
 DIST_TRAIN_RTOL = 1e-3   # mean training loss, relative
 DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
+# ---- viewer (clrf/viewer, tests/test_viewer_browser.py) ------------------------------------------
+# The browser shows the viewer's frame and `clrf render --camera-path` writes one for the same
+# camera: both come from identical rays (the page's float64 matrix travels as shortest round-trip
+# JSON numbers, read back exactly) through the same kernels and the same uint8 rounding, and the
+# page copies the opaque RGB bytes 1:1 into its 2D canvas (putImageData, then drawImage at the
+# same size), which Chromium does exactly. One uint8 level allows for a browser whose canvas
+# colour handling rounds differently; a wrong camera (half-pixel shift, transposed matrix, fov in
+# radians, the frame before the last mouse move) changes edge pixels by tens of levels.
+VIEWER_PIXEL_ATOL = 1
+# An NDC point of a world ray against the viewer's NDC ray (tests/test_frames.py): the ray is
+# float32 (components <= ~3 here, rounding <= 3 * 6e-8) and the projection onto it multiplies
+# that by the point's parameter (<= ~10): ~2e-6; 1e-5 leaves 5x. Using the viewing camera's own
+# NDC map instead of the training camera's moves the points by ~0.2.
+NDC_LINE_ATOL = 1e-5
