@@ -4,7 +4,7 @@ device by its cached probe figure), and the same kernel tests on every OpenCL im
 The kernel-vs-reference modules (EVERY_IMPL_MODULES) run once per OpenCL implementation
 present: the session device, then one device of each other implementation (PoCL, Intel's CPU
 runtime, Mesa's rusticl, ...; clrf/testing/impls.py), as the ``device`` fixture's parameter.
-CLRF_TEST_IMPLS narrows it: ``default`` (the session device only) or a comma list of
+A slow software implementation runs only SLOW_IMPL_MODULES. CLRF_TEST_IMPLS narrows it: ``default`` (the session device only) or a comma list of
 implementation names (``pocl,intel``). Oclgrind is not among them: the simulator runs every
 kernel once, small, under its race and API checks (tests/test_oclgrind.py).
 """
@@ -24,15 +24,20 @@ EVERY_IMPL_MODULES = {
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
 }
+# a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, and compiles
+# each program variant for seconds) runs the core of them: both grid paths, NeRF's kernels,
+# the self-check
+SLOW_IMPL_MODULES = {"test_render", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
+                     "test_nerf_composite", "test_selfcheck"}
 
 
 def pytest_generate_tests(metafunc):
     """The kernel modules' tests take every implementation as the ``device`` parameter."""
-    if metafunc.module.__name__.rsplit(".", 1)[-1] not in EVERY_IMPL_MODULES:
+    module = metafunc.module.__name__.rsplit(".", 1)[-1]
+    if module not in EVERY_IMPL_MODULES or "device" not in metafunc.fixturenames:
         return
-    if "device" not in metafunc.fixturenames:
-        return
-    names = ["default"] + [n for n in impls.others(os.environ.get("CLRF_TEST_IMPLS", "all"))]
+    names = ["default"] + [n for n in impls.others(os.environ.get("CLRF_TEST_IMPLS", "all"))
+                           if module in SLOW_IMPL_MODULES or not impls.is_slow(n)]
     metafunc.parametrize("device", names, indirect=True, scope="session")
 
 

@@ -44,6 +44,20 @@ def present() -> dict:
 
 
 @functools.lru_cache(maxsize=None)
+def is_slow(name: str) -> bool:
+    """Whether implementation ``name`` is a slow driver for this machine (clrf.device_probe
+    slow_reasons: under a twelfth of the CPU's estimated peak, a generic target, or a sibling
+    driver three times faster), e.g. rusticl's llvmpipe software device."""
+    from ..device_probe import cpu_flags, slow_reasons
+    from ..device import _candidate
+    devs = {f"{pi}:{di}": (pi, di, d) for pi, di, d in list_devices()}
+    cands = [_candidate(*v, probe(v[2])) for v in devs.values()]
+    spec = present()[name]
+    me = next(c for c in cands if c.spec == spec)
+    return bool(slow_reasons(me, cands, cpu_flags()))
+
+
+@functools.lru_cache(maxsize=None)
 def default_implementation() -> str:
     return implementation(choose_device().cl_device.platform.name)
 
