@@ -211,9 +211,9 @@ def doc_files():
     return [README] + sorted((ROOT / "docs").glob("*.md"))
 
 
-@pytest.mark.parametrize("doc", doc_files(), ids=lambda p: str(p.relative_to(ROOT)))
-def test_relative_links_resolve(doc):
-    text = _strip_code(doc.read_text())
+def broken_links(doc, text=None):
+    """Relative links of a Markdown file that point at no file (or at no heading)."""
+    text = _strip_code(doc.read_text() if text is None else text)
     targets = re.findall(r"\]\(([^)\s]+)(?:\s+\"[^\"]*\")?\)", text)
     targets += re.findall(r"<img[^>]*\bsrc=\"([^\"]+)\"", text)
     bad = []
@@ -226,7 +226,22 @@ def test_relative_links_resolve(doc):
             bad.append(f"{t}: no such file")
         elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
             bad.append(f"{t}: no heading with anchor #{anchor}")
+    return bad
+
+
+@pytest.mark.parametrize("doc", doc_files(), ids=lambda p: str(p.relative_to(ROOT)))
+def test_relative_links_resolve(doc):
+    bad = broken_links(doc)
     assert not bad, f"{doc.relative_to(ROOT)}: " + "; ".join(bad)
+
+
+def test_link_checker_finds_broken_links():
+    text = ("[ok](docs/guide.md#installing) [gone](docs/no_such_page.md) "
+            "[anchor](docs/guide.md#no-such-heading) <img src=\"tools/no.png\"> "
+            "[web](https://example.org/x) `[code](not/checked.md)`")
+    bad = broken_links(README, text)
+    assert len(bad) == 3, bad
+    assert any("no_such_page" in b for b in bad) and any("no-such-heading" in b for b in bad)
 
 
 def test_readme_length():
