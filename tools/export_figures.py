@@ -1,4 +1,4 @@
-"""The README's export pictures from a trained run: the exported mesh drawn with matplotlib, and
+"""The export pictures of docs/guide.md from a trained run: the exported mesh drawn with matplotlib, and
 the first frame of the orbit video.
 
     python tools/export_figures.py RUN_DIR [--out tools/results/export]
