@@ -1,5 +1,5 @@
-"""The README's export pictures from a trained run: the exported mesh drawn with matplotlib, and
-the first frame of the orbit video.
+"""The export pictures of docs/guide.md from a trained run: the exported mesh drawn with
+matplotlib, and the first frame of the orbit video.
 
     python tools/export_figures.py RUN_DIR [--out tools/results/export]
 
