@@ -1,5 +1,6 @@
-"""Shared fixtures: the session's device, chosen by CLRF_DEVICE (default: the fastest working
-device by its cached probe figure), and the same kernel tests on every OpenCL implementation.
+"""Shared fixtures: the session's device, chosen by CLRF_DEVICE (default: the device ``clrf
+train`` picks for the grid: the fastest working device by its probe figure and, among equals,
+by the grid workload), and the same kernel tests on every OpenCL implementation.
 
 The kernel-vs-reference modules (EVERY_IMPL_MODULES) run once per OpenCL implementation
 present: the session device, then one device of each other implementation (PoCL, Intel's CPU
@@ -55,10 +56,11 @@ def _own_tuning_cache(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def device(request):
-    """The session device ("default") or one device of another implementation, by name."""
+    """The session device ("default": what ``clrf train`` picks for the grid) or one device of
+    another implementation, by name."""
     name = getattr(request, "param", "default")
     if name == "default":
-        return clrf.Device()
+        return impls.default_device()
     return impls.device_of(name)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 
-from ..device import Device, choose_device, list_devices
+from ..device import Device, list_devices
 from ..device_probe import probe
 
 SIMULATORS = ("oclgrind",)
@@ -58,8 +58,16 @@ def is_slow(name: str) -> bool:
 
 
 @functools.lru_cache(maxsize=None)
+def default_device() -> Device:
+    """The session's device: what ``clrf train`` picks for the grid (CLRF_DEVICE honoured;
+    among equal probe figures the faster grid workload, clrf/workload.py)."""
+    from ..workload import device_for
+    return device_for("grid")
+
+
+@functools.lru_cache(maxsize=None)
 def default_implementation() -> str:
-    return implementation(choose_device().cl_device.platform.name)
+    return implementation(default_device().cl_device.platform.name)
 
 
 def others(spec: str = "all") -> list:
