@@ -31,11 +31,11 @@ import pyopencl.array as cla
 from . import checkpoint, rundir
 from .cameras import pixel_rays, to_ndc
 from .data.io import downscale_image
-from .metrics import image_metrics, psnr_from_mse
+from .metrics import SSIM_WINDOW, image_metrics, psnr_from_mse
 from .programs import launch, upload
 from .progress import TrainProgress
 
-EVAL_MIN_SIDE = 7          # smallest evaluated image side (SSIM's window)
+EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
               "eval_views", "rays_per_s", "model"]
 
@@ -200,7 +200,7 @@ class Trainer:
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))
         self.periodic_views = self.test_views[np.linspace(0, len(self.test_views) - 1, k).astype(int)]
-        # periodic evaluations: downscaled, but no smaller than SSIM's 7x7 window
+        # periodic evaluations: downscaled, but no smaller than the 11x11 SSIM window
         self.eval_downscale = max(1, min(t.eval_downscale, min(ds.hw) // EVAL_MIN_SIDE))
 
     def _row(self, **kw):
