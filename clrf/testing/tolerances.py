@@ -248,3 +248,10 @@ BRICK_REF_ATOL = 1e-12
 # bounds are 10x / 4x that and still 20x below what the 20 steps change (loss -70%, PSNR +13).
 DIST_TRAIN_RTOL = 1e-3   # mean training loss, relative
 DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
+# Standard SSIM (scikit-image, Gaussian window) vs the test's own float64 separable 'valid'
+# convolution: the same float64 sums in another order, over <= 64x64x3 pixels; roundoff only.
+SSIM_REF_ATOL = 1e-10
+# clrf's LPIPS (torch.nn backbone, float32) vs the lpips package's forward with the same
+# float32 weights: the same float32 convolutions, possibly another summation order inside torch
+# (a distance of ~0.1-0.7 summed over five layers); float32 roundoff is ~1e-7 relative per op.
+LPIPS_REF_ATOL = 1e-5
