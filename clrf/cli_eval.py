@@ -47,6 +47,7 @@ def _views_and_data(a, state):
 
 def cmd_eval(a):
     from .device import Device
+    from .metrics import SSIM_NAME
     from .models import load_model
     from .perceptual import lpips
     from .progress import bar
@@ -74,7 +75,7 @@ def cmd_eval(a):
     secs = time.perf_counter() - t
     H, W = (int(x) for x in ds.hw)
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
-           "ssim": float(np.mean([m["ssim"] for m in per_view])), "ssim_window": "gaussian11",
+           "ssim": float(np.mean([m["ssim"] for m in per_view])), "ssim_window": SSIM_NAME,
            "lpips": (float(np.mean([m["lpips"] for m in per_view])) if lp_why is None else None),
            "lpips_net": net, "lpips_unavailable": lp_why,
            "n_views": len(per_view), "resolution": [W, H]}

@@ -7,7 +7,8 @@ import pytest
 
 from clrf.metrics import LpipsUnavailable, lpips, lpips_status
 from clrf.perceptual import BACKBONE_FILES
-from clrf.testing.tolerances import LPIPS_REF_ATOL
+from clrf.testing.lpips_ref import backbone_shapes, lpips_ref
+from clrf.testing.tolerances import LPIPS_F64_RTOL, LPIPS_REF_ATOL
 
 
 def _pair(seed, h=64, w=48):
@@ -38,6 +39,42 @@ def test_absence_is_stated(tmp_path, monkeypatch, net):
         assert "nothing.pth does not exist" in str(e2.value)
     else:
         assert str(e2.value) == msg
+
+
+def _torch_and_linear(net):
+    torch = pytest.importorskip("torch", reason="the 'eval' extra (torch) is not installed: "
+                                                "bash tools/setup.sh eval")
+    from clrf.perceptual import linear_weights_path
+    try:
+        path = linear_weights_path(net)
+    except LpipsUnavailable as e:
+        pytest.skip(str(e))
+    lin = torch.load(path, map_location="cpu", weights_only=True)
+    return torch, {k: v.numpy() for k, v in lin.items()}
+
+
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_matches_float64_reference(tmp_path, net):
+    """Against clrf/testing/lpips_ref.py (numpy, float64), with a random backbone (He-scaled
+    weights, small biases) saved under torchvision's names; runs wherever torch and the lpips
+    package's weight files are installed (no torchvision needed)."""
+    torch, lin = _torch_and_linear(net)
+    rng = np.random.default_rng(11)
+    sd = {k: (rng.normal(0, np.sqrt(2 / np.prod(s[1:])), s) if len(s) > 1
+              else rng.normal(0, 0.05, s)).astype(np.float32)
+          for k, s in backbone_shapes(net).items()}
+    path = tmp_path / "backbone.pth"
+    torch.save({k: torch.from_numpy(v) for k, v in sd.items()}, path)
+    for seed, noise in ((0, 0.05), (1, 0.2)):
+        rng2 = np.random.default_rng(seed)
+        a = rng2.random((64, 48, 3)).astype(np.float32)
+        b = np.clip(a + rng2.normal(0, noise, a.shape), 0, 1).astype(np.float32)
+        want = lpips_ref(a, b, net, sd, lin)
+        got = lpips(a, b, net, backbone=path)
+        assert abs(got - want) <= LPIPS_F64_RTOL * want, (got, want)
+        # the prediction is clipped to [0, 1] first, as for PSNR / SSIM
+        assert lpips(a * 1.5 - 0.25, b, net, backbone=path) == pytest.approx(
+            lpips_ref(np.clip(a * 1.5 - 0.25, 0, 1), b, net, sd, lin), rel=LPIPS_F64_RTOL)
 
 
 def _reference(net):
