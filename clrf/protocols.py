@@ -141,16 +141,37 @@ def _llff_source(root, factor, captured):
             f"{'; '.join(found) if found else 'neither'}")
 
 
+def _capture_kind(pb, path):
+    """'forward_facing' or 'real360' for poses_bounds rows, as load_llff(kind="auto") decides."""
+    from .data.llff import normalize_capture
+    n = pb.shape[0]
+    p35 = pb[:, :15].reshape(n, 3, 5).astype(np.float64)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :4] = np.concatenate([p35[:, :, 1:2], -p35[:, :, 0:1], p35[:, :, 2:4]], -1)
+    return normalize_capture(poses, pb[:, 15:17].astype(np.float64), "auto", path)[1]
+
+
 def _prepare_llff_like(protocol, root, allow_downscaled, scene_type):
     from .data.llff import load_llff
-    pb = np.load(root / "poses_bounds.npy", allow_pickle=False)
+    try:
+        pb = np.load(root / "poses_bounds.npy", allow_pickle=False)
+    except Exception:  # noqa: BLE001 - the loader names the problem
+        pb = None
+    if pb is None or pb.ndim != 2 or pb.shape[1] != 17 or not len(pb) \
+            or not np.all(np.isfinite(pb)):
+        load_llff(root)           # raises a DataError naming the file and the fix
     captured = (int(round(pb[0, 4])), int(round(pb[0, 9])))      # (H, W) of column 4
     detail = {}
-    if protocol == "llff":
-        factor, want_kind = LLFF_FACTOR, "forward_facing"
-    else:
+    factor = LLFF_FACTOR
+    want_kind = "forward_facing" if protocol == "llff" else "real360"
+    kind = _capture_kind(pb, root / "poses_bounds.npy")
+    if kind != want_kind:
+        other = "mipnerf360" if protocol == "llff" else "llff"
+        raise ProtocolError(f"{root}: reads as a {kind} scene, and the {protocol} protocol is "
+                            f"for {want_kind} captures; use --protocol {other}")
+    if protocol == "mipnerf360":
         st = scene_type_of(root, scene_type)
-        factor, want_kind = M360_FACTOR[st], "real360"
+        factor = M360_FACTOR[st]
         detail["scene_type"] = st
     detail["factor"] = factor
     want = (round(captured[0] / factor), round(captured[1] / factor))
@@ -161,10 +182,6 @@ def _prepare_llff_like(protocol, root, allow_downscaled, scene_type):
                             f"the protocol)")
     ds = load_llff(root, downscale=factor if why is None else None, holdout=HOLDOUT,
                    only_split="test")
-    if ds.preset != want_kind:
-        other = "mipnerf360" if protocol == "llff" else "llff"
-        raise ProtocolError(f"{root}: reads as a {ds.preset} scene, and the {protocol} protocol "
-                            f"is for {want_kind} captures; use --protocol {other}")
     pd = ProtocolData(protocol, ds, np.asarray(ds.split["test"]), want, why is None,
                       detail=detail)
     if why is not None:

@@ -8,6 +8,7 @@ import pytest
 
 from clrf import protocols
 from clrf.cli import main as cli
+from clrf.data import DataError
 from clrf.data.llff import load_llff
 from clrf.data.synthetic import load_procedural
 from clrf.protocols import ProtocolError, prepare
@@ -111,6 +112,16 @@ def test_mipnerf360_unknown_scene_needs_scene_type(tmp_path):
         prepare("mipnerf360", root, scene_type="outdoor")
     with pytest.raises(ProtocolError, match="use --protocol llff"):
         prepare("mipnerf360", _llff_scene(tmp_path / "room", {"images_2": (48, 64)}))
+    # the kind is checked first: a forward-facing capture of any name is sent to llff
+    with pytest.raises(ProtocolError, match="use --protocol llff"):
+        prepare("mipnerf360", _llff_scene(tmp_path / "other", {"images_8": (12, 16)}))
+
+
+def test_protocol_on_a_malformed_poses_file(tmp_path):
+    root = _llff_scene(tmp_path / "ff", {"images_4": (24, 32)})
+    np.save(root / "poses_bounds.npy", np.zeros((17, 15)))
+    with pytest.raises(DataError, match="poses_bounds.npy: expected shape"):
+        prepare("llff", root)
 
 
 def _blender_scene(root, size, n=(6, 1, 3)):
