@@ -125,7 +125,6 @@ def test_matches_lpips_package(tmp_path, net):
 def test_wrong_backbone_file_is_refused(tmp_path):
     torch = pytest.importorskip("torch", reason="the 'eval' extra (torch) is not installed: "
                                                 "bash tools/setup.sh eval")
-    pytest.importorskip("clrf.perceptual")
     from clrf.perceptual import linear_weights_path
     try:
         linear_weights_path("alex")
