@@ -28,9 +28,10 @@ def _user_errors():
     from .device import DeviceError
     from .export import ExportError
     from .camera_path import CameraPathError
+    from .perceptual import LpipsUnavailable
     from .programs import BuildError
     return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
-            ExportError, CameraPathError)
+            ExportError, CameraPathError, LpipsUnavailable)
 
 
 def parse_set(items):
@@ -206,41 +207,8 @@ def _ckpt_dataset(state, data_override):
 
 
 def cmd_eval(a):
-    from .device import Device
-    from .models import load_model
-    from .train import evaluate
-
-    dev = Device(a.device)
-    model, state, cfg = load_model(dev, a.ckpt)
-    ds = _ckpt_dataset(state, a.data)
-    views = np.asarray(ds.split.get("test", ds.split.get("val")))
-    if a.max_views:
-        views = views[:a.max_views]
-    from .progress import bar
-    t = time.perf_counter()
-    per_view = []
-    with bar(len(views), "eval", "view") as b:
-        for v in views:
-            per_view += evaluate(model, ds, [v])["views"]
-            b.update(1)
-    ev = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
-          "ssim": float(np.mean([m["ssim"] for m in per_view])), "views": per_view}
-    secs = time.perf_counter() - t
-    for m in ev["views"]:
-        print(f"view {m['view']:4d}  PSNR {m['psnr']:6.2f}  SSIM {m['ssim']:.4f}")
-    print(f"mean over {len(views)} views: PSNR {ev['psnr']:.3f}  SSIM {ev['ssim']:.4f}  "
-          f"(render {secs:.1f} s)")
-    out = Path(a.out) if a.out else Path(a.ckpt) / "eval_cli.json"
-    if out.suffix != ".json":
-        out = out / "eval.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"psnr": ev["psnr"], "ssim": ev["ssim"], "views": ev["views"],
-                               "data": str(a.data or state["run_config"]["train"].get("data", "")),
-                               "device": repr(dev)}, indent=2))
-    tmp.replace(out)
-    print(f"saved {out}")
-    return 0
+    from .cli_eval import cmd_eval as run
+    return run(a)
 
 
 def cmd_render(a):
@@ -407,12 +375,8 @@ def build_parser():
     r.add_argument("--max-views", type=int, default=0)
     r.set_defaults(func=cmd_render)
 
-    e = sub.add_parser("eval", help="PSNR/SSIM of a checkpoint on its test views")
-    e.add_argument("--ckpt", required=True)
-    e.add_argument("--data", default=None, help="dataset (default: the run's)")
-    e.add_argument("--out", default=None, help="JSON output (default: CKPT/eval_cli.json)")
-    e.add_argument("--max-views", type=int, default=0)
-    e.set_defaults(func=cmd_eval)
+    from .cli_eval import add_eval_parser
+    add_eval_parser(sub, cmd_eval)
 
     x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint, "
                                       "as binary PLY")

@@ -1,5 +1,14 @@
-"""Image metrics: PSNR (from an MSE) and SSIM (scikit-image), per view and mean; accurate sum
-of squares / MSE / PSNR of device arrays (pyopencl ReductionKernel over cl/reduce.h)."""
+"""Image metrics: PSNR (from an MSE), the standard SSIM and LPIPS (``clrf.perceptual``, optional)
+per view; accurate sum of squares / MSE / PSNR of device arrays (pyopencl ReductionKernel over
+cl/reduce.h).
+
+SSIM is the one of the published NeRF / mip-NeRF 360 / 3DGS / nerfstudio tables: an 11 x 11
+Gaussian window with sigma 1.5, population (not sample) covariances, K1 = 0.01, K2 = 0.03,
+data range 1, the SSIM map averaged over the valid region (windows wholly inside the image) and
+the three channels. Until 2026-11-24 clrf reported scikit-image's default instead (7 x 7 uniform
+window, sample covariance), which reads higher on blurred, noisy renders; results written before
+then carry that figure (docs/evaluation.md).
+"""
 from __future__ import annotations
 
 import functools
@@ -11,6 +20,7 @@ import pyopencl.array as cla
 from pyopencl.reduction import ReductionKernel
 from skimage.metrics import structural_similarity
 
+from .perceptual import LpipsUnavailable, lpips, lpips_status  # noqa: F401 - re-exported
 from .programs import cl_dir
 
 
@@ -19,17 +29,38 @@ def psnr_from_mse(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
-    """PSNR and SSIM of one [H, W, 3] prediction (clipped to [0, 1]) against ground truth.
+SSIM_SIGMA = 1.5
+SSIM_WINDOW = 11          # 2 * int(3.5 * sigma + 0.5) + 1: scikit-image's truncation at 3.5 sigma
+SSIM_NAME = "gaussian11"  # how result files name the SSIM they hold ("ssim_window")
 
-    MSE is accumulated in float64. SSIM uses scikit-image's defaults (7x7 uniform window)
-    with data_range 1 over the three channels.
+
+def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Standard SSIM of two [H, W, 3] (or [H, W]) images in [0, 1], H, W >= SSIM_WINDOW.
+
+    Per pixel, with Gaussian-weighted means mu, variances s^2 and covariance s_pg over the
+    11 x 11 window (sigma 1.5), C1 = 0.01^2, C2 = 0.03^2:
+    ((2 mu_p mu_g + C1)(2 s_pg + C2)) / ((mu_p^2 + mu_g^2 + C1)(s_p^2 + s_g^2 + C2)),
+    averaged over the pixels whose window lies inside the image and over the channels.
+    Images smaller than the window have no standard SSIM: NaN.
     """
+    p = np.asarray(pred, np.float64)
+    g = np.asarray(gt, np.float64)
+    if p.shape != g.shape:
+        raise ValueError(f"ssim: shapes {p.shape} and {g.shape} differ")
+    if min(p.shape[:2]) < SSIM_WINDOW:
+        return float("nan")
+    return float(structural_similarity(p, g, channel_axis=-1 if p.ndim == 3 else None,
+                                       data_range=1.0, gaussian_weights=True, sigma=SSIM_SIGMA,
+                                       use_sample_covariance=False))
+
+
+def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """PSNR and the standard SSIM (``ssim``) of one [H, W, 3] prediction (clipped to [0, 1])
+    against ground truth; MSE accumulated in float64."""
     p = np.clip(np.asarray(pred, np.float64), 0, 1)
     g = np.asarray(gt, np.float64)
     mse = float(np.mean((p - g) ** 2))
-    ssim = float(structural_similarity(p, g, channel_axis=-1, data_range=1.0))
-    return {"psnr": psnr_from_mse(mse), "ssim": ssim, "mse": mse}
+    return {"psnr": psnr_from_mse(mse), "ssim": ssim(p, g), "mse": mse}
 
 
 @functools.lru_cache(maxsize=None)

@@ -10,7 +10,8 @@ pure training time. Outputs in the run directory:
 - ``metrics.csv``       iteration, seconds, train_loss, train_psnr, eval_psnr, eval_ssim, ...
 - ``error_vs_time.png`` eval PSNR against training seconds
 - ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
-- ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation
+- ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation (``ssim_window``:
+                        "gaussian11", the standard SSIM; files without it hold the old 7x7 one)
 
 Under MPI (a model with ``comm``, clrf/grid/dist_model.py) every rank runs this loop in step:
 the step times are the slowest rank's (allreduce), so evaluations, checkpoints and the stop
@@ -31,11 +32,11 @@ import pyopencl.array as cla
 from . import checkpoint, rundir, selfcheck
 from .cameras import as_distortion, pixel_rays, to_ndc
 from .data.io import downscale_image
-from .metrics import image_metrics, psnr_from_mse
+from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from .programs import launch, upload
 from .progress import TrainProgress
 
-EVAL_MIN_SIDE = 7          # smallest evaluated image side (SSIM's window)
+EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",
               "eval_views", "rays_per_s", "model"]
 
@@ -201,7 +202,7 @@ class Trainer:
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))
         self.periodic_views = self.test_views[np.linspace(0, len(self.test_views) - 1, k).astype(int)]
-        # periodic evaluations: downscaled, but no smaller than SSIM's 7x7 window
+        # periodic evaluations: downscaled, but no smaller than the 11x11 SSIM window
         self.eval_downscale = max(1, min(t.eval_downscale, min(ds.hw) // EVAL_MIN_SIDE))
 
     def _row(self, **kw):
@@ -298,8 +299,8 @@ class Trainer:
                   "interrupted": interrupted}
         if t.final_eval and not interrupted:
             ev = evaluate(self.model, self.ds, self.test_views)
-            result.update(psnr=ev["psnr"], ssim=ev["ssim"], views=ev["views"],
-                          n_views=len(self.test_views))
+            result.update(psnr=ev["psnr"], ssim=ev["ssim"], ssim_window=SSIM_NAME,
+                          views=ev["views"], n_views=len(self.test_views))
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
@@ -312,7 +313,7 @@ class Trainer:
                          f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
                          f"({self.iteration} iterations)")
         elif last_eval is not None:
-            result.update(psnr=last_eval["psnr"], ssim=last_eval["ssim"])
+            result.update(psnr=last_eval["psnr"], ssim=last_eval["ssim"], ssim_window=SSIM_NAME)
         return result
 
     _rate = 0.0

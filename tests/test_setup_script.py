@@ -17,7 +17,7 @@ TOOLS = ("env", "rm", "dirname", "mkdir", "cp", "cat", "touch", "true")
 FAKE_PYTHON = """#!/bin/bash
 case "$1 $2" in
   "-m venv") mkdir -p "$3/bin" && cp "$0" "$3/bin/python" ;;
-  "-m pip") ;;
+  "-m pip") echo "${*:3}" >> "$FAKE_STATE/pip" ;;
   "-m clrf.cli")
     echo "$*" >> "$FAKE_STATE/checks"
     if [ -e "$FAKE_STATE/installed" ]; then exit "$FAKE_AFTER"; else exit "$FAKE_BEFORE"; fi ;;
@@ -134,3 +134,12 @@ def test_setup_installs_chromium_for_view_and_test(tmp_path, extras, browser, su
     assert r.returncode == rc, r.stderr
     assert ("install -y -qq chromium chromium-driver" in apt_log) == installs
     assert ("headless Chromium" in r.stderr) == (installs or rc == 1)
+def test_setup_installs_the_eval_extra_without_torchvision(tmp_path):
+    r, _, _ = run_setup(tmp_path, 0, extras="test,eval")
+    assert r.returncode == 0, r.stderr
+    pip = (tmp_path / "state" / "pip").read_text().splitlines()
+    assert "install -q .[pocl,test]" in pip, pip             # eval is not a pip extra here
+    assert pip[-2:] == ["install -q torch==2.13.0", "install -q --no-deps lpips==0.1.4"], pip
+    r, _, _ = run_setup(tmp_path / "b", 0, extras="test")
+    assert not any("lpips" in line for line in (tmp_path / "b" / "state" / "pip").read_text()
+                   .splitlines())

@@ -21,11 +21,21 @@
 #   bash tools/setup.sh view,test # plus headless Chromium for the viewer's browser test:
 #                                # Debian's chromium and chromium-driver when chromium or
 #                                # chromedriver is missing (Selenium drives it; no download)
+#   bash tools/setup.sh eval     # plus LPIPS for `clrf eval`: torch ($CLRF_TORCH, default
+#                                # torch==2.13.0) and the lpips package's weight files, installed
+#                                # without lpips's torchvision, which clrf does not use
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 extras="pocl${1:+,$1}"
+# extra "eval" is installed on its own after the others (see below), not through pip's extras
+want_eval=0
+case ",${1:-}," in *,eval,*) want_eval=1 ;; esac
+extras=",${extras},"
+extras=${extras//,eval,/,}
+extras=${extras#,}
+extras=${extras%,}
 py=${PYTHON:-python3}
 
 sudo=""
@@ -92,6 +102,15 @@ rm -rf .venv
 case ",${1:-}," in
     *,intel,*) .venv/bin/python -m clrf.icd register ;;
 esac
+if [ "$want_eval" -eq 1 ]; then
+    # LPIPS: clrf builds AlexNet / VGG-16 itself with torch, so torch (a CPU build is enough)
+    # and the lpips package's linear-layer weights are all it needs. torch==2.13.0 is the CPU
+    # wheel (191 MB, about 830 MB installed) that this project's machines keep on disk; from
+    # PyPI elsewhere it is a CUDA build of several GB: set CLRF_TORCH to a torch already at
+    # hand. The backbones' ImageNet weights are never downloaded (docs/evaluation.md).
+    .venv/bin/python -m pip install -q "${CLRF_TORCH:-torch==2.13.0}"
+    .venv/bin/python -m pip install -q --no-deps "lpips==0.1.4"
+fi
 
 # `clrf devices --check` prints the default device and its probe figure; exit 0: fine,
 # 3: the best device is a slow driver, anything else: no working device. Run outside the

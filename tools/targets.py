@@ -55,6 +55,7 @@ def main(argv=None):
         rec = {"target": name, "scene": t["scene"], "budget_s": t["seconds"],
                "train_seconds": ev["seconds"], "iterations": ev["iteration"],
                "test_views": ev["n_views"], "psnr": ev["psnr"], "ssim": ev["ssim"],
+               "ssim_window": ev.get("ssim_window", "skimage-default-7x7"),
                "goal_psnr": t["goal"], "met": None if t["goal"] is None else ev["psnr"] >= t["goal"],
                "wall_s": time.time() - t0, "device": dev}
         with open(out / "targets.jsonl", "a") as f:

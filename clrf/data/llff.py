@@ -131,7 +131,7 @@ def scene_extent(kind, poses, intrinsics, hw, distortion=None) -> dict:
 
 
 def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
-              background="white") -> Dataset:
+              background="white", only_split=None) -> Dataset:
     """Load an LLFF / Mip-NeRF 360 folder (poses_bounds.npy + images).
 
     kind: "forward_facing", "real360" or "auto" (real360 when the cameras' mean viewing axis is
@@ -140,6 +140,8 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     d -> images_<d>/ if present, else images/ box-downscaled by d.
     holdout: every holdout-th view is test. max_images: first this-many views of each split.
     background: only used to composite RGBA images.
+    only_split: "train" or "test" to read only that split's images (the others' views are
+    dropped; the poses are normalised over all views as usual).
     """
     root = require_dir(path, "LLFF scene", "pass the folder holding poses_bounds.npy")
     pb_path = require_file(root / "poses_bounds.npy", "LLFF poses file",
@@ -180,6 +182,10 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     check_splits(split, pb_path, f"use a holdout between 2 and {n}")
     keep, split = limit_split(split, max_images)
     check_splits(split, pb_path, "pass max_images >= 1")
+    if only_split is not None:
+        if only_split not in split:
+            raise DataError(f"only_split: expected one of {sorted(split)}, got {only_split!r}")
+        keep, split = keep[split[only_split]], {only_split: np.arange(len(split[only_split]))}
     bg = parse_background(background)
     imgs, (H0, W0) = load_images([files[i] for i in keep], downscale=extra)
     images = np.stack([composite(a, bg) for a in imgs]).astype(np.float32)

@@ -271,3 +271,15 @@ VIEWER_PIXEL_ATOL = 1
 # that by the point's parameter (<= ~10): ~2e-6; 1e-5 leaves 5x. Using the viewing camera's own
 # NDC map instead of the training camera's moves the points by ~0.2.
 NDC_LINE_ATOL = 1e-5
+# Standard SSIM (scikit-image, Gaussian window) vs the test's own float64 separable 'valid'
+# convolution: the same float64 sums in another order, over <= 64x64x3 pixels; roundoff only.
+SSIM_REF_ATOL = 1e-10
+# clrf's LPIPS (torch.nn backbone, float32) vs the lpips package's forward with the same
+# float32 weights: the same float32 convolutions, possibly another summation order inside torch
+# (a distance of ~0.1-0.7 summed over five layers); float32 roundoff is ~1e-7 relative per op.
+LPIPS_REF_ATOL = 1e-5
+# clrf's LPIPS (torch, float32) vs the float64 numpy reference (clrf/testing/lpips_ref.py) with
+# the same random backbone and the package's linear weights, 64x48 images: seen <= 3e-7
+# relative (float32 convolutions over <= 4608 terms); 30x that, far below any layout or scaling
+# error (those change the distance by > 1e-2 relative).
+LPIPS_F64_RTOL = 1e-5

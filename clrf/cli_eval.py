@@ -1,0 +1,142 @@
+"""`clrf eval`: PSNR, the standard SSIM and LPIPS of a checkpoint, on the run's own test views
+or under a published protocol (``--protocol``, clrf/protocols.py).
+
+Output JSON (default CKPT/eval_cli.json, or CKPT/eval_PROTOCOL.json with --protocol): the means
+``psnr``, ``ssim`` (``ssim_window`` names it), ``lpips`` (null when unavailable, the reason in
+``lpips_unavailable``), ``views`` (per view), ``n_views``, ``resolution`` [W, H]; with a protocol
+also ``protocol``, ``protocol_resolution``, ``standard`` (false: NOT the protocol) and ``note``.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _lpips_setup(a):
+    """(net, None) when LPIPS will be computed, else (net or None, the stated reason)."""
+    if a.lpips == "none":
+        return None, "LPIPS not requested (--lpips none)"
+    from .perceptual import lpips_status
+    why = lpips_status(a.lpips, a.lpips_backbone)
+    return a.lpips, why
+
+
+def _views_and_data(a, state):
+    """(dataset, views, protocol info or None) for the command's arguments."""
+    from .cli import _ckpt_dataset
+    if a.protocol:
+        from .protocols import prepare
+        path = a.data if a.data is not None else state["run_config"]["train"].get("data", "")
+        pd = prepare(a.protocol, path, a.allow_downscaled, a.scene_type)
+        meta = state["dataset"]
+        if bool(meta["ndc"]) != bool(pd.dataset.ndc):
+            from .cli import CliError
+            raise CliError(f"--ckpt {a.ckpt}: the run was trained on a "
+                           f"{'forward-facing (NDC)' if meta['ndc'] else 'non-NDC'} scene, but "
+                           f"{path} under the {a.protocol} protocol is "
+                           f"{'forward-facing' if pd.dataset.ndc else 'not forward-facing'}; "
+                           f"evaluate it with its own data")
+        return pd.dataset, pd.views, pd
+    ds = _ckpt_dataset(state, a.data)
+    return ds, np.asarray(ds.split.get("test", ds.split.get("val"))), None
+
+
+def cmd_eval(a):
+    from .device import Device
+    from .metrics import SSIM_NAME
+    from .models import load_model
+    from .perceptual import lpips
+    from .progress import bar
+    from .train import evaluate
+
+    dev = Device(a.device)
+    model, state, cfg = load_model(dev, a.ckpt)
+    ds, views, pd = _views_and_data(a, state)
+    full = len(views)
+    if a.max_views:
+        views = views[:a.max_views]
+    net, lp_why = _lpips_setup(a)
+    if pd is not None and pd.background is not None:
+        model.background = tuple(pd.background)      # the protocol's background, not the run's
+    t = time.perf_counter()
+    per_view = []
+    with bar(len(views), f"eval {a.protocol or 'test'}", "view") as b:
+        for v in views:
+            ev = evaluate(model, ds, [v], keep_images=lp_why is None)
+            m = ev["views"][0]
+            if lp_why is None:
+                m["lpips"] = lpips(ev["images"][0], ds.images[v], net, a.lpips_backbone)
+            per_view.append(m)
+            b.update(1)
+    secs = time.perf_counter() - t
+    H, W = (int(x) for x in ds.hw)
+    res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
+           "ssim": float(np.mean([m["ssim"] for m in per_view])), "ssim_window": SSIM_NAME,
+           "lpips": (float(np.mean([m["lpips"] for m in per_view])) if lp_why is None else None),
+           "lpips_net": net, "lpips_unavailable": lp_why,
+           "n_views": len(per_view), "resolution": [W, H]}
+    if pd is not None:
+        ph, pw = pd.protocol_hw
+        standard = pd.standard and len(per_view) == full
+        note = pd.note or ("" if standard else f"NOT the {pd.protocol} protocol: {len(per_view)} "
+                                               f"of its {full} views (--max-views)")
+        res.update(protocol=pd.protocol, protocol_resolution=[pw, ph], standard=standard,
+                   note=note, **pd.detail)
+    for m in per_view:
+        lp = f"  LPIPS {m['lpips']:.4f}" if "lpips" in m else ""
+        print(f"view {m['view']:4d}  PSNR {m['psnr']:6.2f}  SSIM {m['ssim']:.4f}{lp}")
+    lp = (f"  LPIPS({net}) {res['lpips']:.4f}" if lp_why is None else "")
+    head = f"{a.protocol} protocol, " if pd is not None else ""
+    print(f"{head}mean over {len(per_view)} views at {W}x{H}: PSNR {res['psnr']:.3f}  "
+          f"SSIM {res['ssim']:.4f}{lp}  (render {secs:.1f} s)")
+    if lp_why is not None:
+        print(lp_why)
+    if pd is not None and not res["standard"]:
+        print(res["note"])
+    default = f"eval_{a.protocol}.json" if a.protocol else "eval_cli.json"
+    out = Path(a.out) if a.out else Path(a.ckpt) / default
+    if out.suffix != ".json":
+        out = out / "eval.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    res.update(views=per_view, device=repr(dev),
+               data=str(a.data or state["run_config"]["train"].get("data", "")))
+    tmp = out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(res, indent=2))
+    tmp.replace(out)
+    print(f"saved {out}")
+    sys.stdout.flush()
+    return 0
+
+
+def add_eval_parser(sub, func):
+    from .protocols import PROTOCOLS
+    e = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint on its test views or "
+                                    "under a published protocol")
+    e.add_argument("--ckpt", required=True)
+    e.add_argument("--data", default=None, help="dataset (default: the run's)")
+    e.add_argument("--out", default=None,
+                   help="JSON output (default: CKPT/eval_cli.json, CKPT/eval_PROTOCOL.json)")
+    e.add_argument("--max-views", type=int, default=0)
+    e.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
+                   help="evaluate under a published protocol, whatever the run trained at: "
+                        + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()))
+    e.add_argument("--allow-downscaled", action="store_true",
+                   help="with --protocol: when the data lacks the protocol's resolution, "
+                        "evaluate the protocol's views at the data's own resolution, labelled "
+                        "NOT the protocol")
+    e.add_argument("--scene-type", choices=["indoor", "outdoor"], default=None,
+                   help="mipnerf360: indoor (1/2 resolution) or outdoor (1/4) for a scene whose "
+                        "name is not one of the published ones")
+    e.add_argument("--lpips", choices=["alex", "vgg", "none"], default="alex",
+                   help="LPIPS backbone (default alex; vgg as the NeRF paper's Blender table); "
+                        "needs the 'eval' extra and the backbone's ImageNet weights, else the "
+                        "output states why it is absent")
+    e.add_argument("--lpips-backbone", default=None, metavar="FILE",
+                   help="torchvision's backbone weights file (default: $CLRF_LPIPS_WEIGHTS, then "
+                        "torch's hub cache)")
+    e.set_defaults(func=func)
+    return e
