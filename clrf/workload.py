@@ -97,7 +97,7 @@ def _grid_rate(device) -> float:
     sh = rng.normal(0.0, 0.3, (r, r, r, 27)).astype(np.float32)
     grid = SparseGrid.from_dense(device, dens, sh, np.array([[-1.0] * 3, [1.0] * 3]))
     o = rng.uniform(-0.5, 0.5, (WORK_RAYS, 3)) + np.array([0.0, 0.0, -3.0])
-    d = rng.uniform(-0.4, 0.4, (WORK_RAYS, 3)) - o * 0.0 + np.array([0.0, 0.0, 1.0])
+    d = rng.uniform(-0.4, 0.4, (WORK_RAYS, 3)) + np.array([0.0, 0.0, 1.0])   # towards the box
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     q = device.queue
     od, dd = upload(q, o.astype(np.float32)), upload(q, d.astype(np.float32))
