@@ -248,3 +248,27 @@ BRICK_REF_ATOL = 1e-12
 # bounds are 10x / 4x that and still 20x below what the 20 steps change (loss -70%, PSNR +13).
 DIST_TRAIN_RTOL = 1e-3   # mean training loss, relative
 DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
+
+# ============================================================================================
+# Hash encoding (cl/hash.cl, clrf/hash/)
+# ============================================================================================
+# Forward vs float64: kernel and reference pick the same cell and weights (the reference
+# repeats the kernel's float32 u and p), so only the float32 interpolation differs: 8 products
+# of 3 weights and a feature (|feature| <= 1 in the tests), each ~4 u relative, summed: <= 40 u
+# = 2.4e-6 worst case; seen ~3e-7. A wrong corner, weight or hash moves values by >= 1e-2.
+HASH_ATOL = 3e-6
+# Backward vs float64: each table entry sums <= n * 8 terms (n <= 65 points, |dL/denc| <= 1)
+# in float32, in any order (atomics): <= (n * 8) u * max|term| ~ 3e-5 worst case; 1e-5 relative
+# of the largest entry plus 3e-6 absolute is still 1000x below a misplaced contribution (O(0.1)).
+HASH_GRAD_ATOL = 3e-6
+HASH_GRAD_RTOL = 1e-5
+# Reference gradient vs central differences of the reference: the encoding is LINEAR in the
+# table, so a central difference is exact up to float64 roundoff (~1e-15 / eps with eps 1e-3).
+HASH_FD_EPS = 1e-3
+HASH_FD_ATOL = 1e-10
+# Kernel self-consistency: enc(table + h e_j) - enc(table) with h = 1 equals h times the
+# kernel's gradient column for a linear map; both in float32 on O(1) values: a few u -> 1e-6.
+HASH_KERNEL_FD_ATOL = 1e-6
+# SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
+# <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
+HASH_SH_ATOL = 1e-6
