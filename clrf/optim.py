@@ -33,7 +33,7 @@ class Optimizer:
       gradient buffers never need a dense zero-fill. ``state``: RMSProp's mean square.
     - ``adam``: param [n]; ``step(None, lr, t=t)`` updates every entry with bias correction for
       the 1-based update count t. ``state`` / ``state2``: the first / second moments (beta,
-      beta2 their decay rates). The gradient is not reset (the MLP backward overwrites it).
+      beta2 their decay rates); ``weight_decay`` adds weight_decay * p to the gradient (L2). The gradient is not reset (the MLP backward overwrites it).
 
     >>> opt = Optimizer(dev, grid.density)              # RMSProp over rows
     >>> opt.step(touched, lr=0.1, clear_touched=False)
@@ -42,7 +42,7 @@ class Optimizer:
     """
 
     def __init__(self, device, param, mode="rmsprop", beta=0.95, eps=1e-8, state=None,
-                 grad=None, beta2=0.999, state2=None):
+                 grad=None, beta2=0.999, state2=None, weight_decay=0.0):
         if mode not in MODES:
             raise ValueError(f"optimizer: '{mode}' is not one of {sorted(MODES)}")
         self.device = device
@@ -50,6 +50,7 @@ class Optimizer:
         self.beta = float(beta)
         self.beta2 = float(beta2)
         self.eps = float(eps)
+        self.weight_decay = float(weight_decay)   # Adam only: g + weight_decay * p
         self.param = param
         self.grad = grad if grad is not None else cla.zeros_like(param)
         self.state = state if state is not None else cla.zeros_like(param)
@@ -68,7 +69,7 @@ class Optimizer:
                    (np.int32(n), self.param.data, self.grad.data, self.state.data,
                     self.state2.data, np.float32(lr), np.float32(self.beta),
                     np.float32(self.beta2), np.float32(self.eps), np.float32(bc1),
-                    np.float32(bc2)), ADAM_LOCAL_SIZE)
+                    np.float32(bc2), np.float32(self.weight_decay)), ADAM_LOCAL_SIZE)
             return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]

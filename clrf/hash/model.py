@@ -1,0 +1,245 @@
+"""The hash-grid model: a multiresolution hash encoding (cl/hash.cl) feeding the fused tiny MLP
+(cl/mlp.cl), stratified samples kept only in occupied cells of an occupancy grid
+(cl/hash_occ.cl), NeRF's compositing (cl/composite.cl) and Adam (cl/optim.cl).
+
+Network (the fused MLP's shape, clrf.nerf.mlp.MLPSpec with depth 1):
+  h = relu(W_0 enc(x) + b_0)                           enc(x): L F hash features, h: width
+  [sigma_raw, feat] = W_1 h + b_1;  sigma = softplus(sigma_raw)   (the stable activation)
+  c = relu(W_2 [feat, SH(d)] + b_2);  rgb = sigmoid(W_3 c + b_3)  SH(d): 16 coefficients
+The density MLP is one hidden layer of ``width``; the colour MLP reads the view direction's SH
+encoding (degree 3, 16 coefficients) and the density features. The published colour MLP has two
+hidden layers on 15 features; the fused kernel's head is a linear layer to ``width`` features
+followed by one colour hidden layer, i.e. the same input and one hidden non-linearity fewer.
+
+One training step on B rays (one host round trip: the per-ray counts of live samples):
+  t = stratified(B, S, near, far, jitter); x = o + t d/|d|           (sample.cl)
+  idx = live samples (inside the box, occupied cell)                 (hash_occ.cl)
+  sigma, rgb at x[idx] (hash + SH encodings, MLP); 0 elsewhere        (hash.cl, mlp.cl)
+  composite + MSE backward -> dL/dsigma, dL/drgb at idx               (composite.cl)
+  MLP backward -> dL/dtheta, dL/denc;  hash backward -> dL/dtable     (mlp.cl, hash.cl)
+  Adam (eps 1e-15) on tables and MLP, weight decay on the MLP only    (optim.cl)
+Every occ_every steps after occ_warmup the occupancy grid is updated from the density.
+
+>>> model = HashModel(dev, HashConfig.from_preset("tiny"), near=2.0, far=6.0,
+...                   bbox=[[-1.5] * 3, [1.5] * 3], background=(1, 1, 1))
+>>> loss = model.train_step(0, origins_d, dirs_d, target_d)      # pyopencl arrays [B, 3]
+>>> out = model.render(origins, dirs)                            # numpy rgb [n,3], depth, acc
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..config import HashConfig
+from ..nerf import ops
+from ..nerf.mlp import MLP, MLPSpec
+from ..nerf.model import _key
+from ..optim import Optimizer
+from ..programs import upload
+from .encoding import SH_DIM, HashEncoding
+from .occupancy import OccupancyGrid, gather_rows, scatter_rows
+
+MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
+
+
+class HashModel:
+    kind = "hash"
+
+    def __init__(self, device, config: HashConfig, near: float, far: float, bbox,
+                 background=(0.0, 0.0, 0.0), seed: int = 0):
+        if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
+            raise ValueError(f"near/far: need finite 0 <= near < far, got {near}, {far}")
+        bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+        if not np.all(np.isfinite(bg)):
+            raise ValueError(f"background: must be finite, got {background}")
+        box = np.asarray(bbox, np.float64)
+        if box.shape != (2, 3):
+            raise ValueError(f"bbox: expected [[x0, y0, z0], [x1, y1, z1]], got {bbox}")
+        self.device = device
+        self.config = c = config
+        self.near, self.far = float(near), float(far)
+        self.bbox = box
+        self.background = tuple(float(b) for b in bg)
+        self.seed = int(seed)
+        self.step = 0
+        self.enc = HashEncoding(device, c.levels, c.features, c.log2_table, c.min_res, c.max_res,
+                                (box[0], box[1]), seed=self.seed)
+        self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
+                            in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
+                            sigma_act="softplus", rows=c.mlp_rows)
+        self.net = MLP(device, self.spec, seed=self.seed)
+        self.occ = OccupancyGrid(device, c.occ_res, (box[0], box[1]))
+        self.occ_prg = self.occ.prg
+        self._adam_table = Optimizer(device, self.enc.table, "adam", beta=c.beta1,
+                                     beta2=c.beta2, eps=c.adam_eps, grad=self.enc.grad)
+        self._adam_net = Optimizer(device, self.net.params, "adam", beta=c.beta1, beta2=c.beta2,
+                                   eps=c.adam_eps, grad=self.net.grad,
+                                   weight_decay=c.weight_decay)
+
+    # ---- evaluation of the fields at points ---------------------------------------------
+    @property
+    def dt(self) -> float:
+        """Sample spacing along a ray (world units)."""
+        return (self.far - self.near) / self.config.samples
+
+    def _fields(self, xyz, vdir):
+        """sigma [m], rgb [m, 3] at points xyz [m, 3] seen along vdir [m, 3] (device)."""
+        xe = self.enc.forward(xyz)
+        de = self.enc.sh_encode(vdir)
+        return self.net.forward(xe, de)
+
+    def density(self, xyz):
+        """sigma [m] (device) at points xyz [m, 3] (device); the view direction is irrelevant
+        to sigma (any direction gives the same value)."""
+        m = int(xyz.shape[0])
+        if m == 0:
+            return cla.zeros(self.device.queue, 0, np.float32)
+        de = cla.zeros(self.device.queue, (m, SH_DIM), np.float32)
+        sigma, _ = self.net.forward(self.enc.forward(xyz), de)
+        return sigma
+
+    def _march(self, origins, dirs, t):
+        """Sample points, live indices and the full per-sample sigma / rgb (0 where not live):
+        (xyz, vdir, idx, sigma_full [n K], rgb_full [n K, 3], xyz_live)."""
+        dev, q = self.device, self.device.queue
+        n, K = (int(s) for s in t.shape)
+        xyz, vdir = ops.ray_points(dev, origins, dirs, t)
+        idx = self.occ.compact(xyz, n, K)
+        sigma = cla.zeros(q, n * K, np.float32)
+        rgb = cla.zeros(q, (n * K, 3), np.float32)
+        xl = None
+        if idx.shape[0]:
+            xl = gather_rows(dev, self.occ_prg, idx, xyz, 3)
+            vl = gather_rows(dev, self.occ_prg, idx, vdir, 3)
+            sl, cl_ = self._fields(xl, vl)
+            scatter_rows(dev, self.occ_prg, idx, sl, sigma, 1)
+            scatter_rows(dev, self.occ_prg, idx, cl_, rgb, 3)
+        return idx, sigma, rgb, xl
+
+    def lr_at(self, it: int) -> float:
+        return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
+
+    def train_step(self, it: int, origins, dirs, target) -> float:
+        """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
+        on device. Returns the batch MSE (mean over rays and channels)."""
+        for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
+            if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
+                    or a.shape[1] != 3 or not a.flags.c_contiguous:
+                raise TypeError(f"train_step: {name} must be a C-contiguous pyopencl float32 "
+                                f"array [B, 3]; got {type(a).__name__} "
+                                f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', None)}")
+        B = int(origins.shape[0])
+        if dirs.shape[0] != B or target.shape[0] != B or B == 0:
+            raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
+                             f"{origins.shape}, {dirs.shape}, {target.shape}")
+        c, dev = self.config, self.device
+        self.maybe_update_occupancy(it)
+        scale = 1.0 / (3.0 * B)
+        t = ops.sample_stratified(dev, B, c.samples, self.near, self.far, c.perturb,
+                                  _key(self.seed, it, 0))
+        idx, sigma, rgb, xl = self._march(origins, dirs, t)
+        cb = ops.composite_backward(dev, t, sigma, rgb, self.far, target, self.background,
+                                    mse=True, loss_scale=scale)
+        loss = float(np.sum(cb["sq_err"].get(), dtype=np.float64) * scale)
+        if xl is None:           # no live sample in the batch: nothing to train
+            self.step += 1
+            return loss
+        ds = gather_rows(dev, self.occ_prg, idx, cb["sigma"], 1)
+        dc = gather_rows(dev, self.occ_prg, idx, cb["rgb"], 3)
+        dx, _ = self.net.backward(ds, dc, want_input=True)
+        self.enc.grad.fill(np.float32(0))
+        self.enc.backward(xl, dx)
+        lr = self.lr_at(it)
+        self._adam_table.step(None, lr, t=self.step + 1)
+        self._adam_net.step(None, lr, t=self.step + 1)
+        self.net.sync_params()
+        self.step += 1
+        return loss
+
+    # ---- occupancy ----------------------------------------------------------------------
+    def occupancy_threshold(self) -> float:
+        """Density below which a cell counts as empty: occ_tau over the sample spacing."""
+        return self.config.occ_tau / self.dt
+
+    def maybe_update_occupancy(self, it: int) -> bool:
+        c = self.config
+        if it < c.occ_warmup or (it - c.occ_warmup) % c.occ_every != 0:
+            return False
+        self.update_occupancy(_key(self.seed, it, 2))
+        return True
+
+    def update_occupancy(self, key: int):
+        c = self.config
+        self.occ.update(self.density, key, c.occ_points, c.occ_decay,
+                        self.occupancy_threshold())
+
+    # ---- rendering ----------------------------------------------------------------------
+    def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
+        """Evaluation render (no jitter) of numpy rays [n, 3]: numpy rgb [n,3], depth [n],
+        acc [n]."""
+        from ..validate import check_rays
+        o, d = check_rays(origins, dirs)
+        if np.any(np.max(np.abs(d), axis=1) == 0):
+            raise ValueError("dirs: every direction must be non-zero")
+        c, dev, q = self.config, self.device, self.device.queue
+        n = o.shape[0]
+        step = max(1, min(int(chunk), MAX_RENDER_SAMPLES // c.samples))
+        out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),
+               "acc": np.zeros(n, np.float32)}
+        for s in range(0, n, step):
+            e = min(n, s + step)
+            od, dd = upload(q, o[s:e]), upload(q, d[s:e])
+            t = ops.sample_stratified(dev, e - s, c.samples, self.near, self.far, False)
+            _, sigma, rgb, _ = self._march(od, dd, t)
+            res = ops.composite_forward(dev, t, sigma, rgb, self.far, self.background)
+            for k in out:
+                out[k][s:e] = res[k].get()
+        return out
+
+    # ---- trainer interface (clrf.train) --------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return self.config.batch_rays
+
+    def on_iteration(self, it, trainer):
+        return None
+
+    def describe(self) -> str:
+        c = self.config
+        return (f"hash L{c.levels} F{c.features} T2^{c.log2_table} {c.min_res}-{c.max_res}, "
+                f"MLP {c.width}/{c.color_width}, {c.samples} samples, "
+                f"occupied {100 * self.occ.occupied_fraction():.1f}%")
+
+    # ---- checkpoints --------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """numpy arrays + python scalars: tables, MLP, Adam moments, occupancy, step, config."""
+        return {"kind": self.kind, "config": asdict(self.config), "near": self.near,
+                "far": self.far, "bbox": self.bbox.tolist(), "background": list(self.background),
+                "seed": self.seed, "step": self.step,
+                "table": self.enc.table.get(), "table_adam_m": self._adam_table.state.get(),
+                "table_adam_v": self._adam_table.state2.get(),
+                "mlp_params": self.net.params.get(), "mlp_adam_m": self._adam_net.state.get(),
+                "mlp_adam_v": self._adam_net.state2.get(), "occ_ema": self.occ.ema.get(),
+                "occ_threshold": self.occ.threshold}
+
+    @classmethod
+    def from_state_dict(cls, device, state: dict) -> "HashModel":
+        if state.get("kind") != cls.kind:
+            raise ValueError(f"state_dict: kind is {state.get('kind')!r}, expected 'hash'")
+        model = cls(device, HashConfig.from_dict(dict(state["config"])), state["near"],
+                    state["far"], state["bbox"], tuple(state["background"]), int(state["seed"]))
+        model.step = int(state["step"])
+        for key, arr in (("table", model.enc.table), ("table_adam_m", model._adam_table.state),
+                         ("table_adam_v", model._adam_table.state2),
+                         ("mlp_params", model.net.params), ("mlp_adam_m", model._adam_net.state),
+                         ("mlp_adam_v", model._adam_net.state2), ("occ_ema", model.occ.ema)):
+            v = np.asarray(state[key], np.float32)
+            if v.shape != arr.shape:
+                raise ValueError(f"state_dict[{key!r}]: shape {v.shape}, the config needs "
+                                 f"{arr.shape}")
+            arr.set(np.ascontiguousarray(v))
+        model.net.sync_params()
+        model.occ._threshold(float(state["occ_threshold"]))
+        return model
