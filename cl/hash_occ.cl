@@ -119,3 +119,11 @@ __kernel void occ_threshold(const int nc, const float thr, __global const float 
     const float e = ema[c];
     occ[c] = (e < 0.0f || e > thr) ? 1 : 0;
 }
+
+/* sigma[j] = 0 where xyz[j] is outside the box (export: the field as the renderer sees it). */
+__kernel void zero_outside(const int m, __global const float *xyz, const float4 lo,
+                           const float4 inv_ext, __global float *sigma) {
+    const int j = get_global_id(0);
+    if (j >= m) return;
+    if (occ_cell(load3(xyz, j), lo, inv_ext, 1) < 0) sigma[j] = 0.0f;
+}

@@ -37,7 +37,7 @@ from ..nerf import ops
 from ..nerf.mlp import MLP, MLPSpec
 from ..nerf.model import _key
 from ..optim import Optimizer
-from ..programs import upload
+from ..programs import launch, upload
 from .encoding import SH_DIM, HashEncoding
 from .occupancy import OccupancyGrid, gather_rows, scatter_rows
 
@@ -90,6 +90,15 @@ class HashModel:
         de = self.enc.sh_encode(vdir)
         return self.net.forward(xe, de)
 
+    def fields(self, xyz, vdir):
+        """sigma [m], rgb [m, 3] (device) at points xyz [m, 3] along vdir [m, 3] (device) as
+        the renderer sees them: sigma = 0 outside the box (the encoding clamps there)."""
+        sigma, rgb = self._fields(xyz, vdir)
+        launch(self.device, self.occ_prg.kernel("zero_outside"), int(xyz.shape[0]),
+               (np.int32(xyz.shape[0]), xyz.data, self.occ.lo4, self.occ.inv4, sigma.data),
+               self.device.tuning.elementwise_local_size)
+        return sigma, rgb
+
     def density(self, xyz):
         """sigma [m] (device) at points xyz [m, 3] (device); the view direction is irrelevant
         to sigma (any direction gives the same value)."""
@@ -134,29 +143,38 @@ class HashModel:
         if dirs.shape[0] != B or target.shape[0] != B or B == 0:
             raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
                              f"{origins.shape}, {dirs.shape}, {target.shape}")
-        c, dev = self.config, self.device
         self.maybe_update_occupancy(it)
+        loss, live = self.loss_and_grad(it, origins, dirs, target)
+        if live:
+            lr = self.lr_at(it)
+            self._adam_table.step(None, lr, t=self.step + 1)
+            self._adam_net.step(None, lr, t=self.step + 1)
+            self.net.sync_params()
+        self.step += 1
+        return loss
+
+    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None):
+        """(loss, live samples) of a batch; enc.grad and net.grad get dL/dtable and
+        dL/dparams (both overwritten; untouched when no sample is live). L = sum over rays
+        and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb."""
+        c, dev = self.config, self.device
+        B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
-        t = ops.sample_stratified(dev, B, c.samples, self.near, self.far, c.perturb,
+        jitter = c.perturb if jitter is None else bool(jitter)
+        t = ops.sample_stratified(dev, B, c.samples, self.near, self.far, jitter,
                                   _key(self.seed, it, 0))
         idx, sigma, rgb, xl = self._march(origins, dirs, t)
         cb = ops.composite_backward(dev, t, sigma, rgb, self.far, target, self.background,
                                     mse=True, loss_scale=scale)
         loss = float(np.sum(cb["sq_err"].get(), dtype=np.float64) * scale)
         if xl is None:           # no live sample in the batch: nothing to train
-            self.step += 1
-            return loss
+            return loss, 0
         ds = gather_rows(dev, self.occ_prg, idx, cb["sigma"], 1)
         dc = gather_rows(dev, self.occ_prg, idx, cb["rgb"], 3)
         dx, _ = self.net.backward(ds, dc, want_input=True)
         self.enc.grad.fill(np.float32(0))
         self.enc.backward(xl, dx)
-        lr = self.lr_at(it)
-        self._adam_table.step(None, lr, t=self.step + 1)
-        self._adam_net.step(None, lr, t=self.step + 1)
-        self.net.sync_params()
-        self.step += 1
-        return loss
+        return loss, int(idx.shape[0])
 
     # ---- occupancy ----------------------------------------------------------------------
     def occupancy_threshold(self) -> float:

@@ -88,3 +88,44 @@ def sh_encode(d):
     d = np.asarray(d, np.float64)
     n = np.linalg.norm(d, axis=1, keepdims=True)
     return sh_basis(np.where(n > 0, d / np.where(n > 0, n, 1), 0.0), 3)
+
+
+# ---- occupancy grid and compaction (cl/hash_occ.cl) -----------------------------------------
+def occ_cells(xyz, lo, inv_ext, R):
+    """Cell index [n] of each point (float32 u as the kernel), -1 outside the closed box."""
+    x = np.asarray(xyz, np.float32)
+    u = (x - np.asarray(lo, np.float32)) * np.asarray(inv_ext, np.float32)
+    inside = np.all((u >= 0) & (u <= 1), axis=1)
+    c = np.minimum((u * np.float32(R)).astype(np.int64), R - 1)
+    idx = c[:, 0] + R * (c[:, 1] + R * c[:, 2])
+    return np.where(inside, idx, -1)
+
+
+def compact(xyz, occ, lo, inv_ext, R):
+    """Indices (ray-major) of the points inside the box in occupied cells."""
+    c = occ_cells(xyz, lo, inv_ext, R)
+    live = (c >= 0) & (np.asarray(occ)[np.maximum(c, 0)] != 0)
+    return np.flatnonzero(live)
+
+
+def occ_points(m, key, R, lo, ext):
+    """(cells [m], points [m, 3]) of the occupancy update's random cells (bit-exact cells)."""
+    from .reference_nerf import uniform01
+    j = np.arange(m, dtype=np.uint64)
+    R3 = R ** 3
+    u = uniform01(key, 4 * j).astype(np.float32)
+    c = np.minimum((u * np.float32(R3)).astype(np.int64), R3 - 1)
+    ijk = np.stack([c % R, (c // R) % R, c // (R * R)], 1).astype(np.float64)
+    jit = np.stack([uniform01(key, 4 * j + k) for k in (1, 2, 3)], 1)
+    return c, np.asarray(lo) + (ijk + jit) / R * np.asarray(ext)
+
+
+def occ_update(ema, cells, sigma, decay, thr):
+    """(ema', occ'): measured cells decay, then max with the new densities (NaN / negative ->
+    0; never-measured cells take them), occupied = never measured or above thr."""
+    e = np.array(ema, np.float64)
+    e = np.where(e >= 0, e * decay, e)
+    s = np.where(np.isnan(sigma), 0.0, np.maximum(np.asarray(sigma, np.float64), 0.0))
+    for c, v in zip(cells, s):
+        e[c] = max(e[c], v)
+    return e, ((e < 0) | (e > thr)).astype(np.uint8)

@@ -272,3 +272,13 @@ HASH_KERNEL_FD_ATOL = 1e-6
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6
+# One whole hash-model step (occupancy compaction, hash encoding, fused MLP, compositing, MLP
+# and hash backward) vs the same chain of float64 references: every stage's float32 error
+# (MLP ~1e-5 relative, composite ~1e-6) compounds through the MLP backward into table
+# gradients that sum a few hundred samples; relative to the largest entry, 1e-4 is ~10x the
+# error seen and still 100x below a missing sample, a wrong row or a transposed layer (O(1e-2)).
+HASH_STEP_GRAD_REL_TO_MAX = 1e-4
+# The step's loss: a float32 sum of B per-ray squared errors vs float64: ~1e-6 relative.
+HASH_STEP_LOSS_RTOL = 1e-5
+# Occupancy update: decay is one float32 multiply (0.5 ulp), the max is exact.
+HASH_OCC_RTOL = 1e-6
