@@ -192,3 +192,39 @@ def test_short_training_improves_on_procedural_scene(device):
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5])
     assert p1 > p0 + 5.0, (p0, p1)
     assert model.occ.occupied_fraction() < 1.0     # the occupancy grid did prune
+
+
+def test_hash_through_the_cli(tmp_path, capsys):
+    """clrf train --model hash, resume, eval, render and export on the built-in scene, with an
+    iteration budget (not a time budget)."""
+    import json
+
+    from clrf import checkpoint
+    from clrf.cli import main as cli
+    out = tmp_path / "h"
+    small = ["--set", "hash.batch_rays=256", "--set", "hash.samples=64",
+             "--set", "hash.occ_points=8192", "--set", "hash.occ_warmup=20",
+             "--set", "train.max_iters=50", "--set", "train.eval_every=1000",
+             "--set", "train.eval_views=2"]
+    assert cli(["train", "--model", "hash", "--out", str(out), "--max-seconds", "600",
+                *small]) == 0
+    rows = list(__import__("csv").DictReader(open(out / "metrics.csv")))
+    assert rows[-1]["model"].startswith("hash L16 F2 T2^16")
+    assert float(rows[-1]["eval_psnr"]) > float(rows[0]["eval_psnr"]) + 3.0
+    st = checkpoint.load(out)
+    assert st["kind"] == "hash" and st["iteration"] == 50
+    assert cli(["train", "--out", str(out), "--resume", "--set", "train.max_iters=60"]) == 0
+    assert checkpoint.load(out)["iteration"] == 60
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "2",
+                "--out", str(tmp_path / "ev.json")]) == 0
+    assert len(json.loads((tmp_path / "ev.json").read_text())["views"]) == 2
+    assert cli(["render", "--ckpt", str(out), "--views", "orbit", "--frames", "2",
+                "--out", str(tmp_path / "f")]) == 0
+    assert len(list((tmp_path / "f").glob("orbit_*.png"))) == 2
+    assert cli(["export", "--ckpt", str(out), "--points", str(tmp_path / "p.ply"),
+                "--n", "2000"]) == 0
+    assert (tmp_path / "p.ply").is_file()
+    capsys.readouterr()
+    rc = cli(["train", "--model", "hash", "--out", str(tmp_path / "bad"),
+              "--set", "hash.log2_tabel=3"])
+    assert rc == 2 and "log2_tabel" in capsys.readouterr().err
