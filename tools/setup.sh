@@ -11,6 +11,7 @@
 #   bash tools/setup.sh test,mpi # plus mpi4py for `mpirun -n N clrf train`; installs Debian's
 #                                # Open MPI first (openmpi-bin libopenmpi-dev) when mpicc or
 #                                # mpirun is missing
+#   bash tools/setup.sh test,peers # plus taichi for the Taichi peers of tools/bench.py
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
