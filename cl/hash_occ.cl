@@ -1,4 +1,4 @@
-/* hash_occ.cl: the hash model's occupancy grid and the sample compaction that uses it.
+/* hash_occ.cl: the hash model's occupancy grid.
  *
  * Occupancy grid: R^3 cells over the scene box [lo, lo + 1/inv_ext] (cell c = cx + R (cy + R cz),
  * cell of a point: floor(u R) with u the point's box coordinate). Per cell a float `ema`:
@@ -9,71 +9,11 @@
  *              at freshly measured cells: a random point in each of a random set of cells).
  * occ_threshold turns it into the byte grid the sampler reads: occ = ema < 0 || ema > thr.
  *
- * Compaction: the stratified samples of a batch (rows i K + k of xyz [n K, 3]) that lie inside
- * the box in an occupied cell are listed in ray order: occ_count counts them per ray, the host
- * turns the counts into offsets (an exclusive prefix sum) and occ_compact writes the global
- * sample indices idx [M]. Only those M samples go through the encoding and the MLPs; the
- * others have sigma = 0 (they add nothing to the composite) and get no gradient.
+ * The sampler that reads the byte grid is cl/hash_march.cl; the cell of a point is hash_occ.h's.
  *
  * Defines read: none.
  */
-#include "common.h"
-
-/* Cell index of point xyz, or -1 outside the closed box (or NaN). */
-CLRF_INLINE int occ_cell(const float3 xyz, const float4 lo, const float4 inv_ext, const int R) {
-    const float3 u = (xyz - lo.xyz) * inv_ext.xyz;
-    if (!(u.x >= 0.0f && u.y >= 0.0f && u.z >= 0.0f && u.x <= 1.0f && u.y <= 1.0f
-          && u.z <= 1.0f))
-        return -1;
-    const int3 c = min(convert_int3(u * (float)R), (int3)(R - 1));
-    return c.x + R * (c.y + R * c.z);
-}
-
-CLRF_INLINE int occ_live(__global const float *xyz, const size_t s, const float4 lo,
-                         const float4 inv_ext, const int R, __global const uchar *occ) {
-    const int c = occ_cell(load3(xyz, s), lo, inv_ext, R);
-    return c >= 0 && occ[c];
-}
-
-/* counts [n]: live samples of each ray (one work-item per ray). */
-__kernel void occ_count(const int n, const int K, __global const float *xyz, const float4 lo,
-                        const float4 inv_ext, const int R, __global const uchar *occ,
-                        __global int *counts) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    int m = 0;
-    for (int k = 0; k < K; ++k) m += occ_live(xyz, (size_t)i * K + k, lo, inv_ext, R, occ);
-    counts[i] = m;
-}
-
-/* idx [M]: the live samples' global indices, ray i's from offsets[i] on, in sample order. */
-__kernel void occ_compact(const int n, const int K, __global const float *xyz, const float4 lo,
-                          const float4 inv_ext, const int R, __global const uchar *occ,
-                          __global const int *offsets, __global int *idx) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    int o = offsets[i];
-    for (int k = 0; k < K; ++k) {
-        const size_t s = (size_t)i * K + k;
-        if (occ_live(xyz, s, lo, inv_ext, R, occ)) idx[o++] = (int)s;
-    }
-}
-
-/* dst[j, :] = src[idx[j], :] for rows of D floats (gather of the live samples). */
-__kernel void gather_rows(const int m, const int D, __global const int *idx,
-                          __global const float *src, __global float *dst) {
-    const int j = get_global_id(0);
-    if (j >= m) return;
-    for (int c = 0; c < D; ++c) dst[(size_t)j * D + c] = src[(size_t)idx[j] * D + c];
-}
-
-/* dst[idx[j], :] = src[j, :] (scatter back; dst was cleared by the host). */
-__kernel void scatter_rows(const int m, const int D, __global const int *idx,
-                           __global const float *src, __global float *dst) {
-    const int j = get_global_id(0);
-    if (j >= m) return;
-    for (int c = 0; c < D; ++c) dst[(size_t)idx[j] * D + c] = src[(size_t)j * D + c];
-}
+#include "hash_occ.h"
 
 /* m random cells (uniform01 of key) and a uniformly jittered point in each: cells [m],
  * xyz [m, 3] (world). */

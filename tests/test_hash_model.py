@@ -49,19 +49,89 @@ def test_presets_and_validation():
         build_config(overrides={"hash": {"preset": "huge"}})
 
 
-def test_compaction_matches_reference(device):
+def test_march_matches_reference(device):
+    """Live samples (inside the box, occupied cell), packed per ray, jittered bins; rays that
+    miss the box get none."""
+    from clrf.hash.march import march
     occ = OccupancyGrid(device, 5, BOX)
     rng = np.random.default_rng(1)
-    mask = (rng.random(125) < 0.4).astype(np.float32)
-    occ.ema.set(np.where(mask > 0, 1.0, 0.0).astype(np.float32))
+    mask = rng.random(125) < 0.4
+    occ.ema.set(np.where(mask, 1.0, 0.0).astype(np.float32))
     occ._threshold(0.5)
-    n, K = 37, 9
-    xyz = rng.uniform(-1.3, 1.3, (n * K, 3)).astype(np.float32)
-    xyz[:K] = 5.0                    # a ray entirely outside the box
-    idx = occ.compact(_up(device, xyz), n, K).get()
-    want = rh.compact(xyz, occ.occ.get(), BOX[0], 1 / (BOX[1] - BOX[0]), 5)
-    np.testing.assert_array_equal(idx, want)
-    assert 0 < len(idx) < n * K
+    o, d = _rays(37, seed=1)
+    d[0] = -d[0]                                 # points away from the box
+    for jitter in (False, True):
+        pk = march(device, occ, _up(device, o), _up(device, d), 24, 1.0, 5.0, jitter, key=9)
+        off, t, xyz, vdir = rh.march_samples(o, d, 24, 1.0, 5.0, occ.occ.get(), BOX[0],
+                                             1 / (BOX[1] - BOX[0]), 5, jitter, 9)
+        np.testing.assert_array_equal(pk.offsets_host, off)
+        assert off[1] == 0 and 0 < pk.m < 37 * 24
+        np.testing.assert_allclose(pk.t.get(), t, rtol=0, atol=tol.SAMPLE_ATOL)
+        np.testing.assert_allclose(pk.xyz.get(), xyz, rtol=0, atol=tol.SAMPLE_ATOL)
+        np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
+
+
+def test_packed_composite_matches_reference(device):
+    """Forward (in two windows, state carried) and MSE backward over packed samples, densities
+    0..1e30 and negative, one empty ray."""
+    from clrf.hash import march as hm
+    rng = np.random.default_rng(2)
+    counts = np.array([0, 1, 7, 40, 13])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    m = int(off[-1])
+    t = np.concatenate([np.sort(rng.uniform(2, 6, c)) for c in counts]).astype(np.float32)
+    sig = rng.uniform(-1, 20, m).astype(np.float32)
+    sig[off[3] + 5] = 1e30
+    rgb = rng.uniform(0, 1, (m, 3)).astype(np.float32)
+    target = rng.uniform(0, 1, (5, 3)).astype(np.float32)
+    dt, bg = 0.05, (0.2, 0.5, 1.0)
+    q = device.queue
+    n = 5
+
+    def pk_of(lo, hi):
+        sel = np.concatenate([np.arange(off[i] + min(lo, counts[i]), off[i] + min(hi, counts[i]))
+                              for i in range(n)]).astype(int)
+        c2 = np.array([max(0, min(hi, c) - min(lo, c)) for c in counts])
+        o2 = np.concatenate([[0], np.cumsum(c2)])
+        return hm.Packed(n, len(sel), cla.to_device(q, o2.astype(np.int32)), o2,
+                         _up(device, t[sel]), _up(device, np.zeros((len(sel), 3))),
+                         _up(device, np.zeros((len(sel), 3)))), sel
+
+    state = cla.zeros(q, (n, hm.STATE), np.float32)
+    for lo, hi in ((0, 10), (10, 64)):
+        pk, sel = pk_of(lo, hi)
+        hm.packed_forward(device, pk, _up(device, sig[sel]), _up(device, rgb[sel]), dt, state)
+    got = hm.finish_state(state.get(), bg)
+    want = rh.packed_forward(off, t, dt, sig, rgb, bg)
+    for k in ("rgb", "acc"):
+        np.testing.assert_allclose(got[k], want[k], rtol=tol.RENDER_RTOL, atol=tol.RENDER_ATOL)
+    np.testing.assert_allclose(got["depth"], want["depth"], rtol=tol.DEPTH_RTOL,
+                               atol=tol.DEPTH_ATOL)
+    pk, _ = pk_of(0, 64)
+    g = hm.packed_backward(device, pk, _up(device, sig), _up(device, rgb), dt, bg,
+                           _up(device, target), 0.1)
+    r = rh.packed_backward(off, t, dt, sig, rgb, bg, target, 0.1)
+    np.testing.assert_allclose(g["sq_err"].get(), r["sq_err"], rtol=tol.RENDER_RTOL,
+                               atol=tol.RENDER_ATOL)
+    for k in ("sigma", "rgb"):
+        np.testing.assert_allclose(g[k].get(), r[k], rtol=tol.GRAD_RTOL, atol=tol.GRAD_ATOL)
+
+
+def test_packed_backward_vs_finite_differences():
+    """The packed composite reference's dL/dsigma against central differences of its loss."""
+    rng = np.random.default_rng(3)
+    off = np.array([0, 6, 6, 15])
+    t = np.concatenate([np.sort(rng.uniform(2, 6, 6)), np.sort(rng.uniform(2, 6, 9))])
+    sig = rng.uniform(0.1, 20, 15)
+    rgb = rng.uniform(0, 1, (15, 3))
+    target = rng.uniform(0, 1, (3, 3))
+
+    def loss(s):
+        f = rh.packed_forward(off, t, 0.05, s, rgb, (0.2, 0.5, 1.0))
+        return 0.1 * np.sum((f["rgb"] - target) ** 2)
+    g = rh.packed_backward(off, t, 0.05, sig, rgb, (0.2, 0.5, 1.0), target, 0.1)["sigma"]
+    fd = rn.numeric_gradient(loss, sig, 1e-6)
+    np.testing.assert_allclose(g, fd, rtol=tol.FD_RTOL, atol=tol.FD_ATOL)
 
 
 def test_occupancy_starts_full_and_updates_like_reference(device):
@@ -95,27 +165,19 @@ def _reference_step(model, o, d, target):
     """Loss and gradients of one step (no jitter) through the float64 references."""
     c = model.config
     enc, net = model.enc, model.net
-    t = rn.sample_stratified(o.shape[0], c.samples, model.near, model.far)
-    xyz, vdir = rn.ray_points(o, d, t)
-    live = rh.compact(xyz, model.occ.occ.get(), enc.lo, enc.inv_ext, c.occ_res)
+    off, t, xyz, vdir = rh.march_samples(o, d, c.samples, model.near, model.far,
+                                         model.occ.occ.get(), enc.lo, enc.inv_ext, c.occ_res)
     table = enc.table.get()
     params = net.params.get()
-    x_enc = rh.hash_forward(xyz[live], enc.lo, enc.inv_ext, enc.res_host, table)
-    d_enc = rh.sh_encode(vdir[live])
-    s_l, c_l = rn.mlp_forward(params, net.spec, net.layout, x_enc, d_enc)
-    n, K = t.shape
-    sigma, rgb = np.zeros(n * K), np.zeros((n * K, 3))
-    sigma[live], rgb[live] = s_l, c_l
-    sigma, rgb = sigma.reshape(n, K), rgb.reshape(n, K, 3)
-    f = rn.composite_forward(t, sigma, rgb, model.far, model.background)
-    scale = 1.0 / (3 * n)
-    loss = scale * np.sum((f["rgb"] - target) ** 2)
-    cb = rn.composite_backward(t, sigma, rgb, model.far, 2 * scale * (f["rgb"] - target),
-                               model.background)
-    mb = rn.mlp_backward(params, net.spec, net.layout, x_enc, d_enc,
-                         cb["sigma"].reshape(-1)[live], cb["rgb"].reshape(-1, 3)[live])
-    gt = rh.hash_backward(xyz[live], enc.lo, enc.inv_ext, enc.res_host, mb["x_enc"], enc.shape)
-    return loss, mb["params"], gt, len(live)
+    x_enc = rh.hash_forward(xyz, enc.lo, enc.inv_ext, enc.res_host, table)
+    d_enc = rh.sh_encode(vdir)
+    sigma, rgb = rn.mlp_forward(params, net.spec, net.layout, x_enc, d_enc)
+    scale = 1.0 / (3 * o.shape[0])
+    g = rh.packed_backward(off, t, model.dt, sigma, rgb, model.background, target, scale)
+    loss = scale * np.sum(g["sq_err"])
+    mb = rn.mlp_backward(params, net.spec, net.layout, x_enc, d_enc, g["sigma"], g["rgb"])
+    gt = rh.hash_backward(xyz, enc.lo, enc.inv_ext, enc.res_host, mb["x_enc"], enc.shape)
+    return loss, mb["params"], gt, len(t)
 
 
 @pytest.mark.parametrize("path", ["atomics", "slots"])

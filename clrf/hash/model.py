@@ -1,6 +1,7 @@
 """The hash-grid model: a multiresolution hash encoding (cl/hash.cl) feeding the fused tiny MLP
 (cl/mlp.cl), stratified samples kept only in occupied cells of an occupancy grid
-(cl/hash_occ.cl), NeRF's compositing (cl/composite.cl) and Adam (cl/optim.cl).
+(cl/hash_occ.cl), packed per ray and composited (cl/hash_march.cl, volrend.h's steps), and
+Adam (cl/optim.cl).
 
 Network (the fused MLP's shape, clrf.nerf.mlp.MLPSpec with depth 1):
   h = relu(W_0 enc(x) + b_0)                           enc(x): L F hash features, h: width
@@ -12,13 +13,16 @@ hidden layers on 15 features; the fused kernel's head is a linear layer to ``wid
 followed by one colour hidden layer, i.e. the same input and one hidden non-linearity fewer.
 
 One training step on B rays (one host round trip: the per-ray counts of live samples):
-  t = stratified(B, S, near, far, jitter); x = o + t d/|d|           (sample.cl)
-  idx = live samples (inside the box, occupied cell)                 (hash_occ.cl)
-  sigma, rgb at x[idx] (hash + SH encodings, MLP); 0 elsewhere        (hash.cl, mlp.cl)
-  composite + MSE backward -> dL/dsigma, dL/drgb at idx               (composite.cl)
+  S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
+  cells, packed per ray (so the sample count adapts per ray)          (hash_march.cl)
+  sigma, rgb of the M live samples (hash + SH encodings, MLP)         (hash.cl, mlp.cl)
+  composite + MSE backward over each ray's live samples (each stands
+  for its bin: segment length dt = (far - near) / S)                  (hash_march.cl)
   MLP backward -> dL/dtheta, dL/denc;  hash backward -> dL/dtable     (mlp.cl, hash.cl)
   Adam (eps 1e-15) on tables and MLP, weight decay on the MLP only    (optim.cl)
 Every occ_every steps after occ_warmup the occupancy grid is updated from the density.
+Renders march RENDER_WINDOW bins at a time and stop rays whose transmittance fell below
+1e-4 (early ray termination).
 
 >>> model = HashModel(dev, HashConfig.from_preset("tiny"), near=2.0, far=6.0,
 ...                   bbox=[[-1.5] * 3, [1.5] * 3], background=(1, 1, 1))
@@ -39,9 +43,11 @@ from ..nerf.model import _key
 from ..optim import Optimizer
 from ..programs import launch, upload
 from .encoding import SH_DIM, HashEncoding
-from .occupancy import OccupancyGrid, gather_rows, scatter_rows
+from .march import STATE, finish_state, march, packed_backward, packed_forward
+from .occupancy import OccupancyGrid
 
 MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
+RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
 class HashModel:
@@ -109,24 +115,6 @@ class HashModel:
         sigma, _ = self.net.forward(self.enc.forward(xyz), de)
         return sigma
 
-    def _march(self, origins, dirs, t):
-        """Sample points, live indices and the full per-sample sigma / rgb (0 where not live):
-        (xyz, vdir, idx, sigma_full [n K], rgb_full [n K, 3], xyz_live)."""
-        dev, q = self.device, self.device.queue
-        n, K = (int(s) for s in t.shape)
-        xyz, vdir = ops.ray_points(dev, origins, dirs, t)
-        idx = self.occ.compact(xyz, n, K)
-        sigma = cla.zeros(q, n * K, np.float32)
-        rgb = cla.zeros(q, (n * K, 3), np.float32)
-        xl = None
-        if idx.shape[0]:
-            xl = gather_rows(dev, self.occ_prg, idx, xyz, 3)
-            vl = gather_rows(dev, self.occ_prg, idx, vdir, 3)
-            sl, cl_ = self._fields(xl, vl)
-            scatter_rows(dev, self.occ_prg, idx, sl, sigma, 1)
-            scatter_rows(dev, self.occ_prg, idx, cl_, rgb, 3)
-        return idx, sigma, rgb, xl
-
     def lr_at(self, it: int) -> float:
         return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
 
@@ -161,20 +149,21 @@ class HashModel:
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
         jitter = c.perturb if jitter is None else bool(jitter)
-        t = ops.sample_stratified(dev, B, c.samples, self.near, self.far, jitter,
-                                  _key(self.seed, it, 0))
-        idx, sigma, rgb, xl = self._march(origins, dirs, t)
-        cb = ops.composite_backward(dev, t, sigma, rgb, self.far, target, self.background,
-                                    mse=True, loss_scale=scale)
-        loss = float(np.sum(cb["sq_err"].get(), dtype=np.float64) * scale)
-        if xl is None:           # no live sample in the batch: nothing to train
+        pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
+                   _key(self.seed, it, 0))
+        q = dev.queue
+        if pk.m:
+            sigma, rgb = self._fields(pk.xyz, pk.vdir)
+        else:
+            sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
+        g = packed_backward(dev, pk, sigma, rgb, self.dt, self.background, target, scale)
+        loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
+        if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
-        ds = gather_rows(dev, self.occ_prg, idx, cb["sigma"], 1)
-        dc = gather_rows(dev, self.occ_prg, idx, cb["rgb"], 3)
-        dx, _ = self.net.backward(ds, dc, want_input=True)
+        dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
         self.enc.grad.fill(np.float32(0))
-        self.enc.backward(xl, dx)
-        return loss, int(idx.shape[0])
+        self.enc.backward(pk.xyz, dx)
+        return loss, pk.m
 
     # ---- occupancy ----------------------------------------------------------------------
     def occupancy_threshold(self) -> float:
@@ -209,12 +198,28 @@ class HashModel:
         for s in range(0, n, step):
             e = min(n, s + step)
             od, dd = upload(q, o[s:e]), upload(q, d[s:e])
-            t = ops.sample_stratified(dev, e - s, c.samples, self.near, self.far, False)
-            _, sigma, rgb, _ = self._march(od, dd, t)
-            res = ops.composite_forward(dev, t, sigma, rgb, self.far, self.background)
-            for k in out:
-                out[k][s:e] = res[k].get()
+            st = self._render_chunk(od, dd)
+            for k, v in finish_state(st, self.background).items():
+                out[k][s:e] = v
         return out
+
+    def _render_chunk(self, od, dd):
+        """Per-ray composite state [n, STATE] (numpy) of rays od/dd (device), marched in
+        windows of RENDER_WINDOW bins; a ray stops once its transmittance is below the
+        kernel's HASH_T_STOP (early ray termination)."""
+        c, dev, q = self.config, self.device, self.device.queue
+        n = int(od.shape[0])
+        state = cla.zeros(q, (n, STATE), np.float32)
+        alive = cla.empty(q, n, np.uint8)
+        alive.fill(np.uint8(1))
+        for k0 in range(0, c.samples, RENDER_WINDOW):
+            pk = march(dev, self.occ, od, dd, c.samples, self.near, self.far, False, 0, k0,
+                       min(c.samples, k0 + RENDER_WINDOW), alive)
+            if pk.m == 0:
+                continue
+            sigma, rgb = self._fields(pk.xyz, pk.vdir)
+            packed_forward(dev, pk, sigma, rgb, self.dt, state, alive)
+        return state.get()
 
     # ---- trainer interface (clrf.train) --------------------------------------------------
     @property

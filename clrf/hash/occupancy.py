@@ -1,8 +1,7 @@
-"""Host side of cl/hash_occ.cl: the occupancy grid of the hash model and the compaction of a
-batch's samples to those in occupied cells (math in the kernel file's header).
+"""Host side of cl/hash_occ.cl: the occupancy grid of the hash model (math in the kernel
+file's header; the sampler that reads it is clrf/hash/march.py).
 
 >>> occ = OccupancyGrid(dev, res=128, box=((-1.5,) * 3, (1.5,) * 3))
->>> idx = occ.compact(xyz_d, n_rays, K)          # int32 device array [M] of live samples
 >>> occ.update(density_fn, key, n_points, decay=0.95, threshold=0.05)
 """
 from __future__ import annotations
@@ -56,26 +55,6 @@ class OccupancyGrid:
     def occupied_fraction(self) -> float:
         return float(np.count_nonzero(self.occ.get())) / self.n_cells
 
-    def compact(self, xyz, n: int, K: int):
-        """int32 device array [M]: indices (ray-major) of the samples xyz [n K, 3] inside the box
-        in occupied cells. One host round trip (the per-ray counts)."""
-        dev, q = self.device, self.device.queue
-        counts = cla.empty(q, max(n, 1), np.int32)
-        args = (np.int32(n), np.int32(K), xyz.data, self.lo4, self.inv4, np.int32(self.res),
-                self.occ.data)
-        launch(dev, self._k("occ_count"), n, args + (counts.data,),
-               dev.tuning.per_ray_local_size)
-        c = counts.get()[:n].astype(np.int64)
-        offsets = np.zeros(max(n, 1), np.int32)
-        if n:
-            offsets[1:n] = np.cumsum(c)[:-1]
-        m = int(c.sum())
-        idx = cla.empty(q, max(m, 1), np.int32)
-        if m:
-            launch(dev, self._k("occ_compact"), n,
-                   args + (upload(q, offsets).data, idx.data), dev.tuning.per_ray_local_size)
-        return idx[:m] if m else idx[:0]
-
     def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float):
         """Decay the measured cells, measure density_fn (device xyz [m, 3] -> device sigma [m])
         at a random point of n_points random cells, and re-threshold."""
@@ -95,22 +74,3 @@ class OccupancyGrid:
                                                  self.ema.data), ls)
         self._threshold(threshold)
 
-
-def gather_rows(device, prg, idx, src, D: int, out=None):
-    """dst [M, D] = src[idx] (rows of D floats)."""
-    m = int(idx.shape[0])
-    out = out if out is not None else cla.empty(device.queue, (m, D) if D > 1 else m,
-                                                 np.float32)
-    launch(device, prg.kernel("gather_rows"), m, (np.int32(m), np.int32(D), idx.data, src.data,
-                                                  out.data),
-           device.tuning.elementwise_local_size)
-    return out
-
-
-def scatter_rows(device, prg, idx, src, dst, D: int):
-    """dst[idx] = src (rows of D floats); dst keeps its other rows."""
-    m = int(idx.shape[0])
-    launch(device, prg.kernel("scatter_rows"), m, (np.int32(m), np.int32(D), idx.data, src.data,
-                                                   dst.data),
-           device.tuning.elementwise_local_size)
-    return dst

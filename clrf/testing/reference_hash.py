@@ -129,3 +129,60 @@ def occ_update(ema, cells, sigma, decay, thr):
     for c, v in zip(cells, s):
         e[c] = max(e[c], v)
     return e, ((e < 0) | (e > thr)).astype(np.uint8)
+
+
+# ---- packed samples and compositing (cl/hash_march.cl) ---------------------------------------
+def march_samples(origins, dirs, S, near, far, occ, lo, inv_ext, R, jitter=False, key=0):
+    """(offsets [n+1], t [M], xyz [M, 3], vdir [M, 3]) of the live samples of every bin."""
+    from .reference_nerf import ray_points, sample_stratified
+    n = np.asarray(origins).shape[0]
+    t = sample_stratified(n, S, near, far, jitter, key)
+    xyz, vdir = ray_points(origins, dirs, t)
+    live = compact(xyz, occ, lo, inv_ext, R)
+    counts = np.bincount(live // S, minlength=n)
+    off = np.concatenate([[0], np.cumsum(counts)])
+    return off, t.reshape(-1)[live], xyz[live], vdir[live]
+
+
+def packed_forward(offsets, t, dt, sigma, rgb, background=(0, 0, 0)):
+    """rgb [n, 3], acc [n], depth [n], weights [M] of packed samples (no early termination)."""
+    s = np.where(np.asarray(sigma, np.float64) > 0, np.asarray(sigma, np.float64), 0.0)
+    c = np.asarray(rgb, np.float64)
+    n = len(offsets) - 1
+    out = {"rgb": np.zeros((n, 3)), "acc": np.zeros(n), "depth": np.zeros(n),
+           "weights": np.zeros(len(s)), "T_end": np.ones(n)}
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    for i in range(n):
+        a, b = offsets[i], offsets[i + 1]
+        tau = s[a:b] * dt
+        logT = -np.concatenate([[0.0], np.cumsum(tau)])
+        w = np.exp(logT[:-1]) * -np.expm1(-tau)
+        out["weights"][a:b] = w
+        out["T_end"][i] = np.exp(logT[-1])
+        out["rgb"][i] = w @ c[a:b] + out["T_end"][i] * bg
+        out["acc"][i] = w.sum()
+        out["depth"][i] = w @ np.asarray(t, np.float64)[a:b]
+    return out
+
+
+def packed_backward(offsets, t, dt, sigma, rgb, background, target, loss_scale):
+    """dsigma [M], drgb [M, 3], sq_err [n] of loss_scale sum |rgb - target|^2 (suffix sums)."""
+    f = packed_forward(offsets, t, dt, sigma, rgb, background)
+    diff = f["rgb"] - np.asarray(target, np.float64)
+    g = 2 * loss_scale * diff
+    c = np.asarray(rgb, np.float64)
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    dsig = np.zeros(len(c))
+    drgb = np.zeros_like(c)
+    for i in range(len(offsets) - 1):
+        a, b = offsets[i], offsets[i + 1]
+        w = f["weights"][a:b]
+        gc = c[a:b] @ g[i]
+        wgc = w * gc
+        after = np.cumsum(wgc[::-1])[::-1] - wgc
+        R = after + f["T_end"][i] * (g[i] @ bg)
+        tau = np.where(np.asarray(sigma)[a:b] > 0, np.asarray(sigma, np.float64)[a:b], 0) * dt
+        Tnext = np.exp(-np.cumsum(tau))
+        dsig[a:b] = np.where(np.asarray(sigma)[a:b] > 0, dt * (Tnext * gc - R), 0.0)
+        drgb[a:b] = w[:, None] * g[i][None, :]
+    return {"sigma": dsig, "rgb": drgb, "sq_err": np.sum(diff ** 2, axis=1)}
