@@ -206,7 +206,10 @@ class HashConfig:
     max_res: int = 2048             # N_max: finest level's cells per box side (published:
     #                                 2048 x the box size in units of the unit cube)
     width: int = 64                 # density MLP hidden width (multiple of 16; published: 64)
+    geo_features: int = 16          # density MLP feature outputs fed to the colour MLP besides
+    #                                 sigma (multiple of 16; published: 15)
     color_width: int = 64           # colour MLP hidden width (multiple of 16; published: 64)
+    color_depth: int = 2            # colour MLP hidden layers (published: 2)
     samples: int = 256              # stratified samples per ray over [near, far]; only those
     #                                 in occupied cells are evaluated
     perturb: bool = True            # jitter samples during training (never when rendering)
@@ -259,6 +262,9 @@ class HashConfig:
              "must be a multiple of 16 in 16..1024"),
             (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "hash.color_width",
              "must be a multiple of 16 in 16..1024"),
+            (self.geo_features % 16 == 0 and 16 <= self.geo_features <= 1024,
+             "hash.geo_features", "must be a multiple of 16 in 16..1024"),
+            (1 <= self.color_depth <= 8, "hash.color_depth", "must be in 1..8"),
             (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
             (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
             (self.occ_every >= 1, "hash.occ_every", "must be >= 1"),

@@ -141,7 +141,7 @@ def hash_stage(hc, n_rays: int, slots: int) -> StageEstimate:
     table = 4 * hc.levels * (1 << hc.log2_table) * hc.features
     tables = table * (4 + max(0, slots - 1))
     W, WC, din = hc.width, hc.color_width, pad(hc.levels * hc.features)
-    nslot = din + 16 + 2 * W + 16 + WC + 16
+    nslot = din + W + 16 + hc.geo_features + 16 + hc.color_depth * WC + 16
     samples = hc.batch_rays * hc.samples
     act = 2 * 4 * pad(samples) * nslot
     per_sample = 4 * samples * (2 * (din + 16) + 20)

@@ -3,14 +3,15 @@
 (cl/hash_occ.cl), packed per ray and composited (cl/hash_march.cl, volrend.h's steps), and
 Adam (cl/optim.cl).
 
-Network (the fused MLP's shape, clrf.nerf.mlp.MLPSpec with depth 1):
-  h = relu(W_0 enc(x) + b_0)                           enc(x): L F hash features, h: width
-  [sigma_raw, feat] = W_1 h + b_1;  sigma = softplus(sigma_raw)   (the stable activation)
-  c = relu(W_2 [feat, SH(d)] + b_2);  rgb = sigmoid(W_3 c + b_3)  SH(d): 16 coefficients
-The density MLP is one hidden layer of ``width``; the colour MLP reads the view direction's SH
-encoding (degree 3, 16 coefficients) and the density features. The published colour MLP has two
-hidden layers on 15 features; the fused kernel's head is a linear layer to ``width`` features
-followed by one colour hidden layer, i.e. the same input and one hidden non-linearity fewer.
+Network (the fused MLP of cl/mlp.cl, clrf.nerf.mlp.MLPSpec with depth 1):
+  density MLP: h = relu(W_0 enc(x) + b_0),  [sigma_raw, feat] = W_1 h + b_1,
+               sigma = softplus(sigma_raw) (the stable activation: never overflows)
+               enc(x): L F hash features, h: ``width``, feat: ``geo_features`` (16)
+  colour MLP:  c_0 = relu(W_2 [feat, SH(d)] + b_2), c_1 = relu(W_3 c_0 + b_3) (color_depth 2,
+               ``color_width`` each), rgb = sigmoid(W_4 c_1 + b_4)
+               SH(d): the view direction's real SH basis, degree 3 (16 coefficients).
+The published network has 15 features next to sigma (16 outputs); the kernel pads the head to
+16 + 16 outputs, so ``geo_features`` is 16.
 
 One training step on B rays (one host round trip: the per-ray counts of live samples):
   S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
@@ -74,7 +75,8 @@ class HashModel:
                                 (box[0], box[1]), seed=self.seed)
         self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
                             in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
-                            sigma_act="softplus", rows=c.mlp_rows)
+                            sigma_act="softplus", color_depth=c.color_depth,
+                            features=c.geo_features, rows=c.mlp_rows)
         self.net = MLP(device, self.spec, seed=self.seed)
         self.occ = OccupancyGrid(device, c.occ_res, (box[0], box[1]))
         self.occ_prg = self.occ.prg
@@ -232,7 +234,8 @@ class HashModel:
     def describe(self) -> str:
         c = self.config
         return (f"hash L{c.levels} F{c.features} T2^{c.log2_table} {c.min_res}-{c.max_res}, "
-                f"MLP {c.width}/{c.color_width}, {c.samples} samples, "
+                f"MLP {c.width}+{c.geo_features} / {c.color_depth}x{c.color_width}, "
+                f"{c.samples} samples, "
                 f"occupied {100 * self.occ.occupied_fraction():.1f}%")
 
     # ---- checkpoints --------------------------------------------------------------------

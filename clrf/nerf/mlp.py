@@ -43,6 +43,8 @@ class MLPSpec:
     dir_dim: int = 27          # encoded direction dims
     hidden_act: str = "relu"   # "relu" | "softplus"
     sigma_act: str = "relu"    # "relu" | "softplus"
+    color_depth: int = 1       # colour hidden layers (NeRF: 1; the hash model: 2)
+    features: int | None = None  # feature outputs of the head (multiple of 16); None: width
     rows: int | None = None    # samples per work-item (register block); None: per device
     cols: int | None = None    # columns per tile, 16 or 32; None: per device
     dw_rows: int | None = None  # output neurons per work-item in the weight gradient
@@ -55,16 +57,27 @@ class MLPSpec:
             if getattr(self, name) not in ("relu", "softplus"):
                 raise ValueError(f"MLPSpec.{name}: must be 'relu' or 'softplus', got "
                                  f"{getattr(self, name)!r}")
-        return {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
-                "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
-                "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
-                "SIGMA_ACT": ACT[self.sigma_act]}
+        d = {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
+             "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
+             "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
+             "SIGMA_ACT": ACT[self.sigma_act]}
+        if self.color_depth != 1:       # only when set: NeRF's builds keep their defines
+            d["MLP_COLOR_DEPTH"] = self.color_depth
+        if self.features is not None and self.features != self.width:
+            d["MLP_FEAT"] = self.features
+        return d
+
+    @property
+    def feat(self) -> int:
+        """Feature outputs of the head."""
+        return self.width if self.features is None else self.features
 
     def flops_per_sample(self) -> tuple:
         """(forward, forward+backward) multiply-add flops per sample, logical (unpadded) sizes."""
-        W, D, WC = self.width, self.depth, self.color_width
+        W, D, WC, Fe = self.width, self.depth, self.color_width, self.feat
         macs = self.in_dim * W + (D - 1) * W * W + (self.in_dim * W if self.skip >= 0 else 0)
-        macs += W * (W + 1) + (W + self.dir_dim) * WC + WC * 3
+        macs += W * (Fe + 1) + (Fe + self.dir_dim) * WC + (self.color_depth - 1) * WC * WC
+        macs += WC * 3
         return 2 * macs, 6 * macs
 
 
@@ -96,11 +109,13 @@ class Layout:
                     cols = np.concatenate([np.arange(W), W + np.arange(spec.in_dim)])
                 rows = np.arange(W)
             elif l == D:
-                rows = np.concatenate([[0], 16 + np.arange(W)])
+                rows = np.concatenate([[0], 16 + np.arange(spec.feat)])
                 cols = np.arange(W)
             elif l == D + 1:
                 rows = np.arange(spec.color_width)
-                cols = np.concatenate([np.arange(W), W + np.arange(spec.dir_dim)])
+                cols = np.concatenate([np.arange(spec.feat), spec.feat + np.arange(spec.dir_dim)])
+            elif l < self.n_layers - 1:
+                rows = cols = np.arange(spec.color_width)
             else:
                 rows = np.arange(3)
                 cols = np.arange(spec.color_width)

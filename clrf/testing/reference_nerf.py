@@ -109,7 +109,7 @@ def _layer_acts(spec, layout):
     D = spec.depth
     acts = []
     for l, L in enumerate(layout.layers):
-        if l < D or l == D + 1:
+        if l < D or D < l < layout.n_layers - 1:      # trunk and colour hidden layers
             a = [spec.hidden_act] * L["nout"]
         elif l == D:
             a = [spec.sigma_act] + ["none"] * (L["nout"] - 1)
