@@ -233,7 +233,8 @@ class HashConfig:
     @staticmethod
     def from_preset(name: str, **overrides) -> "HashConfig":
         """``"full"`` (the defaults) or ``"tiny"``: T = 2^16, N_max 512, 128 samples, a 64^3
-        occupancy grid, 1024 rays per step (100 x 100 scenes on a CPU)."""
+        occupancy grid updated every 8 steps from step 32, 1024 rays per step (100 x 100
+        scenes on a CPU)."""
         if name not in HASH_PRESETS:
             raise ValueError(f"unknown hash preset {name!r}; use one of {sorted(HASH_PRESETS)}")
         return dataclasses.replace(HashConfig(preset=name, **HASH_PRESETS[name]), **overrides)
@@ -287,8 +288,10 @@ class HashConfig:
 # Field values of each hash preset (the rest are HashConfig's defaults).
 HASH_PRESETS = {
     "full": {},
+    # small scenes train for hundreds, not tens of thousands, of steps: the occupancy grid
+    # starts pruning after 32 and is refreshed every 8
     "tiny": {"log2_table": 16, "max_res": 512, "samples": 128, "occ_res": 64,
-             "occ_points": 32768, "batch_rays": 1024},
+             "occ_points": 32768, "occ_warmup": 32, "occ_every": 8, "batch_rays": 1024},
 }
 
 

@@ -290,3 +290,22 @@ def test_hash_through_the_cli(tmp_path, capsys):
     rc = cli(["train", "--model", "hash", "--out", str(tmp_path / "bad"),
               "--set", "hash.log2_tabel=3"])
     assert rc == 2 and "log2_tabel" in capsys.readouterr().err
+
+
+def test_adam_weight_decay_and_clear_grad(device):
+    """Adam with L2 weight decay (the MLP's) and clear_grad (the tables'): the formula, and the
+    gradient is zero afterwards; a NaN gradient entry is skipped (and still cleared)."""
+    from clrf.optim import Optimizer
+    rng = np.random.default_rng(0)
+    p, g = rng.normal(size=33), rng.normal(size=33) * 1e-3
+    g[3] = np.nan
+    pd, gd = _up(device, p), _up(device, g)
+    opt = Optimizer(device, pd, "adam", beta=0.9, beta2=0.99, eps=1e-15, grad=gd,
+                    weight_decay=0.1)
+    opt.step(None, 1e-2, t=1, clear_grad=True)
+    p32 = p.astype(np.float32).astype(np.float64)
+    gw = g.astype(np.float32) + 0.1 * p32
+    want = p32 - 1e-2 * (0.1 * gw / 0.1) / (np.sqrt(0.01 * gw * gw / 0.01) + 1e-15)
+    want[3] = p32[3]
+    np.testing.assert_allclose(pd.get(), want, rtol=tol.ADAM_RTOL, atol=tol.ADAM_ATOL)
+    assert not np.any(gd.get())

@@ -137,15 +137,16 @@ class HashModel:
         loss, live = self.loss_and_grad(it, origins, dirs, target)
         if live:
             lr = self.lr_at(it)
-            self._adam_table.step(None, lr, t=self.step + 1)
+            self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True)
             self._adam_net.step(None, lr, t=self.step + 1)
             self.net.sync_params()
         self.step += 1
         return loss
 
     def loss_and_grad(self, it: int, origins, dirs, target, jitter=None):
-        """(loss, live samples) of a batch; enc.grad and net.grad get dL/dtable and
-        dL/dparams (both overwritten; untouched when no sample is live). L = sum over rays
+        """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
+        enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
+        both untouched when no sample is live. L = sum over rays
         and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
@@ -163,7 +164,6 @@ class HashModel:
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
         dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
-        self.enc.grad.fill(np.float32(0))
         self.enc.backward(pk.xyz, dx)
         return loss, pk.m
 
