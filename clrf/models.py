@@ -48,8 +48,9 @@ class NerfFactory:
 class HashFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .hash.model import HashModel
-        return HashModel(device, cfg.hash, ds.near, ds.far, ds.bbox, background, cfg.train.seed)
+        from .hash.model import HashModel, ray_range
+        near, far = ray_range(ds)
+        return HashModel(device, cfg.hash, near, far, ds.bbox, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):

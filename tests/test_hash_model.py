@@ -309,3 +309,21 @@ def test_adam_weight_decay_and_clear_grad(device):
     want[3] = p32[3]
     np.testing.assert_allclose(pd.get(), want, rtol=tol.ADAM_RTOL, atol=tol.ADAM_ATOL)
     assert not np.any(gd.get())
+
+
+def test_ray_range_cuts_far_to_the_box():
+    """Unbounded scenes (far 1e10) sample up to the farthest box corner seen from a camera;
+    bounded ones keep their far; NDC scenes keep theirs; an impossible range is an error."""
+    from types import SimpleNamespace
+
+    from clrf.hash.model import ray_range
+    poses = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    poses[0, :3, 3] = (0, 0, 4)
+    poses[1, :3, 3] = (3, 0, 0)
+    ds = SimpleNamespace(name="s", near=0.1, far=1e10, ndc=False, poses=poses, bbox=BOX)
+    near, far = ray_range(ds)
+    assert near == 0.1 and abs(far - np.linalg.norm([1, 1, 5])) < 1e-9
+    assert ray_range(SimpleNamespace(**{**vars(ds), "far": 3.0})) == (0.1, 3.0)
+    assert ray_range(SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0})) == (0.1, 1.0)
+    with pytest.raises(ValueError, match="near"):
+        ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))

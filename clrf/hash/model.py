@@ -51,6 +51,24 @@ MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
+def ray_range(ds) -> tuple:
+    """(near, far) of the hash model's bins for a dataset: the dataset's, with far cut to the
+    farthest box corner seen from any camera (nothing is sampled outside the box, and
+    unbounded scenes say far = 1e10). NDC scenes keep theirs (poses are not in NDC space)."""
+    near, far = float(ds.near), float(ds.far)
+    if not ds.ndc and len(ds.poses):
+        box = np.asarray(ds.bbox, np.float64)
+        corners = np.array([[box[i >> a & 1, a] for a in range(3)] for i in range(8)])
+        cams = np.asarray(ds.poses, np.float64)[:, :3, 3]
+        reach = np.linalg.norm(cams[:, None, :] - corners[None], axis=2).max()
+        far = min(far, float(reach))
+    if not far > near:
+        raise ValueError(f"dataset {ds.name}: near {near} >= far {far} for the hash model's "
+                         f"samples (is the box {np.asarray(ds.bbox).tolist()} behind every "
+                         f"camera?); set the dataset's near/far or box")
+    return near, far
+
+
 class HashModel:
     kind = "hash"
 
