@@ -327,3 +327,19 @@ def test_ray_range_cuts_far_to_the_box():
     assert ray_range(SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0})) == (0.1, 1.0)
     with pytest.raises(ValueError, match="near"):
         ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))
+
+
+def test_memory_guard_names_the_hash_stage(device):
+    """The memory guard estimates a hash run (tables + Adam, MLP activations) and names the
+    fix; the tiny preset fits a normal device."""
+    from dataclasses import replace as dreplace
+
+    from clrf.memory import MemoryBudgetError, check_training_fits
+    cfg = build_config("tiny", overrides={"train": {"model": "hash"}})
+    (st,) = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
+                                device.tuning)
+    assert st.total > 4 * 4 * 16 * (1 << 16) * 2     # at least the tables and their Adam state
+    big = build_config(overrides={"train": {"model": "hash"}, "hash": {"log2_table": 24}})
+    small = dreplace(device.caps, global_mem_size=1 << 30, max_alloc_size=1 << 30)
+    with pytest.raises(MemoryBudgetError, match="hash training.*hash.log2_table"):
+        check_training_fits(small, False, big, 1000)
