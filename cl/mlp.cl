@@ -58,6 +58,7 @@
 #define ACT_RELU 1
 #define ACT_SOFTPLUS 2
 #define ACT_SIGMOID 3
+#define ACT_TRUNC_EXP 4     /* density only: exp(min(x, SIGMA_EXP_MAX)) (see below) */
 
 #ifndef MLP_WIDTH
 #define MLP_WIDTH 64        /* trunk width W; a multiple of 16 */
@@ -87,7 +88,15 @@
 #define HIDDEN_ACT ACT_RELU /* trunk and colour layers: ACT_RELU or ACT_SOFTPLUS */
 #endif
 #ifndef SIGMA_ACT
-#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF) or ACT_SOFTPLUS (stable, never dead) */
+#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF), ACT_SOFTPLUS (stable, never dead) or
+                               ACT_TRUNC_EXP (the hash model's) */
+#endif
+/* ACT_TRUNC_EXP: sigma = exp(min(x, SIGMA_EXP_MAX)), so sigma <= e^15 = 3.3e6 never overflows
+ * however large the pre-activation; its backward is dL/dx = dL/dsigma * sigma, i.e. the
+ * derivative of exp at the clamped value, which does not vanish beyond the clamp (so a
+ * saturated density can still come down). */
+#ifndef SIGMA_EXP_MAX
+#define SIGMA_EXP_MAX 15.0f
 #endif
 #ifndef MLP_ROWS
 #define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
@@ -129,8 +138,8 @@
 #if HIDDEN_ACT != ACT_RELU && HIDDEN_ACT != ACT_SOFTPLUS
 #error "HIDDEN_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
 #endif
-#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS
-#error "SIGMA_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
+#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS && SIGMA_ACT != ACT_TRUNC_EXP
+#error "SIGMA_ACT must be ACT_RELU (1), ACT_SOFTPLUS (2) or ACT_TRUNC_EXP (4)"
 #endif
 #if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 3 && MLP_ROWS != 4 && MLP_ROWS != 5 && \
     MLP_ROWS != 6 && MLP_ROWS != 8 && MLP_ROWS != 12 && MLP_ROWS != 16
@@ -335,6 +344,7 @@ inline float act_grad1(const float y, const int act) {
     if (act == ACT_RELU) return relu_grad_from_y(y);
     if (act == ACT_SOFTPLUS) return softplus_grad_from_y(y);
     if (act == ACT_SIGMOID) return sigmoid_grad_from_y(y);
+    if (act == ACT_TRUNC_EXP) return y;
     return 1.0f;
 }
 
@@ -449,6 +459,8 @@ __kernel void mlp_forward(const int n, __global const float *x_enc, __global con
         __global float *s = A + (size_t)r * NSLOT + SL_HD;
 #if SIGMA_ACT == ACT_RELU
         *s = fmax(*s, 0.0f);
+#elif SIGMA_ACT == ACT_TRUNC_EXP
+        *s = exp(fmin(*s, SIGMA_EXP_MAX));   /* NaN stays NaN, as with the other two */
 #else
         *s = safe_softplus(*s);
 #endif

@@ -210,6 +210,8 @@ class HashConfig:
     #                                 sigma (multiple of 16; published: 15)
     color_width: int = 64           # colour MLP hidden width (multiple of 16; published: 64)
     color_depth: int = 2            # colour MLP hidden layers (published: 2)
+    density_act: str = "trunc_exp"  # "trunc_exp": exp(min(x, 15)), whose gradient does not
+    #                                 vanish (published: exp); "softplus": slower to sharpen
     samples: int = 256              # stratified samples per ray over [near, far]; only those
     #                                 in occupied cells are evaluated
     perturb: bool = True            # jitter samples during training (never when rendering)
@@ -266,6 +268,8 @@ class HashConfig:
             (self.geo_features % 16 == 0 and 16 <= self.geo_features <= 1024,
              "hash.geo_features", "must be a multiple of 16 in 16..1024"),
             (1 <= self.color_depth <= 8, "hash.color_depth", "must be in 1..8"),
+            (self.density_act in ("trunc_exp", "softplus"), "hash.density_act",
+             "must be 'trunc_exp' or 'softplus'"),
             (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
             (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
             (self.occ_every >= 1, "hash.occ_every", "must be >= 1"),

@@ -43,7 +43,7 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
          + [("background.cl", {"BG_LAYERS": 32, "BG_H": 128})]
          + [("mlp.cl", MLPSpec().defines()),
             ("mlp.cl", MLPSpec(width=64, depth=1, color_width=64, in_dim=32, dir_dim=16,
-                               sigma_act="softplus", color_depth=2, features=16).defines())]
+                               sigma_act="trunc_exp", color_depth=2, features=16).defines())]
          + [("hash.cl", {"HASH_LEVELS": 16, "HASH_FEATURES": f, "HASH_LOG2_T": 19,
                          "HASH_GRAD_SLOTS": s}) for f in (1, 2, 4) for s in (0, 1, 2)]
          + [("hash_occ.cl", {}), ("hash_march.cl", {})])

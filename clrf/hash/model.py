@@ -5,7 +5,8 @@ Adam (cl/optim.cl).
 
 Network (the fused MLP of cl/mlp.cl, clrf.nerf.mlp.MLPSpec with depth 1):
   density MLP: h = relu(W_0 enc(x) + b_0),  [sigma_raw, feat] = W_1 h + b_1,
-               sigma = softplus(sigma_raw) (the stable activation: never overflows)
+               sigma = exp(min(sigma_raw, 15)) (density_act trunc_exp: never overflows, its
+               gradient sigma does not vanish beyond the clamp; or softplus)
                enc(x): L F hash features, h: ``width``, feat: ``geo_features`` (16)
   colour MLP:  c_0 = relu(W_2 [feat, SH(d)] + b_2), c_1 = relu(W_3 c_0 + b_3) (color_depth 2,
                ``color_width`` each), rgb = sigmoid(W_4 c_1 + b_4)
@@ -93,7 +94,7 @@ class HashModel:
                                 (box[0], box[1]), seed=self.seed)
         self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
                             in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
-                            sigma_act="softplus", color_depth=c.color_depth,
+                            sigma_act=c.density_act, color_depth=c.color_depth,
                             features=c.geo_features, rows=c.mlp_rows)
         self.net = MLP(device, self.spec, seed=self.seed)
         self.occ = OccupancyGrid(device, c.occ_res, (box[0], box[1]))

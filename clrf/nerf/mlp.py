@@ -22,7 +22,8 @@ import pyopencl.array as cla
 from ..autotune import MLPTiling, mlp_tiling_for
 from ..programs import launch, upload
 
-ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
+ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3, "trunc_exp": 4}
+SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation
 GROUP_BYTES = None   # interleave backward and weight gradient per rows of this much A + G;
 # None: one launch each. Measured on PoCL (Zen 4, AVX-512, n = 8192): launches cost more than
 # the cache misses that interleaving saves (8x256: 16 MB groups 0.93x numpy, one launch 0.99x).
@@ -42,7 +43,7 @@ class MLPSpec:
     in_dim: int = 51           # encoded position dims
     dir_dim: int = 27          # encoded direction dims
     hidden_act: str = "relu"   # "relu" | "softplus"
-    sigma_act: str = "relu"    # "relu" | "softplus"
+    sigma_act: str = "relu"    # "relu" | "softplus" | "trunc_exp" (exp of min(x, 15))
     color_depth: int = 1       # colour hidden layers (NeRF: 1; the hash model: 2)
     features: int | None = None  # feature outputs of the head (multiple of 16); None: width
     rows: int | None = None    # samples per work-item (register block); None: per device
@@ -53,10 +54,12 @@ class MLPSpec:
 
     def defines(self) -> dict:
         """The shape defines (the tile's come from MLPTiling.defines)."""
-        for name in ("hidden_act", "sigma_act"):
-            if getattr(self, name) not in ("relu", "softplus"):
-                raise ValueError(f"MLPSpec.{name}: must be 'relu' or 'softplus', got "
-                                 f"{getattr(self, name)!r}")
+        if self.hidden_act not in ("relu", "softplus"):
+            raise ValueError(f"MLPSpec.hidden_act: must be 'relu' or 'softplus', got "
+                             f"{self.hidden_act!r}")
+        if self.sigma_act not in ("relu", "softplus", "trunc_exp"):
+            raise ValueError(f"MLPSpec.sigma_act: must be 'relu', 'softplus' or 'trunc_exp', "
+                             f"got {self.sigma_act!r}")
         d = {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
              "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
              "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],

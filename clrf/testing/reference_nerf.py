@@ -80,6 +80,8 @@ def _act(x, name):
         return np.logaddexp(x, 0.0)
     if name == "sigmoid":
         return 0.5 * (1.0 + np.tanh(0.5 * x))
+    if name == "trunc_exp":             # cl/mlp.cl ACT_TRUNC_EXP
+        return np.exp(np.minimum(x, 15.0))
     return x
 
 
@@ -92,6 +94,8 @@ def _act_grad(x, name):
     if name == "sigmoid":
         s = _act(x, "sigmoid")
         return s * (1 - s)
+    if name == "trunc_exp":             # exp at the clamped value, also beyond the clamp
+        return np.exp(np.minimum(x, 15.0))
     return np.ones_like(x)
 
 
