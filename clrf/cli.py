@@ -332,7 +332,8 @@ def build_parser():
 
     t = sub.add_parser("train", help="train on a dataset (default: the built-in procedural scene)")
     t.add_argument("--data", default=None, help="dataset folder or .npz (default: built-in scene)")
-    t.add_argument("--config", default=None, help="JSON config file (sections grid/train/nerf/hash)")
+    t.add_argument("--config", default=None,
+                   help="JSON config file (sections grid/train/nerf/hash)")
     t.add_argument("--out", default="runs/latest", help="run directory (default: runs/latest)")
     t.add_argument("--max-seconds", type=float, default=None, help="training time budget")
     t.add_argument("--model", choices=["grid", "nerf", "hash"], default=None,

@@ -76,7 +76,8 @@ def _model(run, **over):
     cfg = HashConfig.from_preset("tiny", levels=4, log2_table=10, min_res=4, max_res=64,
                                  width=16, color_width=16, samples=32, occ_res=8,
                                  occ_points=256, batch_rays=64, occ_warmup=10 ** 6, **over)
-    return HashModel(run.device, cfg, near=1.0, far=5.0, bbox=BOX, background=tuple(float(b) for b in BG))
+    return HashModel(run.device, cfg, near=1.0, far=5.0, bbox=BOX,
+                     background=tuple(float(b) for b in BG))
 
 
 def _rays(run, n, aim=0.5):
