@@ -22,17 +22,18 @@
  * enc and dL/denc [n, L F] row-major (the MLP's input rows).
  *
  * Backward: dL/dtable[l, row_c, f] += weight_c dL/denc[l F + f], ADDED to grad (collisions and
- * shared vertices sum). Two accumulation paths, the grid's choice (clrf/tuning.py grad_slots):
- *   HASH_GRAD_SLOTS 0 (GPUs): one work-item per (point, level), float atomics (atomic_add_f);
- *   HASH_GRAD_SLOTS S > 0 (CPUs): S work-items, item s walks its contiguous share of the points
- *     and adds with plain stores into copy s (copy 0 is grad itself, copies 1..S-1 live in
- *     scratch [S-1, L T F], zero on entry); hash_reduce_slots adds them into grad and zeroes
- *     them again. No atomics, and the result does not depend on the interleaving.
+ * shared vertices sum). Two accumulation paths, chosen like the grid's (clrf/tuning.py
+ * grad_slots: 0 on GPUs, > 0 on CPUs):
+ *   HASH_GRAD_OWNED 0 (GPUs): one work-item per (point, level), float atomics (atomic_add_f);
+ *   HASH_GRAD_OWNED 1 (CPUs): one work-item per level, which owns that level's table and adds
+ *     every point into it with plain adds. Levels never share entries, so this is conflict-free
+ *     by construction: no atomics and, unlike the grid's per-compute-unit copies, no scratch
+ *     copy of the tables and no reduction pass (16 levels keep up to 16 cores busy).
  *
  * SH encoding (hash_sh_encode): the real SH basis of sh.h at degree 3 (16 coefficients,
  * "degree 4" in the 4-band count) of d / |d| (zero d -> the basis at (0, 0, 0)).
  *
- * Defines read: HASH_LEVELS, HASH_FEATURES, HASH_LOG2_T, HASH_GRAD_SLOTS.
+ * Defines read: HASH_LEVELS, HASH_FEATURES, HASH_LOG2_T, HASH_GRAD_OWNED.
  * Twin: clrf/testing/reference_hash.py (float64).
  */
 #include "common.h"
@@ -46,8 +47,8 @@
 #ifndef HASH_LOG2_T
 #define HASH_LOG2_T 19    /* log2 of T, the table rows per level (published: 19) */
 #endif
-#ifndef HASH_GRAD_SLOTS
-#define HASH_GRAD_SLOTS 0 /* 0: float atomics (GPUs); S > 0: S private gradient copies (CPUs) */
+#ifndef HASH_GRAD_OWNED
+#define HASH_GRAD_OWNED 0 /* 0: float atomics (GPUs); 1: one work-item owns each level (CPUs) */
 #endif
 #if HASH_LEVELS < 1 || HASH_LEVELS > 64
 #error "HASH_LEVELS must be in 1..64"
@@ -165,7 +166,7 @@ CLRF_INLINE void hash_scatter(__global float *g, const float3 u, const int N,
     }
 }
 
-#if HASH_GRAD_SLOTS == 0
+#if HASH_GRAD_OWNED == 0
 /* grad [L, T, F] += dL/dtable of genc [n, L F]; one work-item per (level, point). `scratch` is
  * unused on this path. */
 __kernel void hash_backward(const int n, __global const float *x, const float4 lo,
@@ -180,36 +181,21 @@ __kernel void hash_backward(const int n, __global const float *x, const float4 l
                  genc + i * HASH_DIM + l * HASH_FEATURES, 1);
 }
 #else
-/* The CPU path: HASH_GRAD_SLOTS work-items (launch exactly that many); item s adds points
- * [s n / S, (s + 1) n / S) into copy s (0: grad, s > 0: scratch + (s - 1) L T F). */
+/* The CPU path: HASH_LEVELS work-items (launch exactly that many, one per work-group); item l
+ * owns level l's table and adds every point's level-l gradient into it with plain adds, in
+ * point order. No two items write the same entry, so there are no atomics, no scratch copies
+ * and no reduction, and the result is deterministic. `scratch` is unused. */
 __kernel void hash_backward(const int n, __global const float *x, const float4 lo,
                             const float4 inv_ext, __global const int *res,
                             __global const float *genc, __global float *grad,
                             __global float *scratch) {
-    const int s = get_global_id(0);
-    if (s >= HASH_GRAD_SLOTS) return;
-    const size_t per = (size_t)HASH_LEVELS * HASH_T * HASH_FEATURES;
-    __global float *g = s == 0 ? grad : scratch + (size_t)(s - 1) * per;
-    const size_t i0 = (size_t)n * s / HASH_GRAD_SLOTS, i1 = (size_t)n * (s + 1) / HASH_GRAD_SLOTS;
-    for (size_t i = i0; i < i1; ++i) {
-        const float3 u = hash_unit(x, i, lo, inv_ext);
-        for (int l = 0; l < HASH_LEVELS; ++l)
-            hash_scatter(g + (size_t)l * HASH_T * HASH_FEATURES, u, res[l],
-                         genc + i * HASH_DIM + l * HASH_FEATURES, 0);
-    }
-}
-
-/* grad[j] += sum_{s=1..S-1} scratch[s-1][j], then the scratch copies are zeroed. */
-__kernel void hash_reduce_slots(const int m, __global float *grad, __global float *scratch) {
-    const size_t j = get_global_id(0);
-    if (j >= (size_t)m) return;
-    float acc = grad[j];
-    for (int s = 1; s < HASH_GRAD_SLOTS; ++s) {
-        __global float *c = scratch + (size_t)(s - 1) * m + j;
-        acc += *c;
-        *c = 0.0f;
-    }
-    grad[j] = acc;
+    const int l = get_global_id(0);
+    if (l >= HASH_LEVELS) return;
+    __global float *g = grad + (size_t)l * HASH_T * HASH_FEATURES;
+    const int N = res[l];
+    for (size_t i = 0; i < (size_t)n; ++i)
+        hash_scatter(g, hash_unit(x, i, lo, inv_ext), N, genc + i * HASH_DIM + l * HASH_FEATURES,
+                     0);
 }
 #endif
 

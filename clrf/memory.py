@@ -132,14 +132,14 @@ def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
                          big, "MLP activations")
 
 
-def hash_stage(hc, n_rays: int, slots: int) -> StageEstimate:
-    """StageEstimate of a hash-grid run with HashConfig ``hc`` and ``slots`` gradient slots
-    (HashEncoding: slots - 1 scratch copies of the tables): tables with gradient and Adam
-    moments, the MLP's activations for every sample of a batch (all live: the occupancy grid
-    starts full), per-sample buffers, the occupancy grid and the ray store."""
+def hash_stage(hc, n_rays: int) -> StageEstimate:
+    """StageEstimate of a hash-grid run with HashConfig ``hc``: tables with gradient and Adam
+    moments (the backward needs no scratch copy on either path), the MLP's activations for
+    every sample of a batch (all live: the occupancy grid starts full), per-sample buffers, the
+    occupancy grid and the ray store."""
     pad = lambda x: -(-x // 16) * 16                           # noqa: E731 - kernel padding
     table = 4 * hc.levels * (1 << hc.log2_table) * hc.features
-    tables = table * (4 + max(0, slots - 1))
+    tables = 4 * table
     W, WC, din = hc.width, hc.color_width, pad(hc.levels * hc.features)
     nslot = din + W + 16 + hc.geo_features + 16 + hc.color_depth * WC + 16
     samples = hc.batch_rays * hc.samples
@@ -166,8 +166,7 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None) -> li
     ``n_rays`` training rays exceeds the device described by ``caps`` (DeviceCaps; ``tuning``
     its Tuning, None for the defaults); returns the StageEstimates otherwise."""
     if cfg.train.model == "hash":
-        slots = tuning.grad_slots if tuning is not None else (caps.compute_units if is_cpu else 0)
-        stages = [hash_stage(cfg.hash, n_rays, slots)]
+        stages = [hash_stage(cfg.hash, n_rays)]
         fix = ("lower hash.log2_table, hash.batch_rays or hash.samples, or load fewer rays with "
                "train.downscale / train.max_train_images")
     elif cfg.train.model == "nerf":

@@ -45,7 +45,7 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
             ("mlp.cl", MLPSpec(width=64, depth=1, color_width=64, in_dim=32, dir_dim=16,
                                sigma_act="trunc_exp", color_depth=2, features=16).defines())]
          + [("hash.cl", {"HASH_LEVELS": 16, "HASH_FEATURES": f, "HASH_LOG2_T": 19,
-                         "HASH_GRAD_SLOTS": s}) for f in (1, 2, 4) for s in (0, 1, 2)]
+                         "HASH_GRAD_OWNED": o}) for f in (1, 2, 4) for o in (0, 1)]
          + [("hash_occ.cl", {}), ("hash_march.cl", {})])
 
 

@@ -180,7 +180,7 @@ def _reference_step(model, o, d, target):
     return loss, mb["params"], gt, len(t)
 
 
-@pytest.mark.parametrize("path", ["atomics", "slots"])
+@pytest.mark.parametrize("path", ["atomics", "owned"])
 def test_step_gradients_match_reference_chain(device, path):
     dev = device.with_tuning(grad_slots=0 if path == "atomics" else 2)
     model = HashModel(dev, SMALL, near=1.5, far=4.5, bbox=BOX, background=(0.2, 0.5, 1.0))

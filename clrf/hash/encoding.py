@@ -45,9 +45,10 @@ def box_args(box):
 
 
 class HashEncoding:
-    """The tables [L, T, F] (float32) and their gradient on a device. Backward accumulation
-    follows device.tuning.grad_slots like the grid's backward: 0 float atomics, S > 0 S private
-    copies (S - 1 of them in ``scratch``) reduced after the scatter."""
+    """The tables [L, T, F] (float32) and their gradient on a device. The backward's
+    accumulation follows device.tuning.grad_slots like the grid's: 0 (GPUs) float atomics,
+    > 0 (CPUs) one work-item per level owning that level's table (``owned``; no atomics, no
+    scratch)."""
 
     def __init__(self, device, levels=16, features=2, log2_t=19, n_min=16, n_max=2048,
                  box=((-1.0,) * 3, (1.0,) * 3), seed=0, table=None):
@@ -61,10 +62,10 @@ class HashEncoding:
         self.res_host = level_resolutions(self.levels, int(n_min), int(n_max))
         self.lo4, self.inv4, self.lo, self.inv_ext = box_args(box)
         self.box = (tuple(float(v) for v in box[0]), tuple(float(v) for v in box[1]))
-        self.slots = max(0, int(device.tuning.grad_slots))
+        self.owned = int(device.tuning.grad_slots) > 0
         self.program = device.program("hash.cl", {
             "HASH_LEVELS": self.levels, "HASH_FEATURES": self.features,
-            "HASH_LOG2_T": self.log2_t, "HASH_GRAD_SLOTS": self.slots})
+            "HASH_LOG2_T": self.log2_t, "HASH_GRAD_OWNED": int(self.owned)})
         q = device.queue
         self.shape = (self.levels, self.T, self.features)
         if table is None:
@@ -76,8 +77,6 @@ class HashEncoding:
         self.res = upload(q, self.res_host)
         self.table = upload(q, np.ascontiguousarray(table))
         self.grad = cla.zeros_like(self.table)
-        self.scratch = (cla.zeros(q, (self.slots - 1) * self.table.size, np.float32)
-                        if self.slots > 1 else None)
 
     @property
     def dim(self) -> int:
@@ -102,19 +101,14 @@ class HashEncoding:
         if n == 0:
             return
         args = (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, genc.data,
-                self.grad.data, (self.scratch if self.scratch is not None else self.grad).data)
+                self.grad.data, self.grad.data)
         k = self.program.kernel("hash_backward")
-        if self.slots == 0:
+        if not self.owned:
             launch(self.device, k, n * self.levels, args,
                    self.device.tuning.elementwise_local_size)
             return
-        k.set_args(*args)
-        cl.enqueue_nd_range_kernel(self.device.queue, k, (self.slots,), (1,))
-        if self.slots > 1:
-            m = self.n_params
-            launch(self.device, self.program.kernel("hash_reduce_slots"), m,
-                   (np.int32(m), self.grad.data, self.scratch.data),
-                   self.device.tuning.elementwise_local_size)
+        k.set_args(*args)   # one work-item (and work-group) per level
+        cl.enqueue_nd_range_kernel(self.device.queue, k, (self.levels,), (1,))
 
     def sh_encode(self, d, out=None):
         """SH basis (16) of the unit directions of d [n, 3] -> [n, 16]."""

@@ -357,7 +357,7 @@ def _hash_encode(ctx, p):
             enc.grad.fill(np.float32(0))
             enc.backward(xd, gd)
         ctx.dev.finish()
-    info = {"table_mb": enc.n_params * 4 / 2 ** 20, "grad_slots": enc.slots}
+    info = {"table_mb": enc.n_params * 4 / 2 ** 20, "grad_owned": enc.owned}
     return Case(run, _hash_work(p), info)
 
 

@@ -23,7 +23,7 @@ def _encoding_vs_reference(run, levels, log2_t, n_min, n_max, genc_scale=1.0, la
     from clrf.hash.encoding import HashEncoding
     from clrf.testing import reference_hash as rh
     table = run.rng.uniform(-1, 1, (levels, 1 << log2_t, 2)).astype(np.float32)
-    for slots in (0, 2):
+    for slots in (0, 2):                # the atomic (GPU) and level-owned (CPU) backward
         dev = run.device.with_tuning(grad_slots=slots)
         enc = HashEncoding(dev, levels, 2, log2_t, n_min, n_max, BOX, table=table)
         n = run.size(65, 2000)
