@@ -4,11 +4,14 @@
  *   h_0 = act(W_0 x + b_0), h_l = act(W_l h_{l-1} + b_l) for l = 1..D-1, where the input of
  *   layer MLP_SKIP+1 is [h_SKIP, x] (NeRF's skip connection; MLP_SKIP = -1: none);
  *   head: [sigma_raw, feature] = W_D h_{D-1} + b_D;  sigma = SIGMA_ACT(sigma_raw);
- *   c = act(W_{D+1} [feature, d] + b_{D+1});  rgb = sigmoid(W_{D+2} c + b_{D+2}).
- *   x: encoded position [MLP_IN], d: encoded view direction [MLP_DIR_IN], act = HIDDEN_ACT.
+ *   c_0 = act(W_{D+1} [feature, d] + b_{D+1}),  c_j = act(W_{D+1+j} c_{j-1} + b_{D+1+j}) for
+ *   j = 1..CD-1 (CD = MLP_COLOR_DEPTH colour hidden layers; NeRF: 1);
+ *   rgb = sigmoid(W_{D+1+CD} c_{CD-1} + b_{D+1+CD}).
+ *   x: encoded position [MLP_IN], d: encoded view direction [MLP_DIR_IN], act = HIDDEN_ACT,
+ *   feature: MLP_FEAT wide (NeRF: W; the hash model's density MLP: 16).
  *
  * Padding. Every vector is padded to a multiple of LPAD = 16 floats, so each block of 16
- * columns is one float16: inputs MLP_IN -> IN_P, MLP_DIR_IN -> DIN_P; the head has 16 + W
+ * columns is one float16: inputs MLP_IN -> IN_P, MLP_DIR_IN -> DIN_P; the head has 16 + FEAT
  * outputs (sigma, 15 zero rows, feature) and the rgb layer 16 outputs (r, g, b, 13 zero rows).
  * Padded weights are zero and stay zero: their inputs are 0 and their output gradients are
  * set to 0, so their weight gradients are exactly 0. The products skip what padding they can
@@ -17,7 +20,7 @@
  * r, g, b of the rgb layer), and it computes the input gradients of layer 0 and of the encoded
  * direction only when they are asked for (want_input).
  *
- * Parameters: ONE contiguous float buffer. Layer l (l = 0..NLAYER-1, NLAYER = D + 3) holds
+ * Parameters: ONE contiguous float buffer. Layer l (l = 0..NLAYER-1, NLAYER = D + 2 + CD) holds
  *   W_l [nout_l, nin_l] row-major at w_off_l, then b_l [nout_l] at b_off_l = w_off_l + nout*nin,
  * and layer l+1 starts right after b_l. layer_desc(l) below is the single definition of the
  * offsets; the host reads them with the mlp_layout kernel. The forward reads a transposed copy
@@ -27,8 +30,8 @@
  * Scratch. Per sample one row of NSLOT floats in A (activations, after activation functions)
  * and G (dL/d pre-activation, or dL/d input for input slots). Row layout (slot offsets):
  *   SL_X  encoded position [IN_P] | h_0 [W] ... h_SKIP [W] | SL_XS copy of x [IN_P] | ... h_{D-1}
- *   SL_HD head [16 + W] = sigma, pad, feature (SL_FEAT) | SL_DV encoded direction [DIN_P]
- *   SL_C colour hidden [WC] | SL_RGB rgb [16]
+ *   SL_HD head [16 + FEAT] = sigma, pad, feature (SL_FEAT) | SL_DV encoded direction [DIN_P]
+ *   SL_C colour hidden c_0 [WC] ... c_{CD-1} [WC] | SL_RGB rgb [16]
  * so that the input of every layer is one contiguous slot range (the copy of x sits right after
  * h_SKIP, the encoded direction right after the feature). Rows n..n_rows-1 of a batch are
  * padding: their output gradients are 0, so they add nothing to the weight gradients.
@@ -45,7 +48,8 @@
  * Weight gradients are reduced without races: mlp_weight_grad writes one partial gradient
  * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
  *
- * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
+ * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_COLOR_DEPTH, MLP_FEAT,
+ * MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
  * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK, MLP_PREFETCH, DW_PREFETCH_AHEAD.
  */
 #include "common.h"
@@ -54,6 +58,7 @@
 #define ACT_RELU 1
 #define ACT_SOFTPLUS 2
 #define ACT_SIGMOID 3
+#define ACT_TRUNC_EXP 4     /* density only: exp(min(x, SIGMA_EXP_MAX)) (see below) */
 
 #ifndef MLP_WIDTH
 #define MLP_WIDTH 64        /* trunk width W; a multiple of 16 */
@@ -67,6 +72,12 @@
 #ifndef MLP_COLOR_WIDTH
 #define MLP_COLOR_WIDTH 32  /* view-dependent colour layer width WC, multiple of 16 (NeRF: 128) */
 #endif
+#ifndef MLP_COLOR_DEPTH
+#define MLP_COLOR_DEPTH 1   /* colour hidden layers CD >= 1 (NeRF: 1; the hash model: 2) */
+#endif
+#ifndef MLP_FEAT
+#define MLP_FEAT MLP_WIDTH  /* feature outputs of the head, multiple of 16 (NeRF: W) */
+#endif
 #ifndef MLP_IN
 #define MLP_IN 51           /* encoded position dims (NeRF: 63 = 3 + 6*10) */
 #endif
@@ -77,7 +88,15 @@
 #define HIDDEN_ACT ACT_RELU /* trunk and colour layers: ACT_RELU or ACT_SOFTPLUS */
 #endif
 #ifndef SIGMA_ACT
-#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF) or ACT_SOFTPLUS (stable, never dead) */
+#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF), ACT_SOFTPLUS (stable, never dead) or
+                               ACT_TRUNC_EXP (the hash model's) */
+#endif
+/* ACT_TRUNC_EXP: sigma = exp(min(x, SIGMA_EXP_MAX)), so sigma <= e^15 = 3.3e6 never overflows
+ * however large the pre-activation; its backward is dL/dx = dL/dsigma * sigma, i.e. the
+ * derivative of exp at the clamped value, which does not vanish beyond the clamp (so a
+ * saturated density can still come down). */
+#ifndef SIGMA_EXP_MAX
+#define SIGMA_EXP_MAX 15.0f
 #endif
 #ifndef MLP_ROWS
 #define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
@@ -104,6 +123,12 @@
 #if MLP_DEPTH < 1
 #error "MLP_DEPTH must be >= 1"
 #endif
+#if MLP_COLOR_DEPTH < 1
+#error "MLP_COLOR_DEPTH must be >= 1"
+#endif
+#if MLP_FEAT % 16 != 0 || MLP_FEAT < 16
+#error "MLP_FEAT must be a positive multiple of 16"
+#endif
 #if MLP_SKIP < -1 || MLP_SKIP >= MLP_DEPTH - 1
 #error "MLP_SKIP must be -1 (none) or in 0..MLP_DEPTH-2 (it feeds layer MLP_SKIP+1)"
 #endif
@@ -113,8 +138,8 @@
 #if HIDDEN_ACT != ACT_RELU && HIDDEN_ACT != ACT_SOFTPLUS
 #error "HIDDEN_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
 #endif
-#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS
-#error "SIGMA_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
+#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS && SIGMA_ACT != ACT_TRUNC_EXP
+#error "SIGMA_ACT must be ACT_RELU (1), ACT_SOFTPLUS (2) or ACT_TRUNC_EXP (4)"
 #endif
 #if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 3 && MLP_ROWS != 4 && MLP_ROWS != 5 && \
     MLP_ROWS != 6 && MLP_ROWS != 8 && MLP_ROWS != 12 && MLP_ROWS != 16
@@ -156,7 +181,7 @@
 #define DIN_P PADUP(MLP_DIR_IN)
 #define HEAD_PAD LPAD                             /* sigma + 15 zero outputs before the feature */
 #define RGB_P LPAD                                /* r, g, b + 13 zero outputs */
-#define NLAYER (MLP_DEPTH + 3)
+#define NLAYER (MLP_DEPTH + 2 + MLP_COLOR_DEPTH)
 
 /* Slot offsets in a scratch row (see the header). */
 #define SL_X 0
@@ -164,9 +189,9 @@
 #define SL_XS (IN_P + (MLP_SKIP + 1) * MW)
 #define SL_HD SL_H(MLP_DEPTH)
 #define SL_FEAT (SL_HD + HEAD_PAD)
-#define SL_DV (SL_FEAT + MW)
+#define SL_DV (SL_FEAT + MLP_FEAT)
 #define SL_C (SL_DV + DIN_P)
-#define SL_RGB (SL_C + MLP_COLOR_WIDTH)
+#define SL_RGB (SL_C + MLP_COLOR_DEPTH * MLP_COLOR_WIDTH)
 #define NSLOT (SL_RGB + RGB_P)
 
 typedef struct {
@@ -193,13 +218,20 @@ inline layer_t layer_desc(const int l) {
             L.out_off = SL_H(i); L.nout = MW;
             L.kin = MW + (i == MLP_SKIP + 1 ? MLP_IN : 0); L.kout1 = MW;
         } else if (i == MLP_DEPTH) {
-            L.in_off = SL_H(MLP_DEPTH - 1); L.nin = MW; L.out_off = SL_HD; L.nout = HEAD_PAD + MW;
-            L.kin = MW; L.kout1 = 1; L.ko2 = HEAD_PAD; L.kout2 = MW;   /* sigma, feature */
+            L.in_off = SL_H(MLP_DEPTH - 1); L.nin = MW; L.out_off = SL_HD;
+            L.nout = HEAD_PAD + MLP_FEAT;
+            L.kin = MW; L.kout1 = 1; L.ko2 = HEAD_PAD; L.kout2 = MLP_FEAT;  /* sigma, feature */
         } else if (i == MLP_DEPTH + 1) {
-            L.in_off = SL_FEAT; L.nin = MW + DIN_P; L.out_off = SL_C; L.nout = MLP_COLOR_WIDTH;
-            L.kin = MW + MLP_DIR_IN; L.kout1 = MLP_COLOR_WIDTH;
+            L.in_off = SL_FEAT; L.nin = MLP_FEAT + DIN_P; L.out_off = SL_C;
+            L.nout = MLP_COLOR_WIDTH;
+            L.kin = MLP_FEAT + MLP_DIR_IN; L.kout1 = MLP_COLOR_WIDTH;
+        } else if (i < NLAYER - 1) {          /* colour hidden layer c_j, j = i - D - 1 >= 1 */
+            L.in_off = SL_C + (i - MLP_DEPTH - 2) * MLP_COLOR_WIDTH; L.nin = MLP_COLOR_WIDTH;
+            L.out_off = L.in_off + MLP_COLOR_WIDTH; L.nout = MLP_COLOR_WIDTH;
+            L.kin = MLP_COLOR_WIDTH; L.kout1 = MLP_COLOR_WIDTH;
         } else {
-            L.in_off = SL_C; L.nin = MLP_COLOR_WIDTH; L.out_off = SL_RGB; L.nout = RGB_P;
+            L.in_off = SL_RGB - MLP_COLOR_WIDTH; L.nin = MLP_COLOR_WIDTH; L.out_off = SL_RGB;
+            L.nout = RGB_P;
             L.kin = MLP_COLOR_WIDTH; L.kout1 = 3;
         }
         L.w_off = w_off;
@@ -315,6 +347,7 @@ inline float act_grad1(const float y, const int act) {
     if (act == ACT_RELU) return relu_grad_from_y(y);
     if (act == ACT_SOFTPLUS) return softplus_grad_from_y(y);
     if (act == ACT_SIGMOID) return sigmoid_grad_from_y(y);
+    if (act == ACT_TRUNC_EXP) return y;
     return 1.0f;
 }
 
@@ -429,12 +462,15 @@ __kernel void mlp_forward(const int n, __global const float *x_enc, __global con
         __global float *s = A + (size_t)r * NSLOT + SL_HD;
 #if SIGMA_ACT == ACT_RELU
         *s = fmax(*s, 0.0f);
+#elif SIGMA_ACT == ACT_TRUNC_EXP
+        *s = exp(fmin(*s, SIGMA_EXP_MAX));   /* NaN stays NaN, as with the other two */
 #else
         *s = safe_softplus(*s);
 #endif
     }
-    layer_forward(layer_desc(MLP_DEPTH + 1), params_t, A, HIDDEN_ACT);
-    layer_forward(layer_desc(MLP_DEPTH + 2), params_t, A, ACT_SIGMOID);
+    for (int l = MLP_DEPTH + 1; l < NLAYER - 1; ++l)
+        layer_forward(layer_desc(l), params_t, A, HIDDEN_ACT);
+    layer_forward(layer_desc(NLAYER - 1), params_t, A, ACT_SIGMOID);
     for (int r = 0; r < MLP_ROWS; ++r) {
         const int row = r0 + r;
         if (row >= n) break;
@@ -469,9 +505,11 @@ __kernel void mlp_backward(const int n, __global const float *dsigma, __global c
         for (int c = 0; c < 3; ++c)
             g[SL_RGB + c] = drgb[3 * row + c] * sigmoid_grad_from_y(a[SL_RGB + c]);
     }
-    layer_backward(layer_desc(MLP_DEPTH + 2), params, G, A, MLP_COLOR_WIDTH, MLP_COLOR_WIDTH);
+    for (int l = NLAYER - 1; l > MLP_DEPTH + 1; --l)   /* rgb, then colour layers c_CD-1..c_1 */
+        layer_backward(layer_desc(l), params, G, A, MLP_COLOR_WIDTH, MLP_COLOR_WIDTH);
     /* the encoded direction's columns only when asked for */
-    layer_backward(layer_desc(MLP_DEPTH + 1), params, G, A, 0, want_input ? MW + DIN_P : MW);
+    layer_backward(layer_desc(MLP_DEPTH + 1), params, G, A, 0,
+                   want_input ? MLP_FEAT + DIN_P : MLP_FEAT);
     layer_backward(layer_desc(MLP_DEPTH), params, G, A, MW, MW);
     for (int l = MLP_DEPTH - 1; l >= 1; --l)
         layer_backward(layer_desc(l), params, G, A, MW, layer_desc(l).nin);

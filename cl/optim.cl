@@ -18,7 +18,9 @@
  *
  * adam_step (OPT_MODE 2; Kingma & Ba, with bias correction): p, g, m, v are float [n], one
  * work-item per parameter (no loops: PoCL vectorises across the group):
- *   m = b1 m + (1 - b1) g,  v = b2 v + (1 - b2) g^2,
+ *   g' = g + wd p (L2 weight decay, wd a host argument; 0 for plain Adam); with clear_grad
+ *   the gradient entry is set to 0 once read (for gradients that backward passes add into),
+ *   m = b1 m + (1 - b1) g',  v = b2 v + (1 - b2) g'^2,
  *   p -= lr (m / bc1) / (sqrt(v / bc2) + eps),  bc1 = 1 - b1^t, bc2 = 1 - b2^t (host, float64).
  * A zero gradient on a zero moment leaves p unchanged (0 / (0 + eps) = 0), which keeps the
  * MLP's zero padding at zero. Non-finite gradients are skipped (p, m, v unchanged) so one bad
@@ -66,13 +68,16 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
     if (clear_touched) touched[k] = 0;
 }
 #else
-__kernel void adam_step(const int n, __global float *p, __global const float *g,
+__kernel void adam_step(const int n, __global float *p, __global float *g,
                         __global float *m, __global float *v, const float lr, const float b1,
-                        const float b2, const float eps, const float bc1, const float bc2) {
+                        const float b2, const float eps, const float bc1, const float bc2,
+                        const float wd, const int clear_grad) {
     const int i = get_global_id(0);
     if (i >= n) return;
-    const float gi = g[i];
-    if (!isfinite(gi)) return;
+    const float g0 = g[i];
+    if (clear_grad) g[i] = 0.0f;         /* the next backward adds into a zero gradient */
+    if (!isfinite(g0)) return;
+    const float gi = g0 + wd * p[i];     /* L2 weight decay (0: plain Adam) */
     const float mi = b1 * m[i] + (1.0f - b1) * gi;
     const float vi = b2 * v[i] + (1.0f - b2) * gi * gi;
     m[i] = mi;

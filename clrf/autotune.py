@@ -122,9 +122,14 @@ def device_key(caps) -> str:
 
 
 def shape_key(spec) -> str:
-    """The MLP shape (every MLPSpec field that is not a tile field) as a stable string."""
+    """The MLP shape (every MLPSpec field that is not a tile field) as a stable string; the
+    fields added for the hash model (color_depth, features) only when they differ from NeRF's
+    shape, so that tiles tuned before them keep their keys."""
+    later = {"color_depth": 1, "features": None}
     return json.dumps({f.name: getattr(spec, f.name) for f in fields(spec)
-                       if f.name not in TILE_FIELDS}, sort_keys=True)
+                       if f.name not in TILE_FIELDS
+                       and not (f.name in later and getattr(spec, f.name) == later[f.name])},
+                      sort_keys=True)
 
 
 def load_cache(path: Path | None = None) -> dict:

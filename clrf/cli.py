@@ -118,8 +118,9 @@ def cmd_train(a):
     if comm is not None:
         from .grid.dist_model import check_schedule
         if cfg.train.model != "grid":
-            raise CliError(f"train.model: distributed training ({comm.Get_size()} MPI ranks) "
-                           f"is for the grid model; run '{cfg.train.model}' as one process")
+            raise CliError(f"train.model = '{cfg.train.model}': distributed training "
+                           f"({comm.Get_size()} MPI ranks) is not supported for it, only for "
+                           f"the grid model; run '{cfg.train.model}' as one process")
         if cfg.grid.background_layers > 0:
             raise CliError(f"grid.background_layers = {cfg.grid.background_layers}: the "
                            f"distributed grid ({comm.Get_size()} MPI ranks) has no background "
@@ -326,10 +327,13 @@ def build_parser():
 
     t = sub.add_parser("train", help="train on a dataset (default: the built-in procedural scene)")
     t.add_argument("--data", default=None, help="dataset folder or .npz (default: built-in scene)")
-    t.add_argument("--config", default=None, help="JSON config file (sections grid/train/nerf)")
+    t.add_argument("--config", default=None,
+                   help="JSON config file (sections grid/train/nerf/hash)")
     t.add_argument("--out", default="runs/latest", help="run directory (default: runs/latest)")
     t.add_argument("--max-seconds", type=float, default=None, help="training time budget")
-    t.add_argument("--model", choices=["grid", "nerf"], default=None)
+    t.add_argument("--model", choices=["grid", "nerf", "hash"], default=None,
+                   help="grid (Plenoxels), nerf (positional encoding) or hash (multiresolution "
+                        "hash encoding + tiny MLPs)")
     t.add_argument("--preset", default=None, help="scene preset (default: the dataset's)")
     t.add_argument("--seed", type=int, default=None)
     t.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",

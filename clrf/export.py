@@ -53,7 +53,8 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
 
     Grid models: cl/export.cl (see its header for the math; sigma is the raw interpolated
     density, negative where the renderer's ReLU makes it 0). NeRF: the fine network at
-    gamma(points) looking along ``dirs`` [n, 3] (unit; default -z, which does not change sigma).
+    gamma(points) looking along ``dirs`` [n, 3] (unit; default -z, which does not change sigma);
+    hash models: HashModel.fields (0 density outside the model's box, as its renderer sees it).
     Points go to the device in blocks of ``block`` (NeRF: fewer, so that the MLP's activations
     stay within clrf.nerf.model.MAX_RENDER_SCRATCH bytes); ``progress`` (optional) is called with the
     number of points done after each block.
@@ -65,7 +66,8 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
     q = model.device.queue
     if model.kind != "grid":   # the MLP keeps every activation: bound them as its render does
         from .nerf.model import MAX_RENDER_SCRATCH
-        block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * model.fine.layout.nslot)))
+        net = model.net if model.kind == "hash" else model.fine
+        block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * net.layout.nslot)))
     for s in range(0, n, block):
         e = min(n, s + block)
         pd = upload(q, p[s:e])
@@ -74,7 +76,8 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
         else:
             d = (np.tile(np.float32([0, 0, -1]), (e - s, 1)) if dirs is None
                  else np.ascontiguousarray(dirs[s:e], np.float32))
-            sd, cd = _nerf_fields(model, pd, upload(q, d))
+            sd, cd = (model.fields(pd, upload(q, d)) if model.kind == "hash"
+                      else _nerf_fields(model, pd, upload(q, d)))
         sigma[s:e], rgb[s:e] = sd.get(), cd.get()
         if progress:
             progress(e - s)
@@ -105,6 +108,8 @@ def model_cell(model) -> float:
     """The model's own sampling length h (model units) that sets the default level."""
     if model.kind == "grid":
         return float(np.mean(model.grid.voxel_size))
+    if model.kind == "hash":
+        return model.dt
     c = model.config
     return (model.far - model.near) / (c.n_coarse + c.n_fine)
 

@@ -132,6 +132,26 @@ def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
                          big, "MLP activations")
 
 
+def hash_stage(hc, n_rays: int) -> StageEstimate:
+    """StageEstimate of a hash-grid run with HashConfig ``hc``: tables with gradient and Adam
+    moments (the backward needs no scratch copy on either path), the MLP's activations for
+    every sample of a batch (all live: the occupancy grid starts full), per-sample buffers, the
+    occupancy grid and the ray store."""
+    pad = lambda x: -(-x // 16) * 16                           # noqa: E731 - kernel padding
+    table = 4 * hc.levels * (1 << hc.log2_table) * hc.features
+    tables = 4 * table
+    W, WC, din = hc.width, hc.color_width, pad(hc.levels * hc.features)
+    nslot = din + W + 16 + hc.geo_features + 16 + hc.color_depth * WC + 16
+    samples = hc.batch_rays * hc.samples
+    act = 2 * 4 * pad(samples) * nslot
+    per_sample = 4 * samples * (2 * (din + 16) + 20)
+    occ = 5 * hc.occ_res ** 3
+    total = tables + act + per_sample + occ + ray_store_bytes(n_rays, hc.batch_rays)
+    return StageEstimate(f"hash training ({hc.batch_rays} rays x {hc.samples} samples, "
+                         f"T 2^{hc.log2_table})", total, max(table, 4 * pad(samples) * nslot),
+                         "hash table or MLP activations")
+
+
 def scratch_copies(is_cpu: bool, tuning=None) -> int:
     """Scratch gradient copies the grid backward holds on a device with Tuning ``tuning``
     (Tuning.scratch_copies of its slots); None means the defaults: one on CPU devices (block
@@ -145,7 +165,11 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None) -> li
     """Raise MemoryBudgetError when a stage of the run configured by ``cfg`` (a Config) on
     ``n_rays`` training rays exceeds the device described by ``caps`` (DeviceCaps; ``tuning``
     its Tuning, None for the defaults); returns the StageEstimates otherwise."""
-    if cfg.train.model == "nerf":
+    if cfg.train.model == "hash":
+        stages = [hash_stage(cfg.hash, n_rays)]
+        fix = ("lower hash.log2_table, hash.batch_rays or hash.samples, or load fewer rays with "
+               "train.downscale / train.max_train_images")
+    elif cfg.train.model == "nerf":
         stages = [nerf_stage(cfg.nerf, n_rays, caps)]
         fix = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
                "rays with train.downscale / train.max_train_images")

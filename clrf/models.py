@@ -45,7 +45,20 @@ class NerfFactory:
         return NerfModel.from_state_dict(device, state)
 
 
-FACTORIES = {"grid": GridFactory, "nerf": NerfFactory}
+class HashFactory:
+    @staticmethod
+    def create(device, cfg, ds, background):
+        from .hash.model import HashModel, ray_range
+        near, far = ray_range(ds)
+        return HashModel(device, cfg.hash, near, far, ds.bbox, background, cfg.train.seed)
+
+    @staticmethod
+    def from_state(device, state, cfg):
+        from .hash.model import HashModel
+        return HashModel.from_state_dict(device, state)
+
+
+FACTORIES = {"grid": GridFactory, "nerf": NerfFactory, "hash": HashFactory}
 
 
 def config_from_state(state) -> Config:

@@ -33,7 +33,9 @@ class Optimizer:
       gradient buffers never need a dense zero-fill. ``state``: RMSProp's mean square.
     - ``adam``: param [n]; ``step(None, lr, t=t)`` updates every entry with bias correction for
       the 1-based update count t. ``state`` / ``state2``: the first / second moments (beta,
-      beta2 their decay rates). The gradient is not reset (the MLP backward overwrites it).
+      beta2 their decay rates); ``weight_decay`` adds weight_decay * p to the gradient (L2).
+      The gradient is not reset (the MLP backward overwrites it) unless ``clear_grad`` (for
+      gradients that a backward adds into, the hash tables').
 
     >>> opt = Optimizer(dev, grid.density)              # RMSProp over rows
     >>> opt.step(touched, lr=0.1, clear_touched=False)
@@ -42,7 +44,7 @@ class Optimizer:
     """
 
     def __init__(self, device, param, mode="rmsprop", beta=0.95, eps=1e-8, state=None,
-                 grad=None, beta2=0.999, state2=None):
+                 grad=None, beta2=0.999, state2=None, weight_decay=0.0):
         if mode not in MODES:
             raise ValueError(f"optimizer: '{mode}' is not one of {sorted(MODES)}")
         self.device = device
@@ -50,6 +52,7 @@ class Optimizer:
         self.beta = float(beta)
         self.beta2 = float(beta2)
         self.eps = float(eps)
+        self.weight_decay = float(weight_decay)   # Adam only: g + weight_decay * p
         self.param = param
         self.grad = grad if grad is not None else cla.zeros_like(param)
         self.state = state if state is not None else cla.zeros_like(param)
@@ -60,7 +63,9 @@ class Optimizer:
     def _kernel(self, name):
         return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
 
-    def step(self, touched, lr, clear_touched=False, t: int = 1):
+    def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False):
+        """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed).
+        Adam: every entry; clear_grad zeroes the gradient once read."""
         if self.mode == "adam":
             n = int(self.param.size)
             bc1, bc2 = 1.0 - self.beta ** t, 1.0 - self.beta2 ** t
@@ -68,7 +73,8 @@ class Optimizer:
                    (np.int32(n), self.param.data, self.grad.data, self.state.data,
                     self.state2.data, np.float32(lr), np.float32(self.beta),
                     np.float32(self.beta2), np.float32(self.eps), np.float32(bc1),
-                    np.float32(bc2)), ADAM_LOCAL_SIZE)
+                    np.float32(bc2), np.float32(self.weight_decay),
+                    np.int32(bool(clear_grad))), ADAM_LOCAL_SIZE)
             return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]

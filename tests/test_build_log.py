@@ -49,7 +49,12 @@ CASES = ([("grid_render.cl", d) for d in _grid_render()]
             ("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": 20000})]
          + [("optim.cl", {"OPT_MODE": m}) for m in (0, 1, 2)]
          + [("background.cl", {"BG_LAYERS": 32, "BG_H": 128})]
-         + [("mlp.cl", MLPSpec().defines())])
+         + [("mlp.cl", MLPSpec().defines()),
+            ("mlp.cl", MLPSpec(width=64, depth=1, color_width=64, in_dim=32, dir_dim=16,
+                               sigma_act="trunc_exp", color_depth=2, features=16).defines())]
+         + [("hash.cl", {"HASH_LEVELS": 16, "HASH_FEATURES": f, "HASH_LOG2_T": 19,
+                         "HASH_GRAD_OWNED": o}) for f in (1, 2, 4) for o in (0, 1)]
+         + [("hash_occ.cl", {}), ("hash_march.cl", {})])
 
 
 @pytest.mark.parametrize("source,defines", CASES,

@@ -24,6 +24,8 @@ def test_wheel_installs_and_renders(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert (target / "clrf" / "cl" / "grid_render.cl").is_file()
     assert (target / "clrf" / "viewer" / "page.html").is_file()   # the viewer's page
+    for part in ("cl/hash.cl", "cl/hash_occ.h", "cl/hash_march.cl", "hash/model.py"):
+        assert (target / "clrf" / part).is_file(), part     # the hash model is packaged
     script = (
         "import numpy as np, clrf, clrf.programs as p\n"
         "assert 'site' in str(p.cl_dir()), p.cl_dir()\n"

@@ -18,6 +18,12 @@ SPECS = {
     "relu": MLPSpec(width=32, depth=2, skip=-1, color_width=16, in_dim=15, dir_dim=9,
                     dw_chunk=16),
     "small-4x64": MLPSpec(width=64, depth=4, skip=1, color_width=32, in_dim=51, dir_dim=27),
+    # the hash model's shape: 16 features from the head, two colour hidden layers
+    "hash-1x64-c2": MLPSpec(width=64, depth=1, skip=-1, color_width=64, in_dim=32, dir_dim=16,
+                            sigma_act="trunc_exp", color_depth=2, features=16),
+    "deep-colour-softplus": MLPSpec(width=32, depth=2, skip=-1, color_width=16, in_dim=9,
+                                    dir_dim=5, hidden_act="softplus", sigma_act="trunc_exp",
+                                    color_depth=3, features=16, dw_chunk=16),
 }
 _nets = {}
 
@@ -153,7 +159,7 @@ def test_padding_gradients_are_exactly_zero(device, name):
     assert np.count_nonzero(g[mask]) > 0.5 * mask.sum()
 
 
-@pytest.mark.parametrize("name", ["skip-softplus", "relu"])
+@pytest.mark.parametrize("name", ["skip-softplus", "relu", "deep-colour-softplus"])
 def test_reference_gradient_vs_finite_differences(device, name):
     net = get_net(device, name)
     spec, layout = net.spec, net.layout

@@ -22,7 +22,8 @@ import pyopencl.array as cla
 from ..autotune import MLPTiling, mlp_tiling_for
 from ..programs import launch, upload
 
-ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3}
+ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3, "trunc_exp": 4}
+SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation
 GROUP_BYTES = None   # interleave backward and weight gradient per rows of this much A + G;
 # None: one launch each. Measured on PoCL (Zen 4, AVX-512, n = 8192): launches cost more than
 # the cache misses that interleaving saves (8x256: 16 MB groups 0.93x numpy, one launch 0.99x).
@@ -42,7 +43,9 @@ class MLPSpec:
     in_dim: int = 51           # encoded position dims
     dir_dim: int = 27          # encoded direction dims
     hidden_act: str = "relu"   # "relu" | "softplus"
-    sigma_act: str = "relu"    # "relu" | "softplus"
+    sigma_act: str = "relu"    # "relu" | "softplus" | "trunc_exp" (exp of min(x, 15))
+    color_depth: int = 1       # colour hidden layers (NeRF: 1; the hash model: 2)
+    features: int | None = None  # feature outputs of the head (multiple of 16); None: width
     rows: int | None = None    # samples per work-item (register block); None: per device
     cols: int | None = None    # columns per tile, 16 or 32; None: per device
     dw_rows: int | None = None  # output neurons per work-item in the weight gradient
@@ -51,20 +54,33 @@ class MLPSpec:
 
     def defines(self) -> dict:
         """The shape defines (the tile's come from MLPTiling.defines)."""
-        for name in ("hidden_act", "sigma_act"):
-            if getattr(self, name) not in ("relu", "softplus"):
-                raise ValueError(f"MLPSpec.{name}: must be 'relu' or 'softplus', got "
-                                 f"{getattr(self, name)!r}")
-        return {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
-                "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
-                "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
-                "SIGMA_ACT": ACT[self.sigma_act]}
+        if self.hidden_act not in ("relu", "softplus"):
+            raise ValueError(f"MLPSpec.hidden_act: must be 'relu' or 'softplus', got "
+                             f"{self.hidden_act!r}")
+        if self.sigma_act not in ("relu", "softplus", "trunc_exp"):
+            raise ValueError(f"MLPSpec.sigma_act: must be 'relu', 'softplus' or 'trunc_exp', "
+                             f"got {self.sigma_act!r}")
+        d = {"MLP_WIDTH": self.width, "MLP_DEPTH": self.depth, "MLP_SKIP": self.skip,
+             "MLP_COLOR_WIDTH": self.color_width, "MLP_IN": self.in_dim,
+             "MLP_DIR_IN": self.dir_dim, "HIDDEN_ACT": ACT[self.hidden_act],
+             "SIGMA_ACT": ACT[self.sigma_act]}
+        if self.color_depth != 1:       # only when set: NeRF's builds keep their defines
+            d["MLP_COLOR_DEPTH"] = self.color_depth
+        if self.features is not None and self.features != self.width:
+            d["MLP_FEAT"] = self.features
+        return d
+
+    @property
+    def feat(self) -> int:
+        """Feature outputs of the head."""
+        return self.width if self.features is None else self.features
 
     def flops_per_sample(self) -> tuple:
         """(forward, forward+backward) multiply-add flops per sample, logical (unpadded) sizes."""
-        W, D, WC = self.width, self.depth, self.color_width
+        W, D, WC, Fe = self.width, self.depth, self.color_width, self.feat
         macs = self.in_dim * W + (D - 1) * W * W + (self.in_dim * W if self.skip >= 0 else 0)
-        macs += W * (W + 1) + (W + self.dir_dim) * WC + WC * 3
+        macs += W * (Fe + 1) + (Fe + self.dir_dim) * WC + (self.color_depth - 1) * WC * WC
+        macs += WC * 3
         return 2 * macs, 6 * macs
 
 
@@ -96,11 +112,13 @@ class Layout:
                     cols = np.concatenate([np.arange(W), W + np.arange(spec.in_dim)])
                 rows = np.arange(W)
             elif l == D:
-                rows = np.concatenate([[0], 16 + np.arange(W)])
+                rows = np.concatenate([[0], 16 + np.arange(spec.feat)])
                 cols = np.arange(W)
             elif l == D + 1:
                 rows = np.arange(spec.color_width)
-                cols = np.concatenate([np.arange(W), W + np.arange(spec.dir_dim)])
+                cols = np.concatenate([np.arange(spec.feat), spec.feat + np.arange(spec.dir_dim)])
+            elif l < self.n_layers - 1:
+                rows = cols = np.arange(spec.color_width)
             else:
                 rows = np.arange(3)
                 cols = np.arange(spec.color_width)

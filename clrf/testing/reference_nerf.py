@@ -80,6 +80,8 @@ def _act(x, name):
         return np.logaddexp(x, 0.0)
     if name == "sigmoid":
         return 0.5 * (1.0 + np.tanh(0.5 * x))
+    if name == "trunc_exp":             # cl/mlp.cl ACT_TRUNC_EXP
+        return np.exp(np.minimum(x, 15.0))
     return x
 
 
@@ -92,6 +94,8 @@ def _act_grad(x, name):
     if name == "sigmoid":
         s = _act(x, "sigmoid")
         return s * (1 - s)
+    if name == "trunc_exp":             # exp at the clamped value, also beyond the clamp
+        return np.exp(np.minimum(x, 15.0))
     return np.ones_like(x)
 
 
@@ -109,7 +113,7 @@ def _layer_acts(spec, layout):
     D = spec.depth
     acts = []
     for l, L in enumerate(layout.layers):
-        if l < D or l == D + 1:
+        if l < D or D < l < layout.n_layers - 1:      # trunk and colour hidden layers
             a = [spec.hidden_act] * L["nout"]
         elif l == D:
             a = [spec.sigma_act] + ["none"] * (L["nout"] - 1)

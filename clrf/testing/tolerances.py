@@ -283,3 +283,37 @@ LPIPS_REF_ATOL = 1e-5
 # relative (float32 convolutions over <= 4608 terms); 30x that, far below any layout or scaling
 # error (those change the distance by > 1e-2 relative).
 LPIPS_F64_RTOL = 1e-5
+
+# ============================================================================================
+# Hash encoding (cl/hash.cl, clrf/hash/)
+# ============================================================================================
+# Forward vs float64: kernel and reference pick the same cell and weights (the reference
+# repeats the kernel's float32 u and p), so only the float32 interpolation differs: 8 products
+# of 3 weights and a feature (|feature| <= 1 in the tests), each ~4 u relative, summed: <= 40 u
+# = 2.4e-6 worst case; seen ~3e-7. A wrong corner, weight or hash moves values by >= 1e-2.
+HASH_ATOL = 3e-6
+# Backward vs float64: each table entry sums <= n * 8 terms (n <= 65 points, |dL/denc| <= 1)
+# in float32, in any order (atomics): <= (n * 8) u * max|term| ~ 3e-5 worst case; 1e-5 relative
+# of the largest entry plus 3e-6 absolute is still 1000x below a misplaced contribution (O(0.1)).
+HASH_GRAD_ATOL = 3e-6
+HASH_GRAD_RTOL = 1e-5
+# Reference gradient vs central differences of the reference: the encoding is LINEAR in the
+# table, so a central difference is exact up to float64 roundoff (~1e-15 / eps with eps 1e-3).
+HASH_FD_EPS = 1e-3
+HASH_FD_ATOL = 1e-10
+# Kernel self-consistency: enc(table + h e_j) - enc(table) with h = 1 equals h times the
+# kernel's gradient column for a linear map; both in float32 on O(1) values: a few u -> 1e-6.
+HASH_KERNEL_FD_ATOL = 1e-6
+# SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
+# <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
+HASH_SH_ATOL = 1e-6
+# One whole hash-model step (occupancy compaction, hash encoding, fused MLP, compositing, MLP
+# and hash backward) vs the same chain of float64 references: every stage's float32 error
+# (MLP ~1e-5 relative, composite ~1e-6) compounds through the MLP backward into table
+# gradients that sum a few hundred samples; relative to the largest entry, 1e-4 is ~10x the
+# error seen and still 100x below a missing sample, a wrong row or a transposed layer (O(1e-2)).
+HASH_STEP_GRAD_REL_TO_MAX = 1e-4
+# The step's loss: a float32 sum of B per-ray squared errors vs float64: ~1e-6 relative.
+HASH_STEP_LOSS_RTOL = 1e-5
+# Occupancy update: decay is one float32 multiply (0.5 ulp), the max is exact.
+HASH_OCC_RTOL = 1e-6

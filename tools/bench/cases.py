@@ -319,3 +319,77 @@ def _train_specs():
              dict(base, occupancy=0.05, rays="random", n_rays=5000), "rays/s", dict(quick),
              (("clrf.grid.model", "GridModel"),)),
     ]
+
+
+# ---- hash encoding (cl/hash.cl) and its Taichi peer --------------------------------------------
+def _hash_inputs(ctx, p):
+    """The encoding and identical inputs for clrf and the peer: n points uniform in the box, a
+    table uniform in +-1, dL/denc uniform in +-1."""
+    from clrf.hash.encoding import HashEncoding
+    rng = np.random.default_rng(4)
+    L, F, lt = p["levels"], p["features"], p["log2_t"]
+    box = ((-1.5,) * 3, (1.5,) * 3)
+    table = rng.uniform(-1, 1, (L, 1 << lt, F)).astype(np.float32)
+    enc = HashEncoding(ctx.dev, L, F, lt, p["n_min"], p["n_max"], box, table=table)
+    x = rng.uniform(-1.5, 1.5, (p["n_points"], 3)).astype(np.float32)
+    genc = rng.uniform(-1, 1, (p["n_points"], L * F)).astype(np.float32)
+    return enc, table, x, genc
+
+
+def _hash_work(p):
+    return {"samples": p["n_points"], "bytes": p["n_points"] * p["levels"] * 8 * p["features"] * 4}
+
+
+@factory("hash.encode")
+def _hash_encode(ctx, p):
+    """params: levels, features, log2_t, n_min, n_max, n_points, mode ('fwd' | 'fwdbwd': the
+    encoding forward, then the gradient table zeroed and the backward scattered into it, as a
+    training step runs them). samples/s = points per second."""
+    enc, table, x, genc = _hash_inputs(ctx, p)
+    q = ctx.dev.queue
+    xd, gd = cla.to_device(q, x), cla.to_device(q, genc)
+    out = cla.empty(q, (x.shape[0], enc.dim), np.float32)
+    mode = p.get("mode", "fwd")
+
+    def run():
+        enc.forward(xd, out)
+        if mode != "fwd":
+            enc.grad.fill(np.float32(0))
+            enc.backward(xd, gd)
+        ctx.dev.finish()
+    info = {"table_mb": enc.n_params * 4 / 2 ** 20, "grad_owned": enc.owned}
+    return Case(run, _hash_work(p), info)
+
+
+# Peer-vs-clrf agreement on the hash encoding: both float32 sums of 8 products (forward) and of
+# the same scatters in another order (backward): tolerances of clrf/testing/tolerances.py
+# HASH_ATOL and HASH_GRAD_* relative to the largest gradient.
+PEER_HASH_ATOL = 3e-6
+PEER_HASH_GRAD_REL = 1e-5
+
+
+@factory("peer.taichi_hash")
+def _peer_taichi_hash(ctx, p):
+    try:
+        from peers import taichi_hash
+    except ImportError as e:
+        raise Skip(f"taichi peer unavailable: {e}") from None
+    enc, table, x, genc = _hash_inputs(ctx, p)
+    peer = taichi_hash.TaichiHash(x, table, enc.res_host, enc.lo, enc.inv_ext, genc)
+    q = ctx.dev.queue
+    xd = cla.to_device(q, x)
+    ref_out = enc.forward(xd).get()
+    check = {"enc": _compare(peer.forward(), ref_out, PEER_HASH_ATOL, 0.0)}
+    mode = p.get("mode", "fwd")
+    if mode != "fwd":
+        enc.grad.fill(np.float32(0))
+        enc.backward(xd, cla.to_device(q, genc))
+        g = enc.grad.get()
+        scale = max(1e-30, float(np.abs(g).max()))
+        check["grad"] = _compare(peer.forward_backward(), g, PEER_HASH_GRAD_REL * scale + 3e-6,
+                                 0.0)
+    check["ok"] = all(v["ok"] for v in check.values() if isinstance(v, dict))
+    if not check["ok"]:
+        raise Skip(f"peer disagrees with clrf, not timed: {check}")
+    run = peer.forward if mode == "fwd" else peer.forward_backward
+    return Case(run, _hash_work(p), {"peer": peer.describe()}, check)

@@ -56,6 +56,21 @@ def _grid_specs():
     return out
 
 
+def _hash_specs():
+    """Hash encoding forward and forward + backward (the published sizes: L 16, F 2, T 2^19,
+    16..2048, 2^18 points per call, about one training batch's live samples), clrf and the
+    Taichi peer on identical inputs."""
+    base = {"levels": 16, "features": 2, "log2_t": 19, "n_min": 16, "n_max": 2048,
+            "n_points": 1 << 18}
+    quick = {"log2_t": 12, "n_points": 1024}
+    out = []
+    for kind, prefix in (("hash.encode", "hash"), ("peer.taichi_hash", "peer.taichi_hash")):
+        for mode in ("fwd", "fwdbwd"):
+            out.append(Spec(f"{prefix}/{mode}/L16F2T19", kind, dict(base, mode=mode),
+                            "samples/s", dict(quick)))
+    return out
+
+
 def _peak_specs():
     return [
         Spec("peak/copy", "peak.bandwidth", {"op": "copy", "mbytes": 256}, "GB/s",
@@ -71,7 +86,7 @@ def _peak_specs():
 # module is missing on a branch is reported as skipped (Spec.requires).
 TRAINING_SPECS: list = _train_specs()
 
-SPECS = _grid_specs() + TRAINING_SPECS
+SPECS = _grid_specs() + _hash_specs() + TRAINING_SPECS
 
 
 def external_specs():

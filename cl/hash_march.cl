@@ -1,0 +1,163 @@
+/* hash_march.cl: the hash model's samples (stratified, kept only in occupied cells, packed per
+ * ray) and their compositing, forward (resumable, with early ray termination) and backward.
+ *
+ * Samples. Ray i (origin o, direction d, unit direction dh = d / |d|) has S equal bins of
+ * length dt = (far - near) / S over [near, far]; bin k holds the sample
+ *   t_k = near + (far - near) ((k + u_k) / S),  u_k = uniform01(key, i S + k) with jitter, else 1/2
+ * (cl/sample.cl's stratified rule) at x_k = o + t_k dh. The sample is LIVE when x_k lies inside
+ * the box in an occupied cell (hash_occ.h), and then stands for its whole bin: its segment
+ * length is dt whatever its neighbours are, so dropping the empty bins changes nothing else.
+ * A window k0 <= k < k1 of bins is marched at a time (the render's early termination; training
+ * takes all S at once), only for rays with alive[i] != 0 (null: every ray).
+ *
+ * Packed layout: march_count writes each ray's live count, the host turns the counts into
+ * offsets [n + 1] (exclusive prefix sum), march_compact writes ray i's live samples in bin
+ * order at rows offsets[i] .. offsets[i+1]-1 of t [M], xyz [M, 3], vdir [M, 3].
+ *
+ * Compositing over a ray's live samples (volrend.h), tau_k = sigma_k dt (sigma not > 0, NaN
+ * included, counts as 0):
+ *   w_k = T_k alpha(tau_k), T_k = exp(-sum_{j<k} tau_j) (Kahan-summed log),
+ *   rgb = sum w_k c_k + T_end bg,  acc = sum w_k,  depth = sum w_k t_k.
+ * packed_forward continues a per-ray state [n, 8] = (rgb, acc, depth, logT, logT compensation,
+ * unused) across windows and clears alive[i] once T < HASH_T_STOP (the rest of the ray can
+ * change rgb by less than T_STOP); the host adds T_end bg at the end.
+ * packed_backward (training: one window, no termination): L = loss_scale sum |rgb - target|^2,
+ *   g = 2 loss_scale (rgb - target), dL/dc_k = w_k g,
+ *   dL/dsigma_k = dt (T_{k+1} (g.c_k) - R_k),  R_k = g.rgb - sum_{j<=k} w_j (g.c_j),
+ * and sq_err [n] = |rgb - target|^2.
+ *
+ * Defines read: HASH_T_STOP. Twin: clrf/testing/reference_hash.py (march_samples,
+ * packed_forward, packed_backward).
+ */
+#include "hash_occ.h"
+#include "volrend.h"
+
+#ifndef HASH_T_STOP
+#define HASH_T_STOP 1e-4f   /* render: a ray stops once its transmittance is below this */
+#endif
+
+CLRF_INLINE float3 unit_dir(__global const float *dirs, const int i) {
+    float3 d = load3(dirs, i);
+    const float mx = fmax(fabs(d.x), fmax(fabs(d.y), fabs(d.z)));
+    d = mx > 0.0f ? d / mx : (float3)(0.0f);      /* scale first: |d|^2 may under/overflow */
+    return d * safe_div(1.0f, length(d));
+}
+
+CLRF_INLINE float bin_t(const int i, const int k, const int S, const float near, const float far,
+                        const int jitter, const uint key) {
+    const float u = jitter ? uniform01(key, (uint)(i * S + k)) : 0.5f;
+    return near + (far - near) * (((float)k + u) / (float)S);
+}
+
+/* counts [n]: live samples of ray i in bins k0 .. k1-1 (0 for rays not alive). */
+__kernel void march_count(const int n, const int S, const int k0, const int k1, const float near,
+                          const float far, const int jitter, const uint key,
+                          __global const float *origins, __global const float *dirs,
+                          const float4 lo, const float4 inv_ext, const int R,
+                          __global const uchar *occ, __global const uchar *alive,
+                          __global int *counts) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    int m = 0;
+    if (!alive || alive[i]) {
+        const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
+        for (int k = k0; k < k1; ++k) {
+            const int c = occ_cell(o + bin_t(i, k, S, near, far, jitter, key) * dh, lo, inv_ext,
+                                   R);
+            m += c >= 0 && occ[c];
+        }
+    }
+    counts[i] = m;
+}
+
+/* t [M], xyz [M, 3], vdir [M, 3] of the live samples, ray i's from offsets[i] on. */
+__kernel void march_compact(const int n, const int S, const int k0, const int k1,
+                            const float near, const float far, const int jitter, const uint key,
+                            __global const float *origins, __global const float *dirs,
+                            const float4 lo, const float4 inv_ext, const int R,
+                            __global const uchar *occ, __global const uchar *alive,
+                            __global const int *offsets, __global float *t_out,
+                            __global float *xyz, __global float *vdir) {
+    const int i = get_global_id(0);
+    if (i >= n || (alive && !alive[i])) return;
+    const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
+    int j = offsets[i];
+    for (int k = k0; k < k1; ++k) {
+        const float t = bin_t(i, k, S, near, far, jitter, key);
+        const float3 x = o + t * dh;
+        const int c = occ_cell(x, lo, inv_ext, R);
+        if (c >= 0 && occ[c]) {
+            t_out[j] = t;
+            xyz[3 * j] = x.x; xyz[3 * j + 1] = x.y; xyz[3 * j + 2] = x.z;
+            vdir[3 * j] = dh.x; vdir[3 * j + 1] = dh.y; vdir[3 * j + 2] = dh.z;
+            ++j;
+        }
+    }
+}
+
+#define ST 8   /* floats of per-ray state in packed_forward */
+
+/* Continue ray i's composite over its live samples of this window (state [n, ST]). */
+__kernel void packed_forward(const int n, __global const int *offsets, __global const float *t,
+                             const float dt, __global const float *sigma,
+                             __global const float *rgb, __global float *state,
+                             __global uchar *alive) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    __global float *s = state + (size_t)i * ST;
+    float3 col = (float3)(s[0], s[1], s[2]);
+    float acc = s[3], depth = s[4];
+    ksum_t logT = {s[5], s[6]};
+    float T = exp(logT.s);
+    for (int j = offsets[i]; j < offsets[i + 1]; ++j) {
+        const float sg = sigma[j];
+        if (!(sg > 0.0f)) continue;
+        const float w = vr_step(&logT, T, sg * dt, &T);
+        col += w * load3(rgb, j);
+        acc += w;
+        depth += w * t[j];
+    }
+    s[0] = col.x; s[1] = col.y; s[2] = col.z;
+    s[3] = acc; s[4] = depth; s[5] = logT.s; s[6] = logT.c;
+    if (alive && !(T >= HASH_T_STOP)) alive[i] = 0;
+}
+
+/* Training: loss gradients of every live sample (one window holding all bins). */
+__kernel void packed_backward(const int n, __global const int *offsets, __global const float *t,
+                              const float dt, __global const float *sigma,
+                              __global const float *rgb, const float4 bg,
+                              __global const float *target, const float loss_scale,
+                              __global float *sq_err, __global float *dsigma,
+                              __global float *drgb) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int j0 = offsets[i], j1 = offsets[i + 1];
+    float3 col = (float3)(0.0f);
+    ksum_t logT = {0.0f, 0.0f};
+    float T = 1.0f;
+    for (int j = j0; j < j1; ++j) {
+        const float sg = sigma[j];
+        if (sg > 0.0f) col += vr_step(&logT, T, sg * dt, &T) * load3(rgb, j);
+    }
+    col += exp(logT.s) * bg.xyz;
+    const float3 diff = col - load3(target, i);
+    sq_err[i] = dot(diff, diff);
+    const float3 g = 2.0f * loss_scale * diff;
+    const float total = dot(g, col);
+    ksum_t prefix = {0.0f, 0.0f};
+    logT.s = logT.c = 0.0f;
+    T = 1.0f;
+    for (int j = j0; j < j1; ++j) {
+        const float sg = sigma[j];
+        if (!(sg > 0.0f)) {
+            dsigma[j] = 0.0f;
+            drgb[3 * j] = drgb[3 * j + 1] = drgb[3 * j + 2] = 0.0f;
+            continue;
+        }
+        const float w = vr_step(&logT, T, sg * dt, &T);
+        dsigma[j] = vr_dsigma(&prefix, total, w, T, dot(g, load3(rgb, j)), dt);
+        drgb[3 * j] = w * g.x;
+        drgb[3 * j + 1] = w * g.y;
+        drgb[3 * j + 2] = w * g.z;
+    }
+}

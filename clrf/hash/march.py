@@ -1,0 +1,103 @@
+"""Host side of cl/hash_march.cl: the hash model's packed samples (stratified bins kept only in
+occupied cells) and their compositing (math and layouts in the kernel file's header).
+
+>>> pk = march(dev, occ, origins_d, dirs_d, S=128, near=2.0, far=6.0)   # all bins, no jitter
+>>> pk.m, pk.offsets_host[:3], pk.t, pk.xyz, pk.vdir                    # device t [M], ...
+>>> g = packed_backward(dev, pk, sigma_d, rgb_d, dt, bg, target_d, loss_scale)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from ..programs import launch, upload
+
+STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
+
+
+@dataclass
+class Packed:
+    """The live samples of a batch of n rays: ray i's rows offsets[i] .. offsets[i+1]-1."""
+    n: int
+    m: int
+    offsets: cla.Array        # int32 [n + 1] (device)
+    offsets_host: np.ndarray  # int64 [n + 1]
+    t: cla.Array              # [M]
+    xyz: cla.Array            # [M, 3]
+    vdir: cla.Array           # [M, 3]
+
+
+def program(device):
+    return device.program("hash_march.cl", {})
+
+
+def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: bool = False,
+          key: int = 0, k0: int = 0, k1: int | None = None, alive=None) -> Packed:
+    """The live samples of bins k0 .. k1-1 (default all S) of the rays origins/dirs [n, 3]
+    (device) through the occupancy grid ``occ`` (OccupancyGrid), for rays with alive[i] != 0
+    (uchar device array [n]; None: all). One host round trip (the per-ray counts)."""
+    n = int(origins.shape[0])
+    k1 = S if k1 is None else int(k1)
+    dev, q = device, device.queue
+    prg = program(device)
+    counts = cla.empty(q, max(n, 1), np.int32)
+    args = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
+            np.float32(far), np.int32(bool(jitter)), np.uint32(key), origins.data, dirs.data,
+            occ.lo4, occ.inv4, np.int32(occ.res), occ.occ.data,
+            alive.data if alive is not None else None)
+    launch(dev, prg.kernel("march_count"), n, args + (counts.data,), dev.tuning.per_ray_local_size)
+    off = np.zeros(n + 1, np.int64)
+    if n:
+        np.cumsum(counts.get()[:n], out=off[1:])
+    m = int(off[-1])
+    offsets = upload(q, off.astype(np.int32))
+    t = cla.empty(q, max(m, 1), np.float32)
+    xyz = cla.empty(q, (max(m, 1), 3), np.float32)
+    vdir = cla.empty(q, (max(m, 1), 3), np.float32)
+    if m:
+        launch(dev, prg.kernel("march_compact"), n,
+               args + (offsets.data, t.data, xyz.data, vdir.data), dev.tuning.per_ray_local_size)
+    return Packed(n, m, offsets, off, t[:m] if m else t, xyz[:m] if m else xyz,
+                  vdir[:m] if m else vdir)
+
+
+def _bg4(background):
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+
+
+def packed_forward(device, pk: Packed, sigma, rgb, dt: float, state, alive=None):
+    """Continue the per-ray composite state [n, STATE] (device, zero at the start) over pk's
+    samples with sigma [M], rgb [M, 3]; clears alive[i] once T < HASH_T_STOP."""
+    launch(device, program(device).kernel("packed_forward"), pk.n,
+           (np.int32(pk.n), pk.offsets.data, pk.t.data, np.float32(dt), sigma.data, rgb.data,
+            state.data, alive.data if alive is not None else None),
+           device.tuning.per_ray_local_size)
+
+
+def finish_state(state: np.ndarray, background) -> dict:
+    """numpy rgb [n, 3] (foreground + T_end bg), depth [n], acc [n] of a final state."""
+    bg = np.asarray(background, np.float32)
+    T = np.exp(state[:, 5])
+    return {"rgb": state[:, :3] + T[:, None] * bg[None, :], "acc": state[:, 3].copy(),
+            "depth": state[:, 4].copy()}
+
+
+def packed_backward(device, pk: Packed, sigma, rgb, dt: float, background, target,
+                    loss_scale: float) -> dict:
+    """dict(sigma=dL/dsigma [M], rgb=dL/drgb [M, 3], sq_err=[n]) of the MSE loss
+    loss_scale * sum |rgb_ray - target|^2 (target [n, 3] device)."""
+    q = device.queue
+    m = max(pk.m, 1)
+    out = {"sigma": cla.empty(q, m, np.float32), "rgb": cla.empty(q, (m, 3), np.float32),
+           "sq_err": cla.empty(q, max(pk.n, 1), np.float32)}
+    launch(device, program(device).kernel("packed_backward"), pk.n,
+           (np.int32(pk.n), pk.offsets.data, pk.t.data, np.float32(dt), sigma.data, rgb.data,
+            _bg4(background), target.data, np.float32(loss_scale), out["sq_err"].data,
+            out["sigma"].data, out["rgb"].data), device.tuning.per_ray_local_size)
+    if pk.m == 0:
+        out["sigma"], out["rgb"] = out["sigma"][:0], out["rgb"][:0]
+    return out

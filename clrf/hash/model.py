@@ -1,0 +1,290 @@
+"""The hash-grid model: a multiresolution hash encoding (cl/hash.cl) feeding the fused tiny MLP
+(cl/mlp.cl), stratified samples kept only in occupied cells of an occupancy grid
+(cl/hash_occ.cl), packed per ray and composited (cl/hash_march.cl, volrend.h's steps), and
+Adam (cl/optim.cl).
+
+Network (the fused MLP of cl/mlp.cl, clrf.nerf.mlp.MLPSpec with depth 1):
+  density MLP: h = relu(W_0 enc(x) + b_0),  [sigma_raw, feat] = W_1 h + b_1,
+               sigma = exp(min(sigma_raw, 15)) (density_act trunc_exp: never overflows, its
+               gradient sigma does not vanish beyond the clamp; or softplus)
+               enc(x): L F hash features, h: ``width``, feat: ``geo_features`` (16)
+  colour MLP:  c_0 = relu(W_2 [feat, SH(d)] + b_2), c_1 = relu(W_3 c_0 + b_3) (color_depth 2,
+               ``color_width`` each), rgb = sigmoid(W_4 c_1 + b_4)
+               SH(d): the view direction's real SH basis, degree 3 (16 coefficients).
+The published network has 15 features next to sigma (16 outputs); the kernel pads the head to
+16 + 16 outputs, so ``geo_features`` is 16.
+
+One training step on B rays (one host round trip: the per-ray counts of live samples):
+  S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
+  cells, packed per ray (so the sample count adapts per ray)          (hash_march.cl)
+  sigma, rgb of the M live samples (hash + SH encodings, MLP)         (hash.cl, mlp.cl)
+  composite + MSE backward over each ray's live samples (each stands
+  for its bin: segment length dt = (far - near) / S)                  (hash_march.cl)
+  MLP backward -> dL/dtheta, dL/denc;  hash backward -> dL/dtable     (mlp.cl, hash.cl)
+  Adam (eps 1e-15) on tables and MLP, weight decay on the MLP only    (optim.cl)
+Every occ_every steps after occ_warmup the occupancy grid is updated from the density.
+Renders march RENDER_WINDOW bins at a time and stop rays whose transmittance fell below
+1e-4 (early ray termination).
+
+>>> model = HashModel(dev, HashConfig.from_preset("tiny"), near=2.0, far=6.0,
+...                   bbox=[[-1.5] * 3, [1.5] * 3], background=(1, 1, 1))
+>>> loss = model.train_step(0, origins_d, dirs_d, target_d)      # pyopencl arrays [B, 3]
+>>> out = model.render(origins, dirs)                            # numpy rgb [n,3], depth, acc
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import numpy as np
+import pyopencl.array as cla
+
+from ..config import HashConfig
+from ..nerf import ops
+from ..nerf.mlp import MLP, MLPSpec
+from ..nerf.model import _key
+from ..optim import Optimizer
+from ..programs import launch, upload
+from .encoding import SH_DIM, HashEncoding
+from .march import STATE, finish_state, march, packed_backward, packed_forward
+from .occupancy import OccupancyGrid
+
+MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
+RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
+
+
+def ray_range(ds) -> tuple:
+    """(near, far) of the hash model's bins for a dataset: the dataset's, with far cut to the
+    farthest box corner seen from any camera (nothing is sampled outside the box, and
+    unbounded scenes say far = 1e10). NDC scenes keep theirs (poses are not in NDC space)."""
+    near, far = float(ds.near), float(ds.far)
+    if not ds.ndc and len(ds.poses):
+        box = np.asarray(ds.bbox, np.float64)
+        corners = np.array([[box[i >> a & 1, a] for a in range(3)] for i in range(8)])
+        cams = np.asarray(ds.poses, np.float64)[:, :3, 3]
+        reach = np.linalg.norm(cams[:, None, :] - corners[None], axis=2).max()
+        far = min(far, float(reach))
+    if not far > near:
+        raise ValueError(f"dataset {ds.name}: near {near} >= far {far} for the hash model's "
+                         f"samples (is the box {np.asarray(ds.bbox).tolist()} behind every "
+                         f"camera?); set the dataset's near/far or box")
+    return near, far
+
+
+class HashModel:
+    kind = "hash"
+
+    def __init__(self, device, config: HashConfig, near: float, far: float, bbox,
+                 background=(0.0, 0.0, 0.0), seed: int = 0):
+        if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
+            raise ValueError(f"near/far: need finite 0 <= near < far, got {near}, {far}")
+        bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+        if not np.all(np.isfinite(bg)):
+            raise ValueError(f"background: must be finite, got {background}")
+        box = np.asarray(bbox, np.float64)
+        if box.shape != (2, 3):
+            raise ValueError(f"bbox: expected [[x0, y0, z0], [x1, y1, z1]], got {bbox}")
+        self.device = device
+        self.config = c = config
+        self.near, self.far = float(near), float(far)
+        self.bbox = box
+        self.background = tuple(float(b) for b in bg)
+        self.seed = int(seed)
+        self.step = 0
+        self.enc = HashEncoding(device, c.levels, c.features, c.log2_table, c.min_res, c.max_res,
+                                (box[0], box[1]), seed=self.seed)
+        self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
+                            in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
+                            sigma_act=c.density_act, color_depth=c.color_depth,
+                            features=c.geo_features, rows=c.mlp_rows)
+        self.net = MLP(device, self.spec, seed=self.seed)
+        self.occ = OccupancyGrid(device, c.occ_res, (box[0], box[1]))
+        self.occ_prg = self.occ.prg
+        self._adam_table = Optimizer(device, self.enc.table, "adam", beta=c.beta1,
+                                     beta2=c.beta2, eps=c.adam_eps, grad=self.enc.grad)
+        self._adam_net = Optimizer(device, self.net.params, "adam", beta=c.beta1, beta2=c.beta2,
+                                   eps=c.adam_eps, grad=self.net.grad,
+                                   weight_decay=c.weight_decay)
+
+    # ---- evaluation of the fields at points ---------------------------------------------
+    @property
+    def dt(self) -> float:
+        """Sample spacing along a ray (world units)."""
+        return (self.far - self.near) / self.config.samples
+
+    def _fields(self, xyz, vdir):
+        """sigma [m], rgb [m, 3] at points xyz [m, 3] seen along vdir [m, 3] (device)."""
+        xe = self.enc.forward(xyz)
+        de = self.enc.sh_encode(vdir)
+        return self.net.forward(xe, de)
+
+    def fields(self, xyz, vdir):
+        """sigma [m], rgb [m, 3] (device) at points xyz [m, 3] along vdir [m, 3] (device) as
+        the renderer sees them: sigma = 0 outside the box (the encoding clamps there)."""
+        sigma, rgb = self._fields(xyz, vdir)
+        launch(self.device, self.occ_prg.kernel("zero_outside"), int(xyz.shape[0]),
+               (np.int32(xyz.shape[0]), xyz.data, self.occ.lo4, self.occ.inv4, sigma.data),
+               self.device.tuning.elementwise_local_size)
+        return sigma, rgb
+
+    def density(self, xyz):
+        """sigma [m] (device) at points xyz [m, 3] (device); the view direction is irrelevant
+        to sigma (any direction gives the same value)."""
+        m = int(xyz.shape[0])
+        if m == 0:
+            return cla.zeros(self.device.queue, 0, np.float32)
+        de = cla.zeros(self.device.queue, (m, SH_DIM), np.float32)
+        sigma, _ = self.net.forward(self.enc.forward(xyz), de)
+        return sigma
+
+    def lr_at(self, it: int) -> float:
+        return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
+
+    def train_step(self, it: int, origins, dirs, target) -> float:
+        """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
+        on device. Returns the batch MSE (mean over rays and channels)."""
+        for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
+            if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
+                    or a.shape[1] != 3 or not a.flags.c_contiguous:
+                raise TypeError(f"train_step: {name} must be a C-contiguous pyopencl float32 "
+                                f"array [B, 3]; got {type(a).__name__} "
+                                f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', None)}")
+        B = int(origins.shape[0])
+        if dirs.shape[0] != B or target.shape[0] != B or B == 0:
+            raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
+                             f"{origins.shape}, {dirs.shape}, {target.shape}")
+        self.maybe_update_occupancy(it)
+        loss, live = self.loss_and_grad(it, origins, dirs, target)
+        if live:
+            lr = self.lr_at(it)
+            self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True)
+            self._adam_net.step(None, lr, t=self.step + 1)
+            self.net.sync_params()
+        self.step += 1
+        return loss
+
+    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None):
+        """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
+        enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
+        both untouched when no sample is live. L = sum over rays
+        and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb."""
+        c, dev = self.config, self.device
+        B = int(origins.shape[0])
+        scale = 1.0 / (3.0 * B)
+        jitter = c.perturb if jitter is None else bool(jitter)
+        pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
+                   _key(self.seed, it, 0))
+        q = dev.queue
+        if pk.m:
+            sigma, rgb = self._fields(pk.xyz, pk.vdir)
+        else:
+            sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
+        g = packed_backward(dev, pk, sigma, rgb, self.dt, self.background, target, scale)
+        loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
+        if pk.m == 0:            # no live sample in the batch: nothing to train
+            return loss, 0
+        dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
+        self.enc.backward(pk.xyz, dx)
+        return loss, pk.m
+
+    # ---- occupancy ----------------------------------------------------------------------
+    def occupancy_threshold(self) -> float:
+        """Density below which a cell counts as empty: occ_tau over the sample spacing."""
+        return self.config.occ_tau / self.dt
+
+    def maybe_update_occupancy(self, it: int) -> bool:
+        c = self.config
+        if it < c.occ_warmup or (it - c.occ_warmup) % c.occ_every != 0:
+            return False
+        self.update_occupancy(_key(self.seed, it, 2))
+        return True
+
+    def update_occupancy(self, key: int):
+        c = self.config
+        self.occ.update(self.density, key, c.occ_points, c.occ_decay,
+                        self.occupancy_threshold())
+
+    # ---- rendering ----------------------------------------------------------------------
+    def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
+        """Evaluation render (no jitter) of numpy rays [n, 3]: numpy rgb [n,3], depth [n],
+        acc [n]."""
+        from ..validate import check_rays
+        o, d = check_rays(origins, dirs)
+        if np.any(np.max(np.abs(d), axis=1) == 0):
+            raise ValueError("dirs: every direction must be non-zero")
+        c, dev, q = self.config, self.device, self.device.queue
+        n = o.shape[0]
+        step = max(1, min(int(chunk), MAX_RENDER_SAMPLES // c.samples))
+        out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),
+               "acc": np.zeros(n, np.float32)}
+        for s in range(0, n, step):
+            e = min(n, s + step)
+            od, dd = upload(q, o[s:e]), upload(q, d[s:e])
+            st = self._render_chunk(od, dd)
+            for k, v in finish_state(st, self.background).items():
+                out[k][s:e] = v
+        return out
+
+    def _render_chunk(self, od, dd):
+        """Per-ray composite state [n, STATE] (numpy) of rays od/dd (device), marched in
+        windows of RENDER_WINDOW bins; a ray stops once its transmittance is below the
+        kernel's HASH_T_STOP (early ray termination)."""
+        c, dev, q = self.config, self.device, self.device.queue
+        n = int(od.shape[0])
+        state = cla.zeros(q, (n, STATE), np.float32)
+        alive = cla.empty(q, n, np.uint8)
+        alive.fill(np.uint8(1))
+        for k0 in range(0, c.samples, RENDER_WINDOW):
+            pk = march(dev, self.occ, od, dd, c.samples, self.near, self.far, False, 0, k0,
+                       min(c.samples, k0 + RENDER_WINDOW), alive)
+            if pk.m == 0:
+                continue
+            sigma, rgb = self._fields(pk.xyz, pk.vdir)
+            packed_forward(dev, pk, sigma, rgb, self.dt, state, alive)
+        return state.get()
+
+    # ---- trainer interface (clrf.train) --------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return self.config.batch_rays
+
+    def on_iteration(self, it, trainer):
+        return None
+
+    def describe(self) -> str:
+        c = self.config
+        return (f"hash L{c.levels} F{c.features} T2^{c.log2_table} {c.min_res}-{c.max_res}, "
+                f"MLP {c.width}+{c.geo_features} / {c.color_depth}x{c.color_width}, "
+                f"{c.samples} samples, "
+                f"occupied {100 * self.occ.occupied_fraction():.1f}%")
+
+    # ---- checkpoints --------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """numpy arrays + python scalars: tables, MLP, Adam moments, occupancy, step, config."""
+        return {"kind": self.kind, "config": asdict(self.config), "near": self.near,
+                "far": self.far, "bbox": self.bbox.tolist(), "background": list(self.background),
+                "seed": self.seed, "step": self.step,
+                "table": self.enc.table.get(), "table_adam_m": self._adam_table.state.get(),
+                "table_adam_v": self._adam_table.state2.get(),
+                "mlp_params": self.net.params.get(), "mlp_adam_m": self._adam_net.state.get(),
+                "mlp_adam_v": self._adam_net.state2.get(), "occ_ema": self.occ.ema.get(),
+                "occ_threshold": self.occ.threshold}
+
+    @classmethod
+    def from_state_dict(cls, device, state: dict) -> "HashModel":
+        if state.get("kind") != cls.kind:
+            raise ValueError(f"state_dict: kind is {state.get('kind')!r}, expected 'hash'")
+        model = cls(device, HashConfig.from_dict(dict(state["config"])), state["near"],
+                    state["far"], state["bbox"], tuple(state["background"]), int(state["seed"]))
+        model.step = int(state["step"])
+        for key, arr in (("table", model.enc.table), ("table_adam_m", model._adam_table.state),
+                         ("table_adam_v", model._adam_table.state2),
+                         ("mlp_params", model.net.params), ("mlp_adam_m", model._adam_net.state),
+                         ("mlp_adam_v", model._adam_net.state2), ("occ_ema", model.occ.ema)):
+            v = np.asarray(state[key], np.float32)
+            if v.shape != arr.shape:
+                raise ValueError(f"state_dict[{key!r}]: shape {v.shape}, the config needs "
+                                 f"{arr.shape}")
+            arr.set(np.ascontiguousarray(v))
+        model.net.sync_params()
+        model.occ._threshold(float(state["occ_threshold"]))
+        return model

@@ -1,0 +1,76 @@
+"""Host side of cl/hash_occ.cl: the occupancy grid of the hash model (math in the kernel
+file's header; the sampler that reads it is clrf/hash/march.py).
+
+>>> occ = OccupancyGrid(dev, res=128, box=((-1.5,) * 3, (1.5,) * 3))
+>>> occ.update(density_fn, key, n_points, decay=0.95, threshold=0.05)
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+
+from ..programs import launch, upload
+from .encoding import box_args
+
+
+class OccupancyGrid:
+    """R^3 cells over the box: ``ema`` float [R^3] (-1: never measured) and ``occ`` uchar
+    [R^3] (1: the sampler keeps samples there). Starts fully occupied."""
+
+    def __init__(self, device, res: int, box, ema=None):
+        self.device = device
+        self.res = int(res)
+        if not 1 <= self.res <= 256:
+            raise ValueError(f"occupancy grid resolution: must be in 1..256, got {res}")
+        self.lo4, self.inv4, lo, inv = box_args(box)
+        ext = 1.0 / inv.astype(np.float64)
+        self.ext4 = cl.cltypes.make_float4(*ext, 0.0)
+        self.prg = device.program("hash_occ.cl", {})
+        n = self.res ** 3
+        q = device.queue
+        if ema is None:
+            ema = np.full(n, -1.0, np.float32)
+        ema = np.asarray(ema, np.float32)
+        if ema.shape != (n,):
+            raise ValueError(f"occupancy ema: expected shape ({n},), got {ema.shape}")
+        self.ema = upload(q, ema)
+        self.occ = cla.empty(q, n, np.uint8)
+        self.threshold = 0.0
+        self._threshold(0.0)
+
+    @property
+    def n_cells(self) -> int:
+        return self.res ** 3
+
+    def _k(self, name):
+        return self.prg.kernel(name)
+
+    def _threshold(self, thr: float):
+        self.threshold = float(thr)
+        launch(self.device, self._k("occ_threshold"), self.n_cells,
+               (np.int32(self.n_cells), np.float32(thr), self.ema.data, self.occ.data),
+               self.device.tuning.elementwise_local_size)
+
+    def occupied_fraction(self) -> float:
+        return float(np.count_nonzero(self.occ.get())) / self.n_cells
+
+    def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float):
+        """Decay the measured cells, measure density_fn (device xyz [m, 3] -> device sigma [m])
+        at a random point of n_points random cells, and re-threshold."""
+        dev, q = self.device, self.device.queue
+        ls = dev.tuning.elementwise_local_size
+        launch(dev, self._k("occ_decay"), self.n_cells,
+               (np.int32(self.n_cells), np.float32(decay), self.ema.data), ls)
+        m = int(n_points)
+        if m > 0:
+            cells = cla.empty(q, m, np.int32)
+            xyz = cla.empty(q, (m, 3), np.float32)
+            launch(dev, self._k("occ_points"), m,
+                   (np.int32(m), np.uint32(key), np.int32(self.res), self.lo4, self.ext4,
+                    cells.data, xyz.data), ls)
+            sigma = density_fn(xyz)
+            launch(dev, self._k("occ_max"), m, (np.int32(m), cells.data, sigma.data,
+                                                 self.ema.data), ls)
+        self._threshold(threshold)
+

@@ -1,0 +1,188 @@
+"""Float64 numpy references of cl/hash.cl (multiresolution hash encoding, its backward, the SH
+direction encoding) and of the hash model's occupancy update: the test oracle, not on any
+runtime path.
+
+The cell and its weights follow the kernel's float32 arithmetic exactly (u = clamp((x - lo) *
+inv_ext, 0, 1) and p = u N rounded to float32; floor and p - floor(p) are exact), so kernel and
+reference pick the same vertices; the interpolation and the scatter are done in float64.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .reference import sh_basis
+
+PRIME_Y = 2654435761
+PRIME_Z = 805459861
+_M32 = (1 << 32) - 1
+
+
+def level_resolutions(levels: int, n_min: int, n_max: int) -> np.ndarray:
+    """N_l = floor(N_min b^l), b = exp((ln N_max - ln N_min) / (L - 1)) (b = 1 for L = 1)."""
+    if levels == 1:
+        return np.array([int(n_min)], np.int64)
+    b = np.exp((np.log(n_max) - np.log(n_min)) / (levels - 1))
+    return np.floor(n_min * b ** np.arange(levels) + 1e-9).astype(np.int64)
+
+
+def unit_coords(x, lo, inv_ext):
+    """u [n, 3] in [0, 1] (float32 arithmetic, NaN -> 0), returned as float32."""
+    x = np.asarray(x, np.float32)
+    with np.errstate(invalid="ignore"):
+        u = (x - np.asarray(lo, np.float32)) * np.asarray(inv_ext, np.float32)
+    u = np.where(np.isnan(u), np.float32(0), u)
+    return np.clip(u, np.float32(0), np.float32(1)).astype(np.float32)
+
+
+def cell(u, N: int, T: int):
+    """(rows [n, 8] int64, weights [n, 8] float64) of level resolution N (corner k: bit 0 x,
+    bit 1 y, bit 2 z), as cl/hash.cl hash_cell."""
+    p = (u * np.float32(N)).astype(np.float32)
+    fl = np.minimum(np.floor(p), np.float32(N - 1))
+    w = (p - fl).astype(np.float64)
+    i = fl.astype(np.int64)
+    R = N + 1
+    dense = R ** 3 <= T
+    rows = np.zeros((u.shape[0], 8), np.int64)
+    wts = np.ones((u.shape[0], 8))
+    for k in range(8):
+        c = np.array([k & 1, (k >> 1) & 1, (k >> 2) & 1])
+        v = i + c
+        if dense:
+            rows[:, k] = v[:, 0] + R * (v[:, 1] + R * v[:, 2])
+        else:
+            h = (v[:, 0] ^ ((v[:, 1] * PRIME_Y) & _M32) ^ ((v[:, 2] * PRIME_Z) & _M32)) & _M32
+            rows[:, k] = h & (T - 1)
+        for a in range(3):
+            wts[:, k] *= np.where(c[a] == 1, w[:, a], 1.0 - w[:, a])
+    return rows, wts
+
+
+def hash_forward(x, lo, inv_ext, res, table):
+    """enc [n, L F] of points x [n, 3]; table [L, T, F]."""
+    table = np.asarray(table, np.float64)
+    L, T, F = table.shape
+    u = unit_coords(x, lo, inv_ext)
+    out = np.zeros((u.shape[0], L * F))
+    for l in range(L):
+        rows, wts = cell(u, int(res[l]), T)
+        out[:, l * F:(l + 1) * F] = np.einsum("nk,nkf->nf", wts, table[l][rows])
+    return out
+
+
+def hash_backward(x, lo, inv_ext, res, genc, shape):
+    """dL/dtable [L, T, F] (shape) from dL/denc [n, L F]."""
+    L, T, F = shape
+    g = np.zeros(shape)
+    genc = np.asarray(genc, np.float64)
+    u = unit_coords(x, lo, inv_ext)
+    for l in range(L):
+        rows, wts = cell(u, int(res[l]), T)
+        for k in range(8):
+            np.add.at(g[l], rows[:, k], wts[:, k, None] * genc[:, l * F:(l + 1) * F])
+    return g
+
+
+def sh_encode(d):
+    """SH basis (degree 3, 16 coefficients) of d / |d| [n, 16]; zero d -> basis at 0."""
+    d = np.asarray(d, np.float64)
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    return sh_basis(np.where(n > 0, d / np.where(n > 0, n, 1), 0.0), 3)
+
+
+# ---- occupancy grid and compaction (cl/hash_occ.cl) -----------------------------------------
+def occ_cells(xyz, lo, inv_ext, R):
+    """Cell index [n] of each point (float32 u as the kernel), -1 outside the closed box."""
+    x = np.asarray(xyz, np.float32)
+    u = (x - np.asarray(lo, np.float32)) * np.asarray(inv_ext, np.float32)
+    inside = np.all((u >= 0) & (u <= 1), axis=1)
+    c = np.minimum((u * np.float32(R)).astype(np.int64), R - 1)
+    idx = c[:, 0] + R * (c[:, 1] + R * c[:, 2])
+    return np.where(inside, idx, -1)
+
+
+def compact(xyz, occ, lo, inv_ext, R):
+    """Indices (ray-major) of the points inside the box in occupied cells."""
+    c = occ_cells(xyz, lo, inv_ext, R)
+    live = (c >= 0) & (np.asarray(occ)[np.maximum(c, 0)] != 0)
+    return np.flatnonzero(live)
+
+
+def occ_points(m, key, R, lo, ext):
+    """(cells [m], points [m, 3]) of the occupancy update's random cells (bit-exact cells)."""
+    from .reference_nerf import uniform01
+    j = np.arange(m, dtype=np.uint64)
+    R3 = R ** 3
+    u = uniform01(key, 4 * j).astype(np.float32)
+    c = np.minimum((u * np.float32(R3)).astype(np.int64), R3 - 1)
+    ijk = np.stack([c % R, (c // R) % R, c // (R * R)], 1).astype(np.float64)
+    jit = np.stack([uniform01(key, 4 * j + k) for k in (1, 2, 3)], 1)
+    return c, np.asarray(lo) + (ijk + jit) / R * np.asarray(ext)
+
+
+def occ_update(ema, cells, sigma, decay, thr):
+    """(ema', occ'): measured cells decay, then max with the new densities (NaN / negative ->
+    0; never-measured cells take them), occupied = never measured or above thr."""
+    e = np.array(ema, np.float64)
+    e = np.where(e >= 0, e * decay, e)
+    s = np.where(np.isnan(sigma), 0.0, np.maximum(np.asarray(sigma, np.float64), 0.0))
+    for c, v in zip(cells, s):
+        e[c] = max(e[c], v)
+    return e, ((e < 0) | (e > thr)).astype(np.uint8)
+
+
+# ---- packed samples and compositing (cl/hash_march.cl) ---------------------------------------
+def march_samples(origins, dirs, S, near, far, occ, lo, inv_ext, R, jitter=False, key=0):
+    """(offsets [n+1], t [M], xyz [M, 3], vdir [M, 3]) of the live samples of every bin."""
+    from .reference_nerf import ray_points, sample_stratified
+    n = np.asarray(origins).shape[0]
+    t = sample_stratified(n, S, near, far, jitter, key)
+    xyz, vdir = ray_points(origins, dirs, t)
+    live = compact(xyz, occ, lo, inv_ext, R)
+    counts = np.bincount(live // S, minlength=n)
+    off = np.concatenate([[0], np.cumsum(counts)])
+    return off, t.reshape(-1)[live], xyz[live], vdir[live]
+
+
+def packed_forward(offsets, t, dt, sigma, rgb, background=(0, 0, 0)):
+    """rgb [n, 3], acc [n], depth [n], weights [M] of packed samples (no early termination)."""
+    s = np.where(np.asarray(sigma, np.float64) > 0, np.asarray(sigma, np.float64), 0.0)
+    c = np.asarray(rgb, np.float64)
+    n = len(offsets) - 1
+    out = {"rgb": np.zeros((n, 3)), "acc": np.zeros(n), "depth": np.zeros(n),
+           "weights": np.zeros(len(s)), "T_end": np.ones(n)}
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    for i in range(n):
+        a, b = offsets[i], offsets[i + 1]
+        tau = s[a:b] * dt
+        logT = -np.concatenate([[0.0], np.cumsum(tau)])
+        w = np.exp(logT[:-1]) * -np.expm1(-tau)
+        out["weights"][a:b] = w
+        out["T_end"][i] = np.exp(logT[-1])
+        out["rgb"][i] = w @ c[a:b] + out["T_end"][i] * bg
+        out["acc"][i] = w.sum()
+        out["depth"][i] = w @ np.asarray(t, np.float64)[a:b]
+    return out
+
+
+def packed_backward(offsets, t, dt, sigma, rgb, background, target, loss_scale):
+    """dsigma [M], drgb [M, 3], sq_err [n] of loss_scale sum |rgb - target|^2 (suffix sums)."""
+    f = packed_forward(offsets, t, dt, sigma, rgb, background)
+    diff = f["rgb"] - np.asarray(target, np.float64)
+    g = 2 * loss_scale * diff
+    c = np.asarray(rgb, np.float64)
+    bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
+    dsig = np.zeros(len(c))
+    drgb = np.zeros_like(c)
+    for i in range(len(offsets) - 1):
+        a, b = offsets[i], offsets[i + 1]
+        w = f["weights"][a:b]
+        gc = c[a:b] @ g[i]
+        wgc = w * gc
+        after = np.cumsum(wgc[::-1])[::-1] - wgc
+        R = after + f["T_end"][i] * (g[i] @ bg)
+        tau = np.where(np.asarray(sigma)[a:b] > 0, np.asarray(sigma, np.float64)[a:b], 0) * dt
+        Tnext = np.exp(-np.cumsum(tau))
+        dsig[a:b] = np.where(np.asarray(sigma)[a:b] > 0, dt * (Tnext * gc - R), 0.0)
+        drgb[a:b] = w[:, None] * g[i][None, :]
+    return {"sigma": dsig, "rgb": drgb, "sq_err": np.sum(diff ** 2, axis=1)}

@@ -1,0 +1,228 @@
+"""Multiresolution hash encoding (cl/hash.cl) vs the float64 reference, its backward on both
+accumulation paths (float atomics, private copies per slot), and the SH direction encoding."""
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from clrf.hash.encoding import HashEncoding, level_resolutions
+from clrf.testing import reference_hash as ref
+from clrf.testing import tolerances as tol
+
+BOX = ((-1.5, -1.0, -0.5), (1.5, 1.0, 2.5))
+
+
+@pytest.fixture(scope="module", params=["atomics", "owned"])
+def hash_device(request, device):
+    """Both backward paths on the session device: float atomics (the GPU path) and one
+    work-item per level owning its table (the CPU path)."""
+    return device.with_tuning(grad_slots=0 if request.param == "atomics" else 2)
+
+
+def _enc(dev, L=4, F=2, log2_t=10, n_min=2, n_max=40, seed=0, box=BOX):
+    rng = np.random.default_rng(seed)
+    table = rng.uniform(-1, 1, (L, 1 << log2_t, F)).astype(np.float32)
+    return HashEncoding(dev, L, F, log2_t, n_min, n_max, box, table=table), table
+
+
+def _points(n, seed=1, lo=-0.1, hi=1.1, box=BOX):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(lo, hi, (n, 3))
+    a, b = np.asarray(box[0]), np.asarray(box[1])
+    return (a + u * (b - a)).astype(np.float32)
+
+
+def _fwd(enc, x):
+    return enc.forward(cla.to_device(enc.device.queue, x)).get()
+
+
+def _ref_fwd(enc, x, table):
+    return ref.hash_forward(x, enc.lo, enc.inv_ext, enc.res_host, table)
+
+
+def test_level_resolutions_match_reference_and_ends():
+    for L, a, b in [(16, 16, 2048), (8, 16, 512), (1, 4, 4), (5, 3, 7), (16, 16, 16)]:
+        r = level_resolutions(L, a, b)
+        np.testing.assert_array_equal(r, ref.level_resolutions(L, a, b))
+        assert r[0] == a and r[-1] == b and np.all(np.diff(r) >= 0)
+    with pytest.raises(ValueError, match="n_min"):
+        level_resolutions(4, 8, 4)
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 65])
+@pytest.mark.parametrize("F", [1, 2, 4])
+def test_forward_matches_reference(device, n, F):
+    enc, table = _enc(device, F=F, seed=n + F)
+    x = _points(n, seed=n)
+    out = _fwd(enc, x)
+    assert out.shape == (n, 4 * F)
+    np.testing.assert_allclose(out, _ref_fwd(enc, x, table), rtol=0, atol=tol.HASH_ATOL)
+
+
+def test_forward_dense_and_hashed_levels(device):
+    """n_min 2 .. n_max 40 with T = 2^10: levels 0-1 dense ((N+1)^3 <= 1024), the rest hashed;
+    a constant table interpolates to the constant on both kinds (weights sum to 1)."""
+    enc, _ = _enc(device)
+    R = enc.res_host.astype(np.int64) + 1
+    assert np.any(R ** 3 <= enc.T) and np.any(R ** 3 > enc.T)
+    enc.table.fill(np.float32(0.25))
+    out = _fwd(enc, _points(33))
+    np.testing.assert_allclose(out, 0.25, rtol=0, atol=tol.HASH_ATOL)
+
+
+def test_forward_cell_boundaries_and_vertices(device):
+    """Points exactly on cell faces and vertices (u = k / N for power-of-two N, exact in float32)
+    and the box corners u = 0, 1: the kernel interpolates the vertex value itself."""
+    box = ((0.0,) * 3, (1.0,) * 3)
+    enc, table = _enc(device, L=3, n_min=4, n_max=16, log2_t=12, box=box)
+    assert list(enc.res_host) == [4, 8, 16]
+    k = np.arange(0, 17) / 16.0
+    x = np.stack(np.meshgrid(k, k[::3], k[::5], indexing="ij"), -1).reshape(-1, 3)
+    x = x.astype(np.float32)
+    out = _fwd(enc, x)
+    np.testing.assert_allclose(out, _ref_fwd(enc, x, table), rtol=0, atol=tol.HASH_ATOL)
+    # level 2 (N = 16, dense since 17^3 = 4913 <= 4096 is false -> hashed): at a vertex v the
+    # value is the table row of v, whatever the indexing
+    rows, wts = ref.cell(ref.unit_coords(x, enc.lo, enc.inv_ext), 16, enc.T)
+    hit = np.argmax(wts, axis=1)
+    assert np.allclose(wts.max(axis=1), 1.0)
+    np.testing.assert_allclose(out[:, 4:6], table[2][rows[np.arange(len(x)), hit]], rtol=0,
+                               atol=tol.HASH_ATOL)
+
+
+def test_forward_clamps_outside_box_and_nan(device):
+    """Outside the box the encoding is that of the nearest boundary point; NaN reads u = 0."""
+    enc, table = _enc(device)
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    inside = _points(9, lo=0.0, hi=1.0)
+    far_out = inside.copy()
+    far_out[:, 0] = hi[0] + 10.0      # clamps to u_x = 1
+    far_out[:, 1] = lo[1] - 1e6       # clamps to u_y = 0
+    on_face = inside.copy()
+    on_face[:, 0], on_face[:, 1] = hi[0], lo[1]
+    np.testing.assert_allclose(_fwd(enc, far_out), _fwd(enc, on_face), rtol=0, atol=0)
+    nan = np.array([[np.nan, lo[1], lo[2]]], np.float32)
+    np.testing.assert_allclose(_fwd(enc, nan), _fwd(enc, lo[None].astype(np.float32)), rtol=0,
+                               atol=0)
+    assert np.all(np.isfinite(_fwd(enc, np.full((3, 3), 1e30, np.float32))))
+
+
+def test_forward_levels_finer_than_needed(device):
+    """N_max = 4096 with T = 2^8: every fine level collides everywhere; still the reference."""
+    enc, table = _enc(device, L=6, n_min=64, n_max=4096, log2_t=8, seed=3)
+    x = _points(65, seed=4)
+    np.testing.assert_allclose(_fwd(enc, x), _ref_fwd(enc, x, table), rtol=0,
+                               atol=tol.HASH_ATOL)
+
+
+def _bwd(enc, x, genc):
+    q = enc.device.queue
+    enc.grad.fill(np.float32(0))
+    enc.backward(cla.to_device(q, x), cla.to_device(q, genc))
+    return enc.grad.get()
+
+
+def _assert_grad(got, want):
+    np.testing.assert_allclose(got, want, rtol=0,
+                               atol=tol.HASH_GRAD_ATOL + tol.HASH_GRAD_RTOL * np.abs(want).max())
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 65])
+def test_backward_matches_reference(hash_device, n):
+    enc, _ = _enc(hash_device, seed=n)
+    x = _points(n, seed=10 + n)
+    genc = np.random.default_rng(n).uniform(-1, 1, (n, enc.dim)).astype(np.float32)
+    want = ref.hash_backward(x, enc.lo, enc.inv_ext, enc.res_host, genc, enc.shape)
+    _assert_grad(_bwd(enc, x, genc), want)
+
+
+def test_backward_accumulates(hash_device):
+    """backward ADDS to enc.grad (two calls = twice one call)."""
+    enc, _ = _enc(hash_device, seed=2)
+    x = _points(40, seed=2)
+    genc = np.random.default_rng(2).uniform(-1, 1, (40, enc.dim)).astype(np.float32)
+    one = _bwd(enc, x, genc)
+    q = hash_device.queue
+    enc.backward(cla.to_device(q, x), cla.to_device(q, genc))
+    _assert_grad(enc.grad.get(), 2 * one.astype(np.float64))
+
+
+@pytest.mark.parametrize("log2_t", [1, 4])
+def test_backward_collisions_tiny_table(hash_device, log2_t):
+    """T = 2 and T = 16: almost every vertex of every level collides; gradients still sum."""
+    enc, _ = _enc(hash_device, L=5, log2_t=log2_t, n_min=4, n_max=64, seed=5)
+    x = _points(65, seed=5)
+    genc = np.random.default_rng(5).uniform(-1, 1, (65, enc.dim)).astype(np.float32)
+    want = ref.hash_backward(x, enc.lo, enc.inv_ext, enc.res_host, genc, enc.shape)
+    _assert_grad(_bwd(enc, x, genc), want)
+    np.testing.assert_allclose(_fwd(enc, x), _ref_fwd(enc, x, enc.table.get()), rtol=0,
+                               atol=tol.HASH_ATOL)
+
+
+def test_backward_boundaries_and_outside(hash_device):
+    """Cell-face points and points outside the box (clamped) scatter like the reference."""
+    enc, _ = _enc(hash_device, L=3, n_min=4, n_max=16, log2_t=9, box=((0,) * 3, (1,) * 3))
+    k = np.arange(-2, 19) / 16.0
+    x = np.stack([k, k[::-1], np.full_like(k, 0.5)], 1).astype(np.float32)
+    genc = np.random.default_rng(6).uniform(-1, 1, (len(x), enc.dim)).astype(np.float32)
+    want = ref.hash_backward(x, enc.lo, enc.inv_ext, enc.res_host, genc, enc.shape)
+    _assert_grad(_bwd(enc, x, genc), want)
+
+
+def test_reference_backward_vs_finite_differences():
+    """L = sum genc * enc(table): the reference gradient against central differences."""
+    rng = np.random.default_rng(7)
+    shape = (3, 64, 2)
+    table = rng.uniform(-1, 1, shape)
+    res = ref.level_resolutions(3, 2, 9)
+    lo, inv = np.zeros(3, np.float32), np.ones(3, np.float32)
+    x = rng.uniform(0, 1, (11, 3)).astype(np.float32)
+    genc = rng.uniform(-1, 1, (11, 6))
+    g = ref.hash_backward(x, lo, inv, res, genc, shape)
+    touched = np.argwhere(g != 0)
+    assert len(touched) > 10
+    for idx in touched[:: max(1, len(touched) // 25)]:
+        e = np.zeros(shape)
+        e[tuple(idx)] = tol.HASH_FD_EPS
+        fd = (np.sum(genc * ref.hash_forward(x, lo, inv, res, table + e))
+              - np.sum(genc * ref.hash_forward(x, lo, inv, res, table - e))) / (2 * tol.HASH_FD_EPS)
+        assert abs(fd - g[tuple(idx)]) <= tol.HASH_FD_ATOL
+
+
+def test_kernel_backward_vs_kernel_forward_differences(hash_device):
+    """The kernels against each other: enc is linear in the table, so sum(genc * (enc(table +
+    e_j) - enc(table))) is exactly dL/dtable_j (up to float32 rounding)."""
+    enc, table = _enc(hash_device, L=3, log2_t=6, n_min=2, n_max=12, seed=8)
+    x = _points(17, seed=8)
+    genc = np.random.default_rng(8).uniform(-1, 1, (17, enc.dim)).astype(np.float32)
+    g = _bwd(enc, x, genc)
+    base = _fwd(enc, x).astype(np.float64)
+    rng = np.random.default_rng(9)
+    flat = np.flatnonzero(g)
+    for j in rng.choice(flat, 12, replace=False):
+        t2 = table.copy().reshape(-1)
+        t2[j] += 1.0
+        enc.table.set(t2.reshape(table.shape))
+        d = np.sum(genc * (_fwd(enc, x).astype(np.float64) - base))
+        assert abs(d - g.reshape(-1)[j]) <= tol.HASH_KERNEL_FD_ATOL * 17 * enc.dim
+    enc.table.set(table)
+
+
+@pytest.mark.parametrize("n", [0, 1, 65])
+def test_sh_encode_matches_reference(device, n):
+    enc, _ = _enc(device)
+    d = np.random.default_rng(n).normal(size=(n, 3)).astype(np.float32)
+    if n:
+        d[0] = 0.0          # zero direction: the basis at (0, 0, 0)
+        d[-1] *= 1e-20 if n > 1 else 1.0
+    out = enc.sh_encode(cla.to_device(device.queue, d)).get()
+    assert out.shape == (n, 16)
+    np.testing.assert_allclose(out, ref.sh_encode(d), rtol=0, atol=tol.HASH_SH_ATOL)
+
+
+def test_bad_sizes_raise(device):
+    with pytest.raises(ValueError, match="features"):
+        HashEncoding(device, features=3)
+    with pytest.raises(ValueError, match="box"):
+        HashEncoding(device, 2, 2, 4, 2, 4, box=((0, 0, 0), (1, 0, 1)))
+    with pytest.raises(ValueError, match="table"):
+        HashEncoding(device, 2, 2, 4, 2, 4, table=np.zeros((2, 8, 2)))

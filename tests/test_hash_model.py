@@ -1,0 +1,345 @@
+"""The hash-grid model: occupancy grid and compaction vs references, one whole training step's
+gradients vs the chain of float64 references, stiff cases, checkpoints, a short training."""
+import dataclasses
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from clrf.config import ConfigError, HashConfig, build_config
+from clrf.hash.model import HashModel
+from clrf.hash.occupancy import OccupancyGrid
+from clrf.testing import reference_hash as rh
+from clrf.testing import reference_nerf as rn
+from clrf.testing import tolerances as tol
+
+BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+# a very small model so that each step takes milliseconds
+SMALL = HashConfig.from_preset("tiny", levels=3, features=2, log2_table=8, min_res=2,
+                               max_res=16, width=16, color_width=16, samples=12, occ_res=4,
+                               occ_points=32, batch_rays=32, occ_warmup=0, occ_every=1)
+
+
+def _rays(n, seed=0, radius=3.0):
+    """Rays from a sphere of the given radius towards random points near the origin."""
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3))
+    o *= radius / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.uniform(-0.5, 0.5, (n, 3)) - o
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+def _up(dev, a):
+    return cla.to_device(dev.queue, np.ascontiguousarray(a, np.float32))
+
+
+def test_presets_and_validation():
+    assert HashConfig().log2_table == 19 and HashConfig().levels == 16
+    assert HashConfig.from_preset("tiny").log2_table == 16
+    assert build_config("tiny").hash.preset == "tiny"
+    assert build_config("synthetic").hash.preset == "full"
+    cfg = build_config("tiny", overrides={"hash": {"preset": "full", "levels": 8},
+                                          "train": {"model": "hash"}})
+    assert cfg.hash.log2_table == 19 and cfg.hash.levels == 8
+    with pytest.raises(ConfigError, match="hash.features"):
+        build_config(overrides={"hash": {"features": 3}})
+    with pytest.raises(ConfigError, match="hash.levls"):
+        build_config(overrides={"hash": {"levls": 3}})
+    with pytest.raises(ConfigError, match="hash.preset"):
+        build_config(overrides={"hash": {"preset": "huge"}})
+
+
+def test_march_matches_reference(device):
+    """Live samples (inside the box, occupied cell), packed per ray, jittered bins; rays that
+    miss the box get none."""
+    from clrf.hash.march import march
+    occ = OccupancyGrid(device, 5, BOX)
+    rng = np.random.default_rng(1)
+    mask = rng.random(125) < 0.4
+    occ.ema.set(np.where(mask, 1.0, 0.0).astype(np.float32))
+    occ._threshold(0.5)
+    o, d = _rays(37, seed=1)
+    d[0] = -d[0]                                 # points away from the box
+    for jitter in (False, True):
+        pk = march(device, occ, _up(device, o), _up(device, d), 24, 1.0, 5.0, jitter, key=9)
+        off, t, xyz, vdir = rh.march_samples(o, d, 24, 1.0, 5.0, occ.occ.get(), BOX[0],
+                                             1 / (BOX[1] - BOX[0]), 5, jitter, 9)
+        np.testing.assert_array_equal(pk.offsets_host, off)
+        assert off[1] == 0 and 0 < pk.m < 37 * 24
+        np.testing.assert_allclose(pk.t.get(), t, rtol=0, atol=tol.SAMPLE_ATOL)
+        np.testing.assert_allclose(pk.xyz.get(), xyz, rtol=0, atol=tol.SAMPLE_ATOL)
+        np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
+
+
+def test_packed_composite_matches_reference(device):
+    """Forward (in two windows, state carried) and MSE backward over packed samples, densities
+    0..1e30 and negative, one empty ray."""
+    from clrf.hash import march as hm
+    rng = np.random.default_rng(2)
+    counts = np.array([0, 1, 7, 40, 13])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    m = int(off[-1])
+    t = np.concatenate([np.sort(rng.uniform(2, 6, c)) for c in counts]).astype(np.float32)
+    sig = rng.uniform(-1, 20, m).astype(np.float32)
+    sig[off[3] + 5] = 1e30
+    rgb = rng.uniform(0, 1, (m, 3)).astype(np.float32)
+    target = rng.uniform(0, 1, (5, 3)).astype(np.float32)
+    dt, bg = 0.05, (0.2, 0.5, 1.0)
+    q = device.queue
+    n = 5
+
+    def pk_of(lo, hi):
+        sel = np.concatenate([np.arange(off[i] + min(lo, counts[i]), off[i] + min(hi, counts[i]))
+                              for i in range(n)]).astype(int)
+        c2 = np.array([max(0, min(hi, c) - min(lo, c)) for c in counts])
+        o2 = np.concatenate([[0], np.cumsum(c2)])
+        return hm.Packed(n, len(sel), cla.to_device(q, o2.astype(np.int32)), o2,
+                         _up(device, t[sel]), _up(device, np.zeros((len(sel), 3))),
+                         _up(device, np.zeros((len(sel), 3)))), sel
+
+    state = cla.zeros(q, (n, hm.STATE), np.float32)
+    for lo, hi in ((0, 10), (10, 64)):
+        pk, sel = pk_of(lo, hi)
+        hm.packed_forward(device, pk, _up(device, sig[sel]), _up(device, rgb[sel]), dt, state)
+    got = hm.finish_state(state.get(), bg)
+    want = rh.packed_forward(off, t, dt, sig, rgb, bg)
+    for k in ("rgb", "acc"):
+        np.testing.assert_allclose(got[k], want[k], rtol=tol.RENDER_RTOL, atol=tol.RENDER_ATOL)
+    np.testing.assert_allclose(got["depth"], want["depth"], rtol=tol.DEPTH_RTOL,
+                               atol=tol.DEPTH_ATOL)
+    pk, _ = pk_of(0, 64)
+    g = hm.packed_backward(device, pk, _up(device, sig), _up(device, rgb), dt, bg,
+                           _up(device, target), 0.1)
+    r = rh.packed_backward(off, t, dt, sig, rgb, bg, target, 0.1)
+    np.testing.assert_allclose(g["sq_err"].get(), r["sq_err"], rtol=tol.RENDER_RTOL,
+                               atol=tol.RENDER_ATOL)
+    for k in ("sigma", "rgb"):
+        np.testing.assert_allclose(g[k].get(), r[k], rtol=tol.GRAD_RTOL, atol=tol.GRAD_ATOL)
+
+
+def test_packed_backward_vs_finite_differences():
+    """The packed composite reference's dL/dsigma against central differences of its loss."""
+    rng = np.random.default_rng(3)
+    off = np.array([0, 6, 6, 15])
+    t = np.concatenate([np.sort(rng.uniform(2, 6, 6)), np.sort(rng.uniform(2, 6, 9))])
+    sig = rng.uniform(0.1, 20, 15)
+    rgb = rng.uniform(0, 1, (15, 3))
+    target = rng.uniform(0, 1, (3, 3))
+
+    def loss(s):
+        f = rh.packed_forward(off, t, 0.05, s, rgb, (0.2, 0.5, 1.0))
+        return 0.1 * np.sum((f["rgb"] - target) ** 2)
+    g = rh.packed_backward(off, t, 0.05, sig, rgb, (0.2, 0.5, 1.0), target, 0.1)["sigma"]
+    fd = rn.numeric_gradient(loss, sig, 1e-6)
+    np.testing.assert_allclose(g, fd, rtol=tol.FD_RTOL, atol=tol.FD_ATOL)
+
+
+def test_occupancy_starts_full_and_updates_like_reference(device):
+    R = 6
+    occ = OccupancyGrid(device, R, BOX)
+    assert occ.occupied_fraction() == 1.0
+    ema0 = np.full(R ** 3, -1.0)
+    ema0[:50] = np.linspace(0, 2, 50)
+    occ.ema.set(ema0.astype(np.float32))
+    seen = {}
+
+    def density(xyz):
+        p = xyz.get().astype(np.float64)
+        s = np.abs(p[:, 0]) * 3.0
+        s[::7] = np.nan
+        seen["xyz"] = p
+        return _up(device, s)
+
+    occ.update(density, key=1234, n_points=300, decay=0.9, threshold=0.8)
+    cells, pts = rh.occ_points(300, 1234, R, BOX[0], BOX[1] - BOX[0])
+    np.testing.assert_allclose(seen["xyz"], pts, rtol=0, atol=1e-6)
+    sig = np.abs(seen["xyz"][:, 0]) * 3.0
+    sig[::7] = np.nan
+    e, o = rh.occ_update(ema0, cells, sig, 0.9, 0.8)
+    np.testing.assert_allclose(occ.ema.get(), e, rtol=tol.HASH_OCC_RTOL, atol=0)
+    np.testing.assert_array_equal(occ.occ.get(), o)
+    assert 0 < occ.occupied_fraction() < 1
+
+
+def _reference_step(model, o, d, target):
+    """Loss and gradients of one step (no jitter) through the float64 references."""
+    c = model.config
+    enc, net = model.enc, model.net
+    off, t, xyz, vdir = rh.march_samples(o, d, c.samples, model.near, model.far,
+                                         model.occ.occ.get(), enc.lo, enc.inv_ext, c.occ_res)
+    table = enc.table.get()
+    params = net.params.get()
+    x_enc = rh.hash_forward(xyz, enc.lo, enc.inv_ext, enc.res_host, table)
+    d_enc = rh.sh_encode(vdir)
+    sigma, rgb = rn.mlp_forward(params, net.spec, net.layout, x_enc, d_enc)
+    scale = 1.0 / (3 * o.shape[0])
+    g = rh.packed_backward(off, t, model.dt, sigma, rgb, model.background, target, scale)
+    loss = scale * np.sum(g["sq_err"])
+    mb = rn.mlp_backward(params, net.spec, net.layout, x_enc, d_enc, g["sigma"], g["rgb"])
+    gt = rh.hash_backward(xyz, enc.lo, enc.inv_ext, enc.res_host, mb["x_enc"], enc.shape)
+    return loss, mb["params"], gt, len(t)
+
+
+@pytest.mark.parametrize("path", ["atomics", "owned"])
+def test_step_gradients_match_reference_chain(device, path):
+    dev = device.with_tuning(grad_slots=0 if path == "atomics" else 2)
+    model = HashModel(dev, SMALL, near=1.5, far=4.5, bbox=BOX, background=(0.2, 0.5, 1.0))
+    rng = np.random.default_rng(3)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    occ = (rng.random(SMALL.occ_res ** 3) < 0.6)
+    model.occ.ema.set(np.where(occ, 1.0, 0.0).astype(np.float32))
+    model.occ._threshold(0.5)
+    o, d = _rays(24, seed=4)
+    target = rng.uniform(0, 1, (24, 3))
+    loss, live = model.loss_and_grad(0, _up(dev, o), _up(dev, d), _up(dev, target),
+                                     jitter=False)
+    rloss, gp, gt, rlive = _reference_step(model, o, d, target)
+    assert live == rlive and 0 < live < 24 * SMALL.samples
+    assert abs(loss - rloss) <= tol.HASH_STEP_LOSS_RTOL * rloss
+    for got, want in ((model.net.grad.get(), gp), (model.enc.grad.get(), gt)):
+        assert np.abs(want).max() > 0
+        np.testing.assert_allclose(got, want, rtol=0,
+                                   atol=tol.HASH_STEP_GRAD_REL_TO_MAX * np.abs(want).max())
+
+
+def test_empty_grid_and_rays_missing_the_box(device):
+    """An empty occupancy grid (or rays that miss the box) gives the background, a finite loss
+    and no update: nothing stalls or divides by zero."""
+    cfg = dataclasses.replace(SMALL, occ_warmup=10 ** 6)     # no update refills the grid
+    model = HashModel(device, cfg, near=1.5, far=4.5, bbox=BOX, background=(0.3, 0.3, 0.3))
+    o, d = _rays(16, seed=5)
+    out = model.render(o, -d)               # pointing away from the box
+    np.testing.assert_allclose(out["rgb"], 0.3, rtol=0, atol=tol.RENDER_ATOL)
+    model.occ.ema.set(np.zeros(SMALL.occ_res ** 3, np.float32))
+    model.occ._threshold(1.0)
+    before = model.enc.table.get()
+    loss = model.train_step(0, _up(device, o), _up(device, d), _up(device, np.ones((16, 3))))
+    assert np.isfinite(loss) and abs(loss - 0.49) < 1e-5
+    np.testing.assert_array_equal(model.enc.table.get(), before)
+
+
+def test_checkpoint_round_trip_renders_the_same(device):
+    model = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX, background=(1, 1, 1), seed=2)
+    o, d = _rays(32, seed=6)
+    for it in range(3):
+        model.train_step(it, _up(device, o), _up(device, d), _up(device, np.full((32, 3), 0.2)))
+    st = model.state_dict()
+    back = HashModel.from_state_dict(device, st)
+    a, b = model.render(o, d), back.render(o, d)
+    np.testing.assert_array_equal(a["rgb"], b["rgb"])
+    assert back.step == model.step == 3
+    bad = dict(st, table=st["table"][:, :5])
+    with pytest.raises(ValueError, match="table"):
+        HashModel.from_state_dict(device, bad)
+
+
+def test_short_training_improves_on_procedural_scene(device):
+    """60 steps on the built-in scene: the loss falls and the test PSNR rises by a real margin
+    (iteration-based, not tied to machine speed)."""
+    from clrf.data import load_dataset
+    from clrf.train import evaluate, training_rays
+    ds = load_dataset(None)
+    cfg = HashConfig.from_preset("tiny", batch_rays=256, samples=64, occ_warmup=20,
+                                 occ_every=8, occ_points=8192)
+    model = HashModel(device, cfg, ds.near, ds.far, ds.bbox, ds.background)
+    rays = training_rays(device, ds)
+    views = np.asarray(ds.split["test"])[:2]
+    p0 = evaluate(model, ds, views)["psnr"]
+    losses = []
+    for it in range(60):
+        bo, bd, bc, _ = rays.batch(it, cfg.batch_rays)
+        losses.append(model.train_step(it, bo, bd, bc))
+    p1 = evaluate(model, ds, views)["psnr"]
+    assert np.all(np.isfinite(losses))
+    assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5])
+    assert p1 > p0 + 5.0, (p0, p1)
+    assert model.occ.occupied_fraction() < 1.0     # the occupancy grid did prune
+
+
+def test_hash_through_the_cli(tmp_path, capsys):
+    """clrf train --model hash, resume, eval, render and export on the built-in scene, with an
+    iteration budget (not a time budget)."""
+    import json
+
+    from clrf import checkpoint
+    from clrf.cli import main as cli
+    out = tmp_path / "h"
+    small = ["--set", "hash.batch_rays=256", "--set", "hash.samples=64",
+             "--set", "hash.occ_points=8192", "--set", "hash.occ_warmup=20",
+             "--set", "train.max_iters=50", "--set", "train.eval_every=1000",
+             "--set", "train.eval_views=2"]
+    assert cli(["train", "--model", "hash", "--out", str(out), "--max-seconds", "600",
+                *small]) == 0
+    rows = list(__import__("csv").DictReader(open(out / "metrics.csv")))
+    assert rows[-1]["model"].startswith("hash L16 F2 T2^16")
+    assert float(rows[-1]["eval_psnr"]) > float(rows[0]["eval_psnr"]) + 3.0
+    st = checkpoint.load(out)
+    assert st["kind"] == "hash" and st["iteration"] == 50
+    assert cli(["train", "--out", str(out), "--resume", "--set", "train.max_iters=60"]) == 0
+    assert checkpoint.load(out)["iteration"] == 60
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "2",
+                "--out", str(tmp_path / "ev.json")]) == 0
+    assert len(json.loads((tmp_path / "ev.json").read_text())["views"]) == 2
+    assert cli(["render", "--ckpt", str(out), "--views", "orbit", "--frames", "2",
+                "--out", str(tmp_path / "f")]) == 0
+    assert len(list((tmp_path / "f").glob("orbit_*.png"))) == 2
+    assert cli(["export", "--ckpt", str(out), "--points", str(tmp_path / "p.ply"),
+                "--n", "2000"]) == 0
+    assert (tmp_path / "p.ply").is_file()
+    capsys.readouterr()
+    rc = cli(["train", "--model", "hash", "--out", str(tmp_path / "bad"),
+              "--set", "hash.log2_tabel=3"])
+    assert rc == 2 and "log2_tabel" in capsys.readouterr().err
+
+
+def test_adam_weight_decay_and_clear_grad(device):
+    """Adam with L2 weight decay (the MLP's) and clear_grad (the tables'): the formula, and the
+    gradient is zero afterwards; a NaN gradient entry is skipped (and still cleared)."""
+    from clrf.optim import Optimizer
+    rng = np.random.default_rng(0)
+    p, g = rng.normal(size=33), rng.normal(size=33) * 1e-3
+    g[3] = np.nan
+    pd, gd = _up(device, p), _up(device, g)
+    opt = Optimizer(device, pd, "adam", beta=0.9, beta2=0.99, eps=1e-15, grad=gd,
+                    weight_decay=0.1)
+    opt.step(None, 1e-2, t=1, clear_grad=True)
+    p32 = p.astype(np.float32).astype(np.float64)
+    gw = g.astype(np.float32) + 0.1 * p32
+    want = p32 - 1e-2 * (0.1 * gw / 0.1) / (np.sqrt(0.01 * gw * gw / 0.01) + 1e-15)
+    want[3] = p32[3]
+    np.testing.assert_allclose(pd.get(), want, rtol=tol.ADAM_RTOL, atol=tol.ADAM_ATOL)
+    assert not np.any(gd.get())
+
+
+def test_ray_range_cuts_far_to_the_box():
+    """Unbounded scenes (far 1e10) sample up to the farthest box corner seen from a camera;
+    bounded ones keep their far; NDC scenes keep theirs; an impossible range is an error."""
+    from types import SimpleNamespace
+
+    from clrf.hash.model import ray_range
+    poses = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    poses[0, :3, 3] = (0, 0, 4)
+    poses[1, :3, 3] = (3, 0, 0)
+    ds = SimpleNamespace(name="s", near=0.1, far=1e10, ndc=False, poses=poses, bbox=BOX)
+    near, far = ray_range(ds)
+    assert near == 0.1 and abs(far - np.linalg.norm([1, 1, 5])) < 1e-9
+    assert ray_range(SimpleNamespace(**{**vars(ds), "far": 3.0})) == (0.1, 3.0)
+    assert ray_range(SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0})) == (0.1, 1.0)
+    with pytest.raises(ValueError, match="near"):
+        ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))
+
+
+def test_memory_guard_names_the_hash_stage(device):
+    """The memory guard estimates a hash run (tables + Adam, MLP activations) and names the
+    fix; the tiny preset fits a normal device."""
+    from dataclasses import replace as dreplace
+
+    from clrf.memory import MemoryBudgetError, check_training_fits
+    cfg = build_config("tiny", overrides={"train": {"model": "hash"}})
+    (st,) = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
+                                device.tuning)
+    assert st.total > 4 * 4 * 16 * (1 << 16) * 2     # at least the tables and their Adam state
+    big = build_config(overrides={"train": {"model": "hash"}, "hash": {"log2_table": 24}})
+    small = dreplace(device.caps, global_mem_size=1 << 30, max_alloc_size=1 << 30)
+    with pytest.raises(MemoryBudgetError, match="hash training.*hash.log2_table"):
+        check_training_fits(small, False, big, 1000)
