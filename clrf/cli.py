@@ -64,6 +64,7 @@ def load_data(path, downscale=1):
 def cmd_train(a):
     from .config import build_config
     from .device import Device
+    from .hostmem import host_budget
     from .memory import check_training_fits
     from .models import FACTORIES
     from .train import Trainer
@@ -128,9 +129,10 @@ def cmd_train(a):
     dev = Device(a.device)
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
+    n_rays = n_views * ds.hw[0] * ds.hw[1]
     if comm is None:
-        check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1],
-                            dev.tuning)
+        plan = check_training_fits(dev.caps, dev.is_cpu, cfg, n_rays, dev.tuning, host_budget())
+        print(f"clrf: memory: {plan.describe()}", file=sys.stderr)
     else:   # each rank holds its brick: estimate with the largest brick's box per stage
         import copy
         from .grid.bricks import split
@@ -138,8 +140,9 @@ def cmd_train(a):
         bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
                                    key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
         try:
-            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_views * ds.hw[0] * ds.hw[1],
-                                dev.tuning)
+            # the device only: ranks sharing a host share its memory, which one rank
+            # cannot budget alone
+            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_rays, dev.tuning)
         except ValueError as e:
             raise CliError(f"per MPI rank (the largest brick of each stage, "
                            f"{comm.Get_size()} ranks): {e}") from None
