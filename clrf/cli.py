@@ -172,8 +172,34 @@ def cmd_train(a):
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
         return 130
     if trainer.primary:
-        print(json.dumps({k: v for k, v in res.items() if k != "views"}))
+        print(json.dumps({k: v for k, v in res.items() if k not in ("views", "renders")}))
+        print(end_message(out, res, data_path), file=sys.stderr)
     return 0
+
+
+def end_message(out, res, data_path="") -> str:
+    """What a finished run leaves and what to try next: the report (metrics.csv and the
+    PSNR-against-time plot), the renders of test views, the next commands."""
+    out = Path(out)
+    lines = []
+    if "psnr" in res:
+        lines.append(f"clrf: done: PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.3f} after "
+                     f"{res['seconds']:.1f} s of training ({res['iteration']} iterations)")
+    lines.append(f"clrf: report:  {out / 'error_vs_time.png'} (PSNR against time), "
+                 f"{out / 'metrics.csv'}" + (f", {out / 'eval.json'}"
+                                              if (out / "eval.json").exists() else ""))
+    if res.get("renders"):
+        lines.append(f"clrf: renders: {Path(res['renders'][0]).parent}/ (test views, render "
+                     f"left, ground truth right)")
+    lines.append(f"clrf: next:    clrf render --ckpt {out} --out {out / 'orbit'}   "
+                 f"(an orbit of the scene, orbit.gif)")
+    if not data_path:
+        lines.append("clrf:          clrf train --data FOLDER --out runs/mine   (your own "
+                     "photos: a COLMAP, Blender, LLFF or instant-ngp folder)")
+    else:
+        lines.append(f"clrf:          clrf train --out {out} --resume --max-seconds "
+                     f"{2 * res['seconds']:.0f}   (train on from the checkpoint)")
+    return "\n".join(lines)
 
 
 def _mpi_world():
