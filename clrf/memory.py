@@ -14,9 +14,9 @@ largest single buffer, and raises MemoryBudgetError (a ConfigError: the CLI prin
 
 Plenoxels stage k at resolution R_k (V_k = prod(R_k) voxels, C = 3 (degree + 1)^2 SH
 coefficients, r = 4 (1 + C) bytes a row) with n_k rows (stage 0: the voxels inside the inscribed
-ellipsoid when ``sphere_bound``, else V_0; later stages: the occupied fraction of stage 0 over
-the grid grown by one previous-stage voxel on each side, at most V_k: the worst case, pruning
-that keeps every row):
+ellipsoid when ``sphere_bound``, else V_0; later stages: the previous stage's occupied fraction
+over the grid grown by one previous-stage voxel on each side, at most V_k: the worst case,
+pruning that keeps every row):
 
     grid       4 V_k + r n_k                        links, density + SH rows
     optimiser  2 r n_k + n_k                        gradient + RMSProp state, touched flags
@@ -140,6 +140,7 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
         else:
             grown = np.prod([r + 2.0 * r / p for r, p in zip(reso, g.reso[k - 1])])
             n = min(V, int(np.ceil(frac * grown)))
+            frac = n / V   # each upsample grows the occupied part again
         grid = 4 * V + row * n
         opt = 2 * row * n + n
         s = slots if slots * n * (row + 1) <= global_mem // 4 else 0

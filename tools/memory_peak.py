@@ -11,7 +11,8 @@ GiB is killed (the machine is shared), and the record says so.
         --data $CLRF_DATA/tiny_lego --max-seconds 30 --out /tmp/m/tiny
     -> tools/results/memory/tiny_lego.json
 
-``--set`` and every other `clrf train` option go after ``--``.
+``--set`` and every other `clrf train` option go after ``--``. ``--table [FOLDER]`` prints the
+records as a markdown table (docs/memory.md).
 """
 from __future__ import annotations
 
@@ -83,8 +84,27 @@ def measure(train_args, cap_gib: float, period: float = 0.2) -> dict:
     return rec
 
 
+def table(folder) -> str:
+    """Markdown table (config, predicted, measured, ratio) of the records in ``folder``."""
+    g = float(1 << 30)
+    rows = ["| config | predicted peak | measured peak (ru_maxrss) | predicted / measured |",
+            "| --- | --- | --- | --- |"]
+    for f in sorted(Path(folder).glob("*.json")):
+        r = json.loads(f.read_text())
+        pred = r.get("predicted_peak_bytes")
+        rows.append(f"| {f.stem} | {pred / g:.3f} GiB | {r['measured_peak_bytes'] / g:.3f} GiB "
+                    f"| {r.get('ratio_predicted_over_measured')} |" if pred else
+                    f"| {f.stem} | - | {r['measured_peak_bytes'] / g:.3f} GiB | - |")
+    return "\n".join(rows)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["--table"]:
+        print(table(argv[1] if len(argv) > 1 else ROOT / "tools" / "results" / "memory"))
+        return 0
     ap.add_argument("--name", required=True, help="record name: tools/results/memory/NAME.json")
     ap.add_argument("--cap", type=float, default=8.0, help="kill the run above this many GiB")
     ap.add_argument("--results", default=str(ROOT / "tools" / "results" / "memory"))
