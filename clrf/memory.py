@@ -122,9 +122,10 @@ def background_bytes(g) -> tuple:
     return 49 * T + 32 * int(g.batch_size), 12 * T
 
 
-def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
+def grid_stages(cfg, n_rays: int, slots: int, global_mem: int, rows=None) -> list:
     """StageEstimates of cfg.grid's run (see the module docstring for the terms): building the
-    rays, then per resolution its upsample (k > 0) and its training."""
+    rays, then per resolution its upsample (k > 0) and its training. ``rows``: the row count of
+    each stage when known (a finished run's, to check the model), else the worst case."""
     g = cfg.grid
     C = 3 * (g.sh_degree + 1) ** 2
     row = 4 * (1 + C)
@@ -141,6 +142,8 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int) -> list:
             grown = np.prod([r + 2.0 * r / p for r, p in zip(reso, g.reso[k - 1])])
             n = min(V, int(np.ceil(frac * grown)))
             frac = n / V   # each upsample grows the occupied part again
+        if rows is not None:
+            n = int(rows[k])
         grid = 4 * V + row * n
         opt = 2 * row * n + n
         s = slots if slots * n * (row + 1) <= global_mem // 4 else 0
