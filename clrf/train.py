@@ -128,13 +128,16 @@ RENDER_VIEWS = 4
 
 def save_renders(out_dir, ds, views, images) -> list:
     """PNGs ``out_dir/renders/test_VVV.png`` of renders [H, W, 3] in [0, 1] beside their ground
-    truth (render left, ground truth right); returns their paths."""
+    truth (render left, ground truth right), small views enlarged (whole pixels repeated) to
+    at least 256 pixels on their longer side; returns their paths."""
     import imageio.v3 as iio
     folder = Path(out_dir) / RENDER_DIR
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for v, img in zip(views, images):
         pair = np.concatenate([img, np.clip(ds.images[v], 0, 1)], axis=1)
+        k = max(1, 256 // max(img.shape[:2]))
+        pair = pair.repeat(k, axis=0).repeat(k, axis=1)
         p = folder / f"test_{int(v):03d}.png"
         tmp = folder / f".test_{int(v):03d}.tmp.png"
         iio.imwrite(tmp, (pair * 255 + 0.5).astype(np.uint8))

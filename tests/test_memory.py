@@ -132,3 +132,30 @@ def test_scratch_copies_follow_the_tuning():
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=0)) == 8
     assert scratch_copies(False, Tuning(grad_slots=0, grad_locks=4)) == 0
+
+
+def test_host_budget_counts_device_bytes_on_cpus_only(device):
+    """On a CPU device the buffers are host memory: the growth checked against the host is
+    device + host bytes; on a GPU only the host bytes (ray store copies, checkpoint copies,
+    ray building). The predicted peak adds what the process holds and RUNTIME_GROWTH."""
+    from clrf.hostmem import HostBudget
+    from clrf.memory import RUNTIME_GROWTH, plan_training
+    cfg = build_config("procedural")
+    n = 72 * 64 * 64
+    big = replace(device.caps, global_mem_size=64 * GiB, max_alloc_size=64 * GiB)
+    cpu = plan_training(big, True, cfg, n, None, HostBudget(GiB, "test", 100 << 20, 0))
+    gpu = plan_training(big, False, cfg, n, None, HostBudget(GiB, "test", 100 << 20, 0))
+    st = cpu.stages
+    assert cpu.peak == (100 << 20) + RUNTIME_GROWTH + max(s.total + s.host for s in st)
+    assert gpu.peak == (100 << 20) + RUNTIME_GROWTH + max(s.host for s in st)
+    assert "predicted peak" in cpu.describe() and "test" in cpu.describe()
+    # a budget between the two: the GPU run fits, the CPU run is refused
+    need_cpu = RUNTIME_GROWTH + max(s.total + s.host for s in st)
+    need_gpu = RUNTIME_GROWTH + max(s.host for s in st)
+    mid = HostBudget((need_cpu + need_gpu) // 2, "the memory limit of cgroup /x", 0, 0)
+    check_training_fits(big, False, cfg, n, None, mid)
+    with pytest.raises(MemoryBudgetError, match="more device and host memory.*cgroup /x"):
+        check_training_fits(big, True, cfg, n, None, mid)
+    # the peak so far (loading the images) is a floor of the prediction
+    floor = plan_training(big, True, cfg, n, None, HostBudget(GiB, "test", 0, 50 * GiB))
+    assert floor.peak == 50 * GiB

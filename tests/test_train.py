@@ -14,6 +14,7 @@ import pytest
 from clrf import checkpoint
 from clrf.cli import main as cli
 from clrf.config import ConfigError, build_config
+from clrf.data.synthetic import load_procedural
 from clrf.grid.model import GridModel
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -184,7 +185,10 @@ def test_run_ends_naming_the_report_renders_and_next_commands(tmp_path, capsys):
     renders = sorted((out / "renders").glob("test_*.png"))
     assert len(renders) == 4 and str(out / "renders") in tail
     img = iio.imread(renders[0])
-    assert img.shape == (64, 128, 3)   # 64x64 views: render left, ground truth right
+    assert img.shape == (256, 512, 3)   # 64x64 views x 4: render left, ground truth right
+    ds_gt = load_procedural()
+    view = int(renders[0].stem.split("_")[1])
+    np.testing.assert_allclose(img[::4, 256::4] / 255.0, ds_gt.images[view], atol=0.5 / 255 + 1e-6)
     assert f"clrf render --ckpt {out}" in tail and "clrf train --data FOLDER" in tail
 
 
