@@ -107,7 +107,11 @@ def test_training_matches_single_process(tmp_path):
     from clrf.testing.tolerances import DIST_TRAIN_ATOL, DIST_TRAIN_RTOL
     args = ["--max-seconds", "600", *TRAIN, "--set", "train.max_iters=20",   # procedural scene
             "--set", "train.eval_every=1e6", "--set", "grid.reso=[[16,16,16],[32,32,32]]",
-            "--set", "grid.upsample_at=[8]", "--set", "grid.batch_size=1000"]
+            "--set", "grid.upsample_at=[8]", "--set", "grid.batch_size=1000",
+            # the sphere bound the procedural preset dropped: on the dense 16^3 box the mean
+            # losses still agree (1e-3) but eval PSNR parts by 0.1 dB after 20 steps (RMSProp
+            # moves the many near-zero-gradient corner rows by about lr * sign(gradient))
+            "--set", "grid.sphere_bound=true"]
     dist, single = tmp_path / "dist", tmp_path / "single"
     p = mpirun(2, "-m", "clrf.cli", "train", "--out", str(dist), *args)
     assert p.stdout.count('"iteration": 20') == 1      # one result line: rank 0's
@@ -123,7 +127,8 @@ def test_training_matches_single_process(tmp_path):
     assert rd[1]["train_loss"] != rd[0]["train_loss"]
     files = sorted(x.name for x in dist.iterdir())
     assert files == ["ckpt.it000000020.rank0of2.npz", "ckpt.it000000020.rank1of2.npz",
-                     "ckpt.npz", "config.json", "error_vs_time.png", "eval.json", "metrics.csv"]
+                     "ckpt.npz", "config.json", "error_vs_time.png", "eval.json", "metrics.csv",
+                     "renders"]
     # the merged checkpoint: the same pruned and upsampled grid as the single-process run's
     # (the values are not compared row by row: RMSProp's first steps after the upsample move
     # each row by about lr * sign(gradient), so rows with near-zero gradients part ways)
