@@ -159,3 +159,22 @@ def test_host_budget_counts_device_bytes_on_cpus_only(device):
     # the peak so far (loading the images) is a floor of the prediction
     floor = plan_training(big, True, cfg, n, None, HostBudget(GiB, "test", 0, 50 * GiB))
     assert floor.peak == 50 * GiB
+
+
+def test_cpu_devices_budget_against_the_host_not_global_mem(device):
+    """PoCL reports a fraction of the host as global_mem_size (5.2 GiB on a 24 GiB host) but
+    does not cap the sum of its buffers at it: with the host's budget known, a CPU run larger
+    than global_mem_size but within the host's budget fits; a GPU run does not, nor a CPU run
+    whose host budget is unknown. max_alloc_size binds everywhere."""
+    from clrf.hostmem import HostBudget
+    cfg = build_config("synthetic")
+    small = replace(device.caps, global_mem_size=int(0.5 * GiB), max_alloc_size=2 * GiB)
+    roomy = HostBudget(64 * GiB, "test", 0, 0)
+    check_training_fits(small, True, cfg, 1000, None, roomy)
+    with pytest.raises(MemoryBudgetError, match="of device memory"):
+        check_training_fits(small, False, cfg, 1000, None, roomy)
+    with pytest.raises(MemoryBudgetError, match="of device memory"):
+        check_training_fits(small, True, cfg, 1000, None, HostBudget(-1, "unknown", 0, 0))
+    tiny_alloc = replace(small, max_alloc_size=16 << 20)
+    with pytest.raises(MemoryBudgetError, match="largest single allocation"):
+        check_training_fits(tiny_alloc, True, cfg, 1000, None, roomy)
