@@ -66,6 +66,7 @@ def load_data(path, downscale=1):
 def cmd_train(a):
     from .config import build_config
     from .device import Device
+    from .hostmem import host_budget
     from .memory import check_training_fits
     from .models import FACTORIES
     from .train import Trainer
@@ -141,9 +142,10 @@ def cmd_train(a):
         dev = Device(a.device)
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
+    n_rays = n_views * ds.hw[0] * ds.hw[1]
     if comm is None:
-        check_training_fits(dev.caps, dev.is_cpu, cfg, n_views * ds.hw[0] * ds.hw[1],
-                            dev.tuning)
+        plan = check_training_fits(dev.caps, dev.is_cpu, cfg, n_rays, dev.tuning, host_budget())
+        print(f"clrf: memory: {plan.describe()}", file=sys.stderr)
     else:   # each rank holds its brick: estimate with the largest brick's box per stage
         import copy
         from .grid.bricks import split
@@ -151,8 +153,9 @@ def cmd_train(a):
         bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
                                    key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
         try:
-            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_views * ds.hw[0] * ds.hw[1],
-                                dev.tuning)
+            # the device only: ranks sharing a host share its memory, which one rank
+            # cannot budget alone
+            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_rays, dev.tuning)
         except ValueError as e:
             raise CliError(f"per MPI rank (the largest brick of each stage, "
                            f"{comm.Get_size()} ranks): {e}") from None
@@ -187,8 +190,34 @@ def cmd_train(a):
               f"`clrf train --out {out} --resume`)", file=sys.stderr)
         return 130
     if trainer.primary:
-        print(json.dumps({k: v for k, v in res.items() if k != "views"}))
+        print(json.dumps({k: v for k, v in res.items() if k not in ("views", "renders")}))
+        print(end_message(out, res, data_path), file=sys.stderr)
     return 0
+
+
+def end_message(out, res, data_path="") -> str:
+    """What a finished run leaves and what to try next: the report (metrics.csv and the
+    PSNR-against-time plot), the renders of test views, the next commands."""
+    out = Path(out)
+    lines = []
+    if "psnr" in res:
+        lines.append(f"clrf: done: PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.3f} after "
+                     f"{res['seconds']:.1f} s of training ({res['iteration']} iterations)")
+    lines.append(f"clrf: report:  {out / 'error_vs_time.png'} (PSNR against time), "
+                 f"{out / 'metrics.csv'}" + (f", {out / 'eval.json'}"
+                                              if (out / "eval.json").exists() else ""))
+    if res.get("renders"):
+        lines.append(f"clrf: renders: {Path(res['renders'][0]).parent}/ (test views, render "
+                     f"left, ground truth right)")
+    lines.append(f"clrf: next:    clrf render --ckpt {out} --out {out / 'orbit'}   "
+                 f"(an orbit of the scene, orbit.gif)")
+    if not data_path:
+        lines.append("clrf:          clrf train --data FOLDER --out runs/mine   (your own "
+                     "photos: a COLMAP, Blender, LLFF or instant-ngp folder)")
+    else:
+        lines.append(f"clrf:          clrf train --out {out} --resume --max-seconds "
+                     f"{2 * res['seconds']:.0f}   (train on from the checkpoint)")
+    return "\n".join(lines)
 
 
 def _mpi_world():

@@ -100,24 +100,51 @@ def evaluate(model, ds, views, keep_images=False, downscale=1):
     """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
 
     downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
-    images (f^2 times fewer rays; for cheap evaluations between checkpoints)."""
+    images (f^2 times fewer rays; for cheap evaluations between checkpoints).
+    keep_images: True keeps every render in ``res["images"]`` (float [H, W, 3] in [0, 1]); an
+    integer k keeps the first k."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     per_view, images = [], []
-    for v in views:
+    keep = len(views) if keep_images is True else int(keep_images)
+    for i, v in enumerate(views):
         o, d = view_rays(ds, ds.poses[v:v + 1], downscale)
         rgb = model.render(o, d)["rgb"].reshape(H, W, 3)
         m = image_metrics(rgb, downscale_image(ds.images[v], downscale))
         m["view"] = int(v)
         per_view.append(m)
-        if keep_images:
+        if i < keep:
             images.append(np.clip(rgb, 0, 1))
     mse = float(np.mean([m["mse"] for m in per_view]))
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
            "ssim": float(np.mean([m["ssim"] for m in per_view])),
            "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
-    if keep_images:
+    if keep:
         res["images"] = images
     return res
+
+
+RENDER_DIR = "renders"   # the final evaluation's first test views, render | ground truth
+RENDER_VIEWS = 4
+
+
+def save_renders(out_dir, ds, views, images) -> list:
+    """PNGs ``out_dir/renders/test_VVV.png`` of renders [H, W, 3] in [0, 1] beside their ground
+    truth (render left, ground truth right), small views enlarged (whole pixels repeated) to
+    at least 256 pixels on their longer side; returns their paths."""
+    import imageio.v3 as iio
+    folder = Path(out_dir) / RENDER_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for v, img in zip(views, images):
+        pair = np.concatenate([img, np.clip(ds.images[v], 0, 1)], axis=1)
+        k = max(1, 256 // max(img.shape[:2]))
+        pair = pair.repeat(k, axis=0).repeat(k, axis=1)
+        p = folder / f"test_{int(v):03d}.png"
+        tmp = folder / f".test_{int(v):03d}.tmp.png"
+        iio.imwrite(tmp, (pair * 255 + 0.5).astype(np.uint8))
+        tmp.replace(p)
+        paths.append(p)
+    return paths
 
 
 def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
@@ -298,7 +325,10 @@ class Trainer:
         result = {"iteration": self.iteration, "seconds": self.seconds,
                   "interrupted": interrupted}
         if t.final_eval and not interrupted:
-            ev = evaluate(self.model, self.ds, self.test_views)
+            ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS)
+            if self.primary:
+                result["renders"] = [str(p) for p in save_renders(
+                    self.out, self.ds, self.test_views, ev.pop("images"))]
             result.update(psnr=ev["psnr"], ssim=ev["ssim"], ssim_window=SSIM_NAME,
                           views=ev["views"], n_views=len(self.test_views))
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",

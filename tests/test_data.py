@@ -88,10 +88,25 @@ def test_procedural_hand_checked_pixels():
 
 
 def test_procedural_dataset_matches_tracer():
-    d = load_procedural(n_train=3, n_test=1, size=16, seed=1)
+    d = load_procedural(n_train=3, n_test=1, size=16, seed=1, supersample=1)
     again = ProceduralScene().render(d.poses.astype(np.float64), d.intrinsics, 16, 16)["rgb"]
     np.testing.assert_allclose(d.images, again, atol=PROCEDURAL_ATOL)
     assert d.images.shape == (4, 16, 16, 3)
+
+
+def test_procedural_pixels_average_supersampled_rays():
+    """By default a pixel is the mean of 4 x 4 rays over it: the tracer's image at 4x the size
+    (intrinsics x 4) averaged over 4 x 4 blocks; interiors keep their colour, silhouettes
+    blend object and background."""
+    d = load_procedural(n_train=2, n_test=1, size=16, seed=1)
+    hi = ProceduralScene().render(d.poses.astype(np.float64), d.intrinsics * 4, 64, 64)["rgb"]
+    want = hi.reshape(3, 16, 4, 16, 4, 3).mean((2, 4))
+    np.testing.assert_allclose(d.images, want, atol=PROCEDURAL_ATOL)
+    centre = load_procedural(n_train=2, n_test=1, size=16, seed=1, supersample=1).images
+    edge = np.abs(d.images - centre).max(-1) > 0.05
+    assert 0 < edge.mean() < 0.3   # only pixels on a silhouette or a colour edge differ
+    with pytest.raises(DataError, match="supersample must be >= 1"):
+        load_procedural(supersample=0)
 
 
 # ---------------------------------------------------------------- tiny npz

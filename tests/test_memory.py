@@ -20,21 +20,45 @@ def test_sphere_rows_matches_the_initial_grid_mask():
 
 
 def test_grid_estimate_counts_every_term():
-    # one dense 10^3 stage, SH degree 0 (C = 3), no slots: links 4 V, values + gradient +
-    # RMSProp state 3 * 16 n, touched n, rays 36 N + 44 B
+    # one dense 10^3 stage, SH degree 0 (C = 3, r = 16 bytes a row), no slots: links 4 V,
+    # values + gradient + RMSProp state 3 r n, touched n, rays 36 N + 44 B on the device; on
+    # the host the ray store's o, d (24 N) and a checkpoint's copies (4 V + 2 r n); building
+    # the rays holds 72 N beside the grid and its optimiser
     cfg = build_config(overrides={"grid": {"reso": [[10, 10, 10]], "upsample_at": [],
                                            "sh_degree": 0, "sphere_bound": False,
                                            "batch_size": 100}})
-    (st,) = grid_stages(cfg, n_rays=1000, slots=0, global_mem=GiB)
+    build, st = grid_stages(cfg, n_rays=1000, slots=0, global_mem=GiB)
     V = 1000
     assert st.total == 4 * V + 3 * 16 * V + V + 36 * 1000 + 44 * 100
+    assert st.host == 24 * 1000 + 4 * V + 2 * 16 * V
     assert st.largest == max(4 * 3 * V, 4 * V)
+    assert build.total == 4 * V + 3 * 16 * V + V and build.host == 72 * 1000
+    assert build.name.startswith("building the training rays")
+
+
+def test_upsample_holds_both_stages():
+    # 10^3 -> 20^3 dense, SH degree 0, one scratch copy: the upsample holds the old stage whole
+    # (grid, optimiser, scratch), its max weights and masks (6 n'), the new links (4 V) and
+    # rows (r n) and the larger of the resample flags (4 V) and the new optimiser (2 r n + n)
+    # less the old links and scratch copy, freed before it is allocated
+    cfg = build_config(overrides={"grid": {"reso": [[10, 10, 10], [20, 20, 20]],
+                                           "upsample_at": [5], "sh_degree": 0,
+                                           "sphere_bound": False, "batch_size": 100}})
+    _, st0, up, st1 = grid_stages(cfg, n_rays=0, slots=1, global_mem=GiB)
+    V0, V1, r = 1000, 8000, 16
+    old = 4 * V0 + r * V0 + 2 * r * V0 + V0 + V0 * (r + 1)
+    assert st0.total == old + 44 * 100
+    assert up.name.startswith("the upsample to grid stage 1")
+    assert up.total == old + 6 * V0 + 4 * V1 + r * V1 + max(
+        4 * V1, 2 * r * V1 + V1 - 4 * V0 - V0 * (r + 1)) + 44 * 100
+    assert st1.total == 4 * V1 + 3 * r * V1 + V1 + V1 * (r + 1) + 44 * 100
 
 
 def test_stage_estimates_grow_and_fit_a_normal_device(device):
-    stages = check_training_fits(device.caps, device.is_cpu, build_config("procedural"),
-                                 72 * 64 * 64)
-    assert len(stages) == 2 and stages[1].total > stages[0].total
+    plan = check_training_fits(device.caps, device.is_cpu, build_config("procedural"),
+                               72 * 64 * 64)
+    st = plan.stages   # building the rays, stage 0, the upsample, stage 1
+    assert len(st) == 4 and st[3].total > st[1].total and st[2].total > st[1].total
 
 
 def test_small_device_names_the_stage_and_the_fix(device):
@@ -58,7 +82,7 @@ def test_too_large_scene_exits_2_before_allocating(tmp_path, capsys, monkeypatch
     rc = cli(["train", "--out", str(out), "--set", "grid.reso=[[1024,1024,1024]]",
               "--set", "grid.upsample_at=[]", "--set", "grid.sh_degree=3"])
     err = capsys.readouterr().err
-    assert rc == 2 and "grid stage 0 (1024x1024x1024, SH degree 3) needs about" in err, err
+    assert rc == 2 and "grid stage 0 (1024x1024x1024, SH degree 3)) needs about" in err, err
     assert not out.exists()
 
 
@@ -67,12 +91,13 @@ def test_background_adds_its_texels():
     # 32 bytes per batch ray; its colour buffer is 12 bytes a texel
     over = {"reso": [[10, 10, 10]], "upsample_at": [], "sh_degree": 0, "sphere_bound": False,
             "batch_size": 100}
-    (off,) = grid_stages(build_config(overrides={"grid": over}), 1000, 0, GiB)
+    _, off = grid_stages(build_config(overrides={"grid": over}), 1000, 0, GiB)
     on_cfg = build_config(overrides={"grid": {**over, "background_layers": 4,
                                               "background_height": 8}})
-    (on,) = grid_stages(on_cfg, 1000, 0, GiB)
+    _, on = grid_stages(on_cfg, 1000, 0, GiB)
     T = 2 * 4 * 8 * 8
     assert on.total - off.total == 49 * T + 32 * 100
+    assert on.host - off.host == 32 * T   # the checkpoint's copies of its values and states
     assert build_config("real360").grid.background_layers > 0
     assert build_config("real360_box").grid.background_layers == 0
     assert build_config("synthetic").grid.background_layers == 0
@@ -107,3 +132,49 @@ def test_scratch_copies_follow_the_tuning():
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=0)) == 8
     assert scratch_copies(False, Tuning(grad_slots=0, grad_locks=4)) == 0
+
+
+def test_host_budget_counts_device_bytes_on_cpus_only(device):
+    """On a CPU device the buffers are host memory: the growth checked against the host is
+    device + host bytes; on a GPU only the host bytes (ray store copies, checkpoint copies,
+    ray building). The predicted peak adds what the process holds and RUNTIME_GROWTH."""
+    from clrf.hostmem import HostBudget
+    from clrf.memory import RUNTIME_GROWTH, plan_training
+    cfg = build_config("procedural")
+    n = 72 * 64 * 64
+    big = replace(device.caps, global_mem_size=64 * GiB, max_alloc_size=64 * GiB)
+    cpu = plan_training(big, True, cfg, n, None, HostBudget(GiB, "test", 100 << 20, 0))
+    gpu = plan_training(big, False, cfg, n, None, HostBudget(GiB, "test", 100 << 20, 0))
+    st = cpu.stages
+    assert cpu.peak == (100 << 20) + RUNTIME_GROWTH + max(s.total + s.host for s in st)
+    assert gpu.peak == (100 << 20) + RUNTIME_GROWTH + max(s.host for s in st)
+    assert "predicted peak" in cpu.describe() and "test" in cpu.describe()
+    # a budget between the two: the GPU run fits, the CPU run is refused
+    need_cpu = RUNTIME_GROWTH + max(s.total + s.host for s in st)
+    need_gpu = RUNTIME_GROWTH + max(s.host for s in st)
+    mid = HostBudget((need_cpu + need_gpu) // 2, "the memory limit of cgroup /x", 0, 0)
+    check_training_fits(big, False, cfg, n, None, mid)
+    with pytest.raises(MemoryBudgetError, match="more device and host memory.*cgroup /x"):
+        check_training_fits(big, True, cfg, n, None, mid)
+    # the peak so far (loading the images) is a floor of the prediction
+    floor = plan_training(big, True, cfg, n, None, HostBudget(GiB, "test", 0, 50 * GiB))
+    assert floor.peak == 50 * GiB
+
+
+def test_cpu_devices_budget_against_the_host_not_global_mem(device):
+    """PoCL reports a fraction of the host as global_mem_size (5.2 GiB on a 24 GiB host) but
+    does not cap the sum of its buffers at it: with the host's budget known, a CPU run larger
+    than global_mem_size but within the host's budget fits; a GPU run does not, nor a CPU run
+    whose host budget is unknown. max_alloc_size binds everywhere."""
+    from clrf.hostmem import HostBudget
+    cfg = build_config("synthetic")
+    small = replace(device.caps, global_mem_size=int(0.5 * GiB), max_alloc_size=2 * GiB)
+    roomy = HostBudget(64 * GiB, "test", 0, 0)
+    check_training_fits(small, True, cfg, 1000, None, roomy)
+    with pytest.raises(MemoryBudgetError, match="of device memory"):
+        check_training_fits(small, False, cfg, 1000, None, roomy)
+    with pytest.raises(MemoryBudgetError, match="of device memory"):
+        check_training_fits(small, True, cfg, 1000, None, HostBudget(-1, "unknown", 0, 0))
+    tiny_alloc = replace(small, max_alloc_size=16 << 20)
+    with pytest.raises(MemoryBudgetError, match="largest single allocation"):
+        check_training_fits(tiny_alloc, True, cfg, 1000, None, roomy)

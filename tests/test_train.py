@@ -14,6 +14,7 @@ import pytest
 from clrf import checkpoint
 from clrf.cli import main as cli
 from clrf.config import ConfigError, build_config
+from clrf.data.synthetic import load_procedural
 from clrf.grid.model import GridModel
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -165,3 +166,38 @@ def test_nerf_through_the_cli(tmp_path, capsys):
     assert len(list((tmp_path / "f").glob("orbit_*.png"))) == 2
     rc = run_cli("train", "--model", "nerf", "--out", tmp_path / "bad", "--set", "nerf.widht=3")
     assert rc == 2 and "widht" in capsys.readouterr().err
+
+
+def test_run_ends_naming_the_report_renders_and_next_commands(tmp_path, capsys):
+    """The last lines of `clrf train` name the report, the renders and the next commands;
+    every file path they name exists, and the renders hold render | ground truth."""
+    import re
+    import imageio.v3 as iio
+    out = tmp_path / "r"
+    assert run_cli("train", "--out", out, "--max-seconds", 2, *FAST) == 0
+    err = capsys.readouterr().err
+    tail = err[err.index("clrf: done:"):]
+    assert "clrf: report:" in tail and "clrf: renders:" in tail and "clrf: next:" in tail
+    named = [Path(p) for p in re.findall(r"(/\S+?\.(?:png|csv|json))\b", tail)]
+    assert {p.name for p in named} >= {"error_vs_time.png", "metrics.csv", "eval.json"}
+    for p in named:
+        assert p.is_file(), p
+    renders = sorted((out / "renders").glob("test_*.png"))
+    assert len(renders) == 4 and str(out / "renders") in tail
+    img = iio.imread(renders[0])
+    assert img.shape == (256, 512, 3)   # 64x64 views x 4: render left, ground truth right
+    ds_gt = load_procedural()
+    view = int(renders[0].stem.split("_")[1])
+    np.testing.assert_allclose(img[::4, 256::4] / 255.0, ds_gt.images[view], atol=0.5 / 255 + 1e-6)
+    assert f"clrf render --ckpt {out}" in tail and "clrf train --data FOLDER" in tail
+
+
+def test_default_first_run_config_is_valid():
+    """`clrf train` with no arguments: the procedural preset validates, trains for 60 s on the
+    whole box (no sphere bound: the floor's corners lie outside the inscribed sphere) and
+    reaches its finest grid early in the budget."""
+    cfg = build_config("", None, {}, dataset_preset="procedural")
+    assert cfg.train.preset == "procedural" and cfg.train.max_seconds == 60.0
+    g = cfg.grid
+    assert not g.sphere_bound and len(g.reso) >= 2
+    assert len(g.upsample_at) == len(g.reso) - 1 and g.upsample_at[-1] <= 600
