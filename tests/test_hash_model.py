@@ -336,8 +336,9 @@ def test_memory_guard_names_the_hash_stage(device):
 
     from clrf.memory import MemoryBudgetError, check_training_fits
     cfg = build_config("tiny", overrides={"train": {"model": "hash"}})
-    (st,) = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
-                                device.tuning)
+    plan = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
+                               device.tuning)
+    st = next(s for s in plan.stages if s.name.startswith("hash training"))
     assert st.total > 4 * 4 * 16 * (1 << 16) * 2     # at least the tables and their Adam state
     big = build_config(overrides={"train": {"model": "hash"}, "hash": {"log2_table": 24}})
     small = dreplace(device.caps, global_mem_size=1 << 30, max_alloc_size=1 << 30)
