@@ -5,7 +5,8 @@ by the grid workload), and the same kernel tests on every OpenCL implementation.
 The kernel-vs-reference modules (EVERY_IMPL_MODULES) run once per OpenCL implementation
 present: the session device, then one device of each other implementation (PoCL, Intel's CPU
 runtime, Mesa's rusticl, ...; clrf/testing/impls.py), as the ``device`` fixture's parameter.
-A slow software implementation runs only SLOW_IMPL_MODULES. CLRF_TEST_IMPLS narrows it: ``default`` (the session device only) or a comma list of
+A slow software implementation runs only the small tests in SLOW_IMPL_TESTS. CLRF_TEST_IMPLS
+narrows it: ``default`` (the session device only) or a comma list of
 implementation names (``pocl,intel``). Oclgrind is not among them: the simulator runs every
 kernel once, small, under its race and API checks (tests/test_oclgrind.py).
 """
@@ -25,12 +26,17 @@ EVERY_IMPL_MODULES = {
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
 }
-# a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, and compiles
-# each program variant for seconds) runs the core of them: both grid paths, NeRF's kernels,
-# the self-check
-SLOW_IMPL_MODULES = {"test_render", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
-                     "test_nerf_composite", "test_selfcheck"}
-
+# a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
+# program variant for seconds and held 9 GB on the 128^3 test) runs the small kernel-vs-reference
+# tests of every kernel family: both grid backward paths, NeRF's kernels, the self-check
+SLOW_IMPL_TESTS = {
+    "test_forward_vs_reference", "test_backward_vs_finite_differences",
+    "test_homogeneous_slab_closed_form", "test_geometry_cases", "test_empty_grid",
+    "test_forward_matches_reference", "test_backward_matches_reference",
+    "test_encode_matches_reference", "test_encode_backward_matches_reference",
+    "test_stratified_matches_reference", "test_importance_matches_reference",
+    "test_mse_mode_loss_and_gradient", "test_both_gradient_paths_pass",
+}
 
 def pytest_generate_tests(metafunc):
     """The kernel modules' tests take every implementation as the ``device`` parameter."""
@@ -38,7 +44,8 @@ def pytest_generate_tests(metafunc):
     if module not in EVERY_IMPL_MODULES or "device" not in metafunc.fixturenames:
         return
     names = ["default"] + [n for n in impls.others(os.environ.get("CLRF_TEST_IMPLS", "all"))
-                           if module in SLOW_IMPL_MODULES or not impls.is_slow(n)]
+                           if metafunc.function.__name__ in SLOW_IMPL_TESTS
+                           or not impls.is_slow(n)]
     metafunc.parametrize("device", names, indirect=True, scope="session")
 
 
