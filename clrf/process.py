@@ -190,6 +190,7 @@ def _map(pc, db: Path, image_dir: Path, sparse: Path, n: int, opt: ProcessOption
     b = bar(n, "mapping", "image")
     try:
         models = pc.incremental_mapping(db, image_dir, sparse, o,
+                                        initial_image_pair_callback=lambda: b.update(2),
                                         next_image_callback=lambda: b.update(1))
     finally:
         b.close()
