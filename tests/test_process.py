@@ -248,3 +248,22 @@ def test_process_video(capture, tmp_path):
     kept = sorted(p.name for p in (out / "images").iterdir())
     assert all(int(n[6:11]) % 2 == 0 for n in kept), kept        # the sharp frames
     assert summary["registered"] >= 0.9 * N_VIEWS, summary
+
+
+def test_process_without_pycolmap_says_how_to_install(tmp_path, monkeypatch):
+    from clrf.process import ProcessError, process
+    monkeypatch.setitem(sys.modules, "pycolmap", None)        # import pycolmap -> ImportError
+    (tmp_path / "src").mkdir()
+    with pytest.raises(ProcessError, match=r"pip install clrf\[process\]"):
+        process(tmp_path / "src", tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_process_bad_source_is_named(tmp_path):
+    r = _run(str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "missing.mp4: does not exist" in r.stderr
+    (tmp_path / "few").mkdir()
+    imageio.imwrite(tmp_path / "few" / "a.png", np.zeros((8, 8, 3), np.uint8))
+    r = _run(str(tmp_path / "few"), "--out", str(tmp_path / "out"))
+    assert r.returncode == 2 and "holds 1 images" in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["few"]
