@@ -259,10 +259,11 @@ def _write_layout(pc, rec, image_dir: Path, work: Path, final: Path):
     return out
 
 
-def process(source, out, opt: ProcessOptions = ProcessOptions()) -> dict:
+def process(source, out, opt: ProcessOptions = None) -> dict:
     """Pose ``source`` (a video file or a folder of images) and write the scene to ``out``.
     Returns the summary written to out/clrf_process.json."""
     src, out = Path(source), Path(out)
+    opt = opt or ProcessOptions()
     if opt.matcher not in ("auto", "sequential", "exhaustive"):
         raise ProcessError(f"--matcher: expected auto, sequential or exhaustive, got "
                            f"{opt.matcher!r}")

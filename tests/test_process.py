@@ -11,7 +11,6 @@ the camera orbit).
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 import sys
 
