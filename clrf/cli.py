@@ -462,6 +462,9 @@ def build_parser():
     b.add_argument("--reso", type=int, default=128)
     b.add_argument("--degree", type=int, default=2)
     b.set_defaults(func=cmd_bench)
+
+    from .cli_process import add_process_parser
+    add_process_parser(sub)   # clrf process VIDEO|IMAGE_DIR --out DIR
     return p
 
 

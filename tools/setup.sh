@@ -24,6 +24,8 @@
 #   bash tools/setup.sh eval     # plus LPIPS for `clrf eval`: torch ($CLRF_TORCH, default
 #                                # torch==2.13.0) and the lpips package's weight files, installed
 #                                # without lpips's torchvision, which clrf does not use
+#   bash tools/setup.sh process  # plus pycolmap and imageio-ffmpeg for `clrf process` (pose a
+#                                # video or a folder of photos); PyPI wheels, no system package
 #   bash tools/setup.sh test,peers # plus taichi for the Taichi peers of tools/bench.py
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
