@@ -72,7 +72,7 @@ def _flags(*argv):
     (["--grid.batch_size", "3000"], ["grid.batch_size=3000"]),
     (["--grid.reso", "[[32,32,32]]", "--grid.upsample_at", "[]"],
      ["grid.reso=[[32,32,32]]", "grid.upsample_at=[]"]),
-    (["--no-grid.sphere_bound"], ["grid.sphere_bound=false"]),
+    (["--grid.sphere_bound"], ["grid.sphere_bound=true"]),   # the procedural preset: false
     (["--no-train.final_eval"], ["train.final_eval=false"]),
     (["--train.max_seconds", "7.5", "--train.model", "nerf"],
      ["train.max_seconds=7.5", "train.model=nerf"]),
@@ -115,7 +115,7 @@ def test_flags_after_set():
     ("--grid.batch_size", "many", "grid.batch_size must be an integer, got 'many'"),
     ("--grid.step", "9", "grid.step = 9.0: must be in (0, 4] voxels"),
     ("--nerf.width", "100", "nerf.width = 100: must be a multiple of 16"),
-    ("--train.model", "mesh", "train.model = 'mesh': must be 'grid' or 'nerf'"),
+    ("--train.model", "mesh", "train.model = 'mesh': must be 'grid', 'nerf' or 'hash'"),
 ])
 def test_bad_flag_value_is_a_config_error(tmp_path, capsys, flag, value, needle):
     rc = main(["train", "--out", str(tmp_path / "r"), "--max-seconds", "1", flag, value])
