@@ -136,8 +136,6 @@ def cmd_train(a):
     if comm is None:   # the device that runs this model kind fastest (clrf/workload.py)
         from .workload import device_for
         dev = device_for(cfg.train.model, a.device)
-        if getattr(dev, "choice", None):
-            print(f"clrf: device {dev}: {dev.choice}", file=sys.stderr)
     else:
         dev = Device(a.device)
     n_views = len(ds.split["train"])
@@ -160,7 +158,8 @@ def cmd_train(a):
             raise CliError(f"per MPI rank (the largest brick of each stage, "
                            f"{comm.Get_size()} ranks): {e}") from None
     rank_note = f" (MPI rank {comm.Get_rank()} of {comm.Get_size()})" if comm is not None else ""
-    print(f"clrf: device {dev}{rank_note}", file=sys.stderr)
+    why = f": {dev.choice}" if getattr(dev, "choice", None) else ""
+    print(f"clrf: device {dev}{rank_note}{why}", file=sys.stderr)
     if comm is None or comm.Get_rank() == 0:
         print(f"clrf: scene '{ds.name}' ({len(ds.split['train'])} train / "
               f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "

@@ -11,6 +11,7 @@ from clrf import hostmem
 from clrf.hostmem import (HostBudget, address_space_headroom, cgroup_headroom,
                           cgroup_v1_headroom, cgroup_v2_headroom, host_budget, meminfo_available,
                           parse_cgroup_mounts, parse_kib_fields, parse_proc_cgroup)
+from clrf.testing import impls
 
 ROOT = Path(__file__).resolve().parents[1]
 KiB, MiB, GiB = 1024, 1 << 20, 1 << 30
@@ -133,7 +134,7 @@ def test_a_run_beyond_the_host_refuses_naming_the_setting(tmp_path, capsys, monk
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="RLIMIT_AS is Linux's here")
-def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path):
+def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path, device):
     """A real limit: `clrf train` under RLIMIT_AS (ulimit -v) at the process's own size + 1
     GiB, asked for a 192^3 grid (about 2.5 GiB on the host, less than the
     reported device memory): it exits 2 with the guard's
@@ -142,6 +143,7 @@ def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path):
         "import resource, sys\n"
         "from clrf.hostmem import parse_kib_fields\n"
         "import pyopencl\n"
+        "pyopencl.get_platforms()\n"      # every driver loaded before the size is read
         "size = parse_kib_fields(open('/proc/self/status').read())['VmSize']\n"
         "lim = size + (1 << 30)\n"
         "resource.setrlimit(resource.RLIMIT_AS, (lim, lim))\n"
@@ -151,7 +153,11 @@ def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path):
     p = subprocess.run([sys.executable, "-c", code, "train", "--out", str(out), "--set",
                         "grid.reso=[[192,192,192]]", "--set", "grid.upsample_at=[]"],
                        cwd=ROOT, capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "PYTHONPATH": str(ROOT)})
+                       env={**os.environ, "PYTHONPATH": str(ROOT),
+                            # one device (PoCL where present): no other driver's threads
+                            # under the limit
+                            "CLRF_DEVICE": impls.present().get(
+                                "pocl", f"{device.platform_index}:{device.device_index}")})
     assert p.returncode == 2, p.stderr[-2000:]
     assert "address-space limit (ulimit -v)" in p.stderr and "lower grid.reso" in p.stderr
     assert not (out / "ckpt.npz").exists()

@@ -46,10 +46,12 @@ def test_the_pth_line_sets_the_variable_only_when_unset(tmp_path):
     line = (site / icd.PTH_NAME).read_text()
     code = f"{line.strip()}\nimport os; print(os.environ['OCL_ICD_VENDORS'])"
     env = {k: v for k, v in os.environ.items() if k != "OCL_ICD_VENDORS"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    # -S: no site packages, so a .pth of the venv running the tests does not set it first
+    out = subprocess.run([sys.executable, "-S", "-c", code], env=env, capture_output=True,
+                         text=True)
     assert out.stdout.strip() == str(icd.vendors_dir(prefix))
-    out = subprocess.run([sys.executable, "-c", code], env={**env, "OCL_ICD_VENDORS": "/x"},
-                         capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-S", "-c", code],
+                         env={**env, "OCL_ICD_VENDORS": "/x"}, capture_output=True, text=True)
     assert out.stdout.strip() == "/x"
 
 
