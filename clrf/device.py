@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 
 import pyopencl as cl
 
-from .device_probe import (Candidate, Probe, cache_path, choice_reason, cpu_flags, probe, rank,
-                           slow_reasons, slow_warning, warn_once)
+from .device_probe import (INSTALL_HINT, Candidate, Probe, cache_path, choice_reason,
+                           cpu_flags, probe, rank, slow_reasons, slow_warning, warn_once)
 from .selfcheck import known_wrong
 from .tuning import Tuning
 
@@ -316,8 +316,8 @@ def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
 def check_default(refresh: bool = False) -> int:
     """``clrf devices --check``: one line on the default device and an exit status for scripts.
 
-    0: a working device that is not a slow driver; 3: the best working device is a slow driver
-    (the warning names the fix); 1: no device works.
+    0: a working device that is not a slow driver; 3: the best working device, or any PoCL
+    device, is a slow driver (the warning names the fix); 1: no device works.
     """
     try:
         ch = choose_device(refresh=refresh)
@@ -326,8 +326,18 @@ def check_default(refresh: bool = False) -> int:
         return 1
     print(f"clrf: default device {ch.candidate.short()}, {ch.candidate.probe.gflops:.1f} "
           f"GFLOP/s ({ch.reason})")
-    warning = slow_warning(ch.candidate, list(ch.candidates), cpu_flags())
+    cands, flags = list(ch.candidates), cpu_flags()
+    warning = slow_warning(ch.candidate, cands, flags)
     if warning:
         print(warning, file=sys.stderr)
+        return 3
+    # a slow PoCL beside a faster driver (pip's generic-target PoCL next to Intel's runtime):
+    # not the default, but the grid kernels run fastest on a PoCL that compiles for this CPU,
+    # and the tests run every kernel on PoCL, so the distribution's PoCL is still worth having
+    pocl = [c for c in cands if c.probe.ok and "pocl" in c.platform_version.lower()]
+    slow = {c.spec: slow_reasons(c, cands, flags) for c in pocl}
+    if pocl and all(slow.values()):
+        c = pocl[0]
+        print(f"clrf: device {c.short()} {slow[c.spec][0]}; {INSTALL_HINT}", file=sys.stderr)
         return 3
     return 0

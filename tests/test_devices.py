@@ -159,6 +159,20 @@ def test_clrf_devices_check_exit_status(machine, capsys):
     assert cli_main(["devices", "--check"]) == 1
 
 
+def test_clrf_devices_check_slow_pocl_beside_a_faster_driver(machine, capsys):
+    # pip's generic-target PoCL beside Intel's runtime: Intel is the (fine) default, but the
+    # check still asks for the distribution's PoCL, which runs the grid kernels fastest
+    intel = fake_dev("AMD EPYC", "OpenCL 3.0 LINUX 2026.22.10.0.01_160000")
+    machine.devs = [(intel, Probe(None, 128.0)),
+                    (fake_dev("pthread-AMD EPYC", PIP), Probe(None, 22.0))]
+    assert cli_main(["devices", "--check"]) == 3
+    out, err = capsys.readouterr()
+    assert "default device 0:0 'AMD EPYC'" in out
+    assert "1:0 'pthread-AMD EPYC'" in err and "apt-get install pocl-opencl-icd" in err
+    machine.devs.append((fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 65.0)))
+    assert cli_main(["devices", "--check"]) == 0    # a PoCL that compiles for this CPU is there
+
+
 # ---- slow-driver detection ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("name, target", [

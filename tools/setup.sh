@@ -128,6 +128,11 @@ if [ "$status" -ne 0 ]; then
         echo "clrf: no working OpenCL device; installing the distribution's PoCL" >&2
     fi
     if apt_install "your distribution's PoCL (or another OpenCL CPU driver)" pocl-opencl-icd; then
+        # the venv's own vendors folder (extra 'intel') links the system's .icd files that
+        # existed when it was written: write it again so the new PoCL is seen
+        case ",${1:-}," in
+            *,intel,*) .venv/bin/python -m clrf.icd register ;;
+        esac
         status=0
         check || status=$?
     fi
