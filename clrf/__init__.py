@@ -1,5 +1,5 @@
 """clrf: portable OpenCL radiance fields (Plenoxels and NeRF) with handwritten kernels."""
-from .device import Device, DeviceError
+from .runtime.device import Device, DeviceError
 from .grid import SparseGrid
 from .grid.render import render_rays, render_rays_backward
 

@@ -34,7 +34,7 @@ def render(out):
     import pyopencl.array as cla
 
     import clrf
-    from clrf.distributed import DistGrid, world
+    from clrf.grid.distributed import DistGrid, world
     from clrf.grid import bricks
 
     comm = world()
@@ -66,8 +66,8 @@ def render(out):
 def upsample(out, new_reso):
     """Distributed prune + resample of the random grid to new_reso ("X,Y,Z"); rank 0 writes
     the pruning weights' inputs and the merged new grid (dense density, sh, allocation)."""
-    from clrf.config import GridConfig
-    from clrf.distributed import world
+    from clrf.training.config import GridConfig
+    from clrf.grid.distributed import world
     from clrf.grid import bricks
     from clrf.grid.dist_model import DistGridModel
 

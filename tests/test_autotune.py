@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from clrf import autotune as at
-from clrf.device import Capabilities
+from clrf.nerf import tiling as at
+from clrf.runtime.device import Capabilities
 from clrf.nerf.mlp import MLP, MLPSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
@@ -137,7 +137,7 @@ def test_tuner_cli(device, cache, capsys):
     out = capsys.readouterr().out
     assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
     # --preset tiny tunes the shape `clrf train --model nerf` builds (its cache entry)
-    from clrf.config import NerfConfig
+    from clrf.training.config import NerfConfig
     tiny = NerfConfig.from_preset("tiny").mlp_spec()
     assert at.cached_tiling(device.caps, tiny) is None
     assert at.main(["--preset", "tiny", "--samples", "8", "--rounds", "1"]) == 0

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from clrf.testing import reference_background as ref
-from clrf.background import MSIBackground
-from clrf.programs import BuildError
+from clrf.grid.msi import MSIBackground
+from clrf.runtime.programs import BuildError
 from clrf.testing import tolerances as tol
 
 CENTER = (0.1, -0.2, 0.05)

@@ -124,8 +124,8 @@ def test_per_ray_density_scale_sweep_finite(render_device, scale):
         assert np.array_equal(out["rgb"], bg) and np.array_equal(kern["background"], g)
 
 # ---- GridModel with an MSI background ---------------------------------------------------
-from clrf import checkpoint  # noqa: E402
-from clrf.config import GridConfig  # noqa: E402
+from clrf.outputs import checkpoint  # noqa: E402
+from clrf.training.config import GridConfig  # noqa: E402
 from clrf.grid.background import GridBackground, msi_geometry  # noqa: E402
 from clrf.grid.model import GridModel  # noqa: E402
 from clrf.testing import reference_background as ref_bg  # noqa: E402
@@ -297,7 +297,7 @@ def test_bonsai_smoke_with_background(data_dir, tmp_path):
     checkpoint."""
     import csv
     import json
-    from clrf.cli import main as cli
+    from clrf.cli.main import main as cli
     out = tmp_path / "run"
     rc = cli(["train", "--data", str(data_dir / "bonsai_800"), "--out", str(out),
               "--max-seconds", "300", "--set", "train.max_iters=30", "--set", "train.downscale=8",

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from clrf.cli import main as cli
+from clrf.cli.main import main as cli
 from test_colmap import F, H, W, _colmap_scene, _images, _scene
 from test_data_errors import _edit, _llff, _ngp, _npz, _png, make_blender
 

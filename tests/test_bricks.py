@@ -224,10 +224,10 @@ def test_world_is_none_without_a_launcher(monkeypatch):
     """A single process never imports mpi4py; a launcher without mpi4py is a clear error."""
     import subprocess
     import sys
-    from clrf import distributed
+    from clrf.grid import distributed
     for v in distributed.LAUNCHER_SIZE_VARS:
         monkeypatch.delenv(v, raising=False)
-    code = ("import sys, clrf.distributed as d; assert d.world() is None; "
+    code = ("import sys, clrf.grid.distributed as d; assert d.world() is None; "
             "assert 'mpi4py' not in sys.modules")
     env = {k: v for k, v in __import__('os').environ.items()
            if k not in distributed.LAUNCHER_SIZE_VARS}

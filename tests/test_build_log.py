@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from clrf.buildlog import CHATTER, diagnostics, is_chatter, split_log
+from clrf.runtime.buildlog import CHATTER, diagnostics, is_chatter, split_log
 from clrf.nerf.mlp import MLPSpec
-from clrf.programs import build, build_log
+from clrf.runtime.programs import build, build_log
 
 FIXTURES = Path(__file__).parent / "fixtures" / "build_logs"
 KERNELS = FIXTURES / "kernels"
@@ -67,7 +67,7 @@ def test_build_without_diagnostics(device, source, defines):
 
 def _kernels_dir(monkeypatch):
     """Point programs.build at the fixture kernels (tests/fixtures/build_logs/kernels)."""
-    monkeypatch.setattr("clrf.programs.cl_dir", lambda: KERNELS)
+    monkeypatch.setattr("clrf.runtime.programs.cl_dir", lambda: KERNELS)
 
 
 def test_clean_build_prints_nothing(device, capsys):
@@ -97,7 +97,7 @@ def test_warnings_are_printed_with_location(device, capsys, monkeypatch):
 
 
 def test_verbose_shows_raw_log(device, capsys, monkeypatch):
-    monkeypatch.setattr("clrf.programs.build_log", lambda prg, dev: "Compilation started\nDone.")
+    monkeypatch.setattr("clrf.runtime.programs.build_log", lambda prg, dev: "Compilation started\nDone.")
     build(device, "probe.cl", {})
     assert capsys.readouterr().err == ""
     build(device, "probe.cl", {}, verbose=True)

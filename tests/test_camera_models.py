@@ -7,9 +7,9 @@ import struct
 import numpy as np
 import pytest
 
-from clrf.camera_models import (MODELS, Distortion, as_distortion, check_camera, distort,
-                                from_colmap, undistort)
-from clrf.cameras import _pixel_dirs
+from clrf.data.camera_models import (
+    MODELS, Distortion, as_distortion, check_camera, distort, from_colmap, undistort)
+from clrf.data.cameras import _pixel_dirs
 from clrf.data import DataError, load_dataset
 from clrf.testing.reference_cameras import project
 from clrf.testing.tolerances import CAMERA_MODEL_ANGLE, CAMERA_MODEL_PX

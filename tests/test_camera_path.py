@@ -8,11 +8,11 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from clrf import camera_path as cp
-from clrf.cameras import look_at
-from clrf.cli import main as cli
-from clrf.frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
-from clrf.models import load_model
+from clrf.outputs import camera_path as cp
+from clrf.data.cameras import look_at
+from clrf.cli.main import main as cli
+from clrf.outputs.frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
+from clrf.training.models import load_model
 from clrf.testing.tolerances import CAMERA_ATOL
 from viewer_util import train_tiny
 

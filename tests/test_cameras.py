@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from clrf.cameras import (camera_orbit_poses, distort, look_at, ndc_extent, orbit_poses,
-                          pixel_rays, spiral_poses, to_ndc, undistort)
+from clrf.data.cameras import (
+    camera_orbit_poses, distort, look_at, ndc_extent, orbit_poses, pixel_rays, spiral_poses,
+    to_ndc, undistort)
 from clrf.testing.tolerances import CAMERA_ATOL, UNDISTORT_ATOL
 
 # The fox capture's OpenCV coefficients (instant-ngp data/nerf/fox/transforms.json).

@@ -1,14 +1,14 @@
 """`clrf train --help` lists every configuration key with its default and meaning, generated
-from clrf.config; a generated flag is the same override as --set; bad values give ConfigError."""
+from clrf.training.config; a generated flag is the same override as --set; bad values give ConfigError."""
 import dataclasses
 import json
 import re
 
 import pytest
 
-from clrf.cli import build_parser, main, parse_set
-from clrf.cli_config import config_flags, field_comments, merge_overrides, sections
-from clrf.config import Config, build_config
+from clrf.cli.main import build_parser, main, parse_set
+from clrf.cli.config_flags import config_flags, field_comments, merge_overrides, sections
+from clrf.training.config import Config, build_config
 
 
 def _train_help(capsys):

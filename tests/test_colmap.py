@@ -10,10 +10,10 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from clrf.cameras import camera_dirs, pixel_rays
+from clrf.data.cameras import camera_dirs, pixel_rays
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.colmap import CAMERA_MODELS
-from clrf.train import view_rays
+from clrf.training.trainer import view_rays
 from clrf.testing.tolerances import CAMERA_ATOL, RESAMPLE_ATOL
 
 H, W, F = 12, 16, 14.0

@@ -10,10 +10,10 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-import clrf.device as device
-import clrf.device_probe as dp
-from clrf.cli import main as cli_main
-from clrf.device_probe import Candidate, Probe
+import clrf.runtime.device as device
+import clrf.runtime.device_probe as dp
+from clrf.cli.main import main as cli_main
+from clrf.runtime.device_probe import Candidate, Probe
 
 DEBIAN = "OpenCL 3.0 PoCL 3.1+debian  Linux, None+Asserts, RELOC, SPIR, LLVM 15.0.6"
 PIP = "OpenCL 3.0 PoCL 3.0-rc2  Linux, Release, RELOC, LLVM 14.0.6"
@@ -323,7 +323,7 @@ def test_real_devices_probe_and_cache(monkeypatch, tmp_path):
 def test_probe_time_discounts_other_load():
     """A CPU probe run that waited for its cores (wall 3x its CPU time per compute unit) counts
     its CPU time; a quiet run or a spinning host thread counts wall time; a GPU always wall."""
-    from clrf.device_probe import run_seconds
+    from clrf.runtime.device_probe import run_seconds
     assert run_seconds(0.090, 0.060, 2, gpu=False) == pytest.approx(0.030)   # contended
     assert run_seconds(0.030, 0.060, 2, gpu=False) == pytest.approx(0.030)   # quiet
     assert run_seconds(0.030, 0.090, 2, gpu=False) == pytest.approx(0.030)   # host spinning

@@ -2,16 +2,16 @@
 import numpy as np
 import pytest
 
-from clrf import export
+from clrf.outputs import export
 from clrf.testing import reference_export
-from clrf.cameras import to_ndc
-from clrf.cli import main as cli
-from clrf.config import GridConfig
+from clrf.data.cameras import to_ndc
+from clrf.cli.main import main as cli
+from clrf.training.config import GridConfig
 from clrf.data.synthetic import ProceduralScene, Sphere, load_procedural
 from clrf.grid import SparseGrid
 from clrf.grid.model import GridModel
-from clrf.ply import read_ply, write_ply
-from clrf.train import view_rays
+from clrf.outputs.ply import read_ply, write_ply
+from clrf.training.trainer import view_rays
 from clrf.testing.tolerances import EXPORT_FIELD_ATOL, EXPORT_FIELD_RTOL, EXPORT_GEOMETRY_VOXELS
 
 BBOX = np.array([[-1.5] * 3, [1.5] * 3])
@@ -233,7 +233,7 @@ def test_cli_render_bad_input(trained, tmp_path, capsys, args, msg):
 # ---- progress and TensorBoard ---------------------------------------------------------------
 def test_log_progress_lines(monkeypatch, capsys):
     """Not a terminal: one line at the end (and every LOG_EVERY s), rate and ETA; quiet: none."""
-    from clrf import progress
+    from clrf.runtime import progress
     with progress.bar(4, "work", "view") as b:
         for _ in range(4):
             b.update(1)
@@ -318,7 +318,7 @@ def test_cli_export_bad_level_as_a_process(trained, tmp_path):
 def test_write_video_odd_size(tmp_path):
     """H.264 needs even sizes: odd frames are edge-padded; frame count and content survive."""
     import imageio.v3 as iio
-    from clrf.cli_export import write_video
+    from clrf.cli.export import write_video
     frames = np.zeros((3, 33, 35, 3), np.uint8)
     frames[1] = 255
     write_video(tmp_path / "v.mp4", frames, 5)

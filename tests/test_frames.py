@@ -4,8 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from clrf.cameras import look_at
-from clrf.frames import check_pose, frame_rays, spec_from_fov, spec_from_meta
+from clrf.data.cameras import look_at
+from clrf.outputs.frames import check_pose, frame_rays, spec_from_fov, spec_from_meta
 from clrf.testing.tolerances import CAMERA_ATOL, NDC_LINE_ATOL
 
 # a forward-facing (NDC) scene's training camera: 80x60, f = 50, principal point at the centre
@@ -65,7 +65,7 @@ def test_spec_from_fov_rejects(fov, w, h, words):
 def test_viewer_without_websockets_says_how_to_install(monkeypatch):
     import sys
 
-    from clrf.cli import CliError
+    from clrf.cli.main import CliError
     from clrf.viewer.server import need_websockets
     monkeypatch.setitem(sys.modules, "websockets", None)
     monkeypatch.setitem(sys.modules, "websockets.sync.server", None)

@@ -18,7 +18,7 @@ from clrf.testing import reference
 import clrf.grid.render as render
 from clrf.grid.render import _slot_buffers, grad_slots, launch, render_backward_device
 from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL
-from clrf.tuning import Tuning
+from clrf.runtime.tuning import Tuning
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 

@@ -6,7 +6,7 @@ import pytest
 import clrf
 from clrf.grid import ops as grid_ops
 from clrf.testing import reference as ref
-from clrf.optim import Optimizer, expon_lr
+from clrf.runtime.optim import Optimizer, expon_lr
 
 from clrf.testing.tolerances import FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL
 
@@ -243,7 +243,7 @@ def test_pruned_grid_renders_like_its_dense_equivalent(device):
 
 
 def test_gather_batch_vs_reference(device):
-    from clrf.train import RayStore
+    from clrf.training.trainer import RayStore
     rng = np.random.default_rng(0)
     n_src = 1001
     o = rng.normal(size=(n_src, 3)).astype(np.float32)

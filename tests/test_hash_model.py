@@ -6,7 +6,7 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf.config import ConfigError, HashConfig, build_config
+from clrf.training.config import ConfigError, HashConfig, build_config
 from clrf.hash.model import HashModel
 from clrf.hash.occupancy import OccupancyGrid
 from clrf.testing import reference_hash as rh
@@ -237,7 +237,7 @@ def test_short_training_improves_on_procedural_scene(device):
     """60 steps on the built-in scene: the loss falls and the test PSNR rises by a real margin
     (iteration-based, not tied to machine speed)."""
     from clrf.data import load_dataset
-    from clrf.train import evaluate, training_rays
+    from clrf.training.trainer import evaluate, training_rays
     ds = load_dataset(None)
     cfg = HashConfig.from_preset("tiny", batch_rays=256, samples=64, occ_warmup=20,
                                  occ_every=8, occ_points=8192)
@@ -261,8 +261,8 @@ def test_hash_through_the_cli(tmp_path, capsys):
     iteration budget (not a time budget)."""
     import json
 
-    from clrf import checkpoint
-    from clrf.cli import main as cli
+    from clrf.outputs import checkpoint
+    from clrf.cli.main import main as cli
     out = tmp_path / "h"
     small = ["--set", "hash.batch_rays=256", "--set", "hash.samples=64",
              "--set", "hash.occ_points=8192", "--set", "hash.occ_warmup=20",
@@ -295,7 +295,7 @@ def test_hash_through_the_cli(tmp_path, capsys):
 def test_adam_weight_decay_and_clear_grad(device):
     """Adam with L2 weight decay (the MLP's) and clear_grad (the tables'): the formula, and the
     gradient is zero afterwards; a NaN gradient entry is skipped (and still cleared)."""
-    from clrf.optim import Optimizer
+    from clrf.runtime.optim import Optimizer
     rng = np.random.default_rng(0)
     p, g = rng.normal(size=33), rng.normal(size=33) * 1e-3
     g[3] = np.nan
@@ -334,7 +334,7 @@ def test_memory_guard_names_the_hash_stage(device):
     fix; the tiny preset fits a normal device."""
     from dataclasses import replace as dreplace
 
-    from clrf.memory import MemoryBudgetError, check_training_fits
+    from clrf.runtime.memory import MemoryBudgetError, check_training_fits
     cfg = build_config("tiny", overrides={"train": {"model": "hash"}})
     plan = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
                                device.tuning)

@@ -1,4 +1,4 @@
-"""The host-memory readers (clrf.hostmem) on fixture text, and the guard refusing a run that
+"""The host-memory readers (clrf.runtime.hostmem) on fixture text, and the guard refusing a run that
 would not fit the host instead of letting the kernel's OOM killer end it."""
 import os
 import subprocess
@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from clrf import hostmem
-from clrf.hostmem import (HostBudget, address_space_headroom, cgroup_headroom,
-                          cgroup_v1_headroom, cgroup_v2_headroom, host_budget, meminfo_available,
-                          parse_cgroup_mounts, parse_kib_fields, parse_proc_cgroup)
+from clrf.runtime import hostmem
+from clrf.runtime.hostmem import (
+    HostBudget, address_space_headroom, cgroup_headroom, cgroup_v1_headroom, cgroup_v2_headroom,
+    host_budget, meminfo_available, parse_cgroup_mounts, parse_kib_fields, parse_proc_cgroup)
 from clrf.testing import impls
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,9 +117,9 @@ def test_a_run_beyond_the_host_refuses_naming_the_setting(tmp_path, capsys, monk
     """The guard compares the run's growth with the host budget: a budget of 64 MiB (the
     reader monkeypatched, as a small container's cgroup would give) refuses the procedural
     run before the trainer exists, naming the phase and the settings to lower."""
-    import clrf.train
-    from clrf.cli import main as cli
-    monkeypatch.setattr(clrf.train, "Trainer", None)
+    import clrf.training.trainer
+    from clrf.cli.main import main as cli
+    monkeypatch.setattr(clrf.training.trainer, "Trainer", None)
     monkeypatch.setattr(hostmem, "host_budget",
                         lambda root="/": HostBudget(64 * MiB, "the memory limit of cgroup /test",
                                                     300 * MiB, 300 * MiB))
@@ -141,7 +141,7 @@ def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path, device):
     message, not with a MemoryError, an OpenCL allocation failure or a kill."""
     code = (
         "import resource, sys\n"
-        "from clrf.hostmem import parse_kib_fields\n"
+        "from clrf.runtime.hostmem import parse_kib_fields\n"
         "import pyopencl\n"
         "pyopencl.get_platforms()\n"      # every driver loaded before the size is read
         "size = parse_kib_fields(open('/proc/self/status').read())['VmSize']\n"

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from clrf import icd
+from clrf.runtime import icd
 
 
 def _layout(tmp_path):

@@ -27,7 +27,7 @@ def test_wheel_installs_and_renders(tmp_path):
     for part in ("cl/hash.cl", "cl/hash_occ.h", "cl/hash_march.cl", "hash/model.py"):
         assert (target / "clrf" / part).is_file(), part     # the hash model is packaged
     script = (
-        "import numpy as np, clrf, clrf.programs as p\n"
+        "import numpy as np, clrf, clrf.runtime.programs as p\n"
         "assert 'site' in str(p.cl_dir()), p.cl_dir()\n"
         "dev = clrf.Device()\n"
         "g = clrf.SparseGrid.from_dense(dev, np.ones((2,2,2)), np.zeros((2,2,2,3)), [[0,0,0],[1,1,1]])\n"

@@ -3,7 +3,7 @@ always leaves a checkpoint that `clrf eval` loads, and `--resume` continues from
 metrics.csv intact (rows up to the checkpoint kept, rows after it dropped, no duplicates).
 
 The moment inside the checkpoint write is made deterministic with the CLRF_TEST_CKPT_DELAY
-hook (clrf.rundir.checkpoint_write_delay): checkpoint.save pauses that long after writing the
+hook (clrf.outputs.rundir.checkpoint_write_delay): checkpoint.save pauses that long after writing the
 temporary file and before renaming it, and the test kills while the temporary file exists.
 """
 import csv
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from clrf import checkpoint
-from clrf.cli import main as cli
+from clrf.outputs import checkpoint
+from clrf.cli.main import main as cli
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ["--set", "grid.reso=[[12,12,12],[24,24,24]]", "--set", "grid.upsample_at=[6]",
@@ -127,8 +127,8 @@ def test_sigkill_at_random_moments_keeps_a_resumable_run(tmp_path, capsys):
 
 
 def test_trim_metrics_drops_later_and_torn_rows(tmp_path):
-    from clrf.rundir import remove_stale_temps, trim_metrics
-    from clrf.train import CSV_FIELDS
+    from clrf.outputs.rundir import remove_stale_temps, trim_metrics
+    from clrf.training.trainer import CSV_FIELDS
     f = tmp_path / "metrics.csv"
     good = ["0,0.0,,,9.1,0.5,1,,m\r\n", "5,1.0,0.1,10,9.5,0.6,1,100,m\r\n"]
     later = "9,2.0,0.1,10,9.9,0.7,1,100,m\r\n"

@@ -14,9 +14,8 @@ Layers, bottom to top (a module may import its own layer and the ones below):
     data                    datasets, cameras, protocols
     outputs                 checkpoints, run directories, renders, exports, logs
     training                the trainer, run configuration, model kinds, metrics
-    viewer                  the web viewer
-    cli                     the command line
-    testing                 float64 references and test helpers (used by tests only)
+    viewer, testing         the web viewer; float64 references, test helpers, benchmarks
+    cli                     the command line (``clrf bench`` runs clrf/testing/benchmark.py)
 """
 from __future__ import annotations
 
@@ -31,7 +30,7 @@ PKG = ROOT / "clrf"
 
 REPRESENTATIONS = ("grid", "nerf", "hash")
 RANK = {"runtime": 0, "grid": 1, "nerf": 1, "hash": 1, "data": 1, "outputs": 2,
-        "training": 3, "viewer": 4, "cli": 5, "testing": 6}
+        "training": 3, "viewer": 4, "testing": 4, "cli": 5}
 
 
 def modules(pkg: Path = PKG) -> dict:

@@ -5,8 +5,8 @@ the unit normalisation, the linear weights and the spatial mean."""
 import numpy as np
 import pytest
 
-from clrf.metrics import LpipsUnavailable, lpips, lpips_status
-from clrf.perceptual import BACKBONE_FILES
+from clrf.training.metrics import LpipsUnavailable, lpips, lpips_status
+from clrf.training.perceptual import BACKBONE_FILES
 from clrf.testing.lpips_ref import backbone_shapes, lpips_ref
 from clrf.testing.tolerances import LPIPS_F64_RTOL, LPIPS_REF_ATOL
 
@@ -44,7 +44,7 @@ def test_absence_is_stated(tmp_path, monkeypatch, net):
 def _torch_and_linear(net):
     torch = pytest.importorskip("torch", reason="the 'eval' extra (torch) is not installed: "
                                                 "bash tools/setup.sh eval")
-    from clrf.perceptual import linear_weights_path
+    from clrf.training.perceptual import linear_weights_path
     try:
         path = linear_weights_path(net)
     except LpipsUnavailable as e:
@@ -125,7 +125,7 @@ def test_matches_lpips_package(tmp_path, net):
 def test_wrong_backbone_file_is_refused(tmp_path):
     torch = pytest.importorskip("torch", reason="the 'eval' extra (torch) is not installed: "
                                                 "bash tools/setup.sh eval")
-    from clrf.perceptual import linear_weights_path
+    from clrf.training.perceptual import linear_weights_path
     try:
         linear_weights_path("alex")
     except LpipsUnavailable as e:

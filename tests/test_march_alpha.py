@@ -4,7 +4,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from clrf.grid.render import grid_program
-from clrf.programs import launch
+from clrf.runtime.programs import launch
 
 
 class _G:   # grid_program needs only these attributes

@@ -1,13 +1,13 @@
-"""The memory guard (clrf.memory): per-stage estimates against the device's global memory and
+"""The memory guard (clrf.runtime.memory): per-stage estimates against the device's global memory and
 largest allocation, checked before anything is allocated."""
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from clrf.cli import main as cli
-from clrf.config import build_config
-from clrf.memory import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
+from clrf.cli.main import main as cli
+from clrf.training.config import build_config
+from clrf.runtime.memory import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
 
 GiB = 1 << 30
 
@@ -76,8 +76,8 @@ def test_small_device_names_the_stage_and_the_fix(device):
 
 def test_too_large_scene_exits_2_before_allocating(tmp_path, capsys, monkeypatch):
     # the guard runs before the trainer: no model or ray store is ever built
-    import clrf.train
-    monkeypatch.setattr(clrf.train, "Trainer", None)
+    import clrf.training.trainer
+    monkeypatch.setattr(clrf.training.trainer, "Trainer", None)
     out = tmp_path / "out"
     rc = cli(["train", "--out", str(out), "--set", "grid.reso=[[1024,1024,1024]]",
               "--set", "grid.upsample_at=[]", "--set", "grid.sh_degree=3"])
@@ -110,8 +110,8 @@ def test_uploads_keep_no_host_copy(device):
     import sys
     import numpy as np
     from clrf import SparseGrid
-    from clrf.programs import upload
-    from clrf.train import RayStore
+    from clrf.runtime.programs import upload
+    from clrf.training.trainer import RayStore
     a = np.ones(1000, np.float32)
     refs = sys.getrefcount(a)
     arr = upload(device.queue, a)
@@ -126,8 +126,8 @@ def test_uploads_keep_no_host_copy(device):
 def test_scratch_copies_follow_the_tuning():
     """The grid estimate counts the scratch gradient copies the backward really holds: one on
     CPU devices with block locks, one per slot without them, none on the atomic path."""
-    from clrf.memory import scratch_copies
-    from clrf.tuning import Tuning
+    from clrf.runtime.memory import scratch_copies
+    from clrf.runtime.tuning import Tuning
     assert scratch_copies(True) == 1 and scratch_copies(False) == 0
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=0)) == 8
@@ -138,8 +138,8 @@ def test_host_budget_counts_device_bytes_on_cpus_only(device):
     """On a CPU device the buffers are host memory: the growth checked against the host is
     device + host bytes; on a GPU only the host bytes (ray store copies, checkpoint copies,
     ray building). The predicted peak adds what the process holds and RUNTIME_GROWTH."""
-    from clrf.hostmem import HostBudget
-    from clrf.memory import RUNTIME_GROWTH, plan_training
+    from clrf.runtime.hostmem import HostBudget
+    from clrf.runtime.memory import RUNTIME_GROWTH, plan_training
     cfg = build_config("procedural")
     n = 72 * 64 * 64
     big = replace(device.caps, global_mem_size=64 * GiB, max_alloc_size=64 * GiB)
@@ -166,7 +166,7 @@ def test_cpu_devices_budget_against_the_host_not_global_mem(device):
     does not cap the sum of its buffers at it: with the host's budget known, a CPU run larger
     than global_mem_size but within the host's budget fits; a GPU run does not, nor a CPU run
     whose host budget is unknown. max_alloc_size binds everywhere."""
-    from clrf.hostmem import HostBudget
+    from clrf.runtime.hostmem import HostBudget
     cfg = build_config("synthetic")
     small = replace(device.caps, global_mem_size=int(0.5 * GiB), max_alloc_size=2 * GiB)
     roomy = HostBudget(64 * GiB, "test", 0, 0)

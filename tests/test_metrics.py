@@ -5,7 +5,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from clrf.metrics import SSIM_WINDOW, image_metrics, ssim
+from clrf.training.metrics import SSIM_WINDOW, image_metrics, ssim
 from clrf.testing.tolerances import SSIM_REF_ATOL
 
 

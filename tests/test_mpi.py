@@ -103,7 +103,7 @@ def test_training_matches_single_process(tmp_path):
     """`mpirun -n 2 clrf train` on the same batches as one process, with a prune + upsample
     at iteration 8: the same loss and PSNR and the same pruned grid, rank 0 alone writes the
     run files, and a single process evaluates the merged bricks."""
-    from clrf.cli import main as cli
+    from clrf.cli.main import main as cli
     from clrf.testing.tolerances import DIST_TRAIN_ATOL, DIST_TRAIN_RTOL
     args = ["--max-seconds", "600", *TRAIN, "--set", "train.max_iters=20",   # procedural scene
             "--set", "train.eval_every=1e6", "--set", "grid.reso=[[16,16,16],[32,32,32]]",
@@ -134,7 +134,7 @@ def test_training_matches_single_process(tmp_path):
     # the merged checkpoint: the same pruned and upsampled grid as the single-process run's
     # (the values are not compared row by row: RMSProp's first steps after the upsample move
     # each row by about lr * sign(gradient), so rows with near-zero gradients part ways)
-    from clrf import checkpoint
+    from clrf.outputs import checkpoint
     a, b = checkpoint.load(dist), checkpoint.load(single)
     assert a["links"].shape == (32, 32, 32)
     np.testing.assert_array_equal(a["links"], b["links"])
@@ -170,8 +170,8 @@ def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
     a single process evaluates it and `mpirun clrf train --resume` continues from it."""
     import signal
     import time
-    from clrf import checkpoint
-    from clrf.cli import main as cli
+    from clrf.outputs import checkpoint
+    from clrf.cli.main import main as cli
     data = _scene(tmp_path / "scene.npz")
     out = tmp_path / "run"
     cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-m",

@@ -259,7 +259,7 @@ def test_original_nerf_size_builds_and_matches(device):
 
 
 def test_invalid_shapes_fail_to_build(device):
-    from clrf.programs import BuildError
+    from clrf.runtime.programs import BuildError
     with pytest.raises(BuildError, match="MLP_WIDTH"):
         MLP(device, MLPSpec(width=40))
     with pytest.raises(BuildError, match="MLP_SKIP"):
@@ -324,6 +324,6 @@ def test_chunk_rounds_up_to_whole_tiles(device):
                                                 ("dw_rows", 6, "DW_ROWS"),
                                                 ("dw_cols", 8, "DW_COLS")])
 def test_invalid_tiles_fail_to_build(device, field, value, define):
-    from clrf.programs import BuildError
+    from clrf.runtime.programs import BuildError
     with pytest.raises(BuildError, match=define):
         MLP(device, replace(TILE_SPEC, **{field: value}))

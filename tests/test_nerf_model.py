@@ -4,7 +4,7 @@ import pyopencl.array as cla
 import pytest
 
 from clrf.nerf import NerfConfig, NerfModel
-from clrf.optim import Optimizer
+from clrf.runtime.optim import Optimizer
 from clrf.testing import tolerances as tol
 
 # a very small model so that each step takes milliseconds

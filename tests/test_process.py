@@ -20,7 +20,7 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap", reason="clrf process needs pycolmap (clrf[process])")
 imageio = pytest.importorskip("imageio")
 
-from clrf.process import detect_preset, pick_frames, sharpness   # noqa: E402
+from clrf.data.process import detect_preset, pick_frames, sharpness  # noqa: E402
 
 W, H, FOCAL = 160, 120, 130.0         # pixels; horizontal field of view about 63 degrees
 N_VIEWS, RADIUS, HEIGHT = 30, 1.8, 0.6
@@ -250,7 +250,7 @@ def test_process_video(capture, tmp_path):
 
 
 def test_process_without_pycolmap_says_how_to_install(tmp_path, monkeypatch):
-    from clrf.process import ProcessError, process
+    from clrf.data.process import ProcessError, process
     monkeypatch.setitem(sys.modules, "pycolmap", None)        # import pycolmap -> ImportError
     (tmp_path / "src").mkdir()
     with pytest.raises(ProcessError, match=r"pip install clrf\[process\]"):

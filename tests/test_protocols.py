@@ -6,12 +6,12 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from clrf import protocols
-from clrf.cli import main as cli
+from clrf.data import protocols
+from clrf.cli.main import main as cli
 from clrf.data import DataError
 from clrf.data.llff import load_llff
 from clrf.data.synthetic import load_procedural
-from clrf.protocols import ProtocolError, prepare
+from clrf.data.protocols import ProtocolError, prepare
 
 CAPTURE = (96, 128, 100.0)      # H, W, focal of the "original" capture in poses_bounds.npy
 

@@ -3,8 +3,8 @@
 - Every line of a ```sh / ```bash block in README.md is split like a shell would (quotes,
   backslash continuations, `&&`, `;`, `|`, leading VAR=value assignments, comments) and each
   command in it is checked without running it:
-    * `clrf ...` (also `.venv/bin/clrf`): its arguments parse with clrf.cli.build_parser(),
-      and for `clrf train` the --set / --SECTION.KEY values pass clrf.config.build_config;
+    * `clrf ...` (also `.venv/bin/clrf`): its arguments parse with clrf.cli.main.build_parser(),
+      and for `clrf train` the --set / --SECTION.KEY values pass clrf.training.config.build_config;
     * `python -m MODULE` names an importable module, `python tools/X.py` an existing file;
     * `bash tools/setup.sh EXTRAS`: each extra is in setup.cfg's extras_require or handled by
       tools/setup.sh itself (a `*,NAME,*` case);
@@ -91,7 +91,7 @@ def setup_extras():
 
 
 def check_clrf(args):
-    from clrf.cli import build_parser, parse_set
+    from clrf.cli.main import build_parser, parse_set
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):
@@ -100,8 +100,8 @@ def check_clrf(args):
         raise AssertionError(f"`clrf {' '.join(args)}` does not parse: {err.getvalue().strip()}"
                              ) from e
     if a.cmd == "train":   # the configuration values too (keys, types, ranges)
-        from clrf.cli_config import config_flags, merge_overrides
-        from clrf.config import ConfigError, build_config
+        from clrf.cli.config_flags import config_flags, merge_overrides
+        from clrf.training.config import ConfigError, build_config
         try:
             build_config(a.preset or "", None, merge_overrides(parse_set(a.set), config_flags(a)))
         except ConfigError as e:

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import clrf
-from clrf import selfcheck
-from clrf.device import DeviceError, choose_device
-from clrf.tuning import Tuning
+from clrf.runtime import selfcheck
+from clrf.runtime.device import DeviceError, choose_device
+from clrf.runtime.tuning import Tuning
 
 
 @pytest.fixture
@@ -53,7 +53,7 @@ def test_training_refuses_a_device_with_wrong_gradients(device, own_cache, monke
     assert dev.caps.driver_version in msg and "wrong gradients" in msg and "CLRF_DEVICE" in msg
     # the cached verdict keeps it from being the default: choose_device skips it
     assert selfcheck.known_wrong(dev.cl_device) is not None
-    if len(clrf.device.list_devices()) == 1:
+    if len(clrf.runtime.device.list_devices()) == 1:
         with pytest.raises(DeviceError):
             choose_device("auto")
 

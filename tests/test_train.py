@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from clrf import checkpoint
-from clrf.cli import main as cli
-from clrf.config import ConfigError, build_config
+from clrf.outputs import checkpoint
+from clrf.cli.main import main as cli
+from clrf.training.config import ConfigError, build_config
 from clrf.data.synthetic import load_procedural
 from clrf.grid.model import GridModel
 

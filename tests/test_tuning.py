@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from clrf.tuning import Tuning
+from clrf.runtime.tuning import Tuning
 
 
 def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True):

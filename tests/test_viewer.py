@@ -17,10 +17,10 @@ pytest.importorskip("websockets", reason="the viewer needs websockets (clrf[view
 from websockets.exceptions import ConnectionClosed  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from clrf.cameras import look_at  # noqa: E402
-from clrf.cli import build_parser  # noqa: E402
-from clrf.frames import render_pose, spec_from_fov, to_uint8  # noqa: E402
-from clrf.models import load_model  # noqa: E402
+from clrf.data.cameras import look_at  # noqa: E402
+from clrf.cli.main import build_parser  # noqa: E402
+from clrf.outputs.frames import render_pose, spec_from_fov, to_uint8  # noqa: E402
+from clrf.training.models import load_model  # noqa: E402
 from clrf.viewer import dataset_cameras, render_loop  # noqa: E402
 from clrf.viewer.core import (Frame, RequestError, ViewerCore, frame_image,  # noqa: E402
                               parse_request)
@@ -278,8 +278,8 @@ def test_background_and_near_controls(loaded):
 
 
 def test_dataset_cameras(ckpt):
-    from clrf import checkpoint
-    from clrf.cli import _ckpt_dataset
+    from clrf.outputs import checkpoint
+    from clrf.cli.main import _ckpt_dataset
     ds = _ckpt_dataset(checkpoint.load(ckpt), None)
     cams = dataset_cameras(ds)
     assert len(cams) == len(ds.split["train"]) + len(ds.split["test"])
@@ -319,7 +319,7 @@ def test_viewer_speed_tool_runs(ckpt, tmp_path):
 
 def test_nerf_checkpoint_in_the_viewer(device, tmp_path):
     """The viewer renders a NeRF checkpoint through the same path (and swaps its background)."""
-    from clrf.cli import main as cli
+    from clrf.cli.main import main as cli
     out = tmp_path / "n"
     tiny = ["--set", "nerf.width=16", "--set", "nerf.depth=2", "--set", "nerf.color_width=16",
             "--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8", "--set", "nerf.batch_rays=256",
@@ -342,8 +342,8 @@ def test_nerf_checkpoint_in_the_viewer(device, tmp_path):
 
 
 def test_view_usage_errors(tmp_path, loaded, capsys):
-    from clrf.cli import CliError
-    from clrf.cli import main as cli
+    from clrf.cli.main import CliError
+    from clrf.cli.main import main as cli
     assert cli(["view", "--ckpt", str(tmp_path / "nothing"), "--port", "0"]) == 2
     assert "no checkpoint" in capsys.readouterr().err
     model, state = loaded

@@ -12,8 +12,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from clrf import camera_path
-from clrf.cli import main as cli
+from clrf.outputs import camera_path
+from clrf.cli.main import main as cli
 from clrf.testing.tolerances import VIEWER_PIXEL_ATOL
 from viewer_util import ViewProcess, browser as _browser, console_errors, train_tiny
 from viewer_util import wait as _wait

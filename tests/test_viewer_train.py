@@ -13,8 +13,8 @@ import pytest
 pytest.importorskip("websockets", reason="the viewer needs websockets (clrf[view])")
 from websockets.sync.client import connect  # noqa: E402
 
-from clrf import checkpoint  # noqa: E402
-from clrf.cameras import look_at  # noqa: E402
+from clrf.outputs import checkpoint  # noqa: E402
+from clrf.data.cameras import look_at  # noqa: E402
 from clrf.viewer.server import decode_frame  # noqa: E402
 from viewer_util import FAST, ROOT, START_TIMEOUT, browser, console_errors, wait  # noqa: E402
 

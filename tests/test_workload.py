@@ -2,7 +2,7 @@
 import pytest
 
 import clrf
-from clrf import workload
+from clrf.runtime import workload
 
 
 @pytest.fixture
@@ -43,7 +43,7 @@ def test_a_named_device_is_used_as_named(device, own_cache):
 def test_the_fastest_contender_wins(device, own_cache, monkeypatch):
     """Two contenders (the same device twice, as far as the ranking knows): the one whose
     workload is clearly faster is chosen and the reason says so."""
-    from clrf import device as devmod
+    from clrf.runtime import device as devmod
     real = devmod.choose_device
 
     def two(spec=None, refresh=False):

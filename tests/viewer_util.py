@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from clrf.cli import main as cli
+from clrf.cli.main import main as cli
 
 ROOT = Path(__file__).resolve().parent.parent
 # the built-in procedural scene, 16^3 -> 32^3 after 8 iterations (as tests/test_train.py)

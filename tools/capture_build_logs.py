@@ -47,9 +47,9 @@ from pyopencl.characterize import has_src_build_cache  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from clrf.device import probe_capabilities  # noqa: E402
-from clrf.programs import build_flags  # noqa: E402
-from clrf.tuning import Tuning  # noqa: E402
+from clrf.runtime.device import probe_capabilities  # noqa: E402
+from clrf.runtime.programs import build_flags  # noqa: E402
+from clrf.runtime.tuning import Tuning  # noqa: E402
 
 OUT = ROOT / "tests" / "fixtures" / "build_logs"
 KERNELS = OUT / "kernels"

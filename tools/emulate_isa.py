@@ -2,7 +2,7 @@
 
     python tools/emulate_isa.py avx2 tools/nerf_bench.py --out avx2.json
     python tools/emulate_isa.py avx2 tools/bench.py --only 'grid/fwdbwd/128/sh2/*/camera'
-    python tools/emulate_isa.py avx2 -m clrf.autotune --preset original
+    python tools/emulate_isa.py avx2 -m clrf.nerf.tiling --preset original
 
 What changes, for the tool's process only:
 - PoCL compiles the kernels for the ISA's LLVM CPU (POCL_LLVM_CPU_NAME, e.g. haswell: the
@@ -50,7 +50,7 @@ def main(argv=None) -> None:
                        "XDG_CACHE_HOME": os.path.join(scratch, "cache")})
     here = os.path.dirname(os.path.abspath(__file__))
     sys.path[:0] = [os.path.dirname(here), here]
-    import clrf.device as device   # after the environment: PoCL reads it when it loads
+    import clrf.runtime.device as device
 
     probe = device.probe_capabilities
     device.probe_capabilities = lambda d: dataclasses.replace(probe(d), native_float_width=width)

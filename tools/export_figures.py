@@ -23,7 +23,7 @@ def draw_mesh(ply, png, elev=30.0, azim=-60.0, max_faces=60_000):
     import matplotlib.pyplot as plt
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from clrf.ply import read_ply
+    from clrf.outputs.ply import read_ply
 
     m = read_ply(ply)
     v, f = m["verts"].astype(np.float64), m["faces"]
@@ -57,7 +57,7 @@ def main(argv=None):
     a = p.parse_args(argv)
     import imageio.v3 as iio
 
-    from clrf.cli import main as cli
+    from clrf.cli.main import main as cli
 
     run, out = Path(a.run), Path(a.out)
     work = run / "export"

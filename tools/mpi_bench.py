@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import pyopencl.array as cla  # noqa: E402
 
 import clrf  # noqa: E402
-from clrf.config import GridConfig  # noqa: E402
+from clrf.training.config import GridConfig  # noqa: E402
 from clrf.grid import bricks as B  # noqa: E402
 from clrf.grid.dist_model import DistGridModel  # noqa: E402
 
@@ -130,7 +130,7 @@ def main():
     ap.add_argument("--out", default="")
     a = ap.parse_args()
     try:
-        from clrf.distributed import world
+        from clrf.grid.distributed import world
         comm = world()
     except RuntimeError:
         comm = None

@@ -39,7 +39,7 @@ import pyopencl.array as cla
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # this checkout's clrf first
 
 import clrf  # noqa: E402
-from clrf.autotune import CHUNK_TILES, MLPTiling, device_default  # noqa: E402
+from clrf.nerf.tiling import CHUNK_TILES, MLPTiling, device_default  # noqa: E402
 from clrf.nerf.mlp import MLP, MLPSpec  # noqa: E402
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)

@@ -1,6 +1,6 @@
 """Train NerfModel on tiny_lego for a time budget; print test PSNR over time as CSV.
 
-Standalone (the shared training loop lives in clrf.train): rays from poses and focal in
+Standalone (the shared training loop lives in clrf.training.trainer): rays from poses and focal in
 numpy (vectorised), random batches over all training pixels, evaluation on the test views.
 
     CLRF_DATA=/work/shared/data PYTHONPATH=. python tools/train_nerf_tiny.py --minutes 10
@@ -21,7 +21,7 @@ import numpy as np
 import pyopencl.array as cla
 
 import clrf
-from clrf.metrics import psnr_from_mse
+from clrf.training.metrics import psnr_from_mse
 from clrf.nerf import NerfConfig, NerfModel
 
 

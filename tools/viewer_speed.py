@@ -34,7 +34,7 @@ WAIT = 300.0   # seconds any one frame may take before the run is abandoned
 
 def cameras(meta, n):
     """n cameras orbiting the scene box (NDC scenes: small turns of the reference camera)."""
-    from clrf.cameras import orbit_poses
+    from clrf.data.cameras import orbit_poses
     if meta.get("ndc"):
         out = []
         for a in np.linspace(-0.1, 0.1, n):
@@ -61,8 +61,8 @@ def main(argv=None):
 
     from websockets.sync.client import connect
 
-    from clrf.device import Device
-    from clrf.models import load_model
+    from clrf.runtime.device import Device
+    from clrf.training.models import load_model
     from clrf.viewer import render_loop
     from clrf.viewer.core import ViewerCore
     from clrf.viewer.server import ViewerServer, decode_frame

@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera_models import MODELS, UNSUPPORTED, check_camera, from_colmap
-from ..cameras import camera_dirs, distort
+from .camera_models import MODELS, UNSUPPORTED, check_camera, from_colmap
+from .cameras import camera_dirs, distort
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale_image,
                  holdout_split, inside, limit_split, parse_background, read_image, require_dir, warn)

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import average_pose, ndc_extent
+from .cameras import average_pose, ndc_extent
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_poses, check_splits, composite, holdout_split,
                  inside, limit_split, load_images, parse_background, require_dir, require_file,

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera_models import FAMILIES, Distortion, as_distortion, check_camera
+from .camera_models import FAMILIES, Distortion, as_distortion, check_camera
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
                  get_field, holdout_split, inside, limit_split, load_images, parse_background,

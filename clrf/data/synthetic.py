@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..cameras import look_at, pixel_rays
+from .cameras import look_at, pixel_rays
 from .base import Dataset
 
 BLENDER_CAMERA_ANGLE_X = 0.6911112070083618   # the Blender scenes' horizontal field of view

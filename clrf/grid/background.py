@@ -26,10 +26,10 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..background import MSIBackground
-from ..optim import Optimizer, expon_lr
+from .msi import MSIBackground
+from ..runtime.optim import Optimizer, expon_lr
 from .render import ray_exit_device
-from ..programs import upload
+from ..runtime.programs import upload
 
 
 def msi_geometry(bbox):

@@ -30,7 +30,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch
+from ..runtime.programs import launch
 from .grid import SparseGrid
 from .ops import TV_EPS
 from .render import block_occupancy, grad_slots, grid_program, launch_backward

@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from .. import checkpoint
-from ..distributed import DistGrid
-from ..optim import Optimizer
+from ..outputs import checkpoint
+from .distributed import DistGrid
+from ..runtime.optim import Optimizer
 from . import bricks as B
 from .grid import sh_dim
 from .model import GridModel
 from .render import BETA_EPS
-from ..programs import upload
+from ..runtime.programs import upload
 
 
 def check_schedule(cfg, ranks: int):

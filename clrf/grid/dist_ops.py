@@ -27,7 +27,7 @@ import pyopencl.array as cla
 from . import bricks as B
 from .ops import prune_keep
 from .grid import SparseGrid
-from ..programs import upload
+from ..runtime.programs import upload
 
 
 def _inter(alo, ahi, blo, bhi):

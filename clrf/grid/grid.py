@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from ..validate import as_bbox, check_array
-from ..programs import upload
+from ..runtime.validate import as_bbox, check_array
+from ..runtime.programs import upload
 
 SH_DIMS = {3 * (d + 1) ** 2: d for d in range(4)}
 

@@ -14,12 +14,12 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import ops as grid_ops
-from ..config import GridConfig
+from ..training.config import GridConfig
 from .background import GridBackground
 from .grid import SparseGrid, sh_dim
-from ..optim import Optimizer, expon_lr
+from ..runtime.optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
-from ..programs import upload
+from ..runtime.programs import upload
 
 
 def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:

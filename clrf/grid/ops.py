@@ -6,7 +6,7 @@ import pyopencl.array as cla
 from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
-from ..programs import launch, upload
+from ..runtime.programs import launch, upload
 from .render import render_max_weight_device
 
 TV_EPS = 1e-9

@@ -9,8 +9,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch, upload
-from ..validate import check_array, check_positive, check_rays
+from ..runtime.programs import launch, upload
+from ..runtime.validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
 BETA_EPS = 1e-3        # guard inside the beta prior's logs (cl/grid_render.cl BETA_EPS)

@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch, upload
+from ..runtime.programs import launch, upload
 
 INIT_SCALE = 1e-4   # tables start uniform in +-INIT_SCALE (the published initialisation)
 SH_DIM = 16         # hash_sh_encode: degree 3 (4 bands), 16 coefficients

@@ -13,7 +13,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch, upload
+from ..runtime.programs import launch, upload
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
 

@@ -38,12 +38,12 @@ from dataclasses import asdict
 import numpy as np
 import pyopencl.array as cla
 
-from ..config import HashConfig
+from ..training.config import HashConfig
 from ..nerf import ops
 from ..nerf.mlp import MLP, MLPSpec
 from ..nerf.model import _key
-from ..optim import Optimizer
-from ..programs import launch, upload
+from ..runtime.optim import Optimizer
+from ..runtime.programs import launch, upload
 from .encoding import SH_DIM, HashEncoding
 from .march import STATE, finish_state, march, packed_backward, packed_forward
 from .occupancy import OccupancyGrid
@@ -207,7 +207,7 @@ class HashModel:
     def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
         """Evaluation render (no jitter) of numpy rays [n, 3]: numpy rgb [n,3], depth [n],
         acc [n]."""
-        from ..validate import check_rays
+        from ..runtime.validate import check_rays
         o, d = check_rays(origins, dirs)
         if np.any(np.max(np.abs(d), axis=1) == 0):
             raise ValueError("dirs: every direction must be non-zero")

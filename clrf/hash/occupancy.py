@@ -10,7 +10,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch, upload
+from ..runtime.programs import launch, upload
 from .encoding import box_args
 
 

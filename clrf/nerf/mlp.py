@@ -19,8 +19,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..autotune import MLPTiling, mlp_tiling_for
-from ..programs import launch, upload
+from .tiling import MLPTiling, mlp_tiling_for
+from ..runtime.programs import launch, upload
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3, "trunc_exp": 4}
 SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation

@@ -23,10 +23,10 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import ops
-from ..optim import Optimizer
-from ..config import NerfConfig
+from ..runtime.optim import Optimizer
+from ..training.config import NerfConfig
 from .mlp import MLP
-from ..programs import upload
+from ..runtime.programs import upload
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
@@ -124,7 +124,7 @@ class NerfModel:
     def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
         """Evaluation render (no jitter) of numpy rays [n, 3]; numpy rgb [n,3], depth [n],
         acc [n] of the fine pass (the coarse pass when n_fine == 0)."""
-        from ..validate import check_rays
+        from ..runtime.validate import check_rays
         o, d = check_rays(origins, dirs)
         if np.any(np.max(np.abs(d), axis=1) == 0):
             raise ValueError("dirs: every direction must be non-zero")

@@ -12,7 +12,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..programs import launch
+from ..runtime.programs import launch
 
 # Work-group sizes come from device.tuning (clrf/tuning.py): elementwise_local_size,
 # per_ray_local_size, encode_local_size.

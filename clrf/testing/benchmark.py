@@ -17,7 +17,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import reference
-from ..device import Device
+from ..runtime.device import Device
 from ..grid import SparseGrid
 from ..grid.render import render_backward_device, render_forward_device
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import functools
 
-from ..device import Device, list_devices
-from ..device_probe import probe
+from ..runtime.device import Device, list_devices
+from ..runtime.device_probe import probe
 
 SIMULATORS = ("oclgrind",)
 
@@ -48,8 +48,8 @@ def is_slow(name: str) -> bool:
     """Whether implementation ``name`` is a slow driver for this machine (clrf.device_probe
     slow_reasons: under a twelfth of the CPU's estimated peak, a generic target, or a sibling
     driver three times faster), e.g. rusticl's llvmpipe software device."""
-    from ..device_probe import cpu_flags, slow_reasons
-    from ..device import _candidate
+    from ..runtime.device_probe import cpu_flags, slow_reasons
+    from ..runtime.device import _candidate
     devs = {f"{pi}:{di}": (pi, di, d) for pi, di, d in list_devices()}
     cands = [_candidate(*v, probe(v[2])) for v in devs.values()]
     spec = present()[name]
@@ -61,7 +61,7 @@ def is_slow(name: str) -> bool:
 def default_device() -> Device:
     """The session's device: what ``clrf train`` picks for the grid (CLRF_DEVICE honoured;
     among equal probe figures the faster grid workload, clrf/workload.py)."""
-    from ..workload import device_for
+    from ..runtime.workload import device_for
     return device_for("grid")
 
 

@@ -41,8 +41,8 @@ def up_vector(cameras) -> list:
 
 def run_view(a):
     """``clrf view``: serve a checkpoint until Ctrl-C (or --exit-after seconds)."""
-    from ..device import Device
-    from ..models import load_model
+    from ..runtime.device import Device
+    from ..training.models import load_model
     from .core import ViewerCore
     from .server import ViewerServer, need_websockets, warn_host
 
@@ -52,7 +52,7 @@ def run_view(a):
     meta = state["dataset"]
     cams = []
     if not a.no_cameras:
-        from ..cli import _ckpt_dataset
+        from ..cli.main import _ckpt_dataset
         try:
             cams = dataset_cameras(_ckpt_dataset(state, a.data))
         except Exception as e:   # noqa: BLE001 - the viewer works without the dataset

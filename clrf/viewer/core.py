@@ -27,7 +27,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from ..frames import MAX_SIDE, check_pose, render_pose, spec_from_fov, to_uint8
+from ..outputs.frames import MAX_SIDE, check_pose, render_pose, spec_from_fov, to_uint8
 
 OUTPUTS = ("rgb", "depth", "acc")
 DEFAULT_CAP = 800        # largest frame side at rest

@@ -31,10 +31,10 @@ class LiveViewer:
     def __init__(self, trainer, host="127.0.0.1", port=8080, share=0.2):
         need_websockets()
         if not 0 < share <= 1:
-            from ..cli import CliError
+            from ..cli.main import CliError
             raise CliError(f"--view-share {share}: must be in (0, 1], the largest fraction of "
                            f"wall time the viewer may render for")
-        from ..train import dataset_meta
+        from ..training.trainer import dataset_meta
         cams = dataset_cameras(trainer.ds)
         self.core = ViewerCore(trainer.model, dataset_meta(trainer.ds), cams, share=share,
                                training=True)
@@ -65,7 +65,7 @@ class LiveViewer:
     failed = False
 
     def _step(self, trainer, loss):
-        from ..metrics import psnr_from_mse
+        from ..training.metrics import psnr_from_mse
         core = self.core
         core.model = trainer.model
         core.update_stats(iteration=trainer.iteration, seconds=trainer.seconds, loss=float(loss),

@@ -40,7 +40,7 @@ def need_websockets():
     try:
         import websockets.sync.server  # noqa: F401
     except ImportError:
-        from ..cli import CliError
+        from ..cli.main import CliError
         raise CliError("the viewer needs the 'websockets' package: pip install websockets "
                        "(or clrf[view], or `bash tools/setup.sh view`)") from None
 
@@ -131,7 +131,7 @@ class ViewerServer:
                                  process_request=self._http, compression=None,
                                  ping_interval=PING, ping_timeout=PING)
         except OSError as e:
-            from ..cli import CliError
+            from ..cli.main import CliError
             raise CliError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e}); pass "
                            f"another --port (0 picks a free one)") from None
         self.port = self._server.socket.getsockname()[1]
@@ -239,8 +239,8 @@ class ViewerServer:
                                f"save_path")
 
     def _save_path(self, msg):
-        from .. import camera_path as cp
-        from ..frames import check_pose
+        from ..outputs import camera_path as cp
+        from ..outputs.frames import check_pose
         if self.path_dir is None:
             raise RequestError("save_path: this viewer has no folder to save into")
         keys = msg.get("keyframes")

@@ -188,7 +188,7 @@ def _peer_taichi(ctx, p):
     return _peer_case(ctx, p, taichi_grid.TaichiGrid)
 
 
-# ---- training kernels (main: clrf.grid.ops, clrf.optim, clrf.grid.model) ----------------------
+# ---- training kernels (main: clrf.grid.ops, clrf.runtime.optim, clrf.grid.model) ----------------------
 def _touched_all(dev, n):
     t = cla.empty(dev.queue, n, np.uint8)
     t.fill(1)
@@ -221,7 +221,7 @@ def _train_tv(ctx, p):
 @factory("train.optim")
 def _train_optim(ctx, p):
     """Optimizer.step (RMSProp) over every row of density and SH (all touched): rows/s."""
-    from clrf.optim import Optimizer
+    from clrf.runtime.optim import Optimizer
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
     od = Optimizer(dev, grid.density.copy(), "rmsprop")
@@ -274,7 +274,7 @@ def _train_prune(ctx, p):
 def _train_step(ctx, p):
     """One full Plenoxels training step (GridModel.train_step: fused render backward, TV,
     RMSProp on density and SH, per-batch MSE read back) on a batch of random rays: rays/s."""
-    from clrf.config import GridConfig
+    from clrf.training.config import GridConfig
     from clrf.grid.model import GridModel
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])
@@ -306,7 +306,7 @@ def _train_specs():
     return [
         Spec("train/tv/128/sh2/dense", "train.tv", dict(base), "cells/s", dict(quick), need_ops),
         Spec("train/optim/128/sh2/dense", "train.optim", dict(base), "rows/s", dict(quick),
-             (("clrf.optim", "Optimizer"),)),
+             (("clrf.runtime.optim", "Optimizer"),)),
         Spec("train/upsample/64to128/sh2/dense", "train.upsample", dict(base, reso=64),
              "cells/s", dict(quick, reso=8), (("clrf.grid.ops", "resample"),)),
         Spec("train/prune/128/sh2/dense", "train.prune",

@@ -55,7 +55,7 @@ def hash_tiny_table_gradients(run):
     """dL/denc of 1e-8 (and 1e-30): table gradients vs float64 relative to their size, and Adam
     with eps 1e-15 moves an fp32 table entry by ~lr from a 1e-8 gradient (float64 twin)."""
     _encoding_vs_reference(run, 4, 8, 4, 64, genc_scale=1e-8, label="|g| 1e-8")
-    from clrf.optim import Optimizer
+    from clrf.runtime.optim import Optimizer
     q = run.device.queue
     n = 64
     p = run.rng.uniform(-1e-4, 1e-4, n)
@@ -71,7 +71,7 @@ def hash_tiny_table_gradients(run):
 
 
 def _model(run, **over):
-    from clrf.config import HashConfig
+    from clrf.training.config import HashConfig
     from clrf.hash.model import HashModel
     cfg = HashConfig.from_preset("tiny", levels=4, log2_table=10, min_res=4, max_res=64,
                                  width=16, color_width=16, samples=32, occ_res=8,

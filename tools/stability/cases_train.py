@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import clrf
-import clrf.metrics
+import clrf.training.metrics
 import pyopencl.array as cla
 from clrf.testing import reference as ref
 
@@ -31,15 +31,15 @@ def reduce_case(run, fp64: bool, kind: str):
     A, B = cla.to_device(q, a), cla.to_device(q, b)
     diff = a.astype(np.float64) - b.astype(np.float64)
     want = float(np.dot(diff, diff))
-    got = clrf.metrics.sum_squares(run.device, A, B, fp64=fp64)
+    got = clrf.training.metrics.sum_squares(run.device, A, B, fp64=fp64)
     naive = float(np.cumsum(((a - b) ** 2).astype(np.float32), dtype=np.float32)[-1])
     rt = tol("STAB_ZERO_ATOL", "STAB_REDUCE_FP64_RTOL" if fp64 else "STAB_REDUCE_F32C_RTOL")
     run.compare(f"sum_squares n={n}", [got], [want], rt,
                 note=f"float32 running sum rel. error {abs(naive - want) / want:.1e}")
-    run.compare("mse", [clrf.metrics.mse(run.device, A, B, fp64=fp64)], [want / n], rt)
-    run.compare("psnr (dB)", [clrf.metrics.psnr(run.device, A, B, fp64=fp64)],
+    run.compare("mse", [clrf.training.metrics.mse(run.device, A, B, fp64=fp64)], [want / n], rt)
+    run.compare("psnr (dB)", [clrf.training.metrics.psnr(run.device, A, B, fp64=fp64)],
                 [10 * math.log10(n / want)], tol("STAB_PSNR_ATOL"))
-    run.compare("identical -> 0", [clrf.metrics.sum_squares(run.device, A, A, fp64=fp64)], [0.0],
+    run.compare("identical -> 0", [clrf.training.metrics.sum_squares(run.device, A, A, fp64=fp64)], [0.0],
                 EXACT)
 
 
@@ -50,7 +50,7 @@ FLT_MAX = float(np.finfo(np.float32).max)
 
 
 def _opt(run, mode, p0, s0=None, eps=1e-8):
-    from clrf.optim import Optimizer
+    from clrf.runtime.optim import Optimizer
     q = run.device.queue
     p = cla.to_device(q, np.ascontiguousarray(p0, np.float32))
     st = None if s0 is None else cla.to_device(q, np.ascontiguousarray(s0, np.float32))
@@ -161,7 +161,7 @@ def opt_long_sparse(run, mode):
     """Long run of sparse updates: each step touches a random 1% of 2000 rows (D = 4) with
     gradients of random sign and magnitude 1e-3..1e3 (10% exact zeros), lr from expon_lr
     (1e-1 -> 1e-3); the kernel and the float64 twin run in lockstep from the same inputs."""
-    from clrf.optim import expon_lr
+    from clrf.runtime.optim import expon_lr
     n, D = 2000, 4
     steps = run.size(300, 2000)
     p0 = run.rng.normal(size=(n, D)).astype(np.float32)
@@ -375,7 +375,7 @@ def prune_to_nothing(run):
     """Pruning every row: a grid with 0 rows (one padding row), then resampled to other
     resolutions (still 0 rows), TV and an optimiser step on it (no-ops), rendered (background)."""
     from clrf.grid import ops as grid_ops
-    from clrf.optim import Optimizer
+    from clrf.runtime.optim import Optimizer
     R = run.size(6, 16)
     dens, sh = random_grid(run.rng, (R, R, R), degree=1, dens=2.0)
     g = make_grid(run, dens, sh)
@@ -444,7 +444,7 @@ def flat_grid_upsample(run):
 def batch_extremes(run):
     """Batch indices for 1, 2, 3 and 2^18 + 3 source rays, seeds 0, 2^32 - 1 and a large odd
     one: exactly the twin's, all in range; a 1-ray source gives only index 0."""
-    from clrf.train import RayStore
+    from clrf.training.trainer import RayStore
     for n_src in (1, 2, 3, (1 << 18) + 3):
         src = run.rng.random((n_src, 3)).astype(np.float32)
         store = RayStore(run.device, src, src, src)

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import detect_layout
-from .data.base import Dataset, DataError
-from .data.io import IMAGE_EXTS, image_header
+from . import detect_layout
+from .base import Dataset, DataError
+from .io import IMAGE_EXTS, image_header
 
 PROTOCOLS = {
     "blender": "NeRF synthetic: the test split at 800x800, RGBA composited on white",
@@ -95,7 +95,7 @@ def _first_image_hw(folder: Path):
 
 
 def _prepare_blender(root, allow_downscaled):
-    from .data.blender import load_blender
+    from .blender import load_blender
     ds = load_blender(root, splits=("test",), background="white")
     hw = tuple(int(x) for x in ds.hw)
     pd = ProtocolData("blender", ds, np.asarray(ds.split["test"]), BLENDER_HW, True,
@@ -143,7 +143,7 @@ def _llff_source(root, factor, captured):
 
 def _capture_kind(pb, path):
     """'forward_facing' or 'real360' for poses_bounds rows, as load_llff(kind="auto") decides."""
-    from .data.llff import normalize_capture
+    from .llff import normalize_capture
     n = pb.shape[0]
     p35 = pb[:, :15].reshape(n, 3, 5).astype(np.float64)
     poses = np.tile(np.eye(4), (n, 1, 1))
@@ -152,7 +152,7 @@ def _capture_kind(pb, path):
 
 
 def _prepare_llff_like(protocol, root, allow_downscaled, scene_type):
-    from .data.llff import load_llff
+    from .llff import load_llff
     try:
         pb = np.load(root / "poses_bounds.npy", allow_pickle=False)
     except Exception:  # noqa: BLE001 - the loader names the problem

@@ -22,14 +22,14 @@ class CliError(Exception):
 
 
 def _user_errors():
-    from .checkpoint import CheckpointError
-    from .config import ConfigError
-    from .data.base import DataError
-    from .device import DeviceError
-    from .export import ExportError
-    from .camera_path import CameraPathError
-    from .perceptual import LpipsUnavailable
-    from .programs import BuildError
+    from ..outputs.checkpoint import CheckpointError
+    from ..training.config import ConfigError
+    from ..data.base import DataError
+    from ..runtime.device import DeviceError
+    from ..outputs.export import ExportError
+    from ..outputs.camera_path import CameraPathError
+    from ..training.perceptual import LpipsUnavailable
+    from ..runtime.programs import BuildError
     return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
             ExportError, CameraPathError, LpipsUnavailable)
 
@@ -58,25 +58,25 @@ def _out_dir(path) -> Path:
 
 
 def load_data(path, downscale=1):
-    from .data import load_dataset
+    from ..data import load_dataset
     opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
     return load_dataset(path or None, **opts)
 
 
 def cmd_train(a):
-    from .config import build_config
-    from .device import Device
-    from .hostmem import host_budget
-    from .memory import check_training_fits
-    from .models import FACTORIES
-    from .train import Trainer
+    from ..training.config import build_config
+    from ..runtime.device import Device
+    from ..runtime.hostmem import host_budget
+    from ..runtime.memory import check_training_fits
+    from ..training.models import FACTORIES
+    from ..training.trainer import Trainer
 
     if a.log == "tensorboard":
-        from .tblog import available
+        from ..outputs.tblog import available
         if not available():
             raise CliError("--log tensorboard needs tensorboardX: pip install tensorboardX (or "
                            "clrf[tensorboard])")
-    from .cli_config import config_flags, merge_overrides
+    from .config_flags import config_flags, merge_overrides
     overrides = merge_overrides(parse_set(a.set), config_flags(a))   # --set, then --SECTION.KEY
     tr = overrides.setdefault("train", {})
     for k, v in (("max_seconds", a.max_seconds), ("model", a.model), ("data", a.data),
@@ -85,7 +85,7 @@ def cmd_train(a):
             tr[k] = v
     out = _out_dir(a.out)
     if a.resume:
-        from .checkpoint import load
+        from ..outputs.checkpoint import load
         state = load(out)
         base = state["run_config"]
         if not a.config:
@@ -100,7 +100,7 @@ def cmd_train(a):
                        f"start over there, or another --out")
     data_path = overrides["train"].get("data") or ""
     if a.config and "data" not in tr:
-        from .config import load_config_file
+        from ..training.config import load_config_file
         data_path = load_config_file(a.config).get("train", {}).get("data", "") or data_path
     # load at the command line's downscale straight away (a full-size load only to learn the
     # dataset's preset took 14 s on bonsai); reload only if a config file sets another one
@@ -117,7 +117,7 @@ def cmd_train(a):
         raise CliError("--view: the viewer runs with single-process training; drop --view "
                        "under mpirun (view the checkpoint afterwards with `clrf view`)")
     if comm is not None:
-        from .grid.dist_model import check_schedule
+        from ..grid.dist_model import check_schedule
         if cfg.train.model != "grid":
             raise CliError(f"train.model = '{cfg.train.model}': distributed training "
                            f"({comm.Get_size()} MPI ranks) is not supported for it, only for "
@@ -131,10 +131,10 @@ def cmd_train(a):
         except ValueError as e:
             raise CliError(str(e)) from None
         if comm.Get_rank() > 0:
-            from .progress import set_quiet
+            from ..runtime.progress import set_quiet
             set_quiet(True)
     if comm is None:   # the device that runs this model kind fastest (clrf/workload.py)
-        from .workload import device_for
+        from ..runtime.workload import device_for
         dev = device_for(cfg.train.model, a.device)
     else:
         dev = Device(a.device)
@@ -146,7 +146,7 @@ def cmd_train(a):
         print(f"clrf: memory: {plan.describe()}", file=sys.stderr)
     else:   # each rank holds its brick: estimate with the largest brick's box per stage
         import copy
-        from .grid.bricks import split
+        from ..grid.bricks import split
         bcfg = copy.deepcopy(cfg)
         bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
                                    key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
@@ -167,15 +167,15 @@ def cmd_train(a):
               f"output {out}", file=sys.stderr)
     factory = FACTORIES[cfg.train.model]
     if comm is not None:
-        from .models import DistGridFactory
+        from ..training.models import DistGridFactory
         factory = DistGridFactory(comm)
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if a.log == "tensorboard":
-        from .tblog import TensorBoardLog
+        from ..outputs.tblog import TensorBoardLog
         trainer.metric_sinks = (TensorBoardLog(out),)
     if a.view:
-        from .viewer.live import LiveViewer
+        from ..viewer.live import LiveViewer
         trainer.viewer = LiveViewer(trainer, a.host, a.port, a.view_share)
     try:
         res = trainer.run()
@@ -221,7 +221,7 @@ def end_message(out, res, data_path="") -> str:
 
 def _mpi_world():
     """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None (clrf.distributed)."""
-    from .distributed import world
+    from ..grid.distributed import world
     try:
         return world()
     except RuntimeError as e:
@@ -236,23 +236,23 @@ def _ckpt_dataset(state, data_override):
 
 
 def cmd_eval(a):
-    from .cli_eval import cmd_eval as run
+    from .evaluate import cmd_eval as run
     return run(a)
 
 
 def cmd_render(a):
     import imageio.v3 as iio
 
-    from .cameras import camera_orbit_poses, orbit_poses, spiral_poses
-    from .cli_export import check_render_args, depth_outputs, write_video
-    from .device import Device
-    from .frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
-    from .models import load_model
-    from .progress import bar
+    from ..data.cameras import camera_orbit_poses, orbit_poses, spiral_poses
+    from .export import check_render_args, depth_outputs, write_video
+    from ..runtime.device import Device
+    from ..outputs.frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
+    from ..training.models import load_model
+    from ..runtime.progress import bar
 
     path = None
     if a.camera_path:
-        from .camera_path import load as load_path
+        from ..outputs.camera_path import load as load_path
         path = load_path(a.camera_path)
         a.views = "path"
         if a.fps is None:
@@ -320,18 +320,18 @@ def cmd_render(a):
 
 
 def cmd_export(a):
-    from .cli_export import cmd_export as run
+    from .export import cmd_export as run
     return run(a)
 
 
 def cmd_view(a):
-    from .viewer import run_view
+    from ..viewer import run_view
     return run_view(a)
 
 
 def cmd_devices(a):
-    from .device import check_default, format_devices
-    from .workload import format_choices
+    from ..runtime.device import check_default, format_devices
+    from ..runtime.workload import format_choices
     if a.check:
         return check_default(refresh=a.reprobe)
     print(format_devices(refresh=a.reprobe, workloads=format_choices(measure=a.workloads)))
@@ -339,7 +339,7 @@ def cmd_devices(a):
 
 
 def cmd_bench(a):
-    from .testing.benchmark import main as bench_main
+    from ..testing.benchmark import main as bench_main
     return bench_main(["--reso", str(a.reso), "--degree", str(a.degree)])
 
 
@@ -379,7 +379,7 @@ def build_parser():
     t.add_argument("--view-share", type=float, default=0.2, metavar="FRACTION",
                    help="--view: largest fraction of wall time spent rendering for the viewer "
                         "(default 0.2)")
-    from .cli_config import add_config_flags
+    from .config_flags import add_config_flags
     add_config_flags(t)   # --grid.reso, --train.max_seconds, --nerf.width, ...
     t.set_defaults(func=cmd_train)
 
@@ -407,7 +407,7 @@ def build_parser():
     r.add_argument("--max-views", type=int, default=0)
     r.set_defaults(func=cmd_render)
 
-    from .cli_eval import add_eval_parser
+    from .evaluate import add_eval_parser
     add_eval_parser(sub, cmd_eval)
 
     x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint, "
@@ -462,7 +462,7 @@ def build_parser():
     b.add_argument("--degree", type=int, default=2)
     b.set_defaults(func=cmd_bench)
 
-    from .cli_process import add_process_parser
+    from .process import add_process_parser
     add_process_parser(sub)   # clrf process VIDEO|IMAGE_DIR --out DIR
     return p
 
@@ -470,7 +470,7 @@ def build_parser():
 def main(argv=None):
     parser = build_parser()
     a = parser.parse_args(argv)   # argparse exits 2 on unknown options, with usage
-    from .progress import set_quiet
+    from ..runtime.progress import set_quiet
     set_quiet(a.quiet)
     if a.device is not None:
         import os

@@ -16,7 +16,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from .cameras import as_distortion
+from ..data.cameras import as_distortion
 
 MAX_SIDE = 4096   # largest image side a camera may ask for (a 4096^2 frame is 16.8 M rays)
 
@@ -94,8 +94,8 @@ def frame_rays(spec: ViewSpec, pose):
     """Rays of every pixel of one camera, float32 [H*W, 3] origins and directions, rows first:
     ``view_rays`` (as evaluation), or for a viewing camera of an NDC scene the world rays of
     that camera through the training camera's NDC map (``spec.ndc_frame``)."""
-    from .cameras import pixel_rays, to_ndc
-    from .train import view_rays
+    from ..data.cameras import pixel_rays, to_ndc
+    from ..training.trainer import view_rays
     if spec.ndc and spec.ndc_frame is not None:
         H, W = spec.hw
         o, d = pixel_rays(check_pose(pose)[None], spec.intrinsics, H, W, spec.distortion)

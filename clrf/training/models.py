@@ -1,19 +1,19 @@
 """Model kinds the trainer and CLI know, and loading a model back from a checkpoint."""
 from __future__ import annotations
 
-from . import checkpoint
+from ..outputs import checkpoint
 from .config import Config, _merge
 
 
 class GridFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .grid.model import GridModel
+        from ..grid.model import GridModel
         return GridModel.create(device, cfg.grid, ds.bbox, background)
 
     @staticmethod
     def from_state(device, state, cfg):
-        from .grid.model import GridModel
+        from ..grid.model import GridModel
         return GridModel.from_state_dict(device, state, cfg.grid)
 
 
@@ -25,36 +25,36 @@ class DistGridFactory:
         self.brick = (comm.Get_rank(), comm.Get_size())   # checkpoint.load(brick=...)
 
     def create(self, device, cfg, ds, background):
-        from .grid.dist_model import DistGridModel
+        from ..grid.dist_model import DistGridModel
         return DistGridModel.create(device, cfg.grid, ds.bbox, background, self.comm)
 
     def from_state(self, device, state, cfg):
-        from .grid.dist_model import DistGridModel
+        from ..grid.dist_model import DistGridModel
         return DistGridModel.from_state_dict(device, state, cfg.grid, self.comm)
 
 
 class NerfFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .nerf import NerfModel
+        from ..nerf import NerfModel
         return NerfModel(device, cfg.nerf, ds.near, ds.far, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
-        from .nerf import NerfModel
+        from ..nerf import NerfModel
         return NerfModel.from_state_dict(device, state)
 
 
 class HashFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from .hash.model import HashModel, ray_range
+        from ..hash.model import HashModel, ray_range
         near, far = ray_range(ds)
         return HashModel(device, cfg.hash, near, far, ds.bbox, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
-        from .hash.model import HashModel
+        from ..hash.model import HashModel
         return HashModel.from_state_dict(device, state)
 
 

@@ -29,12 +29,13 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from . import checkpoint, rundir, selfcheck
-from .cameras import as_distortion, pixel_rays, to_ndc
-from .data.io import downscale_image
+from ..outputs import checkpoint, rundir
+from ..runtime import selfcheck
+from ..data.cameras import as_distortion, pixel_rays, to_ndc
+from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
-from .programs import launch, upload
-from .progress import TrainProgress
+from ..runtime.programs import launch, upload
+from ..runtime.progress import TrainProgress
 
 EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
 CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "eval_ssim",

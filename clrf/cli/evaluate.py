@@ -20,21 +20,21 @@ def _lpips_setup(a):
     """(net, None) when LPIPS will be computed, else (net or None, the stated reason)."""
     if a.lpips == "none":
         return None, "LPIPS not requested (--lpips none)"
-    from .perceptual import lpips_status
+    from ..training.perceptual import lpips_status
     why = lpips_status(a.lpips, a.lpips_backbone)
     return a.lpips, why
 
 
 def _views_and_data(a, state):
     """(dataset, views, protocol info or None) for the command's arguments."""
-    from .cli import _ckpt_dataset
+    from .main import _ckpt_dataset
     if a.protocol:
-        from .protocols import prepare
+        from ..data.protocols import prepare
         path = a.data if a.data is not None else state["run_config"]["train"].get("data", "")
         pd = prepare(a.protocol, path, a.allow_downscaled, a.scene_type)
         meta = state["dataset"]
         if bool(meta["ndc"]) != bool(pd.dataset.ndc):
-            from .cli import CliError
+            from .main import CliError
             raise CliError(f"--ckpt {a.ckpt}: the run was trained on a "
                            f"{'forward-facing (NDC)' if meta['ndc'] else 'non-NDC'} scene, but "
                            f"{path} under the {a.protocol} protocol is "
@@ -46,12 +46,12 @@ def _views_and_data(a, state):
 
 
 def cmd_eval(a):
-    from .device import Device
-    from .metrics import SSIM_NAME
-    from .models import load_model
-    from .perceptual import lpips
-    from .progress import bar
-    from .train import evaluate
+    from ..runtime.device import Device
+    from ..training.metrics import SSIM_NAME
+    from ..training.models import load_model
+    from ..training.perceptual import lpips
+    from ..runtime.progress import bar
+    from ..training.trainer import evaluate
 
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
@@ -113,7 +113,7 @@ def cmd_eval(a):
 
 
 def add_eval_parser(sub, func):
-    from .protocols import PROTOCOLS
+    from ..data.protocols import PROTOCOLS
     e = sub.add_parser("eval", help="PSNR / SSIM / LPIPS of a checkpoint on its test views or "
                                     "under a published protocol")
     e.add_argument("--ckpt", required=True)

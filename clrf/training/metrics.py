@@ -21,7 +21,7 @@ from pyopencl.reduction import ReductionKernel
 from skimage.metrics import structural_similarity
 
 from .perceptual import LpipsUnavailable, lpips, lpips_status  # noqa: F401 - re-exported
-from .programs import cl_dir
+from ..runtime.programs import cl_dir
 
 
 def psnr_from_mse(mse: float) -> float:

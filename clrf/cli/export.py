@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .progress import bar
+from ..runtime.progress import bar
 
 MAX_RESO = 2048          # marching-cubes cells per side (the host volume is reso^3 floats)
 DEPTH_MIN_OPACITY = 0.5  # depth maps are NaN / background where less light is absorbed
 
 
 def _error(msg):
-    from .export import ExportError
+    from ..outputs.export import ExportError
     return ExportError(msg)
 
 
@@ -58,10 +58,10 @@ def _ndc_of(meta):
 
 
 def cmd_export(a):
-    from .device import Device
-    from .export import default_reso, extract_mesh, point_cloud
-    from .models import load_model
-    from .ply import write_ply
+    from ..runtime.device import Device
+    from ..outputs.export import default_reso, extract_mesh, point_cloud
+    from ..training.models import load_model
+    from ..outputs.ply import write_ply
 
     mesh_path, points_path = check_export_args(a)
     dev = Device(a.device)
@@ -69,7 +69,7 @@ def cmd_export(a):
     meta = state["dataset"]
     ndc = _ndc_of(meta)
     if points_path:   # load the dataset first: a bad one must stop the run before any output
-        from .cli import _ckpt_dataset
+        from .main import _ckpt_dataset
         ds = _ckpt_dataset(state, a.data)
     if mesh_path:
         bbox = np.asarray(a.bbox if a.bbox is not None else meta["bbox"], np.float64).reshape(2, 3)
@@ -100,7 +100,7 @@ def cmd_export(a):
 def training_ray_sample(ds, n, seed=0):
     """Rays (model space: NDC when the scene uses it) of ``n`` training pixels drawn without
     replacement (all of them if there are fewer), built one view at a time."""
-    from .train import view_rays
+    from ..training.trainer import view_rays
     H, W = ds.hw
     views = np.asarray(ds.split["train"])
     total = len(views) * H * W

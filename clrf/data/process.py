@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .data.base import DataError
-from .data.io import IMAGE_EXTS
-from .data.llff import FACING_THRESHOLD
-from .progress import bar, message
+from .base import DataError
+from .io import IMAGE_EXTS
+from .llff import FACING_THRESHOLD
+from ..runtime.progress import bar, message
 
 VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 EXHAUSTIVE_MAX = 100     # "auto" matcher: exhaustive up to this many images, else sequential

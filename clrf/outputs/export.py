@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl.array as cla
 
-from .programs import launch, upload
+from ..runtime.programs import launch, upload
 
 BLOCK = 1 << 20          # points per device evaluation (12 MB of coordinates)
 NDC_MAX_DEPTH = 0.99     # NDC z' beyond this (world depth > 200 x near) is "at infinity": dropped
@@ -65,7 +65,7 @@ def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
     rgb = np.empty((n, 3), np.float32)
     q = model.device.queue
     if model.kind != "grid":   # the MLP keeps every activation: bound them as its render does
-        from .nerf.model import MAX_RENDER_SCRATCH
+        from ..nerf.model import MAX_RENDER_SCRATCH
         net = model.net if model.kind == "hash" else model.fine
         block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * net.layout.nslot)))
     for s in range(0, n, block):
@@ -96,7 +96,7 @@ def _grid_fields(grid, points):
 
 
 def _nerf_fields(model, points, dirs):
-    from .nerf import ops
+    from ..nerf import ops
     c, dev = model.config, model.device
     xe = ops.encode(dev, points, c.pos_freqs, c.include_input, c.pos_scale)
     de = ops.encode(dev, dirs, c.dir_freqs, c.include_input, c.dir_scale)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 def add_process_parser(sub):
     """Add ``process`` to the subparsers ``sub`` of the clrf CLI."""
-    from .process import EXHAUSTIVE_MAX, ProcessOptions
+    from ..data.process import EXHAUSTIVE_MAX, ProcessOptions
     d = ProcessOptions()
     p = sub.add_parser(
         "process", help="pose a video or a folder of photos with COLMAP (needs clrf[process]) "
@@ -39,7 +39,7 @@ def add_process_parser(sub):
 
 
 def cmd_process(a):
-    from .process import ProcessOptions, process
+    from ..data.process import ProcessOptions, process
     opt = ProcessOptions(frames=a.frames, matcher=a.matcher, overlap=a.overlap,
                          camera_model=a.camera_model, max_features=a.max_features,
                          min_fraction=a.min_fraction, threads=a.threads, force=a.force)

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import ConfigError
+from ..training.config import ConfigError
 
 GiB = float(1 << 30)
 MiB = float(1 << 20)
@@ -176,7 +176,7 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int, rows=None) -> lis
 def nerf_stage(nc, n_rays: int, caps) -> StageEstimate:
     """StageEstimate of a NeRF run with NerfConfig ``nc`` on a device described by ``caps``
     (its default register tile sets the weight-gradient chunk when the config leaves it open)."""
-    from .autotune import CHUNK_TILES, device_default
+    from ..nerf.tiling import CHUNK_TILES, device_default
     spec = nc.mlp_spec()
     dw_chunk = spec.dw_chunk or (CHUNK_TILES * spec.rows if spec.rows
                                  else device_default(caps, spec).dw_chunk)

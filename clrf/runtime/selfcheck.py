@@ -97,9 +97,9 @@ def _store(key: str, res: CheckResult) -> None:
 
 def _closed_form(device) -> str:
     """'' when the uniform-grid gradients match the closed form (module doc), else why not."""
-    from .grid.grid import SparseGrid
-    from .grid.render import render_rays, render_rays_backward
-    from .testing.reference import COLOR_OFFSET
+    from ..grid.grid import SparseGrid
+    from ..grid.render import render_rays, render_rays_backward
+    from ..testing.reference import COLOR_OFFSET
     sigma, c0, bg = 0.8, 0.7, 0.2
     reso = (6, 5, 4)
     bbox = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -140,9 +140,9 @@ def _closed_form(device) -> str:
 
 def _reference(device) -> str:
     """'' when a random grid's gradients match the float64 reference, else why not."""
-    from .grid.grid import SparseGrid
-    from .grid.render import render_rays_backward
-    from .testing import reference as ref
+    from ..grid.grid import SparseGrid
+    from ..grid.render import render_rays_backward
+    from ..testing import reference as ref
     rng = np.random.default_rng(11)
     reso = (5, 4, 6)
     dens = rng.uniform(0.0, 2.0, reso).astype(np.float32)

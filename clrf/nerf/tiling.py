@@ -189,7 +189,7 @@ def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
 def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list:
     """Median wall seconds of one forward + backward (n samples) per tile, timed in
     interleaved rounds (each round runs every tile once) after one warm-up each."""
-    from .nerf.mlp import MLP   # nerf/mlp.py imports this module for its defaults
+    from .mlp import MLP  # nerf/mlp.py imports this module for its defaults
     import pyopencl.array as cla
     q = device.queue
     rng = np.random.default_rng(0)
@@ -228,7 +228,7 @@ def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None)
 
 
 def main(argv=None) -> int:
-    from .device import Device, DeviceError
+    from ..runtime.device import Device, DeviceError
     ap = argparse.ArgumentParser(prog="python -m clrf.autotune",
                                  description="Time fused-MLP tiles on a device; cache the best.")
     ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
@@ -249,7 +249,7 @@ def main(argv=None) -> int:
     if a.samples < 1 or a.rounds < 1:
         print("clrf: error: --samples and --rounds must be >= 1", file=sys.stderr)
         return 2
-    from .config import NerfConfig
+    from ..training.config import NerfConfig
     over = {k: getattr(a, k) for k in ("width", "depth", "skip", "color_width", "hidden_act",
                                        "sigma_act") if getattr(a, k) is not None}
     cfg = NerfConfig.from_preset(a.preset, **over)
@@ -261,7 +261,7 @@ def main(argv=None) -> int:
             return 2
     dims = {k: getattr(a, k) for k in ("in_dim", "dir_dim") if getattr(a, k) is not None}
     spec = replace(cfg.mlp_spec(), **dims)
-    from .programs import BuildError
+    from ..runtime.programs import BuildError
     try:
         dev = Device(a.device)
         best, res = tune(dev, spec, a.samples, a.rounds)

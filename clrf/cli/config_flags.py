@@ -29,7 +29,7 @@ import io
 import json
 import tokenize
 
-from . import config as config_mod
+from ..training import config as config_mod
 
 DEST_PREFIX = "cfg__"     # argparse dest of a generated flag: cfg__SECTION__KEY
 

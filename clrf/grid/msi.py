@@ -25,7 +25,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch, upload
+from ..runtime.programs import launch, upload
 
 PER_RAY_LOCAL_SIZE = 16  # one ray per work-item with a loop over its L - 1 samples
 

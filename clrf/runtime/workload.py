@@ -88,8 +88,8 @@ def _best_time(step) -> float:
 def _grid_rate(device) -> float:
     import pyopencl.array as cla
 
-    from .grid.grid import SparseGrid
-    from .grid.render import render_backward_device, render_forward_device
+    from ..grid.grid import SparseGrid
+    from ..grid.render import render_backward_device, render_forward_device
     from .programs import upload
     rng = np.random.default_rng(3)
     r = WORK_RESO
@@ -115,7 +115,7 @@ def _grid_rate(device) -> float:
 def _nerf_rate(device) -> float:
     import pyopencl.array as cla
 
-    from .nerf.mlp import MLP, MLPSpec
+    from ..nerf.mlp import MLP, MLPSpec
     spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=15)
     net = MLP(device, spec)
     q = device.queue

@@ -22,7 +22,7 @@ import os
 
 import numpy as np
 import pyopencl.array as cla
-from .programs import upload
+from ..runtime.programs import upload
 
 # The world size MPI launchers put in the environment of every process they start (Open MPI's
 # mpirun; PMI launchers: MPICH and Intel MPI's Hydra, srun --mpi=pmi2). Without one, the
@@ -125,7 +125,7 @@ class DistGrid:
     def forward(self, origins_d, dirs_d, step, background):
         """Composed render of every ray: (comp, packed) with comp as bricks.compose (float64
         rgb, depth, acc, T_end, T_before, order) and packed the partials [P, n, 7]."""
-        from .grid import bricks
+        from . import bricks
         part = bricks.render_partial_device(self.grid, origins_d, dirs_d, step)
         packed = self.allgather(bricks.pack_partials(part))
         return bricks.compose(packed, background), packed
@@ -134,7 +134,7 @@ class DistGrid:
                  grad_density, grad_sh, touched=None, grad_T=None):
         """Add this brick's gradients of sum(grad_rgb * rgb) (+ grad_T * T_end) into its rows;
         call sum_halo afterwards to complete the overlap rows."""
-        from .grid import bricks
+        from . import bricks
         inp = bricks.backward_inputs(packed, comp, grad_rgb, background, grad_T)[self.rank]
         q = self.grid.device.queue
         bricks.render_backward_partial_device(self.grid, origins_d, dirs_d,
