@@ -1,4 +1,4 @@
-"""Fused-MLP tiles per device (clrf/autotune.py): defaults, the tuner's cache, the choice order,
+"""Fused-MLP tiles per device (clrf/nerf/tiling.py, clrf/nerf/autotune.py): defaults, the tuner's cache, the choice order,
 and a smoke run of the tuner and of tools/nerf_bench.py at tiny sizes."""
 import json
 import sys
@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from clrf.nerf import autotune as tuner
 from clrf.nerf import tiling as at
 from clrf.runtime.device import Capabilities
 from clrf.nerf.mlp import MLP, MLPSpec
@@ -116,7 +117,7 @@ def test_choice_order_spec_then_cache_then_default(cache):
 
 
 def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
-    best, res = at.tune(device, SPEC, n=64, rounds=1)
+    best, res = tuner.tune(device, SPEC, n=64, rounds=1)
     assert [t for t, _ in res] == at.candidates(device.caps, SPEC)
     assert all(s > 0 for _, s in res) and best == min(res, key=lambda r: r[1])[0]
     assert at.cached_tiling(device.caps, SPEC) == best
@@ -124,15 +125,15 @@ def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
 
 
 def test_tuner_cli(device, cache, capsys):
-    assert at.main(["--samples", "0"]) == 2
+    assert tuner.main(["--samples", "0"]) == 2
     assert "clrf: error: --samples" in capsys.readouterr().err
-    assert at.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
+    assert tuner.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
                     "--rounds", "1"]) == 2
     assert "clrf: error: --width must be" in capsys.readouterr().err and not cache.exists()
     # the tiny preset's shape with NeRF's skip (layer 4 of 4): rejected by name, not a build error
-    assert at.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
+    assert tuner.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
     assert "clrf: error: --skip must be" in capsys.readouterr().err and not cache.exists()
-    assert at.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
+    assert tuner.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
                     "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1"]) == 0
     out = capsys.readouterr().out
     assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
@@ -140,7 +141,7 @@ def test_tuner_cli(device, cache, capsys):
     from clrf.training.config import NerfConfig
     tiny = NerfConfig.from_preset("tiny").mlp_spec()
     assert at.cached_tiling(device.caps, tiny) is None
-    assert at.main(["--preset", "tiny", "--samples", "8", "--rounds", "1"]) == 0
+    assert tuner.main(["--preset", "tiny", "--samples", "8", "--rounds", "1"]) == 0
     assert at.cached_tiling(device.caps, tiny) is not None
 
 

@@ -334,7 +334,7 @@ def test_memory_guard_names_the_hash_stage(device):
     fix; the tiny preset fits a normal device."""
     from dataclasses import replace as dreplace
 
-    from clrf.runtime.memory import MemoryBudgetError, check_training_fits
+    from clrf.training.budget import MemoryBudgetError, check_training_fits
     cfg = build_config("tiny", overrides={"train": {"model": "hash"}})
     plan = check_training_fits(device.caps, device.is_cpu, cfg, 100 * 100 * 100,
                                device.tuning)

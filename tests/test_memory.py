@@ -1,4 +1,4 @@
-"""The memory guard (clrf.runtime.memory): per-stage estimates against the device's global memory and
+"""The memory guard (clrf/training/budget.py over clrf/runtime/memory.py): per-stage estimates against the device's global memory and
 largest allocation, checked before anything is allocated."""
 from dataclasses import replace
 
@@ -7,7 +7,7 @@ import pytest
 
 from clrf.cli.main import main as cli
 from clrf.training.config import build_config
-from clrf.runtime.memory import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
+from clrf.training.budget import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
 
 GiB = 1 << 30
 
@@ -126,7 +126,7 @@ def test_uploads_keep_no_host_copy(device):
 def test_scratch_copies_follow_the_tuning():
     """The grid estimate counts the scratch gradient copies the backward really holds: one on
     CPU devices with block locks, one per slot without them, none on the atomic path."""
-    from clrf.runtime.memory import scratch_copies
+    from clrf.training.budget import scratch_copies
     from clrf.runtime.tuning import Tuning
     assert scratch_copies(True) == 1 and scratch_copies(False) == 0
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1
@@ -139,7 +139,7 @@ def test_host_budget_counts_device_bytes_on_cpus_only(device):
     device + host bytes; on a GPU only the host bytes (ray store copies, checkpoint copies,
     ray building). The predicted peak adds what the process holds and RUNTIME_GROWTH."""
     from clrf.runtime.hostmem import HostBudget
-    from clrf.runtime.memory import RUNTIME_GROWTH, plan_training
+    from clrf.training.budget import RUNTIME_GROWTH, plan_training
     cfg = build_config("procedural")
     n = 72 * 64 * 64
     big = replace(device.caps, global_mem_size=64 * GiB, max_alloc_size=64 * GiB)

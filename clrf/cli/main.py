@@ -67,7 +67,7 @@ def cmd_train(a):
     from ..training.config import build_config
     from ..runtime.device import Device
     from ..runtime.hostmem import host_budget
-    from ..runtime.memory import check_training_fits
+    from ..training.budget import check_training_fits
     from ..training.models import FACTORIES
     from ..training.trainer import Trainer
 

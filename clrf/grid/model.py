@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import ops as grid_ops
-from ..training.config import GridConfig
+from .config import GridConfig
 from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr

@@ -38,7 +38,7 @@ from dataclasses import asdict
 import numpy as np
 import pyopencl.array as cla
 
-from ..training.config import HashConfig
+from .config import HashConfig
 from ..nerf import ops
 from ..nerf.mlp import MLP, MLPSpec
 from ..nerf.model import _key

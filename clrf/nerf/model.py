@@ -24,7 +24,7 @@ import pyopencl.array as cla
 
 from . import ops
 from ..runtime.optim import Optimizer
-from ..training.config import NerfConfig
+from .config import NerfConfig
 from .mlp import MLP
 from ..runtime.programs import upload
 

@@ -1,5 +1,5 @@
 """Register tiles of the fused MLP (cl/mlp.cl) per device: defaults from the device's vector
-width, and a small autotuner whose results are cached per device and MLP shape.
+width, and the cache of the tuner's results (clrf/nerf/autotune.py) per device and MLP shape.
 
 Choice order for each tile field (``MLPTiling``): a value set in ``MLPSpec`` > the tuned cache
 entry for (platform, device, driver, MLP shape) > ``device_default(caps)``.
@@ -37,7 +37,7 @@ interleaved rounds). The GPU row is a register-budget guess (one work-item per t
 memory), not a measurement: run the tuner there. ``dw_chunk`` (rows per partial weight
 gradient) defaults to 64 tiles of ``rows`` samples.
 
-    python -m clrf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
+    python -m clrf.nerf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
         --dir-dim 27     # times the candidates, prints them, caches the best
 
 The cache is JSON at ``$XDG_CACHE_HOME/clrf/mlp_tiling.json`` (default ``~/.cache/clrf``),
@@ -45,16 +45,11 @@ written atomically; an unreadable or malformed file is ignored (and replaced on 
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 import tempfile
-import time
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-
-import numpy as np
 
 TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
 CHUNK_TILES = 64            # default dw_chunk = CHUNK_TILES * rows
@@ -183,100 +178,3 @@ def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
     if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
         chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
     return replace(base, **chosen)
-
-
-# ---- tuner ----------------------------------------------------------------------------------
-def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list:
-    """Median wall seconds of one forward + backward (n samples) per tile, timed in
-    interleaved rounds (each round runs every tile once) after one warm-up each."""
-    from .mlp import MLP  # nerf/mlp.py imports this module for its defaults
-    import pyopencl.array as cla
-    q = device.queue
-    rng = np.random.default_rng(0)
-    x = cla.to_device(q, rng.random((n, spec.in_dim), np.float32))
-    d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
-    ds = cla.to_device(q, rng.random(n, np.float32))
-    dr = cla.to_device(q, rng.random((n, 3), np.float32))
-    nets = [MLP(device, replace(spec, **asdict(t))) for t in tiles]
-
-    def run(net):
-        net.forward(x, d)
-        net.backward(ds, dr)
-        q.finish()
-
-    for net in nets:
-        run(net)
-    times = [[] for _ in nets]
-    for _ in range(rounds):
-        for i, net in enumerate(nets):
-            t0 = time.perf_counter()
-            run(net)
-            times[i].append(time.perf_counter() - t0)
-    return [float(np.median(t)) for t in times]
-
-
-def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None):
-    """Time ``candidates`` for ``spec`` on ``device``, cache the fastest and return
-    (best MLPTiling, [(tiling, median seconds)])."""
-    tiles = candidates(device.caps, spec)
-    secs = time_candidates(device, spec, tiles, n, rounds)
-    best = min(range(len(tiles)), key=secs.__getitem__)
-    store_tiling(device.caps, spec, tiles[best],
-                 {"fwdbwd_s": secs[best], "samples": n, "rounds": rounds,
-                  "tuned_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, path)
-    return tiles[best], list(zip(tiles, secs))
-
-
-def main(argv=None) -> int:
-    from ..runtime.device import Device, DeviceError
-    ap = argparse.ArgumentParser(prog="python -m clrf.autotune",
-                                 description="Time fused-MLP tiles on a device; cache the best.")
-    ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
-    ap.add_argument("--preset", default="original", choices=("tiny", "original"),
-                    help="the NeRF preset whose MLP shape to tune (the flags below override it); "
-                         "'tiny' is what `clrf train --model nerf` uses by default")
-    ap.add_argument("--width", type=int, default=None)
-    ap.add_argument("--depth", type=int, default=None)
-    ap.add_argument("--skip", type=int, default=None, help="-1: no skip connection")
-    ap.add_argument("--color-width", type=int, default=None)
-    ap.add_argument("--in-dim", type=int, default=None, help="encoded position dims")
-    ap.add_argument("--dir-dim", type=int, default=None, help="encoded direction dims")
-    ap.add_argument("--hidden-act", default=None, choices=("relu", "softplus"))
-    ap.add_argument("--sigma-act", default=None, choices=("relu", "softplus"))
-    ap.add_argument("--samples", type=int, default=4096, help="samples per timed pass")
-    ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
-    a = ap.parse_args(argv)
-    if a.samples < 1 or a.rounds < 1:
-        print("clrf: error: --samples and --rounds must be >= 1", file=sys.stderr)
-        return 2
-    from ..training.config import NerfConfig
-    over = {k: getattr(a, k) for k in ("width", "depth", "skip", "color_width", "hidden_act",
-                                       "sigma_act") if getattr(a, k) is not None}
-    cfg = NerfConfig.from_preset(a.preset, **over)
-    for ok, name, msg in cfg.checks():   # the ranges a run config would be held to
-        if not ok:
-            key = name.split(".")[-1]
-            print(f"clrf: error: --{key.replace('_', '-')} {msg} (got {getattr(cfg, key)})",
-                  file=sys.stderr)
-            return 2
-    dims = {k: getattr(a, k) for k in ("in_dim", "dir_dim") if getattr(a, k) is not None}
-    spec = replace(cfg.mlp_spec(), **dims)
-    from ..runtime.programs import BuildError
-    try:
-        dev = Device(a.device)
-        best, res = tune(dev, spec, a.samples, a.rounds)
-    except (DeviceError, BuildError) as e:
-        print(f"clrf: error: {str(e).splitlines()[0]}", file=sys.stderr)
-        return 2
-    flop = spec.flops_per_sample()[1] * a.samples
-    print(f"device {dev}")
-    for t, s in res:
-        mark = "*" if t == best else " "
-        print(f"{mark} rows {t.rows:2d} cols {t.cols} dw_rows {t.dw_rows:2d} dw_cols {t.dw_cols} "
-              f"dw_chunk {t.dw_chunk:4d}: fwd+bwd {s * 1e3:8.2f} ms  {flop / s / 1e9:7.1f} GFLOP/s")
-    print(f"cached in {cache_path()}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,6 +1,8 @@
 """Typed, validated configuration: defaults < scene preset < config file < command line.
 
-One dataclass per concern. Every field is commented; `validate()` rejects out-of-range values
+One dataclass per concern: the run (TrainConfig, here) and one section per model kind, each
+beside its model (GridConfig in clrf/grid/config.py, NerfConfig in clrf/nerf/config.py,
+HashConfig in clrf/hash/config.py); ``Config`` holds them all. Every field is commented; `validate()` rejects out-of-range values
 with a message naming the field. The effective configuration is written next to the outputs
 (config.json) and can be fed back with --config.
 
@@ -13,55 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from ..grid.config import GridConfig
+from ..hash.config import HASH_PRESETS, HashConfig
+from ..nerf.config import NERF_PRESETS, NerfConfig
 
 
 class ConfigError(ValueError):
     """An unknown option or an out-of-range value; the message names the field and the fix."""
-
-
-@dataclass
-class GridConfig:
-    reso: list = field(default_factory=lambda: [[64, 64, 64], [128, 128, 128], [256, 256, 256]])
-    # ^ grid resolutions, coarse to fine; the run moves to the next at each upsample_at entry
-    upsample_at: list = field(default_factory=lambda: [300, 1200])
-    # ^ iterations at which to prune (by rendering weight) and upsample to the next resolution
-    sh_degree: int = 2            # SH degree of colour (0: diffuse .. 3)
-    step: float = 0.5             # ray-march step in voxels
-    init_density: float = 0.1     # initial density of every voxel of the first grid
-    sphere_bound: bool = True     # start with voxels inside the bbox's inscribed sphere only
-    batch_size: int = 5000        # rays per step
-    optimizer: str = "rmsprop"    # "rmsprop" (svox2) or "sgd"
-    rms_beta: float = 0.95        # RMSProp decay
-    lr_density: float = 30.0      # density learning rate (svox2: 3e1)
-    lr_density_final: float = 0.05  # density learning rate at lr_decay_steps (svox2: 5e-2)
-    lr_density_delay_steps: int = 100   # reverse-cosine warm-up of the density lr
-    lr_density_delay_mult: float = 0.01  # warm-up starts at this fraction of lr_density
-    lr_sh: float = 1e-2           # SH learning rate (svox2: 1e-2)
-    lr_sh_final: float = 5e-6     # SH learning rate at lr_decay_steps (svox2: 5e-6)
-    lr_decay_steps: int = 20000   # horizon of the log-linear decay
-    lambda_tv: float = 1e-5       # TV weight on density (svox2 syn: 1e-5)
-    lambda_tv_sh: float = 1e-3    # TV weight on SH (svox2 syn: 1e-3)
-    tv_fraction: float = 0.01     # fraction of cells regularised per step (one contiguous window)
-    tv_early_only: bool = True    # stop TV after the first upsample (svox2 syn)
-    lambda_sparsity: float = 0.0  # Cauchy sparsity prior on density (svox2 llff: 1e-12 scale)
-    lambda_beta: float = 0.0      # beta prior on each ray's transmittance (svox2 tnt: 1e-5),
-                                  # averaged over the batch: rays end clear or opaque
-    weight_thresh: float = 0.256  # prune rows whose max weight < weight_thresh / new z-reso
-    prune_dilate: bool = True     # also keep every row within one voxel of a kept one
-    prune_rays: int = 1 << 20     # training rays (evenly strided) used to find pruning weights
-    background_layers: int = 0    # MSI background behind the grid (unbounded scenes): number of
-                                  # spheres, >= 2; 0: off, a constant background colour only
-    background_height: int = 128  # rows (latitude) of each MSI sphere image; columns = 2 x rows
-    background_init_density: float = 0.1  # initial raw density of every MSI texel (svox2: 0.1)
-    background_init_color: float = 0.0    # initial raw MSI colour (0: grey 0.5)
-    lr_bg_density: float = 3.0    # MSI density learning rate (svox2: 3e0 -> 3e-3), decayed
-                                  # log-linearly over lr_decay_steps like the grid's
-    lr_bg_density_final: float = 3e-3     # MSI density learning rate at lr_decay_steps
-    lr_bg_color: float = 0.1      # MSI colour learning rate (svox2: 1e-1 -> 5e-6)
-    lr_bg_color_final: float = 5e-6       # MSI colour learning rate at lr_decay_steps
 
 
 @dataclass
@@ -83,216 +46,7 @@ class TrainConfig:
     max_train_images: int = 0     # train on the first this-many training images; 0: all
 
 
-@dataclass(frozen=True)
-class NerfConfig:
-    """Everything that defines a NeRF model and its optimiser. The defaults are the ``tiny``
-    preset; ``NerfConfig.from_preset`` gives the others. In a run configuration the ``nerf``
-    section holds these fields; setting ``nerf.preset`` resets every field to that preset's
-    values before the section's other options apply."""
-
-    preset: str = "tiny"            # the preset these values start from: "tiny" | "original"
-    width: int = 64                 # trunk width (multiple of 16); NeRF: 256
-    depth: int = 4                  # trunk layers; NeRF: 8
-    skip: int = -1                  # encoded position re-enters at layer skip+1; NeRF: 4; -1 none
-    color_width: int = 32           # view-dependent colour layer (multiple of 16); NeRF: 128
-    pos_freqs: int = 8              # position frequencies L; NeRF: 10
-    dir_freqs: int = 2              # view-direction frequencies; NeRF: 4
-    include_input: bool = True      # encoding starts with the scaled input itself (NeRF: yes)
-    pos_scale: float = 1.0 / math.pi  # gamma(p) uses sin(2^k pi s p): 1/pi: NeRF's 2^k rad/unit
-    dir_scale: float = 1.0 / math.pi  # the same for the unit view direction
-    hidden_act: str = "relu"        # "relu" | "softplus"
-    sigma_act: str = "softplus"     # "relu" (NeRF) | "softplus" (never dead at initialisation)
-    n_coarse: int = 32              # stratified samples per ray; NeRF: 64
-    n_fine: int = 32                # importance samples per ray (0: coarse only); NeRF: 128
-    shared_net: bool = False        # True: one network evaluated on both sample sets
-    perturb: bool = True            # jitter samples during training (never when rendering)
-    coarse_loss_weight: float = 1.0  # weight of the coarse MSE in the loss (NeRF: 1)
-    lr: float = 3e-3                # Adam learning rate at step 0; NeRF: 5e-4
-    lr_decay_steps: int = 6000      # lr = lr * 0.1^(step / lr_decay_steps); NeRF: 500k (Blender)
-    beta1: float = 0.9              # Adam beta1
-    beta2: float = 0.999            # Adam beta2
-    adam_eps: float = 1e-7          # Adam epsilon (NeRF used TF's 1e-7)
-    batch_rays: int = 1024          # rays per training step
-    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None (null): per
-                                    # device
-    dw_chunk: int | None = None     # rows per partial weight gradient; None (null): 64 tiles
-
-    @staticmethod
-    def from_preset(name: str, **overrides) -> "NerfConfig":
-        """``"tiny"`` (the defaults): CPU-friendly 4 x 64, 32 + 32 samples, for 100 x 100
-        scenes such as tiny_lego; ``"original"``: NeRF's 8 x 256 with a skip at layer 4, 10/4
-        frequencies, a 128-wide colour layer, 64 + 128 samples."""
-        if name not in NERF_PRESETS:
-            raise ValueError(f"unknown NeRF preset {name!r}; use one of {sorted(NERF_PRESETS)}")
-        return dataclasses.replace(NerfConfig(preset=name, **NERF_PRESETS[name]), **overrides)
-
-    @staticmethod
-    def from_dict(d: dict) -> "NerfConfig":
-        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error."""
-        names = {f.name for f in dataclasses.fields(NerfConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"NerfConfig: unknown fields {sorted(unknown)}")
-        return NerfConfig(**d)
-
-    def mlp_spec(self):
-        """The fused MLP's shape (clrf.nerf.mlp.MLPSpec) for this configuration."""
-        from ..nerf import ops
-        from ..nerf.mlp import MLPSpec
-        return MLPSpec(width=self.width, depth=self.depth, skip=self.skip,
-                       color_width=self.color_width,
-                       in_dim=ops.enc_dim(self.pos_freqs, self.include_input),
-                       dir_dim=ops.enc_dim(self.dir_freqs, self.include_input),
-                       hidden_act=self.hidden_act, sigma_act=self.sigma_act,
-                       rows=self.mlp_rows, dw_chunk=self.dw_chunk)
-
-    def checks(self):
-        """(ok, field, message) for Config.validate: the ranges the kernels accept."""
-        acts = ("relu", "softplus")
-        return [
-            (self.preset in NERF_PRESETS, "nerf.preset", f"must be one of {sorted(NERF_PRESETS)}"),
-            (self.width % 16 == 0 and 16 <= self.width <= 1024, "nerf.width",
-             "must be a multiple of 16 in 16..1024"),
-            (1 <= self.depth <= 32, "nerf.depth", "must be in 1..32"),
-            (self.skip == -1 or 0 <= self.skip <= self.depth - 2, "nerf.skip",
-             "must be -1 (none) or in 0..depth-2"),
-            (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "nerf.color_width",
-             "must be a multiple of 16 in 16..1024"),
-            (0 <= self.pos_freqs <= 16 and (self.pos_freqs > 0 or self.include_input),
-             "nerf.pos_freqs", "must be in 0..16 (0 only with include_input)"),
-            (0 <= self.dir_freqs <= 16 and (self.dir_freqs > 0 or self.include_input),
-             "nerf.dir_freqs", "must be in 0..16 (0 only with include_input)"),
-            (0 < self.pos_scale < 1e6, "nerf.pos_scale", "must be in (0, 1e6)"),
-            (0 < self.dir_scale < 1e6, "nerf.dir_scale", "must be in (0, 1e6)"),
-            (self.hidden_act in acts, "nerf.hidden_act", "must be 'relu' or 'softplus'"),
-            (self.sigma_act in acts, "nerf.sigma_act", "must be 'relu' or 'softplus'"),
-            (1 <= self.n_coarse <= 1024, "nerf.n_coarse", "must be in 1..1024"),
-            (0 <= self.n_fine <= 1024, "nerf.n_fine", "must be in 0..1024"),
-            (0 <= self.coarse_loss_weight <= 1e3, "nerf.coarse_loss_weight",
-             "must be in [0, 1000]"),
-            (0 < self.lr <= 1, "nerf.lr", "must be in (0, 1]"),
-            (self.lr_decay_steps >= 1, "nerf.lr_decay_steps", "must be >= 1"),
-            (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "nerf.beta1",
-             "Adam's beta1 and beta2 must be in [0, 1)"),
-            (0 < self.adam_eps <= 1, "nerf.adam_eps", "must be in (0, 1]"),
-            (1 <= self.batch_rays <= 1 << 22, "nerf.batch_rays", "must be in 1..4194304"),
-            (self.mlp_rows in (None, *MLP_ROWS), "nerf.mlp_rows",
-             f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
-            (self.dw_chunk is None or 1 <= self.dw_chunk <= 1 << 20, "nerf.dw_chunk",
-             "must be null (per device) or in 1..1048576"),
-        ]
-
-
-# Field values of each NeRF preset (the rest are NerfConfig's defaults).
-NERF_PRESETS = {
-    "tiny": {},
-    "original": {"width": 256, "depth": 8, "skip": 4, "color_width": 128, "pos_freqs": 10,
-                 "dir_freqs": 4, "sigma_act": "relu", "n_coarse": 64, "n_fine": 128,
-                 "lr": 5e-4, "lr_decay_steps": 500_000},
-}
-MLP_ROWS = (1, 2, 3, 4, 5, 6, 8, 12, 16)   # the register-tile heights cl/mlp.cl accepts
-
-
-@dataclass(frozen=True)
-class HashConfig:
-    """Everything that defines a hash-grid model (train.model hash) and its optimiser. The
-    defaults are the ``full`` preset (the published sizes); ``HashConfig.from_preset("tiny")``
-    is for small scenes (tiny_lego, the procedural scene). In a run configuration the ``hash``
-    section holds these fields; ``hash.preset`` resets every field to that preset first."""
-
-    preset: str = "full"            # the preset these values start from: "full" | "tiny"
-    levels: int = 16                # L: resolution levels of the encoding (published: 16)
-    features: int = 2               # F: features per level, 1, 2 or 4 (published: 2)
-    log2_table: int = 19            # log2 T: table rows per level (published: 19)
-    min_res: int = 16               # N_min: coarsest level's cells per box side (published: 16)
-    max_res: int = 2048             # N_max: finest level's cells per box side (published:
-    #                                 2048 x the box size in units of the unit cube)
-    width: int = 64                 # density MLP hidden width (multiple of 16; published: 64)
-    geo_features: int = 16          # density MLP feature outputs fed to the colour MLP besides
-    #                                 sigma (multiple of 16; published: 15)
-    color_width: int = 64           # colour MLP hidden width (multiple of 16; published: 64)
-    color_depth: int = 2            # colour MLP hidden layers (published: 2)
-    density_act: str = "trunc_exp"  # "trunc_exp": exp(min(x, 15)), whose gradient does not
-    #                                 vanish (published: exp); "softplus": slower to sharpen
-    samples: int = 256              # stratified samples per ray over [near, far]; only those
-    #                                 in occupied cells are evaluated
-    perturb: bool = True            # jitter samples during training (never when rendering)
-    occ_res: int = 128              # occupancy grid cells per box side
-    occ_every: int = 16             # iterations between occupancy updates
-    occ_points: int = 131072        # cells measured (one random point each) per update
-    occ_decay: float = 0.95         # measured cells' density estimate decays by this per update
-    occ_tau: float = 1e-3           # a cell is empty when its density times the sample spacing
-    #                                 (far - near) / samples stays below this optical depth
-    occ_warmup: int = 256           # no occupancy updates (all cells occupied) before this step
-    lr: float = 1e-2                # Adam learning rate at step 0 (published: 1e-2)
-    lr_decay_steps: int = 20000     # lr = lr * 0.1^(step / lr_decay_steps)
-    beta1: float = 0.9              # Adam beta1 (published: 0.9)
-    beta2: float = 0.99             # Adam beta2 (published: 0.99)
-    adam_eps: float = 1e-15         # Adam epsilon (published: 1e-15; table entries that see
-    #                                 tiny gradients still move)
-    weight_decay: float = 1e-6      # L2 weight decay on the MLP parameters only (not tables)
-    batch_rays: int = 4096          # rays per training step
-    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
-
-    @staticmethod
-    def from_preset(name: str, **overrides) -> "HashConfig":
-        """``"full"`` (the defaults) or ``"tiny"``: T = 2^16, N_max 512, 128 samples, a 64^3
-        occupancy grid updated every 8 steps from step 32, 1024 rays per step (100 x 100
-        scenes on a CPU)."""
-        if name not in HASH_PRESETS:
-            raise ValueError(f"unknown hash preset {name!r}; use one of {sorted(HASH_PRESETS)}")
-        return dataclasses.replace(HashConfig(preset=name, **HASH_PRESETS[name]), **overrides)
-
-    @staticmethod
-    def from_dict(d: dict) -> "HashConfig":
-        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error."""
-        names = {f.name for f in dataclasses.fields(HashConfig)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"HashConfig: unknown fields {sorted(unknown)}")
-        return HashConfig(**d)
-
-    def checks(self):
-        """(ok, field, message) for Config.validate: the ranges the kernels accept."""
-        return [
-            (self.preset in HASH_PRESETS, "hash.preset", f"must be one of {sorted(HASH_PRESETS)}"),
-            (1 <= self.levels <= 64, "hash.levels", "must be in 1..64"),
-            (self.features in (1, 2, 4), "hash.features", "must be 1, 2 or 4"),
-            (self.levels * self.features <= 256, "hash.levels",
-             "levels * features must be <= 256 (the MLP input)"),
-            (1 <= self.log2_table <= 24, "hash.log2_table", "must be in 1..24"),
-            (1 <= self.min_res <= self.max_res <= 1 << 20, "hash.min_res",
-             "need 1 <= min_res <= max_res <= 1048576"),
-            (self.width % 16 == 0 and 16 <= self.width <= 1024, "hash.width",
-             "must be a multiple of 16 in 16..1024"),
-            (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "hash.color_width",
-             "must be a multiple of 16 in 16..1024"),
-            (self.geo_features % 16 == 0 and 16 <= self.geo_features <= 1024,
-             "hash.geo_features", "must be a multiple of 16 in 16..1024"),
-            (1 <= self.color_depth <= 8, "hash.color_depth", "must be in 1..8"),
-            (self.density_act in ("trunc_exp", "softplus"), "hash.density_act",
-             "must be 'trunc_exp' or 'softplus'"),
-            (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
-            (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
-            (self.occ_every >= 1, "hash.occ_every", "must be >= 1"),
-            (0 <= self.occ_points <= 1 << 24, "hash.occ_points", "must be in 0..16777216"),
-            (0 < self.occ_decay <= 1, "hash.occ_decay", "must be in (0, 1]"),
-            (self.occ_tau >= 0, "hash.occ_tau", "must be >= 0"),
-            (self.occ_warmup >= 0, "hash.occ_warmup", "must be >= 0"),
-            (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
-            (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
-            (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "hash.beta1",
-             "Adam's beta1 and beta2 must be in [0, 1)"),
-            (0 < self.adam_eps <= 1, "hash.adam_eps", "must be in (0, 1]"),
-            (self.weight_decay >= 0, "hash.weight_decay", "must be >= 0"),
-            (1 <= self.batch_rays <= 1 << 22, "hash.batch_rays", "must be in 1..4194304"),
-            (self.mlp_rows in (None, *MLP_ROWS), "hash.mlp_rows",
-             f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
-        ]
-
-
-# Field values of each hash preset (the rest are HashConfig's defaults).
-HASH_PRESETS = {
+PRESETS = {
     "full": {},
     # small scenes train for hundreds, not tens of thousands, of steps: the occupancy grid
     # starts pruning after 32 and is refreshed every 8

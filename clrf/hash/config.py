@@ -1,0 +1,110 @@
+"""HashConfig: the options of a hash-grid model and its optimiser (the ``hash`` section of a run
+configuration, clrf/training/config.py), its presets and the ranges the kernels accept."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from ..nerf.config import MLP_ROWS
+
+
+@dataclass(frozen=True)
+class HashConfig:
+    """Everything that defines a hash-grid model (train.model hash) and its optimiser. The
+    defaults are the ``full`` preset (the published sizes); ``HashConfig.from_preset("tiny")``
+    is for small scenes (tiny_lego, the procedural scene). In a run configuration the ``hash``
+    section holds these fields; ``hash.preset`` resets every field to that preset first."""
+
+    preset: str = "full"            # the preset these values start from: "full" | "tiny"
+    levels: int = 16                # L: resolution levels of the encoding (published: 16)
+    features: int = 2               # F: features per level, 1, 2 or 4 (published: 2)
+    log2_table: int = 19            # log2 T: table rows per level (published: 19)
+    min_res: int = 16               # N_min: coarsest level's cells per box side (published: 16)
+    max_res: int = 2048             # N_max: finest level's cells per box side (published:
+    #                                 2048 x the box size in units of the unit cube)
+    width: int = 64                 # density MLP hidden width (multiple of 16; published: 64)
+    geo_features: int = 16          # density MLP feature outputs fed to the colour MLP besides
+    #                                 sigma (multiple of 16; published: 15)
+    color_width: int = 64           # colour MLP hidden width (multiple of 16; published: 64)
+    color_depth: int = 2            # colour MLP hidden layers (published: 2)
+    density_act: str = "trunc_exp"  # "trunc_exp": exp(min(x, 15)), whose gradient does not
+    #                                 vanish (published: exp); "softplus": slower to sharpen
+    samples: int = 256              # stratified samples per ray over [near, far]; only those
+    #                                 in occupied cells are evaluated
+    perturb: bool = True            # jitter samples during training (never when rendering)
+    occ_res: int = 128              # occupancy grid cells per box side
+    occ_every: int = 16             # iterations between occupancy updates
+    occ_points: int = 131072        # cells measured (one random point each) per update
+    occ_decay: float = 0.95         # measured cells' density estimate decays by this per update
+    occ_tau: float = 1e-3           # a cell is empty when its density times the sample spacing
+    #                                 (far - near) / samples stays below this optical depth
+    occ_warmup: int = 256           # no occupancy updates (all cells occupied) before this step
+    lr: float = 1e-2                # Adam learning rate at step 0 (published: 1e-2)
+    lr_decay_steps: int = 20000     # lr = lr * 0.1^(step / lr_decay_steps)
+    beta1: float = 0.9              # Adam beta1 (published: 0.9)
+    beta2: float = 0.99             # Adam beta2 (published: 0.99)
+    adam_eps: float = 1e-15         # Adam epsilon (published: 1e-15; table entries that see
+    #                                 tiny gradients still move)
+    weight_decay: float = 1e-6      # L2 weight decay on the MLP parameters only (not tables)
+    batch_rays: int = 4096          # rays per training step
+    mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
+
+    @staticmethod
+    def from_preset(name: str, **overrides) -> "HashConfig":
+        """``"full"`` (the defaults) or ``"tiny"``: T = 2^16, N_max 512, 128 samples, a 64^3
+        occupancy grid updated every 8 steps from step 32, 1024 rays per step (100 x 100
+        scenes on a CPU)."""
+        if name not in HASH_PRESETS:
+            raise ValueError(f"unknown hash preset {name!r}; use one of {sorted(HASH_PRESETS)}")
+        return dataclasses.replace(HashConfig(preset=name, **HASH_PRESETS[name]), **overrides)
+
+    @staticmethod
+    def from_dict(d: dict) -> "HashConfig":
+        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error."""
+        names = {f.name for f in dataclasses.fields(HashConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"HashConfig: unknown fields {sorted(unknown)}")
+        return HashConfig(**d)
+
+    def checks(self):
+        """(ok, field, message) for Config.validate: the ranges the kernels accept."""
+        return [
+            (self.preset in HASH_PRESETS, "hash.preset", f"must be one of {sorted(HASH_PRESETS)}"),
+            (1 <= self.levels <= 64, "hash.levels", "must be in 1..64"),
+            (self.features in (1, 2, 4), "hash.features", "must be 1, 2 or 4"),
+            (self.levels * self.features <= 256, "hash.levels",
+             "levels * features must be <= 256 (the MLP input)"),
+            (1 <= self.log2_table <= 24, "hash.log2_table", "must be in 1..24"),
+            (1 <= self.min_res <= self.max_res <= 1 << 20, "hash.min_res",
+             "need 1 <= min_res <= max_res <= 1048576"),
+            (self.width % 16 == 0 and 16 <= self.width <= 1024, "hash.width",
+             "must be a multiple of 16 in 16..1024"),
+            (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "hash.color_width",
+             "must be a multiple of 16 in 16..1024"),
+            (self.geo_features % 16 == 0 and 16 <= self.geo_features <= 1024,
+             "hash.geo_features", "must be a multiple of 16 in 16..1024"),
+            (1 <= self.color_depth <= 8, "hash.color_depth", "must be in 1..8"),
+            (self.density_act in ("trunc_exp", "softplus"), "hash.density_act",
+             "must be 'trunc_exp' or 'softplus'"),
+            (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
+            (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
+            (self.occ_every >= 1, "hash.occ_every", "must be >= 1"),
+            (0 <= self.occ_points <= 1 << 24, "hash.occ_points", "must be in 0..16777216"),
+            (0 < self.occ_decay <= 1, "hash.occ_decay", "must be in (0, 1]"),
+            (self.occ_tau >= 0, "hash.occ_tau", "must be >= 0"),
+            (self.occ_warmup >= 0, "hash.occ_warmup", "must be >= 0"),
+            (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
+            (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
+            (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "hash.beta1",
+             "Adam's beta1 and beta2 must be in [0, 1)"),
+            (0 < self.adam_eps <= 1, "hash.adam_eps", "must be in (0, 1]"),
+            (self.weight_decay >= 0, "hash.weight_decay", "must be >= 0"),
+            (1 <= self.batch_rays <= 1 << 22, "hash.batch_rays", "must be in 1..4194304"),
+            (self.mlp_rows in (None, *MLP_ROWS), "hash.mlp_rows",
+             f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
+        ]
+
+
+# Field values of each hash preset (the rest are HashConfig's defaults).
+HASH_
