@@ -13,7 +13,7 @@ import pytest
 from clrf.data.cameras import camera_dirs, pixel_rays
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.colmap import CAMERA_MODELS
-from clrf.training.trainer import view_rays
+from clrf.data.cameras import view_rays
 from clrf.testing.tolerances import CAMERA_ATOL, RESAMPLE_ATOL
 
 H, W, F = 12, 16, 14.0

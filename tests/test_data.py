@@ -5,7 +5,7 @@ import pytest
 
 from clrf.data import DataError, detect_layout, load_dataset
 from clrf.data.synthetic import ProceduralScene, load_procedural
-from clrf.training.trainer import view_rays
+from clrf.data.cameras import view_rays
 from clrf.testing.tolerances import PROCEDURAL_ATOL
 
 

@@ -5,7 +5,8 @@ import numpy as np
 from clrf.data.io import downscale_image
 from clrf.data.synthetic import load_procedural
 from clrf.training.metrics import image_metrics
-from clrf.training.trainer import evaluate, view_rays
+from clrf.data.cameras import view_rays
+from clrf.training.trainer import evaluate
 from clrf.testing.tolerances import CAMERA_ATOL
 
 

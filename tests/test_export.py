@@ -11,7 +11,7 @@ from clrf.data.synthetic import ProceduralScene, Sphere, load_procedural
 from clrf.grid import SparseGrid
 from clrf.grid.model import GridModel
 from clrf.outputs.ply import read_ply, write_ply
-from clrf.training.trainer import view_rays
+from clrf.data.cameras import view_rays
 from clrf.testing.tolerances import EXPORT_FIELD_ATOL, EXPORT_FIELD_RTOL, EXPORT_GEOMETRY_VOXELS
 
 BBOX = np.array([[-1.5] * 3, [1.5] * 3])

@@ -65,9 +65,9 @@ def test_spec_from_fov_rejects(fov, w, h, words):
 def test_viewer_without_websockets_says_how_to_install(monkeypatch):
     import sys
 
-    from clrf.cli.main import CliError
+    from clrf.viewer.core import ViewerError
     from clrf.viewer.server import need_websockets
     monkeypatch.setitem(sys.modules, "websockets", None)
     monkeypatch.setitem(sys.modules, "websockets.sync.server", None)
-    with pytest.raises(CliError, match=r"pip install websockets.*clrf\[view\]"):
+    with pytest.raises(ViewerError, match=r"pip install websockets.*clrf\[view\]"):
         need_websockets()

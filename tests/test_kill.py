@@ -2,9 +2,10 @@
 always leaves a checkpoint that `clrf eval` loads, and `--resume` continues from it with
 metrics.csv intact (rows up to the checkpoint kept, rows after it dropped, no duplicates).
 
-The moment inside the checkpoint write is made deterministic with the CLRF_TEST_CKPT_DELAY
-hook (clrf.outputs.rundir.checkpoint_write_delay): checkpoint.save pauses that long after writing the
-temporary file and before renaming it, and the test kills while the temporary file exists.
+The moment inside the checkpoint write is made deterministic by the process the test starts
+(DELAYED_CLI): it sets clrf.outputs.checkpoint.WRITE_DELAY, so checkpoint.save pauses that long
+after writing the temporary file and before renaming it, and the test kills while the temporary
+file exists.
 """
 import csv
 import os
@@ -25,6 +26,11 @@ TINY = ["--set", "grid.reso=[[12,12,12],[24,24,24]]", "--set", "grid.upsample_at
         "--set", "grid.batch_size=512", "--set", "train.eval_every=0.4",
         "--set", "train.eval_views=1", "--set", "train.checkpoint_every=0.3"]
 TIMEOUT = 90
+# `clrf ARGS` with checkpoint writes held open for the seconds of the first argument:
+# python -c DELAYED_CLI SECONDS ARGS...
+DELAYED_CLI = ("import sys; from clrf.outputs import checkpoint; "
+               "checkpoint.WRITE_DELAY = float(sys.argv.pop(1)); "
+               "from clrf.cli import main; sys.exit(main())")
 
 
 def _rows(path):
@@ -48,11 +54,11 @@ def _scene(path):
 
 
 def _start(out, resume, delay, data=None):
-    env = dict(os.environ, CLRF_TEST_CKPT_DELAY=str(delay),
+    env = dict(os.environ,
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     args = ["--resume"] if resume else ["--data", str(data), *TINY]
-    return subprocess.Popen([sys.executable, "-m", "clrf.cli", "train", "--out", str(out),
-                             "--max-seconds", "600", *args], env=env,
+    return subprocess.Popen([sys.executable, "-c", DELAYED_CLI, str(delay), "train", "--out",
+                             str(out), "--max-seconds", "600", *args], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
 

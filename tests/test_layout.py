@@ -10,6 +10,8 @@ submodule depend on ``clrf/__init__.py``, which re-exports the public API from t
 Layers, bottom to top (a module may import its own layer and the ones below):
 
     runtime                 OpenCL devices, programs, memory planning, measuring, caches
+    references              clrf/testing/reference*.py: the float64 references (numpy only;
+                            the grid's gradient self-check compares with one)
     grid, nerf, hash        the representations (grid and hash may use nerf's MLP)
     data                    datasets, cameras, protocols
     outputs                 checkpoints, run directories, renders, exports, logs
@@ -29,8 +31,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "clrf"
 
 REPRESENTATIONS = ("grid", "nerf", "hash")
-RANK = {"runtime": 0, "grid": 1, "nerf": 1, "hash": 1, "data": 1, "outputs": 2,
-        "training": 3, "viewer": 4, "testing": 4, "cli": 5}
+RANK = {"runtime": 0, "references": 0.5, "grid": 1, "nerf": 1, "hash": 1, "data": 1,
+        "outputs": 2, "training": 3, "viewer": 4, "testing": 4, "cli": 5}
 
 
 def modules(pkg: Path = PKG) -> dict:
@@ -110,7 +112,10 @@ def find_cycle(graph: dict):
 
 
 def layer(mod: str):
-    """The layer of a module (its first package under clrf), None for clrf/__init__.py."""
+    """The layer of a module (its first package under clrf, or "references" for the float64
+    references of clrf/testing/), None for clrf/__init__.py."""
+    if mod.startswith("clrf.testing.reference"):
+        return "references"
     parts = mod.split(".")
     return parts[1] if len(parts) > 1 else None
 
@@ -140,7 +145,7 @@ def test_no_import_cycle(graph):
 def test_runtime_imports_no_higher_layer(graph):
     bad = upward_imports(graph, ("runtime",),
                          REPRESENTATIONS + ("data", "outputs", "training", "viewer", "cli",
-                                            "testing"))
+                                            "testing", "references"))
     assert not bad, "the runtime imports from higher layers:\n" + "\n".join(bad)
 
 

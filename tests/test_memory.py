@@ -1,5 +1,5 @@
-"""The memory guard (clrf/training/budget.py over clrf/runtime/memory.py): per-stage estimates against the device's global memory and
-largest allocation, checked before anything is allocated."""
+"""The memory guard (clrf/training/budget.py over clrf/runtime/memory.py): per-stage estimates
+against the device's global memory and largest allocation, checked before anything is allocated."""
 from dataclasses import replace
 
 import numpy as np

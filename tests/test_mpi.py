@@ -174,11 +174,15 @@ def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
     from clrf.cli.main import main as cli
     data = _scene(tmp_path / "scene.npz")
     out = tmp_path / "run"
-    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-m",
-           "clrf.cli", "train", "--out", str(out), "--data", str(data), "--max-seconds", "600",
+    # `clrf train` with checkpoint writes held open for 0.5 s (as tests/test_kill.py)
+    delayed_cli = ("import sys; from clrf.outputs import checkpoint; "
+                   "checkpoint.WRITE_DELAY = float(sys.argv.pop(1)); "
+                   "from clrf.cli import main; sys.exit(main())")
+    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-c",
+           delayed_cli, "0.5", "train", "--out", str(out), "--data", str(data), "--max-seconds", "600",
            *TRAIN, "--set", "train.max_iters=100000", "--set", "train.checkpoint_every=0.2",
            "--set", "train.eval_every=1e6"]
-    env = dict(os.environ, CLRF_TEST_CKPT_DELAY="0.5")
+    env = dict(os.environ)
     p = subprocess.Popen(cmd, cwd=HERE.parent, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:

@@ -1,11 +1,11 @@
-"""The gradient self-check (clrf/selfcheck.py): it passes on the test device's gradient paths,
+"""The gradient self-check (clrf/grid/selfcheck.py): it passes on the test device's gradient paths,
 it catches a backward that computes wrong gradients, training then refuses with the driver
 named, and such a device is never the default again."""
 import numpy as np
 import pytest
 
 import clrf
-from clrf.runtime import selfcheck
+from clrf.grid import selfcheck
 from clrf.runtime.device import DeviceError, choose_device
 from clrf.runtime.tuning import Tuning
 

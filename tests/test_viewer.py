@@ -279,8 +279,8 @@ def test_background_and_near_controls(loaded):
 
 def test_dataset_cameras(ckpt):
     from clrf.outputs import checkpoint
-    from clrf.cli.main import _ckpt_dataset
-    ds = _ckpt_dataset(checkpoint.load(ckpt), None)
+    from clrf.training.models import checkpoint_dataset
+    ds = checkpoint_dataset(checkpoint.load(ckpt), None)
     cams = dataset_cameras(ds)
     assert len(cams) == len(ds.split["train"]) + len(ds.split["test"])
     c = cams[-1]
@@ -342,7 +342,7 @@ def test_nerf_checkpoint_in_the_viewer(device, tmp_path):
 
 
 def test_view_usage_errors(tmp_path, loaded, capsys):
-    from clrf.cli.main import CliError
+    from clrf.viewer.core import ViewerError
     from clrf.cli.main import main as cli
     assert cli(["view", "--ckpt", str(tmp_path / "nothing"), "--port", "0"]) == 2
     assert "no checkpoint" in capsys.readouterr().err
@@ -351,5 +351,5 @@ def test_view_usage_errors(tmp_path, loaded, capsys):
         busy.bind((HOST, 0))
         busy.listen(1)
         port = busy.getsockname()[1]
-        with pytest.raises(CliError, match="another --port"):
+        with pytest.raises(ViewerError, match="another --port"):
             ViewerServer(ViewerCore(model, state["dataset"]), HOST, port).start()

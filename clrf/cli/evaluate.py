@@ -27,21 +27,21 @@ def _lpips_setup(a):
 
 def _views_and_data(a, state):
     """(dataset, views, protocol info or None) for the command's arguments."""
-    from .main import _ckpt_dataset
+    from ..training.models import checkpoint_dataset
     if a.protocol:
         from ..data.protocols import prepare
         path = a.data if a.data is not None else state["run_config"]["train"].get("data", "")
         pd = prepare(a.protocol, path, a.allow_downscaled, a.scene_type)
         meta = state["dataset"]
         if bool(meta["ndc"]) != bool(pd.dataset.ndc):
-            from .main import CliError
+            from .common import CliError
             raise CliError(f"--ckpt {a.ckpt}: the run was trained on a "
                            f"{'forward-facing (NDC)' if meta['ndc'] else 'non-NDC'} scene, but "
                            f"{path} under the {a.protocol} protocol is "
                            f"{'forward-facing' if pd.dataset.ndc else 'not forward-facing'}; "
                            f"evaluate it with its own data")
         return pd.dataset, pd.views, pd
-    ds = _ckpt_dataset(state, a.data)
+    ds = checkpoint_dataset(state, a.data)
     return ds, np.asarray(ds.split.get("test", ds.split.get("val"))), None
 
 

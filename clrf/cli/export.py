@@ -69,8 +69,8 @@ def cmd_export(a):
     meta = state["dataset"]
     ndc = _ndc_of(meta)
     if points_path:   # load the dataset first: a bad one must stop the run before any output
-        from .main import _ckpt_dataset
-        ds = _ckpt_dataset(state, a.data)
+        from ..training.models import checkpoint_dataset
+        ds = checkpoint_dataset(state, a.data)
     if mesh_path:
         bbox = np.asarray(a.bbox if a.bbox is not None else meta["bbox"], np.float64).reshape(2, 3)
         if a.reso is not None:
@@ -100,7 +100,7 @@ def cmd_export(a):
 def training_ray_sample(ds, n, seed=0):
     """Rays (model space: NDC when the scene uses it) of ``n`` training pixels drawn without
     replacement (all of them if there are fewer), built one view at a time."""
-    from ..training.trainer import view_rays
+    from ..data.cameras import view_rays
     H, W = ds.hw
     views = np.asarray(ds.split["train"])
     total = len(views) * H * W

@@ -14,24 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-EXIT_USAGE = 2
-
-
-class CliError(Exception):
-    pass
-
-
-def _user_errors():
-    from ..outputs.checkpoint import CheckpointError
-    from ..training.config import ConfigError
-    from ..data.base import DataError
-    from ..runtime.device import DeviceError
-    from ..outputs.export import ExportError
-    from ..outputs.camera_path import CameraPathError
-    from ..training.perceptual import LpipsUnavailable
-    from ..runtime.programs import BuildError
-    return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
-            ExportError, CameraPathError, LpipsUnavailable)
+from ..training.models import WORKLOADS, checkpoint_dataset, load_data
+from .common import EXIT_USAGE, CliError, out_dir as _out_dir, user_errors as _user_errors
 
 
 def parse_set(items):
@@ -48,19 +32,6 @@ def parse_set(items):
             v = val
         out.setdefault(sect, {})[name] = v
     return out
-
-
-def _out_dir(path) -> Path:
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise CliError(f"--out {out}: is an existing file, not a folder; pass a folder path")
-    return out
-
-
-def load_data(path, downscale=1):
-    from ..data import load_dataset
-    opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
-    return load_dataset(path or None, **opts)
 
 
 def cmd_train(a):
@@ -133,9 +104,9 @@ def cmd_train(a):
         if comm.Get_rank() > 0:
             from ..runtime.progress import set_quiet
             set_quiet(True)
-    if comm is None:   # the device that runs this model kind fastest (clrf/workload.py)
+    if comm is None:   # the device that runs this model kind fastest (clrf/runtime/workload.py)
         from ..runtime.workload import device_for
-        dev = device_for(cfg.train.model, a.device)
+        dev = device_for(WORKLOADS.get(cfg.train.model), a.device)
     else:
         dev = Device(a.device)
     n_views = len(ds.split["train"])
@@ -228,13 +199,6 @@ def _mpi_world():
         raise CliError(str(e)) from None
 
 
-def _ckpt_dataset(state, data_override):
-    """The run's dataset (or data_override), loaded at the resolution the run trained on."""
-    tr = state["run_config"]["train"]
-    path = data_override if data_override is not None else tr.get("data", "")
-    return load_data(path, tr.get("downscale", 1) if path else 1)
-
-
 def cmd_eval(a):
     from .evaluate import cmd_eval as run
     return run(a)
@@ -270,14 +234,14 @@ def cmd_render(a):
         poses, fovs = path.poses, path.fovs
         pw, ph = max(1, round(path.width * a.scale)), max(1, round(path.height * a.scale))
     elif a.views == "test":
-        ds = _ckpt_dataset(state, a.data)
+        ds = checkpoint_dataset(state, a.data)
         poses = ds.poses[np.asarray(ds.split.get("test", ds.split.get("val")))]
     elif a.views == "spiral" or meta["ndc"]:
-        ds = _ckpt_dataset(state, a.data)
+        ds = checkpoint_dataset(state, a.data)
         poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
     elif str(meta.get("preset", "")).startswith("real360") and not a.radius:
         # an unbounded capture: the box-based orbit would leave the scene; follow the cameras
-        ds = _ckpt_dataset(state, a.data)
+        ds = checkpoint_dataset(state, a.data)
         poses = camera_orbit_poses(ds.poses[ds.split["train"]], a.frames,
                                    np.asarray(meta["bbox"]).mean(0))
     else:
@@ -334,7 +298,7 @@ def cmd_devices(a):
     from ..runtime.workload import format_choices
     if a.check:
         return check_default(refresh=a.reprobe)
-    print(format_devices(refresh=a.reprobe, workloads=format_choices(measure=a.workloads)))
+    print(format_devices(refresh=a.reprobe, workloads=format_choices(WORKLOADS.values(), measure=a.workloads)))
     return 0
 
 

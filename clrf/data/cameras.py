@@ -211,3 +211,16 @@ def spiral_poses(poses, n: int = 120, focus_depth: float = 5.0, rots: float = 2.
     eye = local_eye @ c2w[:3, :3].T + c2w[:3, 3]
     target = c2w[:3, 3] - focus_depth * c2w[:3, 2]
     return look_at(eye, target, up=c2w[:3, 1])
+
+
+def view_rays(ds, poses, downscale=1):
+    """Rays of whole views: numpy origins, dirs [len(poses)*h*w, 3] (NDC when the scene uses it).
+
+    downscale f: the views at (H // f, W // f) with intrinsics / f, i.e. one ray per f x f block
+    of pixels (the pixels ``downscale_image`` averages)."""
+    H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
+    intr = np.asarray(ds.intrinsics, np.float64) / downscale
+    o, d = pixel_rays(poses, intr, H, W, ds.distortion)
+    if ds.ndc:
+        o, d = to_ndc(o, d, intr, H, W)
+    return o.astype(np.float32), d.astype(np.float32)

@@ -1,5 +1,5 @@
 """DistGridModel: GridModel's training interface over the bricks of a distributed grid (one
-brick per MPI rank; clrf/grid/bricks.py, clrf/distributed.py).
+brick per MPI rank; clrf/grid/bricks.py, clrf/grid/distributed.py).
 
 Every rank runs the same training loop on the same batches; per step it renders its partials,
 exchanges them (Allgather), composes the rays, takes the loss on the composed colours (every
@@ -9,9 +9,10 @@ get identical updates). TV and sparsity use the single grid's cell window, each 
 own voxels. No early termination (T_STOP 0): a brick cannot know the transmittance in front of
 it during its forward march.
 
-Checkpoints: each rank writes its brick (``ckpt.it<iteration>.rank<r>of<P>.npz``, atomically);
-once all have, rank 0 replaces ``ckpt.npz`` by a manifest naming them (atomically) and removes
-older brick files. ``checkpoint.load`` merges a manifest's bricks into one grid, so a single
+Checkpoints: the trainer has each rank write its brick's ``state_dict`` to its own file and
+rank 0 a manifest naming them, with the layout from ``checkpoint_layout`` (the file names and
+the write protocol are clrf/outputs/checkpoint.py's; this model names no file).
+``checkpoint.load`` merges a manifest's bricks into one grid, so a single
 process renders and evaluates a distributed run when it fits, and a distributed resume slices
 its bricks from that merged grid.
 
@@ -21,19 +22,20 @@ split again at the new resolution, balanced by the rows the pruned grid will hav
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pyopencl.array as cla
 
-from ..outputs import checkpoint
-from .distributed import DistGrid
 from ..runtime.optim import Optimizer
+from ..runtime.programs import upload
 from . import bricks as B
+from .distributed import DistGrid
 from .grid import sh_dim
 from .model import GridModel
 from .render import BETA_EPS
-from ..runtime.programs import upload
+
+
+class BrickMismatchError(ValueError):
+    """A rank's brick file does not hold the brick this rank count gives it."""
 
 
 def check_schedule(cfg, ranks: int):
@@ -98,7 +100,7 @@ class DistGridModel(GridModel):
                   else B.split(reso, comm.Get_size()))
             br = bl[comm.Get_rank()]
             if [list(br.lo), list(br.hi)] != [state["brick"]["lo"], state["brick"]["hi"]]:
-                raise checkpoint.CheckpointError(
+                raise BrickMismatchError(
                     f"brick file of rank {comm.Get_rank()} holds {state['brick']['lo']}.."
                     f"{state['brick']['hi']}, but this split gives {br.lo}..{br.hi}")
             local = links
@@ -199,19 +201,8 @@ class DistGridModel(GridModel):
                       "hi": list(b.hi), "reso": list(b.reso)},
         }
 
-    def save_checkpoint(self, path, state):
-        """Collective: every rank writes its brick, then rank 0 the manifest ``path``."""
-        path = Path(path)
-        it = int(state["iteration"])
-        r, P = self.comm.Get_rank(), self.comm.Get_size()
-        mine = checkpoint.brick_file_name(it, r, P)
-        checkpoint.save(path.parent / mine, state)
-        names = self.comm.gather(mine, root=0)
-        if r == 0:
-            meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
-            meta.pop("brick")
-            meta.update(distributed={"ranks": P, "files": names, "reso": list(self.grid.march_reso)},
-                        bricks=[[list(b.lo), list(b.hi)] for b in self.bricks])
-            checkpoint.save(path, meta)
-            checkpoint.remove_unreferenced_bricks(path.parent)
-        self.comm.Barrier()
+    def checkpoint_layout(self):
+        """(the whole grid's resolution, the bricks' [lo, hi] boxes) for the checkpoint's
+        manifest (clrf/outputs/checkpoint.py save_distributed, which names the files)."""
+        return (list(self.grid.march_reso),
+                [[list(b.lo), list(b.hi)] for b in self.bricks])

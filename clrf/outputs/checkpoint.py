@@ -1,8 +1,9 @@
 """Checkpoints: one .npz per run directory, written atomically (temporary file, then rename).
 
 A distributed run (clrf/grid/dist_model.py) writes one file per brick,
-``ckpt.it<iteration>.rank<r>of<P>.npz``, and then ``ckpt.npz`` as a manifest naming them; a
-kill at any moment leaves the previous manifest and its complete set of brick files. ``load``
+``ckpt.it<iteration>.rank<r>of<P>.npz``, and then ``ckpt.npz`` as a manifest naming them
+(``save_distributed``); a kill at any moment leaves the previous manifest and its complete set
+of brick files. ``load``
 merges a manifest's bricks into one whole-grid state (as a single-process run would have
 saved it)."""
 from __future__ import annotations
@@ -14,10 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .rundir import checkpoint_write_delay
-
 CKPT_NAME = "ckpt.npz"
 BRICK_GLOB = "ckpt.it*.rank*of*.npz"
+
+# Seconds ``save`` pauses inside its write window (temporary file written, not yet renamed):
+# 0 in every run. The kill tests set it in the process they start (tests/test_kill.py) to land
+# a SIGKILL mid-write deterministically.
+WRITE_DELAY = 0.0
 
 
 class CheckpointError(ValueError):
@@ -41,9 +45,8 @@ def save(path, state: dict):
             np.savez(f, **arrays)
             f.flush()
             os.fsync(f.fileno())
-        delay = checkpoint_write_delay()
-        if delay:
-            time.sleep(delay)
+        if WRITE_DELAY > 0:
+            time.sleep(WRITE_DELAY)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -52,6 +55,26 @@ def save(path, state: dict):
 
 def brick_file_name(iteration: int, rank: int, ranks: int) -> str:
     return f"ckpt.it{int(iteration):09d}.rank{int(rank)}of{int(ranks)}.npz"
+
+
+def save_distributed(path, state: dict, comm, reso, bricks):
+    """Collective: every rank of ``comm`` writes its brick's ``state`` to its own brick file
+    beside ``path``, then rank 0 writes the manifest ``path`` naming them, with the whole grid's
+    ``reso`` and the bricks' ``[lo, hi]`` boxes, and removes older brick files."""
+    path = Path(path)
+    it = int(state["iteration"])
+    r, P = comm.Get_rank(), comm.Get_size()
+    mine = brick_file_name(it, r, P)
+    save(path.parent / mine, state)
+    names = comm.gather(mine, root=0)
+    if r == 0:
+        meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
+        meta.pop("brick")
+        meta.update(distributed={"ranks": P, "files": names, "reso": list(reso)},
+                    bricks=bricks)
+        save(path, meta)
+        remove_unreferenced_bricks(path.parent)
+    comm.Barrier()
 
 
 def remove_unreferenced_bricks(out) -> list:

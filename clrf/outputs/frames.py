@@ -1,6 +1,6 @@
 """One camera -> one image: the render path shared by ``clrf render`` and the viewer.
 
-A :class:`ViewSpec` holds what :func:`clrf.train.view_rays` needs of a dataset (image size,
+A :class:`ViewSpec` holds what :func:`clrf.data.cameras.view_rays` needs of a dataset (image size,
 pinhole intrinsics, distortion, whether the scene is in NDC). ``clrf render`` builds it from
 the checkpoint's dataset metadata (:func:`spec_from_meta`); the viewer and camera-path files
 give a vertical field of view instead (:func:`spec_from_fov`). Either way :func:`render_pose`
@@ -94,8 +94,7 @@ def frame_rays(spec: ViewSpec, pose):
     """Rays of every pixel of one camera, float32 [H*W, 3] origins and directions, rows first:
     ``view_rays`` (as evaluation), or for a viewing camera of an NDC scene the world rays of
     that camera through the training camera's NDC map (``spec.ndc_frame``)."""
-    from ..data.cameras import pixel_rays, to_ndc
-    from ..training.trainer import view_rays
+    from ..data.cameras import pixel_rays, to_ndc, view_rays
     if spec.ndc and spec.ndc_frame is not None:
         H, W = spec.hw
         o, d = pixel_rays(check_pose(pose)[None], spec.intrinsics, H, W, spec.distortion)

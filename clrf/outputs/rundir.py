@@ -72,13 +72,3 @@ def trim_metrics(path: Path, fields: list, iteration: int) -> int:
     if new != text or not path.is_file():
         write_atomic(path, new)
     return dropped
-
-
-def checkpoint_write_delay() -> float:
-    """Seconds to pause inside the checkpoint's write window (temporary file written, not yet
-    renamed), from ``CLRF_TEST_CKPT_DELAY``. A test hook only: the kill test uses it to land a
-    SIGKILL mid-write deterministically; unset (0) in normal runs."""
-    try:
-        return max(0.0, float(os.environ.get("CLRF_TEST_CKPT_DELAY", "0") or 0))
-    except ValueError:
-        return 0.0

@@ -185,7 +185,8 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
         raise DeviceError(f"device '{spec}' is not 'cpu', 'gpu' or 'P:D'. Devices:\n{listing}")
     entries = {(d[0], d[1]): d for d in devs if _type_name(d[2].type) in wanted}
     cands = tuple(_candidate(*d, probe(d[2], refresh)) for d in entries.values())
-    # a device known to compute wrong gradients (clrf/selfcheck.py) is never the default
+    # a device known to compute wrong gradients (a registered self-check, clrf/runtime/
+    # selfcheck.py, e.g. the grid's) is never the default
     ranked = [c for c in rank(list(cands))
               if known_wrong(entries[(c.platform_index, c.device_index)][2]) is None]
     if ranked:

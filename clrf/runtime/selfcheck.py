@@ -1,24 +1,15 @@
-"""Gradient self-check: does this device and driver compute the grid backward correctly?
+"""Self-check verdicts: does a device, driver and gradient path compute correct gradients?
 
-A driver can compile clrf's kernels and still compute wrong gradients (a miscompile, or a
-scheduling assumption that its implementation breaks), and training on such gradients runs
-for minutes without an error. So once per device, driver and kernel source, clrf renders a
-small grid forward and backward with the gradient path the device's tuning chose and checks
-the result:
-
-- a closed form: a grid of uniform density sigma and one constant colour c (SH degree 0) seen
-  along rays that cross the whole box: the quadrature telescopes, so the ray's colour is
-  c (1 - exp(-sigma L)) + bg exp(-sigma L) exactly for the path length L in the box, and the
-  sums over all voxels of the gradients are d/dsigma = L exp(-sigma L) (c - bg) . g and
-  d/dc = (1 - exp(-sigma L)) g (the trilinear weights of every sample sum to one);
-- the float64 reference (clrf/testing/reference.py) on a random grid with many rays that share
-  cells, so that the concurrent gradient adds (locks, scratch copies, atomics) are exercised.
-
-A path that fails is replaced by the float-atomic path when that one passes (with a warning);
-a device on which both fail is never chosen by default, and training on it stops with a
-message that names the driver. Results are cached next to the probe figures
-(``$XDG_CACHE_HOME/clrf/selfcheck.json``), keyed by the probe's device key, the tuning's
-gradient path and a hash of the kernel sources.
+A driver can compile clrf's kernels and still compute wrong gradients, and training on them
+runs for minutes without an error. The layer that owns a backward kernel defines a check of it
+(``GradientCheck``: the kernel sources it covers, a version, the function that runs it; the
+grid's is clrf/grid/selfcheck.py) and registers it here. This module keeps the verdicts: it
+runs a check once per device, driver, gradient path and kernel source, caches the result next
+to the probe figures (``$XDG_CACHE_HOME/clrf/selfcheck.json``, keyed by the probe's device key,
+the tuning's gradient path, the sample-record switch, a hash of the check's sources and its
+version), and tells the device choice (clrf/runtime/device.py) which devices are known, from
+the cache alone, to compute wrong gradients on their float-atomic path: such a device is never
+the default.
 """
 from __future__ import annotations
 
@@ -27,15 +18,10 @@ import json
 import os
 import tempfile
 from dataclasses import dataclass
-
-import numpy as np
+from typing import Callable
 
 from .device_probe import cache_path, device_key
 from .programs import cl_dir
-
-CHECK_VERSION = 1
-SOURCES = ("grid_render.cl", "march.h", "volrend.h", "common.h", "sh.h", "ray.h", "reduce.h")
-RTOL, ATOL = 2e-3, 2e-5      # float32 sums over a few hundred samples against float64
 
 
 @dataclass(frozen=True)
@@ -45,15 +31,34 @@ class CheckResult:
     path: str            # the gradient path checked ("atomics", "slots", "slots+locks")
 
 
+@dataclass(frozen=True)
+class GradientCheck:
+    """A check of a backward kernel: ``run(device)`` returns '' when the device's gradients
+    are right, else why not; ``sources`` (files of cl/) and ``version`` key its verdicts."""
+    sources: tuple
+    version: int
+    run: Callable
+
+
+_CHECKS: list = []   # the registered checks (known_wrong reads their verdicts)
+
+
+def register(check: GradientCheck) -> GradientCheck:
+    """Make ``check``'s cached verdicts count for the device choice; returns it."""
+    if check not in _CHECKS:
+        _CHECKS.append(check)
+    return check
+
+
 def path_name(tuning) -> str:
     if tuning.grad_slots <= 0:
         return "atomics"
     return "slots+locks" if tuning.grad_locks > 0 else "slots"
 
 
-def _sources_hash() -> str:
+def sources_hash(names) -> str:
     h = hashlib.sha256()
-    for name in SOURCES:
+    for name in names:
         p = cl_dir() / name
         if p.exists():
             h.update(p.read_bytes())
@@ -64,10 +69,10 @@ def _cache_file():
     return cache_path().with_name("selfcheck.json")
 
 
-def _key(device) -> str:
+def check_key(device, check: GradientCheck) -> str:
     t = device.tuning
     return "|".join([device_key(device.cl_device), path_name(t), f"rec{int(t.sample_record)}",
-                     _sources_hash(), f"v{CHECK_VERSION}"])
+                     sources_hash(check.sources), f"v{check.version}"])
 
 
 def _load() -> dict:
@@ -95,133 +100,39 @@ def _store(key: str, res: CheckResult) -> None:
         os.unlink(tmp)
 
 
-def _closed_form(device) -> str:
-    """'' when the uniform-grid gradients match the closed form (module doc), else why not."""
-    from ..grid.grid import SparseGrid
-    from ..grid.render import render_rays, render_rays_backward
-    from ..testing.reference import COLOR_OFFSET
-    sigma, c0, bg = 0.8, 0.7, 0.2
-    reso = (6, 5, 4)
-    bbox = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    y00 = 0.28209479177387814      # SH degree-0 basis: colour = y00 * coef + COLOR_OFFSET
-    dens = np.full(reso, sigma, np.float32)
-    sh = np.full(reso + (3,), (c0 - COLOR_OFFSET) / y00, np.float32)
-    grid = SparseGrid.from_dense(device, dens, sh, bbox)
-    # rays along x through voxel centres' interior, from outside the box to beyond it
-    ys, zs = np.meshgrid(np.linspace(-0.6, 0.6, 8), np.linspace(-0.5, 0.5, 8))
-    n = ys.size
-    o = np.stack([np.full(n, -3.0), ys.ravel(), zs.ravel()], 1).astype(np.float32)
-    d = np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (n, 1))
-    out = render_rays(grid, o, d, step=0.25, background=(bg, bg, bg))
-    T = 1.0 - out["acc"]
-    # the path length the kernel integrated, from its own transmittance (uniform density)
-    L = -np.log(np.clip(T.astype(np.float64), 1e-30, 1.0)) / sigma
-    if not (np.all(np.isfinite(L)) and np.ptp(L) < 1e-3 * max(L.mean(), 1e-9) and L.mean() > 0):
-        return f"uniform grid: path lengths differ between parallel rays ({L.min():.4g}..{L.max():.4g})"
-    want_rgb = c0 * (1 - T) + bg * T
-    if not np.allclose(out["rgb"], want_rgb[:, None], rtol=RTOL, atol=ATOL):
-        return "uniform grid: forward colour differs from c (1 - T) + bg T"
-    rng = np.random.default_rng(7)
-    g = rng.normal(size=(n, 3)).astype(np.float32)
-    grads = render_rays_backward(grid, o, d, g, step=0.25, background=(bg, bg, bg))
-    Lm = float(L.mean())
-    Te = np.exp(-sigma * Lm)
-    want_dsigma = float(np.sum(Lm * Te * (c0 - bg) * g.astype(np.float64)))
-    want_dc = (1 - Te) * g.astype(np.float64).sum(axis=0) * y00       # per channel
-    got_dsigma = float(grads["density"].astype(np.float64).sum())
-    got_dc = grads["sh"].astype(np.float64).reshape(-1, 3).sum(axis=0)
-    if not np.isclose(got_dsigma, want_dsigma, rtol=RTOL, atol=ATOL * n):
-        return (f"uniform grid: sum of density gradients {got_dsigma:.6g}, closed form "
-                f"{want_dsigma:.6g}")
-    if not np.allclose(got_dc, want_dc, rtol=RTOL, atol=ATOL * n):
-        return f"uniform grid: sum of colour gradients {got_dc}, closed form {want_dc}"
-    return ""
-
-
-def _reference(device) -> str:
-    """'' when a random grid's gradients match the float64 reference, else why not."""
-    from ..grid.grid import SparseGrid
-    from ..grid.render import render_rays_backward
-    from ..testing import reference as ref
-    rng = np.random.default_rng(11)
-    reso = (5, 4, 6)
-    dens = rng.uniform(0.0, 2.0, reso).astype(np.float32)
-    dens[rng.random(reso) < 0.2] = 0.0
-    sh = rng.normal(0.0, 0.5, reso + (12,)).astype(np.float32)        # SH degree 1
-    bbox = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
-    grid = SparseGrid.from_dense(device, dens, sh, bbox)
-    n = 96                      # many rays through few cells: concurrent adds to shared rows
-    o = rng.uniform(-0.3, 0.3, (n, 3)) + np.array([0.0, 0.0, -3.0])
-    tgt = rng.uniform(-0.5, 0.5, (n, 3))
-    d = tgt - o
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o, d = o.astype(np.float32), d.astype(np.float32)
-    g = rng.normal(size=(n, 3)).astype(np.float32)
-    bg = (0.3, 0.6, 0.1)
-    got = render_rays_backward(grid, o, d, g, step=0.5, background=bg)
-    want = ref.render_backward(dens, sh, bbox, o, d, g, 0.5, bg)
-    for name in ("density", "sh"):
-        a, b = got[name].astype(np.float64), np.asarray(want[name], np.float64)
-        bad = ~np.isclose(a, b, rtol=RTOL, atol=ATOL * 10)
-        if bad.any():
-            i = np.flatnonzero(bad)[0]
-            return (f"random grid: {bad.sum()} of {bad.size} {name} gradients differ from the "
-                    f"float64 reference (first: {a.flat[i]:.6g} vs {b.flat[i]:.6g})")
-    return ""
-
-
-def run_check(device) -> CheckResult:
-    """Run both checks on ``device`` with its own tuning now (no cache)."""
+def run_check(device, check: GradientCheck) -> CheckResult:
+    """Run ``check`` on ``device`` with its own tuning now (no cache)."""
     try:
-        why = _closed_form(device) or _reference(device)
+        why = check.run(device)
     except Exception as e:  # noqa: BLE001 - any driver failure means: not trusted
         why = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
     return CheckResult(not why, why, path_name(device.tuning))
 
 
-def gradient_check(device, refresh: bool = False) -> CheckResult:
-    """The cached check of ``device``'s gradient path, measured when missing."""
-    key = _key(device)
+def gradient_check(device, check: GradientCheck, refresh: bool = False,
+                   run=None) -> CheckResult:
+    """The cached verdict of ``check`` on ``device``'s gradient path, measured when missing
+    (with ``run(device)``, default ``run_check(device, check)``) and then cached."""
+    key = check_key(device, check)
     if not refresh:
         e = _load().get(key)
         if isinstance(e, dict) and isinstance(e.get("ok"), bool):
             return CheckResult(e["ok"], str(e.get("detail", "")), str(e.get("path", "")))
-    res = run_check(device)
+    res = run(device) if run is not None else run_check(device, check)
     _store(key, res)
     return res
 
 
-def ensure_trusted(device, log=None):
-    """Before training: the device's gradient path passes the check (cached), else the
-    float-atomic path replaces it (``device.tuning`` is changed, with a warning through
-    ``log``) when that one passes; else DeviceError naming the device and its driver."""
-    from .device import DeviceError
-    res = gradient_check(device)
-    if res.ok:
-        return res
-    first = res
-    if device.tuning.grad_slots > 0:
-        device.tuning = device.tuning.replace(grad_slots=0, sample_record=False, grad_locks=0)
-        device._programs.clear()
-        res = gradient_check(device)
-        if res.ok:
-            if log is not None:
-                log(f"clrf: warning: the {first.path} gradient path computes wrong gradients on "
-                    f"{device!r} ({first.detail}); using the float-atomic path")
-            return res
-    raise DeviceError(
-        f"device {device!r}, driver {device.caps.driver_version}: the grid backward computes "
-        f"wrong gradients ({first.path}: {first.detail}); clrf will not train on it. Choose "
-        f"another device with --device / CLRF_DEVICE (`clrf devices` lists them) or update "
-        f"the OpenCL driver")
-
-
-def known_wrong(cl_device) -> str | None:
+def known_wrong(cl_device, checks=None) -> str | None:
     """Why ``cl_device`` is known (from the cache only; nothing is run) to compute wrong
-    gradients on its float-atomic path with the current kernels, or None."""
-    tail = f"|{_sources_hash()}|v{CHECK_VERSION}"
+    gradients on its float-atomic path with the current kernels under one of ``checks``
+    (default: the registered ones), or None."""
     head = device_key(cl_device) + "|atomics|"
-    for k, e in _load().items():
-        if k.startswith(head) and k.endswith(tail) and isinstance(e, dict) and e.get("ok") is False:
-            return str(e.get("detail", "wrong gradients"))
+    entries = _load()
+    for check in (_CHECKS if checks is None else checks):
+        tail = f"|{sources_hash(check.sources)}|v{check.version}"
+        for k, e in entries.items():
+            if (k.startswith(head) and k.endswith(tail) and isinstance(e, dict)
+                    and e.get("ok") is False):
+                return str(e.get("detail", "wrong gradients"))
     return None

@@ -60,9 +60,10 @@ def is_slow(name: str) -> bool:
 @functools.lru_cache(maxsize=None)
 def default_device() -> Device:
     """The session's device: what ``clrf train`` picks for the grid (CLRF_DEVICE honoured;
-    among equal probe figures the faster grid workload, clrf/workload.py)."""
+    among equal probe figures the faster grid workload, clrf/runtime/workload.py)."""
+    from ..grid.workload import WORKLOAD
     from ..runtime.workload import device_for
-    return device_for("grid")
+    return device_for(WORKLOAD)
 
 
 @functools.lru_cache(maxsize=None)

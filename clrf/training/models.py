@@ -1,8 +1,15 @@
-"""Model kinds the trainer and CLI know, and loading a model back from a checkpoint."""
+"""Model kinds the trainer and CLI know (their factories and device-choice workloads), and
+loading a model, and the dataset it was trained on, back from a checkpoint."""
 from __future__ import annotations
 
+from ..grid.workload import WORKLOAD as GRID_WORKLOAD
+from ..nerf.workload import WORKLOAD as NERF_WORKLOAD
 from ..outputs import checkpoint
 from .config import Config, _merge
+
+# The timed run that picks the default device of each model kind (clrf/runtime/workload.py);
+# a kind without one gets the probe's choice.
+WORKLOADS = {"grid": GRID_WORKLOAD, "nerf": NERF_WORKLOAD}
 
 
 class GridFactory:
@@ -29,8 +36,11 @@ class DistGridFactory:
         return DistGridModel.create(device, cfg.grid, ds.bbox, background, self.comm)
 
     def from_state(self, device, state, cfg):
-        from ..grid.dist_model import DistGridModel
-        return DistGridModel.from_state_dict(device, state, cfg.grid, self.comm)
+        from ..grid.dist_model import BrickMismatchError, DistGridModel
+        try:
+            return DistGridModel.from_state_dict(device, state, cfg.grid, self.comm)
+        except BrickMismatchError as e:
+            raise checkpoint.CheckpointError(str(e)) from None
 
 
 class NerfFactory:
@@ -75,3 +85,19 @@ def load_model(device, ckpt):
     if kind not in FACTORIES:
         raise checkpoint.CheckpointError(f"checkpoint {ckpt}: unknown model kind '{kind}'")
     return FACTORIES[kind].from_state(device, state, cfg), state, cfg
+
+
+def load_data(path, downscale=1):
+    """The dataset at ``path`` (None or "": the built-in procedural scene), downscaled by an
+    integer factor."""
+    from ..data import load_dataset
+    opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
+    return load_dataset(path or None, **opts)
+
+
+def checkpoint_dataset(state, data_override=None):
+    """The dataset of a checkpoint's run (or ``data_override``), loaded at the resolution the
+    run trained on."""
+    tr = state["run_config"]["train"]
+    path = data_override if data_override is not None else tr.get("data", "")
+    return load_data(path, tr.get("downscale", 1) if path else 1)

@@ -30,8 +30,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..outputs import checkpoint, rundir
-from ..runtime import selfcheck
-from ..data.cameras import as_distortion, pixel_rays, to_ndc
+from ..grid import selfcheck
+from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from ..runtime.programs import launch, upload
@@ -73,19 +73,6 @@ class RayStore:
         stride = max(1, self.n // max(1, n))
         o, d = self.host
         return o[::stride], d[::stride]
-
-
-def view_rays(ds, poses, downscale=1):
-    """Rays of whole views: numpy origins, dirs [len(poses)*h*w, 3] (NDC when the scene uses it).
-
-    downscale f: the views at (H // f, W // f) with intrinsics / f, i.e. one ray per f x f block
-    of pixels (the pixels ``downscale_image`` averages)."""
-    H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
-    intr = np.asarray(ds.intrinsics, np.float64) / downscale
-    o, d = pixel_rays(poses, intr, H, W, ds.distortion)
-    if ds.ndc:
-        o, d = to_ndc(o, d, intr, H, W)
-    return o.astype(np.float32), d.astype(np.float32)
 
 
 def training_rays(device, ds, max_images=0):
@@ -245,8 +232,9 @@ class Trainer:
         state = self.model.state_dict()
         state.update(iteration=self.iteration, seconds=self.seconds,
                      run_config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
-        if hasattr(self.model, "save_checkpoint"):
-            self.model.save_checkpoint(self.ckpt_path, state)   # collective (every rank)
+        if hasattr(self.model, "checkpoint_layout"):   # collective: every rank its brick
+            reso, bricks = self.model.checkpoint_layout()
+            checkpoint.save_distributed(self.ckpt_path, state, self.comm, reso, bricks)
         else:
             checkpoint.save(self.ckpt_path, state)
 

@@ -52,9 +52,9 @@ def run_view(a):
     meta = state["dataset"]
     cams = []
     if not a.no_cameras:
-        from ..cli.main import _ckpt_dataset
+        from ..training.models import checkpoint_dataset
         try:
-            cams = dataset_cameras(_ckpt_dataset(state, a.data))
+            cams = dataset_cameras(checkpoint_dataset(state, a.data))
         except Exception as e:   # noqa: BLE001 - the viewer works without the dataset
             print(f"clrf: note: no dataset cameras in the viewer ({e})", file=sys.stderr)
     ck = Path(a.ckpt)

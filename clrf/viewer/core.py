@@ -40,6 +40,11 @@ class RequestError(ValueError):
     pass
 
 
+class ViewerError(Exception):
+    """The viewer cannot start (a missing package, a port in use, a bad option); the CLI prints
+    the message and exits 2."""
+
+
 @dataclass
 class Frame:
     """Camera of one frame, already validated and scaled to its render size."""

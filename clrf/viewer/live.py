@@ -19,7 +19,7 @@ import sys
 import time
 
 from . import dataset_cameras, up_vector
-from .core import ViewerCore
+from .core import ViewerCore, ViewerError
 from .server import ViewerServer, need_websockets, warn_host
 
 STATS_EVERY = 0.5      # seconds between stats messages to the pages
@@ -31,8 +31,7 @@ class LiveViewer:
     def __init__(self, trainer, host="127.0.0.1", port=8080, share=0.2):
         need_websockets()
         if not 0 < share <= 1:
-            from ..cli.main import CliError
-            raise CliError(f"--view-share {share}: must be in (0, 1], the largest fraction of "
+            raise ViewerError(f"--view-share {share}: must be in (0, 1], the largest fraction of "
                            f"wall time the viewer may render for")
         from ..training.trainer import dataset_meta
         cams = dataset_cameras(trainer.ds)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core import DEFAULT_CAP, DEFAULT_MOVE_CAP, RequestError, ViewerCore
+from .core import DEFAULT_CAP, DEFAULT_MOVE_CAP, RequestError, ViewerCore, ViewerError
 
 MAX_MESSAGE = 1 << 20      # largest client message, bytes (a request is < 1 KiB)
 SENDER_JOIN = 10.0         # seconds a leaving client's handler waits for its sender thread
@@ -40,8 +40,7 @@ def need_websockets():
     try:
         import websockets.sync.server  # noqa: F401
     except ImportError:
-        from ..cli.main import CliError
-        raise CliError("the viewer needs the 'websockets' package: pip install websockets "
+        raise ViewerError("the viewer needs the 'websockets' package: pip install websockets "
                        "(or clrf[view], or `bash tools/setup.sh view`)") from None
 
 
@@ -131,8 +130,7 @@ class ViewerServer:
                                  process_request=self._http, compression=None,
                                  ping_interval=PING, ping_timeout=PING)
         except OSError as e:
-            from ..cli.main import CliError
-            raise CliError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e}); pass "
+            raise ViewerError(f"cannot listen on {self.host}:{self.port} ({e.strerror or e}); pass "
                            f"another --port (0 picks a free one)") from None
         self.port = self._server.socket.getsockname()[1]
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True,
