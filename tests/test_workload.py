@@ -1,8 +1,12 @@
-"""Device choice per model kind by a timed run of its kernels (clrf/workload.py)."""
+"""Device choice per model kind by a timed run of its kernels (clrf/runtime/workload.py, the
+runs in clrf/grid/workload.py and clrf/nerf/workload.py)."""
+import dataclasses
+
 import pytest
 
 import clrf
 from clrf.runtime import workload
+from clrf.training.models import WORKLOADS
 
 
 @pytest.fixture
@@ -17,25 +21,26 @@ def test_pick_keeps_the_probe_order_among_equals():
     assert workload.pick([0.0, 5.0, 5.2]) == 1
 
 
-@pytest.mark.parametrize("kind", workload.KINDS)
-def test_workloads_run_and_are_cached(device, own_cache, monkeypatch, kind):
-    r = workload.rate(device, kind)
+@pytest.mark.parametrize("kind", sorted(WORKLOADS))
+def test_workloads_run_and_are_cached(device, own_cache, kind):
+    work = WORKLOADS[kind]
+    r = workload.rate(device, work)
     assert r > 0
-    monkeypatch.setitem(workload.RATES, kind, lambda d: pytest.fail("not cached"))
-    assert workload.rate(device, kind) == r
-    assert workload.rate(device, kind, measure=False) == r
+    cached = dataclasses.replace(work, rate=lambda d: pytest.fail("not cached"))
+    assert workload.rate(device, cached) == r
+    assert workload.rate(device, cached, measure=False) == r
 
 
-def test_a_failing_workload_scores_zero(device, own_cache, monkeypatch):
+def test_a_failing_workload_scores_zero(device, own_cache):
     def broken(d):
         raise RuntimeError("driver fault")
-    monkeypatch.setitem(workload.RATES, "grid", broken)
-    assert workload.rate(device, "grid", refresh=True) == 0.0
+    work = dataclasses.replace(WORKLOADS["grid"], rate=broken)
+    assert workload.rate(device, work, refresh=True) == 0.0
 
 
 def test_a_named_device_is_used_as_named(device, own_cache):
     spec = f"{device.platform_index}:{device.device_index}"
-    dev = workload.device_for("grid", spec)
+    dev = workload.device_for(WORKLOADS["grid"], spec)
     assert (dev.platform_index, dev.device_index) == (device.platform_index, device.device_index)
     assert not getattr(dev, "choice", None)
 
@@ -52,6 +57,6 @@ def test_the_fastest_contender_wins(device, own_cache, monkeypatch):
                              c.reason, c.candidates, (c.candidate, c.candidate))
     monkeypatch.setattr(devmod, "choose_device", two)
     figures = iter([1000.0, 5000.0])
-    monkeypatch.setattr(workload, "rate", lambda d, kind, measure=True: next(figures))
-    dev = workload.device_for("grid", "auto")
+    monkeypatch.setattr(workload, "rate", lambda d, work, measure=True: next(figures))
+    dev = workload.device_for(WORKLOADS["grid"], "auto")
     assert "fastest grid workload" in dev.choice and "5,000" in dev.choice

@@ -107,4 +107,10 @@ class HashConfig:
 
 
 # Field values of each hash preset (the rest are HashConfig's defaults).
-HASH_
+HASH_PRESETS = {
+    "full": {},
+    # small scenes train for hundreds, not tens of thousands, of steps: the occupancy grid
+    # starts pruning after 32 and is refreshed every 8
+    "tiny": {"log2_table": 16, "max_res": 512, "samples": 128, "occ_res": 64,
+             "occ_points": 32768, "occ_warmup": 32, "occ_every": 8, "batch_rays": 1024},
+}

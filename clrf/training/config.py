@@ -47,15 +47,6 @@ class TrainConfig:
 
 
 PRESETS = {
-    "full": {},
-    # small scenes train for hundreds, not tens of thousands, of steps: the occupancy grid
-    # starts pruning after 32 and is refreshed every 8
-    "tiny": {"log2_table": 16, "max_res": 512, "samples": 128, "occ_res": 64,
-             "occ_points": 32768, "occ_warmup": 32, "occ_every": 8, "batch_rays": 1024},
-}
-
-
-PRESETS = {
     # Blender-style synthetic 360: white/black background, no NDC, no background model.
     "synthetic": {"grid": {}},
     # The built-in procedural scene (the first run, `clrf train`): small images, smaller

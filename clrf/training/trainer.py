@@ -24,6 +24,7 @@ import csv
 import json
 import signal
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -243,74 +244,106 @@ class Trainer:
             plot_error_vs_time(self.csv_path, self.out / "error_vs_time.png", title, downscale)
 
     def run(self):
+        """Train until the time or iteration budget is spent (or Ctrl-C), evaluating and
+        checkpointing on the way; then save, evaluate every test view and return the result."""
+        loop = self._setup()
+        interrupted = False
+        old = signal.getsignal(signal.SIGINT)
+        try:
+            while True:
+                self._maybe_eval(loop)
+                if self._done():
+                    break
+                self._maybe_checkpoint(loop)
+                self._step(loop)
+        except KeyboardInterrupt:
+            interrupted = True
+            loop.prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
+        finally:
+            signal.signal(signal.SIGINT, old)
+            loop.prog.close()
+        self.save()
+        return self._finish(loop, interrupted)
+
+    def _setup(self) -> "_Loop":
+        """The loop's state: progress output, the first evaluation and checkpoint times."""
         t = self.cfg.train
-        batch = self.model.batch_size
         prog = TrainProgress(t.max_seconds, self.seconds)
         if not self.primary:   # one voice per run: rank 0's
             prog.message = lambda text: None
-        interrupted = False
-        old = signal.getsignal(signal.SIGINT)
-        losses = []
-        next_eval = self.seconds + (0 if self.iteration == 0 else t.eval_every)
-        next_ckpt = self.seconds + t.checkpoint_every
-        last_eval = None
-        title = (f"{self.ds.name}: {self.model.kind}, {self.device.caps.name} "
-                 f"({self.device.caps.platform_version.split()[3] if len(self.device.caps.platform_version.split()) > 3 else ''})")
-        try:
-            while True:
-                if self.seconds >= next_eval or self.seconds >= t.max_seconds \
-                        or self.iteration >= t.max_iters:
-                    ev = evaluate(self.model, self.ds, self.periodic_views,
-                                  downscale=self.eval_downscale)
-                    last_eval = ev
-                    lt = float(np.mean(losses)) if losses else float("nan")
-                    self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
-                              train_loss=f"{lt:.6g}" if losses else "",
-                              train_psnr=f"{psnr_from_mse(lt):.3f}" if losses else "",
-                              eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
-                              eval_views=len(self.periodic_views), rays_per_s=f"{self._rate:.0f}" if losses else "",
-                              model=self.model.describe())
-                    losses = []
-                    self._plot(title, t.eval_downscale)
-                    prog.message(f"it {self.iteration:6d}  {self.seconds:7.1f}s  eval PSNR "
-                                 f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
-                                 f"({len(self.periodic_views)} views)  {self.model.describe()}")
-                    next_eval = self.seconds + t.eval_every
-                    if self.viewer is not None:
-                        self.viewer.evaluated(self, ev)
-                if self.seconds >= t.max_seconds or self.iteration >= t.max_iters:
-                    break
-                if self.seconds >= next_ckpt:
-                    self.save()
-                    next_ckpt = self.seconds + t.checkpoint_every
-                t0 = time.perf_counter()
-                msg = self.model.on_iteration(self.iteration, self)
-                if msg:
-                    prog.message(f"it {self.iteration:6d}  {msg}")
-                bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, batch)
-                loss = self.model.train_step(self.iteration, bo, bd, bc)
-                dt = time.perf_counter() - t0
-                if self.comm is not None:   # the slowest rank's time, the same on every rank
-                    from mpi4py import MPI
-                    dt = self.comm.allreduce(dt, op=MPI.MAX)
-                if not np.isfinite(loss):
-                    raise FloatingPointError(f"training loss became {loss} at iteration "
-                                             f"{self.iteration}; the last checkpoint is kept")
-                self.seconds += dt
-                self.iteration += 1
-                self._rate = batch / dt if dt > 0 else 0.0
-                losses.append(loss)
-                prog.update(f"it {self.iteration} loss {loss:.5f} PSNR {psnr_from_mse(loss):5.2f} "
-                            f"{self._rate / 1e3:.1f}k rays/s", self.seconds)
-                if self.viewer is not None:   # clrf train --view (clrf/viewer/live.py)
-                    self.viewer.step(self, loss)
-        except KeyboardInterrupt:
-            interrupted = True
-            prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
-        finally:
-            signal.signal(signal.SIGINT, old)
-            prog.close()
-        self.save()
+        caps = self.device.caps
+        version = caps.platform_version.split()
+        title = (f"{self.ds.name}: {self.model.kind}, {caps.name} "
+                 f"({version[3] if len(version) > 3 else ''})")
+        return _Loop(prog=prog, batch=self.model.batch_size, title=title,
+                     next_eval=self.seconds + (0 if self.iteration == 0 else t.eval_every),
+                     next_ckpt=self.seconds + t.checkpoint_every)
+
+    def _done(self) -> bool:
+        t = self.cfg.train
+        return self.seconds >= t.max_seconds or self.iteration >= t.max_iters
+
+    def _maybe_eval(self, loop: "_Loop"):
+        """A periodic evaluation when one is due (and always before stopping): a metrics row,
+        the plot, a progress line, the viewer told."""
+        t = self.cfg.train
+        if not (self.seconds >= loop.next_eval or self._done()):
+            return
+        ev = evaluate(self.model, self.ds, self.periodic_views, downscale=self.eval_downscale)
+        loop.last_eval = ev
+        losses = loop.losses
+        lt = float(np.mean(losses)) if losses else float("nan")
+        self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
+                  train_loss=f"{lt:.6g}" if losses else "",
+                  train_psnr=f"{psnr_from_mse(lt):.3f}" if losses else "",
+                  eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
+                  eval_views=len(self.periodic_views),
+                  rays_per_s=f"{self._rate:.0f}" if losses else "",
+                  model=self.model.describe())
+        loop.losses = []
+        self._plot(loop.title, t.eval_downscale)
+        loop.prog.message(f"it {self.iteration:6d}  {self.seconds:7.1f}s  eval PSNR "
+                          f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
+                          f"({len(self.periodic_views)} views)  {self.model.describe()}")
+        loop.next_eval = self.seconds + t.eval_every
+        if self.viewer is not None:
+            self.viewer.evaluated(self, ev)
+
+    def _maybe_checkpoint(self, loop: "_Loop"):
+        if self.seconds >= loop.next_ckpt:
+            self.save()
+            loop.next_ckpt = self.seconds + self.cfg.train.checkpoint_every
+
+    def _step(self, loop: "_Loop"):
+        """One training step: the model's per-iteration work (pruning, upsampling), a batch,
+        the fused step; the clock counts only this (the slowest rank's time under MPI)."""
+        t = self.cfg.train
+        t0 = time.perf_counter()
+        msg = self.model.on_iteration(self.iteration, self)
+        if msg:
+            loop.prog.message(f"it {self.iteration:6d}  {msg}")
+        bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, loop.batch)
+        loss = self.model.train_step(self.iteration, bo, bd, bc)
+        dt = time.perf_counter() - t0
+        if self.comm is not None:   # the slowest rank's time, the same on every rank
+            from mpi4py import MPI
+            dt = self.comm.allreduce(dt, op=MPI.MAX)
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss} at iteration "
+                                     f"{self.iteration}; the last checkpoint is kept")
+        self.seconds += dt
+        self.iteration += 1
+        self._rate = loop.batch / dt if dt > 0 else 0.0
+        loop.losses.append(loss)
+        loop.prog.update(f"it {self.iteration} loss {loss:.5f} PSNR {psnr_from_mse(loss):5.2f} "
+                         f"{self._rate / 1e3:.1f}k rays/s", self.seconds)
+        if self.viewer is not None:   # clrf train --view (clrf/viewer/live.py)
+            self.viewer.step(self, loss)
+
+    def _finish(self, loop: "_Loop", interrupted: bool) -> dict:
+        """The run's result: the final evaluation over every test view (renders, eval.json,
+        the last metrics row) unless interrupted, else the last periodic one."""
+        t = self.cfg.train
         result = {"iteration": self.iteration, "seconds": self.seconds,
                   "interrupted": interrupted}
         if t.final_eval and not interrupted:
@@ -323,21 +356,34 @@ class Trainer:
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
-            self._plot(title, t.eval_downscale)
+            self._plot(loop.title, t.eval_downscale)
             if self.primary:
                 tmp = self.out / "eval.json.tmp"
                 tmp.write_text(json.dumps(result, indent=2))
                 tmp.replace(self.out / "eval.json")
-            prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
-                         f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
-                         f"({self.iteration} iterations)")
-        elif last_eval is not None:
-            result.update(psnr=last_eval["psnr"], ssim=last_eval["ssim"], ssim_window=SSIM_NAME)
+            loop.prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
+                              f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
+                              f"({self.iteration} iterations)")
+        elif loop.last_eval is not None:
+            result.update(psnr=loop.last_eval["psnr"], ssim=loop.last_eval["ssim"],
+                          ssim_window=SSIM_NAME)
         return result
 
     _rate = 0.0
     viewer = None       # clrf.viewer.live.LiveViewer of `clrf train --view`
-    metric_sinks = ()   # extra receivers of every metrics.csv row (clrf.tblog.TensorBoardLog)
+    metric_sinks = ()   # extra receivers of every metrics.csv row (outputs/tblog.py TensorBoardLog)
+
+
+@dataclass
+class _Loop:
+    """What Trainer.run's steps share while the loop runs."""
+    prog: TrainProgress
+    batch: int               # rays per step
+    title: str               # of the PSNR-against-time plot
+    next_eval: float         # training seconds of the next periodic evaluation
+    next_ckpt: float         # and of the next checkpoint
+    losses: list = field(default_factory=list)   # batch losses since the last evaluation
+    last_eval: dict | None = None
 
 
 def dataset_meta(ds):
