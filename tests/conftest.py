@@ -51,7 +51,7 @@ def pytest_generate_tests(metafunc):
 
 @pytest.fixture(scope="session", autouse=True)
 def _own_tuning_cache(tmp_path_factory):
-    """Tests never read the user's tuned tiles (clrf/autotune.py): an empty cache folder."""
+    """Tests never read the user's tuned tiles (clrf/nerf/autotune.py): an empty cache folder."""
     old = os.environ.get("XDG_CACHE_HOME")
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
     yield

@@ -1,4 +1,4 @@
-"""Multi-sphere-image background (cl/background.cl, clrf/background.py) vs the float64 reference
+"""Multi-sphere-image background (cl/background.cl, clrf/grid/msi.py) vs the float64 reference
 (clrf/testing/reference_background.py), closed forms, finite differences and a density scale sweep."""
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
 """Build logs: every kernel file builds without compiler diagnostics on this device, with the
 defines the library and tools use (a warning introduced in cl/ fails here), and the split of a
-log into diagnostics and implementation chatter (clrf/buildlog.py) holds on real logs of each
+log into diagnostics and implementation chatter (clrf/runtime/buildlog.py) holds on real logs of each
 OpenCL implementation, stored in tests/fixtures/build_logs/ by tools/capture_build_logs.py."""
 import itertools
 from collections import Counter

@@ -27,7 +27,7 @@ def test_every_section_of_config_is_covered():
 
 
 def test_every_field_has_a_comment():
-    # the help text comes from the comment beside each field in clrf/config.py: a new field
+    # the help text comes from the comment beside each field in clrf/training/config.py: a new field
     # without one fails here
     missing = [f"{sect}.{f.name}" for sect, cls, _ in sections()
                for f in dataclasses.fields(cls) if not field_comments(cls).get(f.name)]

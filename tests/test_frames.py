@@ -1,4 +1,4 @@
-"""clrf/frames.py: the cameras of the shared render path (clrf render and the viewer)."""
+"""clrf/outputs/frames.py: the cameras of the shared render path (clrf render and the viewer)."""
 import math
 
 import numpy as np

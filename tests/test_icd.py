@@ -1,4 +1,4 @@
-"""clrf/icd.py registers a venv's OpenCL driver (Intel's CPU runtime from PyPI) for the venv's
+"""clrf/runtime/icd.py registers a venv's OpenCL driver (Intel's CPU runtime from PyPI) for the venv's
 Python only: tested on a fake prefix and a fake system vendors folder."""
 import os
 import subprocess

@@ -26,8 +26,14 @@ def test_wheel_installs_and_renders(tmp_path):
     assert (target / "clrf" / "viewer" / "page.html").is_file()   # the viewer's page
     for part in ("cl/hash.cl", "cl/hash_occ.h", "cl/hash_march.cl", "hash/model.py"):
         assert (target / "clrf" / part).is_file(), part     # the hash model is packaged
+    # every package of the layout (docs/architecture.md), the CLI's entry point among them
+    for pkg in ("runtime", "grid", "nerf", "hash", "data", "outputs", "training", "viewer", "cli",
+                "testing"):
+        assert (target / "clrf" / pkg / "__init__.py").is_file(), pkg
+    assert (target / "clrf" / "cli" / "__main__.py").is_file()
     script = (
-        "import numpy as np, clrf, clrf.runtime.programs as p\n"
+        "import numpy as np, clrf, clrf.runtime.programs as p, clrf.cli\n"
+        "assert callable(clrf.cli.main)\n"
         "assert 'site' in str(p.cl_dir()), p.cl_dir()\n"
         "dev = clrf.Device()\n"
         "g = clrf.SparseGrid.from_dense(dev, np.ones((2,2,2)), np.zeros((2,2,2,3)), [[0,0,0],[1,1,1]])\n"

@@ -1,4 +1,4 @@
-"""Distributed Plenoxels over MPI (clrf/distributed.py): `mpirun -n 2|3` runs of
+"""Distributed Plenoxels over MPI (clrf/grid/distributed.py): `mpirun -n 2|3` runs of
 tests/mpi_script.py compared with the single-device results in this process. Skips when mpirun
 or mpi4py is missing (install: `bash tools/setup.sh test,mpi`)."""
 import importlib.util

@@ -19,7 +19,7 @@ number the kept voxels): Oclgrind reports read-write races on global memory insi
 with only a local-memory barrier between them. Their results are checked against the
 reference by the prune/resample tests. ``--uninitialized`` is not used: Oclgrind
 21.10's plugin stops on LLVM's ``freeze`` instruction ("Unsupported instruction: freeze") and
-crashes on kernels that add two elements of one vector (clrf/device_probe.py is_simulator).
+crashes on kernels that add two elements of one vector (clrf/runtime/device_probe.py is_simulator).
 """
 import os
 import re

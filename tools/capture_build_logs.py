@@ -23,7 +23,7 @@ each log is the compiler's, and the log of a failed build can be read back.
     OCL_ICD_VENDORS=/tmp/ocl-vendors-grind python tools/capture_build_logs.py --device 0:0
 
 A new implementation: run the tool under its ICD, read the new .txt files, add the progress
-lines it writes to CHATTER in clrf/buildlog.py, and run tests/test_build_log.py.
+lines it writes to CHATTER in clrf/runtime/buildlog.py, and run tests/test_build_log.py.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Distributed Plenoxels throughput (clrf/distributed.py): rays/s of the composed forward render
+"""Distributed Plenoxels throughput (clrf/grid/distributed.py): rays/s of the composed forward render
 and of a training step, rows and device memory per rank, bytes exchanged per ray and per step.
 
     mpirun --bind-to core -n 2 python tools/mpi_bench.py --reso 128 --out tools/results/mpi_bench_2.json

@@ -12,7 +12,7 @@
 #                                # Open MPI first (openmpi-bin libopenmpi-dev) when mpicc or
 #                                # mpirun is missing
 #   bash tools/setup.sh intel    # plus Intel's oneAPI OpenCL CPU runtime, from PyPI into the
-#                                # venv, registered for the venv's Python only (clrf/icd.py:
+#                                # venv, registered for the venv's Python only (clrf/runtime/icd.py:
 #                                # no root, no system file changed, the system's drivers stay)
 #   bash tools/setup.sh impls    # plus Mesa's rusticl and the Oclgrind simulator (Debian
 #                                # mesa-opencl-icd oclgrind), the other implementations the
@@ -103,7 +103,7 @@ rm -rf .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q ".[${extras}]"
 case ",${1:-}," in
-    *,intel,*) .venv/bin/python -m clrf.icd register ;;
+    *,intel,*) .venv/bin/python -m clrf.runtime.icd register ;;
 esac
 if [ "$want_eval" -eq 1 ]; then
     # LPIPS: clrf builds AlexNet / VGG-16 itself with torch, so torch (a CPU build is enough)
@@ -131,7 +131,7 @@ if [ "$status" -ne 0 ]; then
         # the venv's own vendors folder (extra 'intel') links the system's .icd files that
         # existed when it was written: write it again so the new PoCL is seen
         case ",${1:-}," in
-            *,intel,*) .venv/bin/python -m clrf.icd register ;;
+            *,intel,*) .venv/bin/python -m clrf.runtime.icd register ;;
         esac
         status=0
         check || status=$?

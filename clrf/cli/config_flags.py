@@ -1,13 +1,15 @@
-"""``clrf train`` flags generated from the typed configuration (clrf.config).
+"""``clrf train`` flags generated from the typed configuration (clrf.training.config).
 
-Every field of every section of :class:`clrf.config.Config` (``grid``, ``train``, ``nerf``)
-becomes one flag ``--SECTION.KEY`` in an argparse group per section, with the field's default
-and its source comment as the help text. The comment is the one written beside the field in
-clrf/config.py (plus the comment lines that continue it), so the meaning is written once.
+Every field of every section of :class:`clrf.training.config.Config` (``grid``, ``train``,
+``nerf``, ``hash``) becomes one flag ``--SECTION.KEY`` in an argparse group per section, with
+the field's default and its source comment as the help text. The comment is the one written
+beside the field in its dataclass (clrf/training/config.py, clrf/grid/config.py,
+clrf/nerf/config.py, clrf/hash/config.py; plus the comment lines that continue it), so the
+meaning is written once.
 
 A flag is the same override as ``--set SECTION.KEY=VALUE``: its value goes into the same
 overrides dict, parsed the same way (JSON, else the plain string; string fields take the text
-as it is), and is then type-checked and range-checked by ``clrf.config.build_config``, so a bad
+as it is), and is then type-checked and range-checked by ``clrf.training.config.build_config``, so a bad
 value gives the same ConfigError. Only flags the user typed appear in the overrides (argparse
 ``SUPPRESS`` defaults), which keeps the precedence defaults < preset < config file < command
 line. Booleans use ``argparse.BooleanOptionalAction`` (``--grid.sphere_bound`` /

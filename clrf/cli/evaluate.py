@@ -1,5 +1,5 @@
 """`clrf eval`: PSNR, the standard SSIM and LPIPS of a checkpoint, on the run's own test views
-or under a published protocol (``--protocol``, clrf/protocols.py).
+or under a published protocol (``--protocol``, clrf/data/protocols.py).
 
 Output JSON (default CKPT/eval_cli.json, or CKPT/eval_PROTOCOL.json with --protocol): the means
 ``psnr``, ``ssim`` (``ssim_window`` names it), ``lpips`` (null when unavailable, the reason in

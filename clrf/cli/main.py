@@ -191,7 +191,7 @@ def end_message(out, res, data_path="") -> str:
 
 
 def _mpi_world():
-    """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None (clrf.distributed)."""
+    """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None (clrf.grid.distributed)."""
     from ..grid.distributed import world
     try:
         return world()

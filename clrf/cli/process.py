@@ -1,4 +1,4 @@
-"""The ``clrf process`` subcommand: its arguments and handler (the work is in clrf/process.py)."""
+"""The ``clrf process`` subcommand: its arguments and handler (the work is in clrf/data/process.py)."""
 from __future__ import annotations
 
 

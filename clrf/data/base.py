@@ -30,7 +30,7 @@ class Dataset:
     far: float = 1e10
     ndc: bool = False                  # forward-facing scenes: rays in normalised device coords
     distortion: np.ndarray | None = None  # OpenCV k1, k2, p1, p2 (instant-ngp captures)
-    preset: str = "synthetic"          # scene preset name (clrf.config)
+    preset: str = "synthetic"          # scene preset name (clrf.training.config)
 
     @property
     def hw(self):

@@ -4,7 +4,7 @@ Conventions (the same as :class:`clrf.data.Dataset`): poses are camera-to-world 
 OpenGL/Blender camera axes (x right, y up, the camera looks down -z); ``intrinsics`` is
 (fx, fy, cx, cy) in pixels with the image origin at the top-left corner of the top-left pixel,
 so the centre of pixel (row v, column u) is at (u + 0.5, v + 0.5). Lens distortion is a
-:class:`clrf.camera_models.Distortion` (radial-tangential or fisheye; a plain (k1, k2, p1, p2)
+:class:`clrf.data.camera_models.Distortion` (radial-tangential or fisheye; a plain (k1, k2, p1, p2)
 is OpenCV's radial-tangential), applied in OpenCV normalised coordinates (y down).
 
 Everything is vectorised numpy; nothing loops over pixels in Python.

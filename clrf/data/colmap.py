@@ -7,7 +7,7 @@ The model (COLMAP's documented output format) is three files, each either ``.txt
   RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2), OPENCV_FISHEYE
   (fx, fy, cx, cy, k1, k2, k3, k4), FULL_OPENCV (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5,
   k6), SIMPLE_RADIAL_FISHEYE (f, cx, cy, k), RADIAL_FISHEYE (f, cx, cy, k1, k2); their
-  distortion is a ``clrf.camera_models.Distortion`` (the equations are there). FOV,
+  distortion is a ``clrf.data.camera_models.Distortion`` (the equations are there). FOV,
   THIN_PRISM_FISHEYE and RAD_TAN_THIN_PRISM_FISHEYE are refused by name. COLMAP's pixel
   convention (centre of the top-left pixel at (0.5, 0.5)) is clrf's.
 - images: per registered image its id, world-to-camera rotation as a unit quaternion

@@ -12,7 +12,7 @@ Processing (as NeRF's load_llff_data):
    image centre;
 3. forward-facing: scale translations and bounds by 1 / (0.75 min(bounds)), then recentre on
    the average camera (its pose becomes the identity). Rays go to NDC with near plane 1
-   (``clrf.cameras.to_ndc``); ``near``, ``far`` are 0, 1 in NDC; bbox is [-1, 1] in NDC z and
+   (``clrf.data.cameras.to_ndc``); ``near``, ``far`` are 0, 1 in NDC; bbox is [-1, 1] in NDC z and
    in x, y the extent of every view's frustum (``scene_extent``), ~1.3-1.5 on fern;
 4. real 360 (Mip-NeRF 360): the bounds are not used (bonsai's are placeholders); the world is
    re-centred on the focus point (the point closest to all optical axes) with z along the mean
@@ -118,7 +118,7 @@ def scene_extent(kind, poses, intrinsics, hw, distortion=None) -> dict:
     """Dataset fields (bbox, near, far, ndc, preset) of a normalised LLFF-style scene.
 
     Forward-facing: the NDC box is [-1, 1] in z and, in x and y, wide enough for every view's
-    frustum (``clrf.cameras.ndc_extent`` of all ``poses``, test views included, plus
+    frustum (``clrf.data.cameras.ndc_extent`` of all ``poses``, test views included, plus
     NDC_BOX_MARGIN), never narrower than [-1, 1]: the cube itself holds only the average
     camera's frustum, and rays leaving the box sideways could not be fitted."""
     if kind == "forward_facing":

@@ -14,7 +14,7 @@ space, mapped back to world: x_world = (x_ngp - offset) / scale (ngp permutes ax
 y,z,x, which only matters for a non-uniform offset).
 
 camera_model (COLMAP's names, as nerfstudio writes them; the equations are in
-``clrf.camera_models``) and the distortion fields each reads (missing fields are 0):
+``clrf.data.camera_models``) and the distortion fields each reads (missing fields are 0):
 PINHOLE and SIMPLE_PINHOLE none; SIMPLE_RADIAL k1; RADIAL k1, k2; OPENCV k1, k2, p1, p2 and
 k3 (OpenCV's r^6 term); OPENCV_FISHEYE k1, k2, k3, k4. Without camera_model it is OPENCV, or
 OPENCV_FISHEYE when instant-ngp's ``is_fisheye`` is true. Any other model, or a non-zero

@@ -1,4 +1,4 @@
-"""The background model of a GridModel: an MSIBackground (clrf/background.py) behind the grid,
+"""The background model of a GridModel: an MSIBackground (clrf/grid/msi.py) behind the grid,
 its optimisers and per-batch buffers.
 
 Geometry. The MSI is centred on the grid box's centre and its inner radius ``r_inner`` is the
@@ -15,7 +15,7 @@ Per batch of rays (origins, dirs, device [B, 3]):
     dL/d bg_rgb = T_fg * dL/dpixel                 (written by the grid backward)
     MSI backward, then RMSProp on bg density and colour.
 
-Optimiser: the grid's family (clrf/optim.py, RMSProp unless grid.optimizer = sgd) over the MSI
+Optimiser: the grid's family (clrf/runtime/optim.py, RMSProp unless grid.optimizer = sgd) over the MSI
 texels as rows (density [L H W], colour [L H W, 3]). Every row is flagged as touched, and
 update_rows leaves an entry whose gradient is exactly 0 unchanged (parameter and state), so
 what moves is exactly the texels this batch's rays reached: svox2's sparse background update,

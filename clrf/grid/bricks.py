@@ -1,4 +1,4 @@
-"""Bricks of a sparse grid for sort-last distributed rendering (no MPI here: clrf/distributed.py
+"""Bricks of a sparse grid for sort-last distributed rendering (no MPI here: clrf/grid/distributed.py
 moves the partials between processes).
 
 The grid's cells are split into boxes, one per process, by recursive bisection along the

@@ -21,7 +21,7 @@ REDUCE_ROWS = 16       # rows per work-item of grad_slots_reduce (cl/grid_render
 # The kernels count samples in int; a step that would need more than this per ray is rejected.
 MAX_SAMPLES_PER_RAY = 2.0 ** 30
 # Work-group sizes, prefetch, block skipping and the gradient path come from grid.device.tuning
-# (clrf/tuning.py).
+# (clrf/runtime/tuning.py).
 
 
 def check_step(grid, step) -> float:

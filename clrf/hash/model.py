@@ -242,7 +242,7 @@ class HashModel:
             packed_forward(dev, pk, sigma, rgb, self.dt, state, alive)
         return state.get()
 
-    # ---- trainer interface (clrf.train) --------------------------------------------------
+    # ---- trainer interface (clrf.training.trainer) --------------------------------------------------
     @property
     def batch_size(self) -> int:
         return self.config.batch_rays

@@ -4,7 +4,7 @@ The parameter layout is defined once, in ``layer_desc`` of cl/mlp.cl; ``MLP.layo
 from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree. So is
 the register tile (rows and columns per work-item): the host's work split reads it back too.
 The tile comes from the MLPSpec fields that are set, else the autotuner's cache, else the
-device's default (clrf/autotune.py).
+device's default (clrf/nerf/autotune.py).
 
 >>> spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=27)
 >>> net = MLP(dev, spec, seed=0)
@@ -27,7 +27,7 @@ SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation
 GROUP_BYTES = None   # interleave backward and weight gradient per rows of this much A + G;
 # None: one launch each. Measured on PoCL (Zen 4, AVX-512, n = 8192): launches cost more than
 # the cache misses that interleaving saves (8x256: 16 MB groups 0.93x numpy, one launch 0.99x).
-# Work-group sizes come from device.tuning (clrf/tuning.py): mlp_fused_local_size (big private
+# Work-group sizes come from device.tuning (clrf/runtime/tuning.py): mlp_fused_local_size (big private
 # tiles: 1) and elementwise_local_size.
 
 

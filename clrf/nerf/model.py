@@ -152,7 +152,7 @@ class NerfModel:
                 out[k][s:e] = res[k].get()
         return out
 
-    # ---- trainer interface (clrf.train) --------------------------------------------------
+    # ---- trainer interface (clrf.training.trainer) --------------------------------------------------
     @property
     def batch_size(self) -> int:
         return self.config.batch_rays

@@ -14,7 +14,7 @@ import pyopencl.array as cla
 
 from ..runtime.programs import launch
 
-# Work-group sizes come from device.tuning (clrf/tuning.py): elementwise_local_size,
+# Work-group sizes come from device.tuning (clrf/runtime/tuning.py): elementwise_local_size,
 # per_ray_local_size, encode_local_size.
 
 

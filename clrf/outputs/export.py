@@ -221,7 +221,7 @@ def point_cloud(model, origins, dirs, background, min_opacity=0.5, ndc=None, chu
 
 
 def ndc_to_world(p, intrinsics, H, W, near=1.0):
-    """Inverse of the NDC map of clrf.cameras.to_ndc for points p [n, 3] (z' < 1)::
+    """Inverse of the NDC map of clrf.data.cameras.to_ndc for points p [n, 3] (z' < 1)::
 
         z = 2 near / (z' - 1),  x = x' z / ax,  y = y' z / ay,  ax = -2 fx / W, ay = -2 fy / H
     """

@@ -24,7 +24,7 @@ MAX_SIDE = 4096   # largest image side a camera may ask for (a 4096^2 frame is 1
 @dataclass
 class ViewSpec:
     """hw = (H, W); intrinsics = (fx, fy, cx, cy) px; distortion None or a
-    clrf.camera_models.Distortion (clrf.cameras.as_distortion).
+    clrf.data.camera_models.Distortion (clrf.data.cameras.as_distortion).
 
     ndc_frame: for a camera other than the training camera of an NDC scene, the training
     camera's (intrinsics, H, W): the NDC map (x' = -2 fx / W * x / z, ...) is the model's

@@ -7,7 +7,7 @@
 - ``"P:D"``: platform index P, device index D, as listed by ``clrf devices``.
 
 "Working" and "fastest" come from a probe run once per device and driver version and cached on
-disk (clrf/device_probe.py: build and run a kernel, then a calibrated fp32 FMA throughput
+disk (clrf/runtime/device_probe.py: build and run a kernel, then a calibrated fp32 FMA throughput
 figure); figures within 10% count as equal and then platform order decides. A machine can carry
 two PoCL platforms at once (pip's and the distribution's) that differ tenfold on the same CPU;
 a driver that cannot compile is skipped with the reason, and a slow one gets a one-line warning
@@ -233,7 +233,7 @@ class Device:
                 tuning = Tuning.from_env(self.caps)
             except ValueError as e:
                 raise DeviceError(str(e)) from None
-        self.tuning = tuning   # how kernels run here (clrf/tuning.py); CLRF_* overrides applied
+        self.tuning = tuning   # how kernels run here (clrf/runtime/tuning.py); CLRF_* overrides applied
         self._programs = {}
         if verbose:
             print(f"clrf: device {self}", file=sys.stderr)
@@ -270,7 +270,7 @@ class Device:
 
 def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
     """Text for ``clrf devices``: every device, its probe figure, capabilities and the default;
-    ``workloads``: lines on each model kind's default (clrf/workload.py format_choices)."""
+    ``workloads``: lines on each model kind's default (clrf/runtime/workload.py format_choices)."""
     devs = list_devices()
     if not devs:
         return "no OpenCL devices found"

@@ -10,8 +10,8 @@ visible), and writes ``clrf-opencl-vendors.pth`` into the venv's site-packages, 
 ``OCL_ICD_VENDORS`` at that folder in every Python of the venv (unless it is already set). No
 system file is touched; ``unregister`` undoes it.
 
-    python -m clrf.icd register      # what `bash tools/setup.sh intel` runs
-    python -m clrf.icd unregister
+    python -m clrf.runtime.icd register      # what `bash tools/setup.sh intel` runs
+    python -m clrf.runtime.icd unregister
 """
 from __future__ import annotations
 
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] not in (["register"], ["unregister"]):
         print(__doc__.strip().splitlines()[-2:][0].strip(), file=sys.stderr)
-        print("usage: python -m clrf.icd register|unregister", file=sys.stderr)
+        print("usage: python -m clrf.runtime.icd register|unregister", file=sys.stderr)
         return 2
     try:
         lines = register() if argv[0] == "register" else unregister()

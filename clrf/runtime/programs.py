@@ -6,7 +6,7 @@ PoCL's own kernel cache make a rebuild cost tens of milliseconds. A failed build
 ``BuildError`` carrying the compiler log. A successful build prints the compiler's diagnostics
 (warnings, with their notes and source excerpts) to stderr, and nothing else: the progress lines
 some implementations write into every log ("Compilation started" ...) are dropped by
-clrf/buildlog.py. With the device tuning's ``verbose_build`` (``CLRF_VERBOSE_BUILD=1``) the raw
+clrf/runtime/buildlog.py. With the device tuning's ``verbose_build`` (``CLRF_VERBOSE_BUILD=1``) the raw
 log is shown instead, whenever it is non-empty. The kernels build without diagnostics on every
 implementation tested (tests/test_build_log.py).
 """
@@ -29,7 +29,7 @@ class BuildError(RuntimeError):
 
 def cl_dir() -> Path:
     """Where the kernel sources live: ``clrf/cl`` in an installed wheel, ``cl/`` in a checkout."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent      # the clrf package (this is clrf/runtime)
     for cand in (here / "cl", here.parent / "cl"):
         if (cand / "common.h").is_file():
             return cand

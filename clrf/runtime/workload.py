@@ -4,7 +4,7 @@ The runs themselves belong to the model kinds (``Workload``: clrf/grid/workload.
 clrf/nerf/workload.py); the caller passes the one to choose by (clrf/training/models.py
 WORKLOADS), and this module times, caches and compares.
 
-The FMA probe (clrf/device_probe.py) says which devices work and what their arithmetic peak is,
+The FMA probe (clrf/runtime/device_probe.py) says which devices work and what their arithmetic peak is,
 but not which runs clrf's kernels faster: on one CPU, Intel's runtime and PoCL measure the
 same peak while Intel runs the grid march at half PoCL's speed and the fused MLP faster. So
 for the default device of a model kind, every working candidate (simulators and devices known

@@ -45,7 +45,7 @@ def present() -> dict:
 
 @functools.lru_cache(maxsize=None)
 def is_slow(name: str) -> bool:
-    """Whether implementation ``name`` is a slow driver for this machine (clrf.device_probe
+    """Whether implementation ``name`` is a slow driver for this machine (clrf.runtime.device_probe
     slow_reasons: under a twelfth of the CPU's estimated peak, a generic target, or a sibling
     driver three times faster), e.g. rusticl's llvmpipe software device."""
     from ..runtime.device_probe import cpu_flags, slow_reasons

@@ -1,6 +1,6 @@
-"""Float64 numpy reference of LPIPS v0.1 (clrf.perceptual), for tests.
+"""Float64 numpy reference of LPIPS v0.1 (clrf.training.perceptual), for tests.
 
-Written from the published definition, independently of clrf.perceptual's torch code:
+Written from the published definition, independently of clrf.training.perceptual's torch code:
 x in [0, 1] -> 2 x - 1 -> (x - shift) / scale per channel -> backbone (convolutions as
 im2col matrix products, ReLU, max pooling without padding, floor sizes) -> at each of the five
 taps f / (sqrt(sum_c f^2) + 1e-10) -> (f_x - f_y)^2 weighted by the linear weights w_l and summed

@@ -2,7 +2,7 @@
 documents them (the reference that clrf's pixel -> ray undistortion is tested against).
 
 Written model by model from the published equations, sharing no code with
-``clrf.camera_models`` (which inverts them). Camera axes are OpenCV's: x right, y down, z
+``clrf.data.camera_models`` (which inverts them). Camera axes are OpenCV's: x right, y down, z
 forward; (u, v) = (x, y) / z are the normalised coordinates; COLMAP adds a distortion offset
 (du, dv) and maps to pixels with the focal lengths and the principal point; the centre of the
 top-left pixel is at (0.5, 0.5).

@@ -38,7 +38,7 @@ CAMERA_ATOL = 2e-6
 # Undistortion by Newton's method stops at a 1e-14 update in float64; 1e-6 (normalised units,
 # i.e. ~1e-3 px at f = 1000) is the accuracy the data layer promises.
 UNDISTORT_ATOL = 1e-6
-# Camera models (clrf.camera_models) against the float64 COLMAP forward projection
+# Camera models (clrf.data.camera_models) against the float64 COLMAP forward projection
 # (clrf.testing.reference_cameras): Newton stops once its update is below 1e-14 in normalised
 # units and the polynomials carry ~1e-15 relative rounding, so a ray is off by ~1e-14 rad; 1e-10
 # rad leaves 1e4 of margin and still catches a misread model (fisheye read as radial-tangential,
@@ -225,7 +225,7 @@ BG_KERNEL_FD_EPS = 1e-2
 BG_KERNEL_FD_RTOL = 1e-2
 
 # ============================================================================================
-# Export (clrf/export.py, cl/export.cl)
+# Export (clrf/outputs/export.py, cl/export.cl)
 # ============================================================================================
 # Fields at points are one 8-corner trilinear interpolation (plus one multiply-add for colour):
 # float32 error a few u times the largest corner value; the render's budget is ample.
@@ -236,7 +236,7 @@ EXPORT_FIELD_RTOL = RENDER_RTOL
 EXPORT_GEOMETRY_VOXELS = 1.0
 
 # ============================================================================================
-# Distributed bricks (clrf/grid/bricks.py, clrf/distributed.py)
+# Distributed bricks (clrf/grid/bricks.py, clrf/grid/distributed.py)
 # ============================================================================================
 # Composed partials vs the single-grid kernel render (both float32, same samples, no early
 # termination): the same terms, only T_k = T_b T'_k formed as a product of two float32

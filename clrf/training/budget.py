@@ -7,7 +7,7 @@ largest single buffer, and raises MemoryBudgetError (a ConfigError: the CLI prin
 2) naming the phase and the settings to lower when
 
 - on a CPU device (whose buffers live in host memory): the run's predicted resident peak less
-  what the process already holds exceeds the host's budget (clrf.hostmem: MemAvailable, the
+  what the process already holds exceeds the host's budget (clrf.runtime.hostmem: MemAvailable, the
   cgroup limit, ``ulimit -v``); only where that budget is unknown, the device bytes against
   ``global_mem_size`` (PoCL reports a fraction of the host there, 5.2 GiB of 24, and does not
   cap the sum of its buffers at it);

@@ -1,4 +1,4 @@
-"""Image metrics: PSNR (from an MSE), the standard SSIM and LPIPS (``clrf.perceptual``, optional)
+"""Image metrics: PSNR (from an MSE), the standard SSIM and LPIPS (``clrf.training.perceptual``, optional)
 per view; accurate sum of squares / MSE / PSNR of device arrays (pyopencl ReductionKernel over
 cl/reduce.h).
 

@@ -1,6 +1,6 @@
 """Interactive web viewer: ``clrf view --ckpt DIR`` and ``clrf train --view``.
 
-core.py holds the requests and renders them with the shared render path (clrf/frames.py);
+core.py holds the requests and renders them with the shared render path (clrf/outputs/frames.py);
 server.py is the page and the WebSocket; page.html the browser side. See docs/viewer.md.
 """
 from __future__ import annotations
