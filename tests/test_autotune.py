@@ -133,15 +133,19 @@ def test_tuner_cli(device, cache, capsys):
     # the tiny preset's shape with NeRF's skip (layer 4 of 4): rejected by name, not a build error
     assert tuner.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
     assert "clrf: error: --skip must be" in capsys.readouterr().err and not cache.exists()
+    # tune the session's device (the tuner's own default is the probe's choice, which can
+    # differ from the session's workload-chosen device when two drivers measure alike)
+    dev = ["--device", f"{device.platform_index}:{device.device_index}"]
     assert tuner.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
-                    "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1"]) == 0
+                       "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1",
+                       *dev]) == 0
     out = capsys.readouterr().out
     assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
     # --preset tiny tunes the shape `clrf train --model nerf` builds (its cache entry)
     from clrf.training.config import NerfConfig
     tiny = NerfConfig.from_preset("tiny").mlp_spec()
     assert at.cached_tiling(device.caps, tiny) is None
-    assert tuner.main(["--preset", "tiny", "--samples", "8", "--rounds", "1"]) == 0
+    assert tuner.main(["--preset", "tiny", "--samples", "8", "--rounds", "1", *dev]) == 0
     assert at.cached_tiling(device.caps, tiny) is not None
 
 

@@ -1,5 +1,7 @@
-"""Dataset loaders: Blender synthetic, tiny .npz, LLFF, COLMAP, instant-ngp transforms.json,
-procedural.
+"""Datasets and cameras. Loaders: Blender synthetic, tiny .npz, LLFF, COLMAP, instant-ngp
+transforms.json, procedural; beside them the cameras (cameras.py: pixel rays, NDC, view_rays;
+camera_models.py: lens distortion), the published evaluation protocols (protocols.py) and
+``clrf process`` (process.py: a video or photos posed with COLMAP into a scene folder).
 
 ``load_dataset(path=None, **options)`` is the one entry point: it detects the layout of ``path``
 and forwards ``options`` to that loader (see each loader for the options it accepts).

@@ -1,5 +1,7 @@
-"""NeRF: the fused MLP (mlp.py, cl/mlp.cl), encoding / sampling / compositing wrappers (ops.py,
-cl/encode.cl, cl/sample.cl, cl/composite.cl) and the model with its typed options (model.py)."""
+"""NeRF: the fused MLP (mlp.py, cl/mlp.cl) with its register tiles (tiling.py) and their tuner
+(autotune.py), encoding / sampling / compositing wrappers (ops.py, cl/encode.cl, cl/sample.cl,
+cl/composite.cl), the typed options (config.py), the model (model.py) and the device-choice
+workload (workload.py)."""
 from .model import NerfConfig, NerfModel
 
 __all__ = ["NerfConfig", "NerfModel"]
