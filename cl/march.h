@@ -43,6 +43,8 @@
    translator ends the host process on llvm.prefetch instead of failing the build. */
 #if CLRF_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
+#elif CLRF_PREFETCH
+#define CLRF_PREFETCH_LINE(p) prefetch((p), 1)  /* OpenCL C's own: a real prefetch on Intel */
 #else
 #define CLRF_PREFETCH_LINE(p)
 #endif

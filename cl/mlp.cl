@@ -170,6 +170,8 @@
    translator ends the host process on llvm.prefetch instead of failing the build. */
 #if MLP_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
 #define MLP_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
+#elif MLP_PREFETCH
+#define MLP_PREFETCH_LINE(p) prefetch((p), 1)  /* OpenCL C's own: a real prefetch on Intel */
 #else
 #define MLP_PREFETCH_LINE(p)
 #endif

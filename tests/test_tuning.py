@@ -4,12 +4,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from clrf.runtime.tuning import Tuning
+from clrf.runtime.tuning import IMPLEMENTATIONS, Tuning, implementation
 
 
-def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True):
+def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True, name=""):
     return SimpleNamespace(type=kind, compute_units=cu, platform_version=platform,
-                           acq_rel=acq_rel)
+                           acq_rel=acq_rel, platform=name)
 
 
 def test_defaults_follow_capabilities():
@@ -19,8 +19,28 @@ def test_defaults_follow_capabilities():
     gpu = Tuning.for_device(caps("gpu", cu=80, platform="OpenCL 3.0 CUDA"))
     assert (gpu.grad_slots, gpu.sample_record, gpu.prefetch) == (0, False, False)
     assert gpu.grad_locks == 0
-    other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 Intel"))
-    assert other_cpu.prefetch is False and other_cpu.fast_math is False
+    assert cpu.mlp_prefetch is True and cpu.grid_local_size == 32
+    other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 AMD-APP"))
+    assert other_cpu.prefetch is False and other_cpu.mlp_prefetch is False
+    assert other_cpu.fast_math is False and other_cpu.grid_local_size == 32
+
+
+def test_implementation_entries():
+    # Intel's CPU runtime: 8 rays per group, prefetch in the march but not in the MLP
+    intel_caps = caps("cpu", platform="OpenCL 3.1 LINUX", name="Intel(R) OpenCL")
+    assert implementation(intel_caps) == "intel-cpu"
+    intel = Tuning.for_device(intel_caps)
+    assert (intel.grid_local_size, intel.prefetch, intel.mlp_prefetch) == (8, True, False)
+    assert intel.grad_slots == 4 and intel.grad_locks == 4   # the capability defaults stay
+    assert implementation(caps("cpu", platform="OpenCL 3.0 ", name="rusticl")) == "rusticl"
+    assert implementation(caps("cpu", platform="OpenCL 1.2 (Build 0)",
+                               name="Oclgrind")) == "oclgrind"
+    assert implementation(caps("gpu", platform="OpenCL 3.0 CUDA",
+                               name="NVIDIA CUDA")) == "other"
+    assert implementation(caps("cpu")) == "pocl-cpu"
+    # every entry names real Tuning fields
+    for entry in IMPLEMENTATIONS.values():
+        Tuning().replace(**entry)
     # OpenCL 1.2 atomics only (rusticl, Oclgrind): the float-atomic path
     old = Tuning.for_device(caps("cpu", platform="OpenCL 3.0 rusticl", acq_rel=False))
     assert (old.grad_slots, old.sample_record, old.grad_locks) == (0, False, 0)
@@ -28,10 +48,12 @@ def test_defaults_follow_capabilities():
 
 def test_environment_overrides():
     env = {"CLRF_GRAD_SLOTS": "0", "CLRF_SAMPLE_RECORD": "0", "CLRF_PREFETCH": "0",
+           "CLRF_MLP_PREFETCH": "0",
            "CLRF_PREFETCH_AHEAD": "4", "CLRF_BLOCK": "16", "CLRF_FAST_MATH": "",
            "CLRF_GRAD_LOCKS": "0"}
     t = Tuning.from_env(caps("cpu"), env)
     assert (t.grad_slots, t.sample_record, t.prefetch, t.grad_locks) == (0, False, False, 0)
+    assert t.mlp_prefetch is False
     assert (t.prefetch_ahead, t.prefetch_links_ahead, t.block, t.fast_math) == (4, 8, 16, False)
     assert Tuning.from_env(caps("cpu"), {}) == Tuning.for_device(caps("cpu"))
     with pytest.raises(ValueError, match="CLRF_BLOCK"):

@@ -167,7 +167,7 @@ class MLP:
         self.spec = spec
         self.tiling: MLPTiling = mlp_tiling_for(device, spec)
         self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines(),
-                                                   "MLP_PREFETCH": int(device.tuning.prefetch)})
+                                                   "MLP_PREFETCH": int(device.tuning.mlp_prefetch)})
         self.layout = read_layout(device, self.program)
         q = device.queue
         if params is None:

@@ -9,6 +9,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_SAMPLE_RECORD         sample_record (0 / 1)
   CLRF_GRAD_LOCKS            grad_locks (0 = private gradient copies per slot)
   CLRF_PREFETCH              prefetch (0 / 1)
+  CLRF_MLP_PREFETCH          mlp_prefetch (0 / 1)
   CLRF_PREFETCH_AHEAD        prefetch_ahead
   CLRF_PREFETCH_LINKS_AHEAD  prefetch_links_ahead
   CLRF_BLOCK                 block (0 = no empty-block skipping)
@@ -37,11 +38,43 @@ RAY_ORDER_MIN_RAYS = 256
 # was slower, more locks per cell).
 GRAD_LOCKS_LOG2 = 4
 
+def implementation(caps) -> str:
+    """Which OpenCL implementation runs a device: "pocl-cpu", "intel-cpu" (Intel's oneAPI CPU
+    runtime), "rusticl", "oclgrind", or "other"."""
+    pv, plat = caps.platform_version.lower(), getattr(caps, "platform", "").lower()
+    cpu = caps.type == "cpu"
+    if "pocl" in pv:
+        return "pocl-cpu" if cpu else "other"
+    if "rusticl" in plat:
+        return "rusticl"
+    if "oclgrind" in plat:
+        return "oclgrind"
+    if cpu and "intel" in plat:
+        return "intel-cpu"
+    return "other"
+
+
+# Per-implementation entries over the capability defaults, each set by measurement: in-process
+# interleaved runs of the same cases (tools/impl_bench.py for the grid, tools/nerf_bench.py
+# for the MLP), 2 vCPUs of an AMD EPYC Zen 4 (AVX-512), PoCL 3.1 (Debian, LLVM 15) beside
+# Intel's CPU runtime 2026.22.10; docs/implementations.md has the tables.
+#  - PoCL vectorises what is written as vectors and compiles __builtin_prefetch: prefetch in
+#    the march and in the MLP.
+#  - Intel's runtime: 8 rays per work-group (the forward ran 1.4-2x faster than with 32:
+#    more groups to balance over its threads), prefetch in the march with OpenCL C's
+#    prefetch() (grid forward + backward 0.65x -> 0.76-0.90x PoCL dense, 0.82x -> 0.94-1.00x
+#    5 %-occupied), none in the MLP (its weight gradient took twice as long with it).
+IMPLEMENTATIONS = {
+    "pocl-cpu": {"prefetch": True, "mlp_prefetch": True},
+    "intel-cpu": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
+}
+
 ENV = {
     "CLRF_GRAD_SLOTS": ("grad_slots", int),
     "CLRF_SAMPLE_RECORD": ("sample_record", lambda v: v != "0"),
     "CLRF_GRAD_LOCKS": ("grad_locks", int),
     "CLRF_PREFETCH": ("prefetch", lambda v: v != "0"),
+    "CLRF_MLP_PREFETCH": ("mlp_prefetch", lambda v: v != "0"),
     "CLRF_PREFETCH_AHEAD": ("prefetch_ahead", int),
     "CLRF_PREFETCH_LINKS_AHEAD": ("prefetch_links_ahead", int),
     "CLRF_BLOCK": ("block", int),
@@ -66,8 +99,9 @@ class Tuning:
     #                                0: a private copy per slot, all reduced afterwards
     sample_record: bool = False    # backward reads the forward march's per-sample record
     #                                (needs grad_slots > 0: the record lives in the slot)
-    prefetch: bool = False         # software prefetch in the march and the fused MLP
-    #                                (__builtin_prefetch: clang)
+    prefetch: bool = False         # software prefetch in the grid march (__builtin_prefetch
+    #                                on clang targets, OpenCL C's prefetch() on SPIR ones)
+    mlp_prefetch: bool = False     # the same in the fused MLP's backward and weight gradient
     prefetch_ahead: int = 3        # samples ahead for a cell's rows (~1.5 voxels at step 0.5)
     prefetch_links_ahead: int = 6  # samples ahead for a cell's links
     block: int = 8                 # empty-space skipping over block^3-cell blocks (0: off)
@@ -89,16 +123,16 @@ class Tuning:
     def for_device(cls, caps) -> "Tuning":
         """Defaults from capabilities: CPU devices get one slot (with its per-sample record)
         per compute unit, block-locked gradient adds (GRAD_LOCKS_LOG2) and sorted rays from
-        RAY_ORDER_MIN_RAYS on; PoCL CPU devices (clang) get software prefetch."""
+        RAY_ORDER_MIN_RAYS on; then each implementation's entry (IMPLEMENTATIONS)."""
         cpu = caps.type == "cpu"
         # the slots and block locks need locks that order plain memory between work-groups,
         # which OpenCL 1.2 atomics do not promise: without acquire/release atomics a CPU
         # device takes the float-atomic path, correct by the specification alone
         slots = cpu and getattr(caps, "acq_rel", False)
-        return cls(grad_slots=caps.compute_units if slots else 0, sample_record=slots,
-                   grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
-                   prefetch=cpu and "pocl" in caps.platform_version.lower(),
-                   ray_order=RAY_ORDER_MIN_RAYS if cpu else 0)
+        t = cls(grad_slots=caps.compute_units if slots else 0, sample_record=slots,
+                grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
+                ray_order=RAY_ORDER_MIN_RAYS if cpu else 0)
+        return t.replace(**IMPLEMENTATIONS.get(implementation(caps), {}))
 
     @classmethod
     def from_env(cls, caps, environ=None) -> "Tuning":
