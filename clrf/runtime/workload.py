@@ -11,8 +11,9 @@ for the default device of a model kind, every working candidate (simulators and 
 to compute wrong gradients left out) runs that kind's workload once, cached like the probe in
 ``$XDG_CACHE_HOME/clrf/workloads.json`` by device key, workload and kernel-source hash:
 
-- ``grid`` (clrf/grid/workload.py): forward + backward (float32 gradients, the device's own
-  tuning) of WORK_RAYS random rays through a dense WORK_RESO^3 SH-degree-2 grid, in rays/s;
+- ``grid`` (clrf/grid/workload.py): a training step's fused forward + backward (float32
+  gradients, the device's own tuning) of a batch of incoherent rays through a dense
+  SH-degree-2 grid, in rays/s;
 - ``nerf`` (clrf/nerf/workload.py): the fused MLP forward + backward of the tiny NeRF shape
   (4 x 64) on WORK_SAMPLES samples, in samples/s.
 
@@ -33,7 +34,7 @@ from . import measure
 from .device_probe import TIE, cache_path, device_key
 from .programs import cl_dir
 
-WORKLOAD_VERSION = 1
+WORKLOAD_VERSION = 2   # 2: the grid's fused training step (2026-11-25)
 WORK_REPEATS = 3
 
 
