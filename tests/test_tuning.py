@@ -7,7 +7,8 @@ import pytest
 from clrf.runtime.tuning import IMPLEMENTATIONS, Tuning, implementation
 
 
-def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True, name=""):
+def caps(kind, cu=4, platform="OpenCL 3.0 PoCL 3.1", acq_rel=True,
+         name="Portable Computing Language"):
     return SimpleNamespace(type=kind, compute_units=cu, platform_version=platform,
                            acq_rel=acq_rel, platform=name)
 
@@ -16,34 +17,33 @@ def test_defaults_follow_capabilities():
     cpu = Tuning.for_device(caps("cpu", cu=6))
     assert (cpu.grad_slots, cpu.sample_record, cpu.prefetch) == (6, True, True)
     assert cpu.grad_locks == 4
-    gpu = Tuning.for_device(caps("gpu", cu=80, platform="OpenCL 3.0 CUDA"))
+    gpu = Tuning.for_device(caps("gpu", cu=80, platform="OpenCL 3.0 CUDA", name="NVIDIA CUDA"))
     assert (gpu.grad_slots, gpu.sample_record, gpu.prefetch) == (0, False, False)
     assert gpu.grad_locks == 0
     assert cpu.mlp_prefetch is True and cpu.grid_local_size == 32
-    other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 AMD-APP"))
+    other_cpu = Tuning.for_device(caps("cpu", platform="OpenCL 2.1 AMD-APP",
+                                       name="AMD Accelerated Parallel Processing"))
     assert other_cpu.prefetch is False and other_cpu.mlp_prefetch is False
     assert other_cpu.fast_math is False and other_cpu.grid_local_size == 32
 
 
 def test_implementation_entries():
     # Intel's CPU runtime: 8 rays per group, prefetch in the march but not in the MLP
-    intel_caps = caps("cpu", platform="OpenCL 3.1 LINUX", name="Intel(R) OpenCL")
-    assert implementation(intel_caps) == "intel-cpu"
-    intel = Tuning.for_device(intel_caps)
+    intel = Tuning.for_device(caps("cpu", platform="OpenCL 3.1 LINUX", name="Intel(R) OpenCL"))
     assert (intel.grid_local_size, intel.prefetch, intel.mlp_prefetch) == (8, True, False)
     assert intel.grad_slots == 4 and intel.grad_locks == 4   # the capability defaults stay
-    assert implementation(caps("cpu", platform="OpenCL 3.0 ", name="rusticl")) == "rusticl"
-    assert implementation(caps("cpu", platform="OpenCL 1.2 (Build 0)",
-                               name="Oclgrind")) == "oclgrind"
-    assert implementation(caps("gpu", platform="OpenCL 3.0 CUDA",
-                               name="NVIDIA CUDA")) == "other"
-    assert implementation(caps("cpu")) == "pocl-cpu"
+    # an Intel GPU driver is not the CPU runtime; entries apply to CPU devices only
+    assert implementation("Intel(R) OpenCL HD Graphics") == "intel-gpu"
+    assert implementation("Intel(R) OpenCL Graphics") == "intel-gpu"
+    gpu = Tuning.for_device(caps("gpu", platform="OpenCL 3.0 NEO", name="Intel(R) OpenCL"))
+    assert (gpu.grid_local_size, gpu.prefetch) == (32, False)
+    for name, impl in (("Portable Computing Language", "pocl"), ("Intel(R) OpenCL", "intel"),
+                       ("rusticl", "rusticl"), ("Oclgrind", "oclgrind"), ("Clover", "clover"),
+                       ("NVIDIA CUDA", "nvidia"), ("", "unknown")):
+        assert implementation(name) == impl
     # every entry names real Tuning fields
     for entry in IMPLEMENTATIONS.values():
         Tuning().replace(**entry)
-    # OpenCL 1.2 atomics only (rusticl, Oclgrind): the float-atomic path
-    old = Tuning.for_device(caps("cpu", platform="OpenCL 3.0 rusticl", acq_rel=False))
-    assert (old.grad_slots, old.sample_record, old.grad_locks) == (0, False, 0)
 
 
 def test_environment_overrides():

@@ -38,20 +38,19 @@ RAY_ORDER_MIN_RAYS = 256
 # was slower, more locks per cell).
 GRAD_LOCKS_LOG2 = 4
 
-def implementation(caps) -> str:
-    """Which OpenCL implementation runs a device: "pocl-cpu", "intel-cpu" (Intel's oneAPI CPU
-    runtime), "rusticl", "oclgrind", or "other"."""
-    pv, plat = caps.platform_version.lower(), getattr(caps, "platform", "").lower()
-    cpu = caps.type == "cpu"
-    if "pocl" in pv:
-        return "pocl-cpu" if cpu else "other"
-    if "rusticl" in plat:
-        return "rusticl"
-    if "oclgrind" in plat:
-        return "oclgrind"
-    if cpu and "intel" in plat:
-        return "intel-cpu"
-    return "other"
+def implementation(platform_name: str) -> str:
+    """Short name of the OpenCL implementation behind a platform name: "pocl", "intel"
+    (Intel's oneAPI CPU runtime), "intel-gpu", "rusticl", "oclgrind", "clover", "nvidia",
+    "amd", else the name's first word."""
+    p = platform_name.strip().lower()
+    for key, name in (("portable computing language", "pocl"),
+                      ("intel(r) opencl hd", "intel-gpu"), ("intel(r) opencl graphics", "intel-gpu"),
+                      ("intel(r) opencl", "intel"),
+                      ("rusticl", "rusticl"), ("oclgrind", "oclgrind"), ("clover", "clover"),
+                      ("nvidia", "nvidia"), ("amd accelerated", "amd")):
+        if key in p:
+            return name
+    return p.split()[0] if p else "unknown"
 
 
 # Per-implementation entries over the capability defaults, each set by measurement: in-process
@@ -64,9 +63,9 @@ def implementation(caps) -> str:
 #    more groups to balance over its threads), prefetch in the march with OpenCL C's
 #    prefetch() (grid forward + backward 0.65x -> 0.76-0.90x PoCL dense, 0.82x -> 0.94-1.00x
 #    5 %-occupied), none in the MLP (its weight gradient took twice as long with it).
-IMPLEMENTATIONS = {
-    "pocl-cpu": {"prefetch": True, "mlp_prefetch": True},
-    "intel-cpu": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
+IMPLEMENTATIONS = {   # CPU devices only
+    "pocl": {"prefetch": True, "mlp_prefetch": True},
+    "intel": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
 }
 
 ENV = {
@@ -132,7 +131,8 @@ class Tuning:
         t = cls(grad_slots=caps.compute_units if slots else 0, sample_record=slots,
                 grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
                 ray_order=RAY_ORDER_MIN_RAYS if cpu else 0)
-        return t.replace(**IMPLEMENTATIONS.get(implementation(caps), {}))
+        impl = implementation(getattr(caps, "platform", ""))
+        return t.replace(**(IMPLEMENTATIONS.get(impl, {}) if cpu else {}))
 
     @classmethod
     def from_env(cls, caps, environ=None) -> "Tuning":

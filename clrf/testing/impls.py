@@ -11,20 +11,9 @@ import functools
 
 from ..runtime.device import Device, list_devices
 from ..runtime.device_probe import probe
+from ..runtime.tuning import implementation
 
 SIMULATORS = ("oclgrind",)
-
-
-def implementation(platform_name: str) -> str:
-    """Short name of the implementation behind a platform name."""
-    p = platform_name.strip().lower()
-    for key, name in (("portable computing language", "pocl"), ("intel(r) opencl", "intel"),
-                      ("rusticl", "rusticl"), ("oclgrind", "oclgrind"), ("clover", "clover"),
-                      ("nvidia", "nvidia"), ("amd accelerated", "amd"), ("intel(r) opencl hd",
-                                                                          "intel-gpu")):
-        if key in p:
-            return name
-    return p.split()[0] if p else "unknown"
 
 
 @functools.lru_cache(maxsize=None)
