@@ -60,7 +60,8 @@ def main(argv=None) -> int:
     ap.add_argument("--contender", action="append", required=True,
                     help="device spec 'P:D', optionally ';field=value' tuning changes")
     ap.add_argument("--rounds", type=int, default=9)
-    ap.add_argument("--out", default=None, help="JSON output (default bench-results/impl-<time>.json)")
+    ap.add_argument("--out", default=None,
+                    help="JSON output (default bench-results/impl-<time>.json)")
     a = ap.parse_args(argv)
 
     specs = [s for s in SPECS if any(fnmatch.fnmatch(s.name, p) for p in a.only)]

@@ -44,7 +44,8 @@ def implementation(platform_name: str) -> str:
     "amd", else the name's first word."""
     p = platform_name.strip().lower()
     for key, name in (("portable computing language", "pocl"),
-                      ("intel(r) opencl hd", "intel-gpu"), ("intel(r) opencl graphics", "intel-gpu"),
+                      ("intel(r) opencl hd", "intel-gpu"),
+                      ("intel(r) opencl graphics", "intel-gpu"),
                       ("intel(r) opencl", "intel"),
                       ("rusticl", "rusticl"), ("oclgrind", "oclgrind"), ("clover", "clover"),
                       ("nvidia", "nvidia"), ("amd accelerated", "amd")):
