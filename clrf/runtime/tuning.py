@@ -66,13 +66,7 @@ def implementation(platform_name: str) -> str:
 #    5 %-occupied), none in the MLP (its weight gradient took twice as long with it).
 IMPLEMENTATIONS = {   # CPU devices only
     "pocl": {"prefetch": True, "mlp_prefetch": True},
-    # Intel: the float-atomic gradient path. tests/test_grid_grad_slots.py's comparison with
-    # the float64 reference fails there with the slot/lock paths (every lock variant, the
-    # default record + locks included, and more slots than compute units), while the atomic
-    # path passes: correct first. The grid ratios in docs/implementations.md were measured
-    # with the lock path; with atomics Intel's grid fwd + bwd ran 0.17x PoCL dense.
-    "intel": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False,
-              "grad_slots": 0, "sample_record": False, "grad_locks": 0},
+    "intel": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
 }
 
 ENV = {
