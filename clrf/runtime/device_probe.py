@@ -31,7 +31,6 @@ import os
 import re
 import socket
 import sys
-import tempfile
 import time
 import warnings
 from dataclasses import asdict, dataclass
@@ -39,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
+
+from .jsonfile import write_atomic
 
 PROBE_METHOD = 3            # bump when the measurement changes meaning (invalidates the cache)
 PROBE_CHAINS = 8            # independent FMA chains per work-item (cl/probe.cl)
@@ -283,17 +284,7 @@ def _store(path: Path, version: str, key: str, probe: Probe) -> None:
     entry.pop("cached")
     entry["probe"] = version
     entries[key] = entry
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".devices.", suffix=".tmp", dir=path.parent)
-    except OSError:
-        return
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump({"devices": entries}, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except OSError:
-        Path(tmp).unlink(missing_ok=True)
+    write_atomic(path, {"devices": entries})
 
 
 def _from_entry(e: dict) -> Probe | None:

@@ -14,13 +14,11 @@ the default.
 from __future__ import annotations
 
 import hashlib
-import json
-import os
-import tempfile
 from dataclasses import dataclass
 from typing import Callable
 
 from .device_probe import cache_path, device_key
+from .jsonfile import read_dict, write_atomic
 from .programs import cl_dir
 
 
@@ -76,28 +74,13 @@ def check_key(device, check: GradientCheck) -> str:
 
 
 def _load() -> dict:
-    try:
-        d = json.loads(_cache_file().read_text())
-        return d if isinstance(d, dict) else {}
-    except (OSError, ValueError):
-        return {}
+    return read_dict(_cache_file())
 
 
 def _store(key: str, res: CheckResult) -> None:
     d = _load()
     d[key] = {"ok": res.ok, "detail": res.detail, "path": res.path}
-    path = _cache_file()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".selfcheck.", suffix=".tmp", dir=path.parent)
-    except OSError:
-        return
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(d, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except OSError:
-        os.unlink(tmp)
+    write_atomic(_cache_file(), d)
 
 
 def run_check(device, check: GradientCheck) -> CheckResult:

@@ -24,14 +24,13 @@ the probe's order decides, so the choice does not flip on noise.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
-import tempfile
 from dataclasses import dataclass
 from typing import Callable
 
 from . import measure
 from .device_probe import TIE, cache_path, device_key
+from .jsonfile import read_dict, write_atomic
 from .programs import cl_dir
 
 WORKLOAD_VERSION = 2   # 2: the grid's fused training step (2026-11-25)
@@ -55,25 +54,13 @@ def _key(cl_device, kind: str) -> str:
 
 
 def _load() -> dict:
-    try:
-        d = json.loads(_file().read_text())
-        return d if isinstance(d, dict) else {}
-    except (OSError, ValueError):
-        return {}
+    return read_dict(_file())
 
 
 def _store(key: str, value: float) -> None:
     d = _load()
     d[key] = value
-    path = _file()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".workloads.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "w") as f:
-            json.dump(d, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except OSError:
-        pass
+    write_atomic(_file(), d)
 
 
 def best_time(step) -> float:
