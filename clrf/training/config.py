@@ -22,6 +22,9 @@ from ..grid.config import GridConfig
 from ..hash.config import HASH_PRESETS, HashConfig
 from ..nerf.config import NERF_PRESETS, NerfConfig
 
+# sections whose 'preset' key replaces the whole section: (preset names, section class)
+MODEL_PRESETS = {"nerf": (NERF_PRESETS, NerfConfig), "hash": (HASH_PRESETS, HashConfig)}
+
 
 class ConfigError(ValueError):
     """An unknown option or an out-of-range value; the message names the field and the fix."""
@@ -175,20 +178,14 @@ def _merge(cfg: Config, d: dict, source: str):
                               f"hash")
         if not isinstance(vals, dict):
             raise ConfigError(f"{source}: '{sect}' must be an object of options, got {vals!r}")
-        if sect == "nerf" and "preset" in vals:
+        if sect in MODEL_PRESETS and "preset" in vals:
+            presets, section_cls = MODEL_PRESETS[sect]
             vals = dict(vals)
             name = vals.pop("preset")
-            if name not in NERF_PRESETS:
-                raise ConfigError(f"{source}: nerf.preset = {name!r}: use one of "
-                                  f"{', '.join(sorted(NERF_PRESETS))}")
-            cfg.nerf = NerfConfig.from_preset(name)
-        if sect == "hash" and "preset" in vals:
-            vals = dict(vals)
-            name = vals.pop("preset")
-            if name not in HASH_PRESETS:
-                raise ConfigError(f"{source}: hash.preset = {name!r}: use one of "
-                                  f"{', '.join(sorted(HASH_PRESETS))}")
-            cfg.hash = HashConfig.from_preset(name)
+            if name not in presets:
+                raise ConfigError(f"{source}: {sect}.preset = {name!r}: use one of "
+                                  f"{', '.join(sorted(presets))}")
+            setattr(cfg, sect, section_cls.from_preset(name))
         setattr(cfg, sect, dataclasses.replace(getattr(cfg, sect),
                                                **_typed(getattr(cfg, sect), sect, vals, source)))
 
