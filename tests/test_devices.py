@@ -136,6 +136,39 @@ def test_select_errors(machine):
         device.select_device()
 
 
+INTEL = "Intel(R) OpenCL"
+RUSTICL = "rusticl"
+
+
+def named(platform, name, version, gflops, type_="cpu"):
+    d = fake_dev(name, version, type_)
+    d.platform = SimpleNamespace(name=platform, version=version)
+    return d, Probe(None, gflops)
+
+
+def test_select_by_implementation_name(machine, monkeypatch):
+    # rusticl listed first (RUSTICL_ENABLE), then Intel, then two PoCLs: the name finds the
+    # implementation wherever it sits, and the fastest of its devices
+    machine.devs = [named(RUSTICL, "llvmpipe", "OpenCL 3.0 Mesa 22.3.6 x", 40.0),
+                    named(INTEL, "AMD EPYC", "OpenCL 3.1 LINUX 2026.22", 230.0),
+                    (fake_dev("pthread-AMD EPYC", PIP), Probe(None, 5.3)),
+                    (fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 234.0))]
+    assert device.select_device("intel")[:2] == (1, 0)
+    assert device.select_device("INTEL:cpu")[:2] == (1, 0)
+    assert device.select_device("rusticl")[:2] == (0, 0)
+    assert device.select_device("pocl")[:2] == (3, 0)        # the faster of the two PoCLs
+    assert device.choose_device("intel").reason == "requested as intel"
+    assert device.choose_device("pocl").reason.startswith("requested as pocl; fastest")
+    monkeypatch.setenv("CLRF_DEVICE", "intel")
+    assert device.select_device()[:2] == (1, 0)
+    with pytest.raises(device.DeviceError, match="(?s)'nvidia'.*here: intel, pocl, rusticl"):
+        device.select_device("nvidia")
+    with pytest.raises(device.DeviceError, match="'intel:gpu'.*no such device"):
+        device.select_device("intel:gpu")
+    with pytest.raises(device.DeviceError, match="after ':' must be one of cpu, gpu"):
+        device.select_device("intel:fast")
+
+
 def test_clrf_devices_shows_figures_default_and_reason(machine, capsys):
     two_pocl(machine)
     assert cli_main(["devices"]) == 0

@@ -310,7 +310,8 @@ def cmd_bench(a):
 def build_parser():
     p = argparse.ArgumentParser(prog="clrf", description="Portable OpenCL radiance fields.")
     p.add_argument("--device", default=None,
-                   help="'auto', 'cpu', 'gpu' or 'P:D' (default: $CLRF_DEVICE, else 'auto': the "
+                   help="'auto', 'cpu', 'gpu', 'P:D' or an OpenCL implementation ('pocl', 'intel', "
+                        "'rusticl', ...; optionally ':cpu'/':gpu') (default: $CLRF_DEVICE, else 'auto': the "
                         "fastest working device of any type by a measured throughput probe, "
                         "cached per driver; `clrf devices` lists the figures and the choice)")
     p.add_argument("--quiet", action="store_true",

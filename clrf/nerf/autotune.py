@@ -59,7 +59,7 @@ def main(argv=None) -> int:
     from ..runtime.device import Device, DeviceError
     ap = argparse.ArgumentParser(prog="python -m clrf.nerf.autotune",
                                  description="Time fused-MLP tiles on a device; cache the best.")
-    ap.add_argument("--device", default=None, help="'cpu', 'gpu' or 'P:D' (default CLRF_DEVICE)")
+    ap.add_argument("--device", default=None, help="'cpu', 'gpu', 'P:D' or an implementation ('pocl', 'intel', ...; default CLRF_DEVICE)")
     ap.add_argument("--preset", default="original", choices=("tiny", "original"),
                     help="the NeRF preset whose MLP shape to tune (the flags below override it); "
                          "'tiny' is what `clrf train --model nerf` uses by default")

@@ -4,7 +4,12 @@
 
 - nothing (or ``"auto"``): the fastest working device of any type;
 - ``"cpu"`` / ``"gpu"``: the fastest working device of that type;
-- ``"P:D"``: platform index P, device index D, as listed by ``clrf devices``.
+- ``"P:D"``: platform index P, device index D, as listed by ``clrf devices``;
+- an implementation's name (``"pocl"``, ``"intel"``, ``"rusticl"``, ``"oclgrind"``,
+  ``"nvidia"``, ``"amd"``, ...: clrf/runtime/tuning.py ``implementation``), optionally with a
+  type (``"intel:cpu"``, ``"pocl:cpu"``): the fastest working device of that implementation.
+  Unlike P:D it does not move when another platform appears (``RUSTICL_ENABLE`` lists rusticl
+  before the platforms registered after it, which shifts their indices).
 
 "Working" and "fastest" come from a probe run once per device and driver version and cached on
 disk (clrf/runtime/device_probe.py: build and run a kernel, then a calibrated fp32 FMA throughput
@@ -25,7 +30,7 @@ import pyopencl as cl
 from .device_probe import (INSTALL_HINT, Candidate, Probe, cache_path, choice_reason,
                            cpu_flags, probe, rank, slow_reasons, slow_warning, warn_once)
 from .selfcheck import known_wrong
-from .tuning import Tuning
+from .tuning import Tuning, implementation
 
 
 class DeviceError(RuntimeError):
@@ -161,11 +166,14 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
             "no OpenCL platform found. Install a driver: `pip install \"clrf[pocl]\"` or, on "
             "Debian/Ubuntu, `apt-get install pocl-opencl-icd`.")
     listing = "\n".join("  " + _describe(*d) for d in devs)
+    impl, _, kind = spec.partition(":")
+    if impl and not impl.isdigit():
+        return _choose_by_name(spec, impl, kind, devs, listing, refresh)
     if spec and ":" in spec:
         try:
             pi, di = (int(x) for x in spec.split(":"))
         except ValueError:
-            raise DeviceError(f"CLRF_DEVICE/device '{spec}' is not 'cpu', 'gpu' or 'P:D'. "
+            raise DeviceError(f"CLRF_DEVICE/device '{spec}' is not {SPEC_FORMS}. "
                               f"Devices:\n{listing}") from None
         for d in devs:
             if d[0] == pi and d[1] == di:
@@ -177,23 +185,53 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
                          for p in [probe(o[2], measure_missing=False)] if p is not None]
                 return Choice(pi, di, d[2], c, f"requested as {spec}", (c, *known))
         raise DeviceError(f"no device {pi}:{di}. Devices:\n{listing}")
-    if spec in ("", "auto"):
-        wanted = ("gpu", "accelerator", "cpu")
-    elif spec in ("cpu", "gpu", "accelerator"):
-        wanted = (spec,)
-    else:
-        raise DeviceError(f"device '{spec}' is not 'cpu', 'gpu' or 'P:D'. Devices:\n{listing}")
-    entries = {(d[0], d[1]): d for d in devs if _type_name(d[2].type) in wanted}
+    return _choose_by_name("auto", "auto", "", devs, listing, refresh)
+
+
+SPEC_FORMS = "'auto', 'cpu', 'gpu', 'P:D' or an implementation name ('pocl', 'intel', ...)"
+TYPES = ("cpu", "gpu", "accelerator")
+
+
+def _choose_by_name(spec, impl, kind, devs, listing, refresh) -> Choice:
+    """Spec ``"cpu"``/``"gpu"``/``"accelerator"``/``"auto"`` or ``"<implementation>[:type]"``."""
+    if impl in TYPES + ("auto",) and not kind:
+        wanted = ("gpu", "accelerator", "cpu") if impl == "auto" else (impl,)
+        return _choose_ranked(devs, [d for d in devs if _type_name(d[2].type) in wanted],
+                              "/".join(wanted), listing, refresh)
+    if kind and kind not in TYPES:
+        raise DeviceError(f"device '{spec}': the part after ':' must be one of "
+                          f"{', '.join(TYPES)}. Devices:\n{listing}")
+    present = sorted({implementation(d[2].platform.name) for d in devs})
+    match = [d for d in devs if implementation(d[2].platform.name) == impl
+             and (not kind or _type_name(d[2].type) == kind)]
+    if not match:
+        raise DeviceError(f"device '{spec}' is not {SPEC_FORMS}, or no such device is "
+                          f"installed (implementations here: {', '.join(present)}). "
+                          f"Devices:\n{listing}")
+    return _choose_ranked(devs, match, spec, listing, refresh, requested=True)
+
+
+def _choose_ranked(devs, pool, what, listing, refresh, requested=False) -> Choice:
+    """The best-probing working device of ``pool``; ``requested``: the user named the pool
+    (an implementation), so a device only known to compute wrong gradients is still taken."""
+    wanted = tuple(what.split("/"))
+    entries = {(d[0], d[1]): d for d in pool}
     cands = tuple(_candidate(*d, probe(d[2], refresh)) for d in entries.values())
     # a device known to compute wrong gradients (a registered self-check, clrf/runtime/
     # selfcheck.py, e.g. the grid's) is never the default
-    ranked = [c for c in rank(list(cands))
-              if known_wrong(entries[(c.platform_index, c.device_index)][2]) is None]
+    ranked = [c for c in rank(list(cands)) if requested
+              or known_wrong(entries[(c.platform_index, c.device_index)][2]) is None]
     if ranked:
         best = ranked[0]
         d = entries[(best.platform_index, best.device_index)]
-        return Choice(d[0], d[1], d[2], best, choice_reason(ranked), cands, tuple(ranked))
-    msg = f"no working {'/'.join(wanted)} OpenCL device. Devices:\n{listing}"
+        reason = (f"requested as {what}" + (f"; {choice_reason(ranked)}" if len(ranked) > 1
+                                             else "")) if requested else choice_reason(ranked)
+        if requested:
+            known = [_candidate(*o, p) for o in devs if (o[0], o[1]) not in entries
+                     for p in [probe(o[2], measure_missing=False)] if p is not None]
+            cands = (*cands, *known)
+        return Choice(d[0], d[1], d[2], best, reason, cands, tuple(ranked))
+    msg = f"no working {what} OpenCL device. Devices:\n{listing}"
     if cands:
         msg += "\nRejected:\n" + "\n".join(
             f"  {_describe(*entries[(c.platform_index, c.device_index)])}: {c.probe.error}"

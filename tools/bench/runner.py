@@ -208,7 +208,7 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="smoke mode: tiny sizes, no timing")
     ap.add_argument("--list", action="store_true", help="print the benchmarks and exit")
     ap.add_argument("--out", help="JSON output path (default bench-results/bench-<time>.json)")
-    ap.add_argument("--device", help="CLRF_DEVICE-style spec ('cpu', 'gpu', 'P:D')")
+    ap.add_argument("--device", help="CLRF_DEVICE-style spec ('cpu', 'gpu', 'P:D', 'pocl', 'intel', ...)")
     ap.add_argument("--min-repeats", type=int, default=5)
     ap.add_argument("--max-repeats", type=int, default=25)
     ap.add_argument("--max-seconds", type=float, default=20.0,
