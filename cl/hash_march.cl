@@ -1,20 +1,31 @@
 /* hash_march.cl: the hash model's samples (stratified, kept only in occupied cells, packed per
  * ray) and their compositing, forward (resumable, with early ray termination) and backward.
  *
- * Samples. Ray i (origin o, direction d, unit direction dh = d / |d|) has S equal bins of
- * length dt = (far - near) / S over [near, far]; bin k holds the sample
- *   t_k = near + (far - near) ((k + u_k) / S),  u_k = uniform01(key, i S + k) with jitter, else 1/2
- * (cl/sample.cl's stratified rule) at x_k = o + t_k dh. The sample is LIVE when x_k lies inside
- * the box in an occupied cell (hash_occ.h), and then stands for its whole bin: its segment
- * length is dt whatever its neighbours are, so dropping the empty bins changes nothing else.
+ * Samples. Ray i (origin o, direction d, unit direction dh = d / |d|) has S bins over
+ * [near, far]; bin k holds the sample at s_k = (k + u_k) / S, u_k = uniform01(key, i S + k) with
+ * jitter, else 1/2 (cl/sample.cl's stratified rule):
+ *   HASH_CONTRACT 0 (a bounded box): equal bins, t_k = near + (far - near) s_k,
+ *                   dt_k = (far - near) / S;
+ *   HASH_CONTRACT 1 (unbounded scenes): bins equal in log t, t_k = near exp(s_k ln(far/near)),
+ *                   dt_k = the bin's length near r^(k/S) (r^(1/S) - 1), r = far / near, so a
+ *                   sample's spacing grows with its distance as the contracted space shrinks;
+ * at x_k = o + t_k dh. The point the encoding and the occupancy grid see is x_k itself
+ * (HASH_CONTRACT 0) or its scene contraction (HASH_CONTRACT 1, after mip-NeRF 360, with the
+ * max-norm so that the contracted space is a cube): with y = (x_k - centre) / half the inner
+ * box's normalised coordinate and n = max_i |y_i|,
+ *   contract(y) = y if n <= 1, else (2 - 1/n) y / n,   which maps all of space into [-2, 2]^3.
+ * The sample is LIVE when that point lies inside the occupancy box in an occupied cell
+ * (hash_occ.h), and then stands for its whole bin: its segment length is dt_k whatever its
+ * neighbours are, so dropping the empty bins changes nothing else.
  * A window k0 <= k < k1 of bins is marched at a time (the render's early termination; training
  * takes all S at once), only for rays with alive[i] != 0 (null: every ray).
  *
  * Packed layout: march_count writes each ray's live count, the host turns the counts into
  * offsets [n + 1] (exclusive prefix sum), march_compact writes ray i's live samples in bin
- * order at rows offsets[i] .. offsets[i+1]-1 of t [M], xyz [M, 3], vdir [M, 3].
+ * order at rows offsets[i] .. offsets[i+1]-1 of t [M], dt [M], xyz [M, 3] (the encoding's
+ * point: contracted under HASH_CONTRACT), vdir [M, 3].
  *
- * Compositing over a ray's live samples (volrend.h), tau_k = sigma_k dt (sigma not > 0, NaN
+ * Compositing over a ray's live samples (volrend.h), tau_k = sigma_k dt_k (sigma not > 0, NaN
  * included, counts as 0):
  *   w_k = T_k alpha(tau_k), T_k = exp(-sum_{j<k} tau_j) (Kahan-summed log),
  *   rgb = sum w_k c_k + T_end bg,  acc = sum w_k,  depth = sum w_k t_k.
@@ -23,14 +34,18 @@
  * change rgb by less than T_STOP); the host adds T_end bg at the end.
  * packed_backward (training: one window, no termination): L = loss_scale sum |rgb - target|^2,
  *   g = 2 loss_scale (rgb - target), dL/dc_k = w_k g,
- *   dL/dsigma_k = dt (T_{k+1} (g.c_k) - R_k),  R_k = g.rgb - sum_{j<=k} w_j (g.c_j),
+ *   dL/dsigma_k = dt_k (T_{k+1} (g.c_k) - R_k),  R_k = g.rgb - sum_{j<=k} w_j (g.c_j),
  * and sq_err [n] = |rgb - target|^2.
  *
- * Defines read: HASH_T_STOP. Twin: clrf/testing/reference_hash.py (march_samples,
+ * Defines read: HASH_T_STOP, HASH_CONTRACT. Twin: clrf/testing/reference_hash.py (march_samples,
  * packed_forward, packed_backward).
  */
 #include "hash_occ.h"
 #include "volrend.h"
+
+#ifndef HASH_CONTRACT
+#define HASH_CONTRACT 0
+#endif
 
 #ifndef HASH_T_STOP
 #define HASH_T_STOP 1e-4f   /* render: a ray stops once its transmittance is below this */
@@ -43,10 +58,39 @@ CLRF_INLINE float3 unit_dir(__global const float *dirs, const int i) {
     return d * safe_div(1.0f, length(d));
 }
 
+/* Sample t of bin k of ray i; *dt: the bin's length. */
 CLRF_INLINE float bin_t(const int i, const int k, const int S, const float near, const float far,
-                        const int jitter, const uint key) {
+                        const int jitter, const uint key, float *dt) {
     const float u = jitter ? uniform01(key, (uint)(i * S + k)) : 0.5f;
-    return near + (far - near) * (((float)k + u) / (float)S);
+    const float s = ((float)k + u) / (float)S;
+#if HASH_CONTRACT
+    const float lr = log(far / near);
+    *dt = near * exp(lr * ((float)k / (float)S)) * expm1(lr / (float)S);
+    return near * exp(lr * s);
+#else
+    *dt = (far - near) / (float)S;
+    return near + (far - near) * s;
+#endif
+}
+
+/* The point the encoding sees: x, or its contraction about the inner box (centre c, 1/half ih). */
+CLRF_INLINE float3 enc_point(const float3 x, const float4 c, const float4 ih) {
+#if HASH_CONTRACT
+    const float3 y = (x - c.xyz) * ih.xyz;
+    const float n = fmax(fabs(y.x), fmax(fabs(y.y), fabs(y.z)));
+    return n <= 1.0f ? y : y * ((2.0f - 1.0f / n) / n);
+#else
+    return x;
+#endif
+}
+
+/* contract_points: xyz [m, 3] (world) -> the encoding's points (clrf export, the viewer). */
+__kernel void contract_points(const int m, const float4 c, const float4 ih,
+                              __global const float *xyz, __global float *out) {
+    const int j = get_global_id(0);
+    if (j >= m) return;
+    const float3 p = enc_point(load3(xyz, j), c, ih);
+    out[3 * j] = p.x; out[3 * j + 1] = p.y; out[3 * j + 2] = p.z;
 }
 
 /* counts [n]: live samples of ray i in bins k0 .. k1-1 (0 for rays not alive). */
@@ -54,6 +98,7 @@ __kernel void march_count(const int n, const int S, const int k0, const int k1, 
                           const float far, const int jitter, const uint key,
                           __global const float *origins, __global const float *dirs,
                           const float4 lo, const float4 inv_ext, const int R,
+                          const float4 centre, const float4 inv_half,
                           __global const uchar *occ, __global const uchar *alive,
                           __global int *counts) {
     const int i = get_global_id(0);
@@ -62,8 +107,9 @@ __kernel void march_count(const int n, const int S, const int k0, const int k1, 
     if (!alive || alive[i]) {
         const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
         for (int k = k0; k < k1; ++k) {
-            const int c = occ_cell(o + bin_t(i, k, S, near, far, jitter, key) * dh, lo, inv_ext,
-                                   R);
+            float dt;
+            const float t = bin_t(i, k, S, near, far, jitter, key, &dt);
+            const int c = occ_cell(enc_point(o + t * dh, centre, inv_half), lo, inv_ext, R);
             m += c >= 0 && occ[c];
         }
     }
@@ -75,19 +121,23 @@ __kernel void march_compact(const int n, const int S, const int k0, const int k1
                             const float near, const float far, const int jitter, const uint key,
                             __global const float *origins, __global const float *dirs,
                             const float4 lo, const float4 inv_ext, const int R,
+                            const float4 centre, const float4 inv_half,
                             __global const uchar *occ, __global const uchar *alive,
                             __global const int *offsets, __global float *t_out,
-                            __global float *xyz, __global float *vdir) {
+                            __global float *dt_out, __global float *xyz,
+                            __global float *vdir) {
     const int i = get_global_id(0);
     if (i >= n || (alive && !alive[i])) return;
     const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
     int j = offsets[i];
     for (int k = k0; k < k1; ++k) {
-        const float t = bin_t(i, k, S, near, far, jitter, key);
-        const float3 x = o + t * dh;
+        float dt;
+        const float t = bin_t(i, k, S, near, far, jitter, key, &dt);
+        const float3 x = enc_point(o + t * dh, centre, inv_half);
         const int c = occ_cell(x, lo, inv_ext, R);
         if (c >= 0 && occ[c]) {
             t_out[j] = t;
+            dt_out[j] = dt;
             xyz[3 * j] = x.x; xyz[3 * j + 1] = x.y; xyz[3 * j + 2] = x.z;
             vdir[3 * j] = dh.x; vdir[3 * j + 1] = dh.y; vdir[3 * j + 2] = dh.z;
             ++j;
@@ -99,7 +149,7 @@ __kernel void march_compact(const int n, const int S, const int k0, const int k1
 
 /* Continue ray i's composite over its live samples of this window (state [n, ST]). */
 __kernel void packed_forward(const int n, __global const int *offsets, __global const float *t,
-                             const float dt, __global const float *sigma,
+                             __global const float *dt, __global const float *sigma,
                              __global const float *rgb, __global float *state,
                              __global uchar *alive) {
     const int i = get_global_id(0);
@@ -112,7 +162,7 @@ __kernel void packed_forward(const int n, __global const int *offsets, __global 
     for (int j = offsets[i]; j < offsets[i + 1]; ++j) {
         const float sg = sigma[j];
         if (!(sg > 0.0f)) continue;
-        const float w = vr_step(&logT, T, sg * dt, &T);
+        const float w = vr_step(&logT, T, sg * dt[j], &T);
         col += w * load3(rgb, j);
         acc += w;
         depth += w * t[j];
@@ -124,7 +174,7 @@ __kernel void packed_forward(const int n, __global const int *offsets, __global 
 
 /* Training: loss gradients of every live sample (one window holding all bins). */
 __kernel void packed_backward(const int n, __global const int *offsets, __global const float *t,
-                              const float dt, __global const float *sigma,
+                              __global const float *dt, __global const float *sigma,
                               __global const float *rgb, const float4 bg,
                               __global const float *target, const float loss_scale,
                               __global float *sq_err, __global float *dsigma,
@@ -137,7 +187,7 @@ __kernel void packed_backward(const int n, __global const int *offsets, __global
     float T = 1.0f;
     for (int j = j0; j < j1; ++j) {
         const float sg = sigma[j];
-        if (sg > 0.0f) col += vr_step(&logT, T, sg * dt, &T) * load3(rgb, j);
+        if (sg > 0.0f) col += vr_step(&logT, T, sg * dt[j], &T) * load3(rgb, j);
     }
     col += exp(logT.s) * bg.xyz;
     const float3 diff = col - load3(target, i);
@@ -154,8 +204,8 @@ __kernel void packed_backward(const int n, __global const int *offsets, __global
             drgb[3 * j] = drgb[3 * j + 1] = drgb[3 * j + 2] = 0.0f;
             continue;
         }
-        const float w = vr_step(&logT, T, sg * dt, &T);
-        dsigma[j] = vr_dsigma(&prefix, total, w, T, dot(g, load3(rgb, j)), dt);
+        const float w = vr_step(&logT, T, sg * dt[j], &T);
+        dsigma[j] = vr_dsigma(&prefix, total, w, T, dot(g, load3(rgb, j)), dt[j]);
         drgb[3 * j] = w * g.x;
         drgb[3 * j + 1] = w * g.y;
         drgb[3 * j + 2] = w * g.z;

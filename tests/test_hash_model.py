@@ -62,13 +62,54 @@ def test_march_matches_reference(device):
     d[0] = -d[0]                                 # points away from the box
     for jitter in (False, True):
         pk = march(device, occ, _up(device, o), _up(device, d), 24, 1.0, 5.0, jitter, key=9)
-        off, t, xyz, vdir = rh.march_samples(o, d, 24, 1.0, 5.0, occ.occ.get(), BOX[0],
-                                             1 / (BOX[1] - BOX[0]), 5, jitter, 9)
+        off, t, dt, xyz, vdir = rh.march_samples(o, d, 24, 1.0, 5.0, occ.occ.get(), BOX[0],
+                                                 1 / (BOX[1] - BOX[0]), 5, jitter, 9)
         np.testing.assert_array_equal(pk.offsets_host, off)
         assert off[1] == 0 and 0 < pk.m < 37 * 24
         np.testing.assert_allclose(pk.t.get(), t, rtol=0, atol=tol.SAMPLE_ATOL)
+        np.testing.assert_allclose(pk.dt.get(), dt, rtol=0, atol=tol.SAMPLE_ATOL)
         np.testing.assert_allclose(pk.xyz.get(), xyz, rtol=0, atol=tol.SAMPLE_ATOL)
         np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
+
+
+def test_march_contracted_matches_reference(device):
+    """Unbounded scenes: bins even in log t out to far = 200, points contracted about an
+    off-centre inner box into [-2, 2]^3 and looked up there; rays from inside and outside the
+    inner box, one along an axis; octant cells (no sample lands on a cell border)."""
+    from clrf.hash.march import Contraction, contract_points, march
+    inner = np.array([[-0.5, -1.0, 0.0], [1.5, 1.0, 1.0]])
+    con = Contraction(inner)
+    occ = OccupancyGrid(device, 2, Contraction.BOX)
+    occ.ema.set(np.float32([1, 0, 0, 1, 1, 0, 1, 0]))
+    occ._threshold(0.5)
+    o, d = _rays(29, seed=5, radius=3.0)
+    o[:9] *= 0.1                                  # cameras inside the inner box
+    d[3] = (0, 0, 1)
+    near, far, S = 0.05, 200.0, 40
+    for jitter in (False, True):
+        pk = march(device, occ, _up(device, o), _up(device, d), S, near, far, jitter, key=4,
+                   contract=con)
+        off, t, dt, xyz, vdir = rh.march_samples(o, d, S, near, far, occ.occ.get(),
+                                                 Contraction.BOX[0], np.full(3, 0.25), 2,
+                                                 jitter, 4, con.centre, con.half)
+        np.testing.assert_array_equal(pk.offsets_host, off)
+        assert 0 < pk.m < 29 * S and np.abs(xyz).max() > 1.9 and np.abs(xyz).max() < 2
+        # t and the bin lengths are exp() of float32 arguments up to ln(4000) = 8.3
+        np.testing.assert_allclose(pk.t.get(), t, rtol=tol.HASH_CONTRACT_RTOL, atol=0)
+        np.testing.assert_allclose(pk.dt.get(), dt, rtol=tol.HASH_CONTRACT_RTOL, atol=0)
+        # a point carries t's relative error times t (in inner-box half-sizes); contraction
+        # only shrinks it further
+        err = np.abs(pk.xyz.get() - xyz)
+        assert np.all(err <= tol.HASH_CONTRACT_RTOL * t[:, None] / con.half.min()
+                      + tol.HASH_CONTRACT_ATOL), err.max()
+        np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
+    # the bins tile [near, far] exactly
+    t_all, dt_all = rh.bins(1, S, near, far, log=True)
+    assert abs(dt_all.sum() - (far - near)) < 1e-9 * far
+    pts = np.random.default_rng(6).normal(0, 3, (50, 3))
+    got = contract_points(device, con, _up(device, pts)).get()
+    np.testing.assert_allclose(got, rh.contract((pts - con.centre) / con.half), rtol=0,
+                               atol=tol.HASH_CONTRACT_ATOL)
 
 
 def test_packed_composite_matches_reference(device):
@@ -84,7 +125,7 @@ def test_packed_composite_matches_reference(device):
     sig[off[3] + 5] = 1e30
     rgb = rng.uniform(0, 1, (m, 3)).astype(np.float32)
     target = rng.uniform(0, 1, (5, 3)).astype(np.float32)
-    dt, bg = 0.05, (0.2, 0.5, 1.0)
+    dt, bg = rng.uniform(0.01, 0.1, m).astype(np.float32), (0.2, 0.5, 1.0)   # per sample
     q = device.queue
     n = 5
 
@@ -94,13 +135,14 @@ def test_packed_composite_matches_reference(device):
         c2 = np.array([max(0, min(hi, c) - min(lo, c)) for c in counts])
         o2 = np.concatenate([[0], np.cumsum(c2)])
         return hm.Packed(n, len(sel), cla.to_device(q, o2.astype(np.int32)), o2,
-                         _up(device, t[sel]), _up(device, np.zeros((len(sel), 3))),
+                         _up(device, t[sel]), _up(device, dt[sel]),
+                         _up(device, np.zeros((len(sel), 3))),
                          _up(device, np.zeros((len(sel), 3)))), sel
 
     state = cla.zeros(q, (n, hm.STATE), np.float32)
     for lo, hi in ((0, 10), (10, 64)):
         pk, sel = pk_of(lo, hi)
-        hm.packed_forward(device, pk, _up(device, sig[sel]), _up(device, rgb[sel]), dt, state)
+        hm.packed_forward(device, pk, _up(device, sig[sel]), _up(device, rgb[sel]), state)
     got = hm.finish_state(state.get(), bg)
     want = rh.packed_forward(off, t, dt, sig, rgb, bg)
     for k in ("rgb", "acc"):
@@ -108,7 +150,7 @@ def test_packed_composite_matches_reference(device):
     np.testing.assert_allclose(got["depth"], want["depth"], rtol=tol.DEPTH_RTOL,
                                atol=tol.DEPTH_ATOL)
     pk, _ = pk_of(0, 64)
-    g = hm.packed_backward(device, pk, _up(device, sig), _up(device, rgb), dt, bg,
+    g = hm.packed_backward(device, pk, _up(device, sig), _up(device, rgb), bg,
                            _up(device, target), 0.1)
     r = rh.packed_backward(off, t, dt, sig, rgb, bg, target, 0.1)
     np.testing.assert_allclose(g["sq_err"].get(), r["sq_err"], rtol=tol.RENDER_RTOL,
@@ -125,11 +167,12 @@ def test_packed_backward_vs_finite_differences():
     sig = rng.uniform(0.1, 20, 15)
     rgb = rng.uniform(0, 1, (15, 3))
     target = rng.uniform(0, 1, (3, 3))
+    dt = rng.uniform(0.01, 0.1, 15)             # per-sample segments (contracted scenes)
 
     def loss(s):
-        f = rh.packed_forward(off, t, 0.05, s, rgb, (0.2, 0.5, 1.0))
+        f = rh.packed_forward(off, t, dt, s, rgb, (0.2, 0.5, 1.0))
         return 0.1 * np.sum((f["rgb"] - target) ** 2)
-    g = rh.packed_backward(off, t, 0.05, sig, rgb, (0.2, 0.5, 1.0), target, 0.1)["sigma"]
+    g = rh.packed_backward(off, t, dt, sig, rgb, (0.2, 0.5, 1.0), target, 0.1)["sigma"]
     fd = rn.numeric_gradient(loss, sig, 1e-6)
     np.testing.assert_allclose(g, fd, rtol=tol.FD_RTOL, atol=tol.FD_ATOL)
 
@@ -165,25 +208,31 @@ def _reference_step(model, o, d, target):
     """Loss and gradients of one step (no jitter) through the float64 references."""
     c = model.config
     enc, net = model.enc, model.net
-    off, t, xyz, vdir = rh.march_samples(o, d, c.samples, model.near, model.far,
-                                         model.occ.occ.get(), enc.lo, enc.inv_ext, c.occ_res)
+    con = model.contraction
+    off, t, dt, xyz, vdir = rh.march_samples(
+        o, d, c.samples, model.near, model.far, model.occ.occ.get(), enc.lo, enc.inv_ext,
+        c.occ_res, centre=con.centre if con else None, half=con.half if con else None)
     table = enc.table.get()
     params = net.params.get()
     x_enc = rh.hash_forward(xyz, enc.lo, enc.inv_ext, enc.res_host, table)
     d_enc = rh.sh_encode(vdir)
     sigma, rgb = rn.mlp_forward(params, net.spec, net.layout, x_enc, d_enc)
     scale = 1.0 / (3 * o.shape[0])
-    g = rh.packed_backward(off, t, model.dt, sigma, rgb, model.background, target, scale)
+    g = rh.packed_backward(off, t, dt, sigma, rgb, model.background, target, scale)
     loss = scale * np.sum(g["sq_err"])
     mb = rn.mlp_backward(params, net.spec, net.layout, x_enc, d_enc, g["sigma"], g["rgb"])
     gt = rh.hash_backward(xyz, enc.lo, enc.inv_ext, enc.res_host, mb["x_enc"], enc.shape)
     return loss, mb["params"], gt, len(t)
 
 
-@pytest.mark.parametrize("path", ["atomics", "owned"])
-def test_step_gradients_match_reference_chain(device, path):
+@pytest.mark.parametrize("path,contract", [("atomics", "off"), ("owned", "off"),
+                                           ("owned", "on")])
+def test_step_gradients_match_reference_chain(device, path, contract):
     dev = device.with_tuning(grad_slots=0 if path == "atomics" else 2)
-    model = HashModel(dev, SMALL, near=1.5, far=4.5, bbox=BOX, background=(0.2, 0.5, 1.0))
+    near, far = (1.5, 4.5) if contract == "off" else (0.05, 60.0)
+    model = HashModel(dev, dataclasses.replace(SMALL, contract=contract), near=near, far=far,
+                      bbox=BOX, background=(0.2, 0.5, 1.0))
+    assert (model.contraction is not None) == (contract == "on")
     rng = np.random.default_rng(3)
     model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
     occ = (rng.random(SMALL.occ_res ** 3) < 0.6)
@@ -329,6 +378,29 @@ def test_ray_range_cuts_far_to_the_box():
         ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))
 
 
+def test_contraction_is_chosen_for_unbounded_scenes():
+    """hash.contract auto: on for real360 captures, off for the rest; contracted scenes sample
+    out to CONTRACT_FAR box half-sizes past the farthest camera; on is refused for NDC."""
+    from types import SimpleNamespace
+
+    from clrf.hash.model import CONTRACT_FAR, ray_range, resolve_contract
+    poses = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    poses[1, :3, 3] = (0.6, 0, 0.8)
+    ds = SimpleNamespace(name="s", near=0.02, far=3.46, ndc=False, poses=poses, bbox=BOX,
+                         preset="real360")
+    assert resolve_contract(SMALL, ds).contract == "on"
+    assert resolve_contract(SMALL, SimpleNamespace(**{**vars(ds), "preset": "synthetic"})
+                            ).contract == "off"
+    assert resolve_contract(dataclasses.replace(SMALL, contract="off"), ds).contract == "off"
+    with pytest.raises(ValueError, match="hash.contract=on does not apply to NDC"):
+        resolve_contract(dataclasses.replace(SMALL, contract="on"),
+                         SimpleNamespace(**{**vars(ds), "ndc": True}))
+    near, far = ray_range(ds, contract=True)
+    assert near == 0.02 and abs(far - (1.0 + CONTRACT_FAR)) < 1e-6   # float32 poses
+    with pytest.raises(ConfigError, match="hash.contract"):
+        build_config(overrides={"hash": {"contract": "yes"}})
+
+
 def test_memory_guard_names_the_hash_stage(device):
     """The memory guard estimates a hash run (tables + Adam, MLP activations) and names the
     fix; the tiny preset fits a normal device."""
@@ -344,3 +416,29 @@ def test_memory_guard_names_the_hash_stage(device):
     small = dreplace(device.caps, global_mem_size=1 << 30, max_alloc_size=1 << 30)
     with pytest.raises(MemoryBudgetError, match="hash training.*hash.log2_table"):
         check_training_fits(small, False, big, 1000)
+
+
+def test_bonsai_contracted_through_the_cli(data_dir, tmp_path):
+    """`clrf train --model hash` on the real 360 scene contracts it (hash.contract auto), the
+    loss falls over 40 steps, and eval and a checkpoint round trip work."""
+    import csv
+    import json
+
+    from clrf.cli.main import main as cli
+    from clrf.outputs import checkpoint
+    out = tmp_path / "run"
+    rc = cli(["train", "--model", "hash", "--data", str(data_dir / "bonsai_800"), "--out",
+              str(out), "--max-seconds", "600", "--set", "train.max_iters=40",
+              "--set", "train.downscale=8", "--set", "hash.preset=tiny",
+              "--set", "hash.log2_table=12", "--set", "hash.samples=64",
+              "--set", "hash.batch_rays=512", "--set", "train.eval_every=0.5",
+              "--set", "train.eval_views=1", "--set", "train.max_train_images=20"])
+    assert rc == 0
+    st = checkpoint.load(out)
+    assert st["config"]["contract"] == "on" and st["far"] > 500
+    rows = list(csv.DictReader(open(out / "metrics.csv")))
+    assert "contracted scene" in rows[-1]["model"]
+    losses = [float(r["train_loss"]) for r in rows if r["train_loss"]]
+    assert len(losses) >= 2 and losses[-1] < losses[0], losses
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "1"]) == 0
+    assert np.isfinite(json.loads((out / "eval_cli.json").read_text())["psnr"])

@@ -31,6 +31,10 @@ class HashConfig:
     #                                 vanish (published: exp); "softplus": slower to sharpen
     samples: int = 256              # stratified samples per ray over [near, far]; only those
     #                                 in occupied cells are evaluated
+    contract: str = "auto"          # "on": unbounded scene, contracted about the dataset's box
+    #                                 (all of space in the encoding, samples even in log t out to
+    #                                 1000 box half-sizes); "off": the box only; "auto": on for
+    #                                 unbounded 360 captures (the real360 scene preset)
     perturb: bool = True            # jitter samples during training (never when rendering)
     occ_res: int = 128              # occupancy grid cells per box side
     occ_every: int = 16             # iterations between occupancy updates
@@ -88,6 +92,8 @@ class HashConfig:
             (self.density_act in ("trunc_exp", "softplus"), "hash.density_act",
              "must be 'trunc_exp' or 'softplus'"),
             (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
+            (self.contract in ("auto", "on", "off"), "hash.contract",
+             "must be 'auto', 'on' or 'off'"),
             (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
             (self.occ_every >= 1, "hash.occ_every", "must be >= 1"),
             (0 <= self.occ_points <= 1 << 24, "hash.occ_points", "must be in 0..16777216"),

@@ -2,8 +2,9 @@
 occupied cells) and their compositing (math and layouts in the kernel file's header).
 
 >>> pk = march(dev, occ, origins_d, dirs_d, S=128, near=2.0, far=6.0)   # all bins, no jitter
->>> pk.m, pk.offsets_host[:3], pk.t, pk.xyz, pk.vdir                    # device t [M], ...
->>> g = packed_backward(dev, pk, sigma_d, rgb_d, dt, bg, target_d, loss_scale)
+>>> pk.m, pk.offsets_host[:3], pk.t, pk.dt, pk.xyz, pk.vdir             # device t [M], ...
+>>> g = packed_backward(dev, pk, sigma_d, rgb_d, bg, target_d, loss_scale)
+>>> pk = march(dev, occ, origins_d, dirs_d, 256, 0.02, 1e3, contract=Contraction(box))
 """
 from __future__ import annotations
 
@@ -26,28 +27,61 @@ class Packed:
     offsets: cla.Array        # int32 [n + 1] (device)
     offsets_host: np.ndarray  # int64 [n + 1]
     t: cla.Array              # [M]
-    xyz: cla.Array            # [M, 3]
+    dt: cla.Array             # [M] the segment each sample stands for (its bin's length)
+    xyz: cla.Array            # [M, 3] the encoding's points (contracted under a Contraction)
     vdir: cla.Array           # [M, 3]
 
 
-def program(device):
-    return device.program("hash_march.cl", {})
+class Contraction:
+    """The scene contraction of unbounded scenes about an inner box (cl/hash_march.cl): the box
+    maps to [-1, 1]^3 and all of space to [-2, 2]^3, the box of the encoding and the occupancy
+    grid. Samples are spaced evenly in log t."""
+
+    BOX = np.array([[-2.0] * 3, [2.0] * 3])   # the contracted space
+
+    def __init__(self, inner_box):
+        b = np.asarray(inner_box, np.float64)
+        self.centre = (b[0] + b[1]) / 2
+        self.half = (b[1] - b[0]) / 2
+        if not np.all(self.half > 0):
+            raise ValueError(f"contraction: the inner box {b.tolist()} needs positive extents")
+        self.centre4 = cl.cltypes.make_float4(*self.centre, 0.0)
+        self.inv_half4 = cl.cltypes.make_float4(*(1.0 / self.half), 0.0)
+
+
+def program(device, contract: bool = False):
+    return device.program("hash_march.cl", {"HASH_CONTRACT": int(bool(contract))})
+
+
+def contract_points(device, contraction: Contraction, xyz):
+    """The encoding's points [m, 3] (device) of world points xyz [m, 3] (device)."""
+    m = int(xyz.shape[0])
+    out = cla.empty(device.queue, (max(m, 1), 3), np.float32)
+    if m:
+        launch(device, program(device, True).kernel("contract_points"), m,
+               (np.int32(m), contraction.centre4, contraction.inv_half4, xyz.data, out.data),
+               device.tuning.elementwise_local_size)
+    return out[:m]
 
 
 def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: bool = False,
-          key: int = 0, k0: int = 0, k1: int | None = None, alive=None) -> Packed:
+          key: int = 0, k0: int = 0, k1: int | None = None, alive=None,
+          contract: Contraction | None = None) -> Packed:
     """The live samples of bins k0 .. k1-1 (default all S) of the rays origins/dirs [n, 3]
     (device) through the occupancy grid ``occ`` (OccupancyGrid), for rays with alive[i] != 0
-    (uchar device array [n]; None: all). One host round trip (the per-ray counts)."""
+    (uchar device array [n]; None: all). ``contract``: log-spaced bins and contracted points
+    (occ then covers Contraction.BOX). One host round trip (the per-ray counts)."""
     n = int(origins.shape[0])
     k1 = S if k1 is None else int(k1)
     dev, q = device, device.queue
-    prg = program(device)
+    prg = program(device, contract is not None)
     counts = cla.empty(q, max(n, 1), np.int32)
+    zero4 = cl.cltypes.make_float4(0, 0, 0, 0)
     args = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
             np.float32(far), np.int32(bool(jitter)), np.uint32(key), origins.data, dirs.data,
-            occ.lo4, occ.inv4, np.int32(occ.res), occ.occ.data,
-            alive.data if alive is not None else None)
+            occ.lo4, occ.inv4, np.int32(occ.res),
+            contract.centre4 if contract else zero4, contract.inv_half4 if contract else zero4,
+            occ.occ.data, alive.data if alive is not None else None)
     launch(dev, prg.kernel("march_count"), n, args + (counts.data,), dev.tuning.per_ray_local_size)
     off = np.zeros(n + 1, np.int64)
     if n:
@@ -55,13 +89,14 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     m = int(off[-1])
     offsets = upload(q, off.astype(np.int32))
     t = cla.empty(q, max(m, 1), np.float32)
+    dt = cla.empty(q, max(m, 1), np.float32)
     xyz = cla.empty(q, (max(m, 1), 3), np.float32)
     vdir = cla.empty(q, (max(m, 1), 3), np.float32)
     if m:
         launch(dev, prg.kernel("march_compact"), n,
-               args + (offsets.data, t.data, xyz.data, vdir.data), dev.tuning.per_ray_local_size)
-    return Packed(n, m, offsets, off, t[:m] if m else t, xyz[:m] if m else xyz,
-                  vdir[:m] if m else vdir)
+               args + (offsets.data, t.data, dt.data, xyz.data, vdir.data),
+               dev.tuning.per_ray_local_size)
+    return Packed(n, m, offsets, off, *(a[:m] if m else a for a in (t, dt, xyz, vdir)))
 
 
 def _bg4(background):
@@ -69,11 +104,11 @@ def _bg4(background):
     return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
 
 
-def packed_forward(device, pk: Packed, sigma, rgb, dt: float, state, alive=None):
+def packed_forward(device, pk: Packed, sigma, rgb, state, alive=None):
     """Continue the per-ray composite state [n, STATE] (device, zero at the start) over pk's
     samples with sigma [M], rgb [M, 3]; clears alive[i] once T < HASH_T_STOP."""
     launch(device, program(device).kernel("packed_forward"), pk.n,
-           (np.int32(pk.n), pk.offsets.data, pk.t.data, np.float32(dt), sigma.data, rgb.data,
+           (np.int32(pk.n), pk.offsets.data, pk.t.data, pk.dt.data, sigma.data, rgb.data,
             state.data, alive.data if alive is not None else None),
            device.tuning.per_ray_local_size)
 
@@ -86,7 +121,7 @@ def finish_state(state: np.ndarray, background) -> dict:
             "depth": state[:, 4].copy()}
 
 
-def packed_backward(device, pk: Packed, sigma, rgb, dt: float, background, target,
+def packed_backward(device, pk: Packed, sigma, rgb, background, target,
                     loss_scale: float) -> dict:
     """dict(sigma=dL/dsigma [M], rgb=dL/drgb [M, 3], sq_err=[n]) of the MSE loss
     loss_scale * sum |rgb_ray - target|^2 (target [n, 3] device)."""
@@ -95,7 +130,7 @@ def packed_backward(device, pk: Packed, sigma, rgb, dt: float, background, targe
     out = {"sigma": cla.empty(q, m, np.float32), "rgb": cla.empty(q, (m, 3), np.float32),
            "sq_err": cla.empty(q, max(pk.n, 1), np.float32)}
     launch(device, program(device).kernel("packed_backward"), pk.n,
-           (np.int32(pk.n), pk.offsets.data, pk.t.data, np.float32(dt), sigma.data, rgb.data,
+           (np.int32(pk.n), pk.offsets.data, pk.t.data, pk.dt.data, sigma.data, rgb.data,
             _bg4(background), target.data, np.float32(loss_scale), out["sq_err"].data,
             out["sigma"].data, out["rgb"].data), device.tuning.per_ray_local_size)
     if pk.m == 0:

@@ -33,6 +33,7 @@ Renders march RENDER_WINDOW bins at a time and stop rays whose transmittance fel
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict
 
 import numpy as np
@@ -45,20 +46,44 @@ from ..nerf.model import _key
 from ..runtime.optim import Optimizer
 from ..runtime.programs import launch, upload
 from .encoding import SH_DIM, HashEncoding
-from .march import STATE, finish_state, march, packed_backward, packed_forward
+from .march import (STATE, Contraction, contract_points, finish_state, march, packed_backward,
+                    packed_forward)
 from .occupancy import OccupancyGrid
 
 MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
-def ray_range(ds) -> tuple:
+CONTRACT_FAR = 1000.0   # contracted scenes: samples out to this many box half-sizes
+
+
+def resolve_contract(config: HashConfig, ds) -> HashConfig:
+    """config with ``contract`` "auto" decided for dataset ``ds``: on for unbounded 360 captures
+    (scene preset real360), off otherwise (NDC scenes never: their space is already bounded)."""
+    if config.contract != "auto":
+        if config.contract == "on" and ds.ndc:
+            raise ValueError(f"dataset {ds.name}: hash.contract=on does not apply to NDC "
+                             f"(forward-facing) rays, whose space is already bounded; set "
+                             f"hash.contract=off or auto")
+        return config
+    on = getattr(ds, "preset", None) == "real360" and not ds.ndc
+    return dataclasses.replace(config, contract="on" if on else "off")
+
+
+def ray_range(ds, contract: bool = False) -> tuple:
     """(near, far) of the hash model's bins for a dataset: the dataset's, with far cut to the
     farthest box corner seen from any camera (nothing is sampled outside the box, and
-    unbounded scenes say far = 1e10). NDC scenes keep theirs (poses are not in NDC space)."""
+    unbounded scenes say far = 1e10). NDC scenes keep theirs (poses are not in NDC space).
+    ``contract``: far reaches CONTRACT_FAR box half-sizes past the farthest camera, and near
+    is at least a thousandth of a half-size (the bins are even in log t)."""
     near, far = float(ds.near), float(ds.far)
+    box = np.asarray(ds.bbox, np.float64)
+    if contract:
+        half = (box[1] - box[0]).max() / 2
+        cams = np.asarray(ds.poses, np.float64)[:, :3, 3] if len(ds.poses) else np.zeros((1, 3))
+        reach = np.linalg.norm(cams - box.mean(axis=0), axis=1).max()
+        return max(near, 1e-3 * half), float(reach + CONTRACT_FAR * half)
     if not ds.ndc and len(ds.poses):
-        box = np.asarray(ds.bbox, np.float64)
         corners = np.array([[box[i >> a & 1, a] for a in range(3)] for i in range(8)])
         cams = np.asarray(ds.poses, np.float64)[:, :3, 3]
         reach = np.linalg.norm(cams[:, None, :] - corners[None], axis=2).max()
@@ -90,14 +115,20 @@ class HashModel:
         self.background = tuple(float(b) for b in bg)
         self.seed = int(seed)
         self.step = 0
+        # unbounded scenes: the encoding and the occupancy grid cover the contracted space
+        self.contraction = Contraction(box) if c.contract == "on" else None
+        space = Contraction.BOX if self.contraction else box
+        if self.contraction and not self.near > 0:
+            raise ValueError(f"near: a contracted scene's bins are even in log t and need "
+                             f"near > 0, got {near}")
         self.enc = HashEncoding(device, c.levels, c.features, c.log2_table, c.min_res, c.max_res,
-                                (box[0], box[1]), seed=self.seed)
+                                (space[0], space[1]), seed=self.seed)
         self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
                             in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
                             sigma_act=c.density_act, color_depth=c.color_depth,
                             features=c.geo_features, rows=c.mlp_rows)
         self.net = MLP(device, self.spec, seed=self.seed)
-        self.occ = OccupancyGrid(device, c.occ_res, (box[0], box[1]))
+        self.occ = OccupancyGrid(device, c.occ_res, (space[0], space[1]))
         self.occ_prg = self.occ.prg
         self._adam_table = Optimizer(device, self.enc.table, "adam", beta=c.beta1,
                                      beta2=c.beta2, eps=c.adam_eps, grad=self.enc.grad)
@@ -108,18 +139,26 @@ class HashModel:
     # ---- evaluation of the fields at points ---------------------------------------------
     @property
     def dt(self) -> float:
-        """Sample spacing along a ray (world units)."""
-        return (self.far - self.near) / self.config.samples
+        """Sample spacing along a ray (world units); contracted scenes: the spacing at one box
+        half-size from the camera (it grows in proportion to the distance)."""
+        S = self.config.samples
+        if self.contraction is None:
+            return (self.far - self.near) / S
+        return float(self.contraction.half.mean() * np.expm1(np.log(self.far / self.near) / S))
 
     def _fields(self, xyz, vdir):
-        """sigma [m], rgb [m, 3] at points xyz [m, 3] seen along vdir [m, 3] (device)."""
+        """sigma [m], rgb [m, 3] at the encoding's points xyz [m, 3] seen along vdir [m, 3]
+        (device)."""
         xe = self.enc.forward(xyz)
         de = self.enc.sh_encode(vdir)
         return self.net.forward(xe, de)
 
     def fields(self, xyz, vdir):
-        """sigma [m], rgb [m, 3] (device) at points xyz [m, 3] along vdir [m, 3] (device) as
-        the renderer sees them: sigma = 0 outside the box (the encoding clamps there)."""
+        """sigma [m], rgb [m, 3] (device) at world points xyz [m, 3] along vdir [m, 3] (device)
+        as the renderer sees them: sigma = 0 outside the box (the encoding clamps there) unless
+        the scene is contracted (then every point is in the model)."""
+        if self.contraction is not None:
+            return self._fields(contract_points(self.device, self.contraction, xyz), vdir)
         sigma, rgb = self._fields(xyz, vdir)
         launch(self.device, self.occ_prg.kernel("zero_outside"), int(xyz.shape[0]),
                (np.int32(xyz.shape[0]), xyz.data, self.occ.lo4, self.occ.inv4, sigma.data),
@@ -127,8 +166,14 @@ class HashModel:
         return sigma, rgb
 
     def density(self, xyz):
-        """sigma [m] (device) at points xyz [m, 3] (device); the view direction is irrelevant
-        to sigma (any direction gives the same value)."""
+        """sigma [m] (device) at world points xyz [m, 3] (device); the view direction is
+        irrelevant to sigma (any direction gives the same value)."""
+        if self.contraction is not None and int(xyz.shape[0]):
+            xyz = contract_points(self.device, self.contraction, xyz)
+        return self._density(xyz)
+
+    def _density(self, xyz):
+        """sigma [m] (device) at the encoding's points xyz [m, 3] (device)."""
         m = int(xyz.shape[0])
         if m == 0:
             return cla.zeros(self.device.queue, 0, np.float32)
@@ -172,13 +217,13 @@ class HashModel:
         scale = 1.0 / (3.0 * B)
         jitter = c.perturb if jitter is None else bool(jitter)
         pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
-                   _key(self.seed, it, 0))
+                   _key(self.seed, it, 0), contract=self.contraction)
         q = dev.queue
         if pk.m:
             sigma, rgb = self._fields(pk.xyz, pk.vdir)
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
-        g = packed_backward(dev, pk, sigma, rgb, self.dt, self.background, target, scale)
+        g = packed_backward(dev, pk, sigma, rgb, self.background, target, scale)
         loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
@@ -200,7 +245,7 @@ class HashModel:
 
     def update_occupancy(self, key: int):
         c = self.config
-        self.occ.update(self.density, key, c.occ_points, c.occ_decay,
+        self.occ.update(self._density, key, c.occ_points, c.occ_decay,
                         self.occupancy_threshold())
 
     # ---- rendering ----------------------------------------------------------------------
@@ -235,11 +280,11 @@ class HashModel:
         alive.fill(np.uint8(1))
         for k0 in range(0, c.samples, RENDER_WINDOW):
             pk = march(dev, self.occ, od, dd, c.samples, self.near, self.far, False, 0, k0,
-                       min(c.samples, k0 + RENDER_WINDOW), alive)
+                       min(c.samples, k0 + RENDER_WINDOW), alive, self.contraction)
             if pk.m == 0:
                 continue
             sigma, rgb = self._fields(pk.xyz, pk.vdir)
-            packed_forward(dev, pk, sigma, rgb, self.dt, state, alive)
+            packed_forward(dev, pk, sigma, rgb, state, alive)
         return state.get()
 
     # ---- trainer interface (clrf.training.trainer) --------------------------------------------------
@@ -254,7 +299,7 @@ class HashModel:
         c = self.config
         return (f"hash L{c.levels} F{c.features} T2^{c.log2_table} {c.min_res}-{c.max_res}, "
                 f"MLP {c.width}+{c.geo_features} / {c.color_depth}x{c.color_width}, "
-                f"{c.samples} samples, "
+                f"{c.samples} samples{' (contracted scene)' if self.contraction else ''}, "
                 f"occupied {100 * self.occ.occupied_fraction():.1f}%")
 
     # ---- checkpoints --------------------------------------------------------------------

@@ -132,21 +132,49 @@ def occ_update(ema, cells, sigma, decay, thr):
 
 
 # ---- packed samples and compositing (cl/hash_march.cl) ---------------------------------------
-def march_samples(origins, dirs, S, near, far, occ, lo, inv_ext, R, jitter=False, key=0):
-    """(offsets [n+1], t [M], xyz [M, 3], vdir [M, 3]) of the live samples of every bin."""
-    from .reference_nerf import ray_points, sample_stratified
+def contract(y):
+    """The scene contraction of normalised points y [m, 3] (the inner box is [-1, 1]^3), with
+    the max-norm: y where max|y_i| <= 1, else (2 - 1/n) y / n."""
+    y = np.asarray(y, np.float64)
+    n = np.max(np.abs(y), axis=1, keepdims=True)
+    return np.where(n <= 1, y, (2 - 1 / np.maximum(n, 1)) * y / np.maximum(n, 1))
+
+
+def bins(n, S, near, far, jitter=False, key=0, log=False):
+    """(t [n, S], dt [n, S]) of the stratified bins: even in t, or even in log t (``log``)."""
+    from .reference_nerf import sample_stratified
+    if not log:
+        t = sample_stratified(n, S, near, far, jitter, key)
+        return t, np.full_like(t, (far - near) / S)
+    s = sample_stratified(n, S, 0.0, 1.0, jitter, key)
+    lr = np.log(far / near)
+    k = np.arange(S, dtype=np.float64)[None, :]
+    return near * np.exp(lr * s), np.broadcast_to(near * np.exp(lr * k / S) * np.expm1(lr / S),
+                                                   s.shape).copy()
+
+
+def march_samples(origins, dirs, S, near, far, occ, lo, inv_ext, R, jitter=False, key=0,
+                  centre=None, half=None):
+    """(offsets [n+1], t [M], dt [M], xyz [M, 3], vdir [M, 3]) of the live samples of every
+    bin; with ``centre``/``half`` (the inner box) log-spaced bins and contracted points."""
+    from .reference_nerf import ray_points
     n = np.asarray(origins).shape[0]
-    t = sample_stratified(n, S, near, far, jitter, key)
+    contracted = centre is not None
+    t, dt = bins(n, S, near, far, jitter, key, log=contracted)
     xyz, vdir = ray_points(origins, dirs, t)
+    if contracted:
+        xyz = contract((xyz - np.asarray(centre)) / np.asarray(half))
     live = compact(xyz, occ, lo, inv_ext, R)
     counts = np.bincount(live // S, minlength=n)
     off = np.concatenate([[0], np.cumsum(counts)])
-    return off, t.reshape(-1)[live], xyz[live], vdir[live]
+    return off, t.reshape(-1)[live], dt.reshape(-1)[live], xyz[live], vdir[live]
 
 
 def packed_forward(offsets, t, dt, sigma, rgb, background=(0, 0, 0)):
-    """rgb [n, 3], acc [n], depth [n], weights [M] of packed samples (no early termination)."""
+    """rgb [n, 3], acc [n], depth [n], weights [M] of packed samples (no early termination);
+    dt: each sample's segment [M], or one for all."""
     s = np.where(np.asarray(sigma, np.float64) > 0, np.asarray(sigma, np.float64), 0.0)
+    dt = np.broadcast_to(np.asarray(dt, np.float64), s.shape)
     c = np.asarray(rgb, np.float64)
     n = len(offsets) - 1
     out = {"rgb": np.zeros((n, 3)), "acc": np.zeros(n), "depth": np.zeros(n),
@@ -154,7 +182,7 @@ def packed_forward(offsets, t, dt, sigma, rgb, background=(0, 0, 0)):
     bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
     for i in range(n):
         a, b = offsets[i], offsets[i + 1]
-        tau = s[a:b] * dt
+        tau = s[a:b] * dt[a:b]
         logT = -np.concatenate([[0.0], np.cumsum(tau)])
         w = np.exp(logT[:-1]) * -np.expm1(-tau)
         out["weights"][a:b] = w
@@ -168,6 +196,7 @@ def packed_forward(offsets, t, dt, sigma, rgb, background=(0, 0, 0)):
 def packed_backward(offsets, t, dt, sigma, rgb, background, target, loss_scale):
     """dsigma [M], drgb [M, 3], sq_err [n] of loss_scale sum |rgb - target|^2 (suffix sums)."""
     f = packed_forward(offsets, t, dt, sigma, rgb, background)
+    dt = np.broadcast_to(np.asarray(dt, np.float64), np.shape(sigma))
     diff = f["rgb"] - np.asarray(target, np.float64)
     g = 2 * loss_scale * diff
     c = np.asarray(rgb, np.float64)
@@ -181,8 +210,9 @@ def packed_backward(offsets, t, dt, sigma, rgb, background, target, loss_scale):
         wgc = w * gc
         after = np.cumsum(wgc[::-1])[::-1] - wgc
         R = after + f["T_end"][i] * (g[i] @ bg)
-        tau = np.where(np.asarray(sigma)[a:b] > 0, np.asarray(sigma, np.float64)[a:b], 0) * dt
+        tau = np.where(np.asarray(sigma)[a:b] > 0, np.asarray(sigma, np.float64)[a:b],
+                       0) * dt[a:b]
         Tnext = np.exp(-np.cumsum(tau))
-        dsig[a:b] = np.where(np.asarray(sigma)[a:b] > 0, dt * (Tnext * gc - R), 0.0)
+        dsig[a:b] = np.where(np.asarray(sigma)[a:b] > 0, dt[a:b] * (Tnext * gc - R), 0.0)
         drgb[a:b] = w[:, None] * g[i][None, :]
     return {"sigma": dsig, "rgb": drgb, "sq_err": np.sum(diff ** 2, axis=1)}

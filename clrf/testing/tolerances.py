@@ -317,3 +317,9 @@ HASH_STEP_GRAD_REL_TO_MAX = 1e-4
 HASH_STEP_LOSS_RTOL = 1e-5
 # Occupancy update: decay is one float32 multiply (0.5 ulp), the max is exact.
 HASH_OCC_RTOL = 1e-6
+# Contracted scenes (cl/hash_march.cl HASH_CONTRACT): t and dt are near exp(s ln(far/near)) in
+# float32, exp's argument up to ~10: a few ulp of the argument, relative 1e-6 of t.
+HASH_CONTRACT_RTOL = 2e-6
+# Contracted points: o + t d in float32 carries t's relative error times t (tests bound it by
+# HASH_CONTRACT_RTOL t / half), plus the contraction's own few ulp of |y| <= 2.
+HASH_CONTRACT_ATOL = 1e-6

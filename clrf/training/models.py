@@ -58,9 +58,10 @@ class NerfFactory:
 class HashFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from ..hash.model import HashModel, ray_range
-        near, far = ray_range(ds)
-        return HashModel(device, cfg.hash, near, far, ds.bbox, background, cfg.train.seed)
+        from ..hash.model import HashModel, ray_range, resolve_contract
+        hc = resolve_contract(cfg.hash, ds)
+        near, far = ray_range(ds, hc.contract == "on")
+        return HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
