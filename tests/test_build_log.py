@@ -3,6 +3,7 @@ defines the library and tools use (a warning introduced in cl/ fails here), and 
 log into diagnostics and implementation chatter (clrf/runtime/buildlog.py) holds on real logs of each
 OpenCL implementation, stored in tests/fixtures/build_logs/ by tools/capture_build_logs.py."""
 import itertools
+import os
 from collections import Counter
 import json
 from pathlib import Path
@@ -12,6 +13,7 @@ import pytest
 from clrf.runtime.buildlog import CHATTER, diagnostics, is_chatter, split_log
 from clrf.nerf.mlp import MLPSpec
 from clrf.runtime.programs import build, build_log
+from clrf.testing import impls
 
 FIXTURES = Path(__file__).parent / "fixtures" / "build_logs"
 KERNELS = FIXTURES / "kernels"
@@ -211,3 +213,31 @@ def test_chatter_patterns_name_their_implementation():
     # a warning never reads as chatter, whatever its wording
     assert not is_chatter("input.cl:1:1: warning: Compilation started")
     assert not is_chatter("remark: input.cl:3:1: loop not vectorized")
+
+
+LIBRARY_BUILD = """
+import sys, uuid
+import numpy as np
+import pyopencl.array as cla
+from pyopencl.elementwise import ElementwiseKernel
+import clrf
+dev = clrf.Device(sys.argv[1])
+# a kernel no cache has seen, built by pyopencl itself (as its array operations do)
+k = ElementwiseKernel(dev.context, "float *x", f"x[i] = x[i] * 2.0f + {uuid.uuid4().int % 997}.0f",
+                      "clrf_quiet_check")
+x = cla.zeros(dev.queue, 16, np.float32)
+k(x)
+print(float(x.get()[0]))
+"""
+
+
+@pytest.mark.parametrize("impl", sorted(impls.present()))
+def test_library_builds_print_no_chatter(impl):
+    """pyopencl's own kernels (fills, reductions, scans) print no "Non-empty compiler output"
+    warning in a clrf process: Intel's runtime writes progress text into every build log."""
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-c", LIBRARY_BUILD, impl], capture_output=True,
+                       text=True, timeout=300, env={**os.environ, "PYTHONWARNINGS": "default"})
+    assert r.returncode == 0, r.stderr
+    assert "CompilerWarning" not in r.stderr and "compiler output" not in r.stderr, r.stderr

@@ -252,6 +252,16 @@ def select_device(spec: str | None = None):
     return c.platform_index, c.device_index, c.cl_device
 
 
+def quiet_library_builds():
+    """Silence pyopencl's "Non-empty compiler output encountered" warning for the kernels that
+    pyopencl itself builds (array fill, reductions, scans). Some implementations (Intel's CPU
+    runtime) write progress chatter into every build log, so the warning would fire on every
+    fresh build while saying nothing; clrf's own builds report real diagnostics
+    (clrf/runtime/programs.py, buildlog.py)."""
+    import warnings
+    warnings.filterwarnings("ignore", category=cl.CompilerWarning)
+
+
 class Device:
     """An OpenCL device with its context, in-order queue and probed capabilities.
 
@@ -273,6 +283,7 @@ class Device:
                 raise DeviceError(str(e)) from None
         self.tuning = tuning   # how kernels run here (clrf/runtime/tuning.py); CLRF_* overrides applied
         self._programs = {}
+        quiet_library_builds()
         if verbose:
             print(f"clrf: device {self}", file=sys.stderr)
 
