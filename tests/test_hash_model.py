@@ -442,3 +442,28 @@ def test_bonsai_contracted_through_the_cli(data_dir, tmp_path):
     assert len(losses) >= 2 and losses[-1] < losses[0], losses
     assert cli(["eval", "--ckpt", str(out), "--max-views", "1"]) == 0
     assert np.isfinite(json.loads((out / "eval_cli.json").read_text())["psnr"])
+
+
+def test_batch_adapts_to_live_samples(device):
+    """hash.batch_samples: the first step takes batch_samples / samples rays (every bin live),
+    the next ones batch_samples over the live samples per ray of the last step; the count
+    survives a checkpoint; batch_samples 0 keeps batch_rays."""
+    from clrf.hash.model import BATCH_RAYS_RANGE
+    cfg = dataclasses.replace(SMALL, batch_samples=12 * 1024, occ_warmup=10 ** 6)
+    model = HashModel(device, cfg, near=1.5, far=4.5, bbox=BOX)
+    assert model.batch_size == 1024
+    o, d = _rays(model.batch_size, seed=7)
+    rng = np.random.default_rng(7)
+    model.occ.ema.set(np.where(rng.random(cfg.occ_res ** 3) < 0.3, 1.0, 0.0).astype(np.float32))
+    model.occ._threshold(0.5)
+    _, live = model.loss_and_grad(0, _up(device, o), _up(device, d),
+                                  _up(device, rng.uniform(0, 1, (len(o), 3))))
+    per_ray = live / len(o)
+    assert 0 < per_ray < 6
+    want = min(BATCH_RAYS_RANGE[1], round(cfg.batch_samples / per_ray / 256) * 256)
+    assert model.batch_size == want > 1024
+    again = HashModel.from_state_dict(device, model.state_dict())
+    assert again.batch_size == want
+    fixed = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX)
+    fixed.loss_and_grad(0, _up(device, o), _up(device, d), _up(device, np.ones((len(o), 3))))
+    assert fixed.batch_size == SMALL.batch_rays

@@ -51,6 +51,7 @@ from .march import (STATE, Contraction, contract_points, finish_state, march, pa
 from .occupancy import OccupancyGrid
 
 MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
+BATCH_RAYS_RANGE = (256, 1 << 16)   # rays per step when config.batch_samples adapts them
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
@@ -115,6 +116,8 @@ class HashModel:
         self.background = tuple(float(b) for b in bg)
         self.seed = int(seed)
         self.step = 0
+        self.batch_rays = c.batch_rays   # rays of the next step (adapted: config.batch_samples)
+        self._adapt_batch(1, c.samples)  # adapted: as if every bin were live
         # unbounded scenes: the encoding and the occupancy grid cover the contracted space
         self.contraction = Contraction(box) if c.contract == "on" else None
         space = Contraction.BOX if self.contraction else box
@@ -225,11 +228,22 @@ class HashModel:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         g = packed_backward(dev, pk, sigma, rgb, self.background, target, scale)
         loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
+        self._adapt_batch(B, pk.m)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
         dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
         self.enc.backward(pk.xyz, dx)
         return loss, pk.m
+
+    def _adapt_batch(self, rays: int, live: int):
+        """Rays of the next step: batch_samples over this step's live samples per ray, within
+        BATCH_RAYS_RANGE, in multiples of 256 (no change when batch_samples is 0)."""
+        target = self.config.batch_samples
+        if target <= 0:
+            return
+        per_ray = max(live / max(rays, 1), 1.0)
+        lo, hi = BATCH_RAYS_RANGE
+        self.batch_rays = int(min(hi, max(lo, round(target / per_ray / 256) * 256)))
 
     # ---- occupancy ----------------------------------------------------------------------
     def occupancy_threshold(self) -> float:
@@ -290,7 +304,8 @@ class HashModel:
     # ---- trainer interface (clrf.training.trainer) --------------------------------------------------
     @property
     def batch_size(self) -> int:
-        return self.config.batch_rays
+        """Rays of the next training step (adapts when config.batch_samples > 0)."""
+        return self.batch_rays
 
     def on_iteration(self, it, trainer):
         return None
@@ -307,7 +322,7 @@ class HashModel:
         """numpy arrays + python scalars: tables, MLP, Adam moments, occupancy, step, config."""
         return {"kind": self.kind, "config": asdict(self.config), "near": self.near,
                 "far": self.far, "bbox": self.bbox.tolist(), "background": list(self.background),
-                "seed": self.seed, "step": self.step,
+                "seed": self.seed, "step": self.step, "batch_rays": self.batch_rays,
                 "table": self.enc.table.get(), "table_adam_m": self._adam_table.state.get(),
                 "table_adam_v": self._adam_table.state2.get(),
                 "mlp_params": self.net.params.get(), "mlp_adam_m": self._adam_net.state.get(),
@@ -321,6 +336,7 @@ class HashModel:
         model = cls(device, HashConfig.from_dict(dict(state["config"])), state["near"],
                     state["far"], state["bbox"], tuple(state["background"]), int(state["seed"]))
         model.step = int(state["step"])
+        model.batch_rays = int(state.get("batch_rays", model.config.batch_rays))
         for key, arr in (("table", model.enc.table), ("table_adam_m", model._adam_table.state),
                          ("table_adam_v", model._adam_table.state2),
                          ("mlp_params", model.net.params), ("mlp_adam_m", model._adam_net.state),

@@ -170,12 +170,18 @@ def hash_stage(hc, n_rays: int) -> StageEstimate:
     tables = 4 * table
     W, WC, din = hc.width, hc.color_width, pad(hc.levels * hc.features)
     nslot = din + W + 16 + hc.geo_features + 16 + hc.color_depth * WC + 16
-    samples = hc.batch_rays * hc.samples
+    # an adapted batch (hash.batch_samples) aims at batch_samples live samples; twice that
+    # covers a step whose rays hold more than the last step's
+    samples = 2 * hc.batch_samples if hc.batch_samples else hc.batch_rays * hc.samples
     act = 2 * 4 * pad(samples) * nslot
     per_sample = 4 * samples * (2 * (din + 16) + 20)
     occ = 5 * hc.occ_res ** 3
-    total = tables + act + per_sample + occ + ray_store_bytes(n_rays, hc.batch_rays)
-    return StageEstimate(f"hash training ({hc.batch_rays} rays x {hc.samples} samples, "
+    from ..hash.model import BATCH_RAYS_RANGE
+    rays = BATCH_RAYS_RANGE[1] if hc.batch_samples else hc.batch_rays
+    total = tables + act + per_sample + occ + ray_store_bytes(n_rays, rays)
+    what = (f"{hc.batch_samples} live samples" if hc.batch_samples else
+            f"{hc.batch_rays} rays x {hc.samples} samples")
+    return StageEstimate(f"hash training ({what}, "
                          f"T 2^{hc.log2_table})", total, max(table, 4 * pad(samples) * nslot),
                          "hash table or MLP activations")
 
@@ -194,7 +200,8 @@ GRID_FIX = ("lower grid.reso (e.g. --set 'grid.reso=[[128,128,128]]' --set "
             "train.downscale / train.max_train_images")
 NERF_FIX = ("lower nerf.batch_rays, nerf.n_coarse / nerf.n_fine or nerf.width, or load fewer "
             "rays with train.downscale / train.max_train_images")
-HASH_FIX = ("lower hash.log2_table, hash.batch_rays or hash.samples, or load fewer rays with "
+HASH_FIX = ("lower hash.log2_table, hash.batch_samples (or hash.batch_rays) or hash.samples, or "
+            "load fewer rays with "
             "train.downscale / train.max_train_images")
 
 

@@ -322,6 +322,7 @@ class Trainer:
         msg = self.model.on_iteration(self.iteration, self)
         if msg:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
+        loop.batch = self.model.batch_size     # the hash model adapts it step by step
         bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, loop.batch)
         loss = self.model.train_step(self.iteration, bo, bd, bc)
         dt = time.perf_counter() - t0
