@@ -1,6 +1,6 @@
 """Hash-grid model cases (cl/hash.cl, cl/hash_occ.cl, clrf/hash/): tiny tables, levels finer
 than any image, saturated densities, rays that leave every occupied cell, an empty occupancy
-grid, 1e-8 gradients in fp32 tables. Outputs and losses must stay finite; where a float64 twin
+grid, 1e-8 gradients in fp32 tables, contracted rays a million box sizes long. Outputs and losses must stay finite; where a float64 twin
 exists the kernels are held to it."""
 from __future__ import annotations
 
@@ -143,3 +143,39 @@ def hash_empty_occupancy(run):
     out = model.render(o, d)
     run.compare("rgb == background", out["rgb"], np.tile(BG, (24, 1)), EXACT)
     _step(run, model, o, d, np.full((24, 3), 0.5), "step")
+
+
+def hash_contracted_long_rays(run):
+    """Unbounded scenes: rays from inside the box (axis-parallel ones included) out to 1e6 box
+    half-sizes, bins even in log t from 1e-4: the encoding's points stay inside [-2, 2]^3
+    against the float64 contraction, each bin's segment is its length (they tile
+    [near, far]), and the render and a training step stay finite."""
+    from clrf.hash.march import Contraction, march
+    from clrf.testing import reference_hash as rh
+    model = _model(run, contract="on")
+    model.near, model.far = 1e-4, 1e6
+    n = run.size(16, 128)
+    o = run.rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32)
+    d = run.rng.normal(size=(n, 3)).astype(np.float32)
+    d[:3] = np.eye(3, dtype=np.float32)                  # axis-parallel
+    S = model.config.samples
+    pk = march(run.device, model.occ, _up(run, o), _up(run, d), S, model.near, model.far,
+               contract=model.contraction)
+    xyz = pk.xyz.get()
+    run.compare("every bin live (grid fresh)", np.array([pk.m]), np.array([n * S]), EXACT)
+    run.finite("contracted points finite", xyz, pk.dt.get())
+    run.compare("points inside [-2, 2]^3", np.array([np.abs(xyz).max() < 2.0]),
+                np.array([True]), EXACT)
+    _, t, dt, want, _ = rh.march_samples(o, d, S, model.near, model.far,
+                                         np.ones(model.occ.n_cells, np.uint8),
+                                         Contraction.BOX[0], np.full(3, 0.25),
+                                         model.config.occ_res, centre=np.zeros(3),
+                                         half=np.ones(3))
+    run.compare("contracted points vs float64", xyz, want, tol("HASH_CONTRACT_RTOL"),
+                scale=float(np.abs(want).max()))
+    run.compare("segments tile [near, far]", np.array([pk.dt.get()[:S].sum(dtype=np.float64)]),
+                np.array([model.far - model.near]), tol("HASH_CONTRACT_RTOL"),
+                scale=model.far)
+    out = model.render(o, d)
+    run.finite("render finite", out["rgb"], out["acc"], out["depth"])
+    _step(run, model, o, d, np.full((n, 3), 0.5), "step")

@@ -15,8 +15,8 @@ from .cases_train import (batch_extremes, beta_prior, flat_grid_upsample, opt_ep
                           opt_huge_grad, opt_long_sparse, opt_tiny_grad, opt_zero_grad,
                           prune_to_nothing, reduce_case, resample_huge, single_voxel_upsample,
                           sparsity, tv_flat, tv_huge_values, tv_missing_neighbours, tv_step_edge)
-from .cases_hash import (hash_density_saturation, hash_empty_occupancy,
-                         hash_levels_finer_than_images, hash_rays_leave_occupied_cells,
+from .cases_hash import (hash_contracted_long_rays, hash_density_saturation,
+                         hash_empty_occupancy, hash_levels_finer_than_images, hash_rays_leave_occupied_cells,
                          hash_tiny_table_gradients, hash_tiny_tables)
 from .cases_nerf import (nerf_composite_stiff, nerf_encode_large, nerf_importance_degenerate,
                          nerf_mlp_saturated, nerf_near_equals_far)
@@ -89,7 +89,8 @@ def _cases() -> list[Case]:
                 FINITE),
            Case("hash rays leaving every occupied cell", "hash", hash_rays_leave_occupied_cells,
                 EXACT),
-           Case("hash empty occupancy grid", "hash", hash_empty_occupancy, EXACT)]
+           Case("hash empty occupancy grid", "hash", hash_empty_occupancy, EXACT),
+           Case("hash contracted rays 1e6 long", "hash", hash_contracted_long_rays)]
     cs += [Case("beta prior at T = 0, 1 - 1e-7, 1", "regulariser", beta_prior, GRAD),
            Case("sparsity sigma 0..+-3e38", "regulariser", sparsity, GRAD),
            Case("prune to nothing", "structure", prune_to_nothing, EXACT),
