@@ -40,7 +40,6 @@ import numpy as np
 import pyopencl.array as cla
 
 from .config import HashConfig
-from ..nerf import ops
 from ..nerf.mlp import MLP, MLPSpec
 from ..nerf.model import _key
 from ..runtime.optim import Optimizer
@@ -270,7 +269,7 @@ class HashModel:
         o, d = check_rays(origins, dirs)
         if np.any(np.max(np.abs(d), axis=1) == 0):
             raise ValueError("dirs: every direction must be non-zero")
-        c, dev, q = self.config, self.device, self.device.queue
+        c, q = self.config, self.device.queue
         n = o.shape[0]
         step = max(1, min(int(chunk), MAX_RENDER_SAMPLES // c.samples))
         out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),

@@ -15,7 +15,6 @@ system file is touched; ``unregister`` undoes it.
 """
 from __future__ import annotations
 
-import os
 import sys
 import sysconfig
 from pathlib import Path
