@@ -373,7 +373,12 @@ def test_ray_range_cuts_far_to_the_box():
     near, far = ray_range(ds)
     assert near == 0.1 and abs(far - np.linalg.norm([1, 1, 5])) < 1e-9
     assert ray_range(SimpleNamespace(**{**vars(ds), "far": 3.0})) == (0.1, 3.0)
-    assert ray_range(SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0})) == (0.1, 1.0)
+    # NDC: the sampler walks unit directions; these NDC rays have |d| = 2 (identity poses)
+    ndc = SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0, "hw": (8, 10),
+                             "intrinsics": (10.0, 10.0, 5.0, 4.0), "distortion": None})
+    ndc.poses = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
+    near, far = ray_range(ndc)
+    assert near == 0.1 and abs(far - 2.0 * 1.005) < 1e-6
     with pytest.raises(ValueError, match="near"):
         ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))
 
@@ -467,3 +472,20 @@ def test_batch_adapts_to_live_samples(device):
     fixed = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX)
     fixed.loss_and_grad(0, _up(device, o), _up(device, d), _up(device, np.ones((len(o), 3))))
     assert fixed.batch_size == SMALL.batch_rays
+
+
+def test_ndc_rays_reach_infinity(data_dir):
+    """fern (NDC): every training ray, walked along its unit direction to the models' far,
+    reaches z' = 1 (infinity); with the dataset's far (1) it stopped near z' = 0, so the NeRF
+    and hash models never sampled the far half of NDC space."""
+    from clrf.data import load_dataset
+    from clrf.data.cameras import ndc_reach, view_rays
+    ds = load_dataset(data_dir / "fern")
+    far = ndc_reach(ds)
+    o, d = view_rays(ds, ds.poses, 2)
+    u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    z_end = o[:, 2] + far * u[:, 2]
+    # rays with a shorter |d| run past z' = 1: those bins leave the box and are dropped (on
+    # fern |d| spans 2.00-2.14, so up to ~7 % of a ray's bins)
+    assert z_end.min() >= 1.0 and z_end.max() < 1.2, (z_end.min(), z_end.max())
+    assert (o[:, 2] + ds.far * u[:, 2]).max() < 0.1      # the old far: half the depth range

@@ -213,6 +213,24 @@ def spiral_poses(poses, n: int = 120, focus_depth: float = 5.0, rots: float = 2.
     return look_at(eye, target, up=c2w[:3, 1])
 
 
+NDC_REACH_RAYS = 1 << 20   # rays looked at by ndc_reach (whole views, downscaled to fit)
+
+
+def ndc_reach(ds) -> float:
+    """How far along a UNIT direction an NDC ray of dataset ``ds`` runs while its parameter
+    goes over [ds.near, ds.far] (0 to 1: near plane to infinity): ds.far times the largest
+    |d| of its rays (about 2; every view's, at most NDC_REACH_RAYS of them, plus 0.5 %, since
+    the views are downscaled to fit). The ray samplers of the NeRF and hash models step along
+    unit directions, so this is their far; a sample past z = 1 leaves the box and is dropped.
+    Non-NDC datasets: ds.far."""
+    if not ds.ndc or not len(ds.poses):
+        return float(ds.far)
+    H, W = ds.hw
+    f = max(1, int(np.ceil(np.sqrt(len(ds.poses) * H * W / NDC_REACH_RAYS))))
+    _, d = view_rays(ds, ds.poses, f)
+    return float(ds.far) * float(np.linalg.norm(d.astype(np.float64), axis=1).max()) * 1.005
+
+
 def view_rays(ds, poses, downscale=1):
     """Rays of whole views: numpy origins, dirs [len(poses)*h*w, 3] (NDC when the scene uses it).
 

@@ -47,7 +47,8 @@ class NerfFactory:
     @staticmethod
     def create(device, cfg, ds, background):
         from ..nerf import NerfModel
-        return NerfModel(device, cfg.nerf, ds.near, ds.far, background, cfg.train.seed)
+        from ..data.cameras import ndc_reach    # NDC rays: far along unit directions
+        return NerfModel(device, cfg.nerf, ds.near, ndc_reach(ds), background, cfg.train.seed)
 
     @staticmethod
     def from_state(device, state, cfg):
