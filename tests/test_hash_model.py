@@ -489,3 +489,13 @@ def test_ndc_rays_reach_infinity(data_dir):
     # fern |d| spans 2.00-2.14, so up to ~7 % of a ray's bins)
     assert z_end.min() >= 1.0 and z_end.max() < 1.2, (z_end.min(), z_end.max())
     assert (o[:, 2] + ds.far * u[:, 2]).max() < 0.1      # the old far: half the depth range
+
+
+def test_older_checkpoint_config_keeps_how_it_trained():
+    """A checkpoint's hash config from before batch_samples and contract existed resumes with
+    a fixed batch and no contraction, not today's adaptive / auto defaults."""
+    old = dataclasses.asdict(HashConfig.from_preset("tiny"))
+    del old["batch_samples"], old["contract"]
+    c = HashConfig.from_dict(old)
+    assert c.batch_samples == 0 and c.contract == "off"
+    assert HashConfig.from_dict(dataclasses.asdict(HashConfig())).batch_samples == 262144

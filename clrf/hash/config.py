@@ -68,12 +68,14 @@ class HashConfig:
 
     @staticmethod
     def from_dict(d: dict) -> "HashConfig":
-        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error."""
+        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error.
+        Fields newer than the checkpoint take the value that reproduces how it was trained
+        (OLDER_DEFAULTS), not today's default."""
         names = {f.name for f in dataclasses.fields(HashConfig)}
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"HashConfig: unknown fields {sorted(unknown)}")
-        return HashConfig(**d)
+        return HashConfig(**{**OLDER_DEFAULTS, **d})
 
     def checks(self):
         """(ok, field, message) for Config.validate: the ranges the kernels accept."""
@@ -129,3 +131,8 @@ HASH_PRESETS = {
              "occ_points": 32768, "occ_warmup": 32, "occ_every": 8, "batch_rays": 1024,
              "batch_samples": 0, "lr_decay_steps": 3000},
 }
+
+
+# Checkpoints written before a field existed were trained as these values say: a fixed batch
+# of batch_rays rays, the box only.
+OLDER_DEFAULTS = {"batch_samples": 0, "contract": "off"}
