@@ -377,7 +377,9 @@ def test_ray_range_cuts_far_to_the_box():
     ndc = SimpleNamespace(**{**vars(ds), "ndc": True, "far": 1.0, "hw": (8, 10),
                              "intrinsics": (10.0, 10.0, 5.0, 4.0), "distortion": None})
     ndc.poses = np.tile(np.eye(4, dtype=np.float32), (2, 1, 1))
-    near, far = ray_range(ndc)
+    from clrf.data.cameras import ndc_reach
+    assert ray_range(ndc) == (0.1, 1.0)
+    near, far = ray_range(ndc, ndc_far=ndc_reach(ndc))
     assert near == 0.1 and abs(far - 2.0 * 1.005) < 1e-6
     with pytest.raises(ValueError, match="near"):
         ray_range(SimpleNamespace(**{**vars(ds), "near": 50.0}))

@@ -138,8 +138,15 @@ def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     assert (out / "ckpt.npz").exists(), p.stderr.read1().decode() if p.poll() else "no ckpt"
     time.sleep(1.0)
     p.send_signal(signal.SIGINT)
-    rc = p.wait(timeout=60)
-    err = p.stderr.read().decode()
+    try:   # read both pipes while waiting: a child blocked on a full pipe never exits
+        _, err = p.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        _, err = p.communicate()
+        pytest.fail("clrf train did not exit 60 s after Ctrl-C; its stderr:\n"
+                    + err.decode()[-4000:])
+    err = err.decode()
+    rc = p.returncode
     assert rc == 130, err
     assert "checkpoint kept" in err
     st = checkpoint.load(out)

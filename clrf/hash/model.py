@@ -70,11 +70,12 @@ def resolve_contract(config: HashConfig, ds) -> HashConfig:
     return dataclasses.replace(config, contract="on" if on else "off")
 
 
-def ray_range(ds, contract: bool = False) -> tuple:
+def ray_range(ds, contract: bool = False, ndc_far: float | None = None) -> tuple:
     """(near, far) of the hash model's bins for a dataset: the dataset's, with far cut to the
     farthest box corner seen from any camera (nothing is sampled outside the box, and
-    unbounded scenes say far = 1e10). NDC scenes: their far along unit directions
-    (clrf.data.cameras.ndc_reach: the sampler normalises the NDC rays, whose |d| is ~2).
+    unbounded scenes say far = 1e10). NDC scenes: ``ndc_far``, their far along unit
+    directions (clrf.data.cameras.ndc_reach: the sampler normalises the NDC rays, whose |d| is
+    ~2), else the dataset's.
     ``contract``: far reaches CONTRACT_FAR box half-sizes past the farthest camera, and near
     is at least a thousandth of a half-size (the bins are even in log t)."""
     near, far = float(ds.near), float(ds.far)
@@ -85,8 +86,7 @@ def ray_range(ds, contract: bool = False) -> tuple:
         reach = np.linalg.norm(cams - box.mean(axis=0), axis=1).max()
         return max(near, 1e-3 * half), float(reach + CONTRACT_FAR * half)
     if ds.ndc:
-        from ..data.cameras import ndc_reach
-        far = ndc_reach(ds)
+        far = far if ndc_far is None else float(ndc_far)
     elif len(ds.poses):
         corners = np.array([[box[i >> a & 1, a] for a in range(3)] for i in range(8)])
         cams = np.asarray(ds.poses, np.float64)[:, :3, 3]
