@@ -131,7 +131,11 @@ def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cmd = [sys.executable, "-m", "clrf.cli", "train", "--out", str(out), "--max-seconds", "120",
            "--set", "train.checkpoint_every=0.5", *FAST]
-    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # SIGINT at its default in the child, whatever this process inherited: a shell starting
+    # a job in the background (`cmd &`) ignores SIGINT for it, and Python then never turns
+    # Ctrl-C into KeyboardInterrupt (a CI run launched that way trained on past the signal)
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     t0 = time.time()
     while not (out / "ckpt.npz").exists() and time.time() - t0 < 60:
         time.sleep(0.2)
