@@ -104,7 +104,7 @@ def test_march_contracted_matches_reference(device):
                       + tol.HASH_CONTRACT_ATOL), err.max()
         np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
     # the bins tile [near, far] exactly
-    t_all, dt_all = rh.bins(1, S, near, far, log=True)
+    _, dt_all = rh.bins(1, S, near, far, log=True)
     assert abs(dt_all.sum() - (far - near)) < 1e-9 * far
     pts = np.random.default_rng(6).normal(0, 3, (50, 3))
     got = contract_points(device, con, _up(device, pts)).get()

@@ -56,7 +56,6 @@ def hash_tiny_table_gradients(run):
     with eps 1e-15 moves an fp32 table entry by ~lr from a 1e-8 gradient (float64 twin)."""
     _encoding_vs_reference(run, 4, 8, 4, 64, genc_scale=1e-8, label="|g| 1e-8")
     from clrf.runtime.optim import Optimizer
-    q = run.device.queue
     n = 64
     p = run.rng.uniform(-1e-4, 1e-4, n)
     g = run.rng.choice([-1.0, 1.0], n) * 10.0 ** run.rng.uniform(-9, -7, n)
