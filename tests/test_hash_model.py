@@ -497,7 +497,55 @@ def test_older_checkpoint_config_keeps_how_it_trained():
     """A checkpoint's hash config from before batch_samples and contract existed resumes with
     a fixed batch and no contraction, not today's adaptive / auto defaults."""
     old = dataclasses.asdict(HashConfig.from_preset("tiny"))
-    del old["batch_samples"], old["contract"]
+    del old["batch_samples"], old["contract"], old["lr_schedule"]
     c = HashConfig.from_dict(old)
-    assert c.batch_samples == 0 and c.contract == "off"
+    assert c.batch_samples == 0 and c.contract == "off" and c.lr_schedule == "steps"
     assert HashConfig.from_dict(dataclasses.asdict(HashConfig())).batch_samples == 262144
+
+
+def test_budget_learning_rate_follows_the_run(device):
+    """lr_schedule "budget": the full lr until lr_hold of the budget (seconds or iterations,
+    whichever is further along) is spent, then exponentially down to lr * lr_final at its
+    end; "steps" keeps the fall over lr_decay_steps; a bad schedule name is refused."""
+    from types import SimpleNamespace
+
+    from clrf.hash.model import budget_lr
+    from clrf.training.config import TrainConfig
+    assert budget_lr(1e-2, 0.03, 0.5, 0.0) == budget_lr(1e-2, 0.03, 0.5, 0.5) == 1e-2
+    assert budget_lr(1e-2, 0.03, 0.5, 0.75) == pytest.approx(1e-2 * 0.03 ** 0.5, rel=1e-12)
+    assert budget_lr(1e-2, 0.03, 0.5, 1.0) == pytest.approx(3e-4, rel=1e-12)
+    assert budget_lr(1e-2, 0.03, 0.5, 2.0) == pytest.approx(3e-4, rel=1e-12)
+    model = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX)
+    assert SMALL.lr_schedule == "budget" and model.lr_at(0) == SMALL.lr   # outside a trainer
+    train = TrainConfig(max_seconds=100.0, max_iters=1000)
+    for seconds, it, progress in ((10.0, 100, 0.1), (80.0, 100, 0.8), (10.0, 900, 0.9),
+                                  (150.0, 0, 1.0)):
+        model.on_iteration(it, SimpleNamespace(cfg=SimpleNamespace(train=train),
+                                               seconds=seconds))
+        assert model.progress == pytest.approx(progress)
+        assert model.lr_at(it) == pytest.approx(
+            budget_lr(SMALL.lr, SMALL.lr_final, SMALL.lr_hold, progress))
+    steps = HashModel(device, dataclasses.replace(SMALL, lr_schedule="steps",
+                                                  lr_decay_steps=100), near=1.5, far=4.5,
+                      bbox=BOX)
+    steps.progress = 1.0
+    assert steps.lr_at(100) == pytest.approx(SMALL.lr * 0.1)
+    with pytest.raises(ConfigError, match="hash.lr_schedule"):
+        build_config(overrides={"hash": {"lr_schedule": "cosine"}})
+    with pytest.raises(ConfigError, match="hash.lr_hold"):
+        build_config(overrides={"hash": {"lr_hold": 1.0}})
+
+
+def test_per_step_arrays_come_from_the_device_pool(device):
+    """The packed samples, encodings and MLP outputs of a step are pool allocations (their
+    buffers reused from step to step, not fresh heap blocks of a new size each step), and a
+    render hands what the pool holds back."""
+    model = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX)
+    o, d = _rays(64, seed=3)
+    model.train_step(0, _up(device, o), _up(device, d), _up(device, np.ones((64, 3))))
+    assert device.pool.held_blocks > 0          # a step's buffers, freed back into the pool
+    blocks = device.pool.held_blocks + device.pool.active_blocks
+    model.train_step(1, _up(device, o), _up(device, d), _up(device, np.ones((64, 3))))
+    assert device.pool.held_blocks + device.pool.active_blocks == blocks   # reused, not grown
+    model.render(o, d)
+    assert device.pool.held_blocks == 0

@@ -44,7 +44,13 @@ class HashConfig:
     #                                 (far - near) / samples stays below this optical depth
     occ_warmup: int = 256           # no occupancy updates (all cells occupied) before this step
     lr: float = 1e-2                # Adam learning rate at step 0 (published: 1e-2)
-    lr_decay_steps: int = 20000     # lr = lr * 0.1^(step / lr_decay_steps)
+    lr_decay_steps: int = 20000     # lr_schedule "steps": lr = lr * 0.1^(step / lr_decay_steps)
+    lr_schedule: str = "budget"     # "budget": lr until lr_hold of the run's budget (the larger
+    #                                 of its seconds and iterations fractions) is spent, then an
+    #                                 exponential fall to lr * lr_final at its end (a run of any
+    #                                 length ends annealed); "steps": the fall over lr_decay_steps
+    lr_hold: float = 0.5            # fraction of the budget trained at the full lr ("budget")
+    lr_final: float = 0.03          # lr at the end of the budget over lr ("budget")
     beta1: float = 0.9              # Adam beta1 (published: 0.9)
     beta2: float = 0.99             # Adam beta2 (published: 0.99)
     adam_eps: float = 1e-15         # Adam epsilon (published: 1e-15; table entries that see
@@ -108,6 +114,10 @@ class HashConfig:
             (self.occ_warmup >= 0, "hash.occ_warmup", "must be >= 0"),
             (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
+            (self.lr_schedule in ("budget", "steps"), "hash.lr_schedule",
+             "must be 'budget' or 'steps'"),
+            (0 <= self.lr_hold < 1, "hash.lr_hold", "must be in [0, 1)"),
+            (0 < self.lr_final <= 1, "hash.lr_final", "must be in (0, 1]"),
             (0 <= self.beta1 < 1 and 0 <= self.beta2 < 1, "hash.beta1",
              "Adam's beta1 and beta2 must be in [0, 1)"),
             (0 < self.adam_eps <= 1, "hash.adam_eps", "must be in (0, 1]"),
@@ -134,5 +144,5 @@ HASH_PRESETS = {
 
 
 # Checkpoints written before a field existed were trained as these values say: a fixed batch
-# of batch_rays rays, the box only.
-OLDER_DEFAULTS = {"batch_samples": 0, "contract": "off"}
+# of batch_rays rays, the box only, a learning rate that fell over lr_decay_steps.
+OLDER_DEFAULTS = {"batch_samples": 0, "contract": "off", "lr_schedule": "steps"}

@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, upload
+from ..runtime.programs import launch, scratch, upload
 
 INIT_SCALE = 1e-4   # tables start uniform in +-INIT_SCALE (the published initialisation)
 SH_DIM = 16         # hash_sh_encode: degree 3 (4 bands), 16 coefficients
@@ -89,7 +89,7 @@ class HashEncoding:
     def forward(self, x, out=None):
         """enc [n, L F] of points x [n, 3] (device float32)."""
         n = int(x.shape[0])
-        out = out if out is not None else cla.empty(self.device.queue, (n, self.dim), np.float32)
+        out = out if out is not None else scratch(self.device, (n, self.dim))
         launch(self.device, self.program.kernel("hash_forward"), n * self.levels,
                (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, self.table.data,
                 out.data), self.device.tuning.elementwise_local_size)
@@ -113,7 +113,7 @@ class HashEncoding:
     def sh_encode(self, d, out=None):
         """SH basis (16) of the unit directions of d [n, 3] -> [n, 16]."""
         n = int(d.shape[0])
-        out = out if out is not None else cla.empty(self.device.queue, (n, SH_DIM), np.float32)
+        out = out if out is not None else scratch(self.device, (n, SH_DIM))
         launch(self.device, self.program.kernel("hash_sh_encode"), n, (np.int32(n), d.data,
                out.data), self.device.tuning.elementwise_local_size)
         return out

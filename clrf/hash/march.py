@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, upload
+from ..runtime.programs import launch, scratch, upload
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
 
@@ -56,7 +56,7 @@ def program(device, contract: bool = False):
 def contract_points(device, contraction: Contraction, xyz):
     """The encoding's points [m, 3] (device) of world points xyz [m, 3] (device)."""
     m = int(xyz.shape[0])
-    out = cla.empty(device.queue, (max(m, 1), 3), np.float32)
+    out = scratch(device, (max(m, 1), 3))
     if m:
         launch(device, program(device, True).kernel("contract_points"), m,
                (np.int32(m), contraction.centre4, contraction.inv_half4, xyz.data, out.data),
@@ -75,7 +75,7 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     k1 = S if k1 is None else int(k1)
     dev, q = device, device.queue
     prg = program(device, contract is not None)
-    counts = cla.empty(q, max(n, 1), np.int32)
+    counts = scratch(dev, max(n, 1), np.int32)
     zero4 = cl.cltypes.make_float4(0, 0, 0, 0)
     args = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
             np.float32(far), np.int32(bool(jitter)), np.uint32(key), origins.data, dirs.data,
@@ -88,10 +88,10 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
         np.cumsum(counts.get()[:n], out=off[1:])
     m = int(off[-1])
     offsets = upload(q, off.astype(np.int32))
-    t = cla.empty(q, max(m, 1), np.float32)
-    dt = cla.empty(q, max(m, 1), np.float32)
-    xyz = cla.empty(q, (max(m, 1), 3), np.float32)
-    vdir = cla.empty(q, (max(m, 1), 3), np.float32)
+    t = scratch(dev, max(m, 1))
+    dt = scratch(dev, max(m, 1))
+    xyz = scratch(dev, (max(m, 1), 3))
+    vdir = scratch(dev, (max(m, 1), 3))
     if m:
         launch(dev, prg.kernel("march_compact"), n,
                args + (offsets.data, t.data, dt.data, xyz.data, vdir.data),
@@ -127,8 +127,8 @@ def packed_backward(device, pk: Packed, sigma, rgb, background, target,
     loss_scale * sum |rgb_ray - target|^2 (target [n, 3] device)."""
     q = device.queue
     m = max(pk.m, 1)
-    out = {"sigma": cla.empty(q, m, np.float32), "rgb": cla.empty(q, (m, 3), np.float32),
-           "sq_err": cla.empty(q, max(pk.n, 1), np.float32)}
+    out = {"sigma": scratch(device, m), "rgb": scratch(device, (m, 3)),
+           "sq_err": scratch(device, max(pk.n, 1))}
     launch(device, program(device).kernel("packed_backward"), pk.n,
            (np.int32(pk.n), pk.offsets.data, pk.t.data, pk.dt.data, sigma.data, rgb.data,
             _bg4(background), target.data, np.float32(loss_scale), out["sq_err"].data,

@@ -57,6 +57,13 @@ RENDER_WINDOW = 32             # bins marched per round of a render (then finish
 CONTRACT_FAR = 1000.0   # contracted scenes: samples out to this many box half-sizes
 
 
+def budget_lr(lr: float, final: float, hold: float, progress: float) -> float:
+    """lr while ``progress`` (the spent fraction of a run's budget, in [0, 1]) is below
+    ``hold``, then falling exponentially to lr * final at progress 1."""
+    x = min(1.0, max(0.0, (progress - hold) / (1.0 - hold)))
+    return lr * final ** x
+
+
 def resolve_contract(config: HashConfig, ds) -> HashConfig:
     """config with ``contract`` "auto" decided for dataset ``ds``: on for unbounded 360 captures
     (scene preset real360), off otherwise (NDC scenes never: their space is already bounded)."""
@@ -119,6 +126,7 @@ class HashModel:
         self.background = tuple(float(b) for b in bg)
         self.seed = int(seed)
         self.step = 0
+        self.progress = 0.0   # spent fraction of the budget (on_iteration; lr_schedule "budget")
         self.batch_rays = c.batch_rays   # rays of the next step (adapted: config.batch_samples)
         self._adapt_batch(1, c.samples)  # adapted: as if every bin were live
         # unbounded scenes: the encoding and the occupancy grid cover the contracted space
@@ -188,7 +196,12 @@ class HashModel:
         return sigma
 
     def lr_at(self, it: int) -> float:
-        return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
+        """Adam's learning rate at step ``it``: with lr_schedule "budget", of self.progress (the
+        spent fraction of the run's budget, set by on_iteration; 0 outside a trainer)."""
+        c = self.config
+        if c.lr_schedule == "steps":
+            return c.lr * 0.1 ** (it / c.lr_decay_steps)
+        return budget_lr(c.lr, c.lr_final, c.lr_hold, self.progress)
 
     def train_step(self, it: int, origins, dirs, target) -> float:
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
@@ -284,6 +297,9 @@ class HashModel:
             st = self._render_chunk(od, dd)
             for k, v in finish_state(st, self.background).items():
                 out[k][s:e] = v
+        pool = getattr(self.device, "pool", None)
+        if pool is not None:   # a render's chunks are larger than a step's: not kept
+            pool.free_held()
         return out
 
     def _render_chunk(self, od, dd):
@@ -311,6 +327,10 @@ class HashModel:
         return self.batch_rays
 
     def on_iteration(self, it, trainer):
+        """The budget spent before step ``it``: the larger of the trainer's seconds and
+        iterations over its limits (the learning rate's clock under lr_schedule "budget")."""
+        t = trainer.cfg.train
+        self.progress = min(1.0, max(trainer.seconds / t.max_seconds, it / t.max_iters))
         return None
 
     def describe(self) -> str:

@@ -20,7 +20,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from .tiling import MLPTiling, mlp_tiling_for
-from ..runtime.programs import launch, upload
+from ..runtime.programs import launch, scratch, upload
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3, "trunc_exp": 4}
 SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation
@@ -224,8 +224,8 @@ class MLP:
         n = int(x_enc.shape[0])
         q = self.device.queue
         self._ensure_scratch(n)
-        sigma = sigma if sigma is not None else cla.empty(q, n, np.float32)
-        rgb = rgb if rgb is not None else cla.empty(q, (n, 3), np.float32)
+        sigma = sigma if sigma is not None else scratch(self.device, n)
+        rgb = rgb if rgb is not None else scratch(self.device, (n, 3))
         self._n = n
         launch(self.device, self._k["mlp_forward"], self.n_rows(n) // self.layout.rows,
                (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
@@ -241,8 +241,8 @@ class MLP:
         grad = self.grad if grad is None else grad
         dx = dd = None
         if want_input:
-            dx = cla.empty(q, (n, self.spec.in_dim), np.float32)
-            dd = cla.empty(q, (n, self.spec.dir_dim), np.float32)
+            dx = scratch(self.device, (n, self.spec.in_dim))
+            dd = scratch(self.device, (n, self.spec.dir_dim))
         self._ensure_scratch(n, backward=True)
         dummy = self.A.data
         kb = self._k["mlp_backward"]

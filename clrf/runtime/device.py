@@ -26,6 +26,7 @@ import sys
 from dataclasses import dataclass, field
 
 import pyopencl as cl
+import pyopencl.tools as cl_tools
 
 from .device_probe import (INSTALL_HINT, Candidate, Probe, cache_path, choice_reason,
                            cpu_flags, probe, rank, slow_reasons, slow_warning, warn_once)
@@ -275,6 +276,14 @@ class Device:
         self.platform_index, self.device_index, self.cl_device = select_device(spec)
         self.context = cl.Context([self.cl_device])
         self.queue = cl.CommandQueue(self.context)
+        # Per-step arrays whose sizes change every step (packed samples, their encodings and
+        # gradients) come from this pool: freed buffers go back to size bins and are reused,
+        # instead of a fresh clCreateBuffer each step that a CPU runtime serves from the C heap,
+        # where buffers of ever-different sizes fragment it and resident memory creeps. Bins
+        # are powers of two and their halfway points (leading_bits_in_bin_id=1), so few sizes
+        # are held; free_held() returns what is held (HashModel.render does after a render).
+        self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue),
+                                        leading_bits_in_bin_id=1)
         self.caps = probe_capabilities(self.cl_device)
         if tuning is None:
             try:
