@@ -29,7 +29,7 @@ import pyopencl.array as cla
 from .msi import MSIBackground
 from ..runtime.optim import Optimizer, expon_lr
 from .render import ray_exit_device
-from ..runtime.programs import upload
+from ..runtime.programs import download, upload
 
 
 def msi_geometry(bbox):
@@ -106,8 +106,8 @@ class GridBackground:
     def state_dict(self):
         """The MSI's own fields (bg_*) and its optimiser states (opt_bg_density, opt_bg_color)."""
         d = self.msi.state_dict()
-        d.update(opt_bg_density=self.opt_density.state.get().reshape(self.msi.shape),
-                 opt_bg_color=self.opt_color.state.get().reshape(self.msi.shape + (3,)))
+        d.update(opt_bg_density=download(self.opt_density.state).reshape(self.msi.shape),
+                 opt_bg_color=download(self.opt_color.state).reshape(self.msi.shape + (3,)))
         return d
 
     @classmethod

@@ -26,7 +26,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..runtime.optim import Optimizer
-from ..runtime.programs import upload
+from ..runtime.programs import download, upload
 from . import bricks as B
 from .distributed import DistGrid
 from .grid import sh_dim
@@ -194,9 +194,10 @@ class DistGridModel(GridModel):
         return {
             "kind": "grid", "stage": self.stage, "sh_degree": g.sh_degree,
             "background": list(self.background), "bbox": g.bbox,
-            "links": g.links.get(), "density": g.density.get()[:n], "sh": g.sh.get()[:n],
-            "opt_density": self.opt_density.state.get()[:n],
-            "opt_sh": self.opt_sh.state.get()[:n],
+            "links": download(g.links), "density": download(g.density)[:n],
+            "sh": download(g.sh)[:n],
+            "opt_density": download(self.opt_density.state)[:n],
+            "opt_sh": download(self.opt_sh.state)[:n],
             "brick": {"rank": b.index, "ranks": len(self.bricks), "lo": list(b.lo),
                       "hi": list(b.hi), "reso": list(b.reso)},
         }

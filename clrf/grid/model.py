@@ -19,7 +19,7 @@ from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
-from ..runtime.programs import upload
+from ..runtime.programs import download, upload
 
 
 def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
@@ -191,10 +191,10 @@ class GridModel:
         return {**bg,
             "kind": "grid", "stage": self.stage, "sh_degree": self.grid.sh_degree,
             "background": list(self.background),
-            "links": self.grid.links.get(), "bbox": self.grid.bbox,
-            "density": self.grid.density.get()[:n], "sh": self.grid.sh.get()[:n],
-            "opt_density": self.opt_density.state.get()[:n],
-            "opt_sh": self.opt_sh.state.get()[:n],
+            "links": download(self.grid.links), "bbox": self.grid.bbox,
+            "density": download(self.grid.density)[:n], "sh": download(self.grid.sh)[:n],
+            "opt_density": download(self.opt_density.state)[:n],
+            "opt_sh": download(self.opt_sh.state)[:n],
         }
 
     @classmethod

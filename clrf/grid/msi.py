@@ -25,7 +25,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, upload
+from ..runtime.programs import download, launch, upload
 
 PER_RAY_LOCAL_SIZE = 16  # one ray per work-item with a loop over its L - 1 samples
 
@@ -138,7 +138,7 @@ class MSIBackground:
 
     def state_dict(self) -> dict:
         """numpy arrays for a checkpoint (keys prefixed bg_)."""
-        return {"bg_density": self.density.get(), "bg_color": self.color.get(),
+        return {"bg_density": download(self.density), "bg_color": download(self.color),
                 "bg_center": self.center.copy(), "bg_r_inner": np.float64(self.r_inner),
                 "bg_background": self.background.copy()}
 

@@ -43,7 +43,7 @@ from .config import HashConfig
 from ..nerf.mlp import MLP, MLPSpec
 from ..nerf.model import _key
 from ..runtime.optim import Optimizer
-from ..runtime.programs import launch, upload
+from ..runtime.programs import download, launch, upload
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, march, packed_backward,
                     packed_forward)
@@ -346,10 +346,12 @@ class HashModel:
         return {"kind": self.kind, "config": asdict(self.config), "near": self.near,
                 "far": self.far, "bbox": self.bbox.tolist(), "background": list(self.background),
                 "seed": self.seed, "step": self.step, "batch_rays": self.batch_rays,
-                "table": self.enc.table.get(), "table_adam_m": self._adam_table.state.get(),
-                "table_adam_v": self._adam_table.state2.get(),
-                "mlp_params": self.net.params.get(), "mlp_adam_m": self._adam_net.state.get(),
-                "mlp_adam_v": self._adam_net.state2.get(), "occ_ema": self.occ.ema.get(),
+                "table": download(self.enc.table),
+                "table_adam_m": download(self._adam_table.state),
+                "table_adam_v": download(self._adam_table.state2),
+                "mlp_params": download(self.net.params),
+                "mlp_adam_m": download(self._adam_net.state),
+                "mlp_adam_v": download(self._adam_net.state2), "occ_ema": download(self.occ.ema),
                 "occ_threshold": self.occ.threshold}
 
     @classmethod

@@ -10,7 +10,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, upload
+from ..runtime.programs import download, launch, upload
 from .encoding import box_args
 
 
@@ -53,7 +53,7 @@ class OccupancyGrid:
                self.device.tuning.elementwise_local_size)
 
     def occupied_fraction(self) -> float:
-        return float(np.count_nonzero(self.occ.get())) / self.n_cells
+        return float(np.count_nonzero(download(self.occ))) / self.n_cells
 
     def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float):
         """Decay the measured cells, measure density_fn (device xyz [m, 3] -> device sigma [m])

@@ -26,7 +26,7 @@ from . import ops
 from ..runtime.optim import Optimizer
 from .config import NerfConfig
 from .mlp import MLP
-from ..runtime.programs import upload
+from ..runtime.programs import download, upload
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
@@ -175,9 +175,9 @@ class NerfModel:
             if name == "fine" and net is self.coarse:
                 continue
             a = self._adam[id(net)]
-            st[f"{name}_params"] = net.params.get()
-            st[f"{name}_adam_m"] = a.state.get()
-            st[f"{name}_adam_v"] = a.state2.get()
+            st[f"{name}_params"] = download(net.params)
+            st[f"{name}_adam_m"] = download(a.state)
+            st[f"{name}_adam_v"] = download(a.state2)
         return st
 
     @classmethod

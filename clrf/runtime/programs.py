@@ -126,6 +126,17 @@ def upload(queue, ary):
     return arr
 
 
+def download(arr) -> np.ndarray:
+    """``arr.get()`` without leaving the host copy alive. pyopencl's get() adds its read event
+    to ``arr.events``, and that event holds the new numpy array until the list is pruned (some
+    events later) or ``arr.finish()``: a long-lived array downloaded for every checkpoint (a
+    hash table, a grid, their Adam moments) kept several host copies of itself, and resident
+    memory grew with each save (hash on bonsai: 0.2 GB a checkpoint)."""
+    out = arr.get()
+    arr.finish()
+    return out
+
+
 def scratch(device, shape, dtype=np.float32):
     """An uninitialised per-step device array from the device's memory pool (Device.pool): its
     buffer goes back to the pool when the array is dropped, so arrays whose sizes change every
