@@ -125,7 +125,6 @@ def packed_backward(device, pk: Packed, sigma, rgb, background, target,
                     loss_scale: float) -> dict:
     """dict(sigma=dL/dsigma [M], rgb=dL/drgb [M, 3], sq_err=[n]) of the MSE loss
     loss_scale * sum |rgb_ray - target|^2 (target [n, 3] device)."""
-    q = device.queue
     m = max(pk.m, 1)
     out = {"sigma": scratch(device, m), "rgb": scratch(device, (m, 3)),
            "sq_err": scratch(device, max(pk.n, 1))}

@@ -297,9 +297,7 @@ class HashModel:
             st = self._render_chunk(od, dd)
             for k, v in finish_state(st, self.background).items():
                 out[k][s:e] = v
-        pool = getattr(self.device, "pool", None)
-        if pool is not None:   # a render's chunks are larger than a step's: not kept
-            pool.free_held()
+        self.device.pool.free_held()   # a render's chunks are larger than a step's: not kept
         return out
 
     def _render_chunk(self, od, dd):

@@ -222,7 +222,6 @@ class MLP:
         """sigma [n], rgb [n, 3] (device) of encoded inputs x_enc [n, in_dim], d_enc [n, dir_dim].
         Keeps every activation in self.A for a following backward."""
         n = int(x_enc.shape[0])
-        q = self.device.queue
         self._ensure_scratch(n)
         sigma = sigma if sigma is not None else scratch(self.device, n)
         rgb = rgb if rgb is not None else scratch(self.device, (n, 3))
@@ -237,7 +236,6 @@ class MLP:
         with accumulate=True); returns (dx_enc [n, in_dim], dd_enc [n, dir_dim]) device arrays
         with want_input, else None."""
         n = self._n
-        q = self.device.queue
         grad = self.grad if grad is None else grad
         dx = dd = None
         if want_input:

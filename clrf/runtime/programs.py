@@ -141,7 +141,7 @@ def scratch(device, shape, dtype=np.float32):
     """An uninitialised per-step device array from the device's memory pool (Device.pool): its
     buffer goes back to the pool when the array is dropped, so arrays whose sizes change every
     step reuse buffers instead of fragmenting a CPU runtime's heap."""
-    return cla.empty(device.queue, shape, dtype, allocator=getattr(device, "pool", None))
+    return cla.empty(device.queue, shape, dtype, allocator=device.pool)
 
 
 def launch(device, kernel, n: int, args, local_size: int | None = None, wait_for=None):
