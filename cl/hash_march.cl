@@ -36,9 +36,15 @@
  *   g = 2 loss_scale (rgb - target), dL/dc_k = w_k g,
  *   dL/dsigma_k = dt_k (T_{k+1} (g.c_k) - R_k),  R_k = g.rgb - sum_{j<=k} w_j (g.c_j),
  * and sq_err [n] = |rgb - target|^2.
+ * Training-time termination (the step differentiates only what is in front of an opaque
+ * point): packed_keep counts each ray's leading samples whose transmittance in front,
+ * T_k = exp(-sum_{j<k} tau_j), is >= t_stop (the first sample always); packed_gather copies
+ * those prefixes (rows of `width` floats) into the packing of the kept counts. A dropped
+ * sample's dL/dsigma and dL/dc are bounded by T_k |g| (|c| + 1) dt resp. T_k |g|, so below
+ * t_stop times the largest kept one's scale.
  *
  * Defines read: HASH_T_STOP, HASH_CONTRACT. Twin: clrf/testing/reference_hash.py (march_samples,
- * packed_forward, packed_backward).
+ * packed_forward, packed_backward, packed_keep).
  */
 #include "hash_occ.h"
 #include "volrend.h"
@@ -210,4 +216,34 @@ __kernel void packed_backward(const int n, __global const int *offsets, __global
         drgb[3 * j + 1] = w * g.y;
         drgb[3 * j + 2] = w * g.z;
     }
+}
+
+/* keep[i] = the number of ray i's leading samples with T in front >= t_stop (>= 1 if it has
+ * any), compositing as packed_forward. */
+__kernel void packed_keep(const int n, __global const int *offsets, __global const float *dt,
+                          __global const float *sigma, const float t_stop, __global int *keep) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const int j0 = offsets[i], j1 = offsets[i + 1];
+    ksum_t logT = {0.0f, 0.0f};
+    float T = 1.0f;
+    int j = j0;
+    for (; j < j1; ++j) {
+        if (j > j0 && !(T >= t_stop)) break;
+        const float sg = sigma[j];
+        if (sg > 0.0f) vr_step(&logT, T, sg * dt[j], &T);
+    }
+    keep[i] = j - j0;
+}
+
+/* dst rows new_offsets[i] .. new_offsets[i+1]-1 = src rows offsets[i] .. (the kept prefix of
+ * ray i), rows of `width` floats. */
+__kernel void packed_gather(const int n, const int width, __global const int *offsets,
+                            __global const int *new_offsets, __global const float *src,
+                            __global float *dst) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t a = (size_t)offsets[i] * width, b = (size_t)new_offsets[i] * width;
+    const size_t len = (size_t)(new_offsets[i + 1] - new_offsets[i]) * width;
+    for (size_t k = 0; k < len; ++k) dst[b + k] = src[a + k];
 }

@@ -6,7 +6,11 @@
  *              in play and an empty grid cannot stall it;
  *   ema >= 0 : a running max-decay estimate of the density, updated every few steps by
  *              occ_decay (ema *= decay for measured cells) and occ_max (ema = max(ema, sigma)
- *              at freshly measured cells: a random point in each of a random set of cells).
+ *              at freshly measured cells: a random point in each of the cells measured).
+ * Cells are measured in a sweep: update u measures positions start .. start + m - 1 (mod R^3)
+ * of the order  c(p) = p * stride mod R^3  (stride odd and coprime with R^3, so the order is a
+ * permutation that scatters neighbouring positions over the grid), so R^3 / m updates measure
+ * every cell once (uniformly random cells would leave 1/e of them unmeasured after as many).
  * occ_threshold turns it into the byte grid the sampler reads: occ = ema < 0 || ema > thr.
  *
  * The sampler that reads the byte grid is cl/hash_march.cl; the cell of a point is hash_occ.h's.
@@ -15,14 +19,16 @@
  */
 #include "hash_occ.h"
 
-/* m random cells (uniform01 of key) and a uniformly jittered point in each: cells [m],
- * xyz [m, 3] (world). */
-__kernel void occ_points(const int m, const uint key, const int R, const float4 lo,
-                         const float4 ext, __global int *cells, __global float *xyz) {
+/* The cells at sweep positions start .. start + m - 1 (mod R^3; see above) and a uniformly
+ * jittered point in each (uniform01 of key): cells [m], xyz [m, 3] (world). */
+__kernel void occ_points(const int m, const uint key, const uint start, const uint stride,
+                         const int R, const float4 lo, const float4 ext, __global int *cells,
+                         __global float *xyz) {
     const int j = get_global_id(0);
     if (j >= m) return;
     const uint R3 = (uint)R * R * R;
-    const uint c = min((uint)(uniform01(key, 4u * j) * (float)R3), R3 - 1u);
+    const ulong pos = ((ulong)start + (ulong)j) % R3;
+    const uint c = (uint)(pos * stride % R3);
     const float3 ijk = (float3)(c % R, (c / R) % R, c / (R * R));
     const float3 jit = (float3)(uniform01(key, 4u * j + 1u), uniform01(key, 4u * j + 2u),
                                 uniform01(key, 4u * j + 3u));

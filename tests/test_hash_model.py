@@ -159,6 +159,41 @@ def test_packed_composite_matches_reference(device):
         np.testing.assert_allclose(g[k].get(), r[k], rtol=tol.GRAD_RTOL, atol=tol.GRAD_ATOL)
 
 
+def test_packed_keep_and_gather_match_reference(device):
+    """Training-time termination: each ray's kept prefix (transmittance in front >= t_stop;
+    the first sample always) and the rows gathered into its packing, with empty rays, negative,
+    NaN and 1e30 densities."""
+    from clrf.hash import march as hm
+    rng = np.random.default_rng(8)
+    counts = np.array([0, 1, 9, 40, 13, 0, 25])
+    off = np.concatenate([[0], np.cumsum(counts)])
+    n, m = len(counts), int(off[-1])
+    sig = rng.uniform(-2, 30, m).astype(np.float32)
+    sig[off[3] + 2] = np.nan
+    sig[off[4] + 6] = 1e30
+    sig[off[6]:] = 0.01                       # a ray that never becomes opaque
+    dt = rng.uniform(0.01, 0.2, m).astype(np.float32)
+    t = np.cumsum(dt).astype(np.float32)
+    xyz, vdir = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
+    extra = rng.normal(size=(m, 5)).astype(np.float32)
+    q = device.queue
+    pk = hm.Packed(n, m, cla.to_device(q, off.astype(np.int32)), off, _up(device, t),
+                   _up(device, dt), _up(device, xyz), _up(device, vdir))
+    for t_stop in (1e-4, 0.3):
+        want, T = rh.packed_keep(off, dt, sig, t_stop)
+        got = hm.keep_front(device, pk, _up(device, sig), t_stop, (_up(device, extra),))
+        kept, (ex,) = got
+        assert 0 < want.sum() < m and want[6] == counts[6] and want[1] == 1
+        np.testing.assert_array_equal(np.diff(kept.offsets_host), want)
+        np.testing.assert_array_equal(kept.offsets.get(), kept.offsets_host)
+        sel = np.concatenate([off[i] + np.arange(k) for i, k in enumerate(want)]).astype(int)
+        assert np.all(T[sel] >= t_stop)
+        for a, b in ((kept.t, t), (kept.dt, dt), (kept.xyz, xyz), (kept.vdir, vdir), (ex, extra)):
+            np.testing.assert_array_equal(a.get(), np.asarray(b, np.float32)[sel])
+        assert hm.keep_front(device, pk, _up(device, sig), t_stop,
+                             max_fraction=0.99 * want.sum() / m) is None
+
+
 def test_packed_backward_vs_finite_differences():
     """The packed composite reference's dL/dsigma against central differences of its loss."""
     rng = np.random.default_rng(3)
@@ -193,8 +228,8 @@ def test_occupancy_starts_full_and_updates_like_reference(device):
         seen["xyz"] = p
         return _up(device, s)
 
-    occ.update(density, key=1234, n_points=300, decay=0.9, threshold=0.8)
-    cells, pts = rh.occ_points(300, 1234, R, BOX[0], BOX[1] - BOX[0])
+    occ.update(density, key=1234, n_points=300, decay=0.9, threshold=0.8, start=100)
+    cells, pts = rh.occ_points(300, 1234, R, BOX[0], BOX[1] - BOX[0], 100, occ.stride)
     np.testing.assert_allclose(seen["xyz"], pts, rtol=0, atol=1e-6)
     sig = np.abs(seen["xyz"][:, 0]) * 3.0
     sig[::7] = np.nan
@@ -202,6 +237,48 @@ def test_occupancy_starts_full_and_updates_like_reference(device):
     np.testing.assert_allclose(occ.ema.get(), e, rtol=tol.HASH_OCC_RTOL, atol=0)
     np.testing.assert_array_equal(occ.occ.get(), o)
     assert 0 < occ.occupied_fraction() < 1
+
+
+@pytest.mark.parametrize("R", [1, 2, 6, 64, 100])
+def test_occupancy_sweep_measures_every_cell_once_per_round(device, R):
+    """The update's cells follow a permutation of the grid: consecutive updates of m cells
+    measure all R^3 once in R^3 / m of them (random cells would miss about 1/e), and the
+    host's stride is coprime with R^3 (else the order would repeat early)."""
+    import math
+    occ = OccupancyGrid(device, R, BOX)
+    n = R ** 3
+    assert math.gcd(occ.stride, n) == 1
+    m = max(1, n // 4 + 1)                  # rounds of m cells; the last one wraps around
+    rounds = -(-n // m)
+    got = []
+
+    def density(xyz):
+        got.append(xyz.get())
+        return _up(device, np.zeros(xyz.shape[0]))
+
+    assert occ.occupied_fraction() == 1.0
+    for k in range(rounds):
+        occ.update(density, key=7 + k, n_points=m, decay=1.0, threshold=0.5, start=k * m)
+    cells = []
+    for k, p in enumerate(got):
+        c, pts = rh.occ_points(m, 7 + k, R, BOX[0], BOX[1] - BOX[0], k * m, occ.stride)
+        np.testing.assert_allclose(p, pts, rtol=0, atol=1e-6)
+        cells.append(c)
+    np.testing.assert_array_equal(np.sort(np.concatenate(cells)[:n]), np.arange(n))
+    assert (occ.ema.get() == 0).all()            # every cell measured (density 0)
+    assert occ.occupied_fraction() == 0.0
+
+
+def test_first_occupancy_update_measures_every_cell(device):
+    """At occ_warmup the model measures the whole grid (later updates occ_points cells), so a
+    fresh run prunes every empty cell at once."""
+    cfg = dataclasses.replace(SMALL, occ_warmup=3, occ_every=2, occ_points=5)
+    model = HashModel(device, cfg, near=1.5, far=4.5, bbox=BOX, background=(1, 1, 1))
+    assert not model.maybe_update_occupancy(2)
+    assert (model.occ.ema.get() < 0).all()
+    assert model.maybe_update_occupancy(3)
+    assert (model.occ.ema.get() >= 0).all()
+    assert not model.maybe_update_occupancy(4) and model.maybe_update_occupancy(5)
 
 
 def _reference_step(model, o, d, target):
@@ -217,6 +294,14 @@ def _reference_step(model, o, d, target):
     x_enc = rh.hash_forward(xyz, enc.lo, enc.inv_ext, enc.res_host, table)
     d_enc = rh.sh_encode(vdir)
     sigma, rgb = rn.mlp_forward(params, net.spec, net.layout, x_enc, d_enc)
+    if c.train_t_stop > 0:                   # training-time termination, as the model does
+        from clrf.hash.model import KEEP_BELOW
+        keep, _ = rh.packed_keep(off, dt, sigma, c.train_t_stop)
+        if keep.sum() <= KEEP_BELOW * len(t):
+            sel = np.concatenate([off[i] + np.arange(k) for i, k in enumerate(keep)]).astype(int)
+            off = np.concatenate([[0], np.cumsum(keep)])
+            t, dt, xyz, x_enc, d_enc = t[sel], dt[sel], xyz[sel], x_enc[sel], d_enc[sel]
+            sigma, rgb = sigma[sel], rgb[sel]
     scale = 1.0 / (3 * o.shape[0])
     g = rh.packed_backward(off, t, dt, sigma, rgb, model.background, target, scale)
     loss = scale * np.sum(g["sq_err"])
@@ -225,9 +310,12 @@ def _reference_step(model, o, d, target):
     return loss, mb["params"], gt, len(t)
 
 
-@pytest.mark.parametrize("path,contract", [("atomics", "off"), ("owned", "off"),
-                                           ("owned", "on")])
-def test_step_gradients_match_reference_chain(device, path, contract):
+@pytest.mark.parametrize("path,contract,dense", [("atomics", "off", False),
+                                                 ("owned", "off", False), ("owned", "on", False),
+                                                 ("owned", "off", True), ("atomics", "on", True)])
+def test_step_gradients_match_reference_chain(device, path, contract, dense):
+    """One step's loss and gradients against the float64 chain; dense: opaque rays, so the
+    step keeps only the samples in front of transmittance train_t_stop (the chain too)."""
     dev = device.with_tuning(grad_slots=0 if path == "atomics" else 2)
     near, far = (1.5, 4.5) if contract == "off" else (0.05, 60.0)
     model = HashModel(dev, dataclasses.replace(SMALL, contract=contract), near=near, far=far,
@@ -235,6 +323,10 @@ def test_step_gradients_match_reference_chain(device, path, contract):
     assert (model.contraction is not None) == (contract == "on")
     rng = np.random.default_rng(3)
     model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    if dense:                                 # sigma ~ e^4: rays go opaque within a few bins
+        p = model.net.params.get()
+        p[model.net.layout.layers[model.spec.depth]["b_off"]] = 4.0
+        model.net.set_params(p)
     occ = (rng.random(SMALL.occ_res ** 3) < 0.6)
     model.occ.ema.set(np.where(occ, 1.0, 0.0).astype(np.float32))
     model.occ._threshold(0.5)
@@ -244,6 +336,11 @@ def test_step_gradients_match_reference_chain(device, path, contract):
                                      jitter=False)
     rloss, gp, gt, rlive = _reference_step(model, o, d, target)
     assert live == rlive and 0 < live < 24 * SMALL.samples
+    if dense:                                 # the termination did drop samples
+        from clrf.hash.march import march
+        marched = march(dev, model.occ, _up(dev, o), _up(dev, d), SMALL.samples, near, far,
+                        contract=model.contraction).m
+        assert live < 0.7 * marched, (live, marched)
     assert abs(loss - rloss) <= tol.HASH_STEP_LOSS_RTOL * rloss
     for got, want in ((model.net.grad.get(), gp), (model.enc.grad.get(), gt)):
         assert np.abs(want).max() > 0

@@ -4,6 +4,7 @@ occupied cells) and their compositing (math and layouts in the kernel file's hea
 >>> pk = march(dev, occ, origins_d, dirs_d, S=128, near=2.0, far=6.0)   # all bins, no jitter
 >>> pk.m, pk.offsets_host[:3], pk.t, pk.dt, pk.xyz, pk.vdir             # device t [M], ...
 >>> g = packed_backward(dev, pk, sigma_d, rgb_d, bg, target_d, loss_scale)
+>>> kept, (xe,) = keep_front(dev, pk, sigma_d, 1e-4, (xe_d,))   # what lies before T < 1e-4
 >>> pk = march(dev, occ, origins_d, dirs_d, 256, 0.02, 1e3, contract=Contraction(box))
 """
 from __future__ import annotations
@@ -135,3 +136,37 @@ def packed_backward(device, pk: Packed, sigma, rgb, background, target,
     if pk.m == 0:
         out["sigma"], out["rgb"] = out["sigma"][:0], out["rgb"][:0]
     return out
+
+
+def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: float = 1.0):
+    """The samples of pk in front of each ray's first point of transmittance < t_stop (see
+    packed_keep in the kernel file), as a new Packed, and the same rows of each array in rows
+    (device [M, ...] float32, C-contiguous); None (nothing copied) when that keeps more than
+    max_fraction of the samples. One host round trip (the kept counts)."""
+    dev, q = device, device.queue
+    prg = program(device)
+    ls = dev.tuning.per_ray_local_size
+    n = pk.n
+    keep = scratch(dev, max(n, 1), np.int32)
+    if pk.m:
+        launch(dev, prg.kernel("packed_keep"), n, (np.int32(n), pk.offsets.data, pk.dt.data,
+                                                    sigma.data, np.float32(t_stop), keep.data), ls)
+    off = np.zeros(n + 1, np.int64)
+    if n and pk.m:
+        np.cumsum(keep.get()[:n], out=off[1:])
+    m = int(off[-1])
+    if m > max_fraction * pk.m:
+        return None
+    offsets = upload(q, off.astype(np.int32))
+    out = []
+    for a in (pk.t, pk.dt, pk.xyz, pk.vdir, *rows):
+        if a.dtype != np.float32 or not a.flags.c_contiguous:
+            raise TypeError("keep_front: rows must be C-contiguous float32 device arrays")
+        width = int(np.prod(a.shape[1:], dtype=np.int64))
+        b = scratch(dev, (max(m, 1),) + tuple(a.shape[1:]), a.dtype)
+        if m:
+            launch(dev, prg.kernel("packed_gather"), n,
+                   (np.int32(n), np.int32(width), pk.offsets.data, offsets.data, a.data,
+                    b.data), ls)
+        out.append(b[:m] if m else b)
+    return Packed(n, m, offsets, off, *out[:4]), out[4:]

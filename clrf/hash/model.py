@@ -18,11 +18,14 @@ One training step on B rays (one host round trip: the per-ray counts of live sam
   S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
   cells, packed per ray (so the sample count adapts per ray)          (hash_march.cl)
   sigma, rgb of the M live samples (hash + SH encodings, MLP)         (hash.cl, mlp.cl)
+  keep each ray's samples in front of transmittance train_t_stop and,
+  when that drops >= 15 % of them, the MLP again on those only        (hash_march.cl, mlp.cl)
   composite + MSE backward over each ray's live samples (each stands
   for its bin: segment length dt = (far - near) / S)                  (hash_march.cl)
   MLP backward -> dL/dtheta, dL/denc;  hash backward -> dL/dtable     (mlp.cl, hash.cl)
   Adam (eps 1e-15) on tables and MLP, weight decay on the MLP only    (optim.cl)
-Every occ_every steps after occ_warmup the occupancy grid is updated from the density.
+Every occ_every steps from occ_warmup the occupancy grid is updated from the density (the
+first update measures every cell, later ones occ_points cells of a sweep over all).
 Renders march RENDER_WINDOW bins at a time and stop rays whose transmittance fell below
 1e-4 (early ray termination).
 
@@ -45,12 +48,13 @@ from ..nerf.model import _key
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, launch, upload
 from .encoding import SH_DIM, HashEncoding
-from .march import (STATE, Contraction, contract_points, finish_state, march, packed_backward,
-                    packed_forward)
+from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
+                    packed_backward, packed_forward)
 from .occupancy import OccupancyGrid
 
 MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
 BATCH_RAYS_RANGE = (256, 1 << 16)   # rays per step when config.batch_samples adapts them
+KEEP_BELOW = 0.85             # training-time termination pays when it drops >= 15 % of samples
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
@@ -238,13 +242,22 @@ class HashModel:
         pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
                    _key(self.seed, it, 0), contract=self.contraction)
         q = dev.queue
+        marched = pk.m
         if pk.m:
-            sigma, rgb = self._fields(pk.xyz, pk.vdir)
+            xe, de = self.enc.forward(pk.xyz), self.enc.sh_encode(pk.vdir)
+            sigma, rgb = self.net.forward(xe, de)
+            # training-time termination: worth a second MLP forward (on the kept rows) when
+            # the backward, ~6x a forward per sample, loses more: KEEP_BELOW of the samples
+            kept = keep_front(dev, pk, sigma, c.train_t_stop, (xe, de), KEEP_BELOW) \
+                if c.train_t_stop > 0 else None
+            if kept is not None:
+                pk, (xe, de) = kept
+                sigma, rgb = self.net.forward(xe, de)
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         g = packed_backward(dev, pk, sigma, rgb, self.background, target, scale)
         loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
-        self._adapt_batch(B, pk.m)
+        self._adapt_batch(B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
         dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
@@ -267,16 +280,26 @@ class HashModel:
         return self.config.occ_tau / self.dt
 
     def maybe_update_occupancy(self, it: int) -> bool:
+        """Update the occupancy grid at steps occ_warmup, occ_warmup + occ_every, ...: the first
+        update measures every cell, each later one the next occ_points cells of the sweep (so
+        every cell is measured once per n_cells / occ_points updates)."""
         c = self.config
         if it < c.occ_warmup or (it - c.occ_warmup) % c.occ_every != 0:
             return False
-        self.update_occupancy(_key(self.seed, it, 2))
+        k = (it - c.occ_warmup) // c.occ_every
+        if k == 0:
+            self.update_occupancy(_key(self.seed, it, 2), self.occ.n_cells, 0)
+        else:
+            self.update_occupancy(_key(self.seed, it, 2), c.occ_points, (k - 1) * c.occ_points)
         return True
 
-    def update_occupancy(self, key: int):
+    def update_occupancy(self, key: int, n_points: int | None = None, start: int = 0):
+        """One occupancy update measuring n_points cells (default occ_points) from sweep
+        position start."""
         c = self.config
-        self.occ.update(self._density, key, c.occ_points, c.occ_decay,
-                        self.occupancy_threshold())
+        n = c.occ_points if n_points is None else int(n_points)
+        self.occ.update(self._density, key, n, c.occ_decay, self.occupancy_threshold(),
+                        start % self.occ.n_cells)
 
     # ---- rendering ----------------------------------------------------------------------
     def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:

@@ -2,7 +2,7 @@
 file's header; the sampler that reads it is clrf/hash/march.py).
 
 >>> occ = OccupancyGrid(dev, res=128, box=((-1.5,) * 3, (1.5,) * 3))
->>> occ.update(density_fn, key, n_points, decay=0.95, threshold=0.05)
+>>> occ.update(density_fn, key, n_points, decay=0.95, threshold=0.05, start=0)
 """
 from __future__ import annotations
 
@@ -12,6 +12,21 @@ import pyopencl.array as cla
 
 from ..runtime.programs import download, launch, upload
 from .encoding import box_args
+
+POINTS_PER_LAUNCH = 1 << 18   # cells measured per density evaluation (bounds the MLP scratch)
+
+
+def sweep_stride(n_cells: int) -> int:
+    """The stride of the measuring sweep (cl/hash_occ.cl): the odd number nearest 0.618 of
+    n_cells that is coprime with it (1 for n_cells <= 2), so that p -> p * stride mod n_cells
+    is a permutation that scatters neighbouring positions over the grid."""
+    import math
+    if n_cells <= 2:
+        return 1
+    s = int(0.6180339887 * n_cells) | 1
+    while math.gcd(s, n_cells) != 1:
+        s += 2
+    return s
 
 
 class OccupancyGrid:
@@ -36,6 +51,7 @@ class OccupancyGrid:
             raise ValueError(f"occupancy ema: expected shape ({n},), got {ema.shape}")
         self.ema = upload(q, ema)
         self.occ = cla.empty(q, n, np.uint8)
+        self.stride = sweep_stride(n)
         self.threshold = 0.0
         self._threshold(0.0)
 
@@ -55,22 +71,24 @@ class OccupancyGrid:
     def occupied_fraction(self) -> float:
         return float(np.count_nonzero(download(self.occ))) / self.n_cells
 
-    def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float):
+    def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float,
+               start: int = 0):
         """Decay the measured cells, measure density_fn (device xyz [m, 3] -> device sigma [m])
-        at a random point of n_points random cells, and re-threshold."""
+        at a random point of each cell at sweep positions start .. start + n_points - 1 (in
+        launches of at most POINTS_PER_LAUNCH), and re-threshold."""
         dev, q = self.device, self.device.queue
         ls = dev.tuning.elementwise_local_size
         launch(dev, self._k("occ_decay"), self.n_cells,
                (np.int32(self.n_cells), np.float32(decay), self.ema.data), ls)
-        m = int(n_points)
-        if m > 0:
+        for j0 in range(0, int(n_points), POINTS_PER_LAUNCH):
+            m = min(POINTS_PER_LAUNCH, int(n_points) - j0)
             cells = cla.empty(q, m, np.int32)
             xyz = cla.empty(q, (m, 3), np.float32)
             launch(dev, self._k("occ_points"), m,
-                   (np.int32(m), np.uint32(key), np.int32(self.res), self.lo4, self.ext4,
-                    cells.data, xyz.data), ls)
+                   (np.int32(m), np.uint32((key + j0 * 4) & 0xFFFFFFFF),
+                    np.uint32((start + j0) % self.n_cells), np.uint32(self.stride),
+                    np.int32(self.res), self.lo4, self.ext4, cells.data, xyz.data), ls)
             sigma = density_fn(xyz)
             launch(dev, self._k("occ_max"), m, (np.int32(m), cells.data, sigma.data,
                                                  self.ema.data), ls)
         self._threshold(threshold)
-

@@ -108,13 +108,13 @@ def compact(xyz, occ, lo, inv_ext, R):
     return np.flatnonzero(live)
 
 
-def occ_points(m, key, R, lo, ext):
-    """(cells [m], points [m, 3]) of the occupancy update's random cells (bit-exact cells)."""
+def occ_points(m, key, R, lo, ext, start=0, stride=1):
+    """(cells [m], points [m, 3]) measured by the occupancy update at sweep positions start ..
+    start + m - 1 of the order p -> p * stride mod R^3 (bit-exact cells)."""
     from .reference_nerf import uniform01
     j = np.arange(m, dtype=np.uint64)
     R3 = R ** 3
-    u = uniform01(key, 4 * j).astype(np.float32)
-    c = np.minimum((u * np.float32(R3)).astype(np.int64), R3 - 1)
+    c = ((start + j.astype(np.int64)) % R3) * stride % R3
     ijk = np.stack([c % R, (c // R) % R, c // (R * R)], 1).astype(np.float64)
     jit = np.stack([uniform01(key, 4 * j + k) for k in (1, 2, 3)], 1)
     return c, np.asarray(lo) + (ijk + jit) / R * np.asarray(ext)
@@ -216,3 +216,20 @@ def packed_backward(offsets, t, dt, sigma, rgb, background, target, loss_scale):
         dsig[a:b] = np.where(np.asarray(sigma)[a:b] > 0, dt[a:b] * (Tnext * gc - R), 0.0)
         drgb[a:b] = w[:, None] * g[i][None, :]
     return {"sigma": dsig, "rgb": drgb, "sq_err": np.sum(diff ** 2, axis=1)}
+
+
+def packed_keep(offsets, dt, sigma, t_stop):
+    """Per ray the number of leading samples whose transmittance in front is >= t_stop (the
+    first sample always kept); also returns that transmittance [M] (float64)."""
+    s = np.where(np.asarray(sigma, np.float64) > 0, np.asarray(sigma, np.float64), 0.0)
+    tau = s * np.broadcast_to(np.asarray(dt, np.float64), s.shape)
+    n = len(offsets) - 1
+    keep = np.zeros(n, np.int64)
+    T_front = np.ones(len(s))
+    for i in range(n):
+        a, b = offsets[i], offsets[i + 1]
+        T = np.exp(-np.concatenate([[0.0], np.cumsum(tau[a:b])[:-1]])) if b > a else np.ones(0)
+        T_front[a:b] = T
+        below = np.flatnonzero(T[1:] < t_stop)
+        keep[i] = (below[0] + 1) if len(below) else b - a
+    return keep, T_front
