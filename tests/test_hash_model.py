@@ -159,6 +159,29 @@ def test_packed_composite_matches_reference(device):
         np.testing.assert_allclose(g[k].get(), r[k], rtol=tol.GRAD_RTOL, atol=tol.GRAD_ATOL)
 
 
+def test_density_pass_matches_forward_and_reference(device):
+    """MLP.density (trunk and head only) gives the forward's sigma, and the float64 one; a
+    backward after it (its activations overwritten) is refused."""
+    model = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX, background=(1, 1, 1), seed=4)
+    rng = np.random.default_rng(9)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    xyz = rng.uniform(-1, 1, (77, 3))
+    vdir = rng.normal(size=(77, 3))
+    xe = model.enc.forward(_up(device, xyz))
+    de = model.enc.sh_encode(_up(device, vdir))
+    net = model.net
+    sigma, _ = net.forward(xe, de)
+    dens = net.density(xe).get()
+    np.testing.assert_allclose(dens, sigma.get(), rtol=1e-6, atol=0)
+    want, _ = rn.mlp_forward(net.params.get(), net.spec, net.layout, xe.get(), de.get())
+    np.testing.assert_allclose(dens, want, rtol=tol.MLP_RTOL, atol=tol.MLP_ATOL)
+    assert dens.std() > 0
+    with pytest.raises(RuntimeError, match="density"):
+        net.backward(sigma, _up(device, np.zeros((77, 3))))
+    net.forward(xe, de)
+    net.backward(sigma, _up(device, np.zeros((77, 3))))
+
+
 def test_packed_keep_and_gather_match_reference(device):
     """Training-time termination: each ray's kept prefix (transmittance in front >= t_stop;
     the first sample always) and the rows gathered into its packing, with empty rays, negative,

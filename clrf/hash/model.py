@@ -17,9 +17,10 @@ The published network has 15 features next to sigma (16 outputs); the kernel pad
 One training step on B rays (one host round trip: the per-ray counts of live samples):
   S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
   cells, packed per ray (so the sample count adapts per ray)          (hash_march.cl)
-  sigma, rgb of the M live samples (hash + SH encodings, MLP)         (hash.cl, mlp.cl)
-  keep each ray's samples in front of transmittance train_t_stop and,
-  when that drops >= 15 % of them, the MLP again on those only        (hash_march.cl, mlp.cl)
+  sigma of the M samples (hash encoding, density MLP); keep each ray's
+  samples in front of transmittance train_t_stop when that drops
+  >= 15 % of them                                                     (hash_march.cl)
+  sigma, rgb of the kept samples (hash + SH encodings, MLP)          (hash.cl, mlp.cl)
   composite + MSE backward over each ray's live samples (each stands
   for its bin: segment length dt = (far - near) / S)                  (hash_march.cl)
   MLP backward -> dL/dtheta, dL/denc;  hash backward -> dL/dtable     (mlp.cl, hash.cl)
@@ -54,7 +55,7 @@ from .occupancy import OccupancyGrid
 
 MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
 BATCH_RAYS_RANGE = (256, 1 << 16)   # rays per step when config.batch_samples adapts them
-KEEP_BELOW = 0.85             # training-time termination pays when it drops >= 15 % of samples
+KEEP_BELOW = 0.85             # training-time termination copies the kept rows when >= 15 % go
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
 
 
@@ -195,9 +196,7 @@ class HashModel:
         m = int(xyz.shape[0])
         if m == 0:
             return cla.zeros(self.device.queue, 0, np.float32)
-        de = cla.zeros(self.device.queue, (m, SH_DIM), np.float32)
-        sigma, _ = self.net.forward(self.enc.forward(xyz), de)
-        return sigma
+        return self.net.density(self.enc.forward(xyz))
 
     def lr_at(self, it: int) -> float:
         """Adam's learning rate at step ``it``: with lr_schedule "budget", of self.progress (the
@@ -244,15 +243,17 @@ class HashModel:
         q = dev.queue
         marched = pk.m
         if pk.m:
-            xe, de = self.enc.forward(pk.xyz), self.enc.sh_encode(pk.vdir)
-            sigma, rgb = self.net.forward(xe, de)
-            # training-time termination: worth a second MLP forward (on the kept rows) when
-            # the backward, ~6x a forward per sample, loses more: KEEP_BELOW of the samples
-            kept = keep_front(dev, pk, sigma, c.train_t_stop, (xe, de), KEEP_BELOW) \
-                if c.train_t_stop > 0 else None
+            xe = self.enc.forward(pk.xyz)
+            # training-time termination: the density first, then the whole network on each
+            # ray's samples in front of transmittance train_t_stop, when that drops at least
+            # 1 - KEEP_BELOW of them (else the density pass was the only extra cost)
+            kept = None
+            if c.train_t_stop > 0:
+                kept = keep_front(dev, pk, self.net.density(xe), c.train_t_stop, (xe,),
+                                  KEEP_BELOW)
             if kept is not None:
-                pk, (xe, de) = kept
-                sigma, rgb = self.net.forward(xe, de)
+                pk, (xe,) = kept
+            sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir))
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         g = packed_backward(dev, pk, sigma, rgb, self.background, target, scale)

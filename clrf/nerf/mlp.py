@@ -183,8 +183,9 @@ class MLP:
         self.group_bytes = GROUP_BYTES
         self.A = self.G = self.partial = None
         self._n = 0
+        self._stale = False       # density() overwrote the last forward's activations
         self._k = {name: self.program.kernel(name) for name in (
-            "mlp_forward", "mlp_backward", "mlp_weight_grad", "mlp_reduce",
+            "mlp_forward", "mlp_density", "mlp_backward", "mlp_weight_grad", "mlp_reduce",
             "mlp_transpose")}
         self.sync_params()
 
@@ -226,15 +227,32 @@ class MLP:
         sigma = sigma if sigma is not None else scratch(self.device, n)
         rgb = rgb if rgb is not None else scratch(self.device, (n, 3))
         self._n = n
+        self._stale = False
         launch(self.device, self._k["mlp_forward"], self.n_rows(n) // self.layout.rows,
                (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
                 sigma.data, rgb.data), self.device.tuning.mlp_fused_local_size)
         return sigma, rgb
 
+    def density(self, x_enc, sigma=None):
+        """sigma [n] (device) of encoded positions x_enc [n, in_dim]: the trunk and the head
+        only (no direction, no colour layers; about a third of a forward for the hash model's
+        networks). Uses the activation scratch: a backward must follow a forward, not this."""
+        n = int(x_enc.shape[0])
+        self._ensure_scratch(n)
+        sigma = sigma if sigma is not None else scratch(self.device, n)
+        self._stale = True
+        launch(self.device, self._k["mlp_density"], self.n_rows(n) // self.layout.rows,
+               (np.int32(n), x_enc.data, self.params_t.data, self.A.data, sigma.data),
+               self.device.tuning.mlp_fused_local_size)
+        return sigma
+
     def backward(self, dsigma, drgb, grad=None, accumulate=False, want_input=False):
         """Gradients of the last forward: grad (default self.grad) gets dL/dparams (added to it
         with accumulate=True); returns (dx_enc [n, in_dim], dd_enc [n, dir_dim]) device arrays
         with want_input, else None."""
+        if self._stale:
+            raise RuntimeError("MLP.backward: density() overwrote the activations; run "
+                               "forward() again first")
         n = self._n
         grad = self.grad if grad is None else grad
         dx = dd = None
