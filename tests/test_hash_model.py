@@ -617,10 +617,12 @@ def test_older_checkpoint_config_keeps_how_it_trained():
     """A checkpoint's hash config from before batch_samples and contract existed resumes with
     a fixed batch and no contraction, not today's adaptive / auto defaults."""
     old = dataclasses.asdict(HashConfig.from_preset("tiny"))
-    del old["batch_samples"], old["contract"], old["lr_schedule"]
+    del old["batch_samples"], old["contract"], old["lr_schedule"], old["train_t_stop"]
     c = HashConfig.from_dict(old)
     assert c.batch_samples == 0 and c.contract == "off" and c.lr_schedule == "steps"
-    assert HashConfig.from_dict(dataclasses.asdict(HashConfig())).batch_samples == 262144
+    assert c.train_t_stop == 0.0
+    full = HashConfig.from_dict(dataclasses.asdict(HashConfig()))
+    assert full.batch_samples == HashConfig().batch_samples and full.train_t_stop == 1e-4
 
 
 def test_budget_learning_rate_follows_the_run(device):
