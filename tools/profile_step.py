@@ -6,6 +6,7 @@ occupancy grid pruned, the batch adapted), not of a fresh model:
 
     python tools/profile_step.py --ckpt runs/lego400 --steps 40
     python tools/profile_step.py --ckpt runs/lego400 --steps 40 --json profile.json
+    python tools/profile_step.py --ckpt runs/lego400 --set hash.train_t_stop=0   # without
 
 Each clrf launch (``pyopencl.enqueue_nd_range_kernel``) is followed by ``queue.finish()``,
 which serialises what an in-order queue does anyway; on a CPU device the per-launch wait adds a few microseconds. The step total is timed
@@ -36,6 +37,28 @@ def cpu_model() -> str:
     return platform.processor() or "unknown CPU"
 
 
+def changed_config(model, assignments):
+    """The hash model's config with hash.FIELD=VALUE assignments applied (values parsed as
+    JSON, else taken as strings); other models or unknown fields are an error."""
+    import dataclasses
+    from clrf.hash.config import HashConfig
+    if not isinstance(model.config, HashConfig):
+        raise SystemExit("--set: only a hash model's options can be changed here")
+    names = {f.name for f in dataclasses.fields(HashConfig)}
+    over = {}
+    for item in assignments:
+        key, sep, val = item.partition("=")
+        field = key[len("hash."):] if key.startswith("hash.") else None
+        if not sep or field not in names:
+            raise SystemExit(f"--set {item!r}: expected hash.FIELD=VALUE with FIELD one of "
+                             f"{sorted(names)}")
+        try:
+            over[field] = json.loads(val)
+        except json.JSONDecodeError:
+            over[field] = val
+    return dataclasses.replace(model.config, **over)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--ckpt", required=True, help="run directory written by clrf train --out")
@@ -43,6 +66,9 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=40, help="timed steps (default 40)")
     ap.add_argument("--device", default=None, help="CLRF_DEVICE-style spec")
     ap.add_argument("--json", default=None, help="write the figures here too")
+    ap.add_argument("--set", action="append", default=[], metavar="hash.FIELD=VALUE",
+                    help="profile with a hash model option changed (e.g. hash.train_t_stop=0 "
+                         "or hash.batch_samples=262144); repeatable")
     a = ap.parse_args(argv)
 
     from clrf.runtime.device import Device
@@ -54,6 +80,8 @@ def main(argv=None):
     ds = checkpoint_dataset(state, a.data)
     rays = training_rays(dev, ds, cfg.train.max_train_images)
     it0 = int(state.get("iteration", 0))
+    if a.set:                    # the untimed steps below adapt the batch to it
+        model.config = changed_config(model, a.set)
 
     def step(i):
         n = model.batch_size
