@@ -446,8 +446,14 @@ inline void load_input(const int n, const int r0, __global const float *src, con
 /* Forward of tiles of MLP_ROWS samples: one work-item per tile (n_tiles = ceil(n / MLP_ROWS)).
  * x_enc [n, MLP_IN], d_enc [n, MLP_DIR_IN]; A [n_tiles*MLP_ROWS, NSLOT] receives every
  * activation (kept for the backward); sigma [n], rgb [n, 3]. */
-/* The trunk and the head of one tile (inputs loaded): A's slots up to SL_HD, sigma activated. */
-inline void trunk_forward(__global const float *params_t, __global float *A) {
+/* The encoded positions of the tile at row r0 into A, then the trunk and the head: A's slots
+ * up to SL_HD, sigma activated. */
+inline void trunk_forward(const int n, const int r0, __global const float *x_enc,
+                          __global const float *params_t, __global float *A) {
+    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_X);
+#if MLP_SKIP >= 0
+    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_XS);
+#endif
     for (int l = 0; l < MLP_DEPTH; ++l) layer_forward(layer_desc(l), params_t, A, HIDDEN_ACT);
     layer_forward(layer_desc(MLP_DEPTH), params_t, A, ACT_NONE);
     for (int r = 0; r < MLP_ROWS; ++r) {
@@ -471,11 +477,7 @@ __kernel void mlp_density(const int n, __global const float *x_enc,
     const int r0 = tile * MLP_ROWS;
     if (r0 >= n) return;
     __global float *A = A_all + (size_t)r0 * NSLOT;
-    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_X);
-#if MLP_SKIP >= 0
-    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_XS);
-#endif
-    trunk_forward(params_t, A);
+    trunk_forward(n, r0, x_enc, params_t, A);
     for (int r = 0; r < MLP_ROWS && r0 + r < n; ++r)
         sigma_out[r0 + r] = A[(size_t)r * NSLOT + SL_HD];
 }
@@ -487,12 +489,8 @@ __kernel void mlp_forward(const int n, __global const float *x_enc, __global con
     const int r0 = tile * MLP_ROWS;
     if (r0 >= n) return;
     __global float *A = A_all + (size_t)r0 * NSLOT;
-    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_X);
-#if MLP_SKIP >= 0
-    load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_XS);
-#endif
     load_input(n, r0, d_enc, MLP_DIR_IN, DIN_P, A, SL_DV);
-    trunk_forward(params_t, A);
+    trunk_forward(n, r0, x_enc, params_t, A);
     for (int l = MLP_DEPTH + 1; l < NLAYER - 1; ++l)
         layer_forward(layer_desc(l), params_t, A, HIDDEN_ACT);
     layer_forward(layer_desc(NLAYER - 1), params_t, A, ACT_SIGMOID);

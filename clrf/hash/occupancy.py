@@ -6,6 +6,8 @@ file's header; the sampler that reads it is clrf/hash/march.py).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
@@ -20,7 +22,6 @@ def sweep_stride(n_cells: int) -> int:
     """The stride of the measuring sweep (cl/hash_occ.cl): the odd number nearest 0.618 of
     n_cells that is coprime with it (1 for n_cells <= 2), so that p -> p * stride mod n_cells
     is a permutation that scatters neighbouring positions over the grid."""
-    import math
     if n_cells <= 2:
         return 1
     s = int(0.6180339887 * n_cells) | 1
@@ -84,6 +85,7 @@ class OccupancyGrid:
             m = min(POINTS_PER_LAUNCH, int(n_points) - j0)
             cells = cla.empty(q, m, np.int32)
             xyz = cla.empty(q, (m, 3), np.float32)
+            # launch j0's jitter key: the first launch's own key, later ones shifted past it
             launch(dev, self._k("occ_points"), m,
                    (np.int32(m), np.uint32((key + j0 * 4) & 0xFFFFFFFF),
                     np.uint32((start + j0) % self.n_cells), np.uint32(self.stride),
