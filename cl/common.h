@@ -9,11 +9,14 @@
 #ifndef CLRF_COMMON_H
 #define CLRF_COMMON_H
 
-#ifdef __clang__
+#if defined(__clang__) && defined(__has_warning)
 /* Clang on x86 without AVX-512 (PoCL's CPU target) warns that passing float16 to a builtin
  * "changes the ABI" (-Wpsabi). The builtins are compiled by the same compiler for the same
- * target as the kernels, so caller and callee agree; the warning says nothing about our code. */
+ * target as the kernels, so caller and callee agree; the warning says nothing about our code.
+ * Only where the compiler knows the group: NVIDIA's clang warns of an unknown one. */
+#if __has_warning("-Wpsabi")
 #pragma clang diagnostic ignored "-Wpsabi"
+#endif
 #endif
 
 /* The helpers of the grid march (march.h, volrend.h, sh.h, ray.h, grid_render.cl) are always
@@ -35,13 +38,18 @@ CLRF_INLINE float safe_div(float a, float b) { return b != 0.0f ? a / b : 0.0f; 
 /* Opacity 1 - exp(-tau) of a segment with optical depth tau >= 0, the one opacity function of
  * every renderer (grid and NeRF). As accurate as -expm1(-tau) but without its out-of-line
  * expm1 call, which cost a fifth of the forward march on PoCL:
- * tau <= ALPHA_SERIES_MAX: Taylor series tau - tau^2/2! + ... + tau^9/9! in Horner form
- * (truncation < tau^10/10! <= 2.7e-10, far below float rounding); above: 1 - exp(-tau), whose
- * rounding error is at most ulp(exp(-tau)) / (1 - exp(-0.5)) ~ 1.3 ulp of the result. */
-#define ALPHA_SERIES_MAX 0.5f
+ * tau <= ALPHA_SERIES_MAX: the series tau * sum_k (-tau)^k / (k+1)!, k = 0..10, in Horner form
+ * (truncation < tau^12/12! <= 3e-11 at 0.7, far below float rounding; about 1.4 ulp of
+ * rounding in all); above: 1 - exp(-tau). The split lies above ln 2, so exp(-tau) < 0.5 <
+ * 1 - exp(-tau) there: an error of e ulp in exp costs at most e/2 ulp of the result, about
+ * 1.5 ulp for OpenCL's 3-ulp bound on exp. (Split at 0.5 it cost twice that: NVIDIA's exp
+ * gave 2.2 ulp.) */
+#define ALPHA_SERIES_MAX 0.7f
 CLRF_INLINE float alpha_of_tau(float tau) {
     if (tau > ALPHA_SERIES_MAX) return 1.0f - exp(-tau);
-    float r = -1.0f / 362880.0f;           /* -1/9! ... alternating coefficients 1/k! */
+    float r = 1.0f / 39916800.0f;          /* 1/11! ... 1/1!, each step r = r * (-tau) + 1/k! */
+    r = fma(r, -tau, 1.0f / 3628800.0f);
+    r = fma(r, -tau, 1.0f / 362880.0f);
     r = fma(r, -tau, 1.0f / 40320.0f);
     r = fma(r, -tau, 1.0f / 5040.0f);
     r = fma(r, -tau, 1.0f / 720.0f);
@@ -70,16 +78,23 @@ CLRF_INLINE float3 load3(__global const float *a, const size_t i) {
     return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);
 }
 
-/* Atomic float add on global memory. Native where the device has it, else a compare-and-swap
+/* Atomic float add on global memory. Native where the device has it (or inline PTX on NVIDIA,
+ * whose OpenCL has no float atomics), else a compare-and-swap
  * loop on the bit pattern (portable to every OpenCL 1.2 device). Every access to *p is atomic:
  * the loop starts from a guess of 0.0f (the value of a freshly zeroed gradient buffer) instead
  * of a plain read, which would race with other work-items' atomics (OpenCL memory model;
  * Oclgrind --data-races reports it). A wrong guess costs one compare-and-swap, which returns
  * the current value atomically. */
+#ifndef CLRF_PTX_ATOMICS
+#define CLRF_PTX_ATOMICS 0   /* 1 (the host, after a probe: clrf/runtime/programs.py): NVIDIA */
+#endif
 CLRF_INLINE void atomic_add_f(volatile __global float *p, float v) {
 #if CLRF_NATIVE_FLOAT_ATOMICS && defined(__opencl_c_ext_fp32_global_atomic_add)
     atomic_fetch_add_explicit((volatile __global atomic_float *)p, v, memory_order_relaxed,
                               memory_scope_device);
+#elif CLRF_PTX_ATOMICS
+    /* NVIDIA: the relaxed reduction in L2 that CUDA's atomicAdd compiles to, by inline PTX */
+    asm volatile("red.global.add.f32 [%0], %1;" : : "l"((ulong)p), "f"(v) : "memory");
 #else
     union { unsigned int u; float f; } old, upd;
     old.u = 0u;

@@ -18,7 +18,7 @@
  *
  * Compositing, with sigma_k = max(trilerp(density), 0), tau_k = sigma_k delta_k:
  *   alpha_k = 1 - exp(-tau_k) = -expm1(-tau_k),  T_k = exp(-sum_{j<k} tau_j)  (log space)
- *   (alpha_of_tau in common.h: series below tau = 0.5, 1 - exp(-tau) above; within 2 ulp)
+ *   (alpha_of_tau in common.h: series up to tau = 0.7, 1 - exp(-tau) above; within 2 ulp)
  *   w_k = T_k alpha_k,  rgb = sum_k w_k c_k + T_end * bg,  acc = sum_k w_k,
  *   depth = sum_k w_k t_k (t_k the world distance of sample k; not divided by acc),
  *   c_k = max(0, sum_b sh_{ch,b}(x_k) Y_b(d) + 0.5)  (svox2's colour activation).

@@ -40,8 +40,10 @@
 #endif
 /* SPIR targets (Mesa rusticl, Intel's CPU runtime, Oclgrind define __SPIR__ or __SPIR64__)
    get no software prefetch: SPIR-V has no counterpart of llvm.prefetch, and rusticl 22.3's SPIR-V
-   translator ends the host process on llvm.prefetch instead of failing the build. */
-#if CLRF_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
+   translator ends the host process on llvm.prefetch instead of failing the build. The host sets
+   CLRF_BUILTIN_PREFETCH for PoCL only: NVIDIA's compiler rejects __builtin_prefetch of a __global
+   pointer (an address-space change), and gets OpenCL C's prefetch() too. */
+#if CLRF_PREFETCH && CLRF_BUILTIN_PREFETCH && !defined(__SPIR__) && !defined(__SPIR64__)
 #define CLRF_PREFETCH_LINE(p) __builtin_prefetch((p), 0, 3)
 #elif CLRF_PREFETCH
 #define CLRF_PREFETCH_LINE(p) prefetch((p), 1)  /* OpenCL C's own: a real prefetch on Intel */

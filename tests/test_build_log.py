@@ -161,7 +161,9 @@ def test_fixture_diagnostics(stem):
     if case == "header_warning":
         assert len(found) == 1, [d.text for d in found]
         d = found[0]
-        assert (d.severity, (d.line, d.col)) == ("warning", HEADER_SITE)
+        # NVIDIA's compiler (CUDA 13.0) makes this conversion an error and fails the build
+        severity = "warning" if meta["built"] else "error"
+        assert (d.severity, (d.line, d.col)) == (severity, HEADER_SITE)
         assert d.file.endswith("header_warning.h"), d.file
         if "In file included from" in log:
             assert d.lines[0].startswith("In file included from"), d.lines

@@ -361,3 +361,28 @@ def test_probe_time_discounts_other_load():
     assert run_seconds(0.030, 0.060, 2, gpu=False) == pytest.approx(0.030)   # quiet
     assert run_seconds(0.030, 0.090, 2, gpu=False) == pytest.approx(0.030)   # host spinning
     assert run_seconds(0.090, 0.001, 2, gpu=True) == pytest.approx(0.090)
+
+
+def test_ptx_atomics_only_where_the_probe_adds_right(capsys):
+    """Float atomic adds go through inline PTX only on a device named NVIDIA whose probe kernel
+    built and added right (there, the real driver must pass it). A CPU device that claims to be
+    NVIDIA fails the probe (its compiler has no PTX) and keeps the compare-and-swap loop, saying
+    so; other devices are not probed."""
+    import copy
+    import dataclasses
+    from clrf.runtime import programs
+    from clrf.runtime.tuning import implementation
+    dev = device.Device()
+    if implementation(dev.caps.platform) == "nvidia":
+        assert programs.ptx_atomics(dev) is True
+        assert programs.build_options(dev)["CLRF_PTX_ATOMICS"] == 1
+        return
+    assert programs.build_options(dev)["CLRF_PTX_ATOMICS"] == 0
+    fake = copy.copy(dev)
+    fake.caps = dataclasses.replace(dev.caps, platform="NVIDIA CUDA", float_atomics=False)
+    programs._ptx_checked.pop(fake.cl_device.int_ptr, None)
+    try:
+        assert programs.ptx_atomics(fake) is False
+        assert "compare-and-swap" in capsys.readouterr().err
+    finally:
+        programs._ptx_checked.pop(fake.cl_device.int_ptr, None)

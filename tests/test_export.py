@@ -179,6 +179,7 @@ def test_cli_export_trained_scene(trained, tmp_path):
 
 
 def test_cli_render_video_and_depth(trained, tmp_path, capsys):
+    pytest.importorskip("imageio_ffmpeg", reason="--video needs imageio-ffmpeg (clrf[video])")
     import imageio.v3 as iio
     out = tmp_path / "v"
     assert run_cli("--quiet", "render", "--ckpt", trained, "--views", "orbit", "--frames", 5,
@@ -317,6 +318,7 @@ def test_cli_export_bad_level_as_a_process(trained, tmp_path):
 
 def test_write_video_odd_size(tmp_path):
     """H.264 needs even sizes: odd frames are edge-padded; frame count and content survive."""
+    pytest.importorskip("imageio_ffmpeg", reason="videos need imageio-ffmpeg (clrf[video])")
     import imageio.v3 as iio
     from clrf.cli.export import write_video
     frames = np.zeros((3, 33, 35, 3), np.uint8)

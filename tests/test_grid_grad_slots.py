@@ -6,6 +6,9 @@ concurrently running work-items fall back to the atomic scratch).
 Two backward calls into the same buffers must give twice the gradient, and a batch after
 another one through other cells only its own: the scratch copies are left zero after each
 call. ``touched`` must mark every row with a non-zero gradient.
+
+A GPU without acquire/release atomics refuses slots (test_slots_refused_where_locks_order_nothing);
+there the slot tests skip, and the slots = 0 cases test its atomic path.
 """
 from types import SimpleNamespace
 
@@ -18,9 +21,17 @@ from clrf.testing import reference
 import clrf.grid.render as render
 from clrf.grid.render import _slot_buffers, grad_slots, launch, render_backward_device
 from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL
-from clrf.runtime.tuning import Tuning
+from clrf.runtime.device import DeviceError
+from clrf.runtime.tuning import Tuning, slots_order_memory
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _with_slots(device, **kw):
+    """device.with_tuning(**kw), skipping where the device refuses gradient slots."""
+    if kw.get("grad_slots", 0) > 0 and not slots_order_memory(device.caps):
+        pytest.skip(f"{device.caps.name} refuses gradient slots (no acquire/release atomics)")
+    return device.with_tuning(**kw)
 
 
 def _scene(seed=3, reso=(9, 7, 8), degree=2, keep=0.6, dmin=0.0):
@@ -46,7 +57,7 @@ def test_grad_slots_match_reference(device, slots, locks, grad_mode, record, dmi
     (recorded, then passed over by the backward) between ones that have sigma > 0. locks:
     tuning.grad_locks (0: private copies; 1: 2-voxel blocks, where the two compute units'
     work-items often want the same lock; 4: the CPU default, one block here)."""
-    device = device.with_tuning(grad_slots=slots, sample_record=record, grad_locks=locks)
+    device = _with_slots(device, grad_slots=slots, sample_record=record, grad_locks=locks)
     dens, sh, mask, o, d = _scene(dmin=dmin)
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
     assert grad_slots(grid) == slots
@@ -82,7 +93,7 @@ def test_scratch_left_over_from_another_batch(device, slots, locks):
     """Nothing of one batch's scratch copies leaks into the next: a batch after another batch
     through other cells gets exactly its own gradient (enough rays that every compute unit
     holds a private copy)."""
-    device = device.with_tuning(grad_slots=slots, grad_locks=locks)
+    device = _with_slots(device, grad_slots=slots, grad_locks=locks)
     dens, sh, mask, o, d = _scene(seed=5)
     o, d = np.tile(o, (6, 1)), np.tile(d, (6, 1))   # enough work-groups for every compute unit
     grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX, mask=mask)
@@ -110,7 +121,7 @@ def test_block_lock_held_elsewhere(device, held):
     buffer for the whole call) the gradient is still the reference's, the scratch copy is used
     exactly when a lock was held, and it is left zero. The rays fit one work-group, so one
     work-item runs at a time and no lock is ever taken by the call itself."""
-    device = device.with_tuning(grad_slots=2, sample_record=True, grad_locks=1,
+    device = _with_slots(device, grad_slots=2, sample_record=True, grad_locks=1,
                                 grid_local_size=64)
     dens, sh, mask, o, d = _scene(seed=7)
     o, d = o[:64], d[:64]
@@ -144,7 +155,7 @@ def test_block_lock_held_elsewhere(device, held):
     gdd, gsd = grid.rows_to_dense(gd.get(), gs.get())
     np.testing.assert_allclose(gdd, want["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     np.testing.assert_allclose(gsd, want["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
-    if held == "none":
+    if held == "none" and device.caps.type == "cpu":   # a GPU runs the group's items at once
         assert seen["scratch_rows"] == 0
     else:
         assert seen["scratch_rows"] > 0
@@ -159,9 +170,28 @@ def test_scratch_memory_rule():
     with block locks one copy per grid, without them one per slot (1 M rows of SH2: 113 MB a
     copy, 150 MB allowed)."""
     def grid(locks):
-        caps = SimpleNamespace(global_mem_size=4 * 150 * 2 ** 20)
+        caps = SimpleNamespace(global_mem_size=4 * 150 * 2 ** 20, type="cpu")
         dev = SimpleNamespace(caps=caps, tuning=Tuning(grad_slots=2, grad_locks=locks))
         return SimpleNamespace(device=dev, sh_dim=27, density=np.zeros(2 ** 20, np.float32))
 
     assert grad_slots(grid(4)) == 2
     assert grad_slots(grid(0)) == 0
+
+
+@pytest.mark.parametrize("kind,acq_rel,ok", [("cpu", False, True), ("cpu", True, True),
+                                             ("gpu", True, True), ("gpu", False, False)])
+def test_slots_refused_where_locks_order_nothing(kind, acq_rel, ok):
+    """Slots on a GPU whose locks order nothing between work-groups (no acquire/release
+    atomics: NVIDIA's driver) are refused with the fix, not run to wrong gradients; the
+    float-atomic path (0 slots) runs everywhere."""
+    def grid(slots):
+        caps = SimpleNamespace(global_mem_size=2 ** 34, type=kind, acq_rel=acq_rel, name="dev")
+        dev = SimpleNamespace(caps=caps, tuning=Tuning(grad_slots=slots, grad_locks=4))
+        return SimpleNamespace(device=dev, sh_dim=27, density=np.zeros(64, np.float32))
+
+    assert grad_slots(grid(0)) == 0
+    if ok:
+        assert grad_slots(grid(2)) == 2
+    else:
+        with pytest.raises(DeviceError, match="CLRF_GRAD_SLOTS=0"):
+            grad_slots(grid(2))

@@ -553,6 +553,8 @@ def test_bonsai_contracted_through_the_cli(data_dir, tmp_path):
 
     from clrf.cli.main import main as cli
     from clrf.outputs import checkpoint
+    if not (data_dir / "bonsai_800").is_dir():
+        pytest.skip(f"no bonsai_800 in {data_dir}")
     out = tmp_path / "run"
     rc = cli(["train", "--model", "hash", "--data", str(data_dir / "bonsai_800"), "--out",
               str(out), "--max-seconds", "600", "--set", "train.max_iters=40",

@@ -1,4 +1,4 @@
-"""alpha_of_tau (cl/common.h: series below 0.5, 1 - exp(-tau) above) against float64
+"""alpha_of_tau (cl/common.h: series up to 0.7, 1 - exp(-tau) above) against float64
 -expm1(-tau) from 1e-30 to 1e30: within 2 float32 ulp of the exact value everywhere."""
 import numpy as np
 import pyopencl.array as cla
@@ -14,7 +14,7 @@ class _G:   # grid_program needs only these attributes
 
 def test_alpha_of_tau_accuracy(device):
     tau = np.concatenate([np.logspace(-30, 30, 4001), np.linspace(0, 2, 4001),
-                          [0.5, np.nextafter(np.float32(0.5), 1), np.inf]]).astype(np.float32)
+                          [0.5, 0.7, np.nextafter(np.float32(0.7), 1), np.log(2), np.inf]]).astype(np.float32)
     q = device.queue
     t = cla.to_device(q, tau)
     out = cla.empty(q, tau.size, np.float32)

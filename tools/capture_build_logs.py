@@ -116,7 +116,8 @@ def capture(pi: int, di: int, dev, out: Path, name: str | None) -> list:
     caps = probe_capabilities(dev)
     impl = name or impl_name(dev)
     ctx = cl.Context([dev])
-    shim = SimpleNamespace(caps=caps)
+    # what build_flags reads of a clrf Device (the PTX probe builds and runs a kernel)
+    shim = SimpleNamespace(caps=caps, cl_device=dev, context=ctx, queue=cl.CommandQueue(ctx))
     written = []
     for case, path, defines, extra in cases(caps):
         if case == "clean_cached" and has_src_build_cache(dev):

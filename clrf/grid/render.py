@@ -9,7 +9,9 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from ..runtime.device import DeviceError
 from ..runtime.programs import launch, upload
+from ..runtime.tuning import slots_order_memory
 from ..runtime.validate import check_array, check_positive, check_rays
 
 T_STOP = 1e-4          # early-termination transmittance (cl/grid_render.cl T_STOP)
@@ -91,6 +93,12 @@ def grad_slots(grid) -> int:
     not fit in a quarter of the device memory."""
     caps = grid.device.caps
     s = max(0, int(grid.device.tuning.grad_slots))
+    if s > 0 and not slots_order_memory(caps):
+        raise DeviceError(
+            f"grad_slots {s} (gradient copies under locks) on {caps.type} '{caps.name}', which "
+            "has no OpenCL C 3.0 acquire/release atomics: its locks would order nothing between "
+            "work-groups and the gradients would be wrong. Use the float-atomic path: "
+            "CLRF_GRAD_SLOTS=0 (the default on GPUs)")
     row_bytes = 4 * (1 + grid.sh_dim) + 1
     scratch = grid.device.tuning.scratch_copies(s) * grid.density.shape[0] * row_bytes
     if s > 0 and scratch > caps.global_mem_size // 4:

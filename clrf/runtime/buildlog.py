@@ -50,6 +50,10 @@ CHATTER = (
     (r"Device .* failed to build the program", "PoCL"),
     # Mesa rusticl 22.3 (clc): closes the log of a failed build.
     (r"Error executing LLVM compilation action\.", "Mesa rusticl"),
+    # NVIDIA's OpenCL (CUDA 13.0, driver 580): one line per kernel of every program, its own
+    # code or not (the kernel attribute wins over noinline), in every log.
+    (r"\(\): Warning: Function \w+ is a kernel, so overriding noinline attribute\. "
+     r"The function may be inlined when called\.", "NVIDIA"),
     # clang (every clang-based compiler): the count after the diagnostics themselves.
     (r"\d+ (warnings?|errors?)( and \d+ (warnings?|errors?))? generated\.", "clang"),
 )

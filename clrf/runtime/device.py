@@ -57,6 +57,7 @@ class Capabilities:
     int64_atomics: bool
     native_float_width: int = 1  # native float vector width: 4 SSE/NEON, 8 AVX2, 16 AVX-512
     extensions: tuple = field(default=(), repr=False)
+    cr_divide_sqrt: bool = False  # CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT: builds may ask for it
     acq_rel: bool = False      # OpenCL C 3.0 with __opencl_c_atomic_order_acq_rel and
     #                            __opencl_c_atomic_scope_device: locks that order plain memory
     #                            between work-groups (cl/common.h lock_try, CLRF_ACQ_REL)
@@ -115,6 +116,8 @@ def probe_capabilities(dev: "cl.Device") -> Capabilities:
         native_float_width=max(1, int(dev.native_vector_width_float)),
         extensions=ext,
         acq_rel=has_acq_rel(dev),
+        cr_divide_sqrt=bool(getattr(dev, "single_fp_config", 0)
+                            & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
     )
 
 

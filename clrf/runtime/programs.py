@@ -12,6 +12,7 @@ implementation tested (tests/test_build_log.py).
 """
 from __future__ import annotations
 
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -21,6 +22,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from .buildlog import diagnostics
+from .tuning import implementation
 
 
 class BuildError(RuntimeError):
@@ -37,12 +39,59 @@ def cl_dir() -> Path:
 
 
 def build_options(device) -> dict:
-    """Defines that follow from the device's capabilities (never from the scene)."""
+    """Defines that follow from the device's capabilities (never from the scene):
+    CLRF_BUILTIN_PREFETCH where the compiler takes clang's ``__builtin_prefetch`` on global
+    pointers (PoCL's CPU targets; NVIDIA's compiler rejects the address-space change, SPIR
+    targets get OpenCL C's ``prefetch()``), CLRF_PTX_ATOMICS where float atomic adds go
+    through inline PTX (NVIDIA, ``ptx_atomics``)."""
     caps = device.caps
     return {
         "CLRF_NATIVE_FLOAT_ATOMICS": int(caps.float_atomics),
         "CLRF_HAS_FP64": int(caps.fp64),
+        "CLRF_BUILTIN_PREFETCH": int(implementation(caps.platform) == "pocl"),
+        "CLRF_PTX_ATOMICS": int(ptx_atomics(device)),
     }
+
+
+# NVIDIA's OpenCL reports no float atomics (cl_ext_float_atomics), so atomic_add_f falls back to
+# a compare-and-swap loop; its compiler takes inline PTX, whose red.global.add.f32 is the native
+# reduction that CUDA's atomicAdd compiles to. Whether it builds and adds right is measured once
+# per device (a wrong or failed probe keeps the loop).
+PTX_PROBE = r"""
+__kernel void ptx_probe(__global float *out, const int n) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    volatile __global float *p = out + (i & 7);
+    asm volatile("red.global.add.f32 [%0], %1;" : : "l"((ulong)p), "f"(0.5f) : "memory");
+}
+"""
+_ptx_checked: dict = {}
+
+
+def ptx_atomics(device) -> bool:
+    """Whether float atomic adds use inline PTX on ``device``: NVIDIA devices without native
+    float atomics, where a probe kernel built and added 0.5 from 2^16 work-items into 8 floats
+    exactly. ``CLRF_PTX_ATOMICS=0`` keeps the compare-and-swap loop (for A/B runs)."""
+    caps = device.caps
+    if (caps.float_atomics or implementation(caps.platform) != "nvidia"
+            or os.environ.get("CLRF_PTX_ATOMICS", "").strip() == "0"):
+        return False
+    key = device.cl_device.int_ptr
+    if key not in _ptx_checked:
+        ok = False
+        try:
+            n = 1 << 16
+            prg = cl.Program(device.context, PTX_PROBE).build()
+            out = cla.zeros(device.queue, 8, np.float32)
+            prg.ptx_probe(device.queue, (n,), None, out.data, np.int32(n))
+            ok = bool(np.all(out.get() == n / 16))
+        except (cl.Error, cl.RuntimeError):
+            ok = False
+        if not ok:
+            print("clrf: inline PTX float atomics did not build or add right here; "
+                  "float atomic adds use compare-and-swap", file=sys.stderr)
+        _ptx_checked[key] = ok
+    return _ptx_checked[key]
 
 
 def _fmt(v) -> str:
@@ -66,6 +115,11 @@ def build_flags(device, defines: dict, fast_math: bool = False) -> list:
     opts = [f"-I{cl_dir()}"] + [f"-D{k}={_fmt(v)}" for k, v in sorted(allopts.items())]
     if allopts.get("CLRF_ACQ_REL"):
         opts.append("-cl-std=CL3.0")     # C11-style atomics with memory order and scope
+    if device.caps.type != "cpu" and getattr(device.caps, "cr_divide_sqrt", False):
+        # GPUs divide to 2.5 ulp by default; correctly rounded, a voxel centre (x + 0.5) * r / r
+        # lands exactly on x + 0.5 as on CPUs and in the float64 references (grid resampling
+        # decides allocation by "weight > 0" there)
+        opts.append("-cl-fp32-correctly-rounded-divide-sqrt")
     if fast_math:
         opts.append("-cl-fast-relaxed-math")
     return opts

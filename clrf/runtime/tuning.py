@@ -85,6 +85,16 @@ ENV = {
 }
 
 
+def slots_order_memory(caps) -> bool:
+    """Whether the grid backward's gradient slots and block locks (GRAD_SLOTS > 0) give right
+    gradients on a device with ``caps``: with acquire/release atomics (by the OpenCL memory
+    model), or on a CPU device, whose compute units run one work-item at a time (what a user
+    who forces them there relies on). A GPU without them runs many work-groups at once, and
+    OpenCL 1.2 fences order nothing between them: on NVIDIA's driver (no acquire/release)
+    half the gradient entries of the slot tests came out wrong, some by 0.5 on values near 1."""
+    return caps.type == "cpu" or bool(getattr(caps, "acq_rel", False))
+
+
 @dataclass(frozen=True)
 class Tuning:
     """How the kernels run on one device. Results do not depend on it (except fast_math)."""

@@ -47,6 +47,8 @@ def _peak_fma(ctx, p):
     prg = dev.program("bench.cl", {"FMA_ITERS": iters, "FMA_CHAINS": chains, "FMA_VEC": vec})
     q = dev.queue
     n = p["items"]
+    if dev.caps.type != "cpu":   # as the device probe: a GPU needs ~2048 items per unit in flight
+        n = max(n, dev.caps.compute_units * 2048)
     out = cla.empty(q, n, np.float32)
     k = prg.kernel("bench_fma")
     k.set_args(out.data, np.float32(0.999), np.float32(1e-3))
