@@ -386,3 +386,13 @@ def test_ptx_atomics_only_where_the_probe_adds_right(capsys):
         assert "compare-and-swap" in capsys.readouterr().err
     finally:
         programs._ptx_checked.pop(fake.cl_device.int_ptr, None)
+
+
+def test_float_atomics_text_names_the_path():
+    import dataclasses
+    caps = device.probe_capabilities(device.list_devices()[0][2])
+    assert device.float_atomics_text(dataclasses.replace(caps, float_atomics=True)) == "native"
+    nv = dataclasses.replace(caps, float_atomics=False, platform="NVIDIA CUDA")
+    assert "PTX" in device.float_atomics_text(nv)
+    other = dataclasses.replace(caps, float_atomics=False, platform="Portable Computing Language")
+    assert device.float_atomics_text(other) == "emulated (CAS)"

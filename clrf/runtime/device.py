@@ -329,6 +329,16 @@ class Device:
         self.queue.finish()
 
 
+def float_atomics_text(caps) -> str:
+    """How atomic_add_f adds floats on a device with ``caps`` (cl/common.h)."""
+    from .tuning import implementation
+    if caps.float_atomics:
+        return "native"
+    if implementation(caps.platform) == "nvidia":
+        return "inline PTX red.add (after a probe kernel; else CAS)"
+    return "emulated (CAS)"
+
+
 def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
     """Text for ``clrf devices``: every device, its probe figure, capabilities and the default;
     ``workloads``: lines on each model kind's default (clrf/runtime/workload.py format_choices)."""
@@ -355,7 +365,7 @@ def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
         lines.append(f"      global mem    {c.global_mem_size / 2**30:.2f} GiB "
                      f"(max alloc {c.max_alloc_size / 2**30:.2f} GiB)")
         lines.append(f"      fp64 {'yes' if c.fp64 else 'no'}, float atomics "
-                     f"{'native' if c.float_atomics else 'emulated (CAS)'}, int64 atomics "
+                     f"{float_atomics_text(c)}, int64 atomics "
                      f"{'yes' if c.int64_atomics else 'no'}, native float vector width "
                      f"{c.native_float_width}")
     env = os.environ.get("CLRF_DEVICE", "") or "unset"
