@@ -54,17 +54,8 @@ def build_options(device) -> dict:
 
 
 # NVIDIA's OpenCL reports no float atomics (cl_ext_float_atomics), so atomic_add_f falls back to
-# a compare-and-swap loop; its compiler takes inline PTX, whose red.global.add.f32 is the native
-# reduction that CUDA's atomicAdd compiles to. Whether it builds and adds right is measured once
-# per device (a wrong or failed probe keeps the loop).
-PTX_PROBE = r"""
-__kernel void ptx_probe(__global float *out, const int n) {
-    const int i = get_global_id(0);
-    if (i >= n) return;
-    volatile __global float *p = out + (i & 7);
-    asm volatile("red.global.add.f32 [%0], %1;" : : "l"((ulong)p), "f"(0.5f) : "memory");
-}
-"""
+# a compare-and-swap loop; its compiler takes inline PTX (cl/ptx_probe.cl). Whether it builds and
+# adds right is measured once per device (a wrong or failed probe keeps the loop).
 _ptx_checked: dict = {}
 
 
@@ -81,7 +72,7 @@ def ptx_atomics(device) -> bool:
         ok = False
         try:
             n = 1 << 16
-            prg = cl.Program(device.context, PTX_PROBE).build()
+            prg = cl.Program(device.context, (cl_dir() / "ptx_probe.cl").read_text()).build()
             out = cla.zeros(device.queue, 8, np.float32)
             prg.ptx_probe(device.queue, (n,), None, out.data, np.int32(n))
             ok = bool(np.all(out.get() == n / 16))
