@@ -371,6 +371,34 @@ def test_step_gradients_match_reference_chain(device, path, contract, dense):
                                    atol=tol.HASH_STEP_GRAD_REL_TO_MAX * np.abs(want).max())
 
 
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_render_matches_reference_chain(device, oversample):
+    """A render (windows of bins, early termination at T < 1e-4) against the float64 chain at
+    samples x render_oversample bin centres: the finer render marches the finer bins."""
+    cfg = dataclasses.replace(SMALL, render_oversample=oversample, samples=40)
+    model = HashModel(device, cfg, near=1.5, far=4.5, bbox=BOX, background=(0.2, 0.5, 1.0))
+    rng = np.random.default_rng(12)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    model.occ.ema.set(np.where(rng.random(cfg.occ_res ** 3) < 0.7, 1.0, 0.0).astype(np.float32))
+    model.occ._threshold(0.5)
+    assert model.render_samples == 40 * oversample
+    o, d = _rays(32, seed=13)
+    out = model.render(o, d)
+    enc, net = model.enc, model.net
+    off, t, dt, xyz, vdir = rh.march_samples(o, d, model.render_samples, model.near, model.far,
+                                             model.occ.occ.get(), enc.lo, enc.inv_ext,
+                                             cfg.occ_res)
+    assert np.all(np.abs(dt - 3.0 / model.render_samples) < 1e-6) and len(t) > 32
+    x_enc = rh.hash_forward(xyz, enc.lo, enc.inv_ext, enc.res_host, enc.table.get())
+    sigma, rgb = rn.mlp_forward(net.params.get(), net.spec, net.layout, x_enc, rh.sh_encode(vdir))
+    want = rh.packed_forward(off, t, dt, sigma, rgb, model.background)
+    # early termination drops at most T_STOP = 1e-4 of a ray's colour
+    np.testing.assert_allclose(out["rgb"], want["rgb"], rtol=tol.RENDER_RTOL,
+                               atol=tol.RENDER_ATOL + 1e-4)
+    np.testing.assert_allclose(out["acc"], want["acc"], rtol=tol.RENDER_RTOL,
+                               atol=tol.RENDER_ATOL + 1e-4)
+
+
 def test_empty_grid_and_rays_missing_the_box(device):
     """An empty occupancy grid (or rays that miss the box) gives the background, a finite loss
     and no update: nothing stalls or divides by zero."""

@@ -35,6 +35,10 @@ class HashConfig:
     #                                 (all of space in the encoding, samples even in log t out to
     #                                 1000 box half-sizes); "off": the box only; "auto": on for
     #                                 unbounded 360 captures (the real360 scene preset)
+    render_oversample: int = 2      # renders march this many times `samples` bins: training's
+    #                                 jittered bins estimate the continuous integral, which a
+    #                                 render's fixed bin centres approximate better with more
+    #                                 (lego_400, 900 s model: 31.52 dB at 1x, 31.89 at 2x)
     perturb: bool = True            # jitter samples during training (never when rendering)
     train_t_stop: float = 1e-4      # a training step differentiates each ray only in front of
     #                                 its first point of transmittance below this (their
@@ -109,6 +113,8 @@ class HashConfig:
             (self.density_act in ("trunc_exp", "softplus"), "hash.density_act",
              "must be 'trunc_exp' or 'softplus'"),
             (1 <= self.samples <= 4096, "hash.samples", "must be in 1..4096"),
+            (1 <= self.render_oversample <= 8 and self.samples * self.render_oversample <= 8192,
+             "hash.render_oversample", "must be in 1..8 with samples * it <= 8192"),
             (self.contract in ("auto", "on", "off"), "hash.contract",
              "must be 'auto', 'on' or 'off'"),
             (1 <= self.occ_res <= 256, "hash.occ_res", "must be in 1..256"),
@@ -149,7 +155,7 @@ HASH_PRESETS = {
 
 
 # Checkpoints written before a field existed were trained as these values say: a fixed batch
-# of batch_rays rays, the box only, a learning rate that fell over lr_decay_steps, every
-# sample differentiated.
-OLDER_DEFAULTS = {"batch_samples": 0, "contract": "off", "lr_schedule": "steps",
-                  "train_t_stop": 0.0}
+# of batch_rays rays, renders at the training's sample count, the box only, a learning rate
+# that fell over lr_decay_steps, every sample differentiated.
+OLDER_DEFAULTS = {"batch_samples": 0, "render_oversample": 1, "contract": "off",
+                  "lr_schedule": "steps", "train_t_stop": 0.0}

@@ -312,7 +312,7 @@ class HashModel:
             raise ValueError("dirs: every direction must be non-zero")
         c, q = self.config, self.device.queue
         n = o.shape[0]
-        step = max(1, min(int(chunk), MAX_RENDER_SAMPLES // c.samples))
+        step = max(1, min(int(chunk), MAX_RENDER_SAMPLES // self.render_samples))
         out = {"rgb": np.zeros((n, 3), np.float32), "depth": np.zeros(n, np.float32),
                "acc": np.zeros(n, np.float32)}
         for s in range(0, n, step):
@@ -324,18 +324,24 @@ class HashModel:
         self.device.pool.free_held()   # a render's chunks are larger than a step's: not kept
         return out
 
+    @property
+    def render_samples(self) -> int:
+        """Bins per ray of a render: config.samples times config.render_oversample."""
+        return self.config.samples * self.config.render_oversample
+
     def _render_chunk(self, od, dd):
         """Per-ray composite state [n, STATE] (numpy) of rays od/dd (device), marched in
         windows of RENDER_WINDOW bins; a ray stops once its transmittance is below the
         kernel's HASH_T_STOP (early ray termination)."""
-        c, dev, q = self.config, self.device, self.device.queue
+        dev, q = self.device, self.device.queue
         n = int(od.shape[0])
         state = cla.zeros(q, (n, STATE), np.float32)
         alive = cla.empty(q, n, np.uint8)
         alive.fill(np.uint8(1))
-        for k0 in range(0, c.samples, RENDER_WINDOW):
-            pk = march(dev, self.occ, od, dd, c.samples, self.near, self.far, False, 0, k0,
-                       min(c.samples, k0 + RENDER_WINDOW), alive, self.contraction)
+        S = self.render_samples
+        for k0 in range(0, S, RENDER_WINDOW):
+            pk = march(dev, self.occ, od, dd, S, self.near, self.far, False, 0, k0,
+                       min(S, k0 + RENDER_WINDOW), alive, self.contraction)
             if pk.m == 0:
                 continue
             sigma, rgb = self._fields(pk.xyz, pk.vdir)
