@@ -29,3 +29,17 @@ __kernel void gather_batch(const int n, const uint seed, const uint n_src,
     }
     out_idx[i] = (int)j;
 }
+
+/* recomposite: a batch's colours (gathered by gather_batch, indices idx) moved from the
+ * background they were composited on to another one, delta = new - old:
+ *   c += (1 - alpha[idx]) delta   (c = rgb alpha + old (1 - alpha) of an RGBA capture).
+ * Mirrored by reference.recomposite. */
+__kernel void recomposite(const int n, __global const int *idx, __global const float *alpha,
+                          const float4 delta, __global float *colours) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float clear = 1.0f - alpha[idx[i]];
+    colours[3 * i] += clear * delta.x;
+    colours[3 * i + 1] += clear * delta.y;
+    colours[3 * i + 2] += clear * delta.z;
+}

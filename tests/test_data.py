@@ -149,11 +149,18 @@ def test_blender_lego(data_dir):
     np.testing.assert_array_equal(black.images[0][tuple(z)], [0.0, 0.0, 0.0])
     np.testing.assert_allclose(black.images[0][tuple(part)], raw[tuple(part)][:3] * a, atol=1e-6)
     np.testing.assert_array_equal(black.poses[0], d.poses[0])
+    # the coverage is kept for training on random backgrounds: the same alpha, [N, H, W]
+    assert d.alpha.shape == (6, 400, 400) and d.alpha.dtype == np.float32
+    np.testing.assert_allclose(d.alpha[0], alpha, atol=1e-7)
 
 
 def test_blender_downscale(data_dir):
     d = load_dataset(data_dir / "lego_400", max_images=1, splits=("train",), downscale=4)
     _check_common(d, 1, (100, 100))
+    # the coverage is box-averaged like the colours (before compositing)
+    raw = iio.imread(data_dir / "lego_400" / "train" / "r_0.png").astype(np.float64) / 255.0
+    want = raw[..., 3].reshape(100, 4, 100, 4).mean(axis=(1, 3))
+    np.testing.assert_allclose(d.alpha[0], want, atol=1e-6)
     f = 0.5 * 400 / np.tan(0.5 * 0.6911112070083618) / 4
     np.testing.assert_allclose(d.intrinsics, [f, f, 50, 50])
 

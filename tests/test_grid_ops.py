@@ -259,6 +259,33 @@ def test_gather_batch_vs_reference(device):
     assert counts.min() > 19000  # uniform over the sources
 
 
+def test_batch_recomposited_on_another_background(device):
+    """RGBA rays: a batch's colours moved from the background they were composited on to
+    another one (random-background training) match the float64 reference; without alpha the
+    store refuses."""
+    from clrf.training.trainer import RayStore
+    rng = np.random.default_rng(1)
+    n_src, old, new = 999, (1.0, 1.0, 1.0), (0.25, 0.8, 0.0)
+    rgb = rng.uniform(size=(n_src, 3))
+    alpha = rng.uniform(size=n_src)
+    alpha[:100], alpha[100:200] = 0.0, 1.0           # fully clear and fully covered rays
+    c = (rgb * alpha[:, None] + np.asarray(old) * (1 - alpha[:, None])).astype(np.float32)
+    o = rng.normal(size=(n_src, 3)).astype(np.float32)
+    store = RayStore(device, o, o, c, alpha.astype(np.float32), old)
+    _, _, bc, idx = store.batch(seed=5, n=300, background=new)
+    r = ref.batch_indices(5, 300, n_src)
+    np.testing.assert_array_equal(idx.get(), r)
+    want = ref.recomposite(c[r], alpha[r].astype(np.float32), old, new)
+    np.testing.assert_allclose(bc.get(), want, rtol=0, atol=2e-7)
+    # what it stands for: the same rgb over the new background
+    np.testing.assert_allclose(bc.get(), rgb[r] * alpha[r, None] + np.asarray(new)
+                               * (1 - alpha[r, None]), rtol=0, atol=1e-6)
+    _, _, plain, _ = store.batch(seed=5, n=300)           # no background: the colours as stored
+    np.testing.assert_array_equal(plain.get(), c[r])
+    with pytest.raises(ValueError, match="alpha"):
+        RayStore(device, o, o, c).batch(seed=5, n=8, background=new)
+
+
 @pytest.mark.parametrize("lambda_beta", [0.0, 0.05])
 def test_fused_mse_and_beta_prior_vs_reference(device, lambda_beta):
     """Training's fused backward (GRAD_MODE 1): MSE against targets plus the beta prior on each

@@ -304,7 +304,7 @@ def test_first_occupancy_update_measures_every_cell(device):
     assert not model.maybe_update_occupancy(4) and model.maybe_update_occupancy(5)
 
 
-def _reference_step(model, o, d, target):
+def _reference_step(model, o, d, target, background=None):
     """Loss and gradients of one step (no jitter) through the float64 references."""
     c = model.config
     enc, net = model.enc, model.net
@@ -326,7 +326,8 @@ def _reference_step(model, o, d, target):
             t, dt, xyz, x_enc, d_enc = t[sel], dt[sel], xyz[sel], x_enc[sel], d_enc[sel]
             sigma, rgb = sigma[sel], rgb[sel]
     scale = 1.0 / (3 * o.shape[0])
-    g = rh.packed_backward(off, t, dt, sigma, rgb, model.background, target, scale)
+    bg = model.background if background is None else background
+    g = rh.packed_backward(off, t, dt, sigma, rgb, bg, target, scale)
     loss = scale * np.sum(g["sq_err"])
     mb = rn.mlp_backward(params, net.spec, net.layout, x_enc, d_enc, g["sigma"], g["rgb"])
     gt = rh.hash_backward(xyz, enc.lo, enc.inv_ext, enc.res_host, mb["x_enc"], enc.shape)
@@ -397,6 +398,34 @@ def test_render_matches_reference_chain(device, oversample):
                                atol=tol.RENDER_ATOL + 1e-4)
     np.testing.assert_allclose(out["acc"], want["acc"], rtol=tol.RENDER_RTOL,
                                atol=tol.RENDER_ATOL + 1e-4)
+
+
+def test_step_on_another_background_matches_reference_chain(device):
+    """Random-background training: a step told another background composites on it (loss and
+    gradients as the float64 chain with that background), and step_background draws a colour
+    per step only when config.random_background is set."""
+    model = HashModel(device, SMALL, near=1.5, far=4.5, bbox=BOX, background=(1.0, 1.0, 1.0))
+    rng = np.random.default_rng(8)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    model.occ.ema.set(np.where(rng.random(SMALL.occ_res ** 3) < 0.6, 1.0, 0.0).astype(np.float32))
+    model.occ._threshold(0.5)
+    o, d = _rays(24, seed=9)
+    target = rng.uniform(0, 1, (24, 3))
+    bg = model.step_background(3)
+    assert bg == model.step_background(3) != model.step_background(4)
+    assert len(bg) == 3 and all(0 <= x < 1 for x in bg)
+    loss, live = model.loss_and_grad(0, _up(device, o), _up(device, d), _up(device, target),
+                                     jitter=False, background=bg)
+    rloss, gp, gt, rlive = _reference_step(model, o, d, target, bg)
+    white, _, _, _ = _reference_step(model, o, d, target)
+    assert live == rlive and abs(rloss - white) > 10 * tol.HASH_STEP_LOSS_RTOL * rloss
+    assert abs(loss - rloss) <= tol.HASH_STEP_LOSS_RTOL * rloss
+    for got, want in ((model.net.grad.get(), gp), (model.enc.grad.get(), gt)):
+        np.testing.assert_allclose(got, want, rtol=0,
+                                   atol=tol.HASH_STEP_GRAD_REL_TO_MAX * np.abs(want).max())
+    off = HashModel(device, dataclasses.replace(SMALL, random_background=False), near=1.5,
+                    far=4.5, bbox=BOX, background=(1.0, 1.0, 1.0))
+    assert off.step_background(3) is None
 
 
 def test_empty_grid_and_rays_missing_the_box(device):

@@ -31,6 +31,8 @@ class Dataset:
     ndc: bool = False                  # forward-facing scenes: rays in normalised device coords
     distortion: np.ndarray | None = None  # OpenCV k1, k2, p1, p2 (instant-ngp captures)
     preset: str = "synthetic"          # scene preset name (clrf.training.config)
+    alpha: np.ndarray | None = None    # float32 [N, H, W]: coverage of RGBA captures (None: RGB);
+    #                                    images = rgb * alpha + background * (1 - alpha)
 
     @property
     def hw(self):

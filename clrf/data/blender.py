@@ -14,7 +14,8 @@ import numpy as np
 
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 get_field, inside, load_images, parse_background, read_json, require_dir)
+                 coverage, get_field, inside, load_images, parse_background, read_json,
+                 require_dir)
 
 SPLITS = ("train", "val", "test")
 
@@ -67,4 +68,4 @@ def load_blender(path, splits=SPLITS, background="white", downscale=None,
                    intrinsics=np.array([focal, focal, W0 / 2.0 / factor, H0 / 2.0 / factor]),
                    split=split,
                    background=bg, bbox=np.array([[-1.5] * 3, [1.5] * 3]), near=2.0, far=6.0,
-                   ndc=False, preset="synthetic")
+                   ndc=False, preset="synthetic", alpha=coverage(rgba))

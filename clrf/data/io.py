@@ -216,6 +216,15 @@ def composite(rgba: np.ndarray, background) -> np.ndarray:
     return rgba[..., :3] * a + np.asarray(background, np.float32) * (1.0 - a)
 
 
+def coverage(rgba_images) -> np.ndarray | None:
+    """float32 [N, H, W] alpha of RGBA images (what a model trained on random backgrounds
+    needs); None for RGB images, or RGBA ones that are opaque everywhere."""
+    if not len(rgba_images) or rgba_images[0].shape[-1] != 4:
+        return None
+    alpha = np.stack([a[..., 3] for a in rgba_images]).astype(np.float32)
+    return None if np.all(alpha >= 1.0) else alpha
+
+
 def parse_background(background) -> tuple:
     if isinstance(background, str):
         named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}

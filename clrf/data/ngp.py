@@ -27,8 +27,8 @@ import numpy as np
 from .camera_models import FAMILIES, Distortion, as_distortion, check_camera
 from .base import Dataset, DataError
 from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 get_field, holdout_split, inside, limit_split, load_images, parse_background,
-                 read_json, require_dir, warn)
+                 coverage, get_field, holdout_split, inside, limit_split, load_images,
+                 parse_background, read_json, require_dir, warn)
 
 NGP_SCALE = 0.33          # instant-ngp's default world -> unit cube scale
 NGP_OFFSET = 0.5          # ... and offset (the unit cube's centre)
@@ -177,4 +177,4 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
     return Dataset(name=root.name, images=images, poses=np.stack(poses)[keep].astype(np.float32),
                    intrinsics=intr, split=split, background=bg, bbox=bbox, near=NEAR,
                    far=float(np.linalg.norm(bbox[1] - bbox[0])), ndc=False,
-                   distortion=dist, preset="real360_box")
+                   distortion=dist, preset="real360_box", alpha=coverage(imgs))

@@ -39,6 +39,9 @@ class HashConfig:
     #                                 jittered bins estimate the continuous integral, which a
     #                                 render's fixed bin centres approximate better with more
     #                                 (lego_400, 900 s model: 31.52 dB at 1x, 31.89 at 2x)
+    random_background: bool = True  # RGBA captures: train each step on a random background
+    #                                 colour (the images recomposited on it), so that empty
+    #                                 space must be transparent, not the background's colour
     perturb: bool = True            # jitter samples during training (never when rendering)
     train_t_stop: float = 1e-4      # a training step differentiates each ray only in front of
     #                                 its first point of transmittance below this (their
@@ -155,7 +158,7 @@ HASH_PRESETS = {
 
 
 # Checkpoints written before a field existed were trained as these values say: a fixed batch
-# of batch_rays rays, renders at the training's sample count, the box only, a learning rate
-# that fell over lr_decay_steps, every sample differentiated.
-OLDER_DEFAULTS = {"batch_samples": 0, "render_oversample": 1, "contract": "off",
-                  "lr_schedule": "steps", "train_t_stop": 0.0}
+# of batch_rays rays on the dataset's background, renders at the training's sample count, the
+# box only, a learning rate that fell over lr_decay_steps, every sample differentiated.
+OLDER_DEFAULTS = {"batch_samples": 0, "random_background": False, "render_oversample": 1,
+                  "contract": "off", "lr_schedule": "steps", "train_t_stop": 0.0}

@@ -206,9 +206,25 @@ class HashModel:
             return c.lr * 0.1 ** (it / c.lr_decay_steps)
         return budget_lr(c.lr, c.lr_final, c.lr_hold, self.progress)
 
-    def train_step(self, it: int, origins, dirs, target) -> float:
+    @property
+    def random_background(self) -> bool:
+        """Trains on a random background per step where the images have alpha (the trainer
+        then keeps the alpha and asks step_background)."""
+        return bool(self.config.random_background)
+
+    def step_background(self, it: int):
+        """The background colour of training step ``it`` when the images have alpha: random
+        (config.random_background; deterministic in the seed and step), else None (the model's
+        own background)."""
+        if not self.config.random_background:
+            return None
+        rng = np.random.default_rng([self.seed, int(it), 7])
+        return tuple(float(x) for x in rng.random(3))
+
+    def train_step(self, it: int, origins, dirs, target, background=None) -> float:
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
-        on device. Returns the batch MSE (mean over rays and channels)."""
+        on device; background: the RGB the targets are composited on (None: the model's own).
+        Returns the batch MSE (mean over rays and channels)."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -220,7 +236,7 @@ class HashModel:
             raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
                              f"{origins.shape}, {dirs.shape}, {target.shape}")
         self.maybe_update_occupancy(it)
-        loss, live = self.loss_and_grad(it, origins, dirs, target)
+        loss, live = self.loss_and_grad(it, origins, dirs, target, background=background)
         if live:
             lr = self.lr_at(it)
             self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True)
@@ -229,11 +245,12 @@ class HashModel:
         self.step += 1
         return loss
 
-    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None):
+    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
-        and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb."""
+        and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb. background:
+        the RGB behind the rays (None: the model's own)."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
@@ -256,7 +273,8 @@ class HashModel:
             sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir))
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
-        g = packed_backward(dev, pk, sigma, rgb, self.background, target, scale)
+        bg = self.background if background is None else background
+        g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
         loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
         self._adapt_batch(B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train

@@ -373,5 +373,13 @@ def batch_indices(seed, n, n_src):
     return ((h * np.uint64(n_src)) >> np.uint64(32)).astype(np.int64)
 
 
+def recomposite(colours, alpha, old_bg, new_bg):
+    """Colours of an RGBA capture composited on old_bg, moved onto new_bg (cl/batch.cl
+    recomposite): c + (1 - alpha) (new_bg - old_bg), float64."""
+    c = np.asarray(colours, np.float64)
+    clear = 1.0 - np.asarray(alpha, np.float64)[:, None]
+    return c + clear * (np.asarray(new_bg, np.float64) - np.asarray(old_bg, np.float64))
+
+
 # NeRF references (encoding, MLP, sampling, compositing, Adam) live in their own module.
 from .reference_nerf import *  # noqa: E402,F401,F403

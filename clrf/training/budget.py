@@ -26,7 +26,8 @@ pruning that keeps every row):
                                                     CPU with block locks S = 1; dropped when
                                                     they exceed global_mem_size / 4)
     rays       36 N + 44 B (device) + 24 N (host)   ray store (o, d, rgb) + batch buffers; the
-                                                    host keeps o, d for pruning
+                                                    host keeps o, d for pruning (+ 4 N: alpha,
+                                                    for random backgrounds, hash model)
     checkpoint 4 V_k + 2 r n_k (host)               state_dict's copies while a checkpoint is
                                                     written (every stage may write one)
     upsample   stage k-1's grid, optimiser and scratch, its max weights and keep masks
@@ -164,7 +165,7 @@ def hash_stage(hc, n_rays: int) -> StageEstimate:
     """StageEstimate of a hash-grid run with HashConfig ``hc``: tables with gradient and Adam
     moments (the backward needs no scratch copy on either path), the MLP's activations for
     every sample of a batch (all live: the occupancy grid starts full), per-sample buffers, the
-    occupancy grid and the ray store."""
+    occupancy grid and the ray store (with the images' alpha for random backgrounds)."""
     pad = lambda x: -(-x // 16) * 16                           # noqa: E731 - kernel padding
     table = 4 * hc.levels * (1 << hc.log2_table) * hc.features
     tables = 4 * table
@@ -178,7 +179,8 @@ def hash_stage(hc, n_rays: int) -> StageEstimate:
     occ = 5 * hc.occ_res ** 3
     from ..hash.model import BATCH_RAYS_RANGE
     rays = BATCH_RAYS_RANGE[1] if hc.batch_samples else hc.batch_rays
-    total = tables + act + per_sample + occ + ray_store_bytes(n_rays, rays)
+    alpha = 4 * int(n_rays) if hc.random_background else 0
+    total = tables + act + per_sample + occ + ray_store_bytes(n_rays, rays) + alpha
     what = (f"{hc.batch_samples} live samples" if hc.batch_samples else
             f"{hc.batch_rays} rays x {hc.samples} samples")
     return StageEstimate(f"hash training ({what}, "

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from ..outputs import checkpoint, rundir
@@ -44,9 +45,12 @@ CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "
 
 
 class RayStore:
-    """All training rays and colours on the device; random batches drawn on the device."""
+    """All training rays and colours on the device; random batches drawn on the device.
 
-    def __init__(self, device, origins, dirs, colors):
+    alpha [n] (RGBA captures, else None) and background (what the colours were composited on)
+    let a batch's colours be recomposited on another background (``batch(..., background)``)."""
+
+    def __init__(self, device, origins, dirs, colors, alpha=None, background=(1.0, 1.0, 1.0)):
         q = device.queue
         self.device = device
         self.n = int(origins.shape[0])
@@ -54,19 +58,32 @@ class RayStore:
         self.o = upload(q, np.ascontiguousarray(origins, np.float32))
         self.d = upload(q, np.ascontiguousarray(dirs, np.float32))
         self.c = upload(q, np.ascontiguousarray(colors, np.float32))
+        self.alpha = None if alpha is None else upload(
+            q, np.ascontiguousarray(np.reshape(alpha, -1), np.float32))
+        if self.alpha is not None and int(self.alpha.shape[0]) != self.n:
+            raise ValueError(f"RayStore: alpha has {self.alpha.shape[0]} values for {self.n} rays")
+        self.background = tuple(float(b) for b in background)
         self._bufs = {}
 
-    def batch(self, seed: int, n: int):
-        """(origins, dirs, colours, indices) of n rays drawn with replacement; deterministic in seed."""
+    def batch(self, seed: int, n: int, background=None):
+        """(origins, dirs, colours, indices) of n rays drawn with replacement; deterministic in
+        seed. background: the colours recomposited on this RGB instead (needs alpha)."""
         q = self.device.queue
         if n not in self._bufs:
             self._bufs[n] = tuple(cla.empty(q, (n, 3), np.float32) for _ in range(3)) + (
                 cla.empty(q, n, np.int32),)
         bo, bd, bc, bi = self._bufs[n]
-        k = self.device.program("batch.cl").kernel("gather_batch")
-        launch(self.device, k, n, (np.int32(n), np.uint32(seed & 0xFFFFFFFF), np.uint32(self.n),
-                                   self.o.data, self.d.data, self.c.data, bo.data, bd.data,
-                                   bc.data, bi.data))
+        prg = self.device.program("batch.cl")
+        launch(self.device, prg.kernel("gather_batch"), n,
+               (np.int32(n), np.uint32(seed & 0xFFFFFFFF), np.uint32(self.n), self.o.data,
+                self.d.data, self.c.data, bo.data, bd.data, bc.data, bi.data))
+        if background is not None:
+            if self.alpha is None:
+                raise ValueError("RayStore.batch: a background needs the images' alpha (RGBA)")
+            dr, dg, db = np.subtract(background, self.background)
+            delta = cl.cltypes.make_float4(dr, dg, db, 0.0)
+            launch(self.device, prg.kernel("recomposite"), n,
+                   (np.int32(n), bi.data, self.alpha.data, delta, bc.data))
         return bo, bd, bc, bi
 
     def strided(self, n: int):
@@ -76,13 +93,16 @@ class RayStore:
         return o[::stride], d[::stride]
 
 
-def training_rays(device, ds, max_images=0):
+def training_rays(device, ds, max_images=0, alpha=False):
+    """The RayStore of ds's training views (the first max_images); alpha: keep the images'
+    alpha on the device too (where they have one), for training on random backgrounds."""
     idx = ds.split["train"]
     if max_images:
         idx = idx[:max_images]
     o, d = view_rays(ds, ds.poses[idx])
     c = ds.images[idx].reshape(-1, 3)
-    return RayStore(device, o, d, c)
+    a = ds.alpha[idx].reshape(-1) if alpha and ds.alpha is not None else None
+    return RayStore(device, o, d, c, a, ds.background)
 
 
 def evaluate(model, ds, views, keep_images=False, downscale=1):
@@ -213,7 +233,8 @@ class Trainer:
                     csv.DictWriter(f, CSV_FIELDS).writeheader()
         if self.primary:
             rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
-        self.rays = training_rays(device, ds, t.max_train_images)
+        self.rays = training_rays(device, ds, t.max_train_images,
+                                  alpha=getattr(self.model, "random_background", False))
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))
@@ -323,8 +344,15 @@ class Trainer:
         if msg:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
         loop.batch = self.model.batch_size     # the hash model adapts it step by step
-        bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, loop.batch)
-        loss = self.model.train_step(self.iteration, bo, bd, bc)
+        # models that train on a random background per step where the images have alpha
+        bg = None
+        if self.rays.alpha is not None:
+            bg = self.model.step_background(self.iteration)
+        bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, loop.batch, bg)
+        if bg is None:
+            loss = self.model.train_step(self.iteration, bo, bd, bc)
+        else:
+            loss = self.model.train_step(self.iteration, bo, bd, bc, background=bg)
         dt = time.perf_counter() - t0
         if self.comm is not None:   # the slowest rank's time, the same on every rank
             from mpi4py import MPI
