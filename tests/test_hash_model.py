@@ -585,6 +585,36 @@ def test_contraction_is_chosen_for_unbounded_scenes():
         build_config(overrides={"hash": {"contract": "yes"}})
 
 
+def test_finest_level_follows_the_image_width():
+    """hash.max_res 0 (auto, the full preset's): object-centric (synthetic) scenes get the
+    published 2048 cells at 800 pixels wide, in proportion below (never above 2048 nor below
+    min_res); contracted, NDC and other scenes 2048; a set value stays; a model built without a
+    dataset gets 2048."""
+    from types import SimpleNamespace
+
+    from clrf.hash.model import resolve_max_res
+    full = HashConfig()
+    assert full.max_res == 0 and not [f for ok, f, _ in full.checks() if not ok]
+
+    def scene(width, preset="synthetic", ndc=False):
+        return SimpleNamespace(hw=(width * 3 // 4, width), preset=preset, ndc=ndc)
+
+    for width, want in ((800, 2048), (400, 1024), (1600, 2048), (100, 256), (4, 16)):
+        assert resolve_max_res(full, scene(width)).max_res == want, width
+    assert resolve_max_res(full, scene(400, "real360")).max_res == 2048
+    assert resolve_max_res(full, scene(400, ndc=True)).max_res == 2048
+    assert resolve_max_res(dataclasses.replace(full, contract="on"), scene(400)).max_res == 2048
+    assert resolve_max_res(dataclasses.replace(full, max_res=300), scene(400)).max_res == 300
+    with pytest.raises(ConfigError, match="hash.min_res"):
+        build_config(overrides={"hash": {"min_res": 64, "max_res": 32}})
+
+
+def test_auto_finest_level_without_a_dataset(device):
+    model = HashModel(device, dataclasses.replace(SMALL, max_res=0, min_res=2), near=1.5,
+                      far=4.5, bbox=BOX)
+    assert model.config.max_res == 2048 and model.enc.res_host[-1] == 2048
+
+
 def test_memory_guard_names_the_hash_stage(device):
     """The memory guard estimates a hash run (tables + Adam, MLP activations) and names the
     fix; the tiny preset fits a normal device."""

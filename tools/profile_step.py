@@ -73,20 +73,20 @@ def main(argv=None):
 
     from clrf.runtime.device import Device
     from clrf.training.models import checkpoint_dataset, load_model
-    from clrf.training.trainer import training_rays
+    from clrf.training.trainer import train_on_batch, training_rays
 
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     ds = checkpoint_dataset(state, a.data)
-    rays = training_rays(dev, ds, cfg.train.max_train_images)
+    rays = training_rays(dev, ds, cfg.train.max_train_images,
+                         alpha=getattr(model, "random_background", False))
     it0 = int(state.get("iteration", 0))
     if a.set:                    # the untimed steps below adapt the batch to it
         model.config = changed_config(model, a.set)
 
     def step(i):
         n = model.batch_size
-        bo, bd, bc, _ = rays.batch(cfg.train.seed * 1000003 + it0 + i, n)
-        model.train_step(it0 + i, bo, bd, bc)
+        train_on_batch(model, rays, cfg.train.seed, it0 + i, n)
         return n
 
     for i in range(3):                              # builds, first allocations

@@ -20,8 +20,10 @@ class HashConfig:
     features: int = 2               # F: features per level, 1, 2 or 4 (published: 2)
     log2_table: int = 19            # log2 T: table rows per level (published: 19)
     min_res: int = 16               # N_min: coarsest level's cells per box side (published: 16)
-    max_res: int = 2048             # N_max: finest level's cells per box side (published:
-    #                                 2048 x the box size in units of the unit cube)
+    max_res: int = 0                # N_max: finest level's cells per box side; 0: "auto", the
+    #                                 published 2048 for 800-pixel-wide images, in proportion
+    #                                 to the training images' width on object-centric scenes
+    #                                 (resolve_max_res; 1024 for 400-pixel views), else 2048
     width: int = 64                 # density MLP hidden width (multiple of 16; published: 64)
     geo_features: int = 16          # density MLP feature outputs fed to the colour MLP besides
     #                                 sigma (multiple of 16; published: 15)
@@ -104,8 +106,9 @@ class HashConfig:
             (self.levels * self.features <= 256, "hash.levels",
              "levels * features must be <= 256 (the MLP input)"),
             (1 <= self.log2_table <= 24, "hash.log2_table", "must be in 1..24"),
-            (1 <= self.min_res <= self.max_res <= 1 << 20, "hash.min_res",
-             "need 1 <= min_res <= max_res <= 1048576"),
+            (1 <= self.min_res and (self.max_res == 0
+                                    or self.min_res <= self.max_res <= 1 << 20),
+             "hash.min_res", "need 1 <= min_res <= max_res <= 1048576 (max_res 0: auto)"),
             (self.width % 16 == 0 and 16 <= self.width <= 1024, "hash.width",
              "must be a multiple of 16 in 16..1024"),
             (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "hash.color_width",
@@ -143,6 +146,9 @@ class HashConfig:
              f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
         ]
 
+
+PUBLISHED_MAX_RES = 2048   # instant-ngp's N_max for 800 x 800 Blender views (box = unit cube)
+PUBLISHED_WIDTH = 800
 
 # Field values of each hash preset (the rest are HashConfig's defaults).
 HASH_PRESETS = {

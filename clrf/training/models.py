@@ -59,8 +59,8 @@ class NerfFactory:
 class HashFactory:
     @staticmethod
     def create(device, cfg, ds, background):
-        from ..hash.model import HashModel, ray_range, resolve_contract
-        hc = resolve_contract(cfg.hash, ds)
+        from ..hash.model import HashModel, ray_range, resolve_contract, resolve_max_res
+        hc = resolve_max_res(resolve_contract(cfg.hash, ds), ds)
         from ..data.cameras import ndc_reach    # NDC rays: far along unit directions
         near, far = ray_range(ds, hc.contract == "on", ndc_reach(ds) if ds.ndc else None)
         return HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed)

@@ -105,6 +105,17 @@ def training_rays(device, ds, max_images=0, alpha=False):
     return RayStore(device, o, d, c, a, ds.background)
 
 
+def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
+    """Step ``it`` of a model: n rays drawn from the store (deterministic in seed and it), on
+    the step's random background where the model asks for one and the store has alpha; the
+    batch MSE."""
+    bg = model.step_background(it) if rays.alpha is not None else None
+    bo, bd, bc, _ = rays.batch(seed * 1000003 + it, n, bg)
+    if bg is None:
+        return model.train_step(it, bo, bd, bc)
+    return model.train_step(it, bo, bd, bc, background=bg)
+
+
 def evaluate(model, ds, views, keep_images=False, downscale=1):
     """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
 
@@ -344,15 +355,7 @@ class Trainer:
         if msg:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
         loop.batch = self.model.batch_size     # the hash model adapts it step by step
-        # models that train on a random background per step where the images have alpha
-        bg = None
-        if self.rays.alpha is not None:
-            bg = self.model.step_background(self.iteration)
-        bo, bd, bc, _ = self.rays.batch(t.seed * 1000003 + self.iteration, loop.batch, bg)
-        if bg is None:
-            loss = self.model.train_step(self.iteration, bo, bd, bc)
-        else:
-            loss = self.model.train_step(self.iteration, bo, bd, bc, background=bg)
+        loss = train_on_batch(self.model, self.rays, t.seed, self.iteration, loop.batch)
         dt = time.perf_counter() - t0
         if self.comm is not None:   # the slowest rank's time, the same on every rank
             from mpi4py import MPI
