@@ -64,6 +64,18 @@ def test_device_help_says_measured(capsys):
     assert "fastest working device" in text and "clrf devices" in text
 
 
+def test_every_command_has_working_help(capsys):
+    """`clrf CMD --help` prints for every command (argparse %-formats help text: a literal %
+    in it, like "i % 8 == 0" in a protocol's description, once made `clrf eval --help` crash)."""
+    sub = next(a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert {"train", "render", "eval", "export"} <= set(sub.choices)
+    for cmd in sub.choices:
+        with pytest.raises(SystemExit) as e:
+            main([cmd, "--help"])
+        assert e.value.code == 0, cmd
+        assert "usage: clrf " + cmd in " ".join(capsys.readouterr().out.split()), cmd
+
+
 def _flags(*argv):
     return config_flags(build_parser().parse_args(["train", *argv]))
 

@@ -123,7 +123,7 @@ def add_eval_parser(sub, func):
     e.add_argument("--max-views", type=int, default=0)
     e.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
                    help="evaluate under a published protocol, whatever the run trained at: "
-                        + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()))
+                        + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()).replace("%", "%%"))
     e.add_argument("--allow-downscaled", action="store_true",
                    help="with --protocol: when the data lacks the protocol's resolution, "
                         "evaluate the protocol's views at the data's own resolution, labelled "
