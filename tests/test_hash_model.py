@@ -1,6 +1,7 @@
 """The hash-grid model: occupancy grid and compaction vs references, one whole training step's
 gradients vs the chain of float64 references, stiff cases, checkpoints, a short training."""
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pyopencl.array as cla
@@ -512,6 +513,14 @@ def test_hash_through_the_cli(tmp_path, capsys):
     assert cli(["export", "--ckpt", str(out), "--points", str(tmp_path / "p.ply"),
                 "--n", "2000"]) == 0
     assert (tmp_path / "p.ply").is_file()
+    # tools/render_bins.py: the same checkpoint at 1x and 2x render bins
+    import sys
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from render_bins import main as render_bins
+    render_bins(["--ckpt", str(out), "--every", "4", "--oversample", "1,2",
+                 "--json", str(tmp_path / "bins.json")])
+    rows = json.loads((tmp_path / "bins.json").read_text())["rows"]
+    assert [r["bins"] for r in rows] == [64, 128] and all(r["psnr"] > 10 for r in rows)
     capsys.readouterr()
     rc = cli(["train", "--model", "hash", "--out", str(tmp_path / "bad"),
               "--set", "hash.log2_tabel=3"])

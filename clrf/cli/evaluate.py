@@ -121,9 +121,10 @@ def add_eval_parser(sub, func):
     e.add_argument("--out", default=None,
                    help="JSON output (default: CKPT/eval_cli.json, CKPT/eval_PROTOCOL.json)")
     e.add_argument("--max-views", type=int, default=0)
+    described = "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items())
     e.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
                    help="evaluate under a published protocol, whatever the run trained at: "
-                        + "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items()).replace("%", "%%"))
+                        + described.replace("%", "%%"))     # argparse %-formats help text
     e.add_argument("--allow-downscaled", action="store_true",
                    help="with --protocol: when the data lacks the protocol's resolution, "
                         "evaluate the protocol's views at the data's own resolution, labelled "
