@@ -87,8 +87,8 @@ def resolve_max_res(config: HashConfig, ds) -> HashConfig:
     (scene preset synthetic: Blender-style captures, no NDC, no contraction): the published
     2048 cells for 800-pixel-wide views, in proportion to the training images' width (1024 at
     400 pixels), so the finest level keeps about the published cells per pixel; at least
-    min_res. Every other scene: 2048. lego_400, 1,500 steps, 10 test views (Xeon, PoCL):
-    2048 30.01 dB, 1024 30.12, 512 30.17."""
+    min_res. Every other scene (and ds None): 2048. lego_400, 1,500 steps, 10 test views
+    (Xeon, PoCL): 2048 30.01 dB, 1024 30.12, 512 30.17."""
     if config.max_res:
         return config
     res = PUBLISHED_MAX_RES
@@ -140,8 +140,7 @@ class HashModel:
         if box.shape != (2, 3):
             raise ValueError(f"bbox: expected [[x0, y0, z0], [x1, y1, z1]], got {bbox}")
         self.device = device
-        if not config.max_res:   # "auto" without a dataset to decide (resolve_max_res): 2048
-            config = dataclasses.replace(config, max_res=max(config.min_res, PUBLISHED_MAX_RES))
+        config = resolve_max_res(config, None)   # "auto" with no dataset to decide: 2048
         self.config = c = config
         self.near, self.far = float(near), float(far)
         self.bbox = box
