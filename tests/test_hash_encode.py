@@ -168,6 +168,29 @@ def test_backward_boundaries_and_outside(hash_device):
     _assert_grad(_bwd(enc, x, genc), want)
 
 
+def test_used_spans_hold_every_reachable_entry(device):
+    """The optimiser's spans: every entry that the reference backward reaches (points all over
+    the box, its 8 corners and beyond it) lies inside them; each dense level's span ends at
+    its last vertex's row, which the box's far corner reaches; hashed levels span all T."""
+    enc, _ = _enc(device, L=5, F=2, log2_t=12, n_min=3, n_max=40)
+    corners = np.array(np.meshgrid(*zip(*BOX), indexing="ij")).reshape(3, -1).T
+    x = np.concatenate([_points(3000, seed=8, lo=-0.2, hi=1.2), corners]).astype(np.float32)
+    reach = ref.hash_backward(x, enc.lo, enc.inv_ext, enc.res_host,
+                              np.ones((len(x), enc.dim), np.float32), enc.shape) != 0
+    inside = np.zeros(reach.size, bool)
+    for a, b in enc.used_spans():
+        inside[a:b] = True
+    assert not np.any(reach.reshape(-1) & ~inside)
+    for l, N in enumerate(enc.res_host):
+        rows = (int(N) + 1) ** 3
+        if rows <= enc.T:
+            assert reach[l, rows - 1].all() and not inside.reshape(enc.shape)[l, rows:].any()
+        else:
+            assert inside.reshape(enc.shape)[l].all()
+    assert (int(enc.res_host[0]) + 1) ** 3 <= enc.T < (int(enc.res_host[-1]) + 1) ** 3
+    assert len(enc.used_spans()) < enc.levels   # the hashed levels merge into one span
+
+
 def test_reference_backward_vs_finite_differences():
     """L = sum genc * enc(table): the reference gradient against central differences."""
     rng = np.random.default_rng(7)

@@ -73,6 +73,36 @@ def test_march_matches_reference(device):
         np.testing.assert_allclose(pk.vdir.get(), vdir, rtol=0, atol=tol.SAMPLE_ATOL)
 
 
+def test_march_window_and_alive_rays(device):
+    """A render's round: bins k0 .. k1-1 only (windows that straddle march_live's 16-bin lanes
+    and end before S), and nothing for rays whose alive flag is 0."""
+    from clrf.hash.march import march
+    occ = OccupancyGrid(device, 5, BOX)
+    mask = np.random.default_rng(2).random(125) < 0.5
+    occ.ema.set(np.where(mask, 1.0, 0.0).astype(np.float32))
+    occ._threshold(0.5)
+    o, d = _rays(23, seed=3)
+    S, near, far = 70, 1.0, 5.0
+    off, t, _, xyz, _ = rh.march_samples(o, d, S, near, far, occ.occ.get(), BOX[0],
+                                         1 / (BOX[1] - BOX[0]), 5)
+    k = np.rint((t - near) / (far - near) * S - 0.5).astype(int)   # each sample's bin
+    ray = np.repeat(np.arange(23), np.diff(off))
+    alive = (np.arange(23) % 3 != 1).astype(np.uint8)
+    counts = []
+    for k0, k1 in ((0, 16), (5, 38), (33, 70), (69, 70)):
+        pk = march(device, occ, _up(device, o), _up(device, d), S, near, far, False, 0, k0, k1,
+                   alive=cla.to_device(device.queue, alive))
+        keep = (k >= k0) & (k < k1) & (alive[ray] == 1)
+        np.testing.assert_array_equal(np.diff(pk.offsets_host), np.bincount(ray[keep],
+                                                                             minlength=23))
+        assert pk.m == keep.sum()
+        counts.append(pk.m)
+        if pk.m:
+            np.testing.assert_allclose(pk.t.get(), t[keep], rtol=0, atol=tol.SAMPLE_ATOL)
+            np.testing.assert_allclose(pk.xyz.get(), xyz[keep], rtol=0, atol=tol.SAMPLE_ATOL)
+    assert min(counts[:3]) > 0
+
+
 def test_march_contracted_matches_reference(device):
     """Unbounded scenes: bins even in log t out to far = 200, points contracted about an
     off-centre inner box into [-2, 2]^3 and looked up there; rays from inside and outside the
@@ -544,6 +574,41 @@ def test_adam_weight_decay_and_clear_grad(device):
     want[3] = p32[3]
     np.testing.assert_allclose(pd.get(), want, rtol=tol.ADAM_RTOL, atol=tol.ADAM_ATOL)
     assert not np.any(gd.get())
+    # spans: only entries 2..9 and 20..32 step (and have their gradient cleared)
+    gd.set(g.astype(np.float32))
+    before = pd.get()
+    opt.step(None, 1e-2, t=2, clear_grad=True, spans=[(2, 10), (20, 33)])
+    inside = np.zeros(33, bool)
+    inside[2:10] = inside[20:] = True
+    inside[3] = False                            # the NaN entry is skipped
+    after = pd.get()
+    assert np.all(after[~inside] == before[~inside]) and np.all(after[inside] != before[inside])
+    outside = np.ones(33, bool)
+    outside[2:10] = outside[20:] = False
+    np.testing.assert_array_equal(gd.get() != 0, outside)   # cleared inside the spans only
+
+
+def test_adam_moments_flush_below_float_min(device):
+    """Moments that decay below FLT_MIN are stored as 0, never subnormal (x86 computes on
+    subnormals ~100x slower): entries with no gradient and moments near FLT_MIN (or already
+    subnormal, from an older checkpoint) end at 0 with the parameter unmoved (within a step
+    below 1e-22); a normal moment stays as the formula has it."""
+    from clrf.runtime.optim import Optimizer
+    tiny = np.finfo(np.float32).tiny
+    m0 = np.float32([1.1 * tiny, 1e-39, 0.0, 1e-3, -1.05 * tiny])
+    v0 = np.float32([1.001 * tiny, 1e-40, 1e-39, 1e-6, 2e-39])
+    p = np.float32([0.5, -0.25, 1.0, 0.125, 2.0])
+    pd, gd = _up(device, p), _up(device, np.zeros(5))
+    md, vd = _up(device, m0), _up(device, v0)
+    opt = Optimizer(device, pd, "adam", beta=0.9, beta2=0.99, eps=1e-15, grad=gd, state=md,
+                    state2=vd)
+    opt.step(None, 1e-2, t=50, clear_grad=True)
+    m, v = md.get(), vd.get()
+    assert np.all((m == 0) | (np.abs(m) >= tiny)) and np.all((v == 0) | (v >= tiny))
+    np.testing.assert_array_equal(m[[0, 1, 2, 4]], 0)
+    np.testing.assert_array_equal(v[[0, 1, 2]], 0)
+    assert v[4] == 0 and abs(m[3] - 0.9e-3) < 1e-9 and abs(v[3] - 0.99e-6) < 1e-12
+    np.testing.assert_allclose(pd.get()[[0, 1, 2, 4]], p[[0, 1, 2, 4]], rtol=0, atol=1e-22)
 
 
 def test_ray_range_cuts_far_to_the_box():

@@ -7,7 +7,8 @@ may not. It is a device of its own here, through a vendors folder that names onl
 runs a small test of each kernel family (CASES) in a child pytest: grid forward and backward
 in both loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample,
 prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
-forward and backward. The child's tests must pass and Oclgrind must report nothing.
+forward and backward, the hash encoding's backward, the hash march (windows, alive rays,
+contraction) and Adam over spans. The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
 building a program and looking up a kernel, and a 1.2 device answers CL_INVALID_VALUE, which
@@ -56,6 +57,11 @@ CASES = [
     "tests/test_nerf_composite.py::test_mse_mode_loss_and_gradient",
     "tests/test_nerf_mlp.py::test_forward_matches_reference",
     "tests/test_nerf_mlp.py::test_backward_matches_reference",
+    "tests/test_hash_encode.py::test_backward_matches_reference",
+    "tests/test_hash_model.py::test_march_matches_reference",
+    "tests/test_hash_model.py::test_march_window_and_alive_rays",
+    "tests/test_hash_model.py::test_march_contracted_matches_reference",
+    "tests/test_hash_model.py::test_adam_weight_decay_and_clear_grad",
 ]
 PYOPENCL_QUERY = re.compile(r"Function: clGetDeviceInfo\s+Error:\s+CL_INVALID_VALUE\s+"
                             r"For argument 'param_name'")
@@ -76,9 +82,10 @@ def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
     env.update(OCL_ICD_VENDORS=str(vendors), CLRF_DEVICE="0:0", CLRF_TEST_IMPLS="default",
                OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path),
                PYTHONPATH=str(ROOT))
-    # -k default: the session device (Oclgrind) only, not the other implementations
+    # -k default: the session device (Oclgrind) only, not the other implementations (the hash
+    # modules take no implementation parameter: "test_hash" selects them)
     cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-s", "-p", "no:cacheprovider",
-           "-k", "default", *CASES]
+           "-k", "default or test_hash", *CASES]
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
     text = out.stdout + out.stderr
     assert out.returncode == 0, text[-4000:]

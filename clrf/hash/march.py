@@ -71,19 +71,27 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     """The live samples of bins k0 .. k1-1 (default all S) of the rays origins/dirs [n, 3]
     (device) through the occupancy grid ``occ`` (OccupancyGrid), for rays with alive[i] != 0
     (uchar device array [n]; None: all). ``contract``: log-spaced bins and contracted points
-    (occ then covers Contraction.BOX). One host round trip (the per-ray counts)."""
+    (occ then covers Contraction.BOX). One host round trip (the per-ray counts); a scratch
+    byte per (ray, bin) marks the live ones."""
     n = int(origins.shape[0])
     k1 = S if k1 is None else int(k1)
     dev, q = device, device.queue
     prg = program(device, contract is not None)
+    W = k1 - k0
     counts = scratch(dev, max(n, 1), np.int32)
+    live = scratch(dev, max(n * W, 1), np.uint8)
     zero4 = cl.cltypes.make_float4(0, 0, 0, 0)
-    args = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
-            np.float32(far), np.int32(bool(jitter)), np.uint32(key), origins.data, dirs.data,
-            occ.lo4, occ.inv4, np.int32(occ.res),
-            contract.centre4 if contract else zero4, contract.inv_half4 if contract else zero4,
-            occ.occ.data, alive.data if alive is not None else None)
-    launch(dev, prg.kernel("march_count"), n, args + (counts.data,), dev.tuning.per_ray_local_size)
+    centre = contract.centre4 if contract else zero4
+    inv_half = contract.inv_half4 if contract else zero4
+    bins = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
+            np.float32(far), np.int32(bool(jitter)), np.uint32(key), origins.data, dirs.data)
+    if n and W > 0:
+        kern = prg.kernel("march_live")
+        kern.set_args(*bins, occ.lo4, occ.inv4, np.int32(occ.res), centre, inv_half,
+                      occ.occ.data, alive.data if alive is not None else None, live.data)
+        cl.enqueue_nd_range_kernel(q, kern, (-(-W // 16), n), None)   # 16 bins an item
+    launch(dev, prg.kernel("march_count"), n, (np.int32(n), np.int32(W), live.data, counts.data),
+           dev.tuning.per_ray_local_size)
     off = np.zeros(n + 1, np.int64)
     if n:
         np.cumsum(counts.get()[:n], out=off[1:])
@@ -95,7 +103,8 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     vdir = scratch(dev, (max(m, 1), 3))
     if m:
         launch(dev, prg.kernel("march_compact"), n,
-               args + (offsets.data, t.data, dt.data, xyz.data, vdir.data),
+               bins + (centre, inv_half, live.data, offsets.data, t.data, dt.data, xyz.data,
+                       vdir.data),
                dev.tuning.per_ray_local_size)
     return Packed(n, m, offsets, off, *(a[:m] if m else a for a in (t, dt, xyz, vdir)))
 

@@ -167,6 +167,7 @@ class HashModel:
         self.occ_prg = self.occ.prg
         self._adam_table = Optimizer(device, self.enc.table, "adam", beta=c.beta1,
                                      beta2=c.beta2, eps=c.adam_eps, grad=self.enc.grad)
+        self._table_spans = self.enc.used_spans()
         self._adam_net = Optimizer(device, self.net.params, "adam", beta=c.beta1, beta2=c.beta2,
                                    eps=c.adam_eps, grad=self.net.grad,
                                    weight_decay=c.weight_decay)
@@ -255,7 +256,8 @@ class HashModel:
         loss, live = self.loss_and_grad(it, origins, dirs, target, background=background)
         if live:
             lr = self.lr_at(it)
-            self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True)
+            self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True,
+                                  spans=self._table_spans)
             self._adam_net.step(None, lr, t=self.step + 1)
             self.net.sync_params()
         self.step += 1

@@ -63,18 +63,21 @@ class Optimizer:
     def _kernel(self, name):
         return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
 
-    def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False):
+    def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False, spans=None):
         """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed).
-        Adam: every entry; clear_grad zeroes the gradient once read."""
+        Adam: every entry, or only those in ``spans`` ((start, stop) index pairs of the flat
+        buffer: entries that can never get a gradient need no update); clear_grad zeroes the
+        gradient once read."""
         if self.mode == "adam":
-            n = int(self.param.size)
             bc1, bc2 = 1.0 - self.beta ** t, 1.0 - self.beta2 ** t
-            launch(self.device, self._kernel("adam_step"), n,
-                   (np.int32(n), self.param.data, self.grad.data, self.state.data,
-                    self.state2.data, np.float32(lr), np.float32(self.beta),
-                    np.float32(self.beta2), np.float32(self.eps), np.float32(bc1),
-                    np.float32(bc2), np.float32(self.weight_decay),
-                    np.int32(bool(clear_grad))), ADAM_LOCAL_SIZE)
+            kernel = self._kernel("adam_step")
+            for a, b in spans if spans is not None else ((0, int(self.param.size)),):
+                launch(self.device, kernel, b - a,
+                       (np.int32(a), np.int32(b), self.param.data, self.grad.data,
+                        self.state.data, self.state2.data, np.float32(lr),
+                        np.float32(self.beta), np.float32(self.beta2), np.float32(self.eps),
+                        np.float32(bc1), np.float32(bc2), np.float32(self.weight_decay),
+                        np.int32(bool(clear_grad))), ADAM_LOCAL_SIZE)
             return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]
