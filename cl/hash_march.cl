@@ -145,13 +145,17 @@ __kernel void march_live(const int n, const int S, const int k0, const int k1, c
                   uz = (z - lo.z) * inv_ext.z;
     const int16 in = ux >= 0.0f && uy >= 0.0f && uz >= 0.0f && ux <= 1.0f && uy <= 1.0f
                      && uz <= 1.0f;
-    const int16 cx = min(convert_int16(ux * (float)R), R - 1),
-                cy = min(convert_int16(uy * (float)R), R - 1),
-                cz = min(convert_int16(uz * (float)R), R - 1);
-    int cell[16], inside[16];
-    vstore16(select((int16)(0), cx + R * (cy + R * cz), in), 0, cell);
-    vstore16(in, 0, inside);
-    for (int l = 0; l < nb; ++l) row[l] = inside[l] && occ[cell[l]];
+    /* min(int16, (int16)...): Oclgrind 21.10 returned garbage lanes for min(int16, int) */
+    const int16 cx = min(convert_int16(ux * (float)R), (int16)(R - 1)),
+                cy = min(convert_int16(uy * (float)R), (int16)(R - 1)),
+                cz = min(convert_int16(uz * (float)R), (int16)(R - 1));
+    const int16 cell = select((int16)(0), cx + R * (cy + R * cz), in);
+#define MARCH_LANE(l, s) if (l < nb) row[l] = in.s && occ[cell.s];
+    MARCH_LANE(0, s0) MARCH_LANE(1, s1) MARCH_LANE(2, s2) MARCH_LANE(3, s3)
+    MARCH_LANE(4, s4) MARCH_LANE(5, s5) MARCH_LANE(6, s6) MARCH_LANE(7, s7)
+    MARCH_LANE(8, s8) MARCH_LANE(9, s9) MARCH_LANE(10, sa) MARCH_LANE(11, sb)
+    MARCH_LANE(12, sc) MARCH_LANE(13, sd) MARCH_LANE(14, se) MARCH_LANE(15, sf)
+#undef MARCH_LANE
 }
 
 /* counts [n]: ray i's live bins (the sum of its row of live [n, W]). */
