@@ -25,6 +25,7 @@ EVERY_IMPL_MODULES = {
     "test_render", "test_grid_ops", "test_grid_grad_slots", "test_march_alpha", "test_background",
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
+    "test_hash_encode", "test_hash_kernels",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
 # program variant for seconds and held 9 GB on the 128^3 test) runs the small kernel-vs-reference
@@ -36,6 +37,7 @@ SLOW_IMPL_TESTS = {
     "test_encode_matches_reference", "test_encode_backward_matches_reference",
     "test_stratified_matches_reference", "test_importance_matches_reference",
     "test_mse_mode_loss_and_gradient", "test_both_gradient_paths_pass",
+    "test_march_matches_reference", "test_packed_composite_matches_reference",
 }
 
 def pytest_generate_tests(metafunc):

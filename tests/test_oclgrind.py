@@ -58,10 +58,10 @@ CASES = [
     "tests/test_nerf_mlp.py::test_forward_matches_reference",
     "tests/test_nerf_mlp.py::test_backward_matches_reference",
     "tests/test_hash_encode.py::test_backward_matches_reference",
-    "tests/test_hash_model.py::test_march_matches_reference",
-    "tests/test_hash_model.py::test_march_window_and_alive_rays",
-    "tests/test_hash_model.py::test_march_contracted_matches_reference",
-    "tests/test_hash_model.py::test_adam_weight_decay_and_clear_grad",
+    "tests/test_hash_kernels.py::test_march_matches_reference",
+    "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
+    "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
+    "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
 ]
 PYOPENCL_QUERY = re.compile(r"Function: clGetDeviceInfo\s+Error:\s+CL_INVALID_VALUE\s+"
                             r"For argument 'param_name'")
@@ -82,10 +82,9 @@ def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
     env.update(OCL_ICD_VENDORS=str(vendors), CLRF_DEVICE="0:0", CLRF_TEST_IMPLS="default",
                OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path),
                PYTHONPATH=str(ROOT))
-    # -k default: the session device (Oclgrind) only, not the other implementations (the hash
-    # modules take no implementation parameter: "test_hash" selects them)
+    # -k default: the session device (Oclgrind) only, not the other implementations
     cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-s", "-p", "no:cacheprovider",
-           "-k", "default or test_hash", *CASES]
+           "-k", "default", *CASES]
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
     text = out.stdout + out.stderr
     assert out.returncode == 0, text[-4000:]

@@ -106,10 +106,20 @@ class HashEncoding:
         """enc [n, L F] of points x [n, 3] (device float32)."""
         n = int(x.shape[0])
         out = out if out is not None else scratch(self.device, (n, self.dim))
-        launch(self.device, self.program.kernel("hash_forward"), n * self.levels,
-               (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, self.table.data,
-                out.data), self.device.tuning.elementwise_local_size)
+        self._launch_points_levels(
+            self.program.kernel("hash_forward"), n,
+            (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, self.table.data, out.data))
         return out
+
+    def _launch_points_levels(self, kernel, n, args):
+        """A 2-D launch over (point, level): n rounded up to the local size, L levels."""
+        if n <= 0:
+            return
+        ls = max(1, min(int(self.device.tuning.elementwise_local_size),
+                        self.device.caps.max_work_group_size))
+        kernel.set_args(*args)
+        cl.enqueue_nd_range_kernel(self.device.queue, kernel, (-(-n // ls) * ls, self.levels),
+                                   (ls, 1))
 
     def backward(self, x, genc):
         """self.grad += dL/dtable for dL/denc genc [n, L F] at points x [n, 3]."""
@@ -120,8 +130,7 @@ class HashEncoding:
                 self.grad.data, self.grad.data)
         k = self.program.kernel("hash_backward")
         if not self.owned:
-            launch(self.device, k, n * self.levels, args,
-                   self.device.tuning.elementwise_local_size)
+            self._launch_points_levels(k, n, args)
             return
         k.set_args(*args)   # one work-item (and work-group) per level
         cl.enqueue_nd_range_kernel(self.device.queue, k, (self.levels,), (1,))
