@@ -176,26 +176,21 @@ CLRF_DEFINE_ACTIVATIONS(float16)
 /* ---- counter-based random numbers ---------------------------------------------------------
  * hash_u32 is the "lowbias32" integer hash (two multiply-xorshift rounds); its twin is
  * clrf.reference_nerf.hash_u32 (bit-exact). uniform01(key, counter) is in [0, 1) with 24 bits. */
-inline uint hash_u32(uint x) {
-    x ^= x >> 16;
-    x *= 0x7feb352dU;
-    x ^= x >> 15;
-    x *= 0x846ca68bU;
-    x ^= x >> 16;
-    return x;
-}
+#define CLRF_DEFINE_HASH_U32(NAME, T)                                                         \
+    inline T NAME(T x) {                                                                      \
+        x ^= x >> 16;                                                                         \
+        x *= 0x7feb352dU;                                                                     \
+        x ^= x >> 15;                                                                         \
+        x *= 0x846ca68bU;                                                                     \
+        x ^= x >> 16;                                                                         \
+        return x;                                                                             \
+    }
+CLRF_DEFINE_HASH_U32(hash_u32, uint)
+/* the same on 16 counters at once (explicit vectors: PoCL runs a per-item loop scalar) */
+CLRF_DEFINE_HASH_U32(hash_u32x16, uint16)
 #define CLRF_U24_SCALE 5.9604644775390625e-8f  /* 2^-24: maps a 24-bit integer into [0, 1) */
 inline float uniform01(uint key, uint counter) {
     return (float)(hash_u32(key ^ hash_u32(counter)) >> 8) * CLRF_U24_SCALE;
-}
-/* The same on 16 counters at once (explicit vectors: PoCL runs a per-item loop scalar). */
-inline uint16 hash_u32x16(uint16 x) {
-    x ^= x >> 16;
-    x *= 0x7feb352dU;
-    x ^= x >> 15;
-    x *= 0x846ca68bU;
-    x ^= x >> 16;
-    return x;
 }
 inline float16 uniform01x16(uint key, uint16 counter) {
     return convert_float16(hash_u32x16((uint16)(key) ^ hash_u32x16(counter)) >> 8)

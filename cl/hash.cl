@@ -109,7 +109,7 @@ CLRF_INLINE float3 hash_unit(__global const float *x, const size_t i, const floa
 
 /* enc [n, L F]: one work-item per (point, level) of a 2-D range, i = get_global_id(0) (rounded
  * up past n), l = get_global_id(1), so neighbouring items read the same level's table (and no
- * item divides: a 64-bit division per item cost a third of this kernel on a CPU). */
+ * item divides: a 64-bit division per item cost about a quarter of this kernel on a CPU). */
 __kernel void hash_forward(const int n, __global const float *x, const float4 lo,
                            const float4 inv_ext, __global const int *res,
                            __global const float *table, __global float *enc) {
