@@ -94,3 +94,15 @@ def data_dir():
     if not p or not Path(p).is_dir():
         pytest.skip("CLRF_DATA is not set to the shared data folder (see ../shared/data/README.md)")
     return Path(p)
+
+
+@pytest.fixture(scope="session")
+def scene(data_dir):
+    """``scene("fern")``: that scene's folder in $CLRF_DATA; the test skips, naming the folder,
+    where this copy of the data lacks it (a machine given only some scenes)."""
+    def get(name: str) -> Path:
+        path = data_dir / name
+        if not path.exists():
+            pytest.skip(f"no {name} in {data_dir} (see ../shared/data/README.md)")
+        return path
+    return get

@@ -291,7 +291,7 @@ def test_background_off_builds_and_launches_nothing_new(device, monkeypatch):
     assert_forward_matches(out, want)
 
 
-def test_bonsai_smoke_with_background(data_dir, tmp_path):
+def test_bonsai_smoke_with_background(scene, tmp_path):
     """`clrf train` on the real 360 scene (real360 preset: background on) for 30 iterations
     (a count, not a time, so a busy host logs the same) writes every output and lowers the loss; `clrf eval` and `clrf render` read its
     checkpoint."""
@@ -299,7 +299,7 @@ def test_bonsai_smoke_with_background(data_dir, tmp_path):
     import json
     from clrf.cli.main import main as cli
     out = tmp_path / "run"
-    rc = cli(["train", "--data", str(data_dir / "bonsai_800"), "--out", str(out),
+    rc = cli(["train", "--data", str(scene("bonsai_800")), "--out", str(out),
               "--max-seconds", "300", "--set", "train.max_iters=30", "--set", "train.downscale=8",
               "--set", "grid.reso=[[32,32,32]]", "--set", "grid.upsample_at=[]",
               "--set", "grid.batch_size=2000", "--set", "grid.background_height=32",

@@ -111,15 +111,15 @@ def test_procedural_pixels_average_supersampled_rays():
 
 # ---------------------------------------------------------------- tiny npz
 
-def test_npz_tiny_lego(data_dir):
-    d = load_dataset(data_dir / "tiny_lego")
+def test_npz_tiny_lego(scene):
+    d = load_dataset(scene("tiny_lego"))
     _check_common(d, 106, (100, 100))
     np.testing.assert_array_equal(d.split["train"], np.arange(100))
     np.testing.assert_array_equal(d.split["test"], np.arange(100, 106))
     np.testing.assert_allclose(d.intrinsics, [138.88887889922103, 138.88887889922103, 50, 50])
     assert d.background == (0.0, 0.0, 0.0)
     assert d.images[:, 0, 0].max() < 0.01                           # black background corners
-    f = next((data_dir / "tiny_lego").glob("*.npz"))
+    f = next((scene("tiny_lego")).glob("*.npz"))
     assert detect_layout(f) == "npz"
     small = load_dataset(f, max_images=2, downscale=2)
     assert small.images.shape == (4, 50, 50, 3)
@@ -128,8 +128,8 @@ def test_npz_tiny_lego(data_dir):
 
 # ---------------------------------------------------------------- Blender
 
-def test_blender_lego(data_dir):
-    root = data_dir / "lego_400"
+def test_blender_lego(scene):
+    root = scene("lego_400")
     d = load_dataset(root, max_images=2)
     _check_common(d, 6, (400, 400))
     assert {k: len(v) for k, v in d.split.items()} == {"train": 2, "val": 2, "test": 2}
@@ -154,11 +154,11 @@ def test_blender_lego(data_dir):
     np.testing.assert_allclose(d.alpha[0], alpha, atol=1e-7)
 
 
-def test_blender_downscale(data_dir):
-    d = load_dataset(data_dir / "lego_400", max_images=1, splits=("train",), downscale=4)
+def test_blender_downscale(scene):
+    d = load_dataset(scene("lego_400"), max_images=1, splits=("train",), downscale=4)
     _check_common(d, 1, (100, 100))
     # the coverage is box-averaged like the colours (before compositing)
-    raw = iio.imread(data_dir / "lego_400" / "train" / "r_0.png").astype(np.float64) / 255.0
+    raw = iio.imread(scene("lego_400") / "train" / "r_0.png").astype(np.float64) / 255.0
     want = raw[..., 3].reshape(100, 4, 100, 4).mean(axis=(1, 3))
     np.testing.assert_allclose(d.alpha[0], want, atol=1e-6)
     f = 0.5 * 400 / np.tan(0.5 * 0.6911112070083618) / 4
@@ -167,13 +167,13 @@ def test_blender_downscale(data_dir):
 
 # ---------------------------------------------------------------- LLFF
 
-def test_llff_fern(data_dir):
-    d = load_dataset(data_dir / "fern")
+def test_llff_fern(scene):
+    d = load_dataset(scene("fern"))
     _check_common(d, 20, (378, 504))
     np.testing.assert_array_equal(d.split["test"], [0, 8, 16])            # every 8th held out
     assert len(d.split["train"]) == 17
     assert d.ndc and d.preset == "forward_facing" and (d.near, d.far) == (0.0, 1.0)
-    raw = np.load(data_dir / "fern" / "poses_bounds.npy")
+    raw = np.load(scene("fern") / "poses_bounds.npy")
     f = raw[0, 14] * 504 / raw[0, 9]                                      # focal * 504 / 4032
     np.testing.assert_allclose(d.intrinsics, [f, f, 252, 189])
     # recentred: the mean position is the origin, cameras look down -z (forward-facing)
@@ -190,8 +190,8 @@ def test_llff_fern(data_dir):
     assert np.all(d.bbox[1, :2] < ends.max(0)[:2] * 1.02)
 
 
-def test_llff_bonsai_real360(data_dir):
-    d = load_dataset(data_dir / "bonsai_800", max_images=1)
+def test_llff_bonsai_real360(scene):
+    d = load_dataset(scene("bonsai_800"), max_images=1)
     _check_common(d, 2, (533, 800))
     np.testing.assert_allclose(d.intrinsics, [826.86, 826.86, 400.0, 266.5], atol=0.01)
     assert not d.ndc and d.preset == "real360"
@@ -205,9 +205,9 @@ def test_llff_bonsai_real360(data_dir):
 
 # ---------------------------------------------------------------- instant-ngp
 
-def test_ngp_fox_skips_missing(data_dir):
+def test_ngp_fox_skips_missing(scene):
     with pytest.warns(UserWarning, match=r"skipping 17 of 67 frames.*images/0005\.jpg"):
-        d = load_dataset(data_dir / "fox", max_images=10, downscale=8)
+        d = load_dataset(scene("fox"), max_images=10, downscale=8)
     # 50 present frames: test = 0, 8, ..., 48 (7 frames); train capped at 10
     assert len(d.split["test"]) == 7 and len(d.split["train"]) == 10
     _check_common(d, 17, (240, 135))
@@ -222,11 +222,11 @@ def test_ngp_fox_skips_missing(data_dir):
 
 # ---------------------------------------------------------------- dispatch
 
-def test_detect_layout(data_dir):
-    assert detect_layout(data_dir / "lego_400") == "blender"
-    assert detect_layout(data_dir / "fox") == "ngp"
-    assert detect_layout(data_dir / "fern") == "llff"
-    assert detect_layout(data_dir / "tiny_lego") == "npz"
+def test_detect_layout(scene):
+    assert detect_layout(scene("lego_400")) == "blender"
+    assert detect_layout(scene("fox")) == "ngp"
+    assert detect_layout(scene("fern")) == "llff"
+    assert detect_layout(scene("tiny_lego")) == "npz"
     assert detect_layout(None) == "procedural"
 
 

@@ -459,7 +459,7 @@ def test_memory_guard_names_the_hash_stage(device):
         check_training_fits(small, False, big, 1000)
 
 
-def test_bonsai_contracted_through_the_cli(data_dir, tmp_path):
+def test_bonsai_contracted_through_the_cli(scene, tmp_path):
     """`clrf train --model hash` on the real 360 scene contracts it (hash.contract auto), the
     loss falls over 40 steps, and eval and a checkpoint round trip work."""
     import csv
@@ -467,10 +467,8 @@ def test_bonsai_contracted_through_the_cli(data_dir, tmp_path):
 
     from clrf.cli.main import main as cli
     from clrf.outputs import checkpoint
-    if not (data_dir / "bonsai_800").is_dir():
-        pytest.skip(f"no bonsai_800 in {data_dir}")
     out = tmp_path / "run"
-    rc = cli(["train", "--model", "hash", "--data", str(data_dir / "bonsai_800"), "--out",
+    rc = cli(["train", "--model", "hash", "--data", str(scene("bonsai_800")), "--out",
               str(out), "--max-seconds", "600", "--set", "train.max_iters=40",
               "--set", "train.downscale=8", "--set", "hash.preset=tiny",
               "--set", "hash.log2_table=12", "--set", "hash.samples=64",
@@ -512,13 +510,13 @@ def test_batch_adapts_to_live_samples(device):
     assert fixed.batch_size == SMALL.batch_rays
 
 
-def test_ndc_rays_reach_infinity(data_dir):
+def test_ndc_rays_reach_infinity(scene):
     """fern (NDC): every training ray, walked along its unit direction to the models' far,
     reaches z' = 1 (infinity); with the dataset's far (1) it stopped near z' = 0, so the NeRF
     and hash models never sampled the far half of NDC space."""
     from clrf.data import load_dataset
     from clrf.data.cameras import ndc_reach, view_rays
-    ds = load_dataset(data_dir / "fern")
+    ds = load_dataset(scene("fern"))
     far = ndc_reach(ds)
     o, d = view_rays(ds, ds.poses, 2)
     u = d / np.linalg.norm(d, axis=1, keepdims=True)

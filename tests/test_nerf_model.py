@@ -126,13 +126,13 @@ def test_near_equals_far_renders_background(device):
     assert np.all(out["acc"] == 0)
 
 
-def test_short_training_on_tiny_lego(device, data_dir):
+def test_short_training_on_tiny_lego(device, scene):
     """A few steps on real data: the loss goes down (tiny_lego, 100 x 100, black background)."""
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
     from train_nerf_tiny import camera_rays
-    f = next((data_dir / "tiny_lego").glob("*.npz"))
+    f = next((scene("tiny_lego")).glob("*.npz"))
     z = np.load(f)
     imgs, poses, focal = z["images"][:10], z["poses"][:10], float(z["focal"])
     o, d = camera_rays(poses, 100, 100, focal)

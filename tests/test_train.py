@@ -105,9 +105,9 @@ def test_render_and_eval(trained, tmp_path, capsys):
     assert "mean over 8 views" in capsys.readouterr().out
 
 
-def test_train_on_tiny_lego(data_dir, tmp_path):
+def test_train_on_tiny_lego(scene, tmp_path):
     out = tmp_path / "tl"
-    rc = run_cli("train", "--data", data_dir / "tiny_lego", "--out", out, "--max-seconds", 6,
+    rc = run_cli("train", "--data", scene("tiny_lego"), "--out", out, "--max-seconds", 6,
                  "--set", "grid.reso=[[32,32,32],[64,64,64]]", "--set", "grid.upsample_at=[15]",
                  "--set", "train.eval_every=3")
     assert rc == 0
