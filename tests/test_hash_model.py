@@ -39,6 +39,11 @@ def test_presets_and_validation():
     assert HashConfig.from_preset("tiny").log2_table == 16
     assert build_config("tiny").hash.preset == "tiny"
     assert build_config("synthetic").hash.preset == "full"
+    # object-centric synthetic scenes hold the full learning rate longer; the rest keep 0.5
+    assert build_config("synthetic").hash.lr_hold == 0.65
+    for other in ("tiny", "forward_facing", "real360", "procedural"):
+        assert build_config(other).hash.lr_hold == HashConfig().lr_hold == 0.5, other
+    assert build_config("synthetic", overrides={"hash": {"lr_hold": 0.4}}).hash.lr_hold == 0.4
     cfg = build_config("tiny", overrides={"hash": {"preset": "full", "levels": 8},
                                           "train": {"model": "hash"}})
     assert cfg.hash.log2_table == 19 and cfg.hash.levels == 8
