@@ -119,7 +119,7 @@ def test_npz_tiny_lego(scene):
     np.testing.assert_allclose(d.intrinsics, [138.88887889922103, 138.88887889922103, 50, 50])
     assert d.background == (0.0, 0.0, 0.0)
     assert d.images[:, 0, 0].max() < 0.01                           # black background corners
-    f = next((scene("tiny_lego")).glob("*.npz"))
+    f = next(scene("tiny_lego").glob("*.npz"))
     assert detect_layout(f) == "npz"
     small = load_dataset(f, max_images=2, downscale=2)
     assert small.images.shape == (4, 50, 50, 3)

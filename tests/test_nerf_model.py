@@ -132,7 +132,7 @@ def test_short_training_on_tiny_lego(device, scene):
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
     from train_nerf_tiny import camera_rays
-    f = next((scene("tiny_lego")).glob("*.npz"))
+    f = next(scene("tiny_lego").glob("*.npz"))
     z = np.load(f)
     imgs, poses, focal = z["images"][:10], z["poses"][:10], float(z["focal"])
     o, d = camera_rays(poses, 100, 100, focal)
