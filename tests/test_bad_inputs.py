@@ -10,6 +10,7 @@ break are loaded by test_data_errors.py (and the ``valid`` rows here).
 import json
 import os
 import struct
+import shutil
 import subprocess
 import sys
 import zlib
@@ -288,6 +289,72 @@ def pinhole(*params):
     return {1: ("PINHOLE", W, H, list(params))}
 
 
+_TRAINED = {}
+
+
+def trained(t):
+    """t/run: a copy of a real checkpoint of the built-in scene (trained once per session, a
+    few seconds) for the rows that need one: camera paths, export, the viewer, protocols."""
+    if "dir" not in _TRAINED:
+        import tempfile
+        src = Path(tempfile.mkdtemp(prefix="clrf_bad_inputs_")) / "run"
+        assert cli(["--quiet", "train", "--out", str(src), "--max-seconds", "1", "--set",
+                    "grid.reso=[[16,16,16]]", "--set", "grid.upsample_at=[]", "--set",
+                    "train.eval_views=1", "--set", "train.final_eval=false"]) == 0
+        _TRAINED["dir"] = src
+    d = t / "run"
+    d.mkdir()
+    for name in ("ckpt.npz", "config.json"):
+        shutil.copy(_TRAINED["dir"] / name, d / name)
+    return d
+
+
+def view(*extra):
+    """`clrf view` of a real checkpoint with the flags ``extra``."""
+    return lambda t: ["view", "--ckpt", str(trained(t)), "--port", "0", "--exit-after", "0.1",
+                      *extra]
+
+
+def camera_path_file(text=None, **fields):
+    """`clrf render --camera-path` of a file holding ``text``, or a one-camera path with
+    ``fields`` changed (its camera's fields: c2w, fov)."""
+    def build(t):
+        ck = trained(t)
+        f = t / "path.json"
+        if text is not None:
+            f.write_text(text)
+        else:
+            cam = {"camera_to_world": fields.pop("c2w", np.eye(4).reshape(-1).tolist()),
+                   "fov": fields.pop("fov", 50.0), "aspect": 1.0}
+            meta = {"render_width": 16, "render_height": 16, "fps": 24, "seconds": 1,
+                    "camera_path": [cam]}
+            meta.update(fields)
+            f.write_text(json.dumps(meta))
+        return ["render", "--ckpt", str(ck), "--camera-path", str(f), "--out", str(t / "frames")]
+    return build
+
+
+def process(make):
+    """`clrf process INPUT --out scene`, INPUT = ``make(t)``."""
+    return lambda t: ["process", str(make(t)), "--out", str(t / "scene")]
+
+
+def text_as_mp4(t):
+    (t / "clip.mp4").write_text("this is a text file, not a video\n")
+    return t / "clip.mp4"
+
+
+def photos(n):
+    def make(t):
+        d = t / "photos"
+        d.mkdir()
+        rng = np.random.default_rng(0)
+        for i in range(n):
+            iio.imwrite(d / f"p{i}.png", rng.integers(0, 255, (16, 16, 3), dtype=np.uint8))
+        return d
+    return make
+
+
 # ---------------------------------------------------------------- the corpus
 
 NAN_POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, float("nan")], [0, 0, 0, 1]]
@@ -500,6 +567,57 @@ CASES = [
     ("eval-corrupt-checkpoint", on_ckpt("eval", b"garbage"), ["ckpt.npz", "unreadable"]),
     ("render-no-checkpoint", on_ckpt("render", None), ["no checkpoint"]),
     ("render-corrupt-checkpoint", on_ckpt("render", b""), ["ckpt.npz", "unreadable"]),
+    # ---- camera paths (clrf render --camera-path)
+    ("camera-path-not-json", camera_path_file("not json {"), ["path.json", "not valid JSON"]),
+    ("camera-path-nan", camera_path_file(c2w=[float("nan")] * 16),
+     ["path.json", "camera_path[0]", "NaN"]),
+    ("camera-path-12-numbers", camera_path_file(c2w=[1.0] * 12),
+     ["path.json", "camera_path[0]", "16 numbers"]),
+    ("camera-path-huge-frames", camera_path_file(render_width=200_000),
+     ["path.json", "'render_width' = 200000", "1..4096"]),
+    # ---- export
+    ("export-mesh-100000-cubed", lambda t: ["export", "--ckpt", str(trained(t)), "--mesh",
+                                            str(t / "m.ply"), "--reso", "100000"],
+     ["--reso 100000", "2..2048"]),
+    # ---- protocols (clrf eval --protocol)
+    ("protocol-without-the-scene", lambda t: ["eval", "--ckpt", str(trained(t)), "--protocol",
+                                              "blender"],
+     ["blender protocol", "--data"]),
+    # ---- clrf process
+    ("process-text-as-mp4", process(text_as_mp4), ["clip.mp4", "cannot read the video"]),
+    ("process-empty-folder", process(photos(0)), ["photos", "holds 0 images", "at least 3"]),
+    ("process-two-photos", process(photos(2)), ["photos", "holds 2 images", "at least 3"]),
+    # ---- hash settings
+    ("hash-levels-1000", opts("--model", "hash", "--set", "hash.levels=1000"),
+     ["hash.levels = 1000", "1..64"]),
+    ("hash-table-2-to-the-64", opts("--model", "hash", "--set", "hash.log2_table=64"),
+     ["hash.log2_table = 64", "1..24"]),
+    ("hash-samples-zero", opts("--model", "hash", "--set", "hash.samples=0"),
+     ["hash.samples = 0", "1..4096"]),
+    ("hash-resolution-inverted", opts("--model", "hash", "--set", "hash.min_res=512", "--set",
+                                      "hash.max_res=16"), ["hash.min_res"]),
+    # ---- the viewer's flags (clrf view, clrf train --view)
+    ("view-port-70000", view("--port", "70000"), ["--port 70000", "0..65535"]),
+    ("view-port-negative", view("--port", "-1"), ["--port -1", "0..65535"]),
+    ("view-host-empty", view("--host", ""), ["--host ''", "address"]),
+    ("view-host-url", view("--host", "http://example.org"), ["--host 'http://example.org'"]),
+    ("view-host-unresolvable", view("--host", "no-such-host.invalid"),
+     ["cannot listen on no-such-host.invalid", "--host"]),
+    ("view-no-token-off-loopback", view("--host", "0.0.0.0", "--no-token"),
+     ["--no-token", "loopback"]),
+    ("view-token-short", view("--token", "abc"), ["--token", "at least 22 characters"]),
+    ("view-token-bad-characters", view("--token", "a" * 30 + "!"), ["--token", "A-Z"]),
+    ("view-token-and-no-token", view("--token", "a" * 30, "--no-token"),
+     ["--no-token and --token"]),
+    ("view-max-clients-zero", view("--max-clients", "0"), ["--max-clients 0", "1..64"]),
+    ("view-max-fps-nan", view("--max-fps", "nan"), ["--max-fps nan", "(0, 240]"]),
+    ("view-exit-after-negative", view("--exit-after", "-5"), ["--exit-after -5.0", ">= 0"]),
+    ("view-allow-host-path", view("--allow-host", "a/b"), ["--allow-host 'a/b'"]),
+    ("train-view-port-70000", opts("--view", "--port", "70000"), ["--port 70000", "0..65535"]),
+    ("train-view-share-zero", opts("--view", "--view-share", "0"),
+     ["--view-share 0.0", "(0, 1]"]),
+    ("train-view-no-token-off-loopback", opts("--view", "--host", "::", "--no-token"),
+     ["--no-token", "loopback"]),
 ]
 
 
@@ -537,7 +655,7 @@ def test_unknown_flag_exits_2(capsys):
 
 
 @pytest.mark.parametrize("name", ["blender-decompression-bomb", "memory-too-large",
-                                  "resume-corrupt-checkpoint"])
+                                  "resume-corrupt-checkpoint", "view-port-70000"])
 def test_bad_input_in_a_real_process(tmp_path, name):
     """A few rows again as `python -m clrf.cli`: the exit status and stderr of a real process."""
     build, needles = next(c[1:] for c in CASES if c[0] == name)

@@ -2,6 +2,7 @@
 a camera inside an occupied cell, stale requests dropped, the render-time share, loopback only.
 
 Every wait is bounded (WAIT seconds), every loop bounded in count; servers listen on 127.0.0.1."""
+import http.client
 import json
 import math
 import socket
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("websockets", reason="the viewer needs websockets (clrf[view])")
-from websockets.exceptions import ConnectionClosed  # noqa: E402
+from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
 from clrf.data.cameras import look_at  # noqa: E402
@@ -24,8 +25,8 @@ from clrf.training.models import load_model  # noqa: E402
 from clrf.viewer import dataset_cameras, render_loop  # noqa: E402
 from clrf.viewer.core import (Frame, RequestError, ViewerCore, frame_image,  # noqa: E402
                               parse_request)
-from clrf.viewer.server import (MAX_MESSAGE, ViewerServer, decode_frame,  # noqa: E402
-                                is_loopback, warn_host)
+from clrf.viewer.server import (MAX_MESSAGE, Access, ViewerServer,  # noqa: E402
+                                decode_frame, is_loopback, warn_host)
 from viewer_util import train_tiny  # noqa: E402
 
 WAIT = 60.0    # seconds any one reply may take (PoCL on a loaded 2-core machine)
@@ -89,7 +90,7 @@ def error_of(ws):
 
 
 def ws_url(srv):
-    return f"ws://{HOST}:{srv.port}/ws"
+    return srv.ws_url
 
 
 # ---- validation -------------------------------------------------------------------------
@@ -150,7 +151,7 @@ def test_page_and_hello(server):
     html = urllib.request.urlopen(srv.url, timeout=WAIT).read().decode()
     assert "clrfViewer" in html and "<canvas" in html
     with pytest.raises(urllib.error.HTTPError):
-        urllib.request.urlopen(srv.url + "nothing-here", timeout=WAIT)
+        urllib.request.urlopen(f"http://{HOST}:{srv.port}/nothing-here", timeout=WAIT)
     with connect(ws_url(srv), open_timeout=WAIT) as ws:
         hello = json.loads(ws.recv(timeout=WAIT))
         assert hello["type"] == "hello" and not hello["training"]
@@ -353,3 +354,156 @@ def test_view_usage_errors(tmp_path, loaded, capsys):
         port = busy.getsockname()[1]
         with pytest.raises(ViewerError, match="another --port"):
             ViewerServer(ViewerCore(model, state["dataset"]), HOST, port).start()
+
+
+# ---- access: Host, Origin, token, limits --------------------------------------------------------
+# A browser lets any web page open a WebSocket to 127.0.0.1; these are what such a page, a
+# DNS-rebinding page or a client without the printed URL gets: no page, no hello, no frame.
+def raw_get(port, host_header, path="/", headers=()):
+    """(status, body) of a GET with a chosen Host header (urllib always sends the real one)."""
+    c = http.client.HTTPConnection(HOST, port, timeout=WAIT)
+    try:
+        c.putrequest("GET", path, skip_host=True)
+        c.putheader("Host", host_header)
+        for k, v in headers:
+            c.putheader(k, v)
+        c.endheaders()
+        r = c.getresponse()
+        return r.status, r.read()
+    finally:
+        c.close()
+
+
+def refused_with(status, url, **kw):
+    with pytest.raises(InvalidStatus) as e:
+        with connect(url, open_timeout=WAIT, **kw):
+            pass
+    assert e.value.response.status_code == status
+    return e.value.response.body.decode()
+
+
+def hello_of(url, **kw):
+    with connect(url, open_timeout=WAIT, **kw) as ws:
+        return json.loads(ws.recv(timeout=WAIT))
+
+
+def test_foreign_origin_gets_no_hello_even_with_the_token(server):
+    srv, core = server
+    for origin in ("http://evil.example", f"http://evil.example:{srv.port}", "null",
+                   f"https://127.0.0.1:{srv.port}", f"http://127.0.0.1:{srv.port + 1}",
+                   f"http://127.0.0.1.evil.example:{srv.port}"):
+        body = refused_with(403, srv.ws_url, origin=origin)
+        assert "may not connect" in body
+    # the page's own origin, under any loopback alias, with the token: the hello
+    for name in ("127.0.0.1", "localhost", "[::1]"):
+        assert hello_of(srv.ws_url, origin=f"http://{name}:{srv.port}")["type"] == "hello"
+    assert core.n_clients() <= 1
+
+
+def test_no_token_or_a_wrong_one_is_refused(server):
+    srv, core = server
+    base = srv.ws_url.split("?")[0]
+    assert len(srv.token) >= 32 and srv.token in srv.url   # 24 random bytes, in the URL
+    assert "missing or wrong token" in refused_with(403, base)
+    assert "missing or wrong token" in refused_with(403, base + "?token=" + srv.token[:-1] + "x")
+    assert "missing or wrong token" in refused_with(403, base + "?token=")
+    # the token as a header (tools), and in the URL (the page)
+    assert hello_of(base, additional_headers={"Authorization": f"token {srv.token}"})["type"] \
+        == "hello"
+    assert hello_of(srv.ws_url)["type"] == "hello"
+
+
+def test_foreign_host_gets_no_page_and_no_socket(server):
+    srv, core = server
+    port = srv.port
+    status, body = raw_get(port, f"127.0.0.1:{port}")
+    assert status == 200 and b"clrfViewer" in body
+    for host in (f"evil.example:{port}", "evil.example", f"127.0.0.1:{port + 1}", "",
+                 f"localhost.evil.example:{port}", f"[::2]:{port}", "a b"):
+        status, body = raw_get(port, host)
+        assert status == 403 and b"clrfViewer" not in body, host
+    status, _ = raw_get(port, f"localhost:{port}")
+    assert status == 200
+    # a WebSocket handshake with the token but a rebinding Host
+    ws_headers = [("Upgrade", "websocket"), ("Connection", "Upgrade"),
+                  ("Sec-WebSocket-Key", "dGhlIHNhbXBsZSBub25jZQ=="), ("Sec-WebSocket-Version", "13")]
+    status, _ = raw_get(port, f"evil.example:{port}", "/ws?token=" + srv.token, ws_headers)
+    assert status == 403
+    status, _ = raw_get(port, f"127.0.0.1:{port}", "/ws?token=" + srv.token, ws_headers)
+    assert status == 101
+
+
+def test_access_rules():
+    lo = Access("127.0.0.1", 8080, "t" * 32)
+    assert lo.host_ok("127.0.0.1:8080") and lo.host_ok("localhost:8080") and \
+        lo.host_ok("[::1]:8080") and lo.host_ok("LOCALHOST:8080")
+    assert not lo.host_ok("127.0.0.1:8081") and not lo.host_ok("127.0.0.1") and \
+        not lo.host_ok("10.0.0.1:8080") and not lo.host_ok("evil.example:8080") and \
+        not lo.host_ok(None) and not lo.host_ok("127.0.0.1:8080:1")
+    assert Access("127.0.0.1", 80).host_ok("localhost")   # port 80: browsers omit it
+    assert lo.origin_ok("http://localhost:8080") and not lo.origin_ok("http://localhost:8080/x")
+    assert not lo.origin_ok("http://user@localhost:8080") and not lo.origin_ok("")
+    # every interface: IP literals and localhost, never a DNS name unless allowed
+    anyip = Access("0.0.0.0", 9000, "t" * 32, allow_hosts=["box.lan"])
+    assert anyip.host_ok("192.168.1.5:9000") and anyip.host_ok("[fe80::1]:9000") and \
+        anyip.host_ok("localhost:9000") and anyip.host_ok("box.lan:9000")
+    assert not anyip.host_ok("rebind.evil.example:9000") and not anyip.host_ok("box.lan:9001")
+    one = Access("192.168.1.5", 9000, "t" * 32)
+    assert one.host_ok("192.168.1.5:9000") and not one.host_ok("localhost:9000")
+    # the token: the query or an Authorization header, nothing else
+    assert lo.token_ok("/ws?token=" + "t" * 32, {}) and not lo.token_ok("/ws", {})
+    assert lo.token_ok("/ws", {"Authorization": "Bearer " + "t" * 32})
+    assert not lo.token_ok("/ws", {"Authorization": "Basic " + "t" * 32})
+    assert Access("127.0.0.1", 1, None).token_ok("/ws", {})
+
+
+def test_tokens_are_new_each_run(loaded):
+    model, state = loaded
+    a = ViewerServer(ViewerCore(model, state["dataset"]), HOST, 0)
+    b = ViewerServer(ViewerCore(model, state["dataset"]), HOST, 0)
+    assert a.token != b.token and len(a.token) >= 32
+
+
+def test_no_token_on_loopback_still_checks_origin(loaded):
+    model, state = loaded
+    core = ViewerCore(model, state["dataset"])
+    srv = ViewerServer(core, HOST, 0, token=None).start()
+    try:
+        assert "token" not in srv.url and srv.ws_url.endswith("/ws")
+        assert hello_of(srv.ws_url)["type"] == "hello"
+        refused_with(403, srv.ws_url, origin="http://evil.example")
+    finally:
+        srv.stop()
+    from clrf.viewer.core import ViewerError
+    with pytest.raises(ViewerError, match="loopback"):
+        ViewerServer(core, "0.0.0.0", 0, token=None)
+
+
+def test_client_cap_and_render_rate(loaded):
+    model, state = loaded
+    core = ViewerCore(model, state["dataset"])
+    srv = ViewerServer(core, HOST, 0, max_clients=2, max_fps=2).start()
+    stop = threading.Event()
+    th = threading.Thread(target=render_loop, args=(core, 600.0, stop), daemon=True)
+    th.start()
+    try:
+        with connect(srv.ws_url, open_timeout=WAIT) as a, \
+                connect(srv.ws_url, open_timeout=WAIT) as b:
+            for ws in (a, b):
+                assert json.loads(ws.recv(timeout=WAIT))["type"] == "hello"
+            assert "--max-clients" in refused_with(503, srv.ws_url)
+            # 8 requests at once: the first 2 pass (a burst of max_fps), the rest are refused
+            for i in range(8):
+                a.send(json.dumps(request(seq=i + 1)))
+            errors = [error_of(a)["message"] for _ in range(6)]
+            assert all("--max-fps" in m for m in errors)
+            frame_of(a, 2)   # the newest accepted request is rendered
+        # both gone: a new page connects
+        wait_for = time.monotonic() + WAIT
+        while srv.n_clients() and time.monotonic() < wait_for:
+            time.sleep(0.05)
+        assert hello_of(srv.ws_url)["type"] == "hello"
+    finally:
+        stop.set()
+        th.join(timeout=WAIT)
+        srv.stop()

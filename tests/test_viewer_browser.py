@@ -139,3 +139,75 @@ def _rest_frame_any(d):
                  disp["moving"] and disp["width"] == d.execute_script(
                      "return clrfViewer.camera().width") else None)(
         d.execute_script("return clrfViewer.displayed()")))
+
+
+_ATTACK_PAGE = """<!doctype html><html><body><script>
+// another web page open in the same browser: it tries the viewer's WebSocket, without the
+// token and with it (as if the token had leaked), and logs what it gets
+window.events = [];
+function attempt(name, url) {
+  let ws;
+  try { ws = new WebSocket(url); } catch (e) { events.push([name, "throw"]); return; }
+  ws.onopen = () => events.push([name, "open"]);
+  ws.onmessage = m => events.push([name, "message", String(m.data).slice(0, 80)]);
+  ws.onclose = () => events.push([name, "close"]);
+}
+attempt("no token", "ws://127.0.0.1:%(port)d/ws");
+attempt("leaked token", "ws://127.0.0.1:%(port)d/ws?token=%(token)s");
+attempt("localhost", "ws://localhost:%(port)d/ws?token=%(token)s");
+fetch("http://127.0.0.1:%(port)d/").then(r => r.text()).then(
+  t => events.push(["fetch", "read", t.slice(0, 80)]), () => events.push(["fetch", "blocked"]));
+</script></body></html>"""
+
+
+def test_another_page_cannot_reach_the_viewer(tmp_path):
+    """A page served from another local port opens the viewer's WebSocket in headless
+    Chromium and gets no hello and no frame (the Origin check), and cannot read the page
+    (same-origin policy); the printed URL then works in the same browser, and the URL without
+    its token shows the refusal."""
+    import http.server
+    import threading
+    from urllib.parse import urlsplit
+    d = _browser()
+    ckpt = train_tiny(tmp_path / "run", 2.0)
+    view = ViewProcess(ckpt)
+    token = urlsplit(view.url).query.split("token=")[1]
+    page = (_ATTACK_PAGE % {"port": view.port, "token": token}).encode()
+
+    class Attack(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(page)))
+            self.end_headers()
+            self.wfile.write(page)
+
+        def log_message(self, *args):
+            pass
+
+    evil = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Attack)
+    threading.Thread(target=evil.serve_forever, daemon=True).start()
+    try:
+        d.get(f"http://127.0.0.1:{evil.server_address[1]}/")
+        events = _wait("the attack page's three attempts to end", lambda: (lambda ev: ev if sum(
+            e[1] in ("close", "throw") for e in ev) == 3 and any(e[0] == "fetch" for e in ev)
+            else None)(d.execute_script("return window.events")))
+        assert not [e for e in events if e[1] in ("open", "message", "read")], events
+        refused = console_errors(d)   # the browser's own report of the refused handshakes
+        assert sum("WebSocket" in m and "403" in m for m in refused) == 3, refused
+        # the printed URL, in the same browser: connected, the scene and a frame
+        d.get(view.url)
+        _wait("the hello", lambda: d.execute_script(
+            "return window.clrfViewer && clrfViewer.state.scene !== null"))
+        _wait("a frame", lambda: d.execute_script("return clrfViewer.displayed() !== null"))
+        assert console_errors(d) == []
+        # the same address without the token: refused, said on the page
+        d.get(view.url.split("?")[0])
+        status = d.find_element("id", "status")
+        _wait("the refusal on the page", lambda: "refused" in status.text)
+        assert d.execute_script("return clrfViewer.state.scene") is None
+        assert view.alive()
+    finally:
+        evil.shutdown()
+        d.quit()
+        view.close()

@@ -68,7 +68,9 @@ def test_train_with_the_viewer(tmp_path):
     p, url = start_training(tmp_path / "run", 10)
     out = tmp_path / "run"
     try:
-        with connect(url.replace("http://", "ws://") + "ws", open_timeout=WAIT) as ws:
+        base, token = url.split("?token=")
+        with connect(base.replace("http://", "ws://") + "ws?token=" + token,
+                     open_timeout=WAIT) as ws:
             hello = messages(ws, lambda m: m.get("type") == "hello", "hello")
             assert hello["training"] and hello["cameras"]
             c2w = look_at([3.0, 1.0, 2.0], [0, 0, 0]).reshape(-1).tolist()

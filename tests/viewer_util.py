@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import pytest
 
@@ -54,7 +55,7 @@ class ViewProcess:
         if self.url is None:
             self.close()
             raise AssertionError("clrf view did not start:\n" + "".join(self.output))
-        self.port = int(self.url.rstrip("/").rsplit(":", 1)[1])
+        self.port = urlsplit(self.url).port
 
     def _read(self):
         for line in self.p.stdout:

@@ -97,7 +97,7 @@ def main(argv=None):
         raise TimeoutError(f"no frame within {WAIT:.0f} s")
 
     try:
-        with connect(f"ws://127.0.0.1:{srv.port}/ws", open_timeout=60, max_size=None) as ws:
+        with connect(srv.ws_url, open_timeout=60, max_size=None) as ws:
             for i in range(a.warmup):            # kernels built here, not timed
                 frame(ws, poses[i], a.move_size, True)
                 frame(ws, poses[i], a.rest_size, False)

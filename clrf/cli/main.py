@@ -42,6 +42,13 @@ def cmd_train(a):
     from ..training.models import FACTORIES
     from ..training.trainer import Trainer
 
+    viewer = None
+    if a.view:   # the viewer's flags, checked before anything is loaded or written
+        from ..viewer.server import settings as viewer_settings
+        viewer = viewer_settings(a)
+        if not 0 < a.view_share <= 1:
+            raise CliError(f"--view-share {a.view_share}: must be in (0, 1], the largest "
+                           f"fraction of wall time the viewer may render for")
     if a.log == "tensorboard":
         from ..outputs.tblog import available
         if not available():
@@ -147,7 +154,7 @@ def cmd_train(a):
         trainer.metric_sinks = (TensorBoardLog(out),)
     if a.view:
         from ..viewer.live import LiveViewer
-        trainer.viewer = LiveViewer(trainer, a.host, a.port, a.view_share)
+        trainer.viewer = LiveViewer(trainer, a.view_share, **viewer)
     try:
         res = trainer.run()
     finally:
@@ -338,9 +345,8 @@ def build_parser():
                         "OUT/tensorboard (needs tensorboardX)")
     t.add_argument("--view", action="store_true",
                    help="serve the interactive viewer while training (needs clrf[view])")
-    t.add_argument("--port", type=int, default=8080, help="--view: TCP port (default 8080)")
-    t.add_argument("--host", default="127.0.0.1",
-                   help="--view: address to listen on (default 127.0.0.1; others warn)")
+    from ..viewer.server import add_flags as add_viewer_flags
+    add_viewer_flags(t, training=True)   # --port --host --token --no-token --max-clients ...
     t.add_argument("--view-share", type=float, default=0.2, metavar="FRACTION",
                    help="--view: largest fraction of wall time spent rendering for the viewer "
                         "(default 0.2)")
@@ -400,10 +406,7 @@ def build_parser():
 
     v = sub.add_parser("view", help="interactive web viewer of a checkpoint (needs clrf[view])")
     v.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
-    v.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0: any free)")
-    v.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on (default 127.0.0.1, this machine only; another "
-                        "address exposes the viewer to the network, with a warning)")
+    add_viewer_flags(v)
     v.add_argument("--data", default=None, help="dataset for the camera list (default: the run's)")
     v.add_argument("--no-cameras", action="store_true",
                    help="do not load the dataset to list its cameras")

@@ -115,8 +115,15 @@ def _video_reader(path: Path):
                                            or isinstance(e, ImportError)):
             raise ProcessError(f"{path}: reading a video needs imageio-ffmpeg; {INSTALL}") \
                 from None
-        raise ProcessError(f"{path}: cannot read the video ({e}); convert it to MP4 (H.264) "
-                           f"or extract its frames into a folder") from None
+        raise ProcessError(f"{path}: cannot read the video ({_last_line(e)}); convert it to "
+                           f"MP4 (H.264) or extract its frames into a folder") from None
+
+
+def _last_line(e: Exception) -> str:
+    """The reason of a reader's error in one line: ffmpeg's message is its whole log (banner,
+    build flags), whose last line says what went wrong."""
+    lines = [x.strip() for x in str(e).splitlines() if x.strip() and x.strip() != ")"]
+    return lines[-1].rstrip(")") if lines else type(e).__name__
 
 
 def extract_video(path: Path, dest: Path, count: int) -> list:
@@ -154,8 +161,8 @@ def copy_images(src: Path, dest: Path) -> list:
     """Stage 1 for a folder: its image files (top level, name order) copied to dest."""
     files = sorted(f for f in src.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_EXTS)
     if len(files) < MIN_REGISTERED:
-        raise ProcessError(f"{src}: holds {len(files)} images ({', '.join(IMAGE_EXTS)}); at "
-                           f"least {MIN_REGISTERED} overlapping photos are needed")
+        raise ProcessError(f"{src}: holds {len(files)} images ({', '.join(IMAGE_EXTS)}); add "
+                           f"photos: at least {MIN_REGISTERED} overlapping ones are needed")
     with bar(len(files), "frames: copy", "image") as b:
         for f in files:
             shutil.copy2(f, dest / f.name)

@@ -109,7 +109,7 @@ class HashConfig:
             (1 <= self.log2_table <= 24, "hash.log2_table", "must be in 1..24"),
             (1 <= self.min_res and (self.max_res == 0
                                     or self.min_res <= self.max_res <= 1 << 20),
-             "hash.min_res", "need 1 <= min_res <= max_res <= 1048576 (max_res 0: auto)"),
+             "hash.min_res", "must satisfy 1 <= min_res <= max_res <= 1048576 (max_res 0: auto)"),
             (self.width % 16 == 0 and 16 <= self.width <= 1024, "hash.width",
              "must be a multiple of 16 in 16..1024"),
             (self.color_width % 16 == 0 and 16 <= self.color_width <= 1024, "hash.color_width",

@@ -191,5 +191,6 @@ def load(file) -> CameraPath:
     try:
         d = json.loads(file.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CameraPathError(f"camera path {file}: not valid JSON ({e})") from None
+        raise CameraPathError(f"camera path {file}: not valid JSON ({e}); fix the file, or "
+                              f"save the path again from `clrf view`") from None
     return from_dict(d, f"camera path {file}")

@@ -82,7 +82,8 @@ def check_pose(pose) -> np.ndarray:
         raise ValueError(f"camera_to_world: expected 16 numbers (a 4x4 matrix, rows first), got "
                          f"shape {p.shape}")
     if not np.all(np.isfinite(p)):
-        raise ValueError("camera_to_world: holds NaN or infinite values")
+        raise ValueError("camera_to_world: holds NaN or infinite values; replace it with a finite "
+                         "camera-to-world matrix")
     r = p[:3, :3]
     if np.abs(r.T @ r - np.eye(3)).max() > 1e-3:
         raise ValueError("camera_to_world: the upper-left 3x3 block is not a rotation "

@@ -43,10 +43,14 @@ def run_view(a):
     """``clrf view``: serve a checkpoint until Ctrl-C (or --exit-after seconds)."""
     from ..runtime.device import Device
     from ..training.models import load_model
-    from .core import ViewerCore
-    from .server import ViewerServer, need_websockets, warn_host
+    from .core import ViewerCore, ViewerError
+    from .server import ViewerServer, need_websockets, settings, warn_host
 
     need_websockets()
+    access = settings(a)   # the flags, checked before the checkpoint is loaded
+    if not (math.isfinite(a.exit_after) and a.exit_after >= 0):
+        raise ViewerError(f"--exit-after {a.exit_after}: must be a number of seconds >= 0 "
+                          f"(0: run until Ctrl-C)")
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     meta = state["dataset"]
@@ -60,8 +64,8 @@ def run_view(a):
     ck = Path(a.ckpt)
     core = ViewerCore(model, meta, cams)
     core.up = up_vector(cams)
+    srv = ViewerServer(core, path_dir=ck if ck.is_dir() else ck.parent, **access).start()
     warn_host(a.host)
-    srv = ViewerServer(core, a.host, a.port, ck if ck.is_dir() else ck.parent).start()
     print(f"clrf: viewer at {srv.url} (Ctrl-C to stop)", flush=True)
     try:
         render_loop(core, a.exit_after or math.inf)

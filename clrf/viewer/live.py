@@ -28,7 +28,8 @@ MAX_PAUSE_FRAMES = 4   # frames rendered per poll while paused
 
 
 class LiveViewer:
-    def __init__(self, trainer, host="127.0.0.1", port=8080, share=0.2):
+    def __init__(self, trainer, share=0.2, host="127.0.0.1", port=8080, **access):
+        """``access``: ViewerServer's token, allow_hosts, max_clients, max_fps."""
         need_websockets()
         if not 0 < share <= 1:
             raise ViewerError(f"--view-share {share}: must be in (0, 1], the largest fraction of "
@@ -38,8 +39,8 @@ class LiveViewer:
         self.core = ViewerCore(trainer.model, dataset_meta(trainer.ds), cams, share=share,
                                training=True)
         self.core.up = up_vector(cams)
+        self.server = ViewerServer(self.core, host, port, trainer.out, **access).start()
         warn_host(host)
-        self.server = ViewerServer(self.core, host, port, trainer.out).start()
         self._last_stats = 0.0
         print(f"clrf: viewer at {self.server.url} (closing the page does not stop training)",
               file=sys.stderr, flush=True)
