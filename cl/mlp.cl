@@ -1,4 +1,5 @@
-/* mlp.cl: the fused NeRF MLP, forward and backward, for tiles of MLP_ROWS samples.
+/* mlp.cl: the fused NeRF MLP, forward and backward, for tiles of MLP_ROWS samples (CPU
+ * devices) or, with MLP_GPU=1, for work-groups of samples in local memory (mlp_gpu.h).
  *
  * Network (NeRF's, with the sizes as defines):
  *   h_0 = act(W_0 x + b_0), h_l = act(W_l h_{l-1} + b_l) for l = 1..D-1, where the input of
@@ -22,10 +23,11 @@
  *
  * Parameters: ONE contiguous float buffer. Layer l (l = 0..NLAYER-1, NLAYER = D + 2 + CD) holds
  *   W_l [nout_l, nin_l] row-major at w_off_l, then b_l [nout_l] at b_off_l = w_off_l + nout*nin,
- * and layer l+1 starts right after b_l. layer_desc(l) below is the single definition of the
- * offsets; the host reads them with the mlp_layout kernel. The forward reads a transposed copy
- * (params_t: each W_l stored [nin_l, nout_l] at the same offsets, biases copied) made by
- * mlp_transpose after every parameter update, so both passes stream contiguous weight rows.
+ * and layer l+1 starts right after b_l. layer_desc(l) (mlp_net.h, shared by both tilings) is
+ * the single definition of the offsets; the host reads them with the mlp_layout kernel. The
+ * forward reads a transposed copy (params_t: each W_l stored [nin_l, nout_l] at the same
+ * offsets, biases copied) made by mlp_transpose after every parameter update, so both passes
+ * stream contiguous weight rows.
  *
  * Scratch. Per sample one row of NSLOT floats in A (activations, after activation functions)
  * and G (dL/d pre-activation, or dL/d input for input slots). Row layout (slot offsets):
@@ -48,56 +50,27 @@
  * Weight gradients are reduced without races: mlp_weight_grad writes one partial gradient
  * (weights and biases) per chunk of DW_CHUNK rows (partial [P, NPARAM]), mlp_reduce sums them.
  *
+ * GPU tiling (MLP_GPU=1, mlp_gpu.h): the same network, parameter buffer, scratch rows and
+ * partial gradients, and the same kernels (mlp_weight_grad takes the chunk as an argument);
+ * a work-group runs a block of samples through every layer with the block's activations in
+ * local memory and small register tiles per work-item. The CPU tiles' defines are then unused.
+ *
  * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_COLOR_DEPTH, MLP_FEAT,
  * MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
- * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK, MLP_PREFETCH, DW_PREFETCH_AHEAD.
+ * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK, MLP_PREFETCH, DW_PREFETCH_AHEAD,
+ * MLP_GPU (and with it those of mlp_gpu.h).
  */
 #include "common.h"
+#include "mlp_net.h"
 
-#define ACT_NONE 0
-#define ACT_RELU 1
-#define ACT_SOFTPLUS 2
-#define ACT_SIGMOID 3
-#define ACT_TRUNC_EXP 4     /* density only: exp(min(x, SIGMA_EXP_MAX)) (see below) */
+#ifndef MLP_GPU
+#define MLP_GPU 0           /* 1: the GPU tiling (mlp_gpu.h) instead of the CPU tiles below */
+#endif
 
-#ifndef MLP_WIDTH
-#define MLP_WIDTH 64        /* trunk width W; a multiple of 16 */
-#endif
-#ifndef MLP_DEPTH
-#define MLP_DEPTH 4         /* trunk layers D >= 1 (NeRF: 8) */
-#endif
-#ifndef MLP_SKIP
-#define MLP_SKIP -1         /* x re-enters at the input of layer MLP_SKIP+1; -1: none (NeRF: 4) */
-#endif
-#ifndef MLP_COLOR_WIDTH
-#define MLP_COLOR_WIDTH 32  /* view-dependent colour layer width WC, multiple of 16 (NeRF: 128) */
-#endif
-#ifndef MLP_COLOR_DEPTH
-#define MLP_COLOR_DEPTH 1   /* colour hidden layers CD >= 1 (NeRF: 1; the hash model: 2) */
-#endif
-#ifndef MLP_FEAT
-#define MLP_FEAT MLP_WIDTH  /* feature outputs of the head, multiple of 16 (NeRF: W) */
-#endif
-#ifndef MLP_IN
-#define MLP_IN 51           /* encoded position dims (NeRF: 63 = 3 + 6*10) */
-#endif
-#ifndef MLP_DIR_IN
-#define MLP_DIR_IN 27       /* encoded direction dims (NeRF: 27 = 3 + 6*4) */
-#endif
-#ifndef HIDDEN_ACT
-#define HIDDEN_ACT ACT_RELU /* trunk and colour layers: ACT_RELU or ACT_SOFTPLUS */
-#endif
-#ifndef SIGMA_ACT
-#define SIGMA_ACT ACT_RELU  /* density: ACT_RELU (NeRF), ACT_SOFTPLUS (stable, never dead) or
-                               ACT_TRUNC_EXP (the hash model's) */
-#endif
-/* ACT_TRUNC_EXP: sigma = exp(min(x, SIGMA_EXP_MAX)), so sigma <= e^15 = 3.3e6 never overflows
- * however large the pre-activation; its backward is dL/dx = dL/dsigma * sigma, i.e. the
- * derivative of exp at the clamped value, which does not vanish beyond the clamp (so a
- * saturated density can still come down). */
-#ifndef SIGMA_EXP_MAX
-#define SIGMA_EXP_MAX 15.0f
-#endif
+#if MLP_GPU
+#include "mlp_gpu.h"
+#else  /* the CPU tiles */
+
 #ifndef MLP_ROWS
 #define MLP_ROWS 8          /* samples per work-item in mlp_forward / mlp_backward */
 #endif
@@ -114,33 +87,6 @@
 #define DW_CHUNK 512        /* scratch rows per partial weight gradient; multiple of MLP_ROWS */
 #endif
 
-#if MLP_WIDTH % 16 != 0 || MLP_WIDTH < 16
-#error "MLP_WIDTH must be a positive multiple of 16"
-#endif
-#if MLP_COLOR_WIDTH % 16 != 0 || MLP_COLOR_WIDTH < 16
-#error "MLP_COLOR_WIDTH must be a positive multiple of 16"
-#endif
-#if MLP_DEPTH < 1
-#error "MLP_DEPTH must be >= 1"
-#endif
-#if MLP_COLOR_DEPTH < 1
-#error "MLP_COLOR_DEPTH must be >= 1"
-#endif
-#if MLP_FEAT % 16 != 0 || MLP_FEAT < 16
-#error "MLP_FEAT must be a positive multiple of 16"
-#endif
-#if MLP_SKIP < -1 || MLP_SKIP >= MLP_DEPTH - 1
-#error "MLP_SKIP must be -1 (none) or in 0..MLP_DEPTH-2 (it feeds layer MLP_SKIP+1)"
-#endif
-#if MLP_IN < 1 || MLP_DIR_IN < 1
-#error "MLP_IN and MLP_DIR_IN must be >= 1"
-#endif
-#if HIDDEN_ACT != ACT_RELU && HIDDEN_ACT != ACT_SOFTPLUS
-#error "HIDDEN_ACT must be ACT_RELU (1) or ACT_SOFTPLUS (2)"
-#endif
-#if SIGMA_ACT != ACT_RELU && SIGMA_ACT != ACT_SOFTPLUS && SIGMA_ACT != ACT_TRUNC_EXP
-#error "SIGMA_ACT must be ACT_RELU (1), ACT_SOFTPLUS (2) or ACT_TRUNC_EXP (4)"
-#endif
 #if MLP_ROWS != 1 && MLP_ROWS != 2 && MLP_ROWS != 3 && MLP_ROWS != 4 && MLP_ROWS != 5 && \
     MLP_ROWS != 6 && MLP_ROWS != 8 && MLP_ROWS != 12 && MLP_ROWS != 16
 #error "MLP_ROWS must be 1, 2, 3, 4, 5, 6, 8, 12 or 16"
@@ -177,78 +123,6 @@
 #else
 #define MLP_PREFETCH_LINE(p)
 #endif
-
-#define LPAD 16                                   /* padding unit: one float16 */
-#define PADUP(n) ((((n) + LPAD - 1) / LPAD) * LPAD)
-#define MW MLP_WIDTH
-#define IN_P PADUP(MLP_IN)
-#define DIN_P PADUP(MLP_DIR_IN)
-#define HEAD_PAD LPAD                             /* sigma + 15 zero outputs before the feature */
-#define RGB_P LPAD                                /* r, g, b + 13 zero outputs */
-#define NLAYER (MLP_DEPTH + 2 + MLP_COLOR_DEPTH)
-
-/* Slot offsets in a scratch row (see the header). */
-#define SL_X 0
-#define SL_H(l) (IN_P + (l) * MW + ((MLP_SKIP >= 0 && (l) > MLP_SKIP) ? IN_P : 0))
-#define SL_XS (IN_P + (MLP_SKIP + 1) * MW)
-#define SL_HD SL_H(MLP_DEPTH)
-#define SL_FEAT (SL_HD + HEAD_PAD)
-#define SL_DV (SL_FEAT + MLP_FEAT)
-#define SL_C (SL_DV + DIN_P)
-#define SL_RGB (SL_C + MLP_COLOR_DEPTH * MLP_COLOR_WIDTH)
-#define NSLOT (SL_RGB + RGB_P)
-
-typedef struct {
-    int in_off, nin;    /* input slot range */
-    int out_off, nout;  /* output slot range */
-    int w_off, b_off;   /* parameter offsets */
-    int kin;            /* live inputs: the forward's sum runs over inputs 0 .. kin-1 only */
-    int kout1, ko2, kout2;  /* live outputs 0 .. kout1-1 and ko2 .. ko2+kout2-1: the backward's
-                               sum skips the padding rows (their gradients are 0) */
-} layer_t;
-
-/* The layout of layer l: the one definition of slot and parameter offsets. */
-inline layer_t layer_desc(const int l) {
-    layer_t L = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-    int w_off = 0;
-    for (int i = 0; i <= l; ++i) {
-        L.ko2 = 0; L.kout2 = 0;
-        if (i == 0) {
-            L.in_off = SL_X; L.nin = IN_P; L.out_off = SL_H(0); L.nout = MW;
-            L.kin = MLP_IN; L.kout1 = MW;
-        } else if (i < MLP_DEPTH) {
-            L.in_off = SL_H(i - 1);
-            L.nin = MW + (i == MLP_SKIP + 1 ? IN_P : 0);
-            L.out_off = SL_H(i); L.nout = MW;
-            L.kin = MW + (i == MLP_SKIP + 1 ? MLP_IN : 0); L.kout1 = MW;
-        } else if (i == MLP_DEPTH) {
-            L.in_off = SL_H(MLP_DEPTH - 1); L.nin = MW; L.out_off = SL_HD;
-            L.nout = HEAD_PAD + MLP_FEAT;
-            L.kin = MW; L.kout1 = 1; L.ko2 = HEAD_PAD; L.kout2 = MLP_FEAT;  /* sigma, feature */
-        } else if (i == MLP_DEPTH + 1) {
-            L.in_off = SL_FEAT; L.nin = MLP_FEAT + DIN_P; L.out_off = SL_C;
-            L.nout = MLP_COLOR_WIDTH;
-            L.kin = MLP_FEAT + MLP_DIR_IN; L.kout1 = MLP_COLOR_WIDTH;
-        } else if (i < NLAYER - 1) {          /* colour hidden layer c_j, j = i - D - 1 >= 1 */
-            L.in_off = SL_C + (i - MLP_DEPTH - 2) * MLP_COLOR_WIDTH; L.nin = MLP_COLOR_WIDTH;
-            L.out_off = L.in_off + MLP_COLOR_WIDTH; L.nout = MLP_COLOR_WIDTH;
-            L.kin = MLP_COLOR_WIDTH; L.kout1 = MLP_COLOR_WIDTH;
-        } else {
-            L.in_off = SL_RGB - MLP_COLOR_WIDTH; L.nin = MLP_COLOR_WIDTH; L.out_off = SL_RGB;
-            L.nout = RGB_P;
-            L.kin = MLP_COLOR_WIDTH; L.kout1 = 3;
-        }
-        L.w_off = w_off;
-        L.b_off = w_off + L.nout * L.nin;
-        w_off = L.b_off + L.nout;
-    }
-    return L;
-}
-
-inline int n_params(void) {
-    const layer_t L = layer_desc(NLAYER - 1);
-    return L.b_off + L.nout;
-}
 
 /* ---- the register-blocked product ---------------------------------------------------------
  * acc[r*CJ + c] += sum_{k<K} L[r*lr + k*lk] * M[k*ms + 16c .. 16c+15]  for r < ROWS, c < CJ.
@@ -329,31 +203,6 @@ DEFINE_GEMM_DW(gemm_dw2, DW_ROWS, T2, DW_LOADS2, T2_FMA)
 #endif
 DEFINE_GEMM_DW(gemm_dw1, DW_ROWS, T1, DW_LOADS1, T1_FMA)
 
-inline float16 act_forward(const float16 x, const int act) {
-    if (act == ACT_RELU) return fmax(x, (float16)(0.0f));
-    if (act == ACT_SOFTPLUS) return safe_softplus(x);
-    if (act == ACT_SIGMOID) return safe_sigmoid(x);
-    return x;
-}
-
-/* g * (d act / d x) for the hidden activation, the derivative a function of its output y.
- * Compile-time: a runtime switch that can reach the softplus library call made the compiler
- * keep the whole backward tile in memory (~30% of the backward pass on PoCL). */
-inline float16 hidden_act_grad_mul(const float16 g, const float16 y) {
-#if HIDDEN_ACT == ACT_RELU
-    return as_float16(as_int16(g) & isgreater(y, (float16)(0.0f)));
-#else
-    return g * softplus_grad_from_y(y);
-#endif
-}
-
-inline float act_grad1(const float y, const int act) {
-    if (act == ACT_RELU) return relu_grad_from_y(y);
-    if (act == ACT_SOFTPLUS) return softplus_grad_from_y(y);
-    if (act == ACT_SIGMOID) return sigmoid_grad_from_y(y);
-    if (act == ACT_TRUNC_EXP) return y;
-    return 1.0f;
-}
 
 /* Forward of one layer for the MLP_ROWS rows starting at A (row stride NSLOT): MLP_COLS-wide
  * column blocks, then 16-wide ones for the rest (nout is a multiple of 16). */
@@ -460,13 +309,7 @@ inline void trunk_forward(const int n, const int r0, __global const float *x_enc
     layer_forward(layer_desc(MLP_DEPTH), params_t, A, ACT_NONE);
     for (int r = 0; r < MLP_ROWS; ++r) {
         __global float *s = A + (size_t)r * NSLOT + SL_HD;
-#if SIGMA_ACT == ACT_RELU
-        *s = fmax(*s, 0.0f);
-#elif SIGMA_ACT == ACT_TRUNC_EXP
-        *s = exp(fmin(*s, SIGMA_EXP_MAX));   /* NaN stays NaN, as with the other two */
-#else
-        *s = safe_softplus(*s);
-#endif
+        *s = sigma_forward(*s);
     }
 }
 
@@ -624,6 +467,7 @@ __kernel void mlp_weight_grad(const int n_rows, __global const float *A,
 #endif
     }
 }
+#endif  /* MLP_GPU */
 
 /* grad[16i .. 16i+15] (+)= sum_p partial[p, 16i ..] in chunk order (deterministic). */
 __kernel void mlp_reduce(const int n_chunks, __global const float *partial, __global float *grad,
@@ -657,14 +501,27 @@ __kernel void mlp_transpose(__global const float *params, __global float *params
  * SL_XS (-1 without skip), SL_HD; out[8..11] = SL_FEAT, SL_DV, SL_C, SL_RGB;
  * out[12..15] = MLP_COLS, DW_ROWS, DW_COLS (the tile), wgrad_items_per_chunk() (the host's
  * work split of mlp_weight_grad);
+ * out[16..23] = MLP_GPU, then with MLP_GPU (mlp_gpu.h) GPU_WG, GPU_TM, GPU_TN, GPU_NC, GPU_BK,
+ * the forward's and backward's local memory bytes per group, GPU_DW_BS; there out[3] is GPU_BM
+ * (samples per work-group), out[4] 0 (the weight gradient's chunk is a kernel argument),
+ * out[12..15] = GPU_NC, GPU_DW_BJ, GPU_DW_BKW, the weight-gradient tiles per chunk;
  * then from out[LAYOUT_HEAD] 6 ints per layer: in_off, nin, out_off, nout, w_off, b_off. */
-#define LAYOUT_HEAD 16
+#define LAYOUT_HEAD 24
 __kernel void mlp_layout(__global int *out) {
     if (get_global_id(0) != 0) return;
-    out[0] = NLAYER; out[1] = NSLOT; out[2] = n_params(); out[3] = MLP_ROWS;
-    out[4] = DW_CHUNK; out[5] = SL_X; out[6] = MLP_SKIP >= 0 ? SL_XS : -1; out[7] = SL_HD;
+    out[0] = NLAYER; out[1] = NSLOT; out[2] = n_params();
+    out[5] = SL_X; out[6] = MLP_SKIP >= 0 ? SL_XS : -1; out[7] = SL_HD;
     out[8] = SL_FEAT; out[9] = SL_DV; out[10] = SL_C; out[11] = SL_RGB;
+#if MLP_GPU
+    out[3] = GPU_BM; out[4] = 0;
+    out[12] = GPU_NC; out[13] = GPU_DW_BJ; out[14] = GPU_DW_BKW; out[15] = gpu_wgrad_tiles();
+    out[16] = 1; out[17] = GPU_WG; out[18] = GPU_TM; out[19] = GPU_TN; out[20] = GPU_NC;
+    out[21] = GPU_BK; out[22] = GPU_LOCAL_BYTES(GPU_TM, GPU_BK); out[23] = GPU_DW_BS;
+#else
+    out[3] = MLP_ROWS; out[4] = DW_CHUNK;
     out[12] = MLP_COLS; out[13] = DW_ROWS; out[14] = DW_COLS; out[15] = wgrad_items_per_chunk();
+    for (int i = 16; i < LAYOUT_HEAD; ++i) out[i] = 0;
+#endif
     for (int l = 0; l < NLAYER; ++l) {
         const layer_t L = layer_desc(l);
         __global int *o = out + LAYOUT_HEAD + 6 * l;

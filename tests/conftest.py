@@ -26,6 +26,8 @@ EVERY_IMPL_MODULES = {
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
     "test_hash_encode", "test_hash_kernels",
+    "test_splat_kernels",
+    "test_mlp_gpu",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
 # program variant for seconds and held 9 GB on the 128^3 test) runs the small kernel-vs-reference
@@ -38,6 +40,9 @@ SLOW_IMPL_TESTS = {
     "test_stratified_matches_reference", "test_importance_matches_reference",
     "test_mse_mode_loss_and_gradient", "test_both_gradient_paths_pass",
     "test_march_matches_reference", "test_packed_composite_matches_reference",
+    "test_splat_project_matches_reference", "test_splat_binning_matches_reference",
+    "test_splat_rasterize_matches_reference", "test_splat_rasterize_backward_matches_reference",
+    "test_small_network_under_every_pass",
 }
 
 def pytest_generate_tests(metafunc):
@@ -53,7 +58,7 @@ def pytest_generate_tests(metafunc):
 
 @pytest.fixture(scope="session", autouse=True)
 def _own_tuning_cache(tmp_path_factory):
-    """Tests never read the user's tuned tiles (clrf/nerf/autotune.py): an empty cache folder."""
+    """Tests never read the user's tuned tiles (clrf/mlp/autotune.py): an empty cache folder."""
     old = os.environ.get("XDG_CACHE_HOME")
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
     yield

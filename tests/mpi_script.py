@@ -66,7 +66,7 @@ def render(out):
 def upsample(out, new_reso):
     """Distributed prune + resample of the random grid to new_reso ("X,Y,Z"); rank 0 writes
     the pruning weights' inputs and the merged new grid (dense density, sh, allocation)."""
-    from clrf.training.config import GridConfig
+    from clrf.grid.config import GridConfig
     from clrf.grid.distributed import world
     from clrf.grid import bricks
     from clrf.grid.dist_model import DistGridModel

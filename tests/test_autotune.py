@@ -1,4 +1,4 @@
-"""Fused-MLP tiles per device (clrf/nerf/tiling.py, clrf/nerf/autotune.py): defaults, the tuner's cache, the choice order,
+"""Fused-MLP tiles per device (clrf/mlp/tiling.py, clrf/mlp/autotune.py): defaults, the tuner's cache, the choice order,
 and a smoke run of the tuner and of tools/nerf_bench.py at tiny sizes."""
 import json
 import sys
@@ -7,10 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from clrf.nerf import autotune as tuner
-from clrf.nerf import tiling as at
+from clrf.mlp import autotune as tuner
+from clrf.nerf import autotune as tuner_cli
+from clrf.mlp import tiling as at
 from clrf.runtime.device import Capabilities
-from clrf.nerf.mlp import MLP, MLPSpec
+from clrf.mlp.mlp import MLP, MLPSpec
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
 import nerf_bench  # noqa: E402
@@ -121,31 +122,32 @@ def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
     assert [t for t, _ in res] == at.candidates(device.caps, SPEC)
     assert all(s > 0 for _, s in res) and best == min(res, key=lambda r: r[1])[0]
     assert at.cached_tiling(device.caps, SPEC) == best
-    assert MLP(device, SPEC).tiling == best
+    # the CPU tiles are what it tunes: a GPU's MLP runs its GPU tiling (CLRF_FORCE_GPU_KERNELS)
+    assert MLP(device.with_tuning(mlp_gpu=False), SPEC).tiling == best
 
 
 def test_tuner_cli(device, cache, capsys):
-    assert tuner.main(["--samples", "0"]) == 2
+    assert tuner_cli.main(["--samples", "0"]) == 2
     assert "clrf: error: --samples" in capsys.readouterr().err
-    assert tuner.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
+    assert tuner_cli.main(["--width", "40", "--depth", "2", "--skip", "-1", "--samples", "8",
                     "--rounds", "1"]) == 2
     assert "clrf: error: --width must be" in capsys.readouterr().err and not cache.exists()
     # the tiny preset's shape with NeRF's skip (layer 4 of 4): rejected by name, not a build error
-    assert tuner.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
+    assert tuner_cli.main(["--preset", "tiny", "--skip", "4", "--samples", "8", "--rounds", "1"]) == 2
     assert "clrf: error: --skip must be" in capsys.readouterr().err and not cache.exists()
     # tune the session's device (the tuner's own default is the probe's choice, which can
     # differ from the session's workload-chosen device when two drivers measure alike)
     dev = ["--device", f"{device.platform_index}:{device.device_index}"]
-    assert tuner.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
+    assert tuner_cli.main(["--width", "32", "--depth", "2", "--skip", "-1", "--color-width", "16",
                        "--in-dim", "9", "--dir-dim", "5", "--samples", "16", "--rounds", "1",
                        *dev]) == 0
     out = capsys.readouterr().out
     assert out.count("GFLOP/s") == len(at.candidates(device.caps, SPEC)) and cache.is_file()
     # --preset tiny tunes the shape `clrf train --model nerf` builds (its cache entry)
-    from clrf.training.config import NerfConfig
+    from clrf.nerf.config import NerfConfig
     tiny = NerfConfig.from_preset("tiny").mlp_spec()
     assert at.cached_tiling(device.caps, tiny) is None
-    assert tuner.main(["--preset", "tiny", "--samples", "8", "--rounds", "1", *dev]) == 0
+    assert tuner_cli.main(["--preset", "tiny", "--samples", "8", "--rounds", "1", *dev]) == 0
     assert at.cached_tiling(device.caps, tiny) is not None
 
 

@@ -125,7 +125,7 @@ def test_per_ray_density_scale_sweep_finite(render_device, scale):
 
 # ---- GridModel with an MSI background ---------------------------------------------------
 from clrf.outputs import checkpoint  # noqa: E402
-from clrf.training.config import GridConfig  # noqa: E402
+from clrf.grid.config import GridConfig  # noqa: E402
 from clrf.grid.background import GridBackground, msi_geometry  # noqa: E402
 from clrf.grid.model import GridModel  # noqa: E402
 from clrf.testing import reference_background as ref_bg  # noqa: E402

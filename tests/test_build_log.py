@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from clrf.runtime.buildlog import CHATTER, diagnostics, is_chatter, split_log
-from clrf.nerf.mlp import MLPSpec
+from clrf.mlp.mlp import MLPSpec
 from clrf.runtime.programs import build, build_log
 from clrf.testing import impls
 

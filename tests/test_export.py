@@ -6,7 +6,7 @@ from clrf.outputs import export
 from clrf.testing import reference_export
 from clrf.data.cameras import to_ndc
 from clrf.cli.main import main as cli
-from clrf.training.config import GridConfig
+from clrf.grid.config import GridConfig
 from clrf.data.synthetic import ProceduralScene, Sphere, load_procedural
 from clrf.grid import SparseGrid
 from clrf.grid.model import GridModel

@@ -7,7 +7,8 @@ import pytest
 import clrf
 from clrf.grid import ops as grid_ops
 from clrf.testing import reference as ref
-from clrf.training.config import GridConfig, build_config
+from clrf.training.config import build_config
+from clrf.grid.config import GridConfig
 from clrf.grid.model import GridModel
 
 BBOX = np.array([[-1.0] * 3, [1.0] * 3])

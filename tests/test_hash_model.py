@@ -7,7 +7,8 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf.training.config import ConfigError, HashConfig, build_config
+from clrf.training.config import ConfigError, build_config
+from clrf.hash.config import HashConfig
 from clrf.hash.model import HashModel
 from clrf.hash.occupancy import OccupancyGrid
 from clrf.testing import reference_hash as rh
@@ -552,6 +553,7 @@ def test_budget_learning_rate_follows_the_run(device):
 
     from clrf.hash.model import budget_lr
     from clrf.training.config import TrainConfig
+    from clrf.training.trainer import Trainer
     assert budget_lr(1e-2, 0.03, 0.5, 0.0) == budget_lr(1e-2, 0.03, 0.5, 0.5) == 1e-2
     assert budget_lr(1e-2, 0.03, 0.5, 0.75) == pytest.approx(1e-2 * 0.03 ** 0.5, rel=1e-12)
     assert budget_lr(1e-2, 0.03, 0.5, 1.0) == pytest.approx(3e-4, rel=1e-12)
@@ -561,8 +563,10 @@ def test_budget_learning_rate_follows_the_run(device):
     train = TrainConfig(max_seconds=100.0, max_iters=1000)
     for seconds, it, progress in ((10.0, 100, 0.1), (80.0, 100, 0.8), (10.0, 900, 0.9),
                                   (150.0, 0, 1.0)):
-        model.on_iteration(it, SimpleNamespace(cfg=SimpleNamespace(train=train),
-                                               seconds=seconds))
+        # the trainer's budget hook: the larger of seconds and iterations over their limits
+        run = SimpleNamespace(cfg=SimpleNamespace(train=train), seconds=seconds, iteration=it,
+                              rays=None)
+        model.on_iteration(it, Trainer.budget(run))
         assert model.progress == pytest.approx(progress)
         assert model.lr_at(it) == pytest.approx(
             budget_lr(SMALL.lr, SMALL.lr_final, SMALL.lr_hold, progress))

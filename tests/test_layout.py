@@ -12,8 +12,11 @@ Layers, bottom to top (a module may import its own layer and the ones below):
     runtime                 OpenCL devices, programs, memory planning, measuring, caches
     references              clrf/testing/reference*.py: the float64 references (numpy only;
                             the grid's gradient self-check compares with one)
-    grid, nerf, hash        the representations (grid and hash may use nerf's MLP)
+    interface               clrf/interface.py: the Model protocol and the Kind record
+    mlp                     the fused MLP that nerf and hash share (its tiles, its tuner)
+    grid, nerf, hash, splat the representations
     data                    datasets, cameras, protocols
+    registry                clrf/registry.py: the representations by name (imported by name)
     outputs                 checkpoints, run directories, renders, exports, logs
     training                the trainer, run configuration, model kinds, metrics
     viewer, testing         the web viewer; float64 references, test helpers, benchmarks
@@ -30,9 +33,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "clrf"
 
-REPRESENTATIONS = ("grid", "nerf", "hash")
-RANK = {"runtime": 0, "references": 0.5, "grid": 1, "nerf": 1, "hash": 1, "data": 1,
-        "outputs": 2, "training": 3, "viewer": 4, "testing": 4, "cli": 5}
+REPRESENTATIONS = ("grid", "nerf", "hash", "splat")
+RANK = {"runtime": 0, "references": 0.5, "interface": 0.75, "mlp": 0.9, "grid": 1, "nerf": 1,
+        "hash": 1,
+        "splat": 1, "data": 1, "registry": 1.5, "outputs": 2, "training": 3, "viewer": 4,
+        "testing": 4, "cli": 5}
 
 
 def modules(pkg: Path = PKG) -> dict:

@@ -7,7 +7,8 @@ import pytest
 
 from clrf.cli.main import main as cli
 from clrf.training.config import build_config
-from clrf.training.budget import MemoryBudgetError, check_training_fits, grid_stages, sphere_rows
+from clrf.grid.budget import grid_stages, sphere_rows
+from clrf.training.budget import MemoryBudgetError, check_training_fits
 
 GiB = 1 << 30
 
@@ -157,7 +158,7 @@ def test_checkpoint_downloads_keep_no_host_copy(device):
 def test_scratch_copies_follow_the_tuning():
     """The grid estimate counts the scratch gradient copies the backward really holds: one on
     CPU devices with block locks, one per slot without them, none on the atomic path."""
-    from clrf.training.budget import scratch_copies
+    from clrf.grid.budget import scratch_copies
     from clrf.runtime.tuning import Tuning
     assert scratch_copies(True) == 1 and scratch_copies(False) == 0
     assert scratch_copies(True, Tuning(grad_slots=8, grad_locks=4)) == 1

@@ -1,5 +1,7 @@
 """Fused MLP (cl/mlp.cl) vs the float64 reference, finite differences, awkward batch sizes and
-every register tile the kernel allows."""
+every register tile the kernel allows. The reference tests run the device's own tiling (the GPU
+tiling on GPUs and with CLRF_FORCE_GPU_KERNELS=1; tests/test_mlp_gpu.py forces it everywhere);
+the register-tile tests run the CPU tiles on every device."""
 from dataclasses import replace
 
 import numpy as np
@@ -7,7 +9,7 @@ import pyopencl.array as cla
 import pytest
 
 from clrf.testing import reference_nerf as ref
-from clrf.nerf.mlp import MLP, MLPSpec
+from clrf.mlp.mlp import MLP, MLPSpec
 from clrf.testing import tolerances as tol
 
 # tiny networks: skip into layer 1 with softplus everywhere; no skip with ReLU; a chunk of
@@ -267,6 +269,13 @@ def test_invalid_shapes_fail_to_build(device):
 
 
 # ---- register tiles ---------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def cpu_tiles(device):
+    """The device with the fused MLP's CPU register tiles, also where it would run the GPU
+    tiling (a GPU, CLRF_FORCE_GPU_KERNELS=1): the tests below are about those tiles."""
+    return device.with_tuning(mlp_gpu=False)
+
+
 # (rows, cols, dw_rows, dw_cols): the AVX-512 defaults (wide and narrow MLPs) and the former
 # one, the AVX2 default, one-row tiles, every other row count, and weight-gradient tiles of
 # each allowed height and both widths.
@@ -280,12 +289,12 @@ TILE_SPEC = MLPSpec(width=48, depth=3, skip=0, color_width=16, in_dim=9, dir_dim
 
 
 @pytest.mark.parametrize("tile", TILES, ids=lambda t: "r%d_c%d_dw%dx%d" % t)
-def test_every_tile_matches_reference(device, tile):
+def test_every_tile_matches_reference(cpu_tiles, tile):
     """Forward, input and parameter gradients of each tile against the float64 reference, for
     batches of 0, 1, 7, a tile -1, +0, +1 and several partial-gradient chunks (2 tiles)."""
     r, c, dwr, dwc = tile
     spec = replace(TILE_SPEC, rows=r, cols=c, dw_rows=dwr, dw_cols=dwc, dw_chunk=2 * r)
-    net = MLP(device, spec, seed=3)
+    net = MLP(cpu_tiles, spec, seed=3)
     assert (net.layout.rows, net.layout.cols, net.layout.dw_rows, net.layout.dw_cols,
             net.layout.dw_chunk) == (r, c, dwr, dwc, 2 * r)
     p = net.params.get()
@@ -314,16 +323,16 @@ def test_every_tile_matches_reference(device, tile):
         _close_rel_to_max(dd, want["d_enc"])
 
 
-def test_chunk_rounds_up_to_whole_tiles(device):
+def test_chunk_rounds_up_to_whole_tiles(cpu_tiles):
     """dw_chunk = 16 with 6-row tiles builds with 18-row chunks (whole tiles)."""
-    net = MLP(device, replace(TILE_SPEC, rows=6, cols=16, dw_rows=4, dw_cols=32, dw_chunk=16))
+    net = MLP(cpu_tiles, replace(TILE_SPEC, rows=6, cols=16, dw_rows=4, dw_cols=32, dw_chunk=16))
     assert net.layout.dw_chunk == 18 and net.tiling.dw_chunk == 16
 
 
 @pytest.mark.parametrize("field,value,define", [("rows", 7, "MLP_ROWS"), ("cols", 24, "MLP_COLS"),
                                                 ("dw_rows", 6, "DW_ROWS"),
                                                 ("dw_cols", 8, "DW_COLS")])
-def test_invalid_tiles_fail_to_build(device, field, value, define):
+def test_invalid_tiles_fail_to_build(cpu_tiles, field, value, define):
     from clrf.runtime.programs import BuildError
     with pytest.raises(BuildError, match=define):
-        MLP(device, replace(TILE_SPEC, **{field: value}))
+        MLP(cpu_tiles, replace(TILE_SPEC, **{field: value}))

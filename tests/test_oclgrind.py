@@ -7,8 +7,11 @@ may not. It is a device of its own here, through a vendors folder that names onl
 runs a small test of each kernel family (CASES) in a child pytest: grid forward and backward
 in both loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample,
 prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
-forward and backward, the hash encoding's backward, the hash march (windows, alive rays,
-contraction) and Adam over spans. The child's tests must pass and Oclgrind must report nothing.
+forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
+backward, the hash march (windows, alive rays,
+contraction) and Adam over spans, and the Gaussian splatting projection (forward, backward),
+binning (pyopencl's scan and radix sort) and tile rasteriser (forward, backward).
+The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
 building a program and looking up a kernel, and a 1.2 device answers CL_INVALID_VALUE, which
@@ -57,11 +60,19 @@ CASES = [
     "tests/test_nerf_composite.py::test_mse_mode_loss_and_gradient",
     "tests/test_nerf_mlp.py::test_forward_matches_reference",
     "tests/test_nerf_mlp.py::test_backward_matches_reference",
+    "tests/test_mlp_gpu.py::test_small_network_under_every_pass",
     "tests/test_hash_encode.py::test_backward_matches_reference",
     "tests/test_hash_kernels.py::test_march_matches_reference",
     "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
+    "tests/test_splat_kernels.py::test_splat_project_matches_reference[default-3]",
+    "tests/test_splat_kernels.py::test_splat_project_backward_matches_reference[default-3]",
+    "tests/test_splat_kernels.py::test_splat_binning_matches_reference[default-40-33-17]",
+    "tests/test_splat_kernels.py::"
+    "test_splat_rasterize_backward_matches_reference[default-12-33-17]",
+    "tests/test_splat_kernels.py::test_splat_opacity_near_one_toy",
+    "tests/test_splat_kernels.py::test_splat_no_gaussians",
 ]
 PYOPENCL_QUERY = re.compile(r"Function: clGetDeviceInfo\s+Error:\s+CL_INVALID_VALUE\s+"
                             r"For argument 'param_name'")
@@ -82,6 +93,9 @@ def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
     env.update(OCL_ICD_VENDORS=str(vendors), CLRF_DEVICE="0:0", CLRF_TEST_IMPLS="default",
                OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path),
                PYTHONPATH=str(ROOT))
+    # Oclgrind's device reports every type, GPU among them: test_nerf_mlp.py's cases keep the
+    # fused MLP's CPU tiles here; test_mlp_gpu.py's case forces the GPU tiling itself
+    env["CLRF_FORCE_GPU_KERNELS"] = "0"
     # -k default: the session device (Oclgrind) only, not the other implementations
     cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-s", "-p", "no:cacheprovider",
            "-k", "default", *CASES]

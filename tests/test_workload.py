@@ -6,7 +6,9 @@ import pytest
 
 import clrf
 from clrf.runtime import workload
-from clrf.training.models import WORKLOADS
+from clrf import registry
+
+WORKLOADS = {k.name: k.workload for k in registry.kinds() if k.workload is not None}
 
 
 @pytest.fixture

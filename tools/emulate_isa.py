@@ -10,7 +10,7 @@ What changes, for the tool's process only:
   (POCL_KERNELLIB_NAME), into a kernel cache of its own (POCL_CACHE_DIR), with pyopencl's
   binary cache off (PYOPENCL_NO_CACHE), so no binary of the host's ISA is reused;
 - clrf sees the ISA's native float vector width (PoCL reports the host's), so its per-device
-  defaults (the fused MLP's register tile, clrf/nerf/tiling.py) are those of such a CPU, and the
+  defaults (the fused MLP's register tile, clrf/mlp/tiling.py) are those of such a CPU, and the
   tuner's cache goes to a directory of its own (XDG_CACHE_HOME);
 - numpy's OpenBLAS uses its kernels for the ISA (OPENBLAS_CORETYPE), so ratios to numpy
   compare like with like.

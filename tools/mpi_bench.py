@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import pyopencl.array as cla  # noqa: E402
 
 import clrf  # noqa: E402
-from clrf.training.config import GridConfig  # noqa: E402
+from clrf.grid.config import GridConfig  # noqa: E402
 from clrf.grid import bricks as B  # noqa: E402
 from clrf.grid.dist_model import DistGridModel  # noqa: E402
 

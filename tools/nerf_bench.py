@@ -19,6 +19,20 @@ its reduce alone; input gradient = bwd - wgrad.
 Tilings: "device" (what an MLP picks here: tuned cache, else the device default), "default"
 (the device default, ignoring the cache), "wide" (8 rows x 32 columns, weight gradient 8 x 32:
 the former AVX-512 default), or rows:cols:dw_rows:dw_cols[:dw_chunk].
+
+GPU sizes (``--gpu-sizes``): the fused MLP alone, forward and forward + backward, at batches of
+``--gpu-samples`` (default 2^16, 2^18, 2^20) for ``--gpu-configs`` (NeRF's 8 x 256, 4 x 64, the
+hash model's networks), each reported as samples/s, GFLOP/s and the fraction of the FP32 FMA
+peak measured in the same run (cl/bench.cl's bench_fma; on a GPU launched as tools/bench.py's
+peak/fma, 2,048 work-items per compute unit). No numpy peer there (a 2^20 batch of 8 x 256
+takes seconds on a CPU). Tilings there: "device" (the MLP's own choice: the GPU tiling on GPUs),
+"gpu" (the GPU tiling forced), "cpu" (the CPU register tiles, also on a GPU).
+``--force-gpu-kernels`` runs the whole tool with the GPU tiling on any device (as
+``CLRF_FORCE_GPU_KERNELS=1``; the CPU tilings named by --tilings then build the GPU tiling too).
+
+    python tools/nerf_bench.py --gpu-sizes --out gpu.json            # on a GPU
+    python tools/nerf_bench.py --gpu-sizes --force-gpu-kernels --gpu-samples 256 --repeats 1 \
+        --gpu-configs hash-1x64-c2                                     # a smoke run on a CPU
 """
 from __future__ import annotations
 
@@ -39,8 +53,8 @@ import pyopencl.array as cla
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # this checkout's clrf first
 
 import clrf  # noqa: E402
-from clrf.nerf.tiling import CHUNK_TILES, MLPTiling, device_default  # noqa: E402
-from clrf.nerf.mlp import MLP, MLPSpec  # noqa: E402
+from clrf.mlp.tiling import CHUNK_TILES, MLPTiling, device_default, tile_fields  # noqa: E402
+from clrf.mlp.mlp import MLP, MLPSpec  # noqa: E402
 
 CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L)
     "nerf-8x256-skip4": MLPSpec(width=256, depth=8, skip=4, color_width=128, in_dim=63, dir_dim=27),
@@ -48,6 +62,14 @@ CONFIGS = {   # name -> MLPSpec; in/dir dims from the usual frequencies (3 + 6 L
     "small-2x128": MLPSpec(width=128, depth=2, skip=-1, color_width=64, in_dim=51, dir_dim=15),
 }
 WIDE = MLPTiling(8, 32, 8, 32, 512)
+GPU_CONFIGS = {   # --gpu-sizes: the shapes the trainers build (hash: 16 x 2 features, SH degree 4)
+    "nerf-8x256-skip4": CONFIGS["nerf-8x256-skip4"],
+    "small-4x64": CONFIGS["small-4x64"],
+    "hash-1x64-c2": MLPSpec(width=64, depth=1, skip=-1, color_width=64, in_dim=32, dir_dim=16,
+                            sigma_act="trunc_exp", color_depth=2, features=16),
+}
+GPU_SAMPLES = (1 << 16, 1 << 18, 1 << 20)
+GPU_FMA_ITERS = 2048      # the GPU peak kernel's iterations (2,048 items per compute unit)
 
 
 def cpu_seconds() -> float:
@@ -65,6 +87,24 @@ def fma_peak_case(dev, vec):
 
     def run():
         k(dev.queue, (n_items,), (1,), out.data, np.float32(0.999), np.float32(1e-3))
+        dev.queue.finish()
+    return run, n_items * iters * 8 * vec * 2
+
+
+def gpu_fma_peak_case(dev):
+    """(run, flop): the FMA peak as tools/bench.py's peak/fma measures it on a GPU: float<the
+    device's vector width> chains, 2,048 work-items per compute unit, the driver's local size.
+    On a CPU device the CPU-shaped fma_peak_case."""
+    if dev.caps.type == "cpu":
+        return fma_peak_case(dev, dev.caps.vector_width)
+    vec, iters = dev.caps.vector_width, GPU_FMA_ITERS
+    n_items = 2048 * dev.caps.compute_units
+    prg = dev.program("bench.cl", {"FMA_CHAINS": 8, "FMA_ITERS": iters, "FMA_VEC": vec})
+    k = prg.kernel("bench_fma")
+    out = cla.empty(dev.queue, n_items, np.float32)
+
+    def run():
+        k(dev.queue, (n_items,), None, out.data, np.float32(0.999), np.float32(1e-3))
         dev.queue.finish()
     return run, n_items * iters * 8 * vec * 2
 
@@ -97,11 +137,12 @@ def _matmul_runs(spec, n):
     return fwd, fwdbwd
 
 
-def fused_runs(dev, spec, n):
-    """The MLP and its cases: forward, forward+backward, backward alone and weight gradient
-    (+ reduce) alone; the last two reuse the activations of one forward made here."""
+def fused_runs(dev, spec, n, net=None):
+    """The MLP (``net``, or a new one) and its cases: forward, forward+backward, backward alone
+    and weight gradient (+ reduce) alone; the last two reuse the activations of one forward
+    made here."""
     q = dev.queue
-    net = MLP(dev, spec)
+    net = net or MLP(dev, spec)
     rng = np.random.default_rng(0)
     x = cla.to_device(q, rng.random((n, spec.in_dim), np.float32))
     d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
@@ -173,17 +214,82 @@ def interleaved(cases, repeats, min_sample_s=None):
                 float(np.median(cpu[k]))) for k in cases}
 
 
+def gpu_main(dev, args) -> dict:
+    """--gpu-sizes: the fused MLP at GPU batch sizes beside the FMA peak of the same run."""
+    sizes = [int(v) for v in args.gpu_samples.split(",")]
+    tnames = (args.tilings or "device").split(",")
+    res = {"device": repr(dev), "driver": dev.caps.driver_version, "host": platform.node(),
+           "mode": "gpu-sizes", "compute_units": dev.caps.compute_units,
+           "local_mem_size": dev.caps.local_mem_size, "samples": sizes,
+           "repeats": args.repeats, "min_sample_s": args.min_sample_s, "configs": {}}
+    cases = {"fma_peak": gpu_fma_peak_case(dev)}
+    tilings = {}
+    for name in args.gpu_configs.split(","):
+        spec = GPU_CONFIGS[name]
+        fwd_flop, fwdbwd_flop = spec.flops_per_sample()
+        for tname in tnames:
+            d = {"device": dev, "gpu": dev.with_tuning(mlp_gpu=True),
+                 "cpu": dev.with_tuning(mlp_gpu=False)}.get(tname)
+            if d is None:
+                raise SystemExit(f"nerf_bench: --tilings with --gpu-sizes: device, gpu or cpu, "
+                                 f"got {tname!r}")
+            net = MLP(d, spec)     # one per shape and tiling: its scratch grows to the largest n
+            for n in sizes:
+                net, runs = fused_runs(d, spec, n, net)
+                tilings[f"{name}/{tname}"] = {**asdict(net.tiling), "layout_gpu": net.layout.gpu,
+                                              "block": net.layout.rows}
+                for mode, flop in (("fwd", fwd_flop), ("fwdbwd", fwdbwd_flop)):
+                    cases[f"{name}/{tname}/{n}/{mode}"] = (runs[mode], flop * n)
+    times = interleaved(cases, args.repeats, args.min_sample_s)
+    peak = cases["fma_peak"][1] / times["fma_peak"][0] / 1e9
+    res["fma_peak_gflops"] = peak
+    res["tilings"] = tilings
+    figs = res["cases"] = {}
+    print(f"FP32 FMA peak (same run): {peak:.1f} GFLOP/s", flush=True)
+    for k, (_, f) in cases.items():
+        if k == "fma_peak":
+            continue
+        n = int(k.split("/")[2])
+        med, lo, hi, _ = times[k]
+        g = f / med / 1e9
+        figs[k] = {"median_s": med, "min_s": lo, "max_s": hi, "samples_per_s": n / med,
+                   "gflops": g, "fraction_of_fma_peak": g / peak}
+        print(f"{k:44s} {n / med / 1e6:9.3f} M samples/s {g:9.1f} GFLOP/s "
+              f"{100 * g / peak:6.2f} % of peak", flush=True)
+    return res
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--samples", type=int, default=8192, help="samples per batch")
     ap.add_argument("--repeats", type=int, default=7, help="interleaved rounds")
     ap.add_argument("--configs", default=",".join(CONFIGS))
-    ap.add_argument("--tilings", default="device,wide", help="comma list, see module doc")
+    ap.add_argument("--tilings", default=None,
+                    help="comma list, see module doc (default device,wide; with --gpu-sizes "
+                         "device)")
     ap.add_argument("--min-sample-s", type=float, default=MIN_SAMPLE_S,
                     help="a timed sample repeats its case back to back at least this long")
     ap.add_argument("--out", default=None, help="write the JSON here too")
+    ap.add_argument("--gpu-sizes", action="store_true",
+                    help="time the fused MLP alone at GPU batch sizes (--gpu-samples), with "
+                         "samples/s and the fraction of the FMA peak of the same run")
+    ap.add_argument("--gpu-samples", default=",".join(str(v) for v in GPU_SAMPLES),
+                    help="comma list of batch sizes for --gpu-sizes (default 2^16,2^18,2^20)")
+    ap.add_argument("--gpu-configs", default=",".join(GPU_CONFIGS),
+                    help="comma list of MLP shapes for --gpu-sizes")
+    ap.add_argument("--force-gpu-kernels", action="store_true",
+                    help="the fused MLP's GPU tiling on any device (CLRF_FORCE_GPU_KERNELS=1)")
     args = ap.parse_args(argv)
     dev = clrf.Device()
+    if args.force_gpu_kernels:
+        dev = dev.with_tuning(mlp_gpu=True)
+    if args.gpu_sizes:
+        res = gpu_main(dev, args)
+        if args.out:
+            with open(args.out, "w") as fh:
+                fh.write(json.dumps(res, indent=1) + "\n")
+        return
+    args.tilings = args.tilings or "device,wide"
     n = args.samples
     res = {"device": repr(dev), "driver": dev.caps.driver_version, "host": platform.node(),
            "native_float_width": dev.caps.native_float_width, "cpu_count": os.cpu_count(),
@@ -201,7 +307,8 @@ def main(argv=None):
         cases[f"{name}/numpy/fwdbwd"] = (fwdbwd, 6 * macs)
         for tname in args.tilings.split(","):
             t = parse_tiling(dev, tname, spec)
-            net, runs = fused_runs(dev, spec if t is None else replace(spec, **asdict(t)), n)
+            net, runs = fused_runs(dev, spec if t is None else replace(spec, **tile_fields(t)),
+                                   n)
             tilings[f"{name}/{tname}"] = asdict(net.tiling)
             for mode, flop in (("fwd", 2), ("fwdbwd", 6), ("bwd", 4), ("wgrad", 2)):
                 cases[f"{name}/{tname}/{mode}"] = (runs[mode], flop * macs)

@@ -1,7 +1,7 @@
 """``clrf train`` flags generated from the typed configuration (clrf.training.config).
 
-Every field of every section of :class:`clrf.training.config.Config` (``grid``, ``train``,
-``nerf``, ``hash``) becomes one flag ``--SECTION.KEY`` in an argparse group per section, with
+Every field of every section of :class:`clrf.training.config.Config` (``train`` and one per
+model kind of the registry) becomes one flag ``--SECTION.KEY`` in an argparse group per section, with
 the field's default and its source comment as the help text. The comment is the one written
 beside the field in its dataclass (clrf/training/config.py, clrf/grid/config.py,
 clrf/nerf/config.py, clrf/hash/config.py; plus the comment lines that continue it), so the
@@ -31,19 +31,19 @@ import io
 import json
 import tokenize
 
+from .. import registry
 from ..training import config as config_mod
 
 DEST_PREFIX = "cfg__"     # argparse dest of a generated flag: cfg__SECTION__KEY
 
 
 def sections():
-    """(section name, its dataclass, its one-line description) for every Config section."""
-    comments = field_comments(config_mod.Config)
-    out = []
-    for f in dataclasses.fields(config_mod.Config):
-        cls = type(f.default_factory())
-        doc = comments.get(f.name) or (inspect.getdoc(cls) or "").split("\n")[0]
-        out.append((f.name, cls, doc))
+    """(section name, its dataclass, its one-line description) for every Config section: the
+    run's, then one per registered model kind (clrf/registry.py)."""
+    out = [("train", config_mod.TrainConfig,
+            (inspect.getdoc(config_mod.TrainConfig) or "").split("\n")[0])]
+    for k in registry.kinds():
+        out.append((k.name, k.config, f"{k.title} (--model {k.name})"))
     return out
 
 

@@ -30,9 +30,24 @@ def _check_ply(opt, path):
     return p
 
 
+def kind_exports(a) -> dict:
+    """{flag name: path} of the model kinds' own export flags the user gave (checked)."""
+    from .. import registry
+    out = {}
+    for name, (exp, _) in registry.exports().items():
+        v = getattr(a, name.replace("-", "_"), None)
+        if v:
+            p = Path(v)
+            if p.suffix.lower() != exp.suffix or p.is_dir():
+                raise _error(f"--{name} {v}: the output must be a {exp.suffix} file, e.g. "
+                             f"--{name} scene{exp.suffix}")
+            out[name] = p
+    return out
+
+
 def check_export_args(a):
     """Validate ``clrf export`` options; returns (mesh path | None, points path | None)."""
-    if not a.mesh and not a.points:
+    if not a.mesh and not a.points and not kind_exports(a):
         raise _error("export: nothing to do: pass --mesh FILE.ply and/or --points FILE.ply")
     mesh = _check_ply("--mesh", a.mesh) if a.mesh else None
     points = _check_ply("--points", a.points) if a.points else None
@@ -64,8 +79,16 @@ def cmd_export(a):
     from ..outputs.ply import write_ply
 
     mesh_path, points_path = check_export_args(a)
+    own = kind_exports(a)
     dev = Device(a.device)
     model, state, _ = load_model(dev, a.ckpt)
+    from .. import registry
+    exports = registry.get(model.kind).exports
+    for name in own:
+        if name not in exports:
+            owners = registry.exports()[name][1]
+            raise _error(f"--{name}: a --model {', '.join(owners)} export; this checkpoint holds "
+                         f"a {model.kind} model: use --mesh or --points")
     meta = state["dataset"]
     ndc = _ndc_of(meta)
     if points_path:   # load the dataset first: a bad one must stop the run before any output
@@ -94,6 +117,9 @@ def cmd_export(a):
         write_ply(points_path, pts, cols)
         print(f"saved {points_path}: {len(pts)} points from {len(o)} training rays "
               f"(accumulated opacity >= {a.min_opacity})")
+    for name, path in own.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        print(exports[name].write(model, path))
     return 0
 
 

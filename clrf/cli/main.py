@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..training.models import WORKLOADS, checkpoint_dataset, load_data
+from .. import registry
+from ..training.models import checkpoint_dataset, load_data
 from .common import EXIT_USAGE, CliError, out_dir as _out_dir, user_errors as _user_errors
 
 
@@ -23,7 +24,7 @@ def parse_set(items):
     out = {}
     for it in items or []:
         if "=" not in it or "." not in it.split("=", 1)[0]:
-            raise CliError(f"--set {it!r}: expected SECTION.KEY=VALUE, e.g. grid.batch_size=4000")
+            raise CliError(f"--set {it!r}: expected SECTION.KEY=VALUE, e.g. train.max_seconds=300")
         key, val = it.split("=", 1)
         sect, name = key.split(".", 1)
         try:
@@ -39,7 +40,6 @@ def cmd_train(a):
     from ..runtime.device import Device
     from ..runtime.hostmem import host_budget
     from ..training.budget import check_training_fits
-    from ..training.models import FACTORIES
     from ..training.trainer import Trainer
 
     viewer = None
@@ -91,21 +91,21 @@ def cmd_train(a):
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
     comm = _mpi_world()
+    kind = registry.get(cfg.train.model)
+    factory = kind
     if comm is not None and a.view:
         raise CliError("--view: the viewer runs with single-process training; drop --view "
                        "under mpirun (view the checkpoint afterwards with `clrf view`)")
     if comm is not None:
-        from ..grid.dist_model import check_schedule
-        if cfg.train.model != "grid":
+        if kind.distributed is None:
+            able = [k.name for k in registry.kinds() if k.distributed is not None]
             raise CliError(f"train.model = '{cfg.train.model}': distributed training "
                            f"({comm.Get_size()} MPI ranks) is not supported for it, only for "
-                           f"the grid model; run '{cfg.train.model}' as one process")
-        if cfg.grid.background_layers > 0:
-            raise CliError(f"grid.background_layers = {cfg.grid.background_layers}: the "
-                           f"distributed grid ({comm.Get_size()} MPI ranks) has no background "
-                           f"model; pass --set grid.background_layers=0 or run as one process")
+                           f"{', '.join(able) or 'none'}; run '{cfg.train.model}' as one "
+                           f"process")
+        factory = kind.distributed(comm)
         try:
-            check_schedule(cfg, comm.Get_size())
+            factory.check(cfg)
         except ValueError as e:
             raise CliError(str(e)) from None
         if comm.Get_rank() > 0:
@@ -113,7 +113,7 @@ def cmd_train(a):
             set_quiet(True)
     if comm is None:   # the device that runs this model kind fastest (clrf/runtime/workload.py)
         from ..runtime.workload import device_for
-        dev = device_for(WORKLOADS.get(cfg.train.model), a.device)
+        dev = device_for(kind.workload, a.device)
     else:
         dev = Device(a.device)
     n_views = len(ds.split["train"])
@@ -122,19 +122,14 @@ def cmd_train(a):
     if comm is None:
         plan = check_training_fits(dev.caps, dev.is_cpu, cfg, n_rays, dev.tuning, host_budget())
         print(f"clrf: memory: {plan.describe()}", file=sys.stderr)
-    else:   # each rank holds its brick: estimate with the largest brick's box per stage
-        import copy
-        from ..grid.bricks import split
-        bcfg = copy.deepcopy(cfg)
-        bcfg.grid.reso = [list(max((b.local_reso for b in split(r, comm.Get_size())),
-                                   key=lambda x: x[0] * x[1] * x[2])) for r in cfg.grid.reso]
+    else:   # each rank holds its part (the grid: the largest brick's box per stage)
         try:
             # the device only: ranks sharing a host share its memory, which one rank
             # cannot budget alone
-            check_training_fits(dev.caps, dev.is_cpu, bcfg, n_rays, dev.tuning)
+            check_training_fits(dev.caps, dev.is_cpu, factory.rank_config(cfg), n_rays,
+                                dev.tuning)
         except ValueError as e:
-            raise CliError(f"per MPI rank (the largest brick of each stage, "
-                           f"{comm.Get_size()} ranks): {e}") from None
+            raise CliError(f"per MPI rank ({comm.Get_size()} ranks): {e}") from None
     rank_note = f" (MPI rank {comm.Get_rank()} of {comm.Get_size()})" if comm is not None else ""
     why = f": {dev.choice}" if getattr(dev, "choice", None) else ""
     print(f"clrf: device {dev}{rank_note}{why}", file=sys.stderr)
@@ -143,10 +138,6 @@ def cmd_train(a):
               f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "
               f"'{cfg.train.preset}', model {cfg.train.model}, budget {cfg.train.max_seconds:.0f} s, "
               f"output {out}", file=sys.stderr)
-    factory = FACTORIES[cfg.train.model]
-    if comm is not None:
-        from ..training.models import DistGridFactory
-        factory = DistGridFactory(comm)
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if a.log == "tensorboard":
@@ -198,8 +189,8 @@ def end_message(out, res, data_path="") -> str:
 
 
 def _mpi_world():
-    """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None (clrf.grid.distributed)."""
-    from ..grid.distributed import world
+    """The MPI communicator of a `mpirun -n N clrf train` (N > 1), else None."""
+    from ..runtime.mpi import world
     try:
         return world()
     except RuntimeError as e:
@@ -305,7 +296,8 @@ def cmd_devices(a):
     from ..runtime.workload import format_choices
     if a.check:
         return check_default(refresh=a.reprobe)
-    print(format_devices(refresh=a.reprobe, workloads=format_choices(WORKLOADS.values(), measure=a.workloads)))
+    print(format_devices(refresh=a.reprobe, workloads=format_choices(
+        [k.workload for k in registry.kinds() if k.workload is not None], measure=a.workloads)))
     return 0
 
 
@@ -328,16 +320,16 @@ def build_parser():
     t = sub.add_parser("train", help="train on a dataset (default: the built-in procedural scene)")
     t.add_argument("--data", default=None, help="dataset folder or .npz (default: built-in scene)")
     t.add_argument("--config", default=None,
-                   help="JSON config file (sections grid/train/nerf/hash)")
+                   help=f"JSON config file (sections {'/'.join(['train', *registry.names()])})")
     t.add_argument("--out", default="runs/latest", help="run directory (default: runs/latest)")
     t.add_argument("--max-seconds", type=float, default=None, help="training time budget")
-    t.add_argument("--model", choices=["grid", "nerf", "hash"], default=None,
-                   help="grid (Plenoxels), nerf (positional encoding) or hash (multiresolution "
-                        "hash encoding + tiny MLPs)")
+    t.add_argument("--model", choices=registry.names(), default=None,
+                   help=registry.help_text())
     t.add_argument("--preset", default=None, help="scene preset (default: the dataset's)")
     t.add_argument("--seed", type=int, default=None)
     t.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
-                   help="override one option, e.g. --set grid.batch_size=4000 (repeatable)")
+                   help=f"override one option, e.g. --set {registry.DEFAULT}.batch_size=4000 "
+                        f"(repeatable)")
     t.add_argument("--resume", action="store_true", help="continue the run in --out")
     t.add_argument("--force", action="store_true", help="start over in an --out that holds a run")
     t.add_argument("--log", choices=["csv", "tensorboard"], default="csv",
@@ -351,7 +343,7 @@ def build_parser():
                    help="--view: largest fraction of wall time spent rendering for the viewer "
                         "(default 0.2)")
     from .config_flags import add_config_flags
-    add_config_flags(t)   # --grid.reso, --train.max_seconds, --nerf.width, ...
+    add_config_flags(t)   # --train.max_seconds and each kind's --SECTION.KEY
     t.set_defaults(func=cmd_train)
 
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")
@@ -391,8 +383,8 @@ def build_parser():
                    help="density of the surface (default ln 2 / the model's step length: one "
                         "render step there absorbs half the light)")
     x.add_argument("--reso", type=int, default=None,
-                   help="mesh cells along the longest side of the box (default: the grid's own "
-                        "resolution; 256 for NeRF)")
+                   help="mesh cells along the longest side of the box (default: the model's own "
+                        "resolution where it has one, a voxel grid's; else 256)")
     x.add_argument("--bbox", type=float, nargs=6, default=None,
                    metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                    help="mesh box in model space (NDC for forward-facing scenes; default: the "
@@ -402,6 +394,9 @@ def build_parser():
                    help="keep rays whose accumulated opacity is at least this (--points)")
     x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
     x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
+    for name, (exp, owners) in registry.exports().items():   # a kind's own files
+        x.add_argument(f"--{name}", default=None, metavar=f"FILE{exp.suffix}",
+                       help=f"{exp.help} (--model {', '.join(owners)} checkpoints)")
     x.set_defaults(func=cmd_export)
 
     v = sub.add_parser("view", help="interactive web viewer of a checkpoint (needs clrf[view])")

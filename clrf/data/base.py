@@ -37,3 +37,10 @@ class Dataset:
     @property
     def hw(self):
         return self.images.shape[1:3]
+
+    def unit_far(self) -> float:
+        """How far along a UNIT direction the scene's rays run (clrf.data.cameras.ndc_reach:
+        ``far`` unless the rays are in NDC): the far bound of samplers that step along unit
+        directions."""
+        from .cameras import ndc_reach
+        return ndc_reach(self)

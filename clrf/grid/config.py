@@ -45,3 +45,45 @@ class GridConfig:
     lr_bg_density_final: float = 3e-3     # MSI density learning rate at lr_decay_steps
     lr_bg_color: float = 0.1      # MSI colour learning rate (svox2: 1e-1 -> 5e-6)
     lr_bg_color_final: float = 5e-6       # MSI colour learning rate at lr_decay_steps
+
+    def checks(self):
+        """(ok, field, message) for Config.validate: the ranges the kernels and the schedule
+        accept."""
+        g = self
+        return [
+            (isinstance(g.reso, list) and len(g.reso) >= 1
+             and all(isinstance(r, list) and len(r) == 3 and all(isinstance(v, int) and 1 <= v <= 1024 for v in r)
+                     for r in g.reso), "grid.reso", "must be a list of [x, y, z] integer resolutions in 1..1024"),
+            (isinstance(g.upsample_at, list) and len(g.upsample_at) == len(g.reso) - 1
+             and all(isinstance(v, int) and v > 0 for v in g.upsample_at)
+             and g.upsample_at == sorted(g.upsample_at), "grid.upsample_at",
+             "must list one increasing iteration per resolution after the first"),
+            (g.sh_degree in (0, 1, 2, 3), "grid.sh_degree", "must be 0, 1, 2 or 3"),
+            (0 < g.step <= 4, "grid.step", "must be in (0, 4] voxels"),
+            (g.init_density >= 0, "grid.init_density", "must be >= 0"),
+            (1 <= g.batch_size <= 1 << 22, "grid.batch_size", "must be in 1..4194304"),
+            (g.optimizer in ("rmsprop", "sgd"), "grid.optimizer", "must be 'rmsprop' or 'sgd'"),
+            (0 <= g.rms_beta < 1, "grid.rms_beta", "must be in [0, 1)"),
+            (g.lr_density > 0 and g.lr_density_final > 0, "grid.lr_density", "must be > 0"),
+            (g.lr_sh > 0 and g.lr_sh_final > 0, "grid.lr_sh", "must be > 0"),
+            (g.lr_decay_steps > 0, "grid.lr_decay_steps", "must be > 0"),
+            (g.lr_density_delay_steps >= 0, "grid.lr_density_delay_steps", "must be >= 0"),
+            (0 < g.lr_density_delay_mult <= 1, "grid.lr_density_delay_mult", "must be in (0, 1]"),
+            (g.lambda_tv >= 0 and g.lambda_tv_sh >= 0 and g.lambda_sparsity >= 0
+             and g.lambda_beta >= 0,
+             "grid.lambda_*", "regulariser weights must be >= 0"),
+            (0 < g.tv_fraction <= 1, "grid.tv_fraction", "must be in (0, 1]"),
+            (g.weight_thresh >= 0, "grid.weight_thresh", "must be >= 0"),
+            (g.prune_rays >= 1, "grid.prune_rays", "must be >= 1"),
+            (g.background_layers == 0 or 2 <= g.background_layers <= 256,
+             "grid.background_layers", "must be 0 (off) or in 2..256 (samples lie between "
+             "consecutive spheres)"),
+            (1 <= g.background_height <= 4096, "grid.background_height", "must be in 1..4096"),
+            (g.background_init_density >= 0, "grid.background_init_density", "must be >= 0"),
+            (abs(g.background_init_color) <= 1e3, "grid.background_init_color",
+             "must be a finite colour offset (|x| <= 1000)"),
+            (g.lr_bg_density > 0 and g.lr_bg_density_final > 0, "grid.lr_bg_density",
+             "must be > 0 (with lr_bg_density_final)"),
+            (g.lr_bg_color > 0 and g.lr_bg_color_final > 0, "grid.lr_bg_color",
+             "must be > 0 (with lr_bg_color_final)"),
+        ]

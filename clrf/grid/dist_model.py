@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
+from ..interface import StateError
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, upload
 from . import bricks as B
@@ -34,7 +35,7 @@ from .model import GridModel
 from .render import BETA_EPS
 
 
-class BrickMismatchError(ValueError):
+class BrickMismatchError(StateError):
     """A rank's brick file does not hold the brick this rank count gives it."""
 
 

@@ -2,7 +2,7 @@
 
 Implements the model interface the trainer drives (shared with clrf.nerf.NerfModel):
 ``train_step(it, origins, dirs, target) -> mse``, ``render(origins, dirs) -> dict``,
-``state_dict()``, ``from_state_dict(device, state)``, ``on_iteration(it, trainer)``.
+``state_dict()``, ``from_state_dict(device, state)``, ``on_iteration(it, budget)``.
 
 With ``cfg.background_layers > 0`` an MSI background (clrf/grid/background.py) sits behind the
 grid: each ray's pixel is C_fg + T_fg * bg_rgb, trained jointly. With 0 (the default) no
@@ -19,7 +19,7 @@ from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
-from ..runtime.programs import download, upload
+from ..runtime.programs import download, launch, upload
 
 
 def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
@@ -124,11 +124,12 @@ class GridModel:
     def _tv_grad(*args):
         grid_ops.tv_grad(*args)
 
-    def on_iteration(self, it, trainer):
-        """Prune and upsample at the scheduled iterations. Returns a log message or None."""
+    def on_iteration(self, it, budget):
+        """Prune and upsample at the scheduled iterations (on ``budget.rays``, the training
+        rays). Returns a log message or None."""
         c = self.cfg
         if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
-            o, d = trainer.rays.strided(c.prune_rays)
+            o, d = budget.rays.strided(c.prune_rays)
             return self.upsample(o, d)
         return None
 
@@ -175,6 +176,34 @@ class GridModel:
             bg = self.bg_model.forward(self.grid, o, d, self.cfg.step, reuse=False)[1]
         return {k: v.get() for k, v in
                 render_forward_device(self.grid, o, d, self.cfg.step, bg).items()}
+
+    # ---- export (clrf/outputs/export.py) -------------------------------------------------
+    view_dependent = False     # export reads the SH's constant term: no view direction
+
+    @property
+    def sample_length(self) -> float:
+        """The voxel edge (mean over the axes): the renderer's own length scale."""
+        return float(np.mean(self.grid.voxel_size))
+
+    def export_block(self, block: int) -> int:
+        return block
+
+    def native_reso(self, bbox):
+        """The grid's resolution when ``bbox`` is the grid's box."""
+        return tuple(self.grid.reso) if np.allclose(bbox, self.grid.bbox) else None
+
+    def export_fields(self, points, dirs=None):
+        """Raw interpolated density sigma [n] (negative where the renderer's ReLU makes it 0)
+        and the view-independent colour rgb [n, 3] at device points [n, 3] (cl/export.cl)."""
+        n = int(points.shape[0])
+        q = self.device.queue
+        sigma, rgb = cla.empty(q, n, np.float32), cla.empty(q, (n, 3), np.float32)
+        g = self.grid
+        prg = self.device.program("export.cl", {"SH_DEGREE": g.sh_degree})
+        launch(self.device, prg.kernel("sample_fields"), n,
+               (np.int32(n), points.data, *g.geometry_args(), g.links.data, g.density.data,
+                g.sh.data, sigma.data, rgb.data))
+        return sigma, rgb
 
     def describe(self):
         r = self.grid.reso

@@ -113,7 +113,8 @@ def _why_not(device) -> str:
     return _closed_form(device) or _reference(device)
 
 
-CHECK = verdicts.register(verdicts.GradientCheck(SOURCES, CHECK_VERSION, _why_not))
+CHECK = verdicts.register(verdicts.GradientCheck(SOURCES, CHECK_VERSION, _why_not,
+                                                   "the grid backward"))
 
 
 def run_check(device) -> CheckResult:
@@ -133,25 +134,7 @@ def known_wrong(cl_device) -> str | None:
 
 
 def ensure_trusted(device, log=None):
-    """Before training: the device's gradient path passes the check (cached), else the
-    float-atomic path replaces it (``device.tuning`` is changed, with a warning through
-    ``log``) when that one passes; else DeviceError naming the device and its driver."""
-    from ..runtime.device import DeviceError
-    res = gradient_check(device)
-    if res.ok:
-        return res
-    first = res
-    if device.tuning.grad_slots > 0:
-        device.tuning = device.tuning.replace(grad_slots=0, sample_record=False, grad_locks=0)
-        device._programs.clear()
-        res = gradient_check(device)
-        if res.ok:
-            if log is not None:
-                log(f"clrf: warning: the {first.path} gradient path computes wrong gradients on "
-                    f"{device!r} ({first.detail}); using the float-atomic path")
-            return res
-    raise DeviceError(
-        f"device {device!r}, driver {device.caps.driver_version}: the grid backward computes "
-        f"wrong gradients ({first.path}: {first.detail}); clrf will not train on it. Choose "
-        f"another device with --device / CLRF_DEVICE (`clrf devices` lists them) or update "
-        f"the OpenCL driver")
+    """Before training: this check's verdict for ``device`` (clrf.runtime.selfcheck
+    .ensure_trusted: the float-atomic path replaces a failing one, else DeviceError)."""
+    from ..runtime.trust import ensure_trusted as ensure
+    return ensure(device, [CHECK], log)[0]

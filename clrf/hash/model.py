@@ -3,7 +3,7 @@
 (cl/hash_occ.cl), packed per ray and composited (cl/hash_march.cl, volrend.h's steps), and
 Adam (cl/optim.cl).
 
-Network (the fused MLP of cl/mlp.cl, clrf.nerf.mlp.MLPSpec with depth 1):
+Network (the fused MLP of cl/mlp.cl, clrf.mlp.mlp.MLPSpec with depth 1):
   density MLP: h = relu(W_0 enc(x) + b_0),  [sigma_raw, feat] = W_1 h + b_1,
                sigma = exp(min(sigma_raw, 15)) (density_act trunc_exp: never overflows, its
                gradient sigma does not vanish beyond the clamp; or softplus)
@@ -44,10 +44,10 @@ import numpy as np
 import pyopencl.array as cla
 
 from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
-from ..nerf.mlp import MLP, MLPSpec
-from ..nerf.model import _key
+from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, launch, upload
+from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
                     packed_backward, packed_forward)
@@ -201,6 +201,23 @@ class HashModel:
                self.device.tuning.elementwise_local_size)
         return sigma, rgb
 
+    # ---- export (clrf/outputs/export.py) -------------------------------------------------
+    view_dependent = True
+
+    @property
+    def sample_length(self) -> float:
+        return self.dt
+
+    def export_block(self, block: int) -> int:
+        """The MLP keeps every activation: at most MAX_RENDER_SCRATCH bytes of them."""
+        return max(1, min(block, MAX_RENDER_SCRATCH // (4 * self.net.layout.nslot)))
+
+    def native_reso(self, bbox):
+        return None
+
+    def export_fields(self, points, dirs):
+        return self.fields(points, dirs)
+
     def density(self, xyz):
         """sigma [m] (device) at world points xyz [m, 3] (device); the view direction is
         irrelevant to sigma (any direction gives the same value)."""
@@ -274,7 +291,7 @@ class HashModel:
         scale = 1.0 / (3.0 * B)
         jitter = c.perturb if jitter is None else bool(jitter)
         pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
-                   _key(self.seed, it, 0), contract=self.contraction)
+                   step_key(self.seed, it, 0), contract=self.contraction)
         q = dev.queue
         marched = pk.m
         if pk.m:
@@ -325,9 +342,9 @@ class HashModel:
             return False
         k = (it - c.occ_warmup) // c.occ_every
         if k == 0:
-            self.update_occupancy(_key(self.seed, it, 2), self.occ.n_cells, 0)
+            self.update_occupancy(step_key(self.seed, it, 2), self.occ.n_cells, 0)
         else:
-            self.update_occupancy(_key(self.seed, it, 2), c.occ_points, (k - 1) * c.occ_points)
+            self.update_occupancy(step_key(self.seed, it, 2), c.occ_points, (k - 1) * c.occ_points)
         return True
 
     def update_occupancy(self, key: int, n_points: int | None = None, start: int = 0):
@@ -390,11 +407,11 @@ class HashModel:
         """Rays of the next training step (adapts when config.batch_samples > 0)."""
         return self.batch_rays
 
-    def on_iteration(self, it, trainer):
-        """The budget spent before step ``it``: the larger of the trainer's seconds and
-        iterations over its limits (the learning rate's clock under lr_schedule "budget")."""
-        t = trainer.cfg.train
-        self.progress = min(1.0, max(trainer.seconds / t.max_seconds, it / t.max_iters))
+    def on_iteration(self, it, budget):
+        """The budget spent before step ``it`` (``budget.fraction``: the larger of the run's
+        seconds and iterations over their limits) is the learning rate's clock under
+        lr_schedule "budget"."""
+        self.progress = float(budget.fraction)
         return None
 
     def describe(self) -> str:

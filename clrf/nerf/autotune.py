@@ -1,6 +1,5 @@
-"""The fused MLP's tile tuner: times the candidate tiles (clrf/nerf/tiling.py) of an MLP shape
-on a device with the runtime's interleaved timing (clrf/runtime/measure.py) and caches the
-fastest, which every MLP of that shape on that device then uses.
+"""``python -m clrf.nerf.autotune``: tune the fused MLP's tiles (clrf/mlp/autotune.py) for the
+shape of a NeRF preset, or any shape given by flags.
 
     python -m clrf.nerf.autotune --preset tiny      # the shape `clrf train --model nerf` builds
     python -m clrf.nerf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
@@ -10,49 +9,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
-from dataclasses import asdict, replace
-from pathlib import Path
+from dataclasses import replace
 
-import numpy as np
-import pyopencl.array as cla
-
-from ..runtime.measure import interleaved_medians
-from .mlp import MLP
-from .tiling import cache_path, candidates, store_tiling
-
-
-def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list:
-    """Median wall seconds of one forward + backward (n samples) per tile, timed in
-    interleaved rounds (each round runs every tile once) after one warm-up each."""
-    q = device.queue
-    rng = np.random.default_rng(0)
-    x = cla.to_device(q, rng.random((n, spec.in_dim), np.float32))
-    d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
-    ds = cla.to_device(q, rng.random(n, np.float32))
-    dr = cla.to_device(q, rng.random((n, 3), np.float32))
-    nets = [MLP(device, replace(spec, **asdict(t))) for t in tiles]
-
-    def run(net):
-        def step():
-            net.forward(x, d)
-            net.backward(ds, dr)
-            q.finish()
-        return step
-
-    return interleaved_medians([run(net) for net in nets], rounds)
-
-
-def tune(device, spec, n: int = 4096, rounds: int = 5, path: Path | None = None):
-    """Time ``candidates`` for ``spec`` on ``device``, cache the fastest and return
-    (best MLPTiling, [(tiling, median seconds)])."""
-    tiles = candidates(device.caps, spec)
-    secs = time_candidates(device, spec, tiles, n, rounds)
-    best = min(range(len(tiles)), key=secs.__getitem__)
-    store_tiling(device.caps, spec, tiles[best],
-                 {"fwdbwd_s": secs[best], "samples": n, "rounds": rounds,
-                  "tuned_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, path)
-    return tiles[best], list(zip(tiles, secs))
+from ..mlp.autotune import tune
+from ..mlp.tiling import cache_path
 
 
 def main(argv=None) -> int:
@@ -103,6 +63,9 @@ def main(argv=None) -> int:
         print(f"{mark} rows {t.rows:2d} cols {t.cols} dw_rows {t.dw_rows:2d} dw_cols {t.dw_cols} "
               f"dw_chunk {t.dw_chunk:4d}: fwd+bwd {s * 1e3:8.2f} ms  {flop / s / 1e9:7.1f} GFLOP/s")
     print(f"cached in {cache_path()}")
+    if dev.tuning.mlp_gpu:
+        print("note: this device runs the fused MLP's GPU tiling, which takes its sizes from the "
+              "device; the tuned CPU tile is used with CLRF_FORCE_GPU_KERNELS=0")
     return 0
 
 

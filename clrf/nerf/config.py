@@ -60,9 +60,9 @@ class NerfConfig:
         return NerfConfig(**d)
 
     def mlp_spec(self):
-        """The fused MLP's shape (clrf.nerf.mlp.MLPSpec) for this configuration."""
+        """The fused MLP's shape (clrf.mlp.mlp.MLPSpec) for this configuration."""
         from ..nerf import ops
-        from ..nerf.mlp import MLPSpec
+        from ..mlp.mlp import MLPSpec
         return MLPSpec(width=self.width, depth=self.depth, skip=self.skip,
                        color_width=self.color_width,
                        in_dim=ops.enc_dim(self.pos_freqs, self.include_input),

@@ -25,19 +25,10 @@ import pyopencl.array as cla
 from . import ops
 from ..runtime.optim import Optimizer
 from .config import NerfConfig
-from .mlp import MLP
+from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP
 from ..runtime.programs import download, upload
+from ..runtime.rng import step_key as _key
 
-MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
-
-
-def _key(seed: int, it: int, stream: int) -> int:
-    """A 32-bit random-number key per (seed, step, stream): splitmix-style mixing."""
-    x = (seed * 0x9E3779B97F4A7C15 + it * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB)
-    x &= (1 << 64) - 1
-    x ^= x >> 31
-    x = (x * 0xD6E8FEB86659FD93) & ((1 << 64) - 1)
-    return int(x >> 32)
 
 
 class NerfModel:
@@ -157,8 +148,31 @@ class NerfModel:
     def batch_size(self) -> int:
         return self.config.batch_rays
 
-    def on_iteration(self, it, trainer):
+    def on_iteration(self, it, budget):
         return None
+
+    # ---- export (clrf/outputs/export.py) -------------------------------------------------
+    view_dependent = True
+
+    @property
+    def sample_length(self) -> float:
+        """The mean spacing (far - near) / (n_coarse + n_fine) of the render samples."""
+        c = self.config
+        return (self.far - self.near) / (c.n_coarse + c.n_fine)
+
+    def export_block(self, block: int) -> int:
+        """The MLP keeps every activation: at most MAX_RENDER_SCRATCH bytes of them."""
+        return max(1, min(block, MAX_RENDER_SCRATCH // (4 * self.fine.layout.nslot)))
+
+    def native_reso(self, bbox):
+        return None
+
+    def export_fields(self, points, dirs):
+        """sigma [n], rgb [n, 3] of the fine network at gamma(points) looking along dirs."""
+        c, dev = self.config, self.device
+        xe = ops.encode(dev, points, c.pos_freqs, c.include_input, c.pos_scale)
+        de = ops.encode(dev, dirs, c.dir_freqs, c.include_input, c.dir_scale)
+        return self.fine.forward(xe, de)
 
     def describe(self) -> str:
         c = self.config

@@ -12,7 +12,7 @@ WORK_SAMPLES = 8192
 def nerf_rate(device) -> float:
     import pyopencl.array as cla
 
-    from .mlp import MLP, MLPSpec
+    from ..mlp.mlp import MLP, MLPSpec
     spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=15)
     net = MLP(device, spec)
     q = device.queue

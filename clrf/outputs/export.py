@@ -51,67 +51,38 @@ class Mesh:
 def sample_fields(model, points, dirs=None, block=BLOCK, progress=None):
     """Density sigma [n] and view-independent colour rgb [n, 3] (float32) at points [n, 3].
 
-    Grid models: cl/export.cl (see its header for the math; sigma is the raw interpolated
-    density, negative where the renderer's ReLU makes it 0). NeRF: the fine network at
-    gamma(points) looking along ``dirs`` [n, 3] (unit; default -z, which does not change sigma);
-    hash models: HashModel.fields (0 density outside the model's box, as its renderer sees it).
-    Points go to the device in blocks of ``block`` (NeRF: fewer, so that the MLP's activations
-    stay within clrf.nerf.model.MAX_RENDER_SCRATCH bytes); ``progress`` (optional) is called with the
-    number of points done after each block.
+    The model's ``export_fields`` (clrf/interface.py): a voxel grid's raw interpolated density
+    and the constant term of its colour; a network's fields looking along ``dirs`` [n, 3]
+    (unit; default -z, which does not change sigma) where the model is ``view_dependent``.
+    Points go to the device in blocks of at most ``model.export_block(block)`` (a network keeps
+    its activations: bounded as its render bounds them); ``progress`` (optional) is called with
+    the number of points done after each block.
     """
     p = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
     n = p.shape[0]
     sigma = np.empty(n, np.float32)
     rgb = np.empty((n, 3), np.float32)
     q = model.device.queue
-    if model.kind != "grid":   # the MLP keeps every activation: bound them as its render does
-        from ..nerf.model import MAX_RENDER_SCRATCH
-        net = model.net if model.kind == "hash" else model.fine
-        block = max(1, min(block, MAX_RENDER_SCRATCH // (4 * net.layout.nslot)))
+    block = model.export_block(block)
     for s in range(0, n, block):
         e = min(n, s + block)
         pd = upload(q, p[s:e])
-        if model.kind == "grid":
-            sd, cd = _grid_fields(model.grid, pd)
-        else:
+        dd = None
+        if model.view_dependent:
             d = (np.tile(np.float32([0, 0, -1]), (e - s, 1)) if dirs is None
                  else np.ascontiguousarray(dirs[s:e], np.float32))
-            sd, cd = (model.fields(pd, upload(q, d)) if model.kind == "hash"
-                      else _nerf_fields(model, pd, upload(q, d)))
+            dd = upload(q, d)
+        sd, cd = model.export_fields(pd, dd)
         sigma[s:e], rgb[s:e] = sd.get(), cd.get()
         if progress:
             progress(e - s)
     return sigma, rgb
 
 
-def _grid_fields(grid, points):
-    n = int(points.shape[0])
-    q = grid.device.queue
-    sigma, rgb = cla.empty(q, n, np.float32), cla.empty(q, (n, 3), np.float32)
-    prg = grid.device.program("export.cl", {"SH_DEGREE": grid.sh_degree})
-    k = prg.kernel("sample_fields")
-    launch(grid.device, k, n, (np.int32(n), points.data, *grid.geometry_args(), grid.links.data,
-                               grid.density.data, grid.sh.data, sigma.data, rgb.data))
-    return sigma, rgb
-
-
-def _nerf_fields(model, points, dirs):
-    from ..nerf import ops
-    c, dev = model.config, model.device
-    xe = ops.encode(dev, points, c.pos_freqs, c.include_input, c.pos_scale)
-    de = ops.encode(dev, dirs, c.dir_freqs, c.include_input, c.dir_scale)
-    return model.fine.forward(xe, de)
-
-
 # ---- mesh ---------------------------------------------------------------------------------------
 def model_cell(model) -> float:
     """The model's own sampling length h (model units) that sets the default level."""
-    if model.kind == "grid":
-        return float(np.mean(model.grid.voxel_size))
-    if model.kind == "hash":
-        return model.dt
-    c = model.config
-    return (model.far - model.near) / (c.n_coarse + c.n_fine)
+    return float(model.sample_length)
 
 
 def default_level(model) -> float:
@@ -120,11 +91,13 @@ def default_level(model) -> float:
 
 
 def default_reso(model, bbox) -> tuple:
-    """The grid's own resolution when the box is the grid's box; else 256 cells along the
-    longest side of the box, proportionally fewer along the others."""
+    """The model's own resolution over ``bbox`` where it has one (a voxel grid over its own
+    box); else 256 cells along the longest side of the box, proportionally fewer along the
+    others."""
     bbox = np.asarray(bbox, np.float64)
-    if model.kind == "grid" and np.allclose(bbox, model.grid.bbox):
-        return tuple(model.grid.reso)
+    own = model.native_reso(bbox)
+    if own is not None:
+        return tuple(own)
     ext = bbox[1] - bbox[0]
     return tuple(int(max(2, round(256 * e / ext.max()))) for e in ext)
 
@@ -178,7 +151,7 @@ def extract_mesh(model, bbox, reso=None, level=None, ndc=None, progress=None) ->
     faces = faces[:, ::-1]                       # counter-clockwise seen from outside
     nrm = -normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     # marching_cubes' normals point down the gradient (out of the dense inside): look inwards
-    _, rgb = sample_fields(model, verts, dirs=None if model.kind == "grid" else nrm)
+    _, rgb = sample_fields(model, verts, dirs=nrm)
     colors = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
     if ndc is not None:
         faces = faces[np.all(verts[faces, 2] < NDC_MAX_DEPTH, axis=1)]

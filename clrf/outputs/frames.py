@@ -110,13 +110,14 @@ def render_pose(model, spec: ViewSpec, pose, near: float = 0.0) -> dict:
     near > 0 moves every ray's origin ``near`` along its direction first (direction z = -1 in
     camera axes, so near is a distance along the viewing axis): matter closer to the camera than
     that is cut away. Ignored in NDC scenes (their rays start on the near plane already)."""
-    H, W = spec.hw
-    o, d = frame_rays(spec, pose)
-    if near > 0 and not spec.ndc:
-        o = (o + np.float32(near) * d).astype(np.float32)
-    r = model.render(o, d)
-    return {"rgb": r["rgb"].reshape(H, W, 3), "depth": r["depth"].reshape(H, W),
-            "acc": r["acc"].reshape(H, W)}
+    from ..interface import render_view
+
+    def rays():
+        o, d = frame_rays(spec, pose)
+        if near > 0 and not spec.ndc:
+            o = (o + np.float32(near) * d).astype(np.float32)
+        return o, d
+    return render_view(model, np.asarray(pose, np.float64), spec.intrinsics, spec.hw, rays)
 
 
 def to_uint8(img) -> np.ndarray:

@@ -1,5 +1,5 @@
 """Timing helpers shared by the device choice (workload.py) and the tuners of the
-representations (e.g. the fused MLP's tiles, clrf/nerf/autotune.py): the best of a few timed
+representations (e.g. the fused MLP's tiles, clrf/mlp/autotune.py): the best of a few timed
 runs after a warm-up, and medians of candidates timed in interleaved rounds so a slow moment
 of the machine hits every candidate alike."""
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Memory planning: the bytes each phase of a run holds on the device and on the host beside
 it, and the check of a plan against a device (its global memory, its largest allocation) and
 the host's budget (clrf/runtime/hostmem.py). What a phase holds is estimated by the layer that
-knows the run (clrf/training/budget.py, for every model kind); docs/memory.md has the model and
+knows the run (each model kind's budget.py; clrf/training/budget.py puts them together); docs/memory.md has the model and
 the measured peaks it was fitted to.
 """
 from __future__ import annotations
@@ -16,6 +16,10 @@ MiB = float(1 << 20)
 # per-thread allocations. With it the three peaks of tools/results/memory/ are predicted within
 # -2 .. +8 % (docs/memory.md).
 RUNTIME_GROWTH = 200 * (1 << 20)
+
+RAY_HOST_BYTES = 24          # host o, d float32 kept by the ray store for pruning
+RAY_DEVICE_BYTES = 36        # device o, d, rgb float32
+RAY_BUILD_BYTES = 72         # host, while building: float64 o, d + their float32 copies
 
 
 class MemoryPlanError(ValueError):
@@ -95,3 +99,17 @@ def check_plan(plan: MemoryPlan, caps, is_cpu: bool, fix: str, error=MemoryPlanE
                 f"more than the largest single allocation of {caps.name} "
                 f"({alloc / GiB:.2f} GiB); {fix}")
     return plan
+
+
+def ray_store_bytes(n_rays: int, batch: int) -> int:
+    """Device bytes of the ray store and its batch buffers."""
+    return RAY_DEVICE_BYTES * int(n_rays) + 44 * int(batch)
+
+
+def training_stages(st: StageEstimate, n_rays: int) -> list:
+    """A one-phase run's stages: building its ``n_rays`` training rays on the host, then the
+    phase ``st`` with the host copy of the rays beside it (the MLP models)."""
+    return [StageEstimate(f"building the training rays ({st.name})", 0, 0, "",
+                          RAY_BUILD_BYTES * int(n_rays)),
+            StageEstimate(st.name, st.total, st.largest, st.largest_what,
+                          RAY_HOST_BYTES * int(n_rays))]

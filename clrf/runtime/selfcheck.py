@@ -36,6 +36,7 @@ class GradientCheck:
     sources: tuple
     version: int
     run: Callable
+    what: str = "the backward"   # names the kernel in messages ("the grid backward")
 
 
 _CHECKS: list = []   # the registered checks (known_wrong reads their verdicts)
@@ -119,3 +120,4 @@ def known_wrong(cl_device, checks=None) -> str | None:
                     and e.get("ok") is False):
                 return str(e.get("detail", "wrong gradients"))
     return None
+

@@ -323,3 +323,46 @@ HASH_CONTRACT_RTOL = 2e-6
 # Contracted points: o + t d in float32 carries t's relative error times t (tests bound it by
 # HASH_CONTRACT_RTOL t / half), plus the contraction's own few ulp of |y| <= 2.
 HASH_CONTRACT_ATOL = 1e-6
+
+# ============================================================================================
+# Gaussian splatting (cl/splat_project.cl, cl/splat_raster.cl, clrf/splat/)
+# ============================================================================================
+# Compositing vs float64 (image and final transmittance): a pixel sums <= ~100 terms
+# T_k alpha_k c_k, each from an exp of a quadratic form (a few ulp) and a running product of
+# (1 - alpha) (one rounding per step): <= ~100 u ~ 6e-6 worst case; seen <= 4.4e-7 on PoCL and
+# Intel's CPU runtime. 2e-6 is 5x that; a skipped or doubled Gaussian, a half-pixel shift or
+# a wrong stopping rule moves pixels by >= 1/255 * colour ~ 1e-3. (Kernel and twin must also
+# agree exactly on n_contrib: the tests compare it with equality.)
+SPLAT_RASTER_ATOL = 2e-6
+# The projection's outputs (mean in pixels, depth, radius, colour, opacity) vs float64: chains
+# of <= ~40 float32 operations on O(1..100) numbers; seen <= 1.1e-6 relative (xy near 0 carries
+# the rounding of fx x / z ~ 30 px: ~5e-6 px absolute). 5e-6 relative + 2e-5 px absolute;
+# a wrong convention (pixel centre, principal point, transposed rotation) is >= 1e-2.
+SPLAT_PROJECT_RTOL = 5e-6
+SPLAT_PROJECT_ATOL = 2e-5
+# The conic Sigma2^-1 relative to its own largest entry: inverting a 2 x 2 matrix of condition
+# kappa amplifies the float32 error of Sigma2 (a few u) by kappa; the test's Gaussians (flat
+# discs included, which the 0.3 px^2 dilation keeps at kappa <~ 1e2) show <= 9e-7. 5e-6.
+SPLAT_CONIC_REL = 5e-6
+# Gradients (kernel vs the twin's analytic backward), relative to the largest entry of each
+# array: per-(pixel, Gaussian) terms summed over <= ~1000 pixels by float atomics in any
+# order, then the projection's chain (~100 operations) in float32; seen <= 1.6e-6 (PoCL, Intel)
+# for ordinary and stiff Gaussians alike. Stiff ones are compared relative to the larger of
+# their own largest entry and that of the ordinary ones, so that an exactly-zero twin gradient
+# (the rotation of an isotropic Gaussian) is checked against float32 noise of the others.
+# 1e-5; a wrong sign, factor 2 or transposition is >= 1e-2.
+SPLAT_GRAD_REL_TO_MAX = 1e-5
+# 5,000 Gaussians on one tile, ~1,100-1,300 composited per pixel: the running transmittance
+# product carries ~n u relative error (seen 2.8e-6 relative on T, 2.2e-6 absolute on rgb), the
+# backward's T recovered by division drifts alike (seen <= 1.6e-6 of the largest entry).
+# 2e-5 absolute and 1e-5 relative to the largest entry: still 50x below one skipped Gaussian
+# (~5e-3 alpha x colour).
+SPLAT_LONG_ATOL = 2e-5
+SPLAT_LONG_GRAD_REL_TO_MAX = 1e-5
+# The twin's analytic gradient vs its own central differences (float64, eps 1e-6): truncation
+# eps^2 f''' and roundoff 1e-16 |L| / eps (|L| ~ 10) are ~1e-9 each; seen <= 3.3e-9 absolute
+# on gradients up to 7. 1e-7 absolute + 1e-6 relative; a missing term (the clamp's
+# derivative, the view direction's pull on the mean) is >= 1e-3.
+SPLAT_FD_EPS = 1e-6
+SPLAT_FD_ATOL = 1e-7
+SPLAT_FD_RTOL = 1e-6

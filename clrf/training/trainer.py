@@ -1,4 +1,4 @@
-"""The training loop shared by Plenoxels (GridModel) and NeRF (NerfModel).
+"""The training loop shared by every model kind (clrf/interface.py's Model).
 
 Rays of every training pixel are built once (vectorised numpy) and kept on the device; each
 step draws a random batch on the device (cl/batch.cl), runs the model's fused step, and reads
@@ -13,7 +13,7 @@ pure training time. Outputs in the run directory:
 - ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation (``ssim_window``:
                         "gaussian11", the standard SSIM; files without it hold the old 7x7 one)
 
-Under MPI (a model with ``comm``, clrf/grid/dist_model.py) every rank runs this loop in step:
+Under MPI (a factory with ``comm``: a kind's ``distributed``) every rank runs this loop in step:
 the step times are the slowest rank's (allreduce), so evaluations, checkpoints and the stop
 happen at the same iteration everywhere; rank 0 writes the run's files, the model writes the
 checkpoint (one file per rank plus the manifest ckpt.npz).
@@ -31,8 +31,10 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from .. import registry
+from ..interface import Budget, StateError, render_view
 from ..outputs import checkpoint, rundir
-from ..grid import selfcheck
+from ..runtime.trust import ensure_trusted
 from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
@@ -109,6 +111,8 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
     """Step ``it`` of a model: n rays drawn from the store (deterministic in seed and it), on
     the step's random background where the model asks for one and the store has alpha; the
     batch MSE."""
+    if rays is None:   # the model draws its own training views
+        return model.train_step(it, None, None, None)
     bg = model.step_background(it) if rays.alpha is not None else None
     bo, bd, bc, _ = rays.batch(seed * 1000003 + it, n, bg)
     if bg is None:
@@ -127,8 +131,9 @@ def evaluate(model, ds, views, keep_images=False, downscale=1):
     per_view, images = [], []
     keep = len(views) if keep_images is True else int(keep_images)
     for i, v in enumerate(views):
-        o, d = view_rays(ds, ds.poses[v:v + 1], downscale)
-        rgb = model.render(o, d)["rgb"].reshape(H, W, 3)
+        rgb = render_view(model, np.asarray(ds.poses[v], np.float64),
+                          np.asarray(ds.intrinsics, np.float64) / downscale, (H, W),
+                          lambda: view_rays(ds, ds.poses[v:v + 1], downscale))["rgb"]
         m = image_metrics(rgb, downscale_image(ds.images[v], downscale))
         m["view"] = int(v)
         per_view.append(m)
@@ -207,7 +212,10 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
 
 class Trainer:
     def __init__(self, device, ds, cfg, out_dir, resume=False, model_factory=None, log=print):
-        selfcheck.ensure_trusted(device, log)   # never train on wrong gradients
+        # never train on wrong gradients: every registered kind's check of the device
+        ensure_trusted(device, [k.selfcheck for k in registry.kinds() if k.selfcheck], log)
+        if model_factory is None:
+            model_factory = registry.get(cfg.train.model)
         self.device = device
         self.ds = ds
         self.cfg = cfg
@@ -230,7 +238,10 @@ class Trainer:
         if resume:
             # a distributed run reads its own brick file when the rank count is the same
             state = checkpoint.load(self.ckpt_path, brick=getattr(model_factory, "brick", None))
-            self.model = model_factory.from_state(device, state, cfg)
+            try:
+                self.model = model_factory.from_state(device, state, cfg)
+            except StateError as e:
+                raise checkpoint.CheckpointError(f"checkpoint {self.ckpt_path}: {e}") from None
             self.iteration = int(state["iteration"])
             self.seconds = float(state["seconds"])
             if self.primary:
@@ -244,8 +255,10 @@ class Trainer:
                     csv.DictWriter(f, CSV_FIELDS).writeheader()
         if self.primary:
             rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
-        self.rays = training_rays(device, ds, t.max_train_images,
-                                  alpha=getattr(self.model, "random_background", False))
+        # a model that draws its own views (Kind.batches "views") needs no ray store
+        self.rays = (training_rays(device, ds, t.max_train_images,
+                                   alpha=getattr(self.model, "random_background", False))
+                     if registry.get(cfg.train.model).batches == "rays" else None)
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))
@@ -346,15 +359,21 @@ class Trainer:
             self.save()
             loop.next_ckpt = self.seconds + self.cfg.train.checkpoint_every
 
+    def budget(self) -> Budget:
+        """The budget hook's view of the run before the next step."""
+        t = self.cfg.train
+        frac = min(1.0, max(self.seconds / t.max_seconds, self.iteration / t.max_iters))
+        return Budget(self.iteration, self.seconds, frac, self.rays)
+
     def _step(self, loop: "_Loop"):
         """One training step: the model's per-iteration work (pruning, upsampling), a batch,
         the fused step; the clock counts only this (the slowest rank's time under MPI)."""
         t = self.cfg.train
         t0 = time.perf_counter()
-        msg = self.model.on_iteration(self.iteration, self)
+        msg = self.model.on_iteration(self.iteration, self.budget())
         if msg:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
-        loop.batch = self.model.batch_size     # the hash model adapts it step by step
+        loop.batch = self.model.batch_size     # a model may adapt it step by step
         loss = train_on_batch(self.model, self.rays, t.seed, self.iteration, loop.batch)
         dt = time.perf_counter() - t0
         if self.comm is not None:   # the slowest rank's time, the same on every rank

@@ -276,7 +276,7 @@ def _train_prune(ctx, p):
 def _train_step(ctx, p):
     """One full Plenoxels training step (GridModel.train_step: fused render backward, TV,
     RMSProp on density and SH, per-batch MSE read back) on a batch of random rays: rays/s."""
-    from clrf.training.config import GridConfig
+    from clrf.grid.config import GridConfig
     from clrf.grid.model import GridModel
     dev = ctx.dev
     links, dens, sh, grid = ctx.grid(p["reso"], p["degree"], p["occupancy"])

@@ -70,7 +70,7 @@ def hash_tiny_table_gradients(run):
 
 
 def _model(run, **over):
-    from clrf.training.config import HashConfig
+    from clrf.hash.config import HashConfig
     from clrf.hash.model import HashModel
     cfg = HashConfig.from_preset("tiny", levels=4, log2_table=10, min_res=4, max_res=64,
                                  width=16, color_width=16, samples=32, occ_res=8,

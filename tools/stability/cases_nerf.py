@@ -99,7 +99,7 @@ def nerf_composite_stiff(run):
 def nerf_mlp_saturated(run):
     """The fused MLP with inputs of magnitude 1e3 (saturating softplus/sigmoid): outputs finite,
     sigma >= 0 and rgb in [0, 1]; input, weight and bias gradients finite."""
-    from clrf.nerf.mlp import MLP, MLPSpec
+    from clrf.mlp.mlp import MLP, MLPSpec
     q = run.device.queue
     for act in ("relu", "softplus"):
         spec = MLPSpec(width=16, depth=2, skip=-1, color_width=16, in_dim=9, dir_dim=9,

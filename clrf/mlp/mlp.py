@@ -4,7 +4,10 @@ The parameter layout is defined once, in ``layer_desc`` of cl/mlp.cl; ``MLP.layo
 from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree. So is
 the register tile (rows and columns per work-item): the host's work split reads it back too.
 The tile comes from the MLPSpec fields that are set, else the autotuner's cache, else the
-device's default (clrf/nerf/autotune.py).
+device's default (clrf/mlp/autotune.py). Devices whose tuning has ``mlp_gpu`` (GPUs;
+``CLRF_FORCE_GPU_KERNELS=1`` anywhere) run the GPU tiling instead (cl/mlp_gpu.h, MLP_GPU=1;
+clrf/mlp/tiling.py): one launch of work-groups of GPU_BM samples per pass, the same
+parameter and scratch layouts, and a weight gradient whose chunk the host picks per batch.
 
 >>> spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=27)
 >>> net = MLP(dev, spec, seed=0)
@@ -13,14 +16,16 @@ device's default (clrf/nerf/autotune.py).
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from .tiling import MLPTiling, mlp_tiling_for
+from .tiling import GPU_GROUPS_PER_CU, GPU_MIN_CHUNK, MLPTiling, mlp_tiling_for
 from ..runtime.programs import launch, scratch, upload
+
+MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
 ACT = {"none": 0, "relu": 1, "softplus": 2, "sigmoid": 3, "trunc_exp": 4}
 SIGMA_EXP_MAX = 15.0   # cl/mlp.cl: trunc_exp's clamp of the pre-activation
@@ -28,7 +33,8 @@ GROUP_BYTES = None   # interleave backward and weight gradient per rows of this 
 # None: one launch each. Measured on PoCL (Zen 4, AVX-512, n = 8192): launches cost more than
 # the cache misses that interleaving saves (8x256: 16 MB groups 0.93x numpy, one launch 0.99x).
 # Work-group sizes come from device.tuning (clrf/runtime/tuning.py): mlp_fused_local_size (big private
-# tiles: 1) and elementwise_local_size.
+# tiles: 1) and elementwise_local_size; the GPU tiling's from its GPUTiling (GPU_WG).
+GPU_KERNELS = ("mlp_forward", "mlp_density", "mlp_backward", "mlp_weight_grad")
 
 
 @dataclass(frozen=True)
@@ -96,9 +102,12 @@ class Layout:
     cols: int                  # MLP_COLS
     dw_rows: int               # DW_ROWS: output neurons per weight-gradient work-item
     dw_cols: int               # DW_COLS: input columns per weight-gradient work-item
-    wgrad_items_per_chunk: int  # mlp_weight_grad work-items per chunk of DW_CHUNK rows
+    wgrad_items_per_chunk: int  # mlp_weight_grad work-items (GPU: work-groups) per chunk
     slots: dict                # SL_X, SL_XS, SL_HD, SL_FEAT, SL_DV, SL_C, SL_RGB
     layers: tuple              # per layer dict(in_off, nin, out_off, nout, w_off, b_off)
+    gpu: dict | None = None    # the GPU tiling's sizes (wg, tm, tn, nc, bk, local_bytes,
+    #                            dw_bs; rows is then GPU_BM, cols GPU_NC, dw_rows x dw_cols
+    #                            the weight gradient's group tile), None for the CPU tiles
 
     def logical_shapes(self, spec: MLPSpec):
         """Per layer (rows, cols) of the unpadded weight matrix, and which padded rows / cols
@@ -126,7 +135,7 @@ class Layout:
         return out
 
 
-LAYOUT_HEAD = 16   # ints before the per-layer records in mlp_layout's output
+LAYOUT_HEAD = 24   # ints before the per-layer records in mlp_layout's output
 
 
 def read_layout(device, program) -> Layout:
@@ -141,8 +150,12 @@ def read_layout(device, program) -> Layout:
     slots = dict(zip(("SL_X", "SL_XS", "SL_HD", "SL_FEAT", "SL_DV", "SL_C", "SL_RGB"),
                      (int(a[5]), int(a[6]), int(a[7]), int(a[8]), int(a[9]), int(a[10]),
                       int(a[11]))))
+    gpu = None
+    if a[16]:
+        gpu = dict(zip(("wg", "tm", "tn", "nc", "bk", "local_bytes", "dw_bs"),
+                       (int(v) for v in a[17:24])))
     return Layout(nl, int(a[1]), int(a[2]), int(a[3]), int(a[4]), int(a[12]), int(a[13]),
-                  int(a[14]), int(a[15]), slots, layers)
+                  int(a[14]), int(a[15]), slots, layers, gpu)
 
 
 def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.ndarray:
@@ -160,14 +173,21 @@ def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.n
 
 class MLP:
     """One NeRF MLP on a device: parameters, their transposed copy, scratch and gradients.
-    ``tiling`` is the register tile it was built with (MLPTiling)."""
+    ``tiling`` is the register tile it was built with (MLPTiling; ``tiling.gpu`` set: the GPU
+    tiling), by default ``mlp_tiling_for(device, spec)``."""
 
-    def __init__(self, device, spec: MLPSpec, seed: int = 0, params: np.ndarray | None = None):
+    def __init__(self, device, spec: MLPSpec, seed: int = 0, params: np.ndarray | None = None,
+                 tiling: MLPTiling | None = None):
         self.device = device
         self.spec = spec
-        self.tiling: MLPTiling = mlp_tiling_for(device, spec)
-        self.program = device.program("mlp.cl", {**spec.defines(), **self.tiling.defines(),
-                                                   "MLP_PREFETCH": int(device.tuning.mlp_prefetch)})
+        self.tiling: MLPTiling = tiling or mlp_tiling_for(device, spec)
+        self.gpu = self.tiling.gpu is not None
+        if self.gpu:
+            self.program = self._build_gpu()
+        else:
+            self.program = device.program("mlp.cl", {
+                **spec.defines(), **self.tiling.defines(),
+                "MLP_PREFETCH": int(device.tuning.mlp_prefetch)})
         self.layout = read_layout(device, self.program)
         q = device.queue
         if params is None:
@@ -189,6 +209,21 @@ class MLP:
             "mlp_transpose")}
         self.sync_params()
 
+    def _build_gpu(self):
+        """The GPU tiling's program; where a kernel built for GPU_WG work-items allows fewer
+        (CL_KERNEL_WORK_GROUP_SIZE: registers), rebuilt with half the group until it fits."""
+        dev = self.device
+        while True:
+            prg = dev.program("mlp.cl", {**self.spec.defines(), **self.tiling.defines()})
+            wg = self.tiling.gpu.wg
+            info = cl.kernel_work_group_info.WORK_GROUP_SIZE
+            most = min(prg.kernel(k).get_work_group_info(info, dev.cl_device)
+                       for k in GPU_KERNELS)
+            if most >= wg or wg == 1:
+                return prg
+            half = replace(self.tiling.gpu, wg=wg // 2)
+            self.tiling = replace(self.tiling, gpu=half)
+
     # ---- buffers ------------------------------------------------------------------------
     def n_rows(self, n: int) -> int:
         r = self.layout.rows
@@ -205,8 +240,11 @@ class MLP:
             self.G = self.partial = None
         if backward and self.G is None:
             self.G = cla.zeros(q, self._scratch_rows * self.layout.nslot, np.float32)
-            chunks = (self._scratch_rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
-            self.partial = cla.empty(q, chunks * self.layout.n_params, np.float32)
+            if self.gpu:       # grown per batch (_gpu_chunks)
+                self.partial = cla.empty(q, self.layout.n_params, np.float32)
+            else:
+                chunks = (self._scratch_rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
+                self.partial = cla.empty(q, chunks * self.layout.n_params, np.float32)
 
     def sync_params(self):
         """Refresh the transposed copy the forward reads; call after every update of params."""
@@ -228,10 +266,20 @@ class MLP:
         rgb = rgb if rgb is not None else scratch(self.device, (n, 3))
         self._n = n
         self._stale = False
-        launch(self.device, self._k["mlp_forward"], self.n_rows(n) // self.layout.rows,
-               (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
-                sigma.data, rgb.data), self.device.tuning.mlp_fused_local_size)
+        self._launch_tiles(self._k["mlp_forward"], n,
+                           (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
+                            sigma.data, rgb.data))
         return sigma, rgb
+
+    def _launch_tiles(self, kernel, n: int, args):
+        """The forward, density or backward over n samples: one work-item per tile of
+        layout.rows samples (CPU tiles) or one work-group per block of them (GPU tiling)."""
+        tiles = self.n_rows(n) // self.layout.rows
+        if self.gpu:
+            wg = self.layout.gpu["wg"]
+            launch(self.device, kernel, tiles * wg, args, wg)
+        else:
+            launch(self.device, kernel, tiles, args, self.device.tuning.mlp_fused_local_size)
 
     def density(self, x_enc, sigma=None):
         """sigma [n] (device) of encoded positions x_enc [n, in_dim]: the trunk and the head
@@ -241,9 +289,8 @@ class MLP:
         self._ensure_scratch(n)
         sigma = sigma if sigma is not None else scratch(self.device, n)
         self._stale = True
-        launch(self.device, self._k["mlp_density"], self.n_rows(n) // self.layout.rows,
-               (np.int32(n), x_enc.data, self.params_t.data, self.A.data, sigma.data),
-               self.device.tuning.mlp_fused_local_size)
+        self._launch_tiles(self._k["mlp_density"], n,
+                           (np.int32(n), x_enc.data, self.params_t.data, self.A.data, sigma.data))
         return sigma
 
     def backward(self, dsigma, drgb, grad=None, accumulate=False, want_input=False):
@@ -262,9 +309,14 @@ class MLP:
         self._ensure_scratch(n, backward=True)
         dummy = self.A.data
         kb = self._k["mlp_backward"]
-        kb.set_args(np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data,
-                    self.G.data, np.int32(bool(want_input)), dx.data if dx is not None else dummy,
-                    dd.data if dd is not None else dummy)
+        args = (np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data, self.G.data,
+                np.int32(bool(want_input)), dx.data if dx is not None else dummy,
+                dd.data if dd is not None else dummy)
+        if self.gpu:     # one launch each: backward, weight gradient, reduce
+            self._launch_tiles(kb, n, args)
+            self.weight_grad(grad, accumulate)
+            return (dx, dd) if want_input else None
+        kb.set_args(*args)
         # The backward, then the weight gradient: in one launch each, or (group_bytes set)
         # interleaved by groups of rows so that the weight gradient reads A and G while they
         # are still in the last-level cache.
@@ -308,9 +360,38 @@ class MLP:
         """Weight and bias gradients of the last forward/backward pair into grad (all chunks;
         backward() already does this, interleaved; tools/nerf_bench.py times it alone)."""
         rows = self.n_rows(self._n)
+        if self.gpu:
+            chunk, n_chunks = self._gpu_chunks(rows)
+            if n_chunks * self.layout.n_params > self.partial.size:
+                self.partial = cla.empty(self.device.queue, n_chunks * self.layout.n_params,
+                                         np.float32)
+            if n_chunks:
+                wg = self.layout.gpu["wg"]
+                launch(self.device, self._k["mlp_weight_grad"],
+                       n_chunks * self.layout.wgrad_items_per_chunk * wg,
+                       (np.int32(rows), np.int32(chunk), self.A.data, self.G.data,
+                        self.partial.data), wg)
+            self._reduce(grad, n_chunks, accumulate)
+            return
         n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
         self._weight_grad_chunks(rows, 0, n_chunks)
         self._reduce(grad, n_chunks, accumulate)
+
+    def _gpu_chunks(self, rows: int) -> tuple:
+        """(rows per chunk, chunks) of the GPU tiling's weight gradient over ``rows`` scratch
+        rows: the tiling's chunk if set, else enough chunks for GPU_GROUPS_PER_CU work-groups
+        per compute unit (each chunk is wgrad_items_per_chunk groups), none under
+        GPU_MIN_CHUNK rows, each a whole number of staging steps (dw_bs rows)."""
+        if rows <= 0:
+            return 1, 0
+        chunk = self.tiling.gpu.chunk
+        if not chunk:
+            target = GPU_GROUPS_PER_CU * self.device.caps.compute_units
+            p = max(1, min(-(-target // self.layout.wgrad_items_per_chunk),
+                           rows // GPU_MIN_CHUNK))
+            per, bs = -(-rows // p), self.layout.gpu["dw_bs"]
+            chunk = -(-per // bs) * bs
+        return chunk, -(-rows // chunk)
 
     def spec_dict(self) -> dict:
         return asdict(self.spec)

@@ -1,5 +1,5 @@
 """Register tiles of the fused MLP (cl/mlp.cl) per device: defaults from the device's vector
-width, and the cache of the tuner's results (clrf/nerf/autotune.py) per device and MLP shape.
+width, and the cache of the tuner's results (clrf/mlp/autotune.py) per device and MLP shape.
 
 Choice order for each tile field (``MLPTiling``): a value set in ``MLPSpec`` > the tuned cache
 entry for (platform, device, driver, MLP shape) > ``device_default(caps)``.
@@ -34,7 +34,8 @@ picked it, or 6 x 16 with the same weight-gradient tile, on its own), and 2x128 
 On AVX2 a float16 takes two ymm registers, so the AVX-512 tiles spill. The AVX2
 weight-gradient tile was the fastest of 2x32, 4x16, 4x32 and 8x16 on a Zen 3 (its CPU time,
 interleaved rounds). The GPU row is a register-budget guess (one work-item per tile, no local
-memory), not a measurement: run the tuner there. ``dw_chunk`` (rows per partial weight
+memory), not a measurement; GPUs run the GPU tiling (below) and use it only with
+``CLRF_FORCE_GPU_KERNELS=0``. ``dw_chunk`` (rows per partial weight
 gradient) defaults to 64 tiles of ``rows`` samples.
 
     python -m clrf.nerf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
@@ -42,13 +43,27 @@ gradient) defaults to 64 tiles of ``rows`` samples.
 
 The cache is JSON at ``$XDG_CACHE_HOME/clrf/mlp_tiling.json`` (default ``~/.cache/clrf``),
 written atomically; an unreadable or malformed file is ignored (and replaced on the next tune).
+
+GPU tiling. The register tiles above are CPU-shaped: one work-item per tile, no local memory.
+On an NVIDIA H100 they reached 0.8 % of the FP32 FMA peak. Devices whose tuning has
+``mlp_gpu`` (clrf/runtime/tuning.py: GPU devices, or any device with
+``CLRF_FORCE_GPU_KERNELS=1``; ``=0`` keeps the CPU tiles on a GPU) build cl/mlp.cl with
+``MLP_GPU=1`` instead (cl/mlp_gpu.h): a work-group of ``GPUTiling.wg`` work-items runs a block
+of samples through every layer with the block's activations in local memory. ``gpu_default``
+gives the work-group size (256, clamped to the device's maximum; the MLP halves it where a
+built kernel allows fewer) and the local memory the kernel may use (the device's); the kernel
+then picks its samples per work-item and K-slice rows as the largest that fit (mlp_gpu.h). The
+weight gradient's chunk (rows per partial gradient) is chosen per batch so that its work-groups
+fill the device (``GPU_GROUPS_PER_CU`` per compute unit, chunks of at least ``GPU_MIN_CHUNK``
+rows), unless ``MLPSpec.dw_chunk`` sets it. The GPU tiling is not tuned or cached; its
+sizes were chosen from the device limits (48 KiB of local memory on NVIDIA), not measured.
 """
 from __future__ import annotations
 
 import json
 import os
 import tempfile
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
@@ -57,21 +72,70 @@ CACHE_VERSION = 3   # bumped when cl/mlp.cl's kernels change (work split, v2; so
                     # v3): older timings do not carry over
 
 
+GPU_WG = 256            # work-items per group of the GPU tiling (before the device's clamp)
+GPU_GROUPS_PER_CU = 4   # the GPU weight gradient: chunks enough for this many groups per unit
+GPU_MIN_CHUNK = 256     # ... but no chunk under this many rows (16 staging steps of 16)
+
+
+@dataclass(frozen=True)
+class GPUTiling:
+    """The GPU tiling of cl/mlp_gpu.h (MLP_GPU=1). Fields left None are the kernel's choice:
+    the largest tiles that fit in ``local_max`` bytes of local memory (mlp_gpu.h)."""
+
+    wg: int = GPU_WG       # GPU_WG: work-items per group, a power of two
+    local_max: int = 32768  # GPU_LOCAL_MAX: local memory a group may use (the device's)
+    tm: int | None = None  # GPU_TM: samples per work-item, 1, 2, 4 or 8
+    tn: int | None = None  # GPU_TN: output columns per work-item, 1, 2, 4 or 8 (kernel: 4)
+    nc: int | None = None  # GPU_NC: output columns per pass (kernel: the trunk width's power
+    #                        of two, at most 256)
+    bk: int | None = None  # GPU_BK: weight rows per K-slice staged in local memory
+    dw_bj: int | None = None  # GPU_DW_BJ: output neurons per weight-gradient group (kernel: 64)
+    dw_bs: int | None = None  # GPU_DW_BS: scratch rows staged per step there (kernel: 16)
+    chunk: int | None = None  # rows per partial weight gradient, a kernel argument; None:
+    #                           per batch (GPU_GROUPS_PER_CU, GPU_MIN_CHUNK)
+
+    def defines(self) -> dict:
+        d = {"MLP_GPU": 1, "GPU_WG": self.wg, "GPU_LOCAL_MAX": self.local_max}
+        for name, key in (("tm", "GPU_TM"), ("tn", "GPU_TN"), ("nc", "GPU_NC"), ("bk", "GPU_BK"),
+                          ("dw_bj", "GPU_DW_BJ"), ("dw_bs", "GPU_DW_BS")):
+            if getattr(self, name) is not None:
+                d[key] = getattr(self, name)
+        return d
+
+
 @dataclass(frozen=True)
 class MLPTiling:
     """The register tiles of cl/mlp.cl (its defines MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS,
-    DW_CHUNK; the kernel rejects invalid values with #error)."""
+    DW_CHUNK; the kernel rejects invalid values with #error), or with ``gpu`` set its GPU
+    tiling (the CPU fields are then unused)."""
 
     rows: int = 8          # samples per work-item in forward / input gradient: 1-6, 8, 12, 16
     cols: int = 32         # columns per tile there: 32 (two float16) or 16 (one)
     dw_rows: int = 8       # output neurons per work-item in the weight gradient; divides 16
     dw_cols: int = 32      # input columns per work-item there: 32 or 16
     dw_chunk: int = 512    # scratch rows per partial weight gradient; rounded up to rows
+    gpu: GPUTiling | None = None   # the GPU tiling (cl/mlp_gpu.h) instead of the tiles above
 
     def defines(self) -> dict:
+        if self.gpu is not None:
+            return self.gpu.defines()
         chunk = -(-self.dw_chunk // self.rows) * self.rows
         return {"MLP_ROWS": self.rows, "MLP_COLS": self.cols, "DW_ROWS": self.dw_rows,
                 "DW_COLS": self.dw_cols, "DW_CHUNK": chunk}
+
+
+def tile_fields(tiling: MLPTiling) -> dict:
+    """The CPU tile fields of ``tiling`` (TILE_FIELDS), as MLPSpec takes them."""
+    return {k: getattr(tiling, k) for k in TILE_FIELDS}
+
+
+def gpu_default(caps, chunk: int | None = None) -> GPUTiling:
+    """The GPU tiling on a device (Capabilities): GPU_WG work-items per group, clamped to the
+    largest power of two the device allows, and the device's local memory."""
+    wg = 1
+    while wg * 2 <= min(GPU_WG, caps.max_work_group_size):
+        wg *= 2
+    return GPUTiling(wg=wg, local_max=int(caps.local_mem_size), chunk=chunk)
 
 
 NARROW_WIDTH = 128   # AVX-512: MLPs no wider than this get the narrow tile (module docstring)
@@ -157,7 +221,7 @@ def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = 
     """Record ``tiling`` (and ``info``: timings) for this device and shape; atomic replace."""
     path = path or cache_path()
     entries = load_cache(path)
-    entries.setdefault(device_key(caps), {})[shape_key(spec)] = {**asdict(tiling), **info}
+    entries.setdefault(device_key(caps), {})[shape_key(spec)] = {**tile_fields(tiling), **info}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
@@ -172,9 +236,13 @@ def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = 
 def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
     """The tile an MLP of ``spec`` uses on ``device``: MLPSpec fields that are set, then the
     tuned cache entry, then the device default. dw_chunk, when not set anywhere, is
-    CHUNK_TILES * rows."""
+    CHUNK_TILES * rows. Where the device's tuning asks for the GPU tiling (``mlp_gpu``), the
+    result carries ``gpu_default`` (with MLPSpec.dw_chunk as its chunk, when set)."""
     base = cached_tiling(device.caps, spec, path) or device_default(device.caps, spec)
     chosen = {k: getattr(spec, k) for k in TILE_FIELDS if getattr(spec, k) is not None}
     if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
         chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
-    return replace(base, **chosen)
+    tiling = replace(base, **chosen)
+    if getattr(getattr(device, "tuning", None), "mlp_gpu", False):
+        tiling = replace(tiling, gpu=gpu_default(device.caps, spec.dw_chunk))
+    return tiling

@@ -1,0 +1,363 @@
+/* splat_project.cl: projection of anisotropic 3D Gaussians to screen-space splats (forward) and
+ * its backward, one work-item per Gaussian. Conventions and camera layout: splat.h.
+ *
+ * Inputs (float32, row-major, Gaussian i):
+ *   means [N, 3] m_i, log_scales [N, 3], quats [N, 4] (w, x, y, z; normalised here),
+ *   opacity_logits [N], sh [N, SH_BASIS, 3] (basis b, channel c at (i SH_BASIS + b) 3 + c),
+ *   cam [CAM_FLOATS] (splat.h), width, height in pixels, ntx x nty tiles.
+ *
+ * Forward (splat_project):
+ *   t = R m + t_cam,  q^ = q / |q|,  S = diag(exp(log_scales)),  M = Rot(q^) S,
+ *   Sigma3 = M M^T,  Sigma2 = T Sigma3 T^T + COV_DILATION I,  T = J R   (EWA; splat.h
+ *     splat_project_one has J and the frustum clamp of x/z, y/z),
+ *   xy = (fx t_x / t_z + cx, fy t_y / t_z + cy),  conic = Sigma2^-1 as (A, B, C),
+ *   radius = SIGMA_RADIUS sqrt(lambda_max(Sigma2)),  depth = t_z,
+ *   colour_c = max(0, 0.5 + sum_b Y_b(v) sh[b, c]),  v = (m - campos) / |m - campos|
+ *     (sh.h's real SH basis, which has the signs and order of the original 3DGS code),
+ *   opacity = sigmoid(logit),
+ *   rect = tiles [x0, x1) x [y0, y1) overlapping the square xy +- radius:
+ *     x0 = clamp(floor((xy_x - radius) / TILE), 0, ntx), x1 = clamp(floor((xy_x + radius) / TILE)
+ *     + 1, 0, ntx) (float32, then int), y likewise with nty.
+ * Outputs: xy [N, 2], conic [N, 3], radius [N], depth [N], color [N, 3], opacity [N],
+ * rect [N, 4] int (x0, y0, x1, y1). Culled Gaussians (t_z <= near, q = 0, det Sigma2 <= 0 after
+ * scaling, or a Sigma2 beyond float32) get zeros everywhere, so radius 0 and an empty rect.
+ *
+ * Backward (splat_project_backward): given dL/dxy, dL/dconic (w.r.t. the three stored values),
+ * dL/dcolor, dL/dopacity per Gaussian, writes dL/dmeans, dL/dlog_scales, dL/dquats,
+ * dL/dopacity_logits, dL/dsh (overwritten, not added; zeros for culled Gaussians). With symmetric
+ * matrix gradients G (dL = tr(G dX)):
+ *   G_Q = [[gA, gB/2], [gB/2, gC]],  G_S2 = -Q G_Q Q,  G_S3 = T^T G_S2 T,  dL/dT = 2 G_S2 T Sigma3,
+ *   dL/dJ = dL/dT R^T;  J depends on t through z and, where the clamp is inactive, through x/z,
+ *   y/z (a clamped ratio is a constant: dJ02/dt_z = fx rx / z^2 there, not the unclamped
+ *   2 fx t_x / z^3 of the original code, whose derivative ignores the clamp);
+ *   dL/dt += (gx fx / z, gy fy / z, -(gx fx t_x + gy fy t_y) / z^2)   (the mean in pixels);
+ *   dL/dM = 2 G_S3 M,  dL/dlog_s_k = s_k sum_j dL/dM_jk Rot_jk,  dL/dRot_jk = s_k dL/dM_jk,
+ *   dL/dq^ from Rot(q^) (quadratic in q^), dL/dq = (dL/dq^ - q^ (q^ . dL/dq^)) / |q|;
+ *   colour: dL/dsh[b, c] = Y_b gc_c with gc_c = dL/dcolor_c where the unclamped colour >= 0
+ *   (else 0); the view direction's dependence on the mean IS included (as in the original 3DGS
+ *   code): dL/dv = sum_b (sum_c gc_c sh[b, c]) dY_b/dv, dL/dm += (dL/dv - v (v . dL/dv)) / |m -
+ *   campos|;  dL/dlogit = dL/dopacity o (1 - o);  dL/dm += R^T dL/dt.
+ *
+ * Defines read: SH_DEGREE (sh.h), TILE and the constants of splat.h.
+ * Twin: clrf/testing/reference_splat.py project / project_backward (float64).
+ */
+#include "common.h"
+#include "sh.h"
+#include "splat.h"
+
+/* Rotation matrix (row-major) of the unit quaternion q = (w, x, y, z). */
+CLRF_INLINE void splat_quat_rot(const float4 q, float *Rq) {
+    const float w = q.x, x = q.y, y = q.z, z = q.w;
+    Rq[0] = 1.0f - 2.0f * (y * y + z * z);
+    Rq[1] = 2.0f * (x * y - w * z);
+    Rq[2] = 2.0f * (x * z + w * y);
+    Rq[3] = 2.0f * (x * y + w * z);
+    Rq[4] = 1.0f - 2.0f * (x * x + z * z);
+    Rq[5] = 2.0f * (y * z - w * x);
+    Rq[6] = 2.0f * (x * z - w * y);
+    Rq[7] = 2.0f * (y * z + w * x);
+    Rq[8] = 1.0f - 2.0f * (x * x + y * y);
+}
+
+/* Everything the projection of one Gaussian computes; the backward reads the intermediates. */
+typedef struct {
+    int visible;       /* 0: culled (see the header); the outputs are then zeros */
+    float3 tc;         /* camera-space mean */
+    float4 qn;         /* unit quaternion (w, x, y, z) */
+    float qlen;        /* |q| before normalising */
+    float s[3];        /* scales exp(log_scale) */
+    float Rq[9];       /* rotation of qn, row-major */
+    float S3[9];       /* Sigma3 = Rq diag(s^2) Rq^T, row-major (symmetric) */
+    float rx, ry;      /* x/z, y/z clamped to +-FRUSTUM_GUARD tan(half fov) */
+    int clamp_x, clamp_y;   /* 1 where the clamp is active (|x/z| > the limit) */
+    float Tm[6];       /* T = J R (2 x 3, row-major), J the perspective Jacobian at (rx, ry) */
+    float V[6];        /* T Sigma3 (2 x 3, row-major) */
+    float a, b, c;     /* Sigma2 = T Sigma3 T^T + COV_DILATION I, [[a, b], [b, c]] */
+    float3 conic;      /* (A, B, C) = Sigma2^-1 */
+    float2 xy;         /* mean in pixels */
+    float radius;      /* SIGMA_RADIUS sqrt(largest eigenvalue of Sigma2) */
+} splat_proj_t;
+
+/* The projection of Gaussian (m, ls, q) into *out, shared by the forward and the backward so
+ * that both cull the same Gaussians. The frustum tangents are width / (2 fx), height / (2 fy)
+ * (a centred principal point, as 3DGS). The conic is formed from Sigma2 / max(a, c) so that
+ * its determinant cannot overflow. An out-pointer, not a returned struct: a struct return is
+ * inlined with an llvm.experimental.noalias.scope.decl, which Oclgrind 21.10 cannot run. */
+CLRF_INLINE void splat_project_one(const float3 m, const float3 ls, const float4 q,
+                                   __global const float *cam, const int width, const int height,
+                                   splat_proj_t *out) {
+    splat_proj_t P;
+    const float fx = cam[CAM_FX], fy = cam[CAM_FY];
+    P.tc = (float3)(cam[CAM_R + 0] * m.x + cam[CAM_R + 1] * m.y + cam[CAM_R + 2] * m.z
+                        + cam[CAM_T],
+                    cam[CAM_R + 3] * m.x + cam[CAM_R + 4] * m.y + cam[CAM_R + 5] * m.z
+                        + cam[CAM_T + 1],
+                    cam[CAM_R + 6] * m.x + cam[CAM_R + 7] * m.y + cam[CAM_R + 8] * m.z
+                        + cam[CAM_T + 2]);
+    const float qq = q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w;
+    P.visible = P.tc.z > cam[CAM_NEAR] && qq > 0.0f;
+    P.qlen = sqrt(qq);
+    P.qn = P.visible ? q / P.qlen : (float4)(1.0f, 0.0f, 0.0f, 0.0f);
+    P.s[0] = exp(ls.x);
+    P.s[1] = exp(ls.y);
+    P.s[2] = exp(ls.z);
+    splat_quat_rot(P.qn, P.Rq);
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            float acc = 0.0f;
+            for (int k = 0; k < 3; ++k)
+                acc += P.Rq[3 * i + k] * (P.s[k] * P.s[k]) * P.Rq[3 * j + k];
+            P.S3[3 * i + j] = acc;
+        }
+    const float z = P.visible ? P.tc.z : 1.0f;
+    const float lim_x = FRUSTUM_GUARD * 0.5f * (float)width / fx;
+    const float lim_y = FRUSTUM_GUARD * 0.5f * (float)height / fy;
+    const float ux = P.tc.x / z, uy = P.tc.y / z;
+    P.clamp_x = fabs(ux) > lim_x;
+    P.clamp_y = fabs(uy) > lim_y;
+    P.rx = clamp(ux, -lim_x, lim_x);
+    P.ry = clamp(uy, -lim_y, lim_y);
+    const float J00 = fx / z, J02 = -fx * P.rx / z, J11 = fy / z, J12 = -fy * P.ry / z;
+    for (int k = 0; k < 3; ++k) {
+        P.Tm[k] = J00 * cam[CAM_R + k] + J02 * cam[CAM_R + 6 + k];
+        P.Tm[3 + k] = J11 * cam[CAM_R + 3 + k] + J12 * cam[CAM_R + 6 + k];
+    }
+    for (int i = 0; i < 2; ++i)
+        for (int j = 0; j < 3; ++j)
+            P.V[3 * i + j] = P.Tm[3 * i] * P.S3[j] + P.Tm[3 * i + 1] * P.S3[3 + j]
+                             + P.Tm[3 * i + 2] * P.S3[6 + j];
+    P.a = P.V[0] * P.Tm[0] + P.V[1] * P.Tm[1] + P.V[2] * P.Tm[2] + COV_DILATION;
+    P.b = P.V[0] * P.Tm[3] + P.V[1] * P.Tm[4] + P.V[2] * P.Tm[5];
+    P.c = P.V[3] * P.Tm[3] + P.V[4] * P.Tm[4] + P.V[5] * P.Tm[5] + COV_DILATION;
+    const float sc = fmax(P.a, P.c);
+    const float an = P.a / sc, bn = P.b / sc, cn = P.c / sc;
+    const float detn = an * cn - bn * bn;
+    P.visible = P.visible && isfinite(P.a) && isfinite(P.b) && isfinite(P.c) && detn > 0.0f;
+    const float inv = P.visible ? 1.0f / (detn * sc) : 0.0f;
+    P.conic = (float3)(cn * inv, -bn * inv, an * inv);
+    P.visible = P.visible && isfinite(P.conic.x) && isfinite(P.conic.y) && isfinite(P.conic.z);
+    P.xy = (float2)(fx * P.tc.x / z + cam[CAM_CX], fy * P.tc.y / z + cam[CAM_CY]);
+    const float lam = 0.5f * (P.a + P.c) + hypot(0.5f * (P.a - P.c), P.b);
+    P.radius = P.visible ? SIGMA_RADIUS * sqrt(lam) : 0.0f;
+    *out = P;
+}
+
+/* Unit view direction from the camera centre to m, and the distance. */
+CLRF_INLINE float3 splat_view_dir(const float3 m, __global const float *cam, float *dist) {
+    const float3 v = m - (float3)(cam[CAM_POS], cam[CAM_POS + 1], cam[CAM_POS + 2]);
+    *dist = sqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+    return v / *dist;
+}
+
+/* sum_b w_b dY_b/dd at direction d (the components treated as independent; the caller projects
+ * out the radial part). Derivatives of sh.h's polynomials, term by term. */
+CLRF_INLINE float3 sh_dir_grad(const float3 d, const float *w) {
+    float3 g = (float3)(0.0f);
+#if SH_DEGREE >= 1
+    const float x = d.x, y = d.y, z = d.z;
+    g.x += -SH_C1 * w[3];
+    g.y += -SH_C1 * w[1];
+    g.z += SH_C1 * w[2];
+#endif
+#if SH_DEGREE >= 2
+    const float xx = x * x, yy = y * y, zz = z * z;
+    g.x += SH_C2_0 * y * w[4];
+    g.y += SH_C2_0 * x * w[4];
+    g.y += SH_C2_1 * z * w[5];
+    g.z += SH_C2_1 * y * w[5];
+    g.x += -2.0f * SH_C2_2 * x * w[6];
+    g.y += -2.0f * SH_C2_2 * y * w[6];
+    g.z += 4.0f * SH_C2_2 * z * w[6];
+    g.x += SH_C2_3 * z * w[7];
+    g.z += SH_C2_3 * x * w[7];
+    g.x += 2.0f * SH_C2_4 * x * w[8];
+    g.y += -2.0f * SH_C2_4 * y * w[8];
+#endif
+#if SH_DEGREE >= 3
+    g.x += 6.0f * SH_C3_0 * x * y * w[9];
+    g.y += SH_C3_0 * (3.0f * xx - 3.0f * yy) * w[9];
+    g.x += SH_C3_1 * y * z * w[10];
+    g.y += SH_C3_1 * x * z * w[10];
+    g.z += SH_C3_1 * x * y * w[10];
+    g.x += -2.0f * SH_C3_2 * x * y * w[11];
+    g.y += SH_C3_2 * (4.0f * zz - xx - 3.0f * yy) * w[11];
+    g.z += 8.0f * SH_C3_2 * y * z * w[11];
+    g.x += -6.0f * SH_C3_3 * x * z * w[12];
+    g.y += -6.0f * SH_C3_3 * y * z * w[12];
+    g.z += SH_C3_3 * (6.0f * zz - 3.0f * xx - 3.0f * yy) * w[12];
+    g.x += SH_C3_4 * (4.0f * zz - 3.0f * xx - yy) * w[13];
+    g.y += -2.0f * SH_C3_4 * x * y * w[13];
+    g.z += 8.0f * SH_C3_4 * x * z * w[13];
+    g.x += 2.0f * SH_C3_5 * x * z * w[14];
+    g.y += -2.0f * SH_C3_5 * y * z * w[14];
+    g.z += SH_C3_5 * (xx - yy) * w[14];
+    g.x += SH_C3_6 * (3.0f * xx - 3.0f * yy) * w[15];
+    g.y += -6.0f * SH_C3_6 * x * y * w[15];
+#endif
+    return g;
+}
+
+/* Tile index range [lo, hi) covering [centre - radius, centre + radius] along one axis. */
+CLRF_INLINE int2 splat_tile_span(const float centre, const float radius, const int ntiles) {
+    const float lo = clamp(floor((centre - radius) / (float)TILE), 0.0f, (float)ntiles);
+    const float hi = clamp(floor((centre + radius) / (float)TILE) + 1.0f, 0.0f, (float)ntiles);
+    return (int2)((int)lo, (int)hi);
+}
+
+__kernel void splat_project(const int n, __global const float *means,
+                            __global const float *log_scales, __global const float *quats,
+                            __global const float *opacity_logits, __global const float *sh,
+                            __global const float *cam, const int width, const int height,
+                            const int ntx, const int nty, __global float *xy,
+                            __global float *conic, __global float *radius, __global float *depth,
+                            __global float *color, __global float *opacity,
+                            __global int *rect) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float3 m = load3(means, i);
+    splat_proj_t P;
+    splat_project_one(m, load3(log_scales, i), vload4(i, quats), cam, width, height, &P);
+    if (!P.visible) {
+        vstore2((float2)(0.0f), i, xy);
+        vstore3((float3)(0.0f), i, conic);
+        radius[i] = 0.0f;
+        depth[i] = 0.0f;
+        vstore3((float3)(0.0f), i, color);
+        opacity[i] = 0.0f;
+        vstore4((int4)(0), i, rect);
+        return;
+    }
+    float dist;
+    const float3 dir = splat_view_dir(m, cam, &dist);
+    float Y[SH_BASIS];
+    sh_basis(dir, Y);
+    float3 col = (float3)(0.5f);
+    for (int b = 0; b < SH_BASIS; ++b) col += Y[b] * load3(sh, (size_t)i * SH_BASIS + b);
+    vstore2(P.xy, i, xy);
+    vstore3(P.conic, i, conic);
+    radius[i] = P.radius;
+    depth[i] = P.tc.z;
+    vstore3(fmax(col, 0.0f), i, color);
+    opacity[i] = safe_sigmoid(opacity_logits[i]);
+    const int2 sx = splat_tile_span(P.xy.x, P.radius, ntx);
+    const int2 sy = splat_tile_span(P.xy.y, P.radius, nty);
+    vstore4((int4)(sx.x, sy.x, sx.y, sy.y), i, rect);
+}
+
+__kernel void splat_project_backward(const int n, __global const float *means,
+                                     __global const float *log_scales,
+                                     __global const float *quats,
+                                     __global const float *opacity_logits,
+                                     __global const float *sh, __global const float *cam,
+                                     const int width, const int height,
+                                     __global const float *g_xy, __global const float *g_conic,
+                                     __global const float *g_color,
+                                     __global const float *g_opacity, __global float *d_means,
+                                     __global float *d_log_scales, __global float *d_quats,
+                                     __global float *d_logits, __global float *d_sh) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float3 m = load3(means, i);
+    splat_proj_t P;
+    splat_project_one(m, load3(log_scales, i), vload4(i, quats), cam, width, height, &P);
+    if (!P.visible) {
+        vstore3((float3)(0.0f), i, d_means);
+        vstore3((float3)(0.0f), i, d_log_scales);
+        vstore4((float4)(0.0f), i, d_quats);
+        d_logits[i] = 0.0f;
+        for (int b = 0; b < SH_BASIS; ++b) vstore3((float3)(0.0f), (size_t)i * SH_BASIS + b, d_sh);
+        return;
+    }
+    const float fx = cam[CAM_FX], fy = cam[CAM_FY];
+    const float z = P.tc.z;
+
+    /* colour: clamp mask, SH coefficients, and the view direction's pull on the mean */
+    float dist;
+    const float3 dir = splat_view_dir(m, cam, &dist);
+    float Y[SH_BASIS];
+    sh_basis(dir, Y);
+    float3 col = (float3)(0.5f);
+    for (int b = 0; b < SH_BASIS; ++b) col += Y[b] * load3(sh, (size_t)i * SH_BASIS + b);
+    float3 gc = load3(g_color, i);
+    gc = select(gc, (float3)(0.0f), col < 0.0f);
+    float w[SH_BASIS];
+    for (int b = 0; b < SH_BASIS; ++b) {
+        const float3 shb = load3(sh, (size_t)i * SH_BASIS + b);
+        vstore3(Y[b] * gc, (size_t)i * SH_BASIS + b, d_sh);
+        w[b] = gc.x * shb.x + gc.y * shb.y + gc.z * shb.z;
+    }
+    const float3 gdir = sh_dir_grad(dir, w);
+    float3 gm = (gdir - dir * (dir.x * gdir.x + dir.y * gdir.y + dir.z * gdir.z)) / dist;
+
+    /* opacity */
+    const float o = safe_sigmoid(opacity_logits[i]);
+    d_logits[i] = g_opacity[i] * o * (1.0f - o);
+
+    /* the mean in pixels */
+    const float2 gxy = vload2(i, g_xy);
+    float3 gt = (float3)(gxy.x * fx / z, gxy.y * fy / z,
+                         -(gxy.x * fx * P.tc.x + gxy.y * fy * P.tc.y) / (z * z));
+
+    /* conic -> Sigma2: G_S2 = -Q G_Q Q */
+    const float A = P.conic.x, B = P.conic.y, C = P.conic.z;
+    const float3 gq = load3(g_conic, i);
+    const float hB = 0.5f * gq.y;
+    const float p00 = A * gq.x + B * hB, p01 = A * hB + B * gq.z;
+    const float p10 = B * gq.x + C * hB, p11 = B * hB + C * gq.z;
+    const float s00 = -(p00 * A + p01 * B), s11 = -(p10 * B + p11 * C);
+    const float s01 = -0.5f * ((p00 * B + p01 * C) + (p10 * A + p11 * B));
+    const float GS[4] = {s00, s01, s01, s11};
+
+    /* Sigma2 -> T (dT = 2 G_S2 T Sigma3 = 2 G_S2 V) and Sigma3 (G3 = T^T G_S2 T) */
+    float dT[6], GT[6];   /* GT = G_S2 T */
+    for (int r = 0; r < 2; ++r)
+        for (int k = 0; k < 3; ++k) {
+            dT[3 * r + k] = 2.0f * (GS[2 * r] * P.V[k] + GS[2 * r + 1] * P.V[3 + k]);
+            GT[3 * r + k] = GS[2 * r] * P.Tm[k] + GS[2 * r + 1] * P.Tm[3 + k];
+        }
+    float G3[9];
+    for (int j = 0; j < 3; ++j)
+        for (int k = 0; k < 3; ++k) G3[3 * j + k] = P.Tm[j] * GT[k] + P.Tm[3 + j] * GT[3 + k];
+
+    /* T = J R -> J (dJ = dT R^T); only J00, J02, J11, J12 depend on t */
+    float dJ[6];
+    for (int r = 0; r < 2; ++r)
+        for (int j = 0; j < 3; ++j)
+            dJ[3 * r + j] = dT[3 * r] * cam[CAM_R + 3 * j] + dT[3 * r + 1] * cam[CAM_R + 3 * j + 1]
+                            + dT[3 * r + 2] * cam[CAM_R + 3 * j + 2];
+    const float iz2 = 1.0f / (z * z);
+    gt.z += -fx * iz2 * dJ[0] - fy * iz2 * dJ[4];
+    /* J02 = -fx rx / z: through rx (unclamped only) and through 1/z */
+    gt.x += P.clamp_x ? 0.0f : -fx * iz2 * dJ[2];
+    gt.z += (P.clamp_x ? 1.0f : 2.0f) * fx * P.rx * iz2 * dJ[2];
+    gt.y += P.clamp_y ? 0.0f : -fy * iz2 * dJ[5];
+    gt.z += (P.clamp_y ? 1.0f : 2.0f) * fy * P.ry * iz2 * dJ[5];
+    gm += (float3)(cam[CAM_R + 0] * gt.x + cam[CAM_R + 3] * gt.y + cam[CAM_R + 6] * gt.z,
+                   cam[CAM_R + 1] * gt.x + cam[CAM_R + 4] * gt.y + cam[CAM_R + 7] * gt.z,
+                   cam[CAM_R + 2] * gt.x + cam[CAM_R + 5] * gt.y + cam[CAM_R + 8] * gt.z);
+    vstore3(gm, i, d_means);
+
+    /* Sigma3 = M M^T, M = Rot diag(s): dM = 2 G3 M */
+    float dR[9], ds[3] = {0.0f, 0.0f, 0.0f};
+    for (int j = 0; j < 3; ++j)
+        for (int k = 0; k < 3; ++k) {
+            const float dM = 2.0f * (G3[3 * j] * P.Rq[k] + G3[3 * j + 1] * P.Rq[3 + k]
+                                     + G3[3 * j + 2] * P.Rq[6 + k]) * P.s[k];
+            ds[k] += dM * P.Rq[3 * j + k];
+            dR[3 * j + k] = dM * P.s[k];
+        }
+    vstore3((float3)(ds[0] * P.s[0], ds[1] * P.s[1], ds[2] * P.s[2]), i, d_log_scales);
+
+    /* Rot(q^) -> q^ -> q */
+    const float qw = P.qn.x, qx = P.qn.y, qy = P.qn.z, qz = P.qn.w;
+    const float4 gqn = 2.0f * (float4)(
+        -qz * dR[1] + qy * dR[2] + qz * dR[3] - qx * dR[5] - qy * dR[6] + qx * dR[7],
+        qy * dR[1] + qz * dR[2] + qy * dR[3] - 2.0f * qx * dR[4] - qw * dR[5] + qz * dR[6]
+            + qw * dR[7] - 2.0f * qx * dR[8],
+        -2.0f * qy * dR[0] + qx * dR[1] + qw * dR[2] + qx * dR[3] + qz * dR[5] - qw * dR[6]
+            + qz * dR[7] - 2.0f * qy * dR[8],
+        -2.0f * qz * dR[0] - qw * dR[1] + qx * dR[2] + qw * dR[3] - 2.0f * qz * dR[4]
+            + qy * dR[5] + qx * dR[6] + qy * dR[7]);
+    const float along = qw * gqn.x + qx * gqn.y + qy * gqn.z + qz * gqn.w;
+    vstore4((gqn - P.qn * along) / P.qlen, i, d_quats);
+}

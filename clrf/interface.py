@@ -1,0 +1,153 @@
+"""The model interface: what a trainable representation offers, and how it declares itself.
+
+A representation (the Plenoxels grid, NeRF, the hash grid, ...) is a package of its own. It
+implements :class:`Model` and describes itself with one :class:`Kind` (its ``kind.py``), which
+the registry (clrf/registry.py) lists. Training, outputs, the viewer and the command line talk
+to these two only: adding a representation adds a package and one line in the registry.
+
+The budget hook takes a :class:`Budget` (how much of the run is spent, and the training rays
+for the representations that look at them between steps), never the trainer itself.
+
+Example (what the trainer does with a kind, shapes as numpy arrays)::
+
+    kind = registry.get("grid")
+    model = kind.create(device, cfg, ds, background)           # a Model
+    msg = model.on_iteration(it, Budget(it, seconds, fraction, rays))
+    loss = model.train_step(it, origins[B, 3], dirs[B, 3], rgb[B, 3])
+    out = model.render(origins[N, 3], dirs[N, 3])              # rgb [N, 3], depth [N], acc [N]
+    sigma, rgb = model.export_fields(points_dev[n, 3], dirs_dev[n, 3] or None)   # on the device
+    kind.from_state(device, model.state_dict(), cfg)            # the same model back
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Optional, Protocol, runtime_checkable
+
+
+class StateError(ValueError):
+    """A checkpoint's state does not fit the model asked for (a wrong brick, a wrong shape):
+    the caller reports it as a bad checkpoint."""
+
+
+@dataclass
+class Budget:
+    """The run's clock at the start of a step, as the budget hook sees it."""
+    iteration: int          # the step about to run
+    seconds: float          # training seconds so far (evaluation excluded)
+    fraction: float         # the budget spent: max(seconds / max_seconds, it / max_iters), <= 1
+    rays: Any = None        # the training ray store (strided(k) -> origins, dirs), for pruning
+
+
+@runtime_checkable
+class Model(Protocol):
+    """A trainable representation on one device.
+
+    kind            the registry name (``--model``, the config section, the checkpoint's
+                    "kind")
+    device          the clrf Device it lives on
+    batch_size      rays of the next training step (a model may adapt it step by step)
+    view_dependent  colours depend on the view direction (export then looks along normals)
+    sample_length   the renderer's own step length h in model units (export's default level
+                    is ln 2 / h: one step absorbs half the light)
+    """
+    kind: str
+    device: Any
+
+    @property
+    def batch_size(self) -> int: ...
+
+    def train_step(self, it: int, origins, dirs, target, background=None) -> float:
+        """One optimiser step on a batch (device arrays [B, 3]); returns the batch's loss
+        (mean squared error) as a float, or a device scalar the caller reads when it logs."""
+
+    def on_iteration(self, it: int, budget: Budget) -> Optional[str]:
+        """The budget hook, before step ``it``: schedules, pruning, upsampling. Returns a log
+        line or None."""
+
+    def render(self, origins, dirs) -> dict:
+        """numpy float32 rays [N, 3] -> dict of numpy: rgb [N, 3], depth [N], acc [N]."""
+
+    def export_fields(self, points, dirs):
+        """Density sigma [n] and colour rgb [n, 3] (device arrays) at device points [n, 3],
+        looking along ``dirs`` [n, 3] (None: the model's choice)."""
+
+    def export_block(self, block: int) -> int:
+        """How many points one export_fields call may take (its scratch stays bounded)."""
+
+    def native_reso(self, bbox) -> Optional[tuple]:
+        """A mesh resolution of the model's own over ``bbox`` [2, 3], or None."""
+
+    def state_dict(self) -> dict: ...
+
+    # Optional, for models that render whole cameras rather than rays (Kind.batches "views"):
+    #   render_image(c2w [4, 4], intrinsics (fx, fy, cx, cy), hw (H, W)) -> dict of numpy
+    #   rgb [H, W, 3], depth [H, W], acc [H, W]  (OpenGL camera axes: x right, y up, -z ahead)
+    # Evaluation, `clrf render` and the viewer use it where a model has it (render_view).
+
+    def describe(self) -> str:
+        """One line for the log: size, stage, what changed."""
+
+
+@dataclass(frozen=True)
+class Export:
+    """A file only this kind can write: ``clrf export --NAME FILE``. ``write(model, path)``
+    writes it (atomically) and returns a one-line summary; ``suffix`` is the file ending it
+    requires (e.g. ".ply")."""
+    help: str
+    suffix: str
+    write: Callable
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One representation as the registry lists it.
+
+    name           ``--model NAME``, its configuration section ``NAME.*`` and its checkpoints'
+                   "kind"
+    title          one line for ``--help``
+    config         the section's dataclass; ``checks()`` returns (ok, "NAME.field", message)
+                   triples; with ``presets``, ``from_preset(name)`` builds one
+    presets        the section's own presets (``--set NAME.preset=P`` replaces the section)
+    scene_presets  {scene preset name: this section's overrides} (clrf/training/config.py
+                   names the scene presets; a dataset picks one)
+    create         (device, cfg, ds, background) -> Model: a new model for dataset ``ds``
+    from_state     (device, state, cfg) -> Model: a checkpoint's model back
+    memory         (cfg, n_rays, caps, tuning, is_cpu) -> (stages, fix): the run's phases
+                   (clrf.runtime.memory.StageEstimate list) and what to lower when it does not
+                   fit
+    workload       a clrf.runtime.workload.Workload: the timed run that picks this kind's
+                   default device (None: the probe's choice)
+    selfcheck      a clrf.runtime.selfcheck.GradientCheck the device must pass before this
+                   kind trains on it (None: none)
+    distributed    (comm) -> a factory with check(cfg), rank_config(cfg) and the create /
+                   from_state / brick of a multi-process run (None: one process only)
+    exports        {flag name: Export}: files of this kind's own for ``clrf export``
+    batches        "rays": train_step gets a batch of rays drawn from every training pixel;
+                   "views": the model draws its own training views (it got the dataset at
+                   create) and train_step gets None for origins, dirs and target
+    """
+    name: str
+    title: str
+    config: type
+    create: Callable
+    from_state: Callable
+    memory: Callable
+    presets: Mapping = field(default_factory=dict)
+    scene_presets: Mapping = field(default_factory=dict)
+    workload: Any = None
+    selfcheck: Any = None
+    distributed: Optional[Callable] = None
+    exports: Mapping = field(default_factory=dict)
+    batches: str = "rays"
+
+
+def render_view(model, c2w, intrinsics, hw, rays):
+    """rgb [H, W, 3], depth [H, W], acc [H, W] of one camera: the model's render_image where it
+    has one, else its render of ``rays()`` (a callable returning origins, dirs [H*W, 3])."""
+    H, W = int(hw[0]), int(hw[1])
+    if hasattr(model, "render_image"):
+        return model.render_image(c2w, intrinsics, (H, W))
+    o, d = rays()
+    r = model.render(o, d)
+    return {"rgb": r["rgb"].reshape(H, W, 3), "depth": r["depth"].reshape(H, W),
+            "acc": r["acc"].reshape(H, W)}

@@ -1,0 +1,393 @@
+"""Host side of cl/splat_project.cl and cl/splat_raster.cl: 3D Gaussian splatting's projection,
+tile binning and tile rasteriser, forward and backward, over pyopencl arrays. The math, the
+layouts and the conventions (OpenCV camera, pixel centres at +0.5) are in the kernel files'
+headers and cl/splat.h.
+
+A frame is four steps, all on the device; the one host read is the number of (tile, Gaussian)
+pairs after the scan, to size the sort's buffers (``bin``):
+
+>>> r = SplatRasterizer(dev, sh_degree=3)
+>>> params = r.upload(gaussians)             # dict of device arrays (PARAM_NAMES)
+>>> proj = r.project(params, camera)         # Projected: xy, conic, radius, depth, ...
+>>> bins = r.bin(proj, camera)               # Binned: sorted ids, per-tile ranges
+>>> ras = r.rasterize(proj, bins, camera)    # Raster: rgb [H, W, 3], T [H, W], n_contrib
+>>> g2d = r.rasterize_backward(proj, bins, ras, camera, grad_rgb_d)
+>>> grads = r.project_backward(params, camera, g2d)   # dict of device arrays (PARAM_NAMES)
+
+``render(gaussians, camera)`` and ``render_backward(gaussians, camera, grad_rgb)`` do the same
+from and to numpy.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+import pyopencl.array as cla
+import pyopencl.cltypes  # noqa: F401  (cl.cltypes.make_float4)
+from pyopencl.algorithm import RadixSort
+from pyopencl.scan import GenericScanKernel
+
+from ..runtime.programs import launch, scratch, upload
+from ..runtime.validate import check_array
+
+TILE = 16                 # tile side in pixels (cl/splat.h TILE); 8 where 256 work-items fail
+ALPHA_MAX = 0.99          # opacity clamp of one Gaussian at one pixel
+ALPHA_MIN = 1.0 / 255.0   # weaker contributions are skipped
+T_MIN = 1e-4              # a pixel stops before its transmittance would fall below this
+COV_DILATION = 0.3        # low-pass filter added to the 2D covariance's diagonal (px^2)
+FRUSTUM_GUARD = 1.3       # x/z, y/z clamped to this times the half-frustum's tangent
+SIGMA_RADIUS = 3.0        # screen radius in standard deviations
+CAM_FLOATS = 20           # cl/splat.h camera buffer
+PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
+GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
+
+
+def defines(sh_degree: int, tile: int = TILE) -> dict:
+    """The -D defines of both splat programs (the constants above, the SH degree, the tile)."""
+    return {"SH_DEGREE": int(sh_degree), "TILE": int(tile), "ALPHA_MAX": ALPHA_MAX,
+            "ALPHA_MIN": ALPHA_MIN, "T_MIN": T_MIN, "COV_DILATION": COV_DILATION,
+            "FRUSTUM_GUARD": FRUSTUM_GUARD, "SIGMA_RADIUS": SIGMA_RADIUS}
+
+
+@dataclass(frozen=True)
+class SplatCamera:
+    """A pinhole camera: ``viewmat`` [4, 4] world-to-camera (x right, y down, z forward),
+    intrinsics in pixels, the image size and the near plane (> 0; Gaussians with camera depth
+    <= near are culled)."""
+    viewmat: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    near: float = 0.01
+
+    def __post_init__(self):
+        v = check_array("viewmat", self.viewmat, ndim=2, dtype=np.float64)
+        if v.shape != (4, 4):
+            raise ValueError(f"viewmat: expected shape (4, 4), got {v.shape}")
+        object.__setattr__(self, "viewmat", v)
+        for name in ("fx", "fy", "near"):
+            x = float(getattr(self, name))
+            if not (np.isfinite(x) and x > 0):
+                raise ValueError(f"{name}: must be a finite number > 0, got {x}")
+        for name in ("cx", "cy"):
+            if not np.isfinite(float(getattr(self, name))):
+                raise ValueError(f"{name}: must be finite")
+        for name in ("width", "height"):
+            x = getattr(self, name)
+            if int(x) != x or not 1 <= int(x) <= 1 << 15:
+                raise ValueError(f"{name}: must be an integer in 1..32768, got {x}")
+
+    def tiles(self, tile: int = TILE) -> tuple[int, int]:
+        """(ntx, nty): tiles across and down."""
+        return -(-int(self.width) // tile), -(-int(self.height) // tile)
+
+    def buffer(self) -> np.ndarray:
+        """The float32 camera buffer of cl/splat.h (R, t, centre, fx, fy, cx, cy, near)."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        out = np.concatenate([R.ravel(), t, -R.T @ t,
+                              [self.fx, self.fy, self.cx, self.cy, self.near]])
+        return out.astype(np.float32)
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space splats on the device (splat_project's outputs; Gaussian i):
+    xy [n, 2] pixels, conic [n, 3] (A, B, C) of Sigma2^-1, radius [n] (0: culled), depth [n]
+    (camera z), color [n, 3], opacity [n], rect [n, 4] int32 tiles (x0, y0, x1, y1)."""
+    n: int
+    xy: cla.Array
+    conic: cla.Array
+    radius: cla.Array
+    depth: cla.Array
+    color: cla.Array
+    opacity: cla.Array
+    rect: cla.Array
+
+
+@dataclass
+class Binned:
+    """The sorted (tile, Gaussian) pairs: ids [n_pairs] int32 front to back within each tile,
+    keys [n_pairs] uint64 (tile << 32 | depth bits), ranges [ntiles, 2] int32 [start, end)."""
+    n_pairs: int
+    keys: cla.Array
+    ids: cla.Array
+    ranges: cla.Array
+    ntx: int
+    nty: int
+
+
+@dataclass
+class Raster:
+    """The forward's image: rgb [H, W, 3], final transmittance T [H, W], n_contrib [H, W] int32
+    (list entries the backward walks)."""
+    rgb: cla.Array
+    T: cla.Array
+    n_contrib: cla.Array
+
+
+def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
+    if not isinstance(a, cla.Array):
+        raise TypeError(f"{name}: expected a pyopencl array, got {type(a).__name__}")
+    if a.dtype != np.dtype(dtype):
+        raise TypeError(f"{name}: expected dtype {np.dtype(dtype)}, got {a.dtype}")
+    if tuple(a.shape) != tuple(shape):
+        raise ValueError(f"{name}: expected shape {tuple(shape)}, got {tuple(a.shape)}")
+    if not a.flags.c_contiguous:
+        raise ValueError(f"{name}: must be C-contiguous")
+
+
+_SORTERS: dict = {}
+
+
+def _sorters(context):
+    """(scan, radix sort) for ``context``, built once: the exclusive int64 scan of the counts
+    (its last inclusive item is the total) and pyopencl's radix sort of (keys, ids)."""
+    key = context.int_ptr
+    if key in _SORTERS:
+        return _SORTERS[key]
+    with warnings.catch_warnings():
+        # pyopencl warns on any non-empty build log, chatter included (programs.build)
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        scan = GenericScanKernel(
+            context, np.int64,
+            arguments="__global const int *counts, __global long *offsets, "
+                      "__global long *total, const int n",
+            input_expr="counts[i]", scan_expr="a+b", neutral="0",
+            output_statement="offsets[i] = prev_item; if (i + 1 == n) total[0] = item;")
+        sort = RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
+                         sort_arg_names=["keys", "ids"], key_dtype=np.uint64)
+    _SORTERS[key] = (scan, sort)
+    return _SORTERS[key]
+
+
+class SplatRasterizer:
+    """Gaussian splatting kernels on ``device`` for SH degree ``sh_degree`` (0..3) and square
+    tiles of ``tile`` pixels (one work-group of tile x tile work-items per tile)."""
+
+    def __init__(self, device, sh_degree: int = 3, tile: int = TILE):
+        if int(sh_degree) not in (0, 1, 2, 3):
+            raise ValueError(f"sh_degree: must be 0, 1, 2 or 3, got {sh_degree}")
+        if int(tile) not in (4, 8, 16, 32):
+            raise ValueError(f"tile: must be 4, 8, 16 or 32, got {tile}")
+        self.device = device
+        self.sh_degree = int(sh_degree)
+        self.n_basis = (self.sh_degree + 1) ** 2
+        self.tile = int(tile)
+        if self.tile * self.tile > device.caps.max_work_group_size:
+            raise ValueError(f"tile {self.tile}: {self.tile ** 2} work-items exceed this "
+                             f"device's work-group limit {device.caps.max_work_group_size}; "
+                             f"use a smaller tile")
+        d = defines(self.sh_degree, self.tile)
+        self.proj_program = device.program("splat_project.cl", d)
+        self.raster_program = device.program("splat_raster.cl", d)
+        # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
+        # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
+        # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
+        self.scan, self.sort = _sorters(device.context)
+
+    # ---- parameters ---------------------------------------------------------------------------
+    def shapes(self, n: int) -> dict:
+        """The parameter shapes for n Gaussians."""
+        return {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "opacity_logits": (n,),
+                "sh": (n, self.n_basis, 3)}
+
+    def _count(self, params: dict) -> int:
+        missing = [k for k in PARAM_NAMES if k not in params]
+        if missing:
+            raise KeyError(f"gaussians: missing {missing} (need {list(PARAM_NAMES)})")
+        return int(np.shape(params["means"])[0]) if np.ndim(params["means"]) else -1
+
+    def check_params(self, params: dict) -> int:
+        """Checks device parameters (dtype float32, shapes, contiguity); returns n."""
+        n = self._count(params)
+        for name, shape in self.shapes(n).items():
+            _check_device_array(name, params[name], shape)
+        return n
+
+    def upload(self, gaussians: dict) -> dict:
+        """Host arrays (any float dtype, finite) -> validated float32 device arrays."""
+        n = self._count(gaussians)
+        out = {}
+        for name, shape in self.shapes(max(n, 0)).items():
+            a = check_array(name, gaussians[name], ndim=len(shape))
+            if a.shape != shape:
+                raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+            out[name] = upload(self.device.queue, a)
+        return out
+
+    # ---- forward --------------------------------------------------------------------------------
+    def _camera(self, camera: SplatCamera):
+        if not isinstance(camera, SplatCamera):
+            raise TypeError(f"camera: expected a SplatCamera, got {type(camera).__name__}")
+        return upload(self.device.queue, camera.buffer())
+
+    def project(self, params: dict, camera: SplatCamera) -> Projected:
+        """splat_project over the n Gaussians of ``params`` (device arrays, PARAM_NAMES)."""
+        n = self.check_params(params)
+        cam = self._camera(camera)
+        ntx, nty = camera.tiles(self.tile)
+        dev = self.device
+        proj = Projected(n, scratch(dev, (n, 2)), scratch(dev, (n, 3)), scratch(dev, (n,)),
+                         scratch(dev, (n,)), scratch(dev, (n, 3)), scratch(dev, (n,)),
+                         scratch(dev, (n, 4), np.int32))
+        p = params
+        launch(dev, self.proj_program.kernel("splat_project"), n,
+               (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
+                p["opacity_logits"].data, p["sh"].data, cam.data, np.int32(camera.width),
+                np.int32(camera.height), np.int32(ntx), np.int32(nty), proj.xy.data,
+                proj.conic.data, proj.radius.data, proj.depth.data, proj.color.data,
+                proj.opacity.data, proj.rect.data), dev.tuning.elementwise_local_size)
+        return proj
+
+    def check_projected(self, proj: Projected):
+        n = int(proj.n)
+        for name, shape, dt in (("xy", (n, 2), np.float32), ("conic", (n, 3), np.float32),
+                                ("radius", (n,), np.float32), ("depth", (n,), np.float32),
+                                ("color", (n, 3), np.float32), ("opacity", (n,), np.float32),
+                                ("rect", (n, 4), np.int32)):
+            _check_device_array(name, getattr(proj, name), shape, dt)
+
+    def bin(self, proj: Projected, camera: SplatCamera) -> Binned:
+        """Count, scan, emit, sort and range the (tile, Gaussian) pairs. Reads one int64 (the
+        pair count) back to the host to size the keys, ids and the sort's buffers."""
+        self.check_projected(proj)
+        dev, q, n = self.device, self.device.queue, int(proj.n)
+        ntx, nty = camera.tiles(self.tile)
+        ranges = cla.zeros(q, (ntx * nty, 2), np.int32, allocator=dev.pool)
+        empty_keys = cla.empty(q, 0, np.uint64)
+        empty_ids = cla.empty(q, 0, np.int32)
+        if n == 0:
+            return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
+        ls = dev.tuning.elementwise_local_size
+        counts = scratch(dev, (n,), np.int32)
+        launch(dev, self.raster_program.kernel("splat_count"), n,
+               (np.int32(n), proj.rect.data, counts.data), ls)
+        offsets = scratch(dev, (n,), np.int64)
+        total = scratch(dev, (1,), np.int64)
+        self.scan(counts, offsets, total, np.int32(n), queue=q)
+        n_pairs = int(total.get()[0])              # the one host read of a forward
+        if n_pairs == 0:
+            return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
+        if n_pairs >= 1 << 31:
+            raise ValueError(f"{n_pairs} (tile, Gaussian) pairs exceed the int32 indices")
+        keys = scratch(dev, (n_pairs,), np.uint64)
+        ids = scratch(dev, (n_pairs,), np.int32)
+        launch(dev, self.raster_program.kernel("splat_emit"), n,
+               (np.int32(n), proj.rect.data, proj.depth.data, offsets.data, np.int32(ntx),
+                keys.data, ids.data), ls)
+        key_bits = 32 + max(1, int(ntx * nty - 1).bit_length())
+        (keys, ids), _ = self.sort(keys, ids, key_bits=key_bits, queue=q, allocator=dev.pool)
+        launch(dev, self.raster_program.kernel("splat_ranges"), n_pairs,
+               (np.int32(n_pairs), keys.data, ranges.data), ls)
+        return Binned(n_pairs, keys, ids, ranges, ntx, nty)
+
+    def _tiles_launch(self, kernel, bins: Binned, args):
+        """One work-group of tile x tile work-items per tile."""
+        t = self.tile
+        kernel.set_args(*args)
+        try:
+            cl.enqueue_nd_range_kernel(self.device.queue, kernel,
+                                       (bins.ntx * t, bins.nty * t), (t, t))
+        except cl.LogicError as e:
+            if e.code != cl.status_code.INVALID_WORK_GROUP_SIZE:
+                raise
+            raise RuntimeError(f"{kernel.function_name}: this device refuses work-groups of "
+                               f"{t} x {t}; build SplatRasterizer with a smaller tile") from e
+
+    @staticmethod
+    def _bg(background) -> np.ndarray:
+        bg = check_array("background", background, ndim=1, dtype=np.float32)
+        if bg.shape != (3,):
+            raise ValueError(f"background: expected 3 values, got shape {bg.shape}")
+        return cl.cltypes.make_float4(*bg, 0.0)
+
+    def rasterize(self, proj: Projected, bins: Binned, camera: SplatCamera,
+                  background=(0.0, 0.0, 0.0)) -> Raster:
+        """splat_raster_forward: the image of the binned splats over ``background``."""
+        self.check_projected(proj)
+        dev = self.device
+        H, W = int(camera.height), int(camera.width)
+        out = Raster(scratch(dev, (H, W, 3)), scratch(dev, (H, W)),
+                     scratch(dev, (H, W), np.int32))
+        self._tiles_launch(
+            self.raster_program.kernel("splat_raster_forward"), bins,
+            (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
+             proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
+             self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data))
+        return out
+
+    # ---- backward -------------------------------------------------------------------------------
+    def rasterize_backward(self, proj: Projected, bins: Binned, raster: Raster,
+                           camera: SplatCamera, grad_rgb: cla.Array,
+                           background=(0.0, 0.0, 0.0)) -> dict:
+        """dL/d(xy, conic, opacity, color) [n, ...] (device, GRAD2D_NAMES) for dL/drgb
+        ``grad_rgb`` [H, W, 3] (device float32), from the forward's ``raster``."""
+        self.check_projected(proj)
+        H, W = int(camera.height), int(camera.width)
+        _check_device_array("grad_rgb", grad_rgb, (H, W, 3))
+        _check_device_array("T", raster.T, (H, W))
+        _check_device_array("n_contrib", raster.n_contrib, (H, W), np.int32)
+        q, n = self.device.queue, int(proj.n)
+        g = {"xy": cla.zeros(q, (n, 2), np.float32), "conic": cla.zeros(q, (n, 3), np.float32),
+             "opacity": cla.zeros(q, (n,), np.float32),
+             "color": cla.zeros(q, (n, 3), np.float32)}
+        if bins.n_pairs == 0:
+            return g
+        self._tiles_launch(
+            self.raster_program.kernel("splat_raster_backward"), bins,
+            (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
+             proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
+             self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,
+             g["xy"].data, g["conic"].data, g["opacity"].data, g["color"].data))
+        return g
+
+    def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict) -> dict:
+        """dL/d(PARAM_NAMES) (device arrays) from the projected outputs' gradients ``grads2d``
+        (GRAD2D_NAMES, e.g. rasterize_backward's)."""
+        n = self.check_params(params)
+        for name, shape in (("xy", (n, 2)), ("conic", (n, 3)), ("opacity", (n,)),
+                            ("color", (n, 3))):
+            _check_device_array(f"grads2d[{name!r}]", grads2d[name], shape)
+        dev = self.device
+        out = {name: scratch(dev, shape) for name, shape in self.shapes(n).items()}
+        cam = self._camera(camera)
+        p = params
+        launch(dev, self.proj_program.kernel("splat_project_backward"), n,
+               (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
+                p["opacity_logits"].data, p["sh"].data, cam.data, np.int32(camera.width),
+                np.int32(camera.height), grads2d["xy"].data, grads2d["conic"].data,
+                grads2d["color"].data, grads2d["opacity"].data, out["means"].data,
+                out["log_scales"].data, out["quats"].data, out["opacity_logits"].data,
+                out["sh"].data), dev.tuning.elementwise_local_size)
+        return out
+
+    # ---- numpy conveniences ---------------------------------------------------------------------
+    def forward(self, params: dict, camera: SplatCamera, background=(0.0, 0.0, 0.0)):
+        """(Projected, Binned, Raster) of device parameters."""
+        proj = self.project(params, camera)
+        bins = self.bin(proj, camera)
+        return proj, bins, self.rasterize(proj, bins, camera, background)
+
+    def render(self, gaussians: dict, camera: SplatCamera,
+               background=(0.0, 0.0, 0.0)) -> dict:
+        """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W]) as numpy arrays."""
+        _, _, ras = self.forward(self.upload(gaussians), camera, background)
+        return {"rgb": ras.rgb.get(), "T": ras.T.get(), "n_contrib": ras.n_contrib.get()}
+
+    def render_backward(self, gaussians: dict, camera: SplatCamera, grad_rgb,
+                        background=(0.0, 0.0, 0.0)) -> dict:
+        """dL/d(PARAM_NAMES) as numpy arrays for dL/drgb ``grad_rgb`` [H, W, 3], plus the
+        screen-space gradients under "grad2d" (a dict of GRAD2D_NAMES)."""
+        params = self.upload(gaussians)
+        g = check_array("grad_rgb", grad_rgb, ndim=3)
+        proj, bins, ras = self.forward(params, camera, background)
+        g2d = self.rasterize_backward(proj, bins, ras, camera,
+                                      upload(self.device.queue, g), background)
+        out = {k: v.get() for k, v in self.project_backward(params, camera, g2d).items()}
+        out["grad2d"] = {k: v.get() for k, v in g2d.items()}
+        return out

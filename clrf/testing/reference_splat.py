@@ -1,0 +1,385 @@
+"""Float64 numpy twins of the Gaussian-splatting kernels (cl/splat_project.cl,
+cl/splat_raster.cl): projection and its backward, binning as per-tile sorted lists, the tile
+compositing forward and its backward; the test oracle, not on any runtime path.
+
+The constants are the float32 values the kernels are built with (clrf/splat/raster.py passes
+them as defines): ALPHA_MAX = float32(0.99) and T_MIN = float32(1e-4) decide, e.g., whether a
+pixel behind two clamped Gaussians stops (T = (1 - 0.99)^2 sits on T_MIN), so the twin uses the
+same numbers. Everything else is float64.
+
+Shapes: n Gaussians; params dict(means [n, 3], log_scales [n, 3], quats [n, 4] (w, x, y, z),
+opacity_logits [n], sh [n, B, 3]); cam dict(viewmat [4, 4] world-to-camera, fx, fy, cx, cy,
+width, height, near). Projected splats dict(xy [n, 2], conic [n, 3], radius [n], depth [n],
+color [n, 3], opacity [n], rect [n, 4], visible [n]).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .reference import SH_C1, SH_C2, SH_C3, sh_basis
+
+TILE = 16
+ALPHA_MAX = float(np.float32(0.99))
+ALPHA_MIN = float(np.float32(1.0 / 255.0))
+T_MIN = float(np.float32(1e-4))
+COV_DILATION = float(np.float32(0.3))
+FRUSTUM_GUARD = float(np.float32(1.3))
+SIGMA_RADIUS = 3.0
+
+
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """World-to-camera [4, 4] of a camera at ``eye`` looking at ``target`` (x right, y down,
+    z forward; ``up`` is the world direction that appears upwards, i.e. along -y)."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(-up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    V = np.eye(4)
+    V[:3, :3], V[:3, 3] = R, -R @ eye
+    return V
+
+
+def quat_rot(q) -> np.ndarray:
+    """Rotation matrices [n, 3, 3] of unit quaternions q [n, 4] (w, x, y, z)."""
+    w, x, y, z = (q[:, k] for k in range(4))
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+def tiles(cam, tile=TILE):
+    return -(-int(cam["width"]) // tile), -(-int(cam["height"]) // tile)
+
+
+def tile_rect(xy, radius, ntx, nty, tile=TILE) -> np.ndarray:
+    """Tile rectangles [n, 4] (x0, y0, x1, y1) of the squares xy +- radius, in the dtype of xy
+    (float32 inputs: the kernel's exact arithmetic); zero radius -> empty."""
+    xy = np.asarray(xy)
+    r = np.asarray(radius)[:, None]
+    with np.errstate(invalid="ignore", over="ignore"):
+        lo = np.floor((xy - r) / tile)
+        hi = np.floor((xy + r) / tile) + 1
+    lim = np.array([ntx, nty], xy.dtype)
+    lo, hi = np.clip(lo, 0, lim), np.clip(hi, 0, lim)
+    rect = np.concatenate([lo, hi], 1).astype(np.int64)
+    rect[np.asarray(radius) <= 0] = 0
+    return rect
+
+
+def _intermediates(params, cam):
+    """Everything the projection computes (as cl/splat_project.cl splat_project_one)."""
+    m = np.asarray(params["means"], np.float64)
+    ls = np.asarray(params["log_scales"], np.float64)
+    q = np.asarray(params["quats"], np.float64)
+    V = np.asarray(cam["viewmat"], np.float64)
+    R, t = V[:3, :3], V[:3, 3]
+    fx, fy = float(cam["fx"]), float(cam["fy"])
+    n = m.shape[0]
+    I = {"R": R, "fx": fx, "fy": fy}
+    tc = m @ R.T + t
+    qq = np.sum(q * q, 1)
+    vis = (tc[:, 2] > cam["near"]) & (qq > 0)
+    qlen = np.sqrt(qq)
+    qn = np.where(vis[:, None], q / np.where(qlen > 0, qlen, 1)[:, None], [1.0, 0, 0, 0])
+    s = np.exp(ls)
+    Rq = quat_rot(qn)
+    S3 = np.einsum("nik,nk,njk->nij", Rq, s * s, Rq)
+    z = np.where(vis, tc[:, 2], 1.0)
+    lim_x = FRUSTUM_GUARD * 0.5 * cam["width"] / fx
+    lim_y = FRUSTUM_GUARD * 0.5 * cam["height"] / fy
+    ux, uy = tc[:, 0] / z, tc[:, 1] / z
+    clamp_x, clamp_y = np.abs(ux) > lim_x, np.abs(uy) > lim_y
+    rx, ry = np.clip(ux, -lim_x, lim_x), np.clip(uy, -lim_y, lim_y)
+    J = np.zeros((n, 2, 3))
+    J[:, 0, 0], J[:, 0, 2] = fx / z, -fx * rx / z
+    J[:, 1, 1], J[:, 1, 2] = fy / z, -fy * ry / z
+    Tm = J @ R
+    Vm = Tm @ S3
+    with np.errstate(over="ignore", invalid="ignore"):
+        S2 = Vm @ np.transpose(Tm, (0, 2, 1))
+        a = S2[:, 0, 0] + COV_DILATION
+        b = S2[:, 0, 1]
+        c = S2[:, 1, 1] + COV_DILATION
+        sc = np.maximum(a, c)
+        an, bn, cn = a / sc, b / sc, c / sc
+        detn = an * cn - bn * bn
+        vis &= np.isfinite(a) & np.isfinite(b) & np.isfinite(c) & (detn > 0)
+        inv = np.where(vis, 1.0 / np.where(vis, detn * sc, 1.0), 0.0)
+        conic = np.stack([cn * inv, -bn * inv, an * inv], 1)
+        vis &= np.all(np.isfinite(conic), 1)
+        lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
+        radius = np.where(vis, SIGMA_RADIUS * np.sqrt(np.where(vis, lam, 0.0)), 0.0)
+    xy = np.stack([fx * tc[:, 0] / z + cam["cx"], fy * tc[:, 1] / z + cam["cy"]], 1)
+    I.update(tc=tc, vis=vis, qn=qn, qlen=qlen, s=s, Rq=Rq, S3=S3, z=z, rx=rx, ry=ry,
+             clamp_x=clamp_x, clamp_y=clamp_y, Tm=Tm, Vm=Vm, conic=conic, xy=xy, radius=radius)
+    return I
+
+
+def _view_dirs(means, cam):
+    V = np.asarray(cam["viewmat"], np.float64)
+    pos = -V[:3, :3].T @ V[:3, 3]
+    v = np.asarray(means, np.float64) - pos
+    dist = np.linalg.norm(v, axis=1)
+    return v / np.where(dist > 0, dist, 1.0)[:, None], dist
+
+
+def _raw_color(params, cam):
+    sh = np.asarray(params["sh"], np.float64)
+    degree = int(round(np.sqrt(sh.shape[1]))) - 1
+    dirs, dist = _view_dirs(params["means"], cam)
+    Y = sh_basis(dirs, degree)
+    return 0.5 + np.einsum("nb,nbc->nc", Y, sh), Y, dirs, dist, degree
+
+
+def sigmoid(x):
+    e = np.exp(-np.abs(x))
+    return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def project(params, cam, tile=TILE) -> dict:
+    """The projected splats (module docstring); culled Gaussians are all zeros."""
+    I = _intermediates(params, cam)
+    vis = I["vis"]
+    col, *_ = _raw_color(params, cam)
+    ntx, nty = tiles(cam, tile)
+    out = {"xy": I["xy"], "conic": I["conic"], "radius": I["radius"], "depth": I["tc"][:, 2],
+           "color": np.maximum(col, 0.0),
+           "opacity": sigmoid(np.asarray(params["opacity_logits"], np.float64))}
+    for k in out:
+        out[k] = np.where(vis.reshape((-1,) + (1,) * (out[k].ndim - 1)), out[k], 0.0)
+    out["rect"] = tile_rect(out["xy"], out["radius"], ntx, nty, tile)
+    out["visible"] = vis
+    return out
+
+
+def bin_gaussians(rect, depth, ntx, nty) -> list:
+    """Per tile (id ty * ntx + tx), the Gaussian ids whose rect covers it, sorted front to back
+    by depth, equal depths by id (the kernel's stable sort of the emit order)."""
+    rect = np.asarray(rect)
+    lists = [[] for _ in range(ntx * nty)]
+    for i, (x0, y0, x1, y1) in enumerate(rect):
+        for ty in range(y0, y1):
+            for tx in range(x0, x1):
+                lists[ty * ntx + tx].append(i)
+    depth = np.asarray(depth)
+    return [np.array(sorted(ids, key=lambda i: (depth[i], i)), np.int64) for ids in lists]
+
+
+def _tile_alpha(proj, ids, px, py):
+    """For pixel centres (px, py) [P] and list ids [K]: alpha (0 where skipped), raw o G, G,
+    d [P, K, 2]."""
+    pix = np.stack([px + 0.5, py + 0.5], 1)
+    d = np.asarray(proj["xy"], np.float64)[ids][None] - pix[:, None]
+    A, B, C = (np.asarray(proj["conic"], np.float64)[ids, k][None] for k in range(3))
+    power = -0.5 * (A * d[..., 0] ** 2 + C * d[..., 1] ** 2) - B * d[..., 0] * d[..., 1]
+    G = np.exp(power)
+    raw = np.asarray(proj["opacity"], np.float64)[ids][None] * G
+    alpha = np.minimum(ALPHA_MAX, raw)
+    alpha = np.where((power > 0) | (alpha < ALPHA_MIN), 0.0, alpha)
+    return alpha, raw, G, d
+
+
+def _tile_pixels(t, ntx, width, height, tile):
+    ty, tx = divmod(t, ntx)
+    ys, xs = np.meshgrid(np.arange(ty * tile, min((ty + 1) * tile, height)),
+                         np.arange(tx * tile, min((tx + 1) * tile, width)), indexing="ij")
+    return xs.ravel(), ys.ravel()
+
+
+def rasterize(proj, lists, width, height, background=(0.0, 0.0, 0.0), tile=TILE) -> dict:
+    """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W]) of the per-tile lists (front to back)."""
+    bg = np.asarray(background, np.float64)
+    ntx = -(-width // tile)
+    rgb = np.zeros((height, width, 3))
+    T_out = np.ones((height, width))
+    n_out = np.zeros((height, width), np.int64)
+    col = np.asarray(proj["color"], np.float64)
+    for t, ids in enumerate(lists):
+        px, py = _tile_pixels(t, ntx, width, height, tile)
+        T = np.ones(px.size)
+        C = np.zeros((px.size, 3))
+        last = np.zeros(px.size, np.int64)
+        if ids.size:
+            alpha = _tile_alpha(proj, ids, px, py)[0]
+            done = np.zeros(px.size, bool)
+            for k in range(ids.size):
+                a = alpha[:, k]
+                act = ~done & (a > 0)
+                nT = T * (1 - a)
+                stop = act & (nT < T_MIN)
+                done |= stop
+                act &= ~stop
+                C[act] += (a * T)[act, None] * col[ids[k]]
+                T = np.where(act, nT, T)
+                last = np.where(act, k + 1, last)
+                if done.all():
+                    break
+        rgb[py, px] = C + T[:, None] * bg
+        T_out[py, px] = T
+        n_out[py, px] = last
+    return {"rgb": rgb, "T": T_out, "n_contrib": n_out}
+
+
+def rasterize_backward(proj, lists, fwd, width, height, grad_rgb, background=(0.0, 0.0, 0.0),
+                       tile=TILE) -> dict:
+    """dL/d(xy, conic, opacity, color) of the compositing for dL/drgb ``grad_rgb`` [H, W, 3]
+    (the derivation is in cl/splat_raster.cl's header); ``fwd`` is rasterize's output."""
+    bg = np.asarray(background, np.float64)
+    n = np.asarray(proj["xy"]).shape[0]
+    g = {"xy": np.zeros((n, 2)), "conic": np.zeros((n, 3)), "opacity": np.zeros(n),
+         "color": np.zeros((n, 3))}
+    col = np.asarray(proj["color"], np.float64)
+    conic = np.asarray(proj["conic"], np.float64)
+    ntx = -(-width // tile)
+    grad_rgb = np.asarray(grad_rgb, np.float64)
+    for t, ids in enumerate(lists):
+        if not ids.size:
+            continue
+        px, py = _tile_pixels(t, ntx, width, height, tile)
+        alpha, raw, G, d = _tile_alpha(proj, ids, px, py)
+        npix = fwd["n_contrib"][py, px]
+        T = np.asarray(fwd["T"], np.float64)[py, px].copy()
+        gp = grad_rgb[py, px]
+        S = np.tile(bg, (px.size, 1))
+        for k in range(ids.size - 1, -1, -1):
+            a = alpha[:, k]
+            act = (k < npix) & (a > 0)
+            if not act.any():
+                continue
+            i = ids[k]
+            T = np.where(act, T / (1 - a), T)
+            dalpha = np.where(act, T * np.sum(gp * (col[i] - S), 1), 0.0)
+            S = np.where(act[:, None], a[:, None] * col[i] + (1 - a[:, None]) * S, S)
+            g["color"][i] += np.sum(np.where(act, T * a, 0.0)[:, None] * gp, 0)
+            free = act & (raw[:, k] < ALPHA_MAX)
+            dpow = np.where(free, raw[:, k] * dalpha, 0.0)
+            g["opacity"][i] += np.sum(np.where(free, G[:, k] * dalpha, 0.0))
+            dx, dy = d[:, k, 0], d[:, k, 1]
+            A, B, C = conic[i]
+            g["xy"][i] += [np.sum(-dpow * (A * dx + B * dy)), np.sum(-dpow * (B * dx + C * dy))]
+            g["conic"][i] += [np.sum(-0.5 * dpow * dx * dx), np.sum(-dpow * dx * dy),
+                              np.sum(-0.5 * dpow * dy * dy)]
+    return g
+
+
+def _sh_dir_grad(dirs, w, degree):
+    """sum_b w_b dY_b/dd [n, 3] (cl/splat_project.cl sh_dir_grad), by the product rule on
+    sh_basis's polynomials, written out per term."""
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    g = np.zeros_like(dirs)
+    if degree >= 1:
+        g[:, 0] += -SH_C1 * w[:, 3]
+        g[:, 1] += -SH_C1 * w[:, 1]
+        g[:, 2] += SH_C1 * w[:, 2]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        g[:, 0] += SH_C2[0] * y * w[:, 4] - 2 * SH_C2[2] * x * w[:, 6] + SH_C2[3] * z * w[:, 7] \
+            + 2 * SH_C2[4] * x * w[:, 8]
+        g[:, 1] += SH_C2[0] * x * w[:, 4] + SH_C2[1] * z * w[:, 5] - 2 * SH_C2[2] * y * w[:, 6] \
+            - 2 * SH_C2[4] * y * w[:, 8]
+        g[:, 2] += SH_C2[1] * y * w[:, 5] + 4 * SH_C2[2] * z * w[:, 6] + SH_C2[3] * x * w[:, 7]
+    if degree >= 3:
+        c = SH_C3
+        g[:, 0] += (6 * c[0] * x * y * w[:, 9] + c[1] * y * z * w[:, 10]
+                    - 2 * c[2] * x * y * w[:, 11] - 6 * c[3] * x * z * w[:, 12]
+                    + c[4] * (4 * zz - 3 * xx - yy) * w[:, 13] + 2 * c[5] * x * z * w[:, 14]
+                    + c[6] * (3 * xx - 3 * yy) * w[:, 15])
+        g[:, 1] += (c[0] * (3 * xx - 3 * yy) * w[:, 9] + c[1] * x * z * w[:, 10]
+                    + c[2] * (4 * zz - xx - 3 * yy) * w[:, 11] - 6 * c[3] * y * z * w[:, 12]
+                    - 2 * c[4] * x * y * w[:, 13] - 2 * c[5] * y * z * w[:, 14]
+                    - 6 * c[6] * x * y * w[:, 15])
+        g[:, 2] += (c[1] * x * y * w[:, 10] + 8 * c[2] * y * z * w[:, 11]
+                    + c[3] * (6 * zz - 3 * xx - 3 * yy) * w[:, 12] + 8 * c[4] * x * z * w[:, 13]
+                    + c[5] * (xx - yy) * w[:, 14])
+    return g
+
+
+def project_backward(params, cam, grads2d) -> dict:
+    """dL/d(means, log_scales, quats, opacity_logits, sh) from dL/d(xy, conic, color, opacity)
+    of the projected splats (derivation: cl/splat_project.cl's header)."""
+    I = _intermediates(params, cam)
+    vis = I["vis"]
+    R, fx, fy = I["R"], I["fx"], I["fy"]
+    tc, z = I["tc"], I["z"]
+    gxy = np.asarray(grads2d["xy"], np.float64)
+    gq = np.asarray(grads2d["conic"], np.float64)
+    gcol = np.asarray(grads2d["color"], np.float64)
+    gop = np.asarray(grads2d["opacity"], np.float64)
+    sh = np.asarray(params["sh"], np.float64)
+    # colour
+    col, Y, dirs, dist, degree = _raw_color(params, cam)
+    gc = np.where(col < 0, 0.0, gcol)
+    d_sh = Y[:, :, None] * gc[:, None, :]
+    w = np.einsum("nc,nbc->nb", gc, sh)
+    gdir = _sh_dir_grad(dirs, w, degree)
+    gm = (gdir - dirs * np.sum(dirs * gdir, 1, keepdims=True)) / np.where(dist > 0, dist,
+                                                                          1)[:, None]
+    # opacity
+    o = sigmoid(np.asarray(params["opacity_logits"], np.float64))
+    d_logit = gop * o * (1 - o)
+    # mean in pixels
+    gt = np.stack([gxy[:, 0] * fx / z, gxy[:, 1] * fy / z,
+                   -(gxy[:, 0] * fx * tc[:, 0] + gxy[:, 1] * fy * tc[:, 1]) / z ** 2], 1)
+    # conic -> Sigma2 -> (T, Sigma3)
+    A, B, C = I["conic"][:, 0], I["conic"][:, 1], I["conic"][:, 2]
+    Q = np.stack([np.stack([A, B], -1), np.stack([B, C], -1)], 1)
+    GQ = np.stack([np.stack([gq[:, 0], gq[:, 1] / 2], -1),
+                   np.stack([gq[:, 1] / 2, gq[:, 2]], -1)], 1)
+    GS = -Q @ GQ @ Q
+    GS = 0.5 * (GS + np.transpose(GS, (0, 2, 1)))
+    Tm, Vm = I["Tm"], I["Vm"]
+    dT = 2 * GS @ Vm
+    G3 = np.transpose(Tm, (0, 2, 1)) @ GS @ Tm
+    dJ = dT @ R.T
+    gt[:, 2] += -fx / z ** 2 * dJ[:, 0, 0] - fy / z ** 2 * dJ[:, 1, 1]
+    gt[:, 0] += np.where(I["clamp_x"], 0.0, -fx / z ** 2 * dJ[:, 0, 2])
+    gt[:, 2] += np.where(I["clamp_x"], 1.0, 2.0) * fx * I["rx"] / z ** 2 * dJ[:, 0, 2]
+    gt[:, 1] += np.where(I["clamp_y"], 0.0, -fy / z ** 2 * dJ[:, 1, 2])
+    gt[:, 2] += np.where(I["clamp_y"], 1.0, 2.0) * fy * I["ry"] / z ** 2 * dJ[:, 1, 2]
+    gm = gm + gt @ R
+    # Sigma3 = M M^T, M = Rq diag(s)
+    Rq, s = I["Rq"], I["s"]
+    M = Rq * s[:, None, :]
+    dM = 2 * G3 @ M
+    d_ls = np.sum(dM * Rq, 1) * s
+    dR = dM * s[:, None, :]
+    qw, qx, qy, qz = (I["qn"][:, k] for k in range(4))
+    g = lambda j, k: dR[:, j, k]  # noqa: E731
+    gqn = 2 * np.stack([
+        -qz * g(0, 1) + qy * g(0, 2) + qz * g(1, 0) - qx * g(1, 2) - qy * g(2, 0) + qx * g(2, 1),
+        qy * g(0, 1) + qz * g(0, 2) + qy * g(1, 0) - 2 * qx * g(1, 1) - qw * g(1, 2)
+        + qz * g(2, 0) + qw * g(2, 1) - 2 * qx * g(2, 2),
+        -2 * qy * g(0, 0) + qx * g(0, 1) + qw * g(0, 2) + qx * g(1, 0) + qz * g(1, 2)
+        - qw * g(2, 0) + qz * g(2, 1) - 2 * qy * g(2, 2),
+        -2 * qz * g(0, 0) - qw * g(0, 1) + qx * g(0, 2) + qw * g(1, 0) - 2 * qz * g(1, 1)
+        + qy * g(1, 2) + qx * g(2, 0) + qy * g(2, 1)], 1)
+    qn = I["qn"]
+    d_q = (gqn - qn * np.sum(qn * gqn, 1, keepdims=True)) / np.where(vis, I["qlen"], 1)[:, None]
+    out = {"means": gm, "log_scales": d_ls, "quats": d_q, "opacity_logits": d_logit,
+           "sh": d_sh}
+    for k in out:
+        out[k] = np.where(vis.reshape((-1,) + (1,) * (out[k].ndim - 1)), out[k], 0.0)
+    return out
+
+
+def render(params, cam, background=(0.0, 0.0, 0.0), tile=TILE):
+    """(projected splats, per-tile lists, rasterize's dict) of the float64 chain."""
+    proj = project(params, cam, tile)
+    ntx, nty = tiles(cam, tile)
+    lists = bin_gaussians(proj["rect"], proj["depth"], ntx, nty)
+    return proj, lists, rasterize(proj, lists, int(cam["width"]), int(cam["height"]),
+                                  background, tile)
+
+
+def render_backward(params, cam, grad_rgb, background=(0.0, 0.0, 0.0), tile=TILE) -> dict:
+    """dL/d(params) of the whole chain for dL/drgb ``grad_rgb``, plus "grad2d"."""
+    proj, lists, fwd = render(params, cam, background, tile)
+    g2d = rasterize_backward(proj, lists, fwd, int(cam["width"]), int(cam["height"]), grad_rgb,
+                             background, tile)
+    out = project_backward(params, cam, g2d)
+    out["grad2d"] = g2d
+    return out

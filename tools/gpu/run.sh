@@ -1,0 +1,122 @@
+#!/usr/bin/env bash
+# One GPU session's checks of the fused MLP's GPU tiling (cl/mlp_gpu.h), in at most ~9 minutes:
+# the MLP tests (the device's own tiling, then CLRF_FORCE_GPU_KERNELS=1), tools/nerf_bench.py
+# at GPU batch sizes (samples/s and the fraction of the FMA peak of the same run, the GPU tiling
+# and, at 2^16, the CPU tiles), tools/bench.py's peak, NeRF MLP and hash cases. Everything goes
+# to $OUT (default ./gpu-out); summary.txt lists each step's exit status and seconds.
+# tools/gpu/README.md has the set-up (wheels in .whl/, the NVIDIA ICD) and the knobs.
+#
+#   OUT=/tmp/out bash tools/gpu/run.sh
+#   RUN_DEVICE=pocl RUN_SMOKE=1 OUT=/tmp/o bash tools/gpu/run.sh    # the logic, on a CPU
+set -u
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+cd "$ROOT"
+OUT="${OUT:-$ROOT/gpu-out}"
+mkdir -p "$OUT"
+DEVICE="${RUN_DEVICE:-gpu}"          # CLRF_DEVICE for every step
+SMOKE="${RUN_SMOKE:-0}"              # 1: tiny sizes, the GPU tiling forced (a CPU check)
+START=$SECONDS
+BUDGET="${RUN_BUDGET_S:-530}"        # seconds for all steps; a step gets at most what is left
+
+log() { echo "[$((SECONDS - START))s] $*" | tee -a "$OUT/summary.txt"; }
+
+# step NAME LIMIT_S CMD...: run CMD (stdout+stderr to $OUT/NAME.txt) under min(LIMIT_S, left)
+step() {
+    local name="$1" limit="$2"; shift 2
+    local left=$((BUDGET - (SECONDS - START)))
+    if [ "$left" -lt 15 ]; then
+        log "$name: skipped (${left}s of the budget left)"
+        return 0
+    fi
+    [ "$limit" -gt "$left" ] && limit=$left
+    local t0=$SECONDS
+    timeout --kill-after=10 "$limit" "$@" > "$OUT/$name.txt" 2>&1
+    local rc=$?
+    log "$name: rc=$rc in $((SECONDS - t0))s (limit ${limit}s)$([ $rc -eq 124 ] && echo ', TIMED OUT')"
+    return 0
+}
+
+: > "$OUT/summary.txt"
+log "clrf GPU run: $(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo '?') \
+$(git -C "$ROOT" status --short 2>/dev/null | wc -l) changed files; device '$DEVICE', smoke $SMOKE"
+
+# ---- Python: the system's (or $PYTHON) with pyopencl, numpy and pytest, else a venv from .whl/
+PY="${PYTHON:-python3}"
+need='import pyopencl, numpy, pytest, pytools'
+if ! "$PY" -c "$need" 2>/dev/null; then
+    if [ -x "$ROOT/.venv/bin/python" ] && "$ROOT/.venv/bin/python" -c "$need" 2>/dev/null; then
+        PY="$ROOT/.venv/bin/python"
+    elif [ -d "$ROOT/.whl" ]; then
+        VENV="${RUN_VENV:-/tmp/clrf-gpu-venv}"
+        log "installing from .whl/ into $VENV"
+        "$PY" -m venv --system-site-packages "$VENV" >> "$OUT/setup.txt" 2>&1
+        "$VENV/bin/python" -m pip install --no-index --find-links "$ROOT/.whl" \
+            pyopencl numpy pytest >> "$OUT/setup.txt" 2>&1
+        PY="$VENV/bin/python"
+        if ! "$PY" -c "$need" >> "$OUT/setup.txt" 2>&1; then
+            log "the wheels in .whl/ did not install (setup.txt)"
+            exit 1
+        fi
+    else
+        log "no pyopencl/numpy/pytest in $PY and no .whl/ folder: see tools/gpu/README.md"
+        exit 1
+    fi
+fi
+export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+export XDG_CACHE_HOME="${XDG_CACHE_HOME:-$OUT/cache}"   # probe and tile caches of this run only
+log "python: $("$PY" -c 'import sys, pyopencl as cl, numpy as np
+print(sys.version.split()[0], "pyopencl", cl.VERSION_TEXT, "numpy", np.__version__)')"
+
+# ---- NVIDIA's OpenCL driver: an ICD file naming libnvidia-opencl.so.1 where none is registered
+if [ -z "${OCL_ICD_VENDORS:-}" ] && ! grep -qsl nvidia /etc/OpenCL/vendors/*.icd; then
+    lib=""
+    for cand in /usr/local/nvidia/lib64/libnvidia-opencl.so.1 \
+                /usr/lib/x86_64-linux-gnu/libnvidia-opencl.so.1 /usr/lib64/libnvidia-opencl.so.1 \
+                $(ldconfig -p 2>/dev/null | awk '/libnvidia-opencl.so.1/ {print $NF}'); do
+        [ -e "$cand" ] && { lib="$cand"; break; }
+    done
+    if [ -n "$lib" ]; then
+        mkdir -p "$OUT/vendors"
+        echo "$lib" > "$OUT/vendors/nvidia.icd"
+        export OCL_ICD_VENDORS="$OUT/vendors"
+        log "OCL_ICD_VENDORS=$OCL_ICD_VENDORS ($lib)"
+    fi
+fi
+command -v nvidia-smi > /dev/null && nvidia-smi > "$OUT/nvidia_smi.txt" 2>&1
+export CLRF_DEVICE="$DEVICE" CLRF_TEST_IMPLS=default
+
+step devices 60 "$PY" -m clrf.cli devices
+
+# ---- tests: the device's own tiling (the GPU tiling on a GPU), then forced by the environment
+TESTS=(tests/test_mlp_gpu.py tests/test_nerf_mlp.py)
+if [ "$SMOKE" = 1 ]; then
+    TESTS=(tests/test_mlp_gpu.py::test_small_network_under_every_pass
+           "tests/test_mlp_gpu.py::test_matches_reference_at_awkward_batches"
+           tests/test_nerf_mlp.py::test_forward_matches_reference)
+fi
+step tests_native 150 "$PY" -m pytest -q -p no:cacheprovider "${TESTS[@]}"
+CLRF_FORCE_GPU_KERNELS=1 step tests_forced 150 "$PY" -m pytest -q -p no:cacheprovider "${TESTS[@]}"
+
+# ---- tools/nerf_bench.py at GPU sizes: the device's tiling at 2^16, 2^18, 2^20; the CPU tiles
+# at 2^16 beside it (on the H100 they ran at 0.8 % of the FMA peak)
+if [ "$SMOKE" = 1 ]; then
+    NB=(--gpu-samples 256 --repeats 1 --min-sample-s 0.01 --force-gpu-kernels)
+    NB_CPU=(--gpu-samples 256 --repeats 1 --min-sample-s 0.01)
+else
+    NB=(--repeats 5)
+    NB_CPU=(--gpu-samples 65536 --repeats 3)
+fi
+step nerf_bench_gpu 200 "$PY" tools/nerf_bench.py --gpu-sizes "${NB[@]}" --out "$OUT/nerf_bench_gpu.json"
+step nerf_bench_cpu_tiles 60 "$PY" tools/nerf_bench.py --gpu-sizes --tilings cpu \
+    --gpu-configs small-4x64,hash-1x64-c2 "${NB_CPU[@]}" --out "$OUT/nerf_bench_cpu_tiles.json"
+
+# ---- tools/bench.py's cases of the earlier GPU runs: peaks, the NeRF MLP, the hash encoding
+if [ "$SMOKE" = 1 ]; then
+    CLRF_FORCE_GPU_KERNELS=1 step bench 60 "$PY" tools/bench.py --device "$DEVICE" --quick \
+        --only 'peak/fma' --only 'nerf/mlp/small-4x64/*' --out "$OUT/bench.json"
+else
+    step bench 120 "$PY" tools/bench.py --device "$DEVICE" --only 'peak/*' --only 'nerf/mlp/*' \
+        --only 'hash/*' --max-seconds 3 --out "$OUT/bench.json"
+fi
+
+log "done in $((SECONDS - START))s; files in $OUT"
