@@ -29,6 +29,11 @@ class StateError(ValueError):
     the caller reports it as a bad checkpoint."""
 
 
+class Unsupported(ValueError):
+    """What a model kind cannot do (a camera model, an export, single rays): the CLI reports it
+    as bad input, naming what the kind offers instead."""
+
+
 @dataclass
 class Budget:
     """The run's clock at the start of a step, as the budget hook sees it."""
@@ -83,6 +88,9 @@ class Model(Protocol):
     #   render_image(c2w [4, 4], intrinsics (fx, fy, cx, cy), hw (H, W)) -> dict of numpy
     #   rgb [H, W, 3], depth [H, W], acc [H, W]  (OpenGL camera axes: x right, y up, -z ahead)
     # Evaluation, `clrf render` and the viewer use it where a model has it (render_view).
+    #   attach(ds, max_images): the training views of dataset ds (the first max_images; 0:
+    #   all); the trainer calls it after create and after from_state (a resumed run).
+    # What a kind cannot do raises Unsupported.
 
     def describe(self) -> str:
         """One line for the log: size, stage, what changed."""

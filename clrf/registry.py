@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 
-PACKAGES = ("grid", "nerf", "hash")   # clrf.<name>.kind.KIND, each
+PACKAGES = ("grid", "nerf", "hash", "splat")   # clrf.<name>.kind.KIND, each
 DEFAULT = PACKAGES[0]
 
 _KINDS: dict = {}

@@ -127,7 +127,7 @@ def test_flags_after_set():
     ("--grid.batch_size", "many", "grid.batch_size must be an integer, got 'many'"),
     ("--grid.step", "9", "grid.step = 9.0: must be in (0, 4] voxels"),
     ("--nerf.width", "100", "nerf.width = 100: must be a multiple of 16"),
-    ("--train.model", "mesh", "train.model = 'mesh': must be 'grid', 'nerf' or 'hash'"),
+    ("--train.model", "mesh", "train.model = 'mesh': must be 'grid', 'nerf', 'hash' or 'splat'"),
 ])
 def test_bad_flag_value_is_a_config_error(tmp_path, capsys, flag, value, needle):
     rc = main(["train", "--out", str(tmp_path / "r"), "--max-seconds", "1", flag, value])

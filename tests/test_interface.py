@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from clrf import registry
-from clrf.interface import Budget, Kind, Model
+from clrf.interface import Budget, Kind, Model, Unsupported
 from test_layout import PKG, import_graph, layer
 
 PRODUCT = ("runtime", "interface", "data", "outputs", "training", "viewer", "cli")
@@ -78,6 +78,7 @@ def test_the_check_can_fail(tmp_path):
 def test_every_kind_is_declared_completely():
     kinds = registry.kinds()
     assert [k.name for k in kinds] == list(registry.PACKAGES) and registry.DEFAULT == "grid"
+    assert {k.batches for k in kinds} <= {"rays", "views"}
     from clrf.training.config import PRESETS, Config
     cfg = Config()
     for k in kinds:
@@ -88,7 +89,7 @@ def test_every_kind_is_declared_completely():
             assert isinstance(k.config.from_preset(name), k.config)
         for ok, field, msg in cfg.section(k.name).checks():
             assert ok and field.startswith(f"{k.name}.") and msg, (k.name, field)
-    with pytest.raises(KeyError, match="known: grid, nerf, hash"):
+    with pytest.raises(KeyError, match="known: grid, nerf, hash, splat"):
         registry.get("voxels")
 
 
@@ -138,9 +139,9 @@ def test_each_kind_keeps_the_protocol(device, name, tmp_path):
         out = model.render_image(c2w, intr, hw)
         assert out["rgb"].shape == (16, 24, 3) and out["depth"].shape == (16, 24) \
             and out["acc"].shape == (16, 24)
-        with pytest.raises(NotImplementedError):
+        with pytest.raises(Unsupported):   # the CLI reports it as bad input
             model.render(np.zeros((8, 3), np.float32), np.ones((8, 3), np.float32))
-        with pytest.raises(ValueError):   # no density field: the kind exports its own files
+        with pytest.raises(Unsupported):   # no density field: the kind exports its own files
             model.export_fields(upload(q, np.zeros((5, 3), np.float32)), None)
         state = model.state_dict()
         assert state["kind"] == name

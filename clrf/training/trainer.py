@@ -253,6 +253,8 @@ class Trainer:
             if self.primary:
                 with open(self.csv_path, "w", newline="") as f:
                     csv.DictWriter(f, CSV_FIELDS).writeheader()
+        if registry.get(cfg.train.model).batches == "views":   # it draws its own views
+            self.model.attach(ds, t.max_train_images)
         if self.primary:
             rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         # a model that draws its own views (Kind.batches "views") needs no ray store

@@ -1,0 +1,58 @@
+"""Memory estimate of a Gaussian-splatting run: per Gaussian its parameters with gradient and
+two Adam moments, the projected splats and their gradients, the (tile, Gaussian) pairs and the
+sort's copies of them; per pixel the image, its gradient and the rasteriser's per-pixel state."""
+from __future__ import annotations
+
+from ..runtime.memory import StageEstimate
+
+PARAM_FLOATS_WITHOUT_SH = 3 + 3 + 4 + 1      # means, log scales, quaternion, opacity logit
+PROJECTED_BYTES = 4 * (2 + 3 + 1 + 1 + 3 + 1) + 16   # xy, conic, radius, depth, colour,
+#                                                      opacity, int4 rect
+GRAD2D_BYTES = 4 * (2 + 3 + 1 + 3)
+PAIRS_PER_GAUSSIAN = 16     # tiles a Gaussian covers on average (a guess on the safe side)
+PAIR_BYTES = 8 + 4          # uint64 key + int32 id
+SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
+DENSIFY_FLOATS = 4          # accumulated gradient norm, view count, max screen radius, spare
+PIXEL_BYTES = 4 * (3 + 3 + 1 + 1 + 3)   # rgb, its gradient, T, n_contrib, the target
+
+
+def bytes_per_gaussian(sh_degree: int) -> int:
+    floats = PARAM_FLOATS_WITHOUT_SH + 3 * (sh_degree + 1) ** 2
+    return (4 * floats * 4 + PROJECTED_BYTES + GRAD2D_BYTES + 4 * DENSIFY_FLOATS
+            + SORT_COPIES * PAIRS_PER_GAUSSIAN * PAIR_BYTES)
+
+
+def splat_stage(sc, n_gaussians: int, n_pixels: int) -> StageEstimate:
+    """StageEstimate of a splatting run of SplatConfig ``sc`` at ``n_gaussians`` Gaussians and
+    views of ``n_pixels`` pixels."""
+    n = int(n_gaussians)
+    total = n * bytes_per_gaussian(sc.sh_degree) + PIXEL_BYTES * int(n_pixels)
+    sh = 4 * n * 3 * (sc.sh_degree + 1) ** 2
+    pairs = n * PAIRS_PER_GAUSSIAN * PAIR_BYTES
+    largest, what = max((sh, "SH coefficients"), (pairs, "sorted (tile, Gaussian) pairs"))
+    return StageEstimate(f"splat training ({n} Gaussians, SH degree {sc.sh_degree})", total,
+                         largest, what)
+
+
+def fitting_gaussians(sc, caps, n_pixels: int, share: float = 0.5) -> int:
+    """How many Gaussians fit in ``share`` of the device's memory (and its largest buffer)."""
+    per = bytes_per_gaussian(sc.sh_degree)
+    room = int(share * caps.global_mem_size) - PIXEL_BYTES * int(n_pixels)
+    by_total = max(1, room // per)
+    by_alloc = max(1, int(caps.max_alloc_size) // (PAIRS_PER_GAUSSIAN * PAIR_BYTES))
+    return int(min(by_total, by_alloc))
+
+
+SPLAT_FIX = "lower splat.max_gaussians (and splat.init_points), or train on smaller images " \
+            "with train.downscale"
+
+
+def memory(cfg, n_rays: int, caps, tuning=None, is_cpu: bool = True):
+    """(stages, fix) of cfg.splat's run: the cap of Gaussians, views of the dataset's size
+    (``n_rays`` over all training views bounds one view's pixels)."""
+    sc = cfg.splat
+    n = min(sc.max_gaussians, fitting_gaussians(sc, caps, 0)) if caps is not None \
+        else sc.max_gaussians
+    # the images stay on the host and one view at a time is on the device; n_rays (every
+    # training pixel) bounds a view's pixels, and so does a 2048 x 2048 view here
+    return [splat_stage(sc, n, min(int(n_rays), 1 << 22))], SPLAT_FIX

@@ -1,0 +1,133 @@
+"""SplatConfig: the options of a 3D Gaussian splatting model and its optimiser (the ``splat``
+section of a run configuration, clrf/training/config.py), and its presets.
+
+The run is time-budgeted, so every schedule is a FRACTION of the budget (Budget.fraction: the
+larger of the seconds and iterations spent), not an iteration count. The published values
+(Kerbl et al. 2023, 30,000 iterations) translate as: densify from 500 / 30,000 = 0.0167 to
+15,000 / 30,000 = 0.5 every 100 / 30,000 = 0.0033, reset opacities every 3,000 / 30,000 = 0.1,
+raise the SH degree every 1,000 / 30,000 = 0.033.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SplatConfig:
+    """Everything that defines a Gaussian-splatting model (train.model splat) and its
+    optimiser. The defaults are the ``full`` preset (the published values); ``tiny`` is for
+    small images (tiny_lego, the procedural scene)."""
+
+    preset: str = "full"            # the preset these values start from: "full" | "tiny"
+    sh_degree: int = 3              # spherical-harmonics degree of the colours, 0..3
+    #                                 (published: 3); raised from 0 in steps (sh_increase_every)
+    init_points: int = 100000       # random Gaussians placed uniformly in the scene's box at
+    #                                 the start (no sparse points are used); capped by
+    #                                 max_gaussians and by what fits the device
+    max_gaussians: int = 1000000    # hard cap on the number of Gaussians (densification stops
+    #                                 adding at it); also lowered to what fits the device
+    lr_position: float = 1.6e-4     # Adam learning rate of the means at the start, times the
+    #                                 scene extent (published: 1.6e-4)
+    lr_position_final: float = 1.6e-6   # the means' rate at the end of the budget, times the
+    #                                 extent (published: 1.6e-6); exponential in between
+    lr_feature_dc: float = 2.5e-3   # Adam rate of the SH degree-0 coefficients (published)
+    lr_feature_rest: float = 1.25e-4   # Adam rate of the higher SH coefficients (published:
+    #                                 2.5e-3 / 20)
+    lr_opacity: float = 5e-2        # Adam rate of the opacity logits (published: 5e-2)
+    lr_scaling: float = 5e-3        # Adam rate of the log scales (published: 5e-3)
+    lr_rotation: float = 1e-3       # Adam rate of the quaternions (published: 1e-3)
+    adam_eps: float = 1e-15         # Adam epsilon (published: 1e-15)
+    lambda_dssim: float = 0.2       # loss = (1 - lambda) L1 + lambda (1 - SSIM), SSIM over an
+    #                                 11 x 11 Gaussian window, sigma 1.5 (published: 0.2)
+    densify_from: float = 0.0167    # budget fraction at which densification starts
+    #                                 (published: step 500 of 30,000)
+    densify_until: float = 0.5      # budget fraction after which it stops (published: 15,000
+    #                                 of 30,000)
+    densify_every: float = 0.0033   # budget fraction between densifications (published: 100
+    #                                 of 30,000 steps)
+    densify_min_steps: int = 50     # and at least this many steps between two, so that the
+    #                                 gradient statistics of a short run mean something
+    densify_grad_threshold: float = 2e-4   # a Gaussian is cloned or split where its mean
+    #                                 screen-space position gradient norm (in NDC units: the
+    #                                 pixel gradient times (W/2, H/2), as published) over the
+    #                                 views that saw it reaches this (published: 2e-4)
+    percent_dense: float = 0.01     # Gaussians larger than this fraction of the scene extent
+    #                                 are split, smaller ones cloned (published: 0.01)
+    prune_opacity: float = 0.005    # Gaussians with opacity below this are removed at each
+    #                                 densification (published: 0.005)
+    prune_screen_size: float = 20.0   # after the first opacity reset, Gaussians whose screen
+    #                                 radius exceeded this many pixels are removed (published)
+    prune_world_size: float = 0.1   # after the first opacity reset, Gaussians larger than this
+    #                                 fraction of the scene extent are removed (published)
+    opacity_reset_every: float = 0.1   # budget fraction between opacity resets to 0.01
+    #                                 (published: 3,000 of 30,000 steps); 0: never
+    sh_increase_every: float = 0.0333   # budget fraction between raising the active SH
+    #                                 degree by one (published: 1,000 of 30,000 steps)
+    seed: int = 0                   # initialisation and training-view order seed (added to
+    #                                 train.seed)
+
+    @staticmethod
+    def from_preset(name: str, **overrides) -> "SplatConfig":
+        """``"full"`` (the defaults) or ``"tiny"``: few initial Gaussians and a small cap,
+        densification from the start of the run (small images, CPU budgets of a minute)."""
+        if name not in SPLAT_PRESETS:
+            raise ValueError(f"unknown splat preset {name!r}; use one of {sorted(SPLAT_PRESETS)}")
+        return dataclasses.replace(SplatConfig(preset=name, **SPLAT_PRESETS[name]), **overrides)
+
+    @staticmethod
+    def from_dict(d: dict) -> "SplatConfig":
+        """From ``dataclasses.asdict`` output (a checkpoint's); unknown fields are an error."""
+        names = {f.name for f in dataclasses.fields(SplatConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"SplatConfig: unknown fields {sorted(unknown)}")
+        return SplatConfig(**d)
+
+    def checks(self):
+        """(ok, field, message) for Config.validate."""
+        frac = lambda x: 0.0 <= x <= 1.0   # noqa: E731
+        return [
+            (self.preset in SPLAT_PRESETS, "splat.preset",
+             f"must be one of {sorted(SPLAT_PRESETS)}"),
+            (self.sh_degree in (0, 1, 2, 3), "splat.sh_degree", "must be 0, 1, 2 or 3"),
+            (1 <= self.init_points <= 1 << 24, "splat.init_points", "must be in 1..16777216"),
+            (1 <= self.max_gaussians <= 1 << 26, "splat.max_gaussians",
+             "must be in 1..67108864"),
+            (0 < self.lr_position <= 1, "splat.lr_position", "must be in (0, 1]"),
+            (0 < self.lr_position_final <= self.lr_position, "splat.lr_position_final",
+             "must be in (0, lr_position]"),
+            (0 <= self.lr_feature_dc <= 1, "splat.lr_feature_dc", "must be in [0, 1]"),
+            (0 <= self.lr_feature_rest <= 1, "splat.lr_feature_rest", "must be in [0, 1]"),
+            (0 <= self.lr_opacity <= 1, "splat.lr_opacity", "must be in [0, 1]"),
+            (0 <= self.lr_scaling <= 1, "splat.lr_scaling", "must be in [0, 1]"),
+            (0 <= self.lr_rotation <= 1, "splat.lr_rotation", "must be in [0, 1]"),
+            (0 < self.adam_eps <= 1, "splat.adam_eps", "must be in (0, 1]"),
+            (0 <= self.lambda_dssim <= 1, "splat.lambda_dssim", "must be in [0, 1]"),
+            (frac(self.densify_from) and frac(self.densify_until), "splat.densify_from",
+             "densify_from and densify_until must be budget fractions in [0, 1]"),
+            (0 < self.densify_every <= 1, "splat.densify_every",
+             "must be a budget fraction in (0, 1]"),
+            (self.densify_min_steps >= 1, "splat.densify_min_steps", "must be >= 1"),
+            (self.densify_grad_threshold > 0, "splat.densify_grad_threshold", "must be > 0"),
+            (0 < self.percent_dense < 1, "splat.percent_dense", "must be in (0, 1)"),
+            (0 <= self.prune_opacity < 1, "splat.prune_opacity", "must be in [0, 1)"),
+            (self.prune_screen_size > 0, "splat.prune_screen_size", "must be > 0 pixels"),
+            (self.prune_world_size > 0, "splat.prune_world_size", "must be > 0"),
+            (frac(self.opacity_reset_every), "splat.opacity_reset_every",
+             "must be a budget fraction in [0, 1] (0: never)"),
+            (0 < self.sh_increase_every <= 1, "splat.sh_increase_every",
+             "must be a budget fraction in (0, 1]"),
+            (self.seed >= 0, "splat.seed", "must be >= 0"),
+        ]
+
+
+# Field values of each splat preset (the rest are SplatConfig's defaults).
+SPLAT_PRESETS = {
+    "full": {},
+    # 100 x 100 views on a CPU: a minute is a few hundred steps, so densification starts at
+    # once and runs every 50 steps or more, with a cap that keeps a step near 10 ms
+    "tiny": {"init_points": 5000, "max_gaussians": 60000, "densify_from": 0.02,
+             "densify_until": 0.7, "densify_every": 0.02, "densify_min_steps": 25,
+             "opacity_reset_every": 0.3, "sh_increase_every": 0.1},
+}

@@ -1,0 +1,511 @@
+"""SplatModel: 3D Gaussian splatting (Kerbl et al. 2023) trained on whole views, on the device
+rasteriser of clrf/splat/raster.py.
+
+A step renders one training view (a seeded permutation of the training views, cycled), takes
+the loss (1 - lambda) L1 + lambda (1 - SSIM) against the image, and runs the rasteriser's and
+the projection's backward and one Adam update per parameter group (means, log scales,
+quaternions, opacity logits: clrf/runtime/optim.py; SH coefficients: cl/splat_train.cl, which
+gives degree 0 and the higher bands their own rates and leaves the inactive bands alone).
+
+The SSIM term and its gradient are computed on the HOST, in numpy float32 with
+scipy.ndimage's Gaussian filter (11 x 11 window, sigma 1.5, zero padding): each step reads the
+rendered image back and uploads dL/drgb. For small views that costs little beside the
+rasteriser; a device kernel pair would remove the two image transfers.
+
+Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
+densification (clone small / split large Gaussians whose mean screen-space gradient is high,
+prune transparent and, after the first opacity reset, huge ones; never above max_gaussians),
+the opacity resets and the SH degree's increase. Densification runs on the host: it downloads
+the parameters and moments, edits them with numpy and uploads them again.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict
+
+import numpy as np
+
+from ..interface import Budget, StateError, Unsupported
+from ..runtime.optim import Optimizer, expon_lr
+from ..runtime.programs import download, launch, upload
+from .config import SplatConfig
+from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer
+
+SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
+SSIM_SIGMA = 1.5
+SSIM_RADIUS = 5                 # 11 x 11 window
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+INIT_OPACITY = 0.1
+RESET_OPACITY = 0.01
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+CAMERA_NEAR = 0.01
+ADAM_BETAS = (0.9, 0.999)       # PyTorch's defaults, as the published code uses
+
+
+class NotExportable(Unsupported, NotImplementedError):
+    """What a splat model cannot export (a density field for --mesh / --points)."""
+
+
+def logit(p):
+    return np.log(p / (1.0 - p))
+
+
+def sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def viewmat_of(c2w) -> np.ndarray:
+    """World-to-camera (OpenCV axes) of a camera-to-world pose in OpenGL axes."""
+    return OPENGL_TO_OPENCV @ np.linalg.inv(np.asarray(c2w, np.float64))
+
+
+def camera_of(c2w, intrinsics, hw) -> SplatCamera:
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return SplatCamera(viewmat_of(c2w), fx, fy, cx, cy, int(hw[1]), int(hw[0]), CAMERA_NEAR)
+
+
+# ---- SSIM (host, float32) -------------------------------------------------------------------
+def _blur(x):
+    from scipy.ndimage import gaussian_filter
+    return gaussian_filter(x, sigma=(SSIM_SIGMA, SSIM_SIGMA, 0), mode="constant", cval=0.0,
+                           truncate=SSIM_RADIUS / SSIM_SIGMA)
+
+
+def ssim_and_grad(x, y, need_grad=True):
+    """Mean SSIM of images x, y [H, W, C] (Gaussian 11 x 11 window, sigma 1.5, zero padding,
+    every pixel and channel averaged) and its gradient with respect to x. The Gaussian filter
+    with zero padding is self-adjoint, so the backward filters the per-pixel partials again."""
+    x = np.asarray(x, np.float32)
+    y = np.asarray(y, np.float32)
+    mx, my = _blur(x), _blur(y)
+    sxx = _blur(x * x) - mx * mx
+    syy = _blur(y * y) - my * my
+    sxy = _blur(x * y) - mx * my
+    a1 = 2 * mx * my + SSIM_C1
+    a2 = 2 * sxy + SSIM_C2
+    b1 = mx * mx + my * my + SSIM_C1
+    b2 = sxx + syy + SSIM_C2
+    s = (a1 * a2) / (b1 * b2)
+    value = float(np.mean(s, dtype=np.float64))
+    if not need_grad:
+        return value, None
+    inv = np.float32(1.0 / s.size)
+    d_mx = (2 * my * a2) / (b1 * b2) - s * (2 * mx) / b1     # partials of s
+    d_sxx = -s / b2
+    d_sxy = 2 * a1 / (b1 * b2)
+    # sxx = blur(x^2) - mx^2 and sxy = blur(xy) - mx my: the chain through mx
+    a = (d_mx - 2 * mx * d_sxx - my * d_sxy) * inv
+    grad = _blur(a) + 2 * x * _blur(d_sxx * inv) + y * _blur(d_sxy * inv)
+    return value, grad.astype(np.float32)
+
+
+def loss_and_grad(rgb, target, lam):
+    """((1 - lam) L1 + lam (1 - SSIM), its gradient [H, W, 3], the MSE) of a render."""
+    diff = rgb - target
+    n = diff.size
+    l1 = float(np.mean(np.abs(diff), dtype=np.float64))
+    grad = np.sign(diff).astype(np.float32) * np.float32((1.0 - lam) / n)
+    ssim = 1.0
+    if lam > 0:
+        ssim, g = ssim_and_grad(rgb, target)
+        grad -= np.float32(lam) * g
+    mse = float(np.mean(diff.astype(np.float64) ** 2))
+    return (1 - lam) * l1 + lam * (1 - ssim), grad, mse
+
+
+# ---- the model ------------------------------------------------------------------------------
+GROUPS = ("means", "log_scales", "quats", "opacity_logits")   # Adam from clrf/runtime/optim.py
+
+
+class SplatModel:
+    kind = "splat"
+    view_dependent = True
+
+    def __init__(self, device, config: SplatConfig, host: dict, background, extent: float,
+                 bbox, seed: int = 0, max_count: int | None = None):
+        self.device = device
+        self.config = config
+        self.background = tuple(float(b) for b in background)
+        self.extent = float(extent)
+        self.bbox = np.asarray(bbox, np.float64).reshape(2, 3)
+        self.seed = int(seed)
+        self.max_count = int(max_count if max_count is not None else config.max_gaussians)
+        self.rast = SplatRasterizer(device, config.sh_degree)
+        self.n_basis = self.rast.n_basis
+        self.step = 0                  # Adam updates so far
+        self.active_degree = 0
+        self.lr_means = config.lr_position * self.extent
+        self.resets = 0                # opacity resets so far
+        self.last_densify = 0          # the iteration of the last densification (0: none)
+        self.progress = 0.0
+        self._ds = None                # the training views (create, or loaded on demand)
+        self.train_views = None
+        self.hw = None
+        self._set_host(host)
+
+    # ---- parameters on the device ---------------------------------------------------------
+    def _set_host(self, host: dict, moments: dict | None = None):
+        """Upload parameters (and Adam moments, zeros where absent) and fresh statistics."""
+        q = self.device.queue
+        n = int(host["means"].shape[0])
+        self.params = {k: upload(q, np.ascontiguousarray(host[k], np.float32))
+                       for k in PARAM_NAMES}
+        moments = moments or {}
+
+        def mom(key, like):
+            a = moments.get(key)
+            return upload(q, np.ascontiguousarray(a if a is not None else np.zeros_like(like),
+                                                  np.float32))
+        b1, b2 = ADAM_BETAS
+        self.opts = {k: Optimizer(self.device, self.params[k], "adam", beta=b1, beta2=b2,
+                                  eps=self.config.adam_eps, state=mom(f"{k}_m", host[k]),
+                                  state2=mom(f"{k}_v", host[k]))
+                     for k in GROUPS}
+        self.sh_m = mom("sh_m", host["sh"])
+        self.sh_v = mom("sh_v", host["sh"])
+        stats = moments.get("stats")
+        stats = np.zeros((3, n), np.float32) if stats is None else stats
+        self.accum, self.count, self.max_radius = (upload(q, np.ascontiguousarray(s, np.float32))
+                                                   for s in stats)
+        self.n = n
+
+    def host_params(self) -> dict:
+        return {k: download(v) for k, v in self.params.items()}
+
+    def host_moments(self) -> dict:
+        out = {}
+        for k in GROUPS:
+            out[f"{k}_m"] = download(self.opts[k].state)
+            out[f"{k}_v"] = download(self.opts[k].state2)
+        out["sh_m"] = download(self.sh_m)
+        out["sh_v"] = download(self.sh_v)
+        out["stats"] = np.stack([download(self.accum), download(self.count),
+                                 download(self.max_radius)])
+        return out
+
+    # ---- the dataset ----------------------------------------------------------------------
+    def attach(self, ds, max_images: int = 0):
+        """Train on ``ds``'s training views (the first max_images; 0: all)."""
+        views = np.asarray(ds.split["train"])
+        if max_images:
+            views = views[:max_images]
+        if len(views) == 0:
+            raise ValueError(f"dataset {ds.name}: no training views")
+        self._ds, self.train_views, self.hw = ds, views, tuple(int(v) for v in ds.hw)
+
+    def _dataset(self):
+        if self._ds is None:
+            # a model from a checkpoint has none until the trainer attaches the dataset
+            raise RuntimeError("the splat model has no training views: call attach(dataset) "
+                               "first (the trainer does, after create and on resume)")
+        return self._ds
+
+    def view_of(self, it: int) -> int:
+        """The training view of step ``it``: a seeded permutation per pass over the views."""
+        self._dataset()
+        k = len(self.train_views)
+        epoch, j = divmod(int(it), k)
+        perm = np.random.default_rng((self.seed, epoch)).permutation(k)
+        return int(self.train_views[perm[j]])
+
+    # ---- Model protocol -------------------------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        """Pixels of a training view (1 without training views)."""
+        return 1 if self.hw is None else self.hw[0] * self.hw[1]
+
+    @property
+    def sample_length(self) -> float:
+        return 1.0   # no ray marching; export's density level does not apply (export_fields)
+
+    def train_step(self, it, origins=None, dirs=None, target=None, background=None) -> float:
+        """One Adam step on the whole training view of step ``it`` (the rays' arguments are
+        unused: Kind.batches "views"); returns the view's mean squared error."""
+        ds = self._dataset()
+        v = self.view_of(it)
+        cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
+        bg = self.background
+        proj, bins, ras = self.rast.forward(self.params, cam, bg)
+        rgb = download(ras.rgb)
+        gt = np.asarray(ds.images[v], np.float32)
+        _, grad, mse = loss_and_grad(rgb, gt, self.config.lambda_dssim)
+        q = self.device.queue
+        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, upload(q, grad), bg)
+        grads = self.rast.project_backward(self.params, cam, g2d)
+        prg = self.device.program("splat_train.cl")
+        launch(self.device, prg.kernel("splat_densify_stats"), self.n,
+               (np.int32(self.n), g2d["xy"].data, proj.radius.data,
+                np.float32(0.5 * cam.width), np.float32(0.5 * cam.height), self.accum.data,
+                self.count.data, self.max_radius.data))
+        self.step += 1
+        t = self.step
+        c = self.config
+        lrs = {"means": self.lr_means, "log_scales": c.lr_scaling, "quats": c.lr_rotation,
+               "opacity_logits": c.lr_opacity}
+        for k in GROUPS:
+            opt = self.opts[k]
+            opt.grad = grads[k]
+            opt.step(None, lrs[k], t=t)
+        b1, b2 = ADAM_BETAS
+        nsh = int(self.params["sh"].size)
+        launch(self.device, prg.kernel("splat_adam_sh"), nsh,
+               (np.int32(nsh), self.params["sh"].data, grads["sh"].data, self.sh_m.data,
+                self.sh_v.data, np.float32(c.lr_feature_dc), np.float32(c.lr_feature_rest),
+                np.float32(b1), np.float32(b2), np.float32(c.adam_eps),
+                np.float32(1 - b1 ** t), np.float32(1 - b2 ** t), np.int32(self.n_basis),
+                np.int32((self.active_degree + 1) ** 2)))
+        return mse
+
+    def on_iteration(self, it: int, budget: Budget):
+        """Schedules from the budget fraction: the means' rate, the SH degree, densification,
+        opacity resets. Returns a log line when the Gaussians changed."""
+        c = self.config
+        f = float(budget.fraction)
+        self.progress = f
+        self.lr_means = expon_lr(f, c.lr_position * self.extent,
+                                 c.lr_position_final * self.extent, 1.0)
+        self.active_degree = min(c.sh_degree, int(f / c.sh_increase_every))
+        msgs = []
+        if (c.densify_from <= f < c.densify_until and self.step > 0
+                and it - self.last_densify >= c.densify_min_steps
+                and int(f / c.densify_every) > int(self._densify_frac / c.densify_every)):
+            msgs.append(self.densify())
+            self.last_densify = it
+            self._densify_frac = f
+        if c.opacity_reset_every > 0 and f < c.densify_until:
+            k = int(f / c.opacity_reset_every)
+            if k > self.resets:
+                self.resets = k
+                self.reset_opacity()
+                msgs.append("opacities reset to 0.01")
+        return "; ".join(msgs) or None
+
+    _densify_frac = 0.0
+
+    def densify(self) -> str:
+        """Clone / split / prune from the accumulated statistics (host side); the count stays
+        at or below the cap. Returns a log line."""
+        c = self.config
+        p = self.host_params()
+        mo = self.host_moments()
+        accum, count, max_radius = mo.pop("stats")
+        grad = np.where(count > 0, accum / np.maximum(count, 1), 0.0)
+        scale = np.exp(p["log_scales"]).max(axis=1)
+        big = c.percent_dense * self.extent
+        cand = grad >= c.densify_grad_threshold
+        rng = np.random.default_rng((self.seed, 7, self.step))
+        n0 = self.n
+        # prune first: the room it frees is the room for new Gaussians
+        prune = sigmoid(p["opacity_logits"]) < c.prune_opacity
+        if self.resets > 0:
+            prune |= (max_radius > c.prune_screen_size) | (scale > c.prune_world_size * self.extent)
+        keep = ~prune
+        if not keep.any():   # never remove every Gaussian
+            keep[np.argmax(p["opacity_logits"])] = True
+        room = self.max_count - int(keep.sum())
+        cand &= keep
+        # the highest gradients first when the cap does not leave room for every candidate;
+        # a split adds one Gaussian net (two replace one), a clone one
+        idx = np.flatnonzero(cand)
+        if len(idx) > max(room, 0):
+            idx = idx[np.argsort(-grad[idx])[:max(room, 0)]]
+        clone = idx[scale[idx] <= big]
+        split = idx[scale[idx] > big]
+        keys = list(PARAM_NAMES)
+        names_of = {k: (f"{k}_m" if k in GROUPS else "sh_m",
+                        f"{k}_v" if k in GROUPS else "sh_v") for k in keys}
+        # split children: two samples of each Gaussian, scales / 1.6
+        new = {}
+        if len(split):
+            s = np.exp(p["log_scales"][split]).astype(np.float64)
+            qn = p["quats"][split].astype(np.float64)
+            qn /= np.maximum(np.linalg.norm(qn, axis=1, keepdims=True), 1e-12)
+            R = quat_rot(qn)
+            children = []
+            for _ in range(2):
+                z = rng.standard_normal((len(split), 3)) * s
+                children.append(p["means"][split] + np.einsum("nij,nj->ni", R, z))
+            new["means"] = np.concatenate(children).astype(np.float32)
+            new["log_scales"] = np.tile(np.log(s / 1.6), (2, 1)).astype(np.float32)
+            for k in ("quats", "opacity_logits", "sh"):
+                new[k] = np.concatenate([p[k][split]] * 2)
+        remove = ~keep
+        remove[split] = True
+        out = {}
+        for k in keys:
+            parts = [p[k][~remove], p[k][clone]]
+            if len(split):
+                parts.append(new[k])
+            out[k] = np.concatenate(parts)
+        moms = {}
+        n_added = len(clone) + 2 * len(split)
+        for k in keys:
+            for mk in names_of[k]:
+                a = mo[mk][~remove]
+                moms[mk] = np.concatenate([a, np.zeros((n_added,) + a.shape[1:], np.float32)])
+        moms["stats"] = np.zeros((3, len(out["means"])), np.float32)
+        self._set_host(out, moms)
+        return (f"densified: {n0} -> {self.n} Gaussians ({len(clone)} cloned, {len(split)} "
+                f"split, {int((~keep).sum())} pruned)")
+
+    def reset_opacity(self):
+        """Opacities above RESET_OPACITY are lowered to it (their Adam moments zeroed)."""
+        lo = logit(RESET_OPACITY)
+        p = download(self.params["opacity_logits"])
+        self.params["opacity_logits"].set(np.minimum(p, np.float32(lo)).astype(np.float32))
+        self.opts["opacity_logits"].state.fill(0)
+        self.opts["opacity_logits"].state2.fill(0)
+
+    def render(self, origins, dirs) -> dict:
+        raise Unsupported("the splat model renders whole cameras, not single rays (so --points "
+                          "does not apply: export its Gaussians with --splats FILE.ply)")
+
+    def render_image(self, c2w, intrinsics, hw) -> dict:
+        """rgb [H, W, 3], depth [H, W] (the opacity-weighted mean camera depth of the splats,
+        0 where nothing is seen), acc [H, W] (1 - the final transmittance) of one camera."""
+        cam = camera_of(c2w, intrinsics, hw)
+        proj, bins, ras = self.rast.forward(self.params, cam, self.background)
+        rgb = download(ras.rgb)
+        acc = 1.0 - download(ras.T)
+        # depth: the same splats composited with their camera depth as colour, on black
+        depth = download(proj.depth)
+        proj.color.set(np.ascontiguousarray(np.repeat(depth[:, None], 3, 1), np.float32))
+        zs = download(self.rast.rasterize(proj, bins, cam, (0.0, 0.0, 0.0)).rgb)[..., 0]
+        depth_img = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(np.float32)
+        return {"rgb": rgb, "depth": depth_img, "acc": acc.astype(np.float32)}
+
+    def export_fields(self, points, dirs):
+        raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "
+                            "--points do not apply; export the Gaussians with --splats FILE.ply")
+
+    def export_block(self, block: int) -> int:
+        return max(1, min(int(block), 1 << 20))
+
+    def native_reso(self, bbox):
+        raise NotExportable("a splat model has no density field to mesh: --mesh does not "
+                            "apply; export the Gaussians with --splats FILE.ply")
+
+    def describe(self) -> str:
+        return f"{self.n} Gaussians, SH degree {self.active_degree}"
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        st = {"kind": self.kind, "config": asdict(self.config),
+              "background": list(self.background), "extent": self.extent,
+              "bbox": self.bbox.tolist(), "seed": self.seed, "max_count": self.max_count,
+              "step": self.step, "active_degree": self.active_degree, "resets": self.resets,
+              "last_densify": self.last_densify, "densify_frac": self._densify_frac,
+              "progress": self.progress, "lr_means": self.lr_means}
+        for k, v in self.host_params().items():
+            st[f"param_{k}"] = v
+        for k, v in self.host_moments().items():
+            st[f"adam_{k}"] = v
+        return st
+
+    @classmethod
+    def from_state_dict(cls, device, state: dict) -> "SplatModel":
+        if state.get("kind") != cls.kind:
+            raise StateError(f"state_dict: kind is {state.get('kind')!r}, expected 'splat'")
+        try:
+            config = SplatConfig.from_dict(dict(state["config"]))
+            host = {k: np.asarray(state[f"param_{k}"], np.float32) for k in PARAM_NAMES}
+            moments = {k[5:]: np.asarray(v, np.float32) for k, v in state.items()
+                       if k.startswith("adam_")}
+        except (KeyError, ValueError, TypeError) as e:
+            raise StateError(f"not a splat model's state ({e})") from None
+        n, nb = host["means"].shape[0], (config.sh_degree + 1) ** 2
+        want = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4),
+                "opacity_logits": (n,), "sh": (n, nb, 3)}
+        for k, shape in want.items():
+            if host[k].shape != shape:
+                raise StateError(f"state_dict['param_{k}']: shape {host[k].shape}, expected "
+                                 f"{shape}")
+        m = cls(device, config, host, tuple(state["background"]), float(state["extent"]),
+                state["bbox"], int(state["seed"]), int(state["max_count"]))
+        m._set_host(host, moments)
+        m.step = int(state["step"])
+        m.active_degree = int(state["active_degree"])
+        m.resets = int(state["resets"])
+        m.last_densify = int(state["last_densify"])
+        m._densify_frac = float(state["densify_frac"])
+        m.progress = float(state["progress"])
+        m.lr_means = float(state["lr_means"])
+        return m
+
+
+def quat_rot(q):
+    """Rotation matrices [n, 3, 3] of unit quaternions [n, 4] (w, x, y, z)."""
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], 1)
+
+
+def scene_extent(ds) -> float:
+    """1.1 times the largest distance of a training camera from their mean centre (the scale
+    the published learning rates and size thresholds are relative to)."""
+    c = np.asarray(ds.poses)[np.asarray(ds.split["train"]), :3, 3].astype(np.float64)
+    r = float(np.linalg.norm(c - c.mean(0), axis=1).max()) if len(c) else 0.0
+    return 1.1 * r if r > 0 else float(np.linalg.norm(np.subtract(*ds.bbox)))
+
+
+def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int) -> dict:
+    """n Gaussians uniform in ``bbox`` [2, 3]: random colours (degree 0 only), isotropic scales
+    from the mean squared distance to the 3 nearest neighbours, opacity 0.1, no rotation."""
+    from scipy.spatial import cKDTree
+    rng = np.random.default_rng((seed, 1))
+    lo, hi = np.asarray(bbox, np.float64)
+    means = rng.uniform(lo, hi, (n, 3))
+    k = min(4, n)
+    if k > 1:
+        d, _ = cKDTree(means).query(means, k=k)
+        d2 = np.mean(d[:, 1:] ** 2, axis=1)
+    else:
+        d2 = np.full(n, float(np.prod(hi - lo)) ** (2 / 3))
+    log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)))
+    nb = (config.sh_degree + 1) ** 2
+    sh = np.zeros((n, nb, 3), np.float32)
+    sh[:, 0, :] = (rng.uniform(0, 1, (n, 3)) - 0.5) / SH_C0
+    quats = np.zeros((n, 4), np.float32)
+    quats[:, 0] = 1
+    return {"means": means.astype(np.float32),
+            "log_scales": np.repeat(log_s[:, None], 3, 1).astype(np.float32),
+            "quats": quats, "opacity_logits": np.full(n, logit(INIT_OPACITY), np.float32),
+            "sh": sh}
+
+
+def create_model(device, cfg, ds, background) -> SplatModel:
+    """A new model for dataset ``ds`` (world-space cameras only)."""
+    from .budget import fitting_gaussians
+    if ds.ndc:
+        raise Unsupported(f"dataset {ds.name}: the splat model needs world-space cameras; this "
+                          f"forward-facing scene is trained in NDC, which it does not support: "
+                          f"use --model grid, nerf or hash for it")
+    sc = cfg.splat
+    cap = min(sc.max_gaussians, fitting_gaussians(sc, device.caps, ds.hw[0] * ds.hw[1]))
+    n = max(1, min(sc.init_points, cap))
+    seed = int(cfg.train.seed) + int(sc.seed)
+    host = initial_gaussians(sc, n, ds.bbox, seed)
+    m = SplatModel(device, sc, host, background, scene_extent(ds), ds.bbox, seed, cap)
+    m.attach(ds, cfg.train.max_train_images)
+    return m
+
+
+def model_from_state(device, state, cfg) -> SplatModel:
+    """A checkpoint's model (for rendering and export: it has no training views)."""
+    return SplatModel.from_state_dict(device, state)
+
+
+def write_splats(model: SplatModel, path) -> str:
+    """``clrf export --splats FILE.ply``: the Gaussians in the 3DGS PLY layout."""
+    from .ply import write_splat_ply
+    p = model.host_params()
+    n = write_splat_ply(path, p["means"], p["log_scales"], p["quats"], p["opacity_logits"],
+                        p["sh"])
+    return f"saved {path}: {n} Gaussians, SH degree {model.config.sh_degree}"
+
+
+__all__ = ["SplatModel", "create_model", "model_from_state", "write_splats", "ssim_and_grad",
+           "loss_and_grad"]

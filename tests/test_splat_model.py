@@ -1,0 +1,339 @@
+"""The Gaussian-splatting model (clrf/splat/model.py, `clrf train --model splat`): the 3DGS PLY
+layout, the host SSIM loss against a float64 twin and central differences, the SH Adam's band
+mask, densification under the cap, the configuration's checks, and a short training run
+through the command line (loss falls, the checkpoint renders what was evaluated, --splats
+exports it, --mesh is refused)."""
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from clrf.splat import model as sm
+from clrf.splat.ply import property_names, read_splat_ply, write_splat_ply
+
+
+# ---- PLY --------------------------------------------------------------------------------------
+def _random_splats(n, degree, seed=0):
+    rng = np.random.default_rng(seed)
+    return {"means": rng.normal(size=(n, 3)).astype(np.float32),
+            "log_scales": rng.normal(-3, 1, (n, 3)).astype(np.float32),
+            "quats": rng.normal(size=(n, 4)).astype(np.float32),
+            "opacity_logits": rng.normal(size=n).astype(np.float32),
+            "sh": rng.normal(size=(n, (degree + 1) ** 2, 3)).astype(np.float32)}
+
+
+def _parse(path):
+    """(header lines, structured vertex array) read with plain numpy, independently of
+    read_splat_ply."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode("ascii").splitlines()
+    names = [ln.split()[2] for ln in lines if ln.startswith("property float ")]
+    n = int(next(ln for ln in lines if ln.startswith("element vertex")).split()[2])
+    v = np.frombuffer(data, np.dtype([(k, "<f4") for k in names]), n, end)
+    assert len(data) == end + n * 4 * len(names)
+    return lines, v
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_ply_layout_and_round_trip(tmp_path, degree):
+    g = _random_splats(7, degree)
+    path = tmp_path / "s.ply"
+    assert write_splat_ply(path, **g) == 7
+    lines, v = _parse(path)
+    assert lines[:3] == ["ply", "format binary_little_endian 1.0", "element vertex 7"]
+    assert lines[-1] == "end_header"
+    rest = 3 * ((degree + 1) ** 2 - 1)
+    want = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(rest)]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert list(v.dtype.names) == want == property_names((degree + 1) ** 2)
+    np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], -1), g["means"])
+    assert not np.any(v["nx"]) and not np.any(v["ny"]) and not np.any(v["nz"])
+    for c in range(3):
+        np.testing.assert_array_equal(v[f"f_dc_{c}"], g["sh"][:, 0, c])
+    B = (degree + 1) ** 2
+    for c in range(3):                      # channel-major: all of R, then G, then B
+        for b in range(1, B):
+            np.testing.assert_array_equal(v[f"f_rest_{c * (B - 1) + b - 1}"], g["sh"][:, b, c])
+    np.testing.assert_array_equal(v["opacity"], g["opacity_logits"])
+    for k in range(3):
+        np.testing.assert_array_equal(v[f"scale_{k}"], g["log_scales"][:, k])
+    for k in range(4):                      # w, x, y, z
+        np.testing.assert_array_equal(v[f"rot_{k}"], g["quats"][:, k])
+    back = read_splat_ply(path)
+    for k in g:
+        np.testing.assert_array_equal(back[k], g[k])
+    assert [p.name for p in tmp_path.iterdir()] == ["s.ply"]   # no temporary file left
+
+
+def test_ply_write_is_atomic(tmp_path):
+    path = tmp_path / "s.ply"
+    write_splat_ply(path, **_random_splats(3, 1))
+    before = path.read_bytes()
+    bad = _random_splats(3, 1)
+    bad["sh"] = bad["sh"][:, :3]            # not a square number of coefficients
+    with pytest.raises(ValueError, match="sh"):
+        write_splat_ply(path, **bad)
+    assert path.read_bytes() == before and len(list(tmp_path.iterdir())) == 1
+
+
+# ---- SSIM -------------------------------------------------------------------------------------
+def _ssim64(x, y):
+    """Mean SSIM in float64 with an explicit 11 x 11 Gaussian window (sigma 1.5, normalised)
+    and zero padding: the twin of sm.ssim_and_grad."""
+    r = np.arange(-5, 6)
+    w1 = np.exp(-r ** 2 / (2 * 1.5 ** 2))
+    w = np.outer(w1, w1) / w1.sum() ** 2
+    H, W, _ = x.shape
+
+    def blur(a):
+        p = np.pad(a, ((5, 5), (5, 5), (0, 0)))
+        out = np.zeros_like(a)
+        for i in range(11):
+            for j in range(11):
+                out += w[i, j] * p[i:i + H, j:j + W]
+        return out
+    x, y = np.float64(x), np.float64(y)
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx ** 2, blur(y * y) - my ** 2, blur(x * y) - mx * my
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    s = (2 * mx * my + c1) * (2 * sxy + c2) / ((mx ** 2 + my ** 2 + c1) * (sxx + syy + c2))
+    return float(s.mean())
+
+
+def test_ssim_matches_float64_twin_and_central_differences():
+    rng = np.random.default_rng(3)
+    y = rng.uniform(0, 1, (17, 23, 3)).astype(np.float32)
+    x = np.clip(y + rng.normal(0, 0.2, y.shape), 0, 1).astype(np.float32)
+    value, grad = sm.ssim_and_grad(x, y)
+    assert value == pytest.approx(_ssim64(x, y), abs=2e-6)
+    assert sm.ssim_and_grad(y, y)[0] == pytest.approx(1.0, abs=1e-6)
+    eps = 1e-4
+    for (i, j, c) in [(0, 0, 0), (8, 11, 1), (16, 22, 2), (3, 19, 0), (12, 2, 2)]:
+        xp, xm = np.float64(x), np.float64(x)
+        xp[i, j, c] += eps
+        xm[i, j, c] -= eps
+        fd = (_ssim64(xp, y) - _ssim64(xm, y)) / (2 * eps)
+        assert grad[i, j, c] == pytest.approx(fd, rel=2e-3, abs=1e-7), (i, j, c)
+
+
+def test_loss_gradient_matches_central_differences():
+    rng = np.random.default_rng(4)
+    y = rng.uniform(0, 1, (12, 13, 3)).astype(np.float32)
+    x = rng.uniform(0, 1, y.shape).astype(np.float32)
+    lam = 0.2
+    _, grad, mse = sm.loss_and_grad(x, y, lam)
+    assert mse == pytest.approx(float(np.mean((np.float64(x) - y) ** 2)))
+
+    def loss64(a):
+        return (1 - lam) * np.mean(np.abs(a - y)) + lam * (1 - _ssim64(a, y))
+    for (i, j, c) in [(0, 0, 0), (6, 7, 1), (11, 12, 2)]:
+        xp, xm = np.float64(x), np.float64(x)
+        xp[i, j, c] += 1e-4
+        xm[i, j, c] -= 1e-4
+        fd = (loss64(xp) - loss64(xm)) / 2e-4
+        assert grad[i, j, c] == pytest.approx(fd, rel=5e-3, abs=1e-7)
+
+
+def test_the_ssim_check_can_fail():
+    """A wrong gradient (the chain through the blurred mean dropped) differs from the
+    differences: the comparison above has teeth."""
+    rng = np.random.default_rng(5)
+    y = rng.uniform(0, 1, (12, 12, 3)).astype(np.float32)
+    x = rng.uniform(0, 1, y.shape).astype(np.float32)
+    _, grad = sm.ssim_and_grad(x, y)
+    xp, xm = np.float64(x), np.float64(x)
+    xp[6, 6, 0] += 1e-4
+    xm[6, 6, 0] -= 1e-4
+    fd = (_ssim64(xp, y) - _ssim64(xm, y)) / 2e-4
+    assert grad[6, 6, 0] == pytest.approx(fd, rel=2e-3)
+    assert not np.isclose(grad[6, 6, 0] * 1.01, fd, rtol=2e-3)
+
+
+# ---- the model --------------------------------------------------------------------------------
+def _model(device, **splat):
+    from clrf.data import load_dataset
+    from clrf.training.config import build_config
+    from clrf import registry
+    ds = load_dataset(None)
+    cfg = build_config("procedural", overrides={"train": {"model": "splat"},
+                                                "splat": {"preset": "tiny", **splat}})
+    return registry.get("splat").create(device, cfg, ds, ds.background), ds
+
+
+def test_views_cycle_and_inactive_sh_bands_stay_put(device):
+    m, ds = _model(device, init_points=300)
+    k = len(ds.split["train"])
+    assert sorted(m.view_of(i) for i in range(k)) == sorted(ds.split["train"])
+    assert [m.view_of(i) for i in range(k)] != [m.view_of(i) for i in range(k, 2 * k)]
+    before = m.host_params()
+    assert m.active_degree == 0
+    for it in range(3):
+        assert np.isfinite(m.train_step(it))
+    after = m.host_params()
+    assert not np.any(after["sh"][:, 1:]) and np.any(after["sh"][:, 0] != before["sh"][:, 0])
+    for k_ in ("means", "log_scales", "opacity_logits"):
+        assert np.any(after[k_] != before[k_]), k_
+    mo = m.host_moments()
+    accum, count, _ = mo["stats"]
+    assert count.max() == 3 and np.all(accum[count == 0] == 0) and accum.max() > 0
+    m.active_degree = 3
+    m.train_step(3)
+    assert np.any(m.host_params()["sh"][:, 1:])
+
+
+def test_densify_and_prune_keep_the_cap(device):
+    from clrf.interface import Budget
+    m, _ = _model(device, init_points=300, max_gaussians=340, densify_grad_threshold=1e-9)
+    for it in range(4):
+        m.train_step(it)
+    # a fifth of the Gaussians made transparent: pruned
+    p = m.params["opacity_logits"].get()
+    p[:60] = -10.0
+    m.params["opacity_logits"].set(p)
+    msg = m.densify()
+    assert "60 pruned" in msg and m.n <= 340
+    assert m.n == 340            # every remaining Gaussian is a candidate: filled to the cap
+    for it in range(4, 6):
+        assert np.isfinite(m.train_step(it))
+    assert m.n <= 340
+    # the budget hook densifies only inside [densify_from, densify_until) and after enough steps
+    m.last_densify = 0
+    assert m.on_iteration(10, Budget(10, 1.0, 0.01, None)) is None
+    assert "densified" in m.on_iteration(30, Budget(30, 1.0, 0.05, None))
+    assert m.n <= 340 and m.describe().startswith(f"{m.n} Gaussians")
+
+
+def test_refuses_ndc_scenes(device):
+    import dataclasses
+    from clrf.data import load_dataset
+    from clrf.training.config import build_config
+    from clrf import registry
+    ds = dataclasses.replace(load_dataset(None), ndc=True)
+    cfg = build_config("procedural", overrides={"train": {"model": "splat"}})
+    with pytest.raises(ValueError, match="world-space cameras"):
+        registry.get("splat").create(device, cfg, ds, ds.background)
+
+
+@pytest.mark.parametrize("key,value,needle", [
+    ("sh_degree", 4, "splat.sh_degree"), ("lambda_dssim", 1.5, "splat.lambda_dssim"),
+    ("densify_every", 0.0, "splat.densify_every"), ("max_gaussians", 0, "splat.max_gaussians"),
+    ("lr_position_final", 1.0, "splat.lr_position_final"), ("preset", "huge", "splat.preset"),
+])
+def test_config_checks(key, value, needle):
+    from clrf.training.config import ConfigError, Config, build_config
+    assert all(ok for ok, _, _ in Config().splat.checks())
+    with pytest.raises((ConfigError, ValueError), match=needle.replace(".", r"\.")
+                       if key != "preset" else "splat"):
+        build_config("procedural", overrides={"splat": {key: value}}).validate()
+
+
+def test_memory_estimate_names_the_cap(device):
+    from clrf.splat import budget
+    from clrf.training.config import Config
+    cfg = Config()
+    stages, fix = budget.memory(cfg, 100 * 100, device.caps)
+    assert "splat.max_gaussians" in fix and stages[0].total > 0
+    assert budget.bytes_per_gaussian(3) > budget.bytes_per_gaussian(0) > 0
+
+
+# ---- through the command line -----------------------------------------------------------------
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    from clrf.cli.main import main as cli
+    out = tmp_path_factory.mktemp("splat_run")
+    rc = cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "8",
+              "--set", "train.eval_every=3", "--set", "splat.init_points=2000"])
+    assert rc == 0
+    return out
+
+
+def test_training_lowers_the_error(trained):
+    rows = [r for r in csv.DictReader(open(trained / "metrics.csv")) if r["eval_psnr"]]
+    first, last = float(rows[0]["eval_psnr"]), float(rows[-1]["eval_psnr"])
+    assert last > first + 2.0, (first, last)
+    losses = [float(r["train_loss"]) for r in rows if r["train_loss"]]
+    assert losses[-1] < losses[0]
+
+
+def test_checkpoint_renders_what_was_evaluated(trained, device):
+    from clrf.training.models import load_model
+    from clrf.data import load_dataset
+    from clrf.training.metrics import image_metrics
+    model, state, _ = load_model(device, trained)
+    assert state["kind"] == "splat" and model.kind == "splat"
+    ds = load_dataset(None)
+    ev = json.loads((trained / "eval.json").read_text())
+    v = ev["views"][0]
+    out = model.render_image(ds.poses[v["view"]], ds.intrinsics, ds.hw)
+    assert image_metrics(out["rgb"], ds.images[v["view"]])["psnr"] == pytest.approx(
+        v["psnr"], abs=1e-3)
+    again = load_model(device, trained)[0].render_image(ds.poses[v["view"]], ds.intrinsics,
+                                                        ds.hw)
+    np.testing.assert_array_equal(again["rgb"], out["rgb"])
+    assert np.all((out["acc"] >= 0) & (out["acc"] <= 1)) and np.all(out["depth"] >= 0)
+    seen = out["acc"] > 0.5
+    assert seen.any() and np.all(out["depth"][seen] > 0.5)   # the scene lies 2..6 away
+
+
+def test_export_splats_and_refuse_mesh(trained, tmp_path, capsys):
+    from clrf.cli.main import main as cli
+    from clrf.outputs import checkpoint
+    ply = tmp_path / "x.ply"
+    assert cli(["export", "--ckpt", str(trained), "--splats", str(ply)]) == 0
+    g = read_splat_ply(ply)
+    state = checkpoint.load(trained)
+    np.testing.assert_array_equal(g["means"], state["param_means"])
+    np.testing.assert_array_equal(g["sh"], state["param_sh"])
+    # a splat model has no density field: --mesh is bad input (exit 2, one line naming
+    # --splats), and nothing is written
+    capsys.readouterr()
+    assert cli(["export", "--ckpt", str(trained), "--mesh", str(tmp_path / "m.ply")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("clrf: error:") == 1 and "--splats" in err and "Traceback" not in err
+    assert not (tmp_path / "m.ply").exists()
+    # and the other way: --splats on a checkpoint of another kind names the kind it needs
+    from viewer_util import train_tiny
+    grid = train_tiny(tmp_path / "grid", 1.0)
+    capsys.readouterr()
+    assert cli(["export", "--ckpt", str(grid), "--splats", str(tmp_path / "g.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "--model splat" in err and "grid" in err and not (tmp_path / "g.ply").exists()
+
+
+def test_resume_continues_a_splat_run(trained, tmp_path):
+    """--resume: the checkpoint's Gaussians and Adam state, the dataset attached again, the
+    iteration count going on."""
+    import shutil
+    from clrf.cli.main import main as cli
+    from clrf.outputs import checkpoint
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    before = checkpoint.load(run)
+    assert cli(["--quiet", "train", "--out", str(run), "--resume", "--max-seconds",
+                str(float(before["seconds"]) + 3.0)]) == 0
+    after = checkpoint.load(run)
+    assert after["kind"] == "splat" and after["iteration"] > before["iteration"]
+    assert after["seconds"] > before["seconds"]
+
+
+def test_a_third_party_reader_opens_the_export(trained, tmp_path):
+    """plyfile (the PLY library of the original 3DGS code's tools) reads the file: the 62
+    properties in the 3DGS order, one vertex per Gaussian, the checkpoint's values."""
+    plyfile = pytest.importorskip("plyfile", reason="plyfile is in the test extra")
+    from clrf.cli.main import main as cli
+    from clrf.outputs import checkpoint
+    ply = tmp_path / "s.ply"
+    assert cli(["export", "--ckpt", str(trained), "--splats", str(ply)]) == 0
+    v = plyfile.PlyData.read(str(ply))["vertex"]
+    names = [p.name for p in v.properties]
+    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                     + [f"f_rest_{i}" for i in range(45)] + ["opacity", "scale_0", "scale_1",
+                                                            "scale_2", "rot_0", "rot_1",
+                                                            "rot_2", "rot_3"])
+    state = checkpoint.load(trained)
+    assert v.count == len(state["param_means"])
+    np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], 1), state["param_means"])
+    np.testing.assert_array_equal(v["opacity"], state["param_opacity_logits"].reshape(-1))
