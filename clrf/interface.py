@@ -23,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Optional, Protocol, runtime_checkable
 
+import numpy as np
+
 
 class StateError(ValueError):
     """A checkpoint's state does not fit the model asked for (a wrong brick, a wrong shape):
@@ -156,6 +158,6 @@ def render_view(model, c2w, intrinsics, hw, rays):
     if hasattr(model, "render_image"):
         return model.render_image(c2w, intrinsics, (H, W))
     o, d = rays()
-    r = model.render(o, d)
-    return {"rgb": r["rgb"].reshape(H, W, 3), "depth": r["depth"].reshape(H, W),
-            "acc": r["acc"].reshape(H, W)}
+    # every output the model gives, as an image (rgb [H, W, 3], depth and acc [H, W])
+    return {k: np.asarray(v).reshape(H, W, *np.shape(v)[1:])
+            for k, v in model.render(o, d).items()}
