@@ -66,8 +66,13 @@ def plan_training(caps, is_cpu: bool, cfg, n_rays: int, tuning=None, host=None) 
     the host is not counted). The peak is the process's resident set now + RUNTIME_GROWTH +
     the largest phase (device + host bytes on CPU devices, host bytes elsewhere), at least
     the peak so far."""
-    stages, _ = registry.get(cfg.train.model).memory(cfg, n_rays, caps, tuning, is_cpu)
-    return plan_peak(stages, is_cpu, host)
+    return _plan(caps, is_cpu, cfg, n_rays, tuning, host)[0]
+
+
+def _plan(caps, is_cpu, cfg, n_rays, tuning, host):
+    """(MemoryPlan, the settings to lower) from the kind's one memory estimate."""
+    stages, fix = registry.get(cfg.train.model).memory(cfg, n_rays, caps, tuning, is_cpu)
+    return plan_peak(stages, is_cpu, host), fix
 
 
 def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None,
@@ -76,6 +81,5 @@ def check_training_fits(caps, is_cpu: bool, cfg, n_rays: int, tuning=None,
     training rays exceeds the device described by ``caps`` (its global memory or largest
     allocation) or, with ``host`` (clrf.runtime.hostmem.HostBudget), the host's budget; returns the
     MemoryPlan otherwise."""
-    _, fix = registry.get(cfg.train.model).memory(cfg, n_rays, caps, tuning, is_cpu)
-    plan = plan_training(caps, is_cpu, cfg, n_rays, tuning, host)
+    plan, fix = _plan(caps, is_cpu, cfg, n_rays, tuning, host)
     return check_plan(plan, caps, is_cpu, fix, MemoryBudgetError)

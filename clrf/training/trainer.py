@@ -253,14 +253,14 @@ class Trainer:
             if self.primary:
                 with open(self.csv_path, "w", newline="") as f:
                     csv.DictWriter(f, CSV_FIELDS).writeheader()
-        if registry.get(cfg.train.model).batches == "views":   # it draws its own views
+        views = registry.get(cfg.train.model).batches == "views"
+        if views:   # the model draws its own training views
             self.model.attach(ds, t.max_train_images)
         if self.primary:
             rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         # a model that draws its own views (Kind.batches "views") needs no ray store
-        self.rays = (training_rays(device, ds, t.max_train_images,
-                                   alpha=getattr(self.model, "random_background", False))
-                     if registry.get(cfg.train.model).batches == "rays" else None)
+        self.rays = None if views else training_rays(
+            device, ds, t.max_train_images, alpha=getattr(self.model, "random_background", False))
         test = ds.split.get("test", ds.split.get("val"))
         self.test_views = np.asarray(test)
         k = min(t.eval_views, len(self.test_views))

@@ -87,33 +87,32 @@ def new_token() -> str:
 
 
 def check_options(host: str, port, token=None, no_token=False, max_clients=MAX_CLIENTS,
-                  max_fps=MAX_FPS, flag="--"):
-    """Validate the viewer's command-line settings; ViewerError names the flag and the fix.
-    ``flag`` prefixes the names in messages (``--view-`` style names are not used: the flags
-    are --host, --port, --token, --no-token, --max-clients, --max-fps in both commands)."""
+                  max_fps=MAX_FPS):
+    """Validate the viewer's settings (the same flags in ``clrf view`` and ``clrf train
+    --view``); ViewerError names the flag and the fix."""
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise ViewerError(f"{flag}port {port}: must be a TCP port in 0..65535 (0 picks a free "
+        raise ViewerError(f"--port {port}: must be a TCP port in 0..65535 (0 picks a free "
                           f"one)")
     if not host or any(c.isspace() for c in host) or "/" in host:
-        raise ViewerError(f"{flag}host {host!r}: expected an address such as 127.0.0.1, ::1, "
+        raise ViewerError(f"--host {host!r}: expected an address such as 127.0.0.1, ::1, "
                           f"localhost or 0.0.0.0")
     if no_token and token is not None:
-        raise ViewerError(f"{flag}no-token and {flag}token: pass one of them, not both")
+        raise ViewerError("--no-token and --token: pass one of them, not both")
     if no_token and not is_loopback(host):
-        raise ViewerError(f"{flag}no-token: only allowed on a loopback address (127.0.0.1, ::1, "
+        raise ViewerError(f"--no-token: only allowed on a loopback address (127.0.0.1, ::1, "
                           f"localhost); on {host} the viewer must require its token. Remove "
-                          f"{flag}no-token")
+                          f"--no-token")
     if token is not None and (len(token) < MIN_TOKEN_CHARS or not TOKEN_RE.fullmatch(token)):
-        raise ViewerError(f"{flag}token: must be at least {MIN_TOKEN_CHARS} characters of "
+        raise ViewerError(f"--token: must be at least {MIN_TOKEN_CHARS} characters of "
                           f"A-Z, a-z, 0-9, '-' and '_' (e.g. python -c \"import secrets; "
                           f"print(secrets.token_urlsafe(24))\"); or leave it out and a new one "
                           f"is made")
     if isinstance(max_clients, bool) or not isinstance(max_clients, int) or \
             not 1 <= max_clients <= MAX_CLIENTS_LIMIT:
-        raise ViewerError(f"{flag}max-clients {max_clients}: must be in 1..{MAX_CLIENTS_LIMIT}")
+        raise ViewerError(f"--max-clients {max_clients}: must be in 1..{MAX_CLIENTS_LIMIT}")
     if not (isinstance(max_fps, (int, float)) and math.isfinite(max_fps)
             and 0 < max_fps <= MAX_FPS_LIMIT):
-        raise ViewerError(f"{flag}max-fps {max_fps}: must be in (0, {MAX_FPS_LIMIT}]")
+        raise ViewerError(f"--max-fps {max_fps}: must be in (0, {MAX_FPS_LIMIT}]")
 
 
 def _split_host(value: str):
