@@ -1,6 +1,6 @@
 /* common.h: shared types, named constants, safe math and the float atomic add.
  *
- * Every helper here has a float64 twin of the same name in clrf/testing/reference.py.
+ * Every helper here has a float64 twin of the same name in clrf/references/reference.py.
  *
  * Defines read (all optional, each with its default):
  *   CLRF_NATIVE_FLOAT_ATOMICS  1 if the device reports cl_ext_float_atomics (set by the host)

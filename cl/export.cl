@@ -17,7 +17,7 @@
  *
  * Defines read: SH_DEGREE (0..3). Interpolation (lerp_setup, lerp_density), SH_C0 and
  * COLOR_OFFSET are the renderer's own (march.h, sh.h), so export and rendering cannot disagree.
- * Mirrored by clrf.testing.reference_export.sample_fields.
+ * Mirrored by clrf.references.reference_export.sample_fields.
  */
 #include "march.h"
 

@@ -34,7 +34,7 @@
  * "degree 4" in the 4-band count) of d / |d| (zero d -> the basis at (0, 0, 0)).
  *
  * Defines read: HASH_LEVELS, HASH_FEATURES, HASH_LOG2_T, HASH_GRAD_OWNED.
- * Twin: clrf/testing/reference_hash.py (float64).
+ * Twin: clrf/references/reference_hash.py (float64).
  */
 #include "common.h"
 

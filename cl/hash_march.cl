@@ -43,7 +43,7 @@
  * sample's dL/dsigma and dL/dc are bounded by T_k |g| (|c| + 1) dt resp. T_k |g|, so below
  * t_stop times the largest kept one's scale.
  *
- * Defines read: HASH_T_STOP, HASH_CONTRACT. Twin: clrf/testing/reference_hash.py (march_samples,
+ * Defines read: HASH_T_STOP, HASH_CONTRACT. Twin: clrf/references/reference_hash.py (march_samples,
  * packed_forward, packed_backward, packed_keep).
  */
 #include "hash_occ.h"

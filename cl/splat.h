@@ -23,7 +23,7 @@
  *
  * Defines read: TILE, SH_DEGREE (sh.h, projection only) and the constants below; the host
  * passes every one of them (clrf/splat/raster.py DEFINES), the float64 twin
- * (clrf/testing/reference_splat.py) uses the same values.
+ * (clrf/references/reference_splat.py) uses the same values.
  */
 #ifndef CLRF_SPLAT_H
 #define CLRF_SPLAT_H

@@ -39,7 +39,7 @@
  *   campos|;  dL/dlogit = dL/dopacity o (1 - o);  dL/dm += R^T dL/dt.
  *
  * Defines read: SH_DEGREE (sh.h), TILE and the constants of splat.h.
- * Twin: clrf/testing/reference_splat.py project / project_backward (float64).
+ * Twin: clrf/references/reference_splat.py project / project_backward (float64).
  */
 #include "common.h"
 #include "sh.h"

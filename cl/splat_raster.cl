@@ -40,7 +40,7 @@
  * Local memory per work-group: TILE_PIXELS x (float2 xy + float4 (A, B, C, o) + float4 colour)
  * = 40 TILE_PIXELS bytes (10 KiB for TILE 16), + int ids in the backward.
  * Defines read: TILE and the constants of splat.h.
- * Twin: clrf/testing/reference_splat.py bin_gaussians / rasterize / rasterize_backward.
+ * Twin: clrf/references/reference_splat.py bin_gaussians / rasterize / rasterize_backward.
  */
 #include "common.h"
 #include "splat.h"
@@ -219,3 +219,251 @@ void splat_raster_backward(const int width, const int height, const int ntx,
         }
     }
 }
+
+/* ---- CPU shape: one work-item per tile, a tile row as one float vector ----------------------
+ *
+ * splat_raster_forward_rows / splat_raster_backward_rows compute what splat_raster_forward /
+ * splat_raster_backward compute (the same alpha, skip, stop and n_contrib rules), shaped for a
+ * CPU: PoCL vectorises only what the kernel vectorises itself, and a work-group per tile with a
+ * data-dependent loop per pixel runs scalar there. Here one work-item owns a whole tile; a row
+ * of TILE pixels is one floatTILE vector (TILE 4, 8 or 16: 16 is one AVX-512 register), and the
+ * tile's list is walked once, each entry visiting only the rows where it can reach ALPHA_MIN:
+ *
+ *   for fixed d_y the power's largest value over d_x is -d_y^2 (AC - B^2) / (2A) (the conic is
+ *   positive definite), so a row with -d_y^2 det / (2A) < log(ALPHA_MIN / o) - ROW_MARGIN has
+ *   no pixel with alpha >= ALPHA_MIN: every pixel would skip the entry, and so does the row.
+ *   ROW_MARGIN (absolute, plus a relative part) keeps float rounding on the safe side: a row is
+ *   skipped only where the per-pixel test would skip every pixel.
+ *
+ * The backward sums each entry's per-pixel terms over the tile in vector registers and adds
+ * them with one atomic per gradient component and (tile, entry) instead of one per pixel. The
+ * sums run in another order than the work-group kernel's atomics: results agree to float32
+ * rounding. Private state: 5 vectors a row (T, C or S, and the pixel's list position).
+ */
+#if TILE == 4 || TILE == 8 || TILE == 16
+#define SPLAT_ROWS 1
+#define VF CONCAT(float, TILE)
+#define VI CONCAT(int, TILE)
+#define CONCAT(a, b) CONCAT_(a, b)
+#define CONCAT_(a, b) a##b
+#define VLOAD CONCAT(vload, TILE)
+#define VLOADI CONCAT(vload, TILE)
+#define VSTORE CONCAT(vstore, TILE)
+#define VSTOREI CONCAT(vstore, TILE)
+#define ZERO ((VF)(0.0f))
+#define ROW_MARGIN 1e-3f
+
+/* The lanes' x offsets 0.5, 1.5, ... as a vector. */
+CLRF_INLINE VF lane_centres(void) {
+#if TILE == 4
+    return (VF)(0.5f, 1.5f, 2.5f, 3.5f);
+#elif TILE == 8
+    return (VF)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f);
+#else
+    return (VF)(0.5f, 1.5f, 2.5f, 3.5f, 4.5f, 5.5f, 6.5f, 7.5f, 8.5f, 9.5f, 10.5f, 11.5f,
+                12.5f, 13.5f, 14.5f, 15.5f);
+#endif
+}
+
+CLRF_INLINE float hsum(VF v) {
+#if TILE == 16
+    float8 a = v.lo + v.hi;
+    float4 b = a.lo + a.hi;
+#elif TILE == 8
+    float4 b = v.lo + v.hi;
+#else
+    float4 b = v;
+#endif
+    float2 c = b.lo + b.hi;
+    return c.x + c.y;
+}
+
+/* Whether row offset dy (mean - row centre) can hold a pixel with alpha >= ALPHA_MIN for the
+ * splat (A, B, C, o); log_thr = log(ALPHA_MIN / o). Degenerate conics keep every row. */
+CLRF_INLINE int row_reached(const float dy, const float4 cop, const float log_thr) {
+    const float det = cop.x * cop.z - cop.y * cop.y;
+    if (!(cop.x > 0.0f) || !(det > 0.0f)) return 1;
+    const float pmax = -0.5f * dy * dy * (det / cop.x);
+    return pmax >= log_thr - ROW_MARGIN * (1.0f + fabs(log_thr));
+}
+
+/* Per-lane alpha (0 where skipped) of splat (mean, cop) on a row: d = mean - pixel centre. */
+CLRF_INLINE VF row_alpha(const VF dx, const float dy, const float4 cop, VF *G_out, VF *raw_out) {
+    const VF power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+    const VF G = exp(power);
+    const VF raw = cop.w * G;
+    const VF alpha = fmin((VF)(ALPHA_MAX), raw);
+    *G_out = G;
+    *raw_out = raw;
+    return select(alpha, (VF)(0.0f), power > 0.0f || alpha < ALPHA_MIN);
+}
+
+__kernel void splat_raster_forward_rows(const int width, const int height, const int ntx,
+                                        const int ntiles, __global const int *ranges,
+                                        __global const int *ids, __global const float *xy,
+                                        __global const float *conic,
+                                        __global const float *opacity,
+                                        __global const float *color, const float4 bg,
+                                        __global float *out_rgb, __global float *out_T,
+                                        __global int *out_n) {
+    const int tile = get_global_id(0);
+    if (tile >= ntiles) return;
+    const int x0 = (tile % ntx) * TILE, y0 = (tile / ntx) * TILE;
+    const int rows = min(TILE, height - y0), cols = min(TILE, width - x0);
+    const VF xs = (float)x0 + lane_centres();
+    const VI lanes_in = (VI)(cols) > CONCAT(convert_int, TILE)(lane_centres());
+    VF T[TILE], Cr[TILE], Cg[TILE], Cb[TILE];
+    VI last[TILE], done[TILE];
+    int alive = 0;   /* rows with a pixel still compositing */
+    for (int r = 0; r < TILE; ++r) {
+        T[r] = (VF)(1.0f);
+        Cr[r] = Cg[r] = Cb[r] = (VF)(0.0f);
+        last[r] = (VI)(0);
+        done[r] = r < rows ? ~lanes_in : (VI)(-1);
+        alive += r < rows && cols > 0;
+    }
+    const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
+    for (int k = start; k < end && alive > 0; ++k) {
+        const int g = ids[k];
+        const float2 m = vload2(g, xy);
+        const float4 cop = (float4)(vload3(g, conic), opacity[g]);
+        const float3 c = vload3(g, color);
+        if (!(cop.w * 1.0f >= ALPHA_MIN)) continue;   /* no pixel can reach ALPHA_MIN */
+        const float log_thr = log(ALPHA_MIN / cop.w);
+        const VF dx = m.x - xs;
+        const VI pos = (VI)(k - start + 1);
+        for (int r = 0; r < rows; ++r) {
+            const float dy = m.y - ((float)(y0 + r) + 0.5f);
+            if (!row_reached(dy, cop, log_thr) || all(done[r])) continue;
+            VF G, raw;
+            const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
+            const VF nT = T[r] * (1.0f - alpha);
+            const VI act = ~done[r] & (alpha != 0.0f);
+            const VI stop = act & (nT < T_MIN);
+            done[r] |= stop;
+            const VI use = act & ~stop;
+            const VF w = alpha * T[r];
+            Cr[r] = select(Cr[r], Cr[r] + c.x * w, use);
+            Cg[r] = select(Cg[r], Cg[r] + c.y * w, use);
+            Cb[r] = select(Cb[r], Cb[r] + c.z * w, use);
+            T[r] = select(T[r], nT, use);
+            last[r] = select(last[r], pos, use);
+            if (any(stop) && all(done[r])) --alive;
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        const int p0 = (y0 + r) * width + x0;
+        float rr[TILE], gg[TILE], bb[TILE], tt[TILE];
+        int nn[TILE];
+        VSTORE(Cr[r] + T[r] * bg.x, 0, rr);
+        VSTORE(Cg[r] + T[r] * bg.y, 0, gg);
+        VSTORE(Cb[r] + T[r] * bg.z, 0, bb);
+        VSTORE(T[r], 0, tt);
+        VSTOREI(last[r], 0, nn);
+        for (int i = 0; i < cols; ++i) {
+            vstore3((float3)(rr[i], gg[i], bb[i]), p0 + i, out_rgb);
+            out_T[p0 + i] = tt[i];
+            out_n[p0 + i] = nn[i];
+        }
+    }
+}
+
+__kernel void splat_raster_backward_rows(const int width, const int height, const int ntx,
+                                         const int ntiles, __global const int *ranges,
+                                         __global const int *ids, __global const float *xy,
+                                         __global const float *conic,
+                                         __global const float *opacity,
+                                         __global const float *color, const float4 bg,
+                                         __global const float *out_T, __global const int *out_n,
+                                         __global const float *grad_rgb,
+                                         __global float *g_xy, __global float *g_conic,
+                                         __global float *g_opacity, __global float *g_color) {
+    const int tile = get_global_id(0);
+    if (tile >= ntiles) return;
+    const int x0 = (tile % ntx) * TILE, y0 = (tile / ntx) * TILE;
+    const int rows = min(TILE, height - y0), cols = min(TILE, width - x0);
+    const VF xs = (float)x0 + lane_centres();
+    VF T[TILE], Sr[TILE], Sg[TILE], Sb[TILE], gr[TILE], gg[TILE], gb[TILE];
+    VI npix[TILE];
+    int top = 0;   /* the largest n_contrib of the tile */
+    for (int r = 0; r < TILE; ++r) {
+        T[r] = (VF)(1.0f);
+        Sr[r] = (VF)(bg.x);
+        Sg[r] = (VF)(bg.y);
+        Sb[r] = (VF)(bg.z);
+        gr[r] = gg[r] = gb[r] = (VF)(0.0f);
+        npix[r] = (VI)(0);
+        if (r >= rows) continue;
+        const int p0 = (y0 + r) * width + x0;
+        float tt[TILE], r3[TILE], g3[TILE], b3[TILE];
+        int nn[TILE];
+        for (int i = 0; i < TILE; ++i) {   /* lanes past the image: T 1, no entry, no gradient */
+            const int in = i < cols;
+            tt[i] = in ? out_T[p0 + i] : 1.0f;
+            nn[i] = in ? out_n[p0 + i] : 0;
+            r3[i] = in ? grad_rgb[3 * (p0 + i)] : 0.0f;
+            g3[i] = in ? grad_rgb[3 * (p0 + i) + 1] : 0.0f;
+            b3[i] = in ? grad_rgb[3 * (p0 + i) + 2] : 0.0f;
+            top = max(top, nn[i]);
+        }
+        T[r] = VLOAD(0, tt);
+        npix[r] = VLOADI(0, nn);
+        gr[r] = VLOAD(0, r3);
+        gg[r] = VLOAD(0, g3);
+        gb[r] = VLOAD(0, b3);
+    }
+    const int start = ranges[2 * tile];
+    for (int k = start + top - 1; k >= start; --k) {
+        const int g = ids[k];
+        const float2 m = vload2(g, xy);
+        const float4 cop = (float4)(vload3(g, conic), opacity[g]);
+        const float3 c = vload3(g, color);
+        if (!(cop.w * 1.0f >= ALPHA_MIN)) continue;
+        const float log_thr = log(ALPHA_MIN / cop.w);
+        const VF dx = m.x - xs;
+        const VI pos = (VI)(k - start);
+        VF s_cr = ZERO, s_cg = ZERO, s_cb = ZERO, s_o = ZERO, s_x = ZERO, s_y = ZERO;
+        VF s_a = ZERO, s_b = ZERO, s_c = ZERO;
+        int touched = 0;
+        for (int r = 0; r < rows; ++r) {
+            const float dy = m.y - ((float)(y0 + r) + 0.5f);
+            if (!row_reached(dy, cop, log_thr)) continue;
+            VF G, raw;
+            const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
+            const VI act = (pos < npix[r]) & (alpha != 0.0f);
+            if (!any(act)) continue;
+            touched = 1;
+            const VF Tk = select(T[r], T[r] / (1.0f - alpha), act);
+            T[r] = Tk;
+            const VF dalpha = Tk * (gr[r] * (c.x - Sr[r]) + gg[r] * (c.y - Sg[r]) +
+                                    gb[r] * (c.z - Sb[r]));
+            Sr[r] = select(Sr[r], alpha * c.x + (1.0f - alpha) * Sr[r], act);
+            Sg[r] = select(Sg[r], alpha * c.y + (1.0f - alpha) * Sg[r], act);
+            Sb[r] = select(Sb[r], alpha * c.z + (1.0f - alpha) * Sb[r], act);
+            /* inactive lanes add exact zeros (select, not a multiply: no inf * 0) */
+            const VF w = Tk * alpha;
+            s_cr += select(ZERO, w * gr[r], act);
+            s_cg += select(ZERO, w * gg[r], act);
+            s_cb += select(ZERO, w * gb[r], act);
+            const VI free = act & (raw < ALPHA_MAX);
+            const VF dpow = raw * dalpha;
+            s_o += select(ZERO, G * dalpha, free);
+            s_x += select(ZERO, -dpow * (cop.x * dx + cop.y * dy), free);
+            s_y += select(ZERO, -dpow * (cop.y * dx + cop.z * dy), free);
+            s_a += select(ZERO, -0.5f * dpow * dx * dx, free);
+            s_b += select(ZERO, -dpow * dx * dy, free);
+            s_c += select(ZERO, -0.5f * dpow * dy * dy, free);
+        }
+        if (!touched) continue;
+        atomic_add_f(&g_color[3 * g], hsum(s_cr));
+        atomic_add_f(&g_color[3 * g + 1], hsum(s_cg));
+        atomic_add_f(&g_color[3 * g + 2], hsum(s_cb));
+        atomic_add_f(&g_opacity[g], hsum(s_o));
+        atomic_add_f(&g_xy[2 * g], hsum(s_x));
+        atomic_add_f(&g_xy[2 * g + 1], hsum(s_y));
+        atomic_add_f(&g_conic[3 * g], hsum(s_a));
+        atomic_add_f(&g_conic[3 * g + 1], hsum(s_b));
+        atomic_add_f(&g_conic[3 * g + 2], hsum(s_c));
+    }
+}
+#endif /* TILE 4, 8 or 16 */

@@ -36,6 +36,11 @@ class Unsupported(ValueError):
     as bad input, naming what the kind offers instead."""
 
 
+class InputFileError(ValueError):
+    """A file a model kind reads itself (a splat PLY to start from) is unusable: the message
+    names the file, what is wrong and the fix; the CLI reports it as bad input."""
+
+
 @dataclass
 class Budget:
     """The run's clock at the start of a step, as the budget hook sees it."""
@@ -131,6 +136,9 @@ class Kind:
                    kind trains on it (None: none)
     distributed    (comm) -> a factory with check(cfg), rank_config(cfg) and the create /
                    from_state / brick of a multi-process run (None: one process only)
+    check          (cfg, ds, caps) -> None: checks a new run's inputs (dataset, files the
+                   configuration names) on the chosen device's capabilities before anything
+                   is planned or written; raises a bad-input error (None: nothing to check)
     exports        {flag name: Export}: files of this kind's own for ``clrf export``
     batches        "rays": train_step gets a batch of rays drawn from every training pixel;
                    "views": the model draws its own training views (it got the dataset at
@@ -149,6 +157,7 @@ class Kind:
     distributed: Optional[Callable] = None
     exports: Mapping = field(default_factory=dict)
     batches: str = "rays"
+    check: Optional[Callable] = None
 
 
 def render_view(model, c2w, intrinsics, hw, rays):

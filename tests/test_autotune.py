@@ -123,7 +123,7 @@ def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
     assert all(s > 0 for _, s in res) and best == min(res, key=lambda r: r[1])[0]
     assert at.cached_tiling(device.caps, SPEC) == best
     # the CPU tiles are what it tunes: a GPU's MLP runs its GPU tiling (CLRF_FORCE_GPU_KERNELS)
-    assert MLP(device.with_tuning(mlp_gpu=False), SPEC).tiling == best
+    assert MLP(device.with_tuning(gpu_kernels=False), SPEC).tiling == best
 
 
 def test_tuner_cli(device, cache, capsys):

@@ -1,9 +1,9 @@
 """Multi-sphere-image background (cl/background.cl, clrf/grid/msi.py) vs the float64 reference
-(clrf/testing/reference_background.py), closed forms, finite differences and a density scale sweep."""
+(clrf/references/reference_background.py), closed forms, finite differences and a density scale sweep."""
 import numpy as np
 import pytest
 
-from clrf.testing import reference_background as ref
+from clrf.references import reference_background as ref
 from clrf.grid.msi import MSIBackground
 from clrf.runtime.programs import BuildError
 from clrf.testing import tolerances as tol

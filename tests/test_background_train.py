@@ -7,7 +7,7 @@ import pytest
 import clrf
 import pyopencl.array as cla
 from clrf.grid.render import ray_exit_device
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 from clrf.testing.tolerances import (FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL,
                                      RENDER_RTOL)
 
@@ -128,7 +128,7 @@ from clrf.outputs import checkpoint  # noqa: E402
 from clrf.grid.config import GridConfig  # noqa: E402
 from clrf.grid.background import GridBackground, msi_geometry  # noqa: E402
 from clrf.grid.model import GridModel  # noqa: E402
-from clrf.testing import reference_background as ref_bg  # noqa: E402
+from clrf.references import reference_background as ref_bg  # noqa: E402
 from clrf.testing.tolerances import (BG_ATOL, BG_GRAD_ATOL, BG_GRAD_RTOL, BG_RTOL,  # noqa: E402
                                      MODEL_LOSS_RTOL)
 

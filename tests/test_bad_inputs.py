@@ -198,6 +198,38 @@ def opts(*extra):
     return lambda t: train(small_npz(t), *extra)
 
 
+def splat_ply(edit=None, n=4, *extra):
+    """Train a splat model from s.ply (n Gaussians written by clrf, then edited)."""
+    def build(t):
+        from clrf.splat.ply import write_splat_ply
+        rng = np.random.default_rng(0)
+        path = t / "s.ply"
+        write_splat_ply(path, rng.normal(size=(n, 3)), np.full((n, 3), -3.0),
+                        np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros(n),
+                        rng.normal(size=(n, 16, 3)))
+        if edit:
+            edit(path)
+        return train(small_npz(t), "--model", "splat", "--set", f"splat.init_ply={path}",
+                     *extra)
+    return build
+
+
+def _drop_property(name):
+    def edit(path):
+        data = path.read_bytes()
+        end = data.index(b"end_header\n") + len(b"end_header\n")
+        head = data[:end].decode().replace(f"property float {name}\n", "")
+        path.write_bytes(head.encode() + data[end:])
+    return edit
+
+
+def _splat_nan(path):
+    data = bytearray(path.read_bytes())
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    data[end + 4:end + 8] = np.float32(np.nan).tobytes()      # vertex 0's y
+    path.write_bytes(bytes(data))
+
+
 def config(obj):
     def build(t):
         f = t / "c.json"
@@ -539,6 +571,27 @@ CASES = [
     ("memory-too-large", opts("--set", "grid.reso=[[1024,1024,1024]]", "--set",
                               "grid.upsample_at=[]", "--set", "grid.sh_degree=3"),
      ["grid stage 0 (1024x1024x1024, SH degree 3)", "lower grid.reso"]),
+    ("splat-ply-missing-rotation", splat_ply(_drop_property("rot_0")),
+     ["s.ply", "rot_0", "missing"]),
+    ("splat-ply-missing-sh-band", splat_ply(_drop_property("f_rest_7")),
+     ["s.ply", "44 f_rest_* properties"]),
+    ("splat-ply-truncated", splat_ply(lambda p: p.write_bytes(p.read_bytes()[:-10])),
+     ["s.ply", "truncated"]),
+    ("splat-ply-not-a-ply", splat_ply(lambda p: p.write_text("x y z\n1 2 3\n")),
+     ["s.ply", "not a PLY file"]),
+    ("splat-ply-ascii", splat_ply(lambda p: p.write_bytes(
+        p.read_bytes().replace(b"binary_little_endian", b"ascii               "))),
+     ["s.ply", "format ascii", "binary_little_endian"]),
+    ("splat-ply-nan", splat_ply(_splat_nan), ["s.ply", "property y of vertex 0", "finite"]),
+    ("splat-ply-past-the-cap", splat_ply(None, 40, "--set", "splat.max_gaussians=30"),
+     ["s.ply", "40 Gaussians exceed the cap of 30", "splat.max_gaussians"]),
+    ("splat-ply-missing-file", lambda t: train(small_npz(t), "--model", "splat", "--set",
+                                               f"splat.init_ply={t / 'none.ply'}"),
+     ["none.ply", "cannot read"]),
+    ("splat-init-points-without-points", opts("--model", "splat", "--set", "splat.init=points"),
+     ["splat.init = 'points'", "no sparse points"]),
+    ("splat-init-unknown", opts("--model", "splat", "--set", "splat.init=mesh"),
+     ["splat.init", "auto"]),
     ("nerf-width-not-a-number", opts("--model", "nerf", "--set", "nerf.width=abc"),
      ["nerf.width", "integer"]),
     ("nerf-width-not-16s", opts("--model", "nerf", "--set", "nerf.width=17"),

@@ -8,8 +8,8 @@ import pytest
 from clrf.grid import bricks as B
 from clrf.grid.grid import SparseGrid
 from clrf.grid.render import render_backward_device, render_forward_device
-from clrf.testing import reference as ref
-from clrf.testing import reference_bricks as rb
+from clrf.references import reference as ref
+from clrf.references import reference_bricks as rb
 from clrf.testing.tolerances import (BRICK_COMPOSE_ATOL, BRICK_DEPTH_ATOL, BRICK_REF_ATOL,
                                      DEPTH_ATOL, DEPTH_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL,
                                      RENDER_RTOL)

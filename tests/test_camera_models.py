@@ -1,5 +1,5 @@
 """Camera models: every pixel's ray, as clrf undistorts it, must point back at the 3D points
-that COLMAP's published forward projection (clrf.testing.reference_cameras, float64) sends to
+that COLMAP's published forward projection (clrf.references.reference_cameras, float64) sends to
 that pixel; through the model functions, the COLMAP loader and the transforms.json loader.
 Models clrf does not implement are refused by name."""
 import struct
@@ -11,7 +11,7 @@ from clrf.data.camera_models import (
     MODELS, Distortion, as_distortion, check_camera, distort, from_colmap, undistort)
 from clrf.data.cameras import _pixel_dirs
 from clrf.data import DataError, load_dataset
-from clrf.testing.reference_cameras import project
+from clrf.references.reference_cameras import project
 from clrf.testing.tolerances import CAMERA_MODEL_ANGLE, CAMERA_MODEL_PX
 
 from test_colmap import H as CH, W as CW, _colmap_scene, _scene

@@ -170,6 +170,39 @@ def test_colmap_matches_poses_bounds(tmp_path, kind, fmt):
     _same_rays(dc, dl)
 
 
+@pytest.mark.parametrize("kind", ["forward_facing", "real360"])
+@pytest.mark.parametrize("fmt", ["txt", "bin"])
+def test_colmap_points_follow_the_normalised_poses(tmp_path, kind, fmt):
+    """The sparse points come with the dataset, moved by the same similarity as the poses: each
+    point sits at the same depth-scaled place in every camera's frame before and after (so it
+    projects to the same pixel), and carries its colour (10, 20, 30) / 255."""
+    poses, points = _scene(kind)
+    ds = load_dataset(_colmap_scene(tmp_path / "c", poses, points, fmt))
+    assert ds.points.shape == (len(points), 6) and ds.points.dtype == np.float32
+    np.testing.assert_allclose(ds.points[:, 3:], np.tile([10 / 255, 20 / 255, 30 / 255],
+                                                         (len(points), 1)), rtol=1e-6)
+    for before, after in zip(poses, ds.poses):
+        cam0 = (points - before[:3, 3]) @ before[:3, :3]
+        cam1 = (ds.points[:, :3].astype(np.float64) - after[:3, 3]) @ after[:3, :3]
+        # the same point in each camera's frame, up to the world's scale
+        np.testing.assert_allclose(cam0[:, :2] / cam0[:, 2:], cam1[:, :2] / cam1[:, 2:],
+                                   rtol=0, atol=1e-4)
+
+
+def test_similarity_recovers_a_known_transform():
+    from clrf.data.colmap import similarity
+    poses, _ = _scene("real360")
+    a = 0.7
+    R = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    moved = poses.copy()
+    moved[:, :3, :3] = R @ poses[:, :3, :3]
+    moved[:, :3, 3] = 0.3 * poses[:, :3, 3] @ R.T + [1.0, -2.0, 0.5]
+    s, R2, t = similarity(poses, moved)
+    assert s == pytest.approx(0.3)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-12)
+
+
 @pytest.mark.parametrize("model,params,dist", [
     ("SIMPLE_PINHOLE", [F, 7.5, 6.5], [0, 0, 0, 0]),
     ("SIMPLE_RADIAL", [F, 7.5, 6.5, 0.05], [0.05, 0, 0, 0]),

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from clrf.outputs import export
-from clrf.testing import reference_export
+from clrf.references import reference_export
 from clrf.data.cameras import to_ndc
 from clrf.cli.main import main as cli
 from clrf.grid.config import GridConfig

@@ -6,7 +6,7 @@ import pytest
 
 import clrf
 from clrf.grid import ops as grid_ops
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 from clrf.training.config import build_config
 from clrf.grid.config import GridConfig
 from clrf.grid.model import GridModel

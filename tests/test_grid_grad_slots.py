@@ -17,7 +17,7 @@ import pyopencl.array as cla
 import pytest
 
 import clrf
-from clrf.testing import reference
+from clrf.references import reference
 import clrf.grid.render as render
 from clrf.grid.render import _slot_buffers, grad_slots, launch, render_backward_device
 from clrf.testing.tolerances import GRAD_ATOL, GRAD_RTOL

@@ -5,7 +5,7 @@ import pytest
 
 import clrf
 from clrf.grid import ops as grid_ops
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 from clrf.runtime.optim import Optimizer, expon_lr
 
 from clrf.testing.tolerances import FD_ATOL, FD_RTOL, GRAD_ATOL, GRAD_RTOL, RENDER_ATOL, RENDER_RTOL

@@ -5,7 +5,7 @@ import pyopencl.array as cla
 import pytest
 
 from clrf.hash.encoding import HashEncoding, level_resolutions
-from clrf.testing import reference_hash as ref
+from clrf.references import reference_hash as ref
 from clrf.testing import tolerances as tol
 
 BOX = ((-1.5, -1.0, -0.5), (1.5, 1.0, 2.5))

@@ -6,8 +6,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from clrf.hash.occupancy import OccupancyGrid
-from clrf.testing import reference_hash as rh
-from clrf.testing import reference_nerf as rn
+from clrf.references import reference_hash as rh
+from clrf.references import reference_nerf as rn
 from clrf.testing import tolerances as tol
 from test_hash_model import BOX, _rays, _up
 

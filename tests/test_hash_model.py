@@ -11,8 +11,8 @@ from clrf.training.config import ConfigError, build_config
 from clrf.hash.config import HashConfig
 from clrf.hash.model import HashModel
 from clrf.hash.occupancy import OccupancyGrid
-from clrf.testing import reference_hash as rh
-from clrf.testing import reference_nerf as rn
+from clrf.references import reference_hash as rh
+from clrf.references import reference_nerf as rn
 from clrf.testing import tolerances as tol
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

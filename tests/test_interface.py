@@ -8,8 +8,8 @@ ones too: tests/test_layout.py's graph), and no string constant that is a kind's
 holds a key "<kind>.field" (``model.kind == "grid"``, ``cfg.train.model in ("nerf", "hash")``,
 ``"lower grid.batch_size"`` in a message). Comments and docstrings may mention them. Two places are
 outside the rule by design: clrf/__init__.py re-exports the grid's public functions
-(``clrf.SparseGrid``, ``clrf.render_rays``), and clrf/testing/ holds per-representation
-float64 references, test helpers and benchmarks.
+(``clrf.SparseGrid``, ``clrf.render_rays``), and clrf/references/ and clrf/testing/ hold
+per-representation float64 references, test helpers and benchmarks.
 """
 import ast
 import dataclasses

@@ -53,10 +53,10 @@ def _scene(path):
     return path
 
 
-def _start(out, resume, delay, data=None):
+def _start(out, resume, delay, data=None, options=TINY):
     env = dict(os.environ,
                PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    args = ["--resume"] if resume else ["--data", str(data), *TINY]
+    args = ["--resume"] if resume else ["--data", str(data), *options]
     return subprocess.Popen([sys.executable, "-c", DELAYED_CLI, str(delay), "train", "--out",
                              str(out), "--max-seconds", "600", *args], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -130,6 +130,40 @@ def test_sigkill_at_random_moments_keeps_a_resumable_run(tmp_path, capsys):
     periodic = [int(r[0]) for r in rows if r[2]]
     assert len(periodic) == len(set(periodic)), f"duplicated iterations: {periodic}"
     assert int(checkpoint.load(out)["iteration"]) > it
+
+
+SPLAT = ["--model", "splat", "--set", "splat.preset=tiny", "--set", "splat.init_points=300",
+         "--set", "train.eval_every=0.4", "--set", "train.eval_views=1",
+         "--set", "train.checkpoint_every=0.2"]
+
+
+def test_sigkill_inside_a_splat_checkpoint_write_keeps_the_last_one(tmp_path, capsys):
+    """The splat model's checkpoint (Gaussians, Adam moments, densification statistics) under
+    SIGKILL inside its write: the previous checkpoint loads, evaluates, and resumes to the end
+    of a short budget, leaving no temporary file."""
+    out = tmp_path / "run"
+    data = _scene(tmp_path / "scene.npz")
+    p = _start(out, resume=False, delay=1.0, data=data, options=SPLAT)
+    try:
+        _wait_for(p, lambda: _ckpt_iteration(out) > 0, "a first checkpoint")
+        _wait_for(p, lambda: any(n.startswith("ckpt.npz.tmp") for n in _temps(out)),
+                  "a checkpoint write")
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.wait(timeout=30)
+    assert any(n.startswith("ckpt.npz.tmp") for n in _temps(out)), "missed the window"
+    state = checkpoint.load(out)
+    it = int(state["iteration"])
+    assert it > 0 and state["kind"] == "splat" and len(state["param_means"]) > 0
+    capsys.readouterr()
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "1",
+                "--out", str(tmp_path / "eval.json")]) == 0, capsys.readouterr().err
+    budget = float(state["seconds"]) + 1.0
+    assert cli(["train", "--out", str(out), "--resume", "--max-seconds", str(budget)]) == 0, \
+        capsys.readouterr().err
+    assert not _temps(out), f"temporary files left behind: {_temps(out)}"
+    after = checkpoint.load(out)
+    assert int(after["iteration"]) > it and after["kind"] == "splat"
 
 
 def test_trim_metrics_drops_later_and_torn_rows(tmp_path):

@@ -10,7 +10,7 @@ submodule depend on ``clrf/__init__.py``, which re-exports the public API from t
 Layers, bottom to top (a module may import its own layer and the ones below):
 
     runtime                 OpenCL devices, programs, memory planning, measuring, caches
-    references              clrf/testing/reference*.py: the float64 references (numpy only;
+    references              clrf/references/reference*.py: the float64 references (numpy only;
                             the grid's gradient self-check compares with one)
     interface               clrf/interface.py: the Model protocol and the Kind record
     mlp                     the fused MLP that nerf and hash share (its tiles, its tuner)
@@ -19,7 +19,7 @@ Layers, bottom to top (a module may import its own layer and the ones below):
     registry                clrf/registry.py: the representations by name (imported by name)
     outputs                 checkpoints, run directories, renders, exports, logs
     training                the trainer, run configuration, model kinds, metrics
-    viewer, testing         the web viewer; float64 references, test helpers, benchmarks
+    viewer, testing         the web viewer; test helpers, tolerances, benchmarks
     cli                     the command line (``clrf bench`` runs clrf/testing/benchmark.py)
 """
 from __future__ import annotations
@@ -119,7 +119,7 @@ def find_cycle(graph: dict):
 def layer(mod: str):
     """The layer of a module (its first package under clrf, or "references" for the float64
     references of clrf/testing/), None for clrf/__init__.py."""
-    if mod.startswith("clrf.testing.reference"):
+    if mod.startswith("clrf.references.reference"):
         return "references"
     parts = mod.split(".")
     return parts[1] if len(parts) > 1 else None

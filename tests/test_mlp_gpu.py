@@ -1,5 +1,5 @@
 """The fused MLP's GPU tiling (cl/mlp_gpu.h, MLP_GPU=1) forced on every device, against the
-float64 reference (clrf/testing/reference_nerf.py) with the tolerances of the CPU tiles: NeRF's
+float64 reference (clrf/references/reference_nerf.py) with the tolerances of the CPU tiles: NeRF's
 8 x 256 (small batches), 4 x 64, the hash model's networks; awkward batch sizes around the
 block of samples a work-group owns; the NVIDIA-sized tiling (48 KiB of local memory) and an
 awkward one (K-slices of 3 rows, 2 x 2 register tiles, small weight-gradient tiles).
@@ -12,7 +12,7 @@ import pytest
 
 from clrf.mlp.mlp import MLP, MLPSpec
 from clrf.mlp.tiling import GPUTiling, gpu_default, mlp_tiling_for
-from clrf.testing import reference_nerf as ref
+from clrf.references import reference_nerf as ref
 from clrf.testing import tolerances as tol
 
 SHAPES = {
@@ -39,7 +39,7 @@ _nets = {}
 @pytest.fixture(scope="session")
 def gpu_tiling(device):
     """The session's device with the GPU tiling forced (as CLRF_FORCE_GPU_KERNELS=1)."""
-    return device.with_tuning(mlp_gpu=True)
+    return device.with_tuning(gpu_kernels=True)
 
 
 def get_net(dev, shape, tiling):
@@ -204,13 +204,13 @@ def test_selection_by_device_class_and_environment(device):
     sets it either way (clrf/runtime/tuning.py)."""
     from clrf.runtime.tuning import Tuning
     caps = device.caps
-    assert Tuning.for_device(replace(caps, type="gpu")).mlp_gpu
-    assert not Tuning.for_device(replace(caps, type="cpu")).mlp_gpu
-    assert Tuning.from_env(replace(caps, type="cpu"), {"CLRF_FORCE_GPU_KERNELS": "1"}).mlp_gpu
-    assert not Tuning.from_env(replace(caps, type="gpu"), {"CLRF_FORCE_GPU_KERNELS": "0"}).mlp_gpu
+    assert Tuning.for_device(replace(caps, type="gpu")).gpu_kernels
+    assert not Tuning.for_device(replace(caps, type="cpu")).gpu_kernels
+    assert Tuning.from_env(replace(caps, type="cpu"), {"CLRF_FORCE_GPU_KERNELS": "1"}).gpu_kernels
+    assert not Tuning.from_env(replace(caps, type="gpu"), {"CLRF_FORCE_GPU_KERNELS": "0"}).gpu_kernels
     spec = SHAPES["hash-1x64-c2"]
-    assert mlp_tiling_for(device.with_tuning(mlp_gpu=True), spec).gpu is not None
-    assert mlp_tiling_for(device.with_tuning(mlp_gpu=False), spec).gpu is None
+    assert mlp_tiling_for(device.with_tuning(gpu_kernels=True), spec).gpu is not None
+    assert mlp_tiling_for(device.with_tuning(gpu_kernels=False), spec).gpu is None
 
 
 @pytest.mark.parametrize("gpu,define", [(GPUTiling(tm=3), "GPU_TM"), (GPUTiling(tn=3), "GPU_TN"),

@@ -224,7 +224,7 @@ def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
 def test_prune_and_upsample_across_bricks(tmp_path, ranks):
     """Distributed pruning (weights from the composed rays, dilation across brick faces) and
     resampling onto the new bricks vs the float64 reference on the whole grid."""
-    from clrf.testing import reference as ref
+    from clrf.references import reference as ref
     from clrf.testing.tolerances import RENDER_ATOL, RENDER_RTOL
     from mpi_script import UPSAMPLE_WEIGHT_THRESH
     new_reso = (20, 14, 17)

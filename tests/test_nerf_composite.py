@@ -4,7 +4,7 @@ import pyopencl.array as cla
 import pytest
 
 from clrf.nerf import ops
-from clrf.testing import reference_nerf as ref
+from clrf.references import reference_nerf as ref
 from clrf.testing import tolerances as tol
 
 FAR = 6.0

@@ -8,7 +8,7 @@ import numpy as np
 import pyopencl.array as cla
 import pytest
 
-from clrf.testing import reference_nerf as ref
+from clrf.references import reference_nerf as ref
 from clrf.mlp.mlp import MLP, MLPSpec
 from clrf.testing import tolerances as tol
 
@@ -273,7 +273,7 @@ def test_invalid_shapes_fail_to_build(device):
 def cpu_tiles(device):
     """The device with the fused MLP's CPU register tiles, also where it would run the GPU
     tiling (a GPU, CLRF_FORCE_GPU_KERNELS=1): the tests below are about those tiles."""
-    return device.with_tuning(mlp_gpu=False)
+    return device.with_tuning(gpu_kernels=False)
 
 
 # (rows, cols, dw_rows, dw_cols): the AVX-512 defaults (wide and narrow MLPs) and the former

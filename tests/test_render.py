@@ -5,7 +5,7 @@ import pytest
 
 import clrf
 from clrf.grid import render as grid_render
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 from clrf.runtime.tuning import Tuning
 
 from clrf.testing.tolerances import (CLOSED_FORM_ATOL, DEPTH_ATOL, DEPTH_RTOL, FD_ATOL, FD_RTOL,

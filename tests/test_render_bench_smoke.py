@@ -2,7 +2,7 @@
 
 The grid-render cases at these sizes check the kernel against the float64 reference before
 running; here we also check forward and backward (both gradient modes) of each distinct grid
-configuration the benchmarks use against clrf.testing.reference, with clrf/testing/tolerances.py margins.
+configuration the benchmarks use against clrf.references.reference, with clrf/testing/tolerances.py margins.
 """
 import sys
 from pathlib import Path
@@ -14,7 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
 import bench  # noqa: E402
 import bench_scenes as scenes  # noqa: E402
-from clrf.testing import reference  # noqa: E402
+from clrf.references import reference  # noqa: E402
 from clrf.grid.render import render_backward_device, render_rays  # noqa: E402
 from clrf.testing.tolerances import (DEPTH_ATOL, DEPTH_RTOL, GRAD_ATOL, GRAD_RTOL,  # noqa: E402
                                      RENDER_ATOL, RENDER_RTOL)

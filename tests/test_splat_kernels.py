@@ -1,5 +1,5 @@
 """Gaussian splatting kernels (cl/splat_project.cl, cl/splat_raster.cl) against their float64
-twin (clrf/testing/reference_splat.py): projection and its backward, the binning's per-tile
+twin (clrf/references/reference_splat.py): projection and its backward, the binning's per-tile
 lists, the tile rasteriser forward and backward, the whole chain, the twin's own gradient
 against central differences, and the stiff cases (degenerate, huge and tiny covariances,
 Gaussians behind or across the near plane, opacity near 1, 5,000 Gaussians on one tile, no
@@ -12,7 +12,7 @@ from clrf.runtime.buildlog import diagnostics
 from clrf.runtime.programs import build, build_log
 from clrf.splat import raster as sr
 from clrf.splat import Projected, SplatCamera, SplatRasterizer
-from clrf.testing import reference_splat as rs
+from clrf.references import reference_splat as rs
 from clrf.testing import tolerances as tol
 
 BG = (0.2, 0.1, 0.3)
@@ -85,9 +85,10 @@ def _upload_splats(device, sp):
                                                    "opacity", "rect")))
 
 
-def _raster_both(device, sp, width, height, bg=BG):
-    """Kernel (bins, raster) and twin (lists, forward) of splats ``sp``."""
-    r = SplatRasterizer(device, 0)
+def _raster_both(device, sp, width, height, bg=BG, shape=None):
+    """Kernel (bins, raster) and twin (lists, forward) of splats ``sp``, with the rasteriser's
+    ``shape`` (None: the device's default)."""
+    r = SplatRasterizer(device, 0, shape=shape)
     cam, _ = _camera(width, height)
     proj = _upload_splats(device, sp)
     bins = r.bin(proj, cam)
@@ -239,20 +240,22 @@ def test_splat_binning_matches_reference(device, n, width, height):
 # ---- rasteriser ------------------------------------------------------------------------------
 @pytest.mark.parametrize("n,width,height", [(1, 1, 1), (12, 33, 17), (60, 32, 32),
                                             (150, 17, 40)])
-def test_splat_rasterize_matches_reference(device, n, width, height):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_rasterize_matches_reference(device, shape, n, width, height):
     """rgb, final transmittance and n_contrib vs the twin, awkward sizes included."""
     sp = _splats(n, width, height, seed=100 + n)
-    *_, ras, _, want = _raster_both(device, sp, width, height)
+    *_, ras, _, want = _raster_both(device, sp, width, height, shape=shape)
     _assert_raster(ras, want)
     if n > 1:
         assert want["n_contrib"].max() > 1 and (want["T"] < 1).any()
 
 
 @pytest.mark.parametrize("n,width,height", [(12, 33, 17), (60, 32, 32)])
-def test_splat_rasterize_backward_matches_reference(device, n, width, height):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_rasterize_backward_matches_reference(device, shape, n, width, height):
     """dL/d(xy, conic, opacity, color) vs the twin's analytic backward."""
     sp = _splats(n, width, height, seed=200 + n)
-    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, width, height)
+    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, width, height, shape=shape)
     _assert_raster(ras, want)
     grad = np.random.default_rng(n).normal(size=(height, width, 3)).astype(np.float32)
     got = r.rasterize_backward(proj, bins, ras, cam, cla.to_device(device.queue, grad), BG)
@@ -262,14 +265,58 @@ def test_splat_rasterize_backward_matches_reference(device, n, width, height):
         assert np.abs(ref[name]).max() > 0, name
 
 
-def test_splat_five_thousand_on_one_tile(device):
+@pytest.mark.parametrize("tile", [4, 8])
+def test_splat_rows_shape_with_small_tiles(device, tile):
+    """The CPU shape with 4- and 8-pixel tiles (float4 / float8 rows), forward and backward
+    vs the twin binned with the same tiles."""
+    width, height, n = 29, 19, 80
+    sp = _splats(n, width, height, seed=300 + tile, tile=tile)
+    r = SplatRasterizer(device, 0, tile=tile, shape="rows")
+    cam, _ = _camera(width, height)
+    proj = _upload_splats(device, sp)
+    bins = r.bin(proj, cam)
+    ras = r.rasterize(proj, bins, cam, BG)
+    ntx, nty = cam.tiles(tile)
+    lists = rs.bin_gaussians(sp["rect"], sp["depth"], ntx, nty)
+    want = rs.rasterize(_f64(sp), lists, width, height, BG, tile=tile)
+    _assert_raster(ras, want)
+    grad = np.random.default_rng(tile).normal(size=(height, width, 3)).astype(np.float32)
+    got = r.rasterize_backward(proj, bins, ras, cam, cla.to_device(device.queue, grad), BG)
+    ref = rs.rasterize_backward(_f64(sp), lists, want, width, height, grad, BG, tile=tile)
+    for name in sr.GRAD2D_NAMES:
+        _close_rel(got[name].get(), ref[name], tol.SPLAT_GRAD_REL_TO_MAX, name)
+
+
+def test_splat_rows_skip_only_unreachable_rows():
+    """The CPU shape skips a row when the Gaussian's largest power on it, -dy^2 det / (2A),
+    is below log(ALPHA_MIN / o): checked here on the formula, in float64, for random conics
+    and rows, against the brute-force maximum over a fine sweep of x (a row the kernel skips
+    has no x where alpha reaches ALPHA_MIN)."""
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        s1, s2, th = rng.uniform(0.3, 8), rng.uniform(0.3, 8), rng.uniform(0, np.pi)
+        c, s = np.cos(th), np.sin(th)
+        cov = np.array([[c * c * s1 ** 2 + s * s * s2 ** 2, c * s * (s1 ** 2 - s2 ** 2)],
+                        [c * s * (s1 ** 2 - s2 ** 2), s * s * s1 ** 2 + c * c * s2 ** 2]])
+        A, B, C = np.linalg.inv(cov)[[0, 0, 1], [0, 1, 1]]
+        dy = rng.uniform(-40, 40)
+        pmax = -0.5 * dy * dy * (A * C - B * B) / A
+        reach = 50 + 2 * abs(B / A * dy)       # wider than the argmax, -B dy / A
+        dx = np.linspace(-reach, reach, 400001)
+        brute = np.max(-0.5 * (A * dx * dx + C * dy * dy) - B * dx * dy)
+        assert brute <= pmax + 1e-9
+        assert brute >= pmax - 1e-3 * (1 + abs(pmax))
+
+
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_five_thousand_on_one_tile(device, shape):
     """5,000 Gaussians all on the one tile of a 16 x 16 image, faint (alpha just above 1/255),
     so that about 1,800 are composited per pixel over several local batches before the pixels
     stop; forward and backward vs the twin."""
     n, w, h = 5000, 16, 16
     sp = _splats(n, w, h, seed=7, opacity=(0.005, 0.012), sigma=(12.0, 24.0), margin=-6.0)
     assert np.all(sp["rect"] == [0, 0, 1, 1])
-    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, w, h)
+    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, w, h, shape=shape)
     assert bins.n_pairs == n
     assert want["n_contrib"].min() > 2 * rs.TILE ** 2 and (want["n_contrib"] < n).all()
     _assert_raster(ras, want, tol.SPLAT_LONG_ATOL)
@@ -282,7 +329,8 @@ def test_splat_five_thousand_on_one_tile(device):
         _close_rel(out, ref[name], tol.SPLAT_LONG_GRAD_REL_TO_MAX, name)
 
 
-def test_splat_opacity_near_one_toy(device):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_opacity_near_one_toy(device, shape):
     """Two opaque Gaussians (o = 1 - 1e-6) centred on pixel (4, 4) of an 8 x 8 image, colours
     c1 = (1, 0, 0) in front and c2 = (0, 1, 0). At that pixel alpha clamps to 0.99: after the
     first T = 0.01, and the second would leave T = 1e-4 (in float32 (1 - 0.99)^2 = 9.99998e-5)
@@ -294,7 +342,7 @@ def test_splat_opacity_near_one_toy(device):
           "color": np.float32([[1, 0, 0], [0, 1, 0]]),
           "opacity": np.float32([1 - 1e-6, 1 - 1e-6])}
     sp["rect"] = rs.tile_rect(sp["xy"], sp["radius"], 1, 1).astype(np.int32)
-    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, 8, 8)
+    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, 8, 8, shape=shape)
     _assert_raster(ras, want)
     assert ras.n_contrib.get()[4, 4] == 1
     np.testing.assert_allclose(ras.T.get()[4, 4], 0.01, rtol=0, atol=tol.TOY_ATOL)
@@ -307,10 +355,11 @@ def test_splat_opacity_near_one_toy(device):
     np.testing.assert_allclose(got["color"].get()[0], [0.99] * 3, rtol=0, atol=tol.TOY_ATOL)
 
 
-def test_splat_no_gaussians(device):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_no_gaussians(device, shape):
     """n = 0, and n > 0 with every Gaussian culled: the background, T = 1, no contributions,
     zero (or empty) gradients."""
-    r = SplatRasterizer(device, 1)
+    r = SplatRasterizer(device, 1, shape=shape)
     cam, _ = _camera(33, 17)
     for g in (_gaussians(0, 1, 0), _gaussians(5, 1, 0, spread=0.01)):
         if len(g["means"]):
@@ -327,11 +376,12 @@ def test_splat_no_gaussians(device):
 
 # ---- the whole chain ---------------------------------------------------------------------------
 @pytest.mark.parametrize("degree,width,height", [(3, 33, 17), (1, 32, 32), (0, 20, 45)])
-def test_splat_render_matches_reference(device, degree, width, height):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_render_matches_reference(device, shape, degree, width, height):
     """project -> bin -> rasterize and back, kernels vs the twin."""
     g = _gaussians(60, degree, seed=degree + width)
     cam, rcam = _camera(width, height)
-    r = SplatRasterizer(device, degree)
+    r = SplatRasterizer(device, degree, shape=shape)
     out = r.render(g, cam, BG)
     _, _, want = rs.render(_f64(g), rcam, BG)
     np.testing.assert_array_equal(out["n_contrib"], want["n_contrib"])
@@ -344,7 +394,8 @@ def test_splat_render_matches_reference(device, degree, width, height):
         _close_rel(got[name], ref[name], tol.SPLAT_GRAD_REL_TO_MAX, name)
 
 
-def test_splat_extreme_scales_finite(device):
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_extreme_scales_finite(device, shape):
     """A sweep of log-scales -30 .. 45 and opacity logits +-30 around and behind the camera:
     every output and gradient is finite, culled Gaussians have zero radius and gradients, and
     the images still match the twin where nothing overflows float32."""
@@ -357,7 +408,7 @@ def test_splat_extreme_scales_finite(device):
     g["opacity_logits"] = rng.choice(np.float32([-30, -5, 0, 5, 30]), n)
     g["means"][::7, 2] = -3.5                          # behind the camera
     cam, rcam = _camera(33, 17)
-    r = SplatRasterizer(device, degree)
+    r = SplatRasterizer(device, degree, shape=shape)
     proj = r.project(r.upload(g), cam)
     for name in ("xy", "conic", "radius", "depth", "color", "opacity"):
         assert np.all(np.isfinite(getattr(proj, name).get())), name
@@ -442,6 +493,10 @@ def test_splat_bad_inputs(device):
         SplatCamera(np.eye(3), 10, 10, 5, 5, 10, 10)
     with pytest.raises(ValueError, match="sh_degree"):
         SplatRasterizer(device, 4)
+    with pytest.raises(ValueError, match="shape"):
+        SplatRasterizer(device, 1, shape="pixels")
+    with pytest.raises(ValueError, match="4, 8 or 16"):
+        SplatRasterizer(device, 1, tile=32, shape="rows")
     proj, bins, ras = r.forward(params, cam)
     with pytest.raises(ValueError, match="grad_rgb"):
         r.rasterize_backward(proj, bins, ras, cam, cla.zeros(device.queue, (17, 33), np.float32))

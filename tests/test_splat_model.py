@@ -79,79 +79,6 @@ def test_ply_write_is_atomic(tmp_path):
     assert path.read_bytes() == before and len(list(tmp_path.iterdir())) == 1
 
 
-# ---- SSIM -------------------------------------------------------------------------------------
-def _ssim64(x, y):
-    """Mean SSIM in float64 with an explicit 11 x 11 Gaussian window (sigma 1.5, normalised)
-    and zero padding: the twin of sm.ssim_and_grad."""
-    r = np.arange(-5, 6)
-    w1 = np.exp(-r ** 2 / (2 * 1.5 ** 2))
-    w = np.outer(w1, w1) / w1.sum() ** 2
-    H, W, _ = x.shape
-
-    def blur(a):
-        p = np.pad(a, ((5, 5), (5, 5), (0, 0)))
-        out = np.zeros_like(a)
-        for i in range(11):
-            for j in range(11):
-                out += w[i, j] * p[i:i + H, j:j + W]
-        return out
-    x, y = np.float64(x), np.float64(y)
-    mx, my = blur(x), blur(y)
-    sxx, syy, sxy = blur(x * x) - mx ** 2, blur(y * y) - my ** 2, blur(x * y) - mx * my
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    s = (2 * mx * my + c1) * (2 * sxy + c2) / ((mx ** 2 + my ** 2 + c1) * (sxx + syy + c2))
-    return float(s.mean())
-
-
-def test_ssim_matches_float64_twin_and_central_differences():
-    rng = np.random.default_rng(3)
-    y = rng.uniform(0, 1, (17, 23, 3)).astype(np.float32)
-    x = np.clip(y + rng.normal(0, 0.2, y.shape), 0, 1).astype(np.float32)
-    value, grad = sm.ssim_and_grad(x, y)
-    assert value == pytest.approx(_ssim64(x, y), abs=2e-6)
-    assert sm.ssim_and_grad(y, y)[0] == pytest.approx(1.0, abs=1e-6)
-    eps = 1e-4
-    for (i, j, c) in [(0, 0, 0), (8, 11, 1), (16, 22, 2), (3, 19, 0), (12, 2, 2)]:
-        xp, xm = np.float64(x), np.float64(x)
-        xp[i, j, c] += eps
-        xm[i, j, c] -= eps
-        fd = (_ssim64(xp, y) - _ssim64(xm, y)) / (2 * eps)
-        assert grad[i, j, c] == pytest.approx(fd, rel=2e-3, abs=1e-7), (i, j, c)
-
-
-def test_loss_gradient_matches_central_differences():
-    rng = np.random.default_rng(4)
-    y = rng.uniform(0, 1, (12, 13, 3)).astype(np.float32)
-    x = rng.uniform(0, 1, y.shape).astype(np.float32)
-    lam = 0.2
-    _, grad, mse = sm.loss_and_grad(x, y, lam)
-    assert mse == pytest.approx(float(np.mean((np.float64(x) - y) ** 2)))
-
-    def loss64(a):
-        return (1 - lam) * np.mean(np.abs(a - y)) + lam * (1 - _ssim64(a, y))
-    for (i, j, c) in [(0, 0, 0), (6, 7, 1), (11, 12, 2)]:
-        xp, xm = np.float64(x), np.float64(x)
-        xp[i, j, c] += 1e-4
-        xm[i, j, c] -= 1e-4
-        fd = (loss64(xp) - loss64(xm)) / 2e-4
-        assert grad[i, j, c] == pytest.approx(fd, rel=5e-3, abs=1e-7)
-
-
-def test_the_ssim_check_can_fail():
-    """A wrong gradient (the chain through the blurred mean dropped) differs from the
-    differences: the comparison above has teeth."""
-    rng = np.random.default_rng(5)
-    y = rng.uniform(0, 1, (12, 12, 3)).astype(np.float32)
-    x = rng.uniform(0, 1, y.shape).astype(np.float32)
-    _, grad = sm.ssim_and_grad(x, y)
-    xp, xm = np.float64(x), np.float64(x)
-    xp[6, 6, 0] += 1e-4
-    xm[6, 6, 0] -= 1e-4
-    fd = (_ssim64(xp, y) - _ssim64(xm, y)) / 2e-4
-    assert grad[6, 6, 0] == pytest.approx(fd, rel=2e-3)
-    assert not np.isclose(grad[6, 6, 0] * 1.01, fd, rtol=2e-3)
-
-
 # ---- the model --------------------------------------------------------------------------------
 def _model(device, **splat):
     from clrf.data import load_dataset
@@ -204,6 +131,72 @@ def test_densify_and_prune_keep_the_cap(device):
     assert m.on_iteration(10, Budget(10, 1.0, 0.01, None)) is None
     assert "densified" in m.on_iteration(30, Budget(30, 1.0, 0.05, None))
     assert m.n <= 340 and m.describe().startswith(f"{m.n} Gaussians")
+
+
+def test_initial_gaussians_from_points_random_and_beyond_the_box():
+    """init: a capture's sparse points (positions and colours kept, subsampled to init_points);
+    random in the box; for unbounded scenes as many again beyond the box, out to
+    UNBOUNDED_REACH half-sizes; "points" without points is refused naming the fix."""
+    import dataclasses
+    from clrf.data import load_dataset
+    from clrf.interface import Unsupported
+    from clrf.splat.config import SplatConfig
+    ds = load_dataset(None)
+    sc = SplatConfig.from_preset("tiny", sh_degree=1)
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform(-0.5, 0.5, (50, 3)), rng.uniform(0, 1, (50, 3))], 1)
+    with_pts = dataclasses.replace(ds, points=pts.astype(np.float32))
+    host, where = sm.initial_host(sc, with_pts, cap=1000, seed=1)
+    assert "50 of the capture's 50 sparse points" in where
+    np.testing.assert_allclose(host["means"], pts[:, :3], rtol=0, atol=1e-6)
+    colour = 0.5 + sm.SH_C0 * host["sh"][:, 0]
+    np.testing.assert_allclose(colour, pts[:, 3:], rtol=0, atol=1e-5)
+    assert not np.any(host["sh"][:, 1:]) and host["sh"].shape == (50, 4, 3)
+    host, where = sm.initial_host(dataclasses.replace(sc, init_points=20), with_pts, 1000, 1)
+    assert len(host["means"]) == 20 and "20 of the capture's 50" in where
+    host, where = sm.initial_host(dataclasses.replace(sc, init="random", init_points=40),
+                                  with_pts, 1000, 1)
+    lo, hi = ds.bbox
+    assert "40 random in the scene box" in where and len(host["means"]) == 40
+    assert np.all((host["means"] >= lo) & (host["means"] <= hi))
+    unb = dataclasses.replace(ds, preset="real360", bbox=np.array([[-1.0] * 3, [1.0] * 3]))
+    host, where = sm.initial_host(dataclasses.replace(sc, init_points=400), unb, 1000, 1)
+    r = np.linalg.norm(host["means"], axis=1)
+    assert len(r) == 800 and "400 beyond it" in where
+    assert np.all(r[:400] <= np.sqrt(3) + 1e-6)
+    assert r[400:].min() >= 1 - 1e-6 and r[400:].max() <= sm.UNBOUNDED_REACH + 1e-4
+    assert np.median(r[400:]) > 1.5
+    # the cap holds for both halves
+    host, _ = sm.initial_host(dataclasses.replace(sc, init_points=400), unb, 300, 1)
+    assert len(host["means"]) <= 300
+    with pytest.raises(Unsupported, match="splat.init = 'points'.*sparse points"):
+        sm.initial_host(dataclasses.replace(sc, init="points"), ds, 1000, 1)
+
+
+@pytest.mark.parametrize("file_degree,degree", [(3, 1), (0, 2), (2, 2)])
+def test_initial_gaussians_from_a_splat_ply(tmp_path, file_degree, degree):
+    """init_ply: a splat file's Gaussians as written, its SH bands above sh_degree dropped and
+    missing ones zero; more Gaussians than the cap are refused."""
+    import dataclasses
+    from clrf.data import load_dataset
+    from clrf.splat.config import SplatConfig
+    from clrf.splat.ply import SplatFileError
+    g = _random_splats(9, file_degree, seed=4)
+    path = tmp_path / "start.ply"
+    write_splat_ply(path, **g)
+    sc = dataclasses.replace(SplatConfig.from_preset("tiny", sh_degree=degree),
+                             init_ply=str(path))
+    host, where = sm.initial_host(sc, load_dataset(None), cap=100, seed=0)
+    assert f"9 Gaussians of {path} (SH degree {file_degree})" == where
+    for k in ("means", "log_scales", "quats", "opacity_logits"):
+        np.testing.assert_array_equal(host[k], g[k])
+    nb, fb = (degree + 1) ** 2, (file_degree + 1) ** 2
+    k = min(nb, fb)
+    assert host["sh"].shape == (9, nb, 3)
+    np.testing.assert_array_equal(host["sh"][:, :k], g["sh"][:, :k])
+    assert not np.any(host["sh"][:, k:])
+    with pytest.raises(SplatFileError, match="9 Gaussians exceed the cap of 8"):
+        sm.initial_host(sc, load_dataset(None), cap=8, seed=0)
 
 
 def test_refuses_ndc_scenes(device):

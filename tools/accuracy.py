@@ -2,7 +2,7 @@
 
 Random grids (SH degrees 0-3, several shapes, 30% empty voxels), random rays around and inside
 the box, random backgrounds and steps; forward outputs and backward gradients against
-clrf.testing.reference. Prints a table and writes JSON with --json.
+clrf.references.reference. Prints a table and writes JSON with --json.
 
     python tools/accuracy.py [--trials 6] [--json out.json]
 """
@@ -15,7 +15,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import clrf  # noqa: E402
-from clrf.testing import reference as ref  # noqa: E402
+from clrf.references import reference as ref  # noqa: E402
 
 
 def main(argv=None):

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from clrf.testing import reference  # noqa: E402
+from clrf.references import reference  # noqa: E402
 from clrf.testing.benchmark import camera_rays  # noqa: E402,F401  (same view as `clrf bench`)
 
 BBOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

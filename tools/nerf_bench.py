@@ -228,8 +228,8 @@ def gpu_main(dev, args) -> dict:
         spec = GPU_CONFIGS[name]
         fwd_flop, fwdbwd_flop = spec.flops_per_sample()
         for tname in tnames:
-            d = {"device": dev, "gpu": dev.with_tuning(mlp_gpu=True),
-                 "cpu": dev.with_tuning(mlp_gpu=False)}.get(tname)
+            d = {"device": dev, "gpu": dev.with_tuning(gpu_kernels=True),
+                 "cpu": dev.with_tuning(gpu_kernels=False)}.get(tname)
             if d is None:
                 raise SystemExit(f"nerf_bench: --tilings with --gpu-sizes: device, gpu or cpu, "
                                  f"got {tname!r}")
@@ -282,7 +282,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     dev = clrf.Device()
     if args.force_gpu_kernels:
-        dev = dev.with_tuning(mlp_gpu=True)
+        dev = dev.with_tuning(gpu_kernels=True)
     if args.gpu_sizes:
         res = gpu_main(dev, args)
         if args.out:

@@ -14,7 +14,7 @@ class CliError(Exception):
 def user_errors() -> tuple:
     """The exceptions the CLI reports as bad input rather than as a crash."""
     from ..data.base import DataError
-    from ..interface import StateError, Unsupported
+    from ..interface import InputFileError, StateError, Unsupported
     from ..outputs.camera_path import CameraPathError
     from ..outputs.checkpoint import CheckpointError
     from ..outputs.export import ExportError
@@ -24,7 +24,8 @@ def user_errors() -> tuple:
     from ..training.perceptual import LpipsUnavailable
     from ..viewer.core import ViewerError
     return (CliError, ConfigError, DataError, CheckpointError, DeviceError, BuildError,
-            ExportError, CameraPathError, LpipsUnavailable, ViewerError, Unsupported, StateError)
+            ExportError, CameraPathError, LpipsUnavailable, ViewerError, Unsupported, StateError,
+            InputFileError)
 
 
 def out_dir(path) -> Path:

@@ -119,6 +119,8 @@ def cmd_train(a):
     n_views = len(ds.split["train"])
     n_views = min(n_views, cfg.train.max_train_images) if cfg.train.max_train_images else n_views
     n_rays = n_views * ds.hw[0] * ds.hw[1]
+    if kind.check is not None:
+        kind.check(cfg, ds, dev.caps)
     if comm is None:
         plan = check_training_fits(dev.caps, dev.is_cpu, cfg, n_rays, dev.tuning, host_budget())
         print(f"clrf: memory: {plan.describe()}", file=sys.stderr)

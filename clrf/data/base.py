@@ -33,6 +33,8 @@ class Dataset:
     preset: str = "synthetic"          # scene preset name (clrf.training.config)
     alpha: np.ndarray | None = None    # float32 [N, H, W]: coverage of RGBA captures (None: RGB);
     #                                    images = rgb * alpha + background * (1 - alpha)
+    points: np.ndarray | None = None   # float32 [P, 6]: a sparse point cloud of the scene (COLMAP's
+    #                                    points3D), xyz in the poses' frame and RGB in [0, 1]
 
     @property
     def hw(self):

@@ -198,18 +198,20 @@ def read_images(path: Path) -> dict:
     return out
 
 
-def read_points(path: Path):
-    """(xyz float64 [P, 3], {point id: row}) from points3D.txt or points3D.bin. Which images
-    see a point is read from images (their observations), so tracks are skipped."""
-    ids, xyz = [], []
+def read_points(path: Path, colours: bool = False):
+    """(xyz float64 [P, 3], {point id: row}) from points3D.txt or points3D.bin, and with
+    ``colours`` their RGB as float32 [P, 3] in [0, 1] third. Which images see a point is read
+    from images (their observations), so tracks are skipped."""
+    ids, xyz, rgb = [], [], []
     if path.suffix == ".bin":
         r = _Reader(path)
         (n,) = r.read("Q", "the point count")
         for i in range(n):
-            pid, x, y, z, _r, _g, _b, _err, tl = r.read("Q3d3BdQ", f"point {i}")
+            pid, x, y, z, cr, cg, cb, _err, tl = r.read("Q3d3BdQ", f"point {i}")
             r.read(f"{8 * tl}s", f"point {pid}'s track")
             ids.append(pid)
             xyz.append((x, y, z))
+            rgb.append((cr, cg, cb))
     else:
         for no, f in _text_lines(path):
             if not f:
@@ -219,12 +221,33 @@ def read_points(path: Path):
                                 f"TRACK..., got {' '.join(f)}; {MODEL_FIX}")
             ids.append(_numbers(f[:1], path, no, "the point", int)[0])
             xyz.append(_numbers(f[1:4], path, no, "the point"))
+            rgb.append(_numbers(f[4:7], path, no, "the point's colour"))
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     bad = np.flatnonzero(~np.isfinite(xyz).all(1))
     if bad.size:
         raise DataError(f"{path}: point {ids[bad[0]]} has non-finite coordinates "
                         f"{xyz[bad[0]].tolist()} ({bad.size} such points); {MODEL_FIX}")
-    return xyz, {p: i for i, p in enumerate(ids)}
+    row_of = {p: i for i, p in enumerate(ids)}
+    if not colours:
+        return xyz, row_of
+    rgb = np.clip(np.asarray(rgb, np.float64).reshape(-1, 3), 0, 255) / 255.0
+    return xyz, row_of, np.nan_to_num(rgb).astype(np.float32)
+
+
+def similarity(before, after):
+    """(s, R, t) with after = [s R | t] before for camera-to-world poses [N, 4, 4] moved by one
+    similarity (the capture normalisation): R from the rotations, s and t from the camera
+    centres by least squares (s = 1, t from the centres' means when they coincide)."""
+    b = np.asarray(before, np.float64)
+    a = np.asarray(after, np.float64)
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", a[:, :3, :3], b[:, :3, :3]))
+    R = u @ vt
+    cb, ca = b[:, :3, 3], a[:, :3, 3]
+    db, da = cb - cb.mean(0), ca - ca.mean(0)
+    rb = db @ R.T
+    den = float(np.sum(rb * rb))
+    s = float(np.sum(rb * da)) / den if den > 0 else 1.0
+    return s, R, ca.mean(0) - s * (R @ cb.mean(0))
 
 
 def _w2c(qt, path, where):
@@ -300,7 +323,7 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     cams = read_cameras(_model_file(model, "cameras"))
     ipath = _model_file(model, "images")
     records = read_images(ipath)
-    xyz, row_of = read_points(_model_file(model, "points3D"))
+    xyz, row_of, rgb = read_points(_model_file(model, "points3D"), colours=True)
     if not records:
         raise DataError(f"{ipath}: no registered images; COLMAP could not pose any photo: check "
                         f"the mapper's log and add photos with more overlap")
@@ -345,6 +368,8 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
 
     poses, kind = normalize_capture(c2w, bounds, kind, ipath,
                                     "depth bounds (from the points each image sees)")
+    s, R, t = similarity(c2w, poses)
+    points = np.concatenate([s * xyz @ R.T + t, rgb], 1).astype(np.float32)
     split = holdout_split(n, holdout)
     check_splits(split, ipath, f"use a holdout between 2 and {n}")
     keep, split = limit_split(split, max_images)
@@ -376,9 +401,10 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     dist = ref["dist"]
     poses = poses[keep].astype(np.float32)
     return Dataset(name=root.name, images=images, poses=poses, intrinsics=ref["intr"],
-                   split=split, background=bg, distortion=dist,
+                   split=split, background=bg, distortion=dist, points=points,
                    **scene_extent(kind, poses, ref["intr"], images.shape[1:3], dist))
 
 
 __all__ = ["load_colmap", "is_colmap", "read_cameras", "read_images", "read_points",
+           "similarity",
            "CAMERA_MODELS"]

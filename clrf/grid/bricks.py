@@ -16,7 +16,7 @@ to back with the over operator into the single-grid render; ``backward_inputs`` 
 brick what its remaining-radiance backward needs: T_b g and the radiance behind it. With early
 termination off (T_STOP 0, the bricks cannot know T in front of them), the composed render and
 gradients equal the single-grid ones up to float32 rounding (tests/test_bricks.py,
-tests/test_mpi.py). Float64 twin: clrf/testing/reference_bricks.py.
+tests/test_mpi.py). Float64 twin: clrf/references/reference_bricks.py.
 
 >>> bricks = split((64, 64, 32), 2)
 >>> [(b.lo, b.hi) for b in bricks]

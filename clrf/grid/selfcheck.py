@@ -12,7 +12,7 @@ the result:
   c (1 - exp(-sigma L)) + bg exp(-sigma L) exactly for the path length L in the box, and the
   sums over all voxels of the gradients are d/dsigma = L exp(-sigma L) (c - bg) . g and
   d/dc = (1 - exp(-sigma L)) g (the trilinear weights of every sample sum to one);
-- the float64 reference (clrf/testing/reference.py) on a random grid with many rays that share
+- the float64 reference (clrf/references/reference.py) on a random grid with many rays that share
   cells, so that the concurrent gradient adds (locks, scratch copies, atomics) are exercised.
 
 A path that fails is replaced by the float-atomic path when that one passes (with a warning);
@@ -32,7 +32,7 @@ from ..runtime.selfcheck import CheckResult, path_name  # noqa: F401 - re-export
 CHECK_VERSION = 1
 SOURCES = ("grid_render.cl", "march.h", "volrend.h", "common.h", "sh.h", "ray.h", "reduce.h")
 RTOL, ATOL = 2e-3, 2e-5      # float32 sums over a few hundred samples against float64
-COLOR_OFFSET = 0.5           # the kernels' colour: SH sum + 0.5 (clrf/testing/reference.py)
+COLOR_OFFSET = 0.5           # the kernels' colour: SH sum + 0.5 (clrf/references/reference.py)
 
 
 def _closed_form(device) -> str:
@@ -79,7 +79,7 @@ def _closed_form(device) -> str:
 
 def _reference(device) -> str:
     """'' when a random grid's gradients match the float64 reference, else why not."""
-    from ..testing import reference as ref
+    from ..references import reference as ref
     from .grid import SparseGrid
     from .render import render_rays_backward
     rng = np.random.default_rng(11)

@@ -29,8 +29,8 @@ def time_candidates(device, spec, tiles, n: int = 4096, rounds: int = 5) -> list
     d = cla.to_device(q, rng.random((n, spec.dir_dim), np.float32))
     ds = cla.to_device(q, rng.random(n, np.float32))
     dr = cla.to_device(q, rng.random((n, 3), np.float32))
-    if getattr(device.tuning, "mlp_gpu", False):   # the CPU tiles, also where the GPU tiling
-        device = device.with_tuning(mlp_gpu=False)  # is the default (clrf/mlp/tiling.py)
+    if getattr(device.tuning, "gpu_kernels", False):   # the CPU tiles, also where the GPU tiling
+        device = device.with_tuning(gpu_kernels=False)  # is the default (clrf/mlp/tiling.py)
     nets = [MLP(device, replace(spec, **tile_fields(t))) for t in tiles]
 
     def run(net):

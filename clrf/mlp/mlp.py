@@ -4,7 +4,7 @@ The parameter layout is defined once, in ``layer_desc`` of cl/mlp.cl; ``MLP.layo
 from the built program (the ``mlp_layout`` kernel), so host and kernels cannot disagree. So is
 the register tile (rows and columns per work-item): the host's work split reads it back too.
 The tile comes from the MLPSpec fields that are set, else the autotuner's cache, else the
-device's default (clrf/mlp/autotune.py). Devices whose tuning has ``mlp_gpu`` (GPUs;
+device's default (clrf/mlp/autotune.py). Devices whose tuning has ``gpu_kernels`` (GPUs;
 ``CLRF_FORCE_GPU_KERNELS=1`` anywhere) run the GPU tiling instead (cl/mlp_gpu.h, MLP_GPU=1;
 clrf/mlp/tiling.py): one launch of work-groups of GPU_BM samples per pass, the same
 parameter and scratch layouts, and a weight gradient whose chunk the host picks per batch.

@@ -46,7 +46,7 @@ written atomically; an unreadable or malformed file is ignored (and replaced on 
 
 GPU tiling. The register tiles above are CPU-shaped: one work-item per tile, no local memory.
 On an NVIDIA H100 they reached 0.8 % of the FP32 FMA peak. Devices whose tuning has
-``mlp_gpu`` (clrf/runtime/tuning.py: GPU devices, or any device with
+``gpu_kernels`` (clrf/runtime/tuning.py: GPU devices, or any device with
 ``CLRF_FORCE_GPU_KERNELS=1``; ``=0`` keeps the CPU tiles on a GPU) build cl/mlp.cl with
 ``MLP_GPU=1`` instead (cl/mlp_gpu.h): a work-group of ``GPUTiling.wg`` work-items runs a block
 of samples through every layer with the block's activations in local memory. ``gpu_default``
@@ -236,13 +236,13 @@ def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = 
 def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
     """The tile an MLP of ``spec`` uses on ``device``: MLPSpec fields that are set, then the
     tuned cache entry, then the device default. dw_chunk, when not set anywhere, is
-    CHUNK_TILES * rows. Where the device's tuning asks for the GPU tiling (``mlp_gpu``), the
+    CHUNK_TILES * rows. Where the device's tuning asks for the GPU tiling (``gpu_kernels``), the
     result carries ``gpu_default`` (with MLPSpec.dw_chunk as its chunk, when set)."""
     base = cached_tiling(device.caps, spec, path) or device_default(device.caps, spec)
     chosen = {k: getattr(spec, k) for k in TILE_FIELDS if getattr(spec, k) is not None}
     if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
         chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
     tiling = replace(base, **chosen)
-    if getattr(getattr(device, "tuning", None), "mlp_gpu", False):
+    if getattr(getattr(device, "tuning", None), "gpu_kernels", False):
         tiling = replace(tiling, gpu=gpu_default(device.caps, spec.dw_chunk))
     return tiling

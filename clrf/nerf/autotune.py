@@ -63,7 +63,7 @@ def main(argv=None) -> int:
         print(f"{mark} rows {t.rows:2d} cols {t.cols} dw_rows {t.dw_rows:2d} dw_cols {t.dw_cols} "
               f"dw_chunk {t.dw_chunk:4d}: fwd+bwd {s * 1e3:8.2f} ms  {flop / s / 1e9:7.1f} GFLOP/s")
     print(f"cached in {cache_path()}")
-    if dev.tuning.mlp_gpu:
+    if dev.tuning.gpu_kernels:
         print("note: this device runs the fused MLP's GPU tiling, which takes its sizes from the "
               "device; the tuned CPU tile is used with CLRF_FORCE_GPU_KERNELS=0")
     return 0

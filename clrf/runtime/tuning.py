@@ -17,8 +17,9 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_RAY_ORDER             ray_order (0 = render rays in the order given)
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
   CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print the raw compiler logs)
-  CLRF_FORCE_GPU_KERNELS     mlp_gpu (1: the fused MLP's GPU tiling on any device, e.g. to test
-                             it on PoCL or Oclgrind; 0: its CPU tiles, also on a GPU)
+  CLRF_FORCE_GPU_KERNELS     gpu_kernels (1: the GPU-shaped kernels on any device, e.g. to test
+                             them on PoCL or Oclgrind: the fused MLP's GPU tiling and the splat
+                             rasteriser's work-group per tile; 0: the CPU shapes, also on a GPU)
 
 >>> t = Tuning.for_device(dev.caps)
 >>> gpu_path = t.replace(grad_slots=0, sample_record=False)
@@ -84,7 +85,7 @@ ENV = {
     "CLRF_RAY_ORDER": ("ray_order", int),
     "CLRF_FAST_MATH": ("fast_math", lambda v: v != "0"),
     "CLRF_VERBOSE_BUILD": ("verbose_build", lambda v: v != "0"),
-    "CLRF_FORCE_GPU_KERNELS": ("mlp_gpu", lambda v: v != "0"),
+    "CLRF_FORCE_GPU_KERNELS": ("gpu_kernels", lambda v: v != "0"),
 }
 
 
@@ -126,9 +127,12 @@ class Tuning:
     #                                consecutive rays share cached rows
     reduce_local_size: int = 64    # work-items (of 16 rows each) per group of grad_slots_reduce
     mlp_fused_local_size: int = 1  # work-items per group of the fused MLP kernels (big tiles)
-    mlp_gpu: bool = False          # the fused MLP's GPU tiling (cl/mlp_gpu.h: work-groups of
-    #                                samples in local memory; clrf/mlp/tiling.py) instead of its
-    #                                CPU register tiles; default: GPU devices
+    gpu_kernels: bool = False      # the GPU shapes instead of the CPU ones (default: GPU
+    #                                devices): the fused MLP's work-groups of samples in local
+    #                                memory (cl/mlp_gpu.h, clrf/mlp/tiling.py) instead of its
+    #                                register tiles; the splat rasteriser's TILE x TILE
+    #                                work-group per tile instead of one vectorised work-item per
+    #                                tile (cl/splat_raster.cl)
     elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group
     per_ray_local_size: int = 16   # one ray per work-item with a loop over its samples
     encode_local_size: int = 8     # encode_forward: explicitly vectorised items (16 points)
@@ -148,7 +152,7 @@ class Tuning:
         slots = cpu and getattr(caps, "acq_rel", False)
         t = cls(grad_slots=caps.compute_units if slots else 0, sample_record=slots,
                 grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
-                ray_order=RAY_ORDER_MIN_RAYS if cpu else 0, mlp_gpu=caps.type == "gpu")
+                ray_order=RAY_ORDER_MIN_RAYS if cpu else 0, gpu_kernels=caps.type == "gpu")
         impl = implementation(getattr(caps, "platform", ""))
         return t.replace(**(IMPLEMENTATIONS.get(impl, {}) if cpu else {}))
 

@@ -1,6 +1,8 @@
 """Memory estimate of a Gaussian-splatting run: per Gaussian its parameters with gradient and
 two Adam moments, the projected splats and their gradients, the (tile, Gaussian) pairs and the
-sort's copies of them; per pixel the image, its gradient and the rasteriser's per-pixel state."""
+sort's copies of them; per pixel of a view the image, its gradient, the rasteriser's per-pixel
+state and the device loss's planes; per training pixel its target (the training images live on
+the device)."""
 from __future__ import annotations
 
 from ..runtime.memory import StageEstimate
@@ -13,7 +15,9 @@ PAIRS_PER_GAUSSIAN = 16     # tiles a Gaussian covers on average (a guess on the
 PAIR_BYTES = 8 + 4          # uint64 key + int32 id
 SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
 DENSIFY_FLOATS = 4          # accumulated gradient norm, view count, max screen radius, spare
-PIXEL_BYTES = 4 * (3 + 3 + 1 + 1 + 3)   # rgb, its gradient, T, n_contrib, the target
+LOSS_PLANE_BYTES = 10 * 12  # clrf/splat/loss.py: 9 scratch planes and the gradient, float3
+PIXEL_BYTES = 4 * (3 + 3 + 1 + 1) + LOSS_PLANE_BYTES   # rgb, its gradient, T, n_contrib, loss
+TARGET_BYTES = 4 * 3        # a training pixel on the device
 
 
 def bytes_per_gaussian(sh_degree: int) -> int:
@@ -22,11 +26,12 @@ def bytes_per_gaussian(sh_degree: int) -> int:
             + SORT_COPIES * PAIRS_PER_GAUSSIAN * PAIR_BYTES)
 
 
-def splat_stage(sc, n_gaussians: int, n_pixels: int) -> StageEstimate:
-    """StageEstimate of a splatting run of SplatConfig ``sc`` at ``n_gaussians`` Gaussians and
-    views of ``n_pixels`` pixels."""
+def splat_stage(sc, n_gaussians: int, n_pixels: int, train_pixels: int = 0) -> StageEstimate:
+    """StageEstimate of a splatting run of SplatConfig ``sc`` at ``n_gaussians`` Gaussians,
+    views of ``n_pixels`` pixels and ``train_pixels`` pixels of training images."""
     n = int(n_gaussians)
-    total = n * bytes_per_gaussian(sc.sh_degree) + PIXEL_BYTES * int(n_pixels)
+    total = (n * bytes_per_gaussian(sc.sh_degree) + PIXEL_BYTES * int(n_pixels)
+             + TARGET_BYTES * int(train_pixels))
     sh = 4 * n * 3 * (sc.sh_degree + 1) ** 2
     pairs = n * PAIRS_PER_GAUSSIAN * PAIR_BYTES
     largest, what = max((sh, "SH coefficients"), (pairs, "sorted (tile, Gaussian) pairs"))
@@ -34,10 +39,12 @@ def splat_stage(sc, n_gaussians: int, n_pixels: int) -> StageEstimate:
                          largest, what)
 
 
-def fitting_gaussians(sc, caps, n_pixels: int, share: float = 0.5) -> int:
-    """How many Gaussians fit in ``share`` of the device's memory (and its largest buffer)."""
+def fitting_gaussians(sc, caps, n_pixels: int, share: float = 0.5, train_pixels: int = 0) -> int:
+    """How many Gaussians fit in ``share`` of the device's memory (and its largest buffer)
+    beside views of ``n_pixels`` pixels and ``train_pixels`` pixels of training images."""
     per = bytes_per_gaussian(sc.sh_degree)
-    room = int(share * caps.global_mem_size) - PIXEL_BYTES * int(n_pixels)
+    room = (int(share * caps.global_mem_size) - PIXEL_BYTES * int(n_pixels)
+            - TARGET_BYTES * int(train_pixels))
     by_total = max(1, room // per)
     by_alloc = max(1, int(caps.max_alloc_size) // (PAIRS_PER_GAUSSIAN * PAIR_BYTES))
     return int(min(by_total, by_alloc))
@@ -51,8 +58,9 @@ def memory(cfg, n_rays: int, caps, tuning=None, is_cpu: bool = True):
     """(stages, fix) of cfg.splat's run: the cap of Gaussians, views of the dataset's size
     (``n_rays`` over all training views bounds one view's pixels)."""
     sc = cfg.splat
-    n = min(sc.max_gaussians, fitting_gaussians(sc, caps, 0)) if caps is not None \
-        else sc.max_gaussians
-    # the images stay on the host and one view at a time is on the device; n_rays (every
-    # training pixel) bounds a view's pixels, and so does a 2048 x 2048 view here
-    return [splat_stage(sc, n, min(int(n_rays), 1 << 22))], SPLAT_FIX
+    view = min(int(n_rays), 1 << 22)
+    n = min(sc.max_gaussians, fitting_gaussians(sc, caps, view, train_pixels=n_rays)) \
+        if caps is not None else sc.max_gaussians
+    # n_rays (every training pixel: the images on the device) bounds a view's pixels, and so
+    # does a 2048 x 2048 view here
+    return [splat_stage(sc, n, view, int(n_rays))], SPLAT_FIX

@@ -22,9 +22,18 @@ class SplatConfig:
     preset: str = "full"            # the preset these values start from: "full" | "tiny"
     sh_degree: int = 3              # spherical-harmonics degree of the colours, 0..3
     #                                 (published: 3); raised from 0 in steps (sh_increase_every)
-    init_points: int = 100000       # random Gaussians placed uniformly in the scene's box at
-    #                                 the start (no sparse points are used); capped by
-    #                                 max_gaussians and by what fits the device
+    init: str = "auto"              # where the first Gaussians come from: "points" (the
+    #                                 capture's sparse points, COLMAP's points3D, with their
+    #                                 colours), "random" (init_points uniform in the scene's
+    #                                 box, and for unbounded scenes as many again beyond it),
+    #                                 "auto" (points when the dataset has them, else random)
+    init_ply: str = ""              # a splat PLY to start from instead (clrf export --splats,
+    #                                 or the 3DGS tools' point_cloud.ply, in the dataset's
+    #                                 world frame): its SH bands beyond sh_degree are dropped,
+    #                                 missing ones start at zero; "" : use init
+    init_points: int = 100000       # random Gaussians at the start (init "random"); with
+    #                                 "points" the sparse points are subsampled to this many;
+    #                                 capped by max_gaussians and by what fits the device
     max_gaussians: int = 1000000    # hard cap on the number of Gaussians (densification stops
     #                                 adding at it); also lowered to what fits the device
     lr_position: float = 1.6e-4     # Adam learning rate of the means at the start, times the
@@ -91,6 +100,7 @@ class SplatConfig:
             (self.preset in SPLAT_PRESETS, "splat.preset",
              f"must be one of {sorted(SPLAT_PRESETS)}"),
             (self.sh_degree in (0, 1, 2, 3), "splat.sh_degree", "must be 0, 1, 2 or 3"),
+            (self.init in INIT_MODES, "splat.init", f"must be one of {list(INIT_MODES)}"),
             (1 <= self.init_points <= 1 << 24, "splat.init_points", "must be in 1..16777216"),
             (1 <= self.max_gaussians <= 1 << 26, "splat.max_gaussians",
              "must be in 1..67108864"),
@@ -121,6 +131,8 @@ class SplatConfig:
             (self.seed >= 0, "splat.seed", "must be >= 0"),
         ]
 
+
+INIT_MODES = ("auto", "points", "random")
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).
 SPLAT_PRESETS = {

@@ -18,6 +18,11 @@ def create(device, cfg, ds, background):
     return create_model(device, cfg, ds, background)
 
 
+def check(cfg, ds, caps):
+    from .model import check_inputs
+    check_inputs(cfg, ds, caps)
+
+
 def from_state(device, state, cfg):
     from .model import model_from_state
     return model_from_state(device, state, cfg)
@@ -35,4 +40,4 @@ SPLATS = Export(help="3D Gaussian splats in the standard 3DGS PLY layout (x, y, 
 KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole views)",
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
-            exports={"splats": SPLATS}, batches="views")
+            exports={"splats": SPLATS}, batches="views", check=check)

@@ -7,10 +7,10 @@ the projection's backward and one Adam update per parameter group (means, log sc
 quaternions, opacity logits: clrf/runtime/optim.py; SH coefficients: cl/splat_train.cl, which
 gives degree 0 and the higher bands their own rates and leaves the inactive bands alone).
 
-The SSIM term and its gradient are computed on the HOST, in numpy float32 with
-scipy.ndimage's Gaussian filter (11 x 11 window, sigma 1.5, zero padding): each step reads the
-rendered image back and uploads dL/drgb. For small views that costs little beside the
-rasteriser; a device kernel pair would remove the two image transfers.
+The loss and dL/drgb are computed on the device (clrf/splat/loss.py, cl/splat_loss.cl: an
+11 x 11 Gaussian window, sigma 1.5, zero padding); the training images are uploaded once, so a
+step moves no image between host and device and reads back the one pair count of the binning.
+The loss statistics are read when the trainer asks for the step's error.
 
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
 densification (clone small / split large Gaussians whose mean screen-space gradient is high,
@@ -28,13 +28,10 @@ from ..interface import Budget, StateError, Unsupported
 from ..runtime.optim import Optimizer, expon_lr
 from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
+from .loss import DeviceLoss
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer
 
 SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
-SSIM_SIGMA = 1.5
-SSIM_RADIUS = 5                 # 11 x 11 window
-SSIM_C1 = 0.01 ** 2
-SSIM_C2 = 0.03 ** 2
 INIT_OPACITY = 0.1
 RESET_OPACITY = 0.01
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -64,55 +61,6 @@ def camera_of(c2w, intrinsics, hw) -> SplatCamera:
     return SplatCamera(viewmat_of(c2w), fx, fy, cx, cy, int(hw[1]), int(hw[0]), CAMERA_NEAR)
 
 
-# ---- SSIM (host, float32) -------------------------------------------------------------------
-def _blur(x):
-    from scipy.ndimage import gaussian_filter
-    return gaussian_filter(x, sigma=(SSIM_SIGMA, SSIM_SIGMA, 0), mode="constant", cval=0.0,
-                           truncate=SSIM_RADIUS / SSIM_SIGMA)
-
-
-def ssim_and_grad(x, y, need_grad=True):
-    """Mean SSIM of images x, y [H, W, C] (Gaussian 11 x 11 window, sigma 1.5, zero padding,
-    every pixel and channel averaged) and its gradient with respect to x. The Gaussian filter
-    with zero padding is self-adjoint, so the backward filters the per-pixel partials again."""
-    x = np.asarray(x, np.float32)
-    y = np.asarray(y, np.float32)
-    mx, my = _blur(x), _blur(y)
-    sxx = _blur(x * x) - mx * mx
-    syy = _blur(y * y) - my * my
-    sxy = _blur(x * y) - mx * my
-    a1 = 2 * mx * my + SSIM_C1
-    a2 = 2 * sxy + SSIM_C2
-    b1 = mx * mx + my * my + SSIM_C1
-    b2 = sxx + syy + SSIM_C2
-    s = (a1 * a2) / (b1 * b2)
-    value = float(np.mean(s, dtype=np.float64))
-    if not need_grad:
-        return value, None
-    inv = np.float32(1.0 / s.size)
-    d_mx = (2 * my * a2) / (b1 * b2) - s * (2 * mx) / b1     # partials of s
-    d_sxx = -s / b2
-    d_sxy = 2 * a1 / (b1 * b2)
-    # sxx = blur(x^2) - mx^2 and sxy = blur(xy) - mx my: the chain through mx
-    a = (d_mx - 2 * mx * d_sxx - my * d_sxy) * inv
-    grad = _blur(a) + 2 * x * _blur(d_sxx * inv) + y * _blur(d_sxy * inv)
-    return value, grad.astype(np.float32)
-
-
-def loss_and_grad(rgb, target, lam):
-    """((1 - lam) L1 + lam (1 - SSIM), its gradient [H, W, 3], the MSE) of a render."""
-    diff = rgb - target
-    n = diff.size
-    l1 = float(np.mean(np.abs(diff), dtype=np.float64))
-    grad = np.sign(diff).astype(np.float32) * np.float32((1.0 - lam) / n)
-    ssim = 1.0
-    if lam > 0:
-        ssim, g = ssim_and_grad(rgb, target)
-        grad -= np.float32(lam) * g
-    mse = float(np.mean(diff.astype(np.float64) ** 2))
-    return (1 - lam) * l1 + lam * (1 - ssim), grad, mse
-
-
 # ---- the model ------------------------------------------------------------------------------
 GROUPS = ("means", "log_scales", "quats", "opacity_logits")   # Adam from clrf/runtime/optim.py
 
@@ -139,6 +87,8 @@ class SplatModel:
         self.last_densify = 0          # the iteration of the last densification (0: none)
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
+        self._loss_fn = None           # DeviceLoss for the views' size
+        self._targets = None           # view -> its training image on the device
         self.train_views = None
         self.hw = None
         self._set_host(host)
@@ -192,6 +142,7 @@ class SplatModel:
         if len(views) == 0:
             raise ValueError(f"dataset {ds.name}: no training views")
         self._ds, self.train_views, self.hw = ds, views, tuple(int(v) for v in ds.hw)
+        self._loss_fn = self._targets = None
 
     def _dataset(self):
         if self._ds is None:
@@ -226,11 +177,8 @@ class SplatModel:
         cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
         bg = self.background
         proj, bins, ras = self.rast.forward(self.params, cam, bg)
-        rgb = download(ras.rgb)
-        gt = np.asarray(ds.images[v], np.float32)
-        _, grad, mse = loss_and_grad(rgb, gt, self.config.lambda_dssim)
-        q = self.device.queue
-        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, upload(q, grad), bg)
+        grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
+        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg)
         grads = self.rast.project_backward(self.params, cam, g2d)
         prg = self.device.program("splat_train.cl")
         launch(self.device, prg.kernel("splat_densify_stats"), self.n,
@@ -254,7 +202,22 @@ class SplatModel:
                 np.float32(b1), np.float32(b2), np.float32(c.adam_eps),
                 np.float32(1 - b1 ** t), np.float32(1 - b2 ** t), np.int32(self.n_basis),
                 np.int32((self.active_degree + 1) ** 2)))
-        return mse
+        return self._loss_fn.read(stats)["mse"]
+
+    def _loss(self) -> DeviceLoss:
+        """The device loss for the training views' size (built on first use)."""
+        if self._loss_fn is None:
+            self._loss_fn = DeviceLoss(self.device, self.hw[0], self.hw[1],
+                                       self.config.lambda_dssim)
+        return self._loss_fn
+
+    def _target(self, v: int):
+        """Training image v on the device (all of them uploaded at the first step)."""
+        if self._targets is None:
+            ds, q = self._dataset(), self.device.queue
+            self._targets = {int(k): upload(q, np.ascontiguousarray(ds.images[k], np.float32))
+                             for k in self.train_views}
+        return self._targets[int(v)]
 
     def on_iteration(self, it: int, budget: Budget):
         """Schedules from the budget fraction: the means' rate, the SH degree, densification,
@@ -385,8 +348,12 @@ class SplatModel:
         raise NotExportable("a splat model has no density field to mesh: --mesh does not "
                             "apply; export the Gaussians with --splats FILE.ply")
 
+    initialised_from = ""   # create_model: where the first Gaussians came from
+
     def describe(self) -> str:
-        return f"{self.n} Gaussians, SH degree {self.active_degree}"
+        start = f" (from {self.initialised_from})" if self.step == 0 and \
+            self.initialised_from else ""
+        return f"{self.n} Gaussians, SH degree {self.active_degree}{start}"
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -451,23 +418,23 @@ def scene_extent(ds) -> float:
     return 1.1 * r if r > 0 else float(np.linalg.norm(np.subtract(*ds.bbox)))
 
 
-def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int) -> dict:
-    """n Gaussians uniform in ``bbox`` [2, 3]: random colours (degree 0 only), isotropic scales
-    from the mean squared distance to the 3 nearest neighbours, opacity 0.1, no rotation."""
+def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
+    """Gaussians at ``means`` [n, 3] with colours ``rgb`` [n, 3] in [0, 1] (degree 0 only):
+    isotropic scales from the mean squared distance to the 3 nearest neighbours, opacity 0.1,
+    no rotation (the published initialisation)."""
     from scipy.spatial import cKDTree
-    rng = np.random.default_rng((seed, 1))
-    lo, hi = np.asarray(bbox, np.float64)
-    means = rng.uniform(lo, hi, (n, 3))
+    means = np.asarray(means, np.float64)
+    n = len(means)
     k = min(4, n)
     if k > 1:
         d, _ = cKDTree(means).query(means, k=k)
         d2 = np.mean(d[:, 1:] ** 2, axis=1)
     else:
-        d2 = np.full(n, float(np.prod(hi - lo)) ** (2 / 3))
+        d2 = np.full(n, 1e-2)
     log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)))
     nb = (config.sh_degree + 1) ** 2
     sh = np.zeros((n, nb, 3), np.float32)
-    sh[:, 0, :] = (rng.uniform(0, 1, (n, 3)) - 0.5) / SH_C0
+    sh[:, 0, :] = (np.asarray(rgb, np.float64) - 0.5) / SH_C0
     quats = np.zeros((n, 4), np.float32)
     quats[:, 0] = 1
     return {"means": means.astype(np.float32),
@@ -476,19 +443,122 @@ def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int) -> dict:
             "sh": sh}
 
 
-def create_model(device, cfg, ds, background) -> SplatModel:
-    """A new model for dataset ``ds`` (world-space cameras only)."""
+def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int, outer: float = 0.0) -> dict:
+    """n Gaussians uniform in ``bbox`` [2, 3] with random colours; with ``outer`` > 1 (an
+    unbounded scene whose cameras sit in the box), as many again beyond the box, out to
+    ``outer`` times its half-size from its centre: directions uniform and distances uniform in
+    1 / r, so that each shell the cameras see at a similar angular size holds a similar
+    number (what the far background needs)."""
+    rng = np.random.default_rng((seed, 1))
+    lo, hi = np.asarray(bbox, np.float64)
+    means = rng.uniform(lo, hi, (n, 3))
+    if outer > 1.0:
+        centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        d = rng.normal(size=(n, 3))
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        r = 1.0 / rng.uniform(1.0 / outer, 1.0, n)
+        means = np.concatenate([means, centre + d * (r[:, None] * half.max())])
+    return _gaussians_at(config, means, rng.uniform(0, 1, (len(means), 3)), rng)
+
+
+def gaussians_from_points(config: SplatConfig, points, n: int, seed: int) -> dict:
+    """Gaussians at a capture's sparse points [P, 6] (xyz, RGB in [0, 1]), a seeded random
+    subset of n when there are more."""
+    rng = np.random.default_rng((seed, 2))
+    pts = np.asarray(points, np.float64)
+    if len(pts) > n:
+        pts = pts[np.sort(rng.choice(len(pts), n, replace=False))]
+    return _gaussians_at(config, pts[:, :3], np.clip(pts[:, 3:6], 0, 1), rng)
+
+
+def gaussians_from_ply(sc: SplatConfig, path, cap: int) -> tuple[dict, str]:
+    """(the Gaussians of splat PLY ``path`` at sh_degree, where they came from); more than
+    ``cap`` of them is refused (SplatFileError, a bad input) with the fix."""
+    from .ply import SplatFileError, read_splat_ply
+    g = read_splat_ply(path)
+    n = len(g["means"])
+    if n == 0:
+        raise SplatFileError(f"{path}: holds no Gaussians; pass a splat file with some, or "
+                             f"leave splat.init_ply empty")
+    if n > cap:
+        raise SplatFileError(f"{path}: {n} Gaussians exceed the cap of {cap} (splat."
+                             f"max_gaussians and what fits this device's memory); raise "
+                             f"splat.max_gaussians if it is lower, or train on a device with "
+                             f"more memory, or thin the file")
+    nb = (sc.sh_degree + 1) ** 2
+    sh = np.zeros((n, nb, 3), np.float32)
+    k = min(nb, g["sh"].shape[1])
+    sh[:, :k] = g["sh"][:, :k]
+    degree = int(round(g["sh"].shape[1] ** 0.5)) - 1
+    host = {"means": g["means"], "log_scales": g["log_scales"], "quats": g["quats"],
+            "opacity_logits": g["opacity_logits"], "sh": sh}
+    return ({k_: np.ascontiguousarray(v, np.float32) for k_, v in host.items()},
+            f"{n} Gaussians of {path} (SH degree {degree})")
+
+
+UNBOUNDED_REACH = 16.0   # random init of unbounded scenes: out to 16 box half-sizes
+
+
+def initial_host(sc: SplatConfig, ds, cap: int, seed: int) -> tuple[dict, str]:
+    """(the first Gaussians of a run on dataset ``ds`` under the cap, where they came from)."""
+    if sc.init_ply:
+        return gaussians_from_ply(sc, sc.init_ply, cap)
+    points = getattr(ds, "points", None)
+    has_points = points is not None and len(points) > 0
+    if sc.init == "points" and not has_points:
+        raise Unsupported(f"dataset {ds.name}: splat.init = 'points' but it has no sparse "
+                          f"points (COLMAP's sparse/0/points3D); use splat.init = 'random' "
+                          f"or 'auto', or pose the photos with `clrf process`")
+    if sc.init != "random" and has_points:
+        n = max(1, min(len(points), sc.init_points, cap))
+        return (gaussians_from_points(sc, points, n, seed),
+                f"{n} of the capture's {len(points)} sparse points")
+    unbounded = getattr(ds, "preset", "") == "real360"
+    n = max(1, min(sc.init_points, cap // 2 if unbounded else cap))
+    host = initial_gaussians(sc, n, ds.bbox, seed, UNBOUNDED_REACH if unbounded else 0.0)
+    where = f"{n} random in the scene box" + (f" and {n} beyond it" if unbounded else "")
+    return host, where
+
+
+def gaussian_cap(cfg, ds, caps) -> int:
+    """The most Gaussians a run on ``ds`` may hold: splat.max_gaussians, and what fits the
+    device beside the training images and a view's buffers."""
     from .budget import fitting_gaussians
+    sc = cfg.splat
+    n_views = len(ds.split["train"])
+    if cfg.train.max_train_images:
+        n_views = min(n_views, int(cfg.train.max_train_images))
+    px = int(ds.hw[0]) * int(ds.hw[1])
+    return min(sc.max_gaussians, fitting_gaussians(sc, caps, px, train_pixels=n_views * px))
+
+
+def check_inputs(cfg, ds, caps):
+    """A new run's inputs, before anything is planned or written (Kind.check): world-space
+    cameras, sparse points where splat.init asks for them, a readable splat.init_ply under the
+    cap. Raises Unsupported or SplatFileError (bad input)."""
     if ds.ndc:
         raise Unsupported(f"dataset {ds.name}: the splat model needs world-space cameras; this "
                           f"forward-facing scene is trained in NDC, which it does not support: "
                           f"use --model grid, nerf or hash for it")
     sc = cfg.splat
-    cap = min(sc.max_gaussians, fitting_gaussians(sc, device.caps, ds.hw[0] * ds.hw[1]))
-    n = max(1, min(sc.init_points, cap))
+    points = getattr(ds, "points", None)
+    if not sc.init_ply and sc.init == "points" and (points is None or len(points) == 0):
+        raise Unsupported(f"dataset {ds.name}: splat.init = 'points' but it has no sparse "
+                          f"points (COLMAP's sparse/0/points3D); use splat.init = 'random' "
+                          f"or 'auto', or pose the photos with `clrf process`")
+    if sc.init_ply:
+        gaussians_from_ply(sc, sc.init_ply, gaussian_cap(cfg, ds, caps))
+
+
+def create_model(device, cfg, ds, background) -> SplatModel:
+    """A new model for dataset ``ds`` (world-space cameras only)."""
+    check_inputs(cfg, ds, device.caps)
+    sc = cfg.splat
+    cap = gaussian_cap(cfg, ds, device.caps)
     seed = int(cfg.train.seed) + int(sc.seed)
-    host = initial_gaussians(sc, n, ds.bbox, seed)
+    host, m_from = initial_host(sc, ds, cap, seed)
     m = SplatModel(device, sc, host, background, scene_extent(ds), ds.bbox, seed, cap)
+    m.initialised_from = m_from
     m.attach(ds, cfg.train.max_train_images)
     return m
 
@@ -507,5 +577,4 @@ def write_splats(model: SplatModel, path) -> str:
     return f"saved {path}: {n} Gaussians, SH degree {model.config.sh_degree}"
 
 
-__all__ = ["SplatModel", "create_model", "model_from_state", "write_splats", "ssim_and_grad",
-           "loss_and_grad"]
+__all__ = ["SplatModel", "create_model", "model_from_state", "write_splats"]

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..interface import InputFileError
+
 
 def property_names(n_basis: int) -> list:
     """The vertex properties, in file order, of splats with ``n_basis`` SH coefficients."""
@@ -67,30 +69,84 @@ def write_splat_ply(path, means, log_scales, quats, opacity_logits, sh):
     return n
 
 
+REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+            "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+PLY_FIX = ("re-export it with `clrf export --splats FILE.ply`, or use the point_cloud.ply the 3D "
+           "Gaussian Splatting tools write")
+
+
+class SplatFileError(InputFileError):
+    """A splat PLY that cannot be read: the message names the file, what is wrong and the fix."""
+
+
 def read_splat_ply(path) -> dict:
     """The arrays of a splat PLY (float32 vertex properties in any order, as
     :func:`write_splat_ply` and the 3DGS tools write them): means, log_scales, quats,
-    opacity_logits, sh [n, B, 3], and ``names`` (the properties in file order)."""
-    data = Path(path).read_bytes()
+    opacity_logits, sh [n, B, 3], and ``names`` (the properties in file order). Other float
+    properties (normals) are ignored; a missing property, another format or property type, a
+    truncated file, a non-square number of SH coefficients or a non-finite value raise
+    SplatFileError naming the file and the property."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise SplatFileError(f"{path}: cannot read the splat file ({e.strerror or e}); pass "
+                             f"the path of a splat PLY") from None
+    if not data.startswith(b"ply\n") or b"end_header\n" not in data[:1 << 16]:
+        raise SplatFileError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header); "
+                             f"{PLY_FIX}")
     end = data.index(b"end_header\n") + len(b"end_header\n")
-    n, names = 0, []
-    for line in data[:end].decode("ascii").splitlines():
+    n, names, element = 0, [], None
+    for line in data[:end].decode("ascii", "replace").splitlines():
         parts = line.split()
-        if parts[:2] == ["format", "binary_little_endian"]:
+        if not parts or parts[0] in ("ply", "comment", "obj_info", "end_header"):
             continue
-        if parts[:1] == ["format"]:
-            raise ValueError(f"{path}: only binary_little_endian splat files are read")
-        if parts[:1] == ["element"]:
-            if parts[1] != "vertex":
-                raise ValueError(f"{path}: unexpected element {parts[1]!r}")
-            n = int(parts[2])
-        elif parts[:1] == ["property"]:
-            if parts[1] != "float":
-                raise ValueError(f"{path}: property {parts[-1]} is {parts[1]}, expected float")
+        if parts[0] == "format":
+            if parts[1:2] != ["binary_little_endian"]:
+                raise SplatFileError(f"{path}: format {' '.join(parts[1:])}: only "
+                                     f"binary_little_endian splat files are read; {PLY_FIX}")
+        elif parts[0] == "element":
+            element = parts[1] if len(parts) > 1 else None
+            if element != "vertex":
+                raise SplatFileError(f"{path}: element {element!r}: a splat file has one "
+                                     f"'vertex' element; {PLY_FIX}")
+            try:
+                n = int(parts[2])
+            except (IndexError, ValueError):
+                raise SplatFileError(f"{path}: bad line {line!r}: expected 'element vertex "
+                                     f"COUNT'") from None
+        elif parts[0] == "property":
+            if len(parts) != 3 or parts[1] != "float":
+                raise SplatFileError(f"{path}: property {parts[-1]} is "
+                                     f"{' '.join(parts[1:-1])}, expected float; {PLY_FIX}")
             names.append(parts[2])
-    v = np.frombuffer(data, np.dtype([(k, "<f4") for k in names]), n, end)
+    missing = [k for k in REQUIRED if k not in names]
+    if missing:
+        raise SplatFileError(f"{path}: vertex properties {', '.join(missing)} missing (a splat "
+                             f"needs x y z, f_dc_0..2, opacity, scale_0..2, rot_0..3); "
+                             f"{PLY_FIX}")
+    dtype = np.dtype([(k, "<f4") for k in names])
+    if len(data) - end < n * dtype.itemsize:
+        raise SplatFileError(f"{path}: truncated: {n} vertices of {dtype.itemsize} bytes need "
+                             f"{n * dtype.itemsize} bytes after the header, the file has "
+                             f"{len(data) - end}; {PLY_FIX}")
+    v = np.frombuffer(data, dtype, n, end)
     n_rest = sum(k.startswith("f_rest_") for k in names)
     B = 1 + n_rest // 3
+    if n_rest % 3 or B not in (1, 4, 9, 16):
+        raise SplatFileError(f"{path}: {n_rest} f_rest_* properties: expected 0, 9, 24 or 45 "
+                             f"(SH degree 0..3); {PLY_FIX}")
+    want = [f"f_rest_{i}" for i in range(n_rest)]
+    gaps = [k for k in want if k not in names]
+    if gaps:
+        raise SplatFileError(f"{path}: vertex properties {', '.join(gaps[:5])} missing; "
+                             f"{PLY_FIX}")
+    for k in REQUIRED + want:
+        bad = np.flatnonzero(~np.isfinite(v[k]))
+        if bad.size:
+            raise SplatFileError(f"{path}: property {k} of vertex {int(bad[0])} is "
+                                 f"{float(v[k][bad[0]])} ({bad.size} such vertices): every "
+                                 f"value must be finite; {PLY_FIX}")
     sh = np.zeros((n, B, 3), np.float32)
     for c in range(3):
         sh[:, 0, c] = v[f"f_dc_{c}"]

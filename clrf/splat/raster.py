@@ -165,11 +165,27 @@ def _sorters(context):
     return _SORTERS[key]
 
 
+SHAPES = ("rows", "group")
+
+
+def default_shape(device, tile: int = TILE) -> str:
+    """The rasteriser's shape for ``device``: "group" (a work-group of tile x tile work-items
+    per tile, splat_raster_forward / _backward) on GPUs and wherever the tuning forces the GPU
+    kernels (CLRF_FORCE_GPU_KERNELS=1); else "rows" (one work-item per tile, a row of pixels
+    one float vector: splat_raster_forward_rows / _backward_rows), for tiles of 4, 8 or 16."""
+    if getattr(device.tuning, "gpu_kernels", False) or int(tile) not in (4, 8, 16):
+        return "group"
+    return "rows"
+
+
 class SplatRasterizer:
     """Gaussian splatting kernels on ``device`` for SH degree ``sh_degree`` (0..3) and square
-    tiles of ``tile`` pixels (one work-group of tile x tile work-items per tile)."""
+    tiles of ``tile`` pixels. ``shape`` (default: ``default_shape(device, tile)``) picks the
+    rasteriser's kernels: "group" (one work-group of tile x tile work-items per tile, the GPU
+    shape) or "rows" (one work-item per tile, the CPU shape; tiles of 4, 8 or 16); both compute
+    the same images and gradients to float32 rounding."""
 
-    def __init__(self, device, sh_degree: int = 3, tile: int = TILE):
+    def __init__(self, device, sh_degree: int = 3, tile: int = TILE, shape: str | None = None):
         if int(sh_degree) not in (0, 1, 2, 3):
             raise ValueError(f"sh_degree: must be 0, 1, 2 or 3, got {sh_degree}")
         if int(tile) not in (4, 8, 16, 32):
@@ -178,7 +194,12 @@ class SplatRasterizer:
         self.sh_degree = int(sh_degree)
         self.n_basis = (self.sh_degree + 1) ** 2
         self.tile = int(tile)
-        if self.tile * self.tile > device.caps.max_work_group_size:
+        self.shape = default_shape(device, self.tile) if shape is None else shape
+        if self.shape not in SHAPES:
+            raise ValueError(f"shape: must be one of {SHAPES}, got {shape!r}")
+        if self.shape == "rows" and self.tile not in (4, 8, 16):
+            raise ValueError(f"shape 'rows': tiles of 4, 8 or 16 pixels, got {self.tile}")
+        if self.shape == "group" and self.tile * self.tile > device.caps.max_work_group_size:
             raise ValueError(f"tile {self.tile}: {self.tile ** 2} work-items exceed this "
                              f"device's work-group limit {device.caps.max_work_group_size}; "
                              f"use a smaller tile")
@@ -286,9 +307,17 @@ class SplatRasterizer:
                (np.int32(n_pairs), keys.data, ranges.data), ls)
         return Binned(n_pairs, keys, ids, ranges, ntx, nty)
 
-    def _tiles_launch(self, kernel, bins: Binned, args):
-        """One work-group of tile x tile work-items per tile."""
+    def _tiles_launch(self, name: str, bins: Binned, args):
+        """Kernel ``name`` of the rasteriser's shape: one work-group of tile x tile work-items
+        per tile ("group"), or one work-item per tile ("rows", name + "_rows", which takes the
+        tile count after ntx)."""
         t = self.tile
+        if self.shape == "rows":
+            ntiles = bins.ntx * bins.nty
+            kernel = self.raster_program.kernel(name + "_rows")
+            launch(self.device, kernel, ntiles, args[:3] + (np.int32(ntiles),) + args[3:], 1)
+            return
+        kernel = self.raster_program.kernel(name)
         kernel.set_args(*args)
         try:
             cl.enqueue_nd_range_kernel(self.device.queue, kernel,
@@ -315,7 +344,7 @@ class SplatRasterizer:
         out = Raster(scratch(dev, (H, W, 3)), scratch(dev, (H, W)),
                      scratch(dev, (H, W), np.int32))
         self._tiles_launch(
-            self.raster_program.kernel("splat_raster_forward"), bins,
+            "splat_raster_forward", bins,
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
              self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data))
@@ -339,7 +368,7 @@ class SplatRasterizer:
         if bins.n_pairs == 0:
             return g
         self._tiles_launch(
-            self.raster_program.kernel("splat_raster_backward"), bins,
+            "splat_raster_backward", bins,
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
              self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,

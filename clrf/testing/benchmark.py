@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl.array as cla
 
-from . import reference
+from ..references import reference
 from ..runtime.device import Device
 from ..grid import SparseGrid
 from ..grid.render import render_backward_device, render_forward_device

@@ -39,7 +39,7 @@ CAMERA_ATOL = 2e-6
 # i.e. ~1e-3 px at f = 1000) is the accuracy the data layer promises.
 UNDISTORT_ATOL = 1e-6
 # Camera models (clrf.data.camera_models) against the float64 COLMAP forward projection
-# (clrf.testing.reference_cameras): Newton stops once its update is below 1e-14 in normalised
+# (clrf.references.reference_cameras): Newton stops once its update is below 1e-14 in normalised
 # units and the polynomials carry ~1e-15 relative rounding, so a ray is off by ~1e-14 rad; 1e-10
 # rad leaves 1e4 of margin and still catches a misread model (fisheye read as radial-tangential,
 # a dropped k3) by 1e-4 rad or more at the image border of the test cameras.

@@ -29,7 +29,7 @@ that defines ``bench_suite(api)`` returning Specs (``api`` is framework.py, for 
 
 Peers (optional dependencies, skipped with the reason when not importable) run on identical
 inputs after their outputs were checked against clrf's: the float64 numpy reference
-(clrf.testing.reference, small sizes), tools/peers/torch_grid.py (PyTorch CPU, autograd backward)
+(clrf.references.reference, small sizes), tools/peers/torch_grid.py (PyTorch CPU, autograd backward)
 and tools/peers/taichi_grid.py (Taichi CPU).
 
 Layout: framework.py (Spec, Case, factory, Context), cases.py (the factories), specs.py (the

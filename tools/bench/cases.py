@@ -1,12 +1,14 @@
 """The benchmark factories: device peaks (cl/bench.cl), the grid renderer, peers on identical
-inputs, and the training kernels."""
+inputs, the training kernels, the hash encoding and the Gaussian-splatting rasteriser (each
+beside its Taichi peer)."""
 from __future__ import annotations
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 import clrf
-from clrf.testing import reference
+from clrf.references import reference, reference_splat
+from clrf.testing import tolerances as tol
 from clrf.grid.render import (render_backward_device, render_forward_device,
                               render_rays)
 import bench_scenes as scenes
@@ -166,7 +168,7 @@ def _peer_numpy(ctx, p):
                                             self.p["step"], (1, 1, 1))["rgb"]
 
         def describe(self):
-            return f"clrf.testing.reference (numpy {np.__version__}, float64)"
+            return f"clrf.references.reference (numpy {np.__version__}, float64)"
     if p.get("mode", "fwd") != "fwd":
         raise Skip("the numpy reference backward is not a fused MSE step; forward only")
     return _peer_case(ctx, p, Ref)
@@ -395,3 +397,222 @@ def _peer_taichi_hash(ctx, p):
         raise Skip(f"peer disagrees with clrf, not timed: {check}")
     run = peer.forward if mode == "fwd" else peer.forward_backward
     return Case(run, _hash_work(p), {"peer": peer.describe()}, check)
+
+
+# ---- Gaussian-splatting rasteriser (cl/splat_raster.cl) and its Taichi peer -------------------
+# Model flop per (pixel, Gaussian) pair, counted from cl/splat_raster.cl (exp and fmin count as
+# one each, an atomic add as one add): evaluating alpha (offset 2, power 9, exp, o G, clamp) =
+# 14; compositing an entry in the forward (new T 2, colour 7) = 9; its backward (T recovered 2,
+# colour behind 3 + 10, dL/dalpha 6, colour gradient 1 + 6, opacity 2, dL/dpower 1, xy 10, conic
+# 11) = 52. The forward evaluates alpha up to and including the entry that stops the pixel (or
+# to the end of the list), the backward for the pixel's n_contrib entries.
+SPLAT_FLOP_ALPHA = 14
+SPLAT_FLOP_BLEND = 9
+SPLAT_FLOP_GRAD = 52
+# Peer-vs-clrf agreement on the rasteriser, both float32 on identical splats and lists: the
+# image and final transmittance within clrf/testing/tolerances.py SPLAT_LONG_ATOL (hundreds of
+# entries per pixel), the gradients within 1e-4 of each array's largest entry (sums over up to
+# thousands of pixels by float atomics in other orders; Taichi's default fast math may also
+# contract a * b + c, which the kernels do not). Where the two exp's differ in the last bit, an
+# entry can sit on the skip threshold (alpha = 1/255) or on the stopping rule in one and not in
+# the other: up to PEER_SPLAT_FLIP_FRACTION of the pixels may differ in n_contrib (by one entry,
+# alpha <= 1/255 x colour in rgb); rgb and T are compared on the others, and the gradients of
+# both for dL/drgb zeroed on those pixels (every backward term is proportional to dL/drgb of
+# its pixel, so the differing pixels then add nothing to either). Seen on the 20k /
+# 400 x 400 case (PoCL CPU, Taichi 1.7.4): no n_contrib difference, rgb 3.6e-7, T 2.4e-7,
+# gradients <= 2.2e-6 of the largest; a wrong sign, factor or skipped entry is >= 1e-3.
+PEER_SPLAT_ATOL = 2e-5
+PEER_SPLAT_GRAD_REL = 1e-4
+PEER_SPLAT_FLIP_FRACTION = 1e-4
+SPLAT_BACKGROUND = (1.0, 1.0, 1.0)
+
+
+def _splat_scene(p):
+    """n random 3D Gaussians (SH degree ``degree``) about the origin, screen standard deviations
+    ~0.1-0.8 % of the width, and a width x height pinhole camera 3 units away looking at them
+    (f = width px, ~53 degrees across): (float32 parameters, SplatCamera)."""
+    from clrf.splat import SplatCamera
+    rng = np.random.default_rng(p.get("seed", 5))
+    n, deg = p["n"], p["degree"]
+    g = {"means": rng.normal(0, 0.6, (n, 3)).astype(np.float32),
+         "log_scales": rng.uniform(-4.5, -2.5, (n, 3)).astype(np.float32),
+         "quats": rng.normal(size=(n, 4)).astype(np.float32),
+         "opacity_logits": rng.uniform(-2, 2, n).astype(np.float32),
+         "sh": rng.normal(0, 0.3, (n, (deg + 1) ** 2, 3)).astype(np.float32)}
+    W, H = p["width"], p["height"]
+    cam = SplatCamera(reference_splat.look_at((0.3, -0.2, -3.0), (0, 0, 0)).astype(np.float32),
+                      float(W), float(W), W / 2, H / 2, W, H, 0.1)
+    return g, cam
+
+
+def _splat_pair_counts(sp, ids, ranges, n_contrib, width, height, tile):
+    """(pixel, Gaussian) pairs of the rasteriser on these inputs, dict(forward: evaluated by
+    the forward, composited, backward: evaluated by the backward = sum of n_contrib) and the
+    pixels that stopped early, from the forward's n_contrib and alpha recomputed per tile in
+    float32 (the entry that stops a pixel is the first non-skipped one after its last
+    composited one)."""
+    ntx = -(-width // tile)
+    a_max, a_min = np.float32(reference_splat.ALPHA_MAX), np.float32(reference_splat.ALPHA_MIN)
+    fwd = comp = stopped = 0
+    for t in np.flatnonzero(ranges[:, 1] > ranges[:, 0]):
+        ty, tx = divmod(int(t), ntx)
+        py, px = np.meshgrid(np.arange(ty * tile, min((ty + 1) * tile, height)),
+                             np.arange(tx * tile, min((tx + 1) * tile, width)), indexing="ij")
+        px, py = px.ravel(), py.ravel()
+        g = ids[ranges[t, 0]:ranges[t, 1]]
+        centre = np.stack([px + 0.5, py + 0.5], 1).astype(np.float32)
+        dx = sp["xy"][g, 0][None] - centre[:, :1]
+        dy = sp["xy"][g, 1][None] - centre[:, 1:]
+        A, B, C = (sp["conic"][g, k][None] for k in range(3))
+        power = np.float32(-0.5) * (A * dx * dx + C * dy * dy) - B * dx * dy
+        alpha = np.minimum(a_max, sp["opacity"][g][None] * np.exp(power))
+        live = (power <= 0) & (alpha >= a_min)
+        before = np.arange(g.size)[None] < n_contrib[py, px][:, None]
+        comp += int(np.count_nonzero(live & before))
+        after = live & ~before
+        stops = after.any(1)
+        stopped += int(np.count_nonzero(stops))
+        fwd += int(np.where(stops, after.argmax(1) + 1, g.size).sum())
+    return {"forward": fwd, "composited": comp, "backward": int(n_contrib.sum()),
+            "stopped_pixels": stopped}
+
+
+# (context, key, inputs) of the last set-up: the clrf cases and the peer's share one
+_SPLAT_LAST: list = [None, None, None]
+
+
+def _splat_inputs(ctx, p):
+    """dict: the rasteriser, camera, clrf's projection and binning (device), dL/drgb (host and
+    device), clrf's forward and backward outputs (numpy: the peer's reference), the splats and
+    lists as numpy, and the work of one forward + backward. Built once per parameter set."""
+    from clrf.splat import SplatRasterizer
+    key = (id(ctx), p["n"], p["width"], p["height"], p["degree"], p.get("seed", 5))
+    if _SPLAT_LAST[0] is ctx and _SPLAT_LAST[1] == key:
+        return _SPLAT_LAST[2]
+    _SPLAT_LAST[:] = [None, None, None]
+    dev, q = ctx.dev, ctx.dev.queue
+    g, cam = _splat_scene(p)
+    r = SplatRasterizer(dev, p["degree"])
+    proj = r.project(r.upload(g), cam)
+    bins = r.bin(proj, cam)
+    grad = np.random.default_rng(6).normal(0, 1, (cam.height, cam.width, 3)).astype(np.float32)
+    grad_d = cla.to_device(q, grad)
+    ras = r.rasterize(proj, bins, cam, SPLAT_BACKGROUND)
+    g2d = r.rasterize_backward(proj, bins, ras, cam, grad_d, SPLAT_BACKGROUND)
+    sp = {k: getattr(proj, k).get() for k in ("xy", "conic", "opacity", "color", "rect",
+                                              "depth")}
+    ids = bins.ids.get() if bins.n_pairs else np.zeros(0, np.int32)
+    ranges = bins.ranges.get()
+    out = {"r": r, "cam": cam, "proj": proj, "bins": bins, "grad": grad, "grad_d": grad_d,
+           "sp": sp, "ids": ids, "ranges": ranges,
+           "fwd": {"rgb": ras.rgb.get(), "T": ras.T.get(), "n_contrib": ras.n_contrib.get()},
+           "bwd": {k: v.get() for k, v in g2d.items()}}
+    out["pairs"] = _splat_pair_counts(sp, ids, ranges, out["fwd"]["n_contrib"], cam.width,
+                                      cam.height, r.tile)
+    _SPLAT_LAST[:] = [ctx, key, out]
+    return out
+
+
+def _splat_work(s, mode):
+    """samples = the (pixel, Gaussian) pairs the forward evaluates; flop by the model above."""
+    pr = s["pairs"]
+    flop = pr["forward"] * SPLAT_FLOP_ALPHA + pr["composited"] * SPLAT_FLOP_BLEND
+    if mode != "fwd":
+        flop += pr["backward"] * SPLAT_FLOP_ALPHA + pr["composited"] * SPLAT_FLOP_GRAD
+    return {"samples": pr["forward"], "flop": flop}
+
+
+def _splat_info(s):
+    H, W = s["cam"].height, s["cam"].width
+    nc = s["fwd"]["n_contrib"]
+    return {"gaussians": s["proj"].n,
+            "visible": int(np.count_nonzero(s["proj"].radius.get() > 0)),
+            "pixels": H * W, "tile_pairs": s["bins"].n_pairs, "pairs": s["pairs"],
+            "mean_n_contrib": float(nc.mean()),
+            "note": "samples = (pixel, Gaussian) pairs the forward evaluates; flop: model "
+                    "(cases.py SPLAT_FLOP_*)"}
+
+
+@factory("splat.raster")
+def _splat_raster(ctx, p):
+    """params: n Gaussians, width x height camera, SH degree, mode ('fwd' | 'fwdbwd': rasterize
+    then rasterize_backward given a fixed dL/drgb, the gradient buffers allocated zeroed at
+    every call as rasterize_backward does). Projection and binning are set-up, not timed.
+    samples/s = (pixel, Gaussian) pairs the forward evaluates per second. At small sizes
+    (<= 64 x 64 pixels) clrf is first checked against the float64 twin."""
+    s = _splat_inputs(ctx, p)
+    r, cam, proj, bins = s["r"], s["cam"], s["proj"], s["bins"]
+    dev, mode = ctx.dev, p.get("mode", "fwd")
+    check = None
+    if cam.width * cam.height <= 64 * 64:
+        ntx, nty = cam.tiles(r.tile)
+        sp64 = {k: np.asarray(v, np.float64) for k, v in s["sp"].items()}
+        lists = reference_splat.bin_gaussians(s["sp"]["rect"], s["sp"]["depth"], ntx, nty)
+        want = reference_splat.rasterize(sp64, lists, cam.width, cam.height, SPLAT_BACKGROUND)
+        check = {"rgb": _compare(s["fwd"]["rgb"], want["rgb"], tol.SPLAT_RASTER_ATOL, 0.0),
+                 "T": _compare(s["fwd"]["T"], want["T"], tol.SPLAT_RASTER_ATOL, 0.0),
+                 "n_contrib": {"ok": bool(np.array_equal(s["fwd"]["n_contrib"],
+                                                         want["n_contrib"]))}}
+        check["ok"] = all(v["ok"] for v in check.values())
+
+    if mode == "fwd":
+        def run():
+            r.rasterize(proj, bins, cam, SPLAT_BACKGROUND)
+            dev.finish()
+    else:
+        def run():
+            ras = r.rasterize(proj, bins, cam, SPLAT_BACKGROUND)
+            r.rasterize_backward(proj, bins, ras, cam, s["grad_d"], SPLAT_BACKGROUND)
+            dev.finish()
+    return Case(run, _splat_work(s, mode), _splat_info(s), check)
+
+
+def _peer_splat_check(s, peer, mode):
+    """The peer's forward (and backward) against clrf's on the set-up ``s`` (PEER_SPLAT_*)."""
+    got, want = peer.forward(), s["fwd"]
+    same = got["n_contrib"] == want["n_contrib"]
+    flips = float(np.mean(~same))
+    check = {"n_contrib": {"mismatch_fraction": flips, "ok": flips <= PEER_SPLAT_FLIP_FRACTION},
+             "rgb": _compare(got["rgb"][same], want["rgb"][same], PEER_SPLAT_ATOL, 0.0),
+             "T": _compare(got["T"][same], want["T"][same], PEER_SPLAT_ATOL, 0.0)}
+    if mode == "fwd":
+        return check
+    ref = s["bwd"]
+    if not same.all():   # dL/drgb zeroed on the pixels that differ, for clrf and the peer
+        r, cam, bg = s["r"], s["cam"], SPLAT_BACKGROUND
+        masked = np.where(same[..., None], s["grad"], np.float32(0.0))
+        ras = r.rasterize(s["proj"], s["bins"], cam, bg)
+        ref = {k: v.get() for k, v in r.rasterize_backward(
+            s["proj"], s["bins"], ras, cam, cla.to_device(r.device.queue, masked), bg).items()}
+        peer.grad_rgb = masked
+    try:
+        g = peer.backward()
+    finally:
+        peer.grad_rgb = s["grad"]
+    for name, v in ref.items():
+        scale = max(1e-30, float(np.abs(v).max(initial=0.0)))
+        check[f"grad_{name}"] = _compare(g[name], v, PEER_SPLAT_GRAD_REL * scale, 0.0)
+    return check
+
+
+@factory("peer.taichi_splat")
+def _peer_taichi_splat(ctx, p):
+    """tools/peers/taichi_splat.py on clrf's projection and binning (identical inputs to
+    ``splat.raster``), checked against clrf's outputs before it is timed; the same work."""
+    try:
+        from peers import taichi_splat
+    except ImportError as e:
+        raise Skip(f"taichi peer unavailable: {e}") from None
+    s = _splat_inputs(ctx, p)
+    sp, cam = s["sp"], s["cam"]
+    peer = taichi_splat.TaichiSplat(sp["xy"], sp["conic"], sp["opacity"], sp["color"], s["ids"],
+                                    s["ranges"], cam.width, cam.height, s["r"].tile,
+                                    SPLAT_BACKGROUND, s["grad"])
+    mode = p.get("mode", "fwd")
+    check = _peer_splat_check(s, peer, mode)
+    check["ok"] = all(v["ok"] for v in check.values() if isinstance(v, dict))
+    if not check["ok"]:
+        raise Skip(f"peer disagrees with clrf, not timed: {check}")
+    run = peer.forward if mode == "fwd" else peer.forward_backward
+    info = dict(_splat_info(s), peer=peer.describe())
+    return Case(run, _splat_work(s, mode), info, check)

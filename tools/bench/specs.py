@@ -1,4 +1,5 @@
-"""The benchmark list: SPECS (grid and training), the peak specs, and external suites' specs."""
+"""The benchmark list: SPECS (grid, hash, splat and training), the peak specs, and external suites'
+specs."""
 from __future__ import annotations
 
 import importlib
@@ -71,6 +72,24 @@ def _hash_specs():
     return out
 
 
+def _splat_specs():
+    """The Gaussian-splatting tile rasteriser (cl/splat_raster.cl) forward and forward +
+    backward, clrf and the Taichi peer (tools/peers/taichi_splat.py) on identical inputs: 20,000
+    random Gaussians, SH degree 3, projected and binned by clrf for a 400 x 400 camera (set-up,
+    not timed). samples/s = (pixel, Gaussian) pairs the forward evaluates; compare the two in
+    one --interleave run (``--only 'splat*'``)."""
+    base = {"n": 20000, "width": 400, "height": 400, "degree": 3}
+    quick = {"n": 500, "width": 64, "height": 48}
+    need = (("clrf.splat", "SplatRasterizer"),)
+    out = []
+    for kind, prefix in (("splat.raster", "splat.raster.clrf"),
+                         ("peer.taichi_splat", "splat.raster.taichi")):
+        for mode in ("fwd", "fwdbwd"):
+            out.append(Spec(f"{prefix}/{mode}/20k/400x400/sh3", kind, dict(base, mode=mode),
+                            "samples/s", dict(quick), need))
+    return out
+
+
 def _peak_specs():
     return [
         Spec("peak/copy", "peak.bandwidth", {"op": "copy", "mbytes": 256}, "GB/s",
@@ -86,7 +105,7 @@ def _peak_specs():
 # module is missing on a branch is reported as skipped (Spec.requires).
 TRAINING_SPECS: list = _train_specs()
 
-SPECS = _grid_specs() + _hash_specs() + TRAINING_SPECS
+SPECS = _grid_specs() + _hash_specs() + _splat_specs() + TRAINING_SPECS
 
 
 def external_specs():

@@ -1,10 +1,10 @@
 """Per-ray set-up shared by the peers: the march parameters in float64 (clrf computes them in
-double on devices with fp64), from clrf.testing.reference so every peer marches the same segments."""
+double on devices with fp64), from clrf.references.reference so every peer marches the same segments."""
 from __future__ import annotations
 
 import numpy as np
 
-from clrf.testing import reference
+from clrf.references import reference
 
 T_STOP = reference.T_STOP
 COLOR_OFFSET = reference.COLOR_OFFSET

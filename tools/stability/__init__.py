@@ -1,7 +1,7 @@
 """Numerical-stability matrix of clrf: stiff, extreme and long cases through the public API.
 
 Every case drives ``clrf.render_rays`` / ``clrf.render_rays_backward`` / ``clrf.training.metrics`` and
-compares with the float64 reference (clrf/testing/reference.py) or a closed form. Each
+compares with the float64 reference (clrf/references/reference.py) or a closed form. Each
 comparison is one row of the report: the largest absolute error, the largest relative error
 (normwise: max|got - want| / max|want|), the tolerance it is held to (constants of
 clrf/testing/tolerances.py, stability section), the usage

@@ -21,7 +21,7 @@ def _up(run, a):
 
 def _encoding_vs_reference(run, levels, log2_t, n_min, n_max, genc_scale=1.0, label=""):
     from clrf.hash.encoding import HashEncoding
-    from clrf.testing import reference_hash as rh
+    from clrf.references import reference_hash as rh
     table = run.rng.uniform(-1, 1, (levels, 1 << log2_t, 2)).astype(np.float32)
     for slots in (0, 2):                # the atomic (GPU) and level-owned (CPU) backward
         dev = run.device.with_tuning(grad_slots=slots)
@@ -150,7 +150,7 @@ def hash_contracted_long_rays(run):
     against the float64 contraction, each bin's segment is its length (they tile
     [near, far]), and the render and a training step stay finite."""
     from clrf.hash.march import Contraction, march
-    from clrf.testing import reference_hash as rh
+    from clrf.references import reference_hash as rh
     model = _model(run, contract="on")
     model.near, model.far = 1e-4, 1e6
     n = run.size(16, 128)

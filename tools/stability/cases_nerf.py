@@ -12,7 +12,7 @@ def nerf_encode_large(run):
     """Positional encoding at |x| up to 1e3 with 16 frequencies (2^15 pi x ~ 1e8 rad) against
     float64 of the same float32 inputs: the power-of-two argument reduction keeps it exact."""
     from clrf.nerf import ops as nerf_ops
-    from clrf.testing import reference_nerf as rn
+    from clrf.references import reference_nerf as rn
     x = np.concatenate([run.rng.uniform(-1e3, 1e3, (run.size(300, 3000), 3)),
                         [[0.0, 1e3, -1e3], [0.5, 999.999, -0.25], [1e-30, -1e-30, 2.0 ** -20]]])
     x = x.astype(np.float32)
@@ -69,7 +69,7 @@ def nerf_composite_stiff(run):
     """Per-sample compositing with densities 0..1e30 (and negative) against float64, gradients
     finite and equal to the analytic reference."""
     from clrf.nerf import ops as nerf_ops
-    from clrf.testing import reference_nerf as rn
+    from clrf.references import reference_nerf as rn
     q = run.device.queue
     n, K = 6, 64
     t = np.tile(np.linspace(2.0, 6.0, K, dtype=np.float32), (n, 1))

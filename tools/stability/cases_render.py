@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import clrf
 from clrf.testing import tolerances as TOL
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 
 from .framework import (CLOSED, COLOUR, DEPTH, EXACT, GRAD, LONG_FWD, LONG_GRAD, ODD_BBOX, REL,
                         RENDER, UNIT, axis_rays, check_render, homogeneous, make_grid, path_length,

@@ -8,7 +8,7 @@ import numpy as np
 import clrf
 import clrf.training.metrics
 import pyopencl.array as cla
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 
 from .framework import (EXACT, GRAD, OPT, OPT_LONG, OPT_REL, REL, RENDER, UNIT, make_grid,
                         random_grid, random_rays, tol)

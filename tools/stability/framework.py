@@ -9,7 +9,7 @@ from typing import Callable
 import clrf
 import numpy as np
 from clrf.testing import tolerances as TOL
-from clrf.testing import reference as ref
+from clrf.references import reference as ref
 
 
 UNIT = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])

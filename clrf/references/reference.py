@@ -1,4 +1,5 @@
-"""Float64 numpy references of the kernels: the oracle for tests. Not on any runtime path.
+"""Float64 numpy references of the grid and the shared kernels: the oracle of the tests, and
+the grid's gradient self-check compares the device with render_backward at run time.
 
 Same conventions as the OpenCL C sources (see the header of cl/grid_render.cl), written
 independently and vectorised over rays: dense arrays instead of links (an empty voxel is a

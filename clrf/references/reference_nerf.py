@@ -1,5 +1,5 @@
 """Float64 numpy references of the NeRF kernels (encode, MLP, sampling, compositing): the test
-oracle. Not on any runtime path; clrf.testing.reference re-exports these.
+oracle. Not on any runtime path; clrf.references.reference re-exports these.
 
 Conventions are those of the OpenCL sources (see the headers of cl/encode.cl, cl/mlp.cl,
 cl/sample.cl, cl/composite.cl), written independently and vectorised over samples: whole-batch
