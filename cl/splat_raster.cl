@@ -75,6 +75,49 @@ __kernel void splat_ranges(const int npairs, __global const ulong *keys, __globa
     if (k == npairs - 1 || (int)(keys[k + 1] >> 32) != tile) ranges[2 * tile + 1] = k + 1;
 }
 
+/* Row binning (the CPU shape's binning, clrf/splat/raster.py): the same per-tile lists as
+ * count / scan / emit / sort / ranges above, without sorting the pairs. The host sorts the
+ * Gaussians by depth (a stable radix sort of their depth bits: n items, not n_pairs), and one
+ * work-item per tile row walks them in that order, appending each to the lists of the tiles it
+ * covers in its row: a list is then front to back, equal depths in ascending id, as the pair
+ * sort leaves it, and each row's tiles belong to one work-item (no atomics).
+ *   splat_row_count   counts [ntiles] of each tile's pairs (order-free)
+ *   (scan)            tile offsets [ntiles] (int64, exclusive), the pair total
+ *   splat_row_fill    ids [P] and ranges [ntiles, 2] ([0, 0) for an empty tile) */
+__kernel void splat_row_count(const int n, __global const int *rect, const int ntx,
+                              const int nty, __global int *tile_counts) {
+    const int ty = get_global_id(0);
+    if (ty >= nty) return;
+    __global int *row = tile_counts + ty * ntx;
+    for (int tx = 0; tx < ntx; ++tx) row[tx] = 0;
+    for (int i = 0; i < n; ++i) {
+        const int4 r = vload4(i, rect);
+        if (ty < r.y || ty >= r.w) continue;
+        for (int tx = r.x; tx < r.z; ++tx) row[tx] += 1;
+    }
+}
+
+__kernel void splat_row_fill(const int n, __global const int *order, __global const int *rect,
+                             const int ntx, const int nty, __global const int *tile_counts,
+                             __global const long *tile_offsets, __global int *cursor,
+                             __global int *ids, __global int *ranges) {
+    const int ty = get_global_id(0);
+    if (ty >= nty) return;
+    for (int tx = 0; tx < ntx; ++tx) {
+        const int t = ty * ntx + tx, start = (int)tile_offsets[t], cnt = tile_counts[t];
+        cursor[t] = start;
+        ranges[2 * t] = cnt ? start : 0;
+        ranges[2 * t + 1] = cnt ? start + cnt : 0;
+    }
+    __global int *cur = cursor + ty * ntx;
+    for (int j = 0; j < n; ++j) {
+        const int g = order[j];
+        const int4 r = vload4(g, rect);
+        if (ty < r.y || ty >= r.w) continue;
+        for (int tx = r.x; tx < r.z; ++tx) ids[cur[tx]++] = g;
+    }
+}
+
 /* alpha of the Gaussian in local slot j at pixel centre pix; 0 where it is skipped. *raw_out:
  * o exp(power) before the clamp, *g_out: exp(power). The forward and the backward both call
  * this, so they skip the same entries. */
@@ -232,8 +275,9 @@ void splat_raster_backward(const int width, const int height, const int ntx,
  *   for fixed d_y the power's largest value over d_x is -d_y^2 (AC - B^2) / (2A) (the conic is
  *   positive definite), so a row with -d_y^2 det / (2A) < log(ALPHA_MIN / o) - ROW_MARGIN has
  *   no pixel with alpha >= ALPHA_MIN: every pixel would skip the entry, and so does the row.
- *   ROW_MARGIN (absolute, plus a relative part) keeps float rounding on the safe side: a row is
- *   skipped only where the per-pixel test would skip every pixel.
+ *   The rows kept are the range |d_y| <= dmax that this gives (reached_rows); ROW_MARGIN
+ *   (absolute, plus a relative part, on the power and on dmax) keeps float rounding on the
+ *   safe side: a row is skipped only where the per-pixel test would skip every pixel.
  *
  * The backward sums each entry's per-pixel terms over the tile in vector registers and adds
  * them with one atomic per gradient component and (tile, entry) instead of one per pixel. The
@@ -278,13 +322,28 @@ CLRF_INLINE float hsum(VF v) {
     return c.x + c.y;
 }
 
-/* Whether row offset dy (mean - row centre) can hold a pixel with alpha >= ALPHA_MIN for the
- * splat (A, B, C, o); log_thr = log(ALPHA_MIN / o). Degenerate conics keep every row. */
-CLRF_INLINE int row_reached(const float dy, const float4 cop, const float log_thr) {
+/* The rows [*r0, *r1) of the tile at y0 (rows < rows) where the splat (mean y my, conic and
+ * opacity cop) can reach ALPHA_MIN: |dy| <= dmax with dmax^2 = 2 (margin - log(ALPHA_MIN / o))
+ * A / det, from the bound above with the margin. Degenerate conics keep every row; an opacity
+ * below ALPHA_MIN keeps none (alpha <= o there). */
+CLRF_INLINE void reached_rows(const float my, const float4 cop, const int y0, const int rows,
+                              int *r0, int *r1) {
+    *r0 = 0;
+    *r1 = rows;
+    if (!(cop.w >= ALPHA_MIN)) {
+        *r1 = 0;
+        return;
+    }
     const float det = cop.x * cop.z - cop.y * cop.y;
-    if (!(cop.x > 0.0f) || !(det > 0.0f)) return 1;
-    const float pmax = -0.5f * dy * dy * (det / cop.x);
-    return pmax >= log_thr - ROW_MARGIN * (1.0f + fabs(log_thr));
+    if (!(cop.x > 0.0f) || !(det > 0.0f)) return;
+    const float log_thr = log(ALPHA_MIN / cop.w);
+    const float reach = -log_thr + ROW_MARGIN * (1.0f + fabs(log_thr));   /* >= 0 */
+    const float dmax = sqrt(2.0f * reach * (cop.x / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
+    if (!(dmax < 4.0f * TILE)) return;   /* huge, or not finite: every row */
+    /* row r's centre is y0 + r + 0.5; keep |my - centre| <= dmax */
+    const float lo = my - dmax - (float)y0 - 0.5f, hi = my + dmax - (float)y0 - 0.5f;
+    *r0 = clamp((int)ceil(lo), 0, rows);
+    *r1 = clamp((int)floor(hi) + 1, *r0, rows);
 }
 
 /* Per-lane alpha (0 where skipped) of splat (mean, cop) on a row: d = mean - pixel centre. */
@@ -328,13 +387,13 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
         const float2 m = vload2(g, xy);
         const float4 cop = (float4)(vload3(g, conic), opacity[g]);
         const float3 c = vload3(g, color);
-        if (!(cop.w * 1.0f >= ALPHA_MIN)) continue;   /* no pixel can reach ALPHA_MIN */
-        const float log_thr = log(ALPHA_MIN / cop.w);
+        int r0, r1;
+        reached_rows(m.y, cop, y0, rows, &r0, &r1);
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start + 1);
-        for (int r = 0; r < rows; ++r) {
+        for (int r = r0; r < r1; ++r) {
+            if (all(done[r])) continue;
             const float dy = m.y - ((float)(y0 + r) + 0.5f);
-            if (!row_reached(dy, cop, log_thr) || all(done[r])) continue;
             VF G, raw;
             const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
             const VF nT = T[r] * (1.0f - alpha);
@@ -418,16 +477,15 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
         const float2 m = vload2(g, xy);
         const float4 cop = (float4)(vload3(g, conic), opacity[g]);
         const float3 c = vload3(g, color);
-        if (!(cop.w * 1.0f >= ALPHA_MIN)) continue;
-        const float log_thr = log(ALPHA_MIN / cop.w);
+        int r0, r1;
+        reached_rows(m.y, cop, y0, rows, &r0, &r1);
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start);
         VF s_cr = ZERO, s_cg = ZERO, s_cb = ZERO, s_o = ZERO, s_x = ZERO, s_y = ZERO;
         VF s_a = ZERO, s_b = ZERO, s_c = ZERO;
         int touched = 0;
-        for (int r = 0; r < rows; ++r) {
+        for (int r = r0; r < r1; ++r) {
             const float dy = m.y - ((float)(y0 + r) + 0.5f);
-            if (!row_reached(dy, cop, log_thr)) continue;
             VF G, raw;
             const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
             const VI act = (pos < npix[r]) & (alpha != 0.0f);

@@ -590,6 +590,8 @@ CASES = [
      ["none.ply", "cannot read"]),
     ("splat-init-points-without-points", opts("--model", "splat", "--set", "splat.init=points"),
      ["splat.init = 'points'", "no sparse points"]),
+    ("train-points-unknown", opts("--set", "train.points=always"),
+     ["train.points", "triangulate"]),
     ("splat-init-unknown", opts("--model", "splat", "--set", "splat.init=mesh"),
      ["splat.init", "auto"]),
     ("nerf-width-not-a-number", opts("--model", "nerf", "--set", "nerf.width=abc"),

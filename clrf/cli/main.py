@@ -90,6 +90,9 @@ def cmd_train(a):
     if cfg.train.downscale != first and data_path:
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
+    if cfg.train.points != "auto":
+        from ..data.triangulate import with_points
+        ds = with_points(ds, cfg.train.points)
     comm = _mpi_world()
     kind = registry.get(cfg.train.model)
     factory = kind

@@ -83,7 +83,8 @@ class SplatModel:
         self.step = 0                  # Adam updates so far
         self.active_degree = 0
         self.lr_means = config.lr_position * self.extent
-        self.resets = 0                # opacity resets so far
+        self.resets = 0                # opacity resets so far (the schedule's count)
+        self.last_reset = 0            # the step of the last reset (0: none yet)
         self.last_densify = 0          # the iteration of the last densification (0: none)
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
@@ -237,8 +238,9 @@ class SplatModel:
             self._densify_frac = f
         if c.opacity_reset_every > 0 and f < c.densify_until:
             k = int(f / c.opacity_reset_every)
-            if k > self.resets:
+            if k > self.resets and self.step - self.last_reset >= c.opacity_reset_min_steps:
                 self.resets = k
+                self.last_reset = self.step
                 self.reset_opacity()
                 msgs.append("opacities reset to 0.01")
         return "; ".join(msgs) or None
@@ -361,6 +363,7 @@ class SplatModel:
               "background": list(self.background), "extent": self.extent,
               "bbox": self.bbox.tolist(), "seed": self.seed, "max_count": self.max_count,
               "step": self.step, "active_degree": self.active_degree, "resets": self.resets,
+              "last_reset": self.last_reset,
               "last_densify": self.last_densify, "densify_frac": self._densify_frac,
               "progress": self.progress, "lr_means": self.lr_means}
         for k, v in self.host_params().items():
@@ -393,6 +396,7 @@ class SplatModel:
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])
         m.resets = int(state["resets"])
+        m.last_reset = int(state.get("last_reset", 0))
         m.last_densify = int(state["last_densify"])
         m._densify_frac = float(state["densify_frac"])
         m.progress = float(state["progress"])

@@ -145,8 +145,9 @@ _SORTERS: dict = {}
 
 
 def _sorters(context):
-    """(scan, radix sort) for ``context``, built once: the exclusive int64 scan of the counts
-    (its last inclusive item is the total) and pyopencl's radix sort of (keys, ids)."""
+    """(scan, pair sort, depth sort) for ``context``, built once: the exclusive int64 scan of
+    the counts (its last inclusive item is the total), pyopencl's radix sort of the pairs'
+    (uint64 keys, ids) and of the Gaussians' (uint32 depth bits, ids)."""
     key = context.int_ptr
     if key in _SORTERS:
         return _SORTERS[key]
@@ -161,7 +162,10 @@ def _sorters(context):
             output_statement="offsets[i] = prev_item; if (i + 1 == n) total[0] = item;")
         sort = RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
                          sort_arg_names=["keys", "ids"], key_dtype=np.uint64)
-    _SORTERS[key] = (scan, sort)
+        depth_sort = RadixSort(context, "__global uint *keys, __global int *ids",
+                               key_expr="keys[i]", sort_arg_names=["keys", "ids"],
+                               key_dtype=np.uint32)
+    _SORTERS[key] = (scan, sort, depth_sort)
     return _SORTERS[key]
 
 
@@ -209,7 +213,7 @@ class SplatRasterizer:
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
-        self.scan, self.sort = _sorters(device.context)
+        self.scan, self.sort, self.depth_sort = _sorters(device.context)
 
     # ---- parameters ---------------------------------------------------------------------------
     def shapes(self, n: int) -> dict:
@@ -274,14 +278,19 @@ class SplatRasterizer:
             _check_device_array(name, getattr(proj, name), shape, dt)
 
     def bin(self, proj: Projected, camera: SplatCamera) -> Binned:
-        """Count, scan, emit, sort and range the (tile, Gaussian) pairs. Reads one int64 (the
-        pair count) back to the host to size the keys, ids and the sort's buffers."""
+        """The per-tile lists of (tile, Gaussian) pairs, front to back. Shape "group": count,
+        scan, emit, sort the pairs, range them. Shape "rows": sort the Gaussians by depth and
+        fill each tile row's lists in that order (splat_row_count / splat_row_fill; Binned.keys
+        is then empty). Both read one int64 (the pair count) back to the host to size the ids
+        and the sort's buffers, and give the same ids and ranges."""
         self.check_projected(proj)
         dev, q, n = self.device, self.device.queue, int(proj.n)
         ntx, nty = camera.tiles(self.tile)
-        ranges = cla.zeros(q, (ntx * nty, 2), np.int32, allocator=dev.pool)
         empty_keys = cla.empty(q, 0, np.uint64)
         empty_ids = cla.empty(q, 0, np.int32)
+        if self.shape == "rows":
+            return self._bin_rows(proj, n, ntx, nty, empty_keys, empty_ids)
+        ranges = cla.zeros(q, (ntx * nty, 2), np.int32, allocator=dev.pool)
         if n == 0:
             return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
         ls = dev.tuning.elementwise_local_size
@@ -306,6 +315,37 @@ class SplatRasterizer:
         launch(dev, self.raster_program.kernel("splat_ranges"), n_pairs,
                (np.int32(n_pairs), keys.data, ranges.data), ls)
         return Binned(n_pairs, keys, ids, ranges, ntx, nty)
+
+    def _bin_rows(self, proj: Projected, n: int, ntx: int, nty: int, empty_keys, empty_ids):
+        """bin() for the rows shape (see there)."""
+        dev, q = self.device, self.device.queue
+        ntiles = ntx * nty
+        if n == 0:
+            return Binned(0, empty_keys, empty_ids,
+                          cla.zeros(q, (ntiles, 2), np.int32, allocator=dev.pool), ntx, nty)
+        prg = self.raster_program
+        counts = scratch(dev, (ntiles,), np.int32)
+        launch(dev, prg.kernel("splat_row_count"), nty,
+               (np.int32(n), proj.rect.data, np.int32(ntx), np.int32(nty), counts.data), 1)
+        offsets = scratch(dev, (ntiles,), np.int64)
+        total = scratch(dev, (1,), np.int64)
+        self.scan(counts, offsets, total, np.int32(ntiles), queue=q)
+        n_pairs = int(total.get()[0])              # the one host read of a forward
+        if n_pairs >= 1 << 31:
+            raise ValueError(f"{n_pairs} (tile, Gaussian) pairs exceed the int32 indices")
+        ranges = scratch(dev, (ntiles, 2), np.int32)
+        if n_pairs == 0:
+            ranges.fill(0)
+            return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
+        depth_bits = proj.depth.view(np.uint32).copy()   # depth > near > 0 where it matters
+        (_, order), _ = self.depth_sort(depth_bits, cla.arange(q, n, dtype=np.int32),
+                                        key_bits=32, queue=q, allocator=dev.pool)
+        ids = scratch(dev, (n_pairs,), np.int32)
+        cursor = scratch(dev, (ntiles,), np.int32)
+        launch(dev, prg.kernel("splat_row_fill"), nty,
+               (np.int32(n), order.data, proj.rect.data, np.int32(ntx), np.int32(nty),
+                counts.data, offsets.data, cursor.data, ids.data, ranges.data), 1)
+        return Binned(n_pairs, empty_keys, ids, ranges, ntx, nty)
 
     def _tiles_launch(self, name: str, bins: Binned, args):
         """Kernel ``name`` of the rasteriser's shape: one work-group of tile x tile work-items

@@ -42,7 +42,14 @@ class TrainConfig:
     background: list = field(default_factory=list)  # override the dataset background [r,g,b]
     downscale: int = 1            # load images downscaled by this integer factor
     max_train_images: int = 0     # train on the first this-many training images; 0: all
+    points: str = "auto"          # sparse points of the scene (models that start from them):
+                                  # "auto" the capture's own (COLMAP's points3D) when it has
+                                  # them; "triangulate" also COLMAP on the training views with
+                                  # their known poses where it has none (the process extra,
+                                  # cached); "none" ignore them
 
+
+POINT_MODES = ("auto", "triangulate", "none")   # clrf/data/triangulate.py MODES
 
 # The scene presets and what each sets in the run's section; each model kind's own settings for
 # them are its Kind.scene_presets (e.g. clrf/grid/kind.py).
@@ -114,6 +121,7 @@ class Config:
             (t.eval_downscale >= 1, "train.eval_downscale", "must be an integer >= 1"),
             (t.checkpoint_every > 0, "train.checkpoint_every", "must be > 0"),
             (t.downscale >= 1, "train.downscale", "must be an integer >= 1"),
+            (t.points in POINT_MODES, "train.points", f"must be one of {list(POINT_MODES)}"),
             (t.max_train_images >= 0, "train.max_train_images", "must be >= 0"),
             (len(t.background) in (0, 3) and all(0 <= b <= 1 for b in t.background),
              "train.background", "must be empty or three values in [0, 1]"),
