@@ -205,9 +205,12 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
     ax.grid(alpha=0.3)
     fig.tight_layout()
     tmp = Path(str(png_path) + ".tmp.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    tmp.replace(png_path)
+    try:
+        fig.savefig(tmp)
+        tmp.replace(png_path)
+    finally:   # Ctrl-C during the save leaves no half-written file behind
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
 
 
 class Trainer:
