@@ -96,10 +96,10 @@ CLRF_INLINE void atomic_add_f(volatile __global float *p, float v) {
     /* NVIDIA: the relaxed reduction in L2 that CUDA's atomicAdd compiles to, by inline PTX */
     asm volatile("red.global.add.f32 [%0], %1;" : : "l"((ulong)p), "f"(v) : "memory");
 #else
-    /* compare-and-swap from the value read now (a guess the swap checks): a target that has
-     * been added to before is not 0, and guessing 0 cost a failed swap on each such add */
+    /* the first guess is 0, not a plain read of *p: a plain read beside other work-items'
+     * atomics is a data race by the OpenCL memory model (Oclgrind reports it) */
     union { unsigned int u; float f; } old, upd;
-    old.f = *p;
+    old.u = 0u;
     do {
         upd.f = old.f + v;
         const unsigned int seen = atomic_cmpxchg((volatile __global unsigned int *)p, old.u,
