@@ -536,10 +536,11 @@ def gaussian_cap(cfg, ds, caps) -> int:
     return min(sc.max_gaussians, fitting_gaussians(sc, caps, px, train_pixels=n_views * px))
 
 
-def check_inputs(cfg, ds, caps):
+def check_inputs(cfg, ds, caps, read_ply: bool = True):
     """A new run's inputs, before anything is planned or written (Kind.check): world-space
     cameras, sparse points where splat.init asks for them, a readable splat.init_ply under the
-    cap. Raises Unsupported or SplatFileError (bad input)."""
+    cap (``read_ply``: create_model reads the file once itself). Raises Unsupported or
+    SplatFileError (bad input)."""
     if ds.ndc:
         raise Unsupported(f"dataset {ds.name}: the splat model needs world-space cameras; this "
                           f"forward-facing scene is trained in NDC, which it does not support: "
@@ -550,13 +551,13 @@ def check_inputs(cfg, ds, caps):
         raise Unsupported(f"dataset {ds.name}: splat.init = 'points' but it has no sparse "
                           f"points (COLMAP's sparse/0/points3D); use splat.init = 'random' "
                           f"or 'auto', or pose the photos with `clrf process`")
-    if sc.init_ply:
+    if sc.init_ply and read_ply:
         gaussians_from_ply(sc, sc.init_ply, gaussian_cap(cfg, ds, caps))
 
 
 def create_model(device, cfg, ds, background) -> SplatModel:
     """A new model for dataset ``ds`` (world-space cameras only)."""
-    check_inputs(cfg, ds, device.caps)
+    check_inputs(cfg, ds, device.caps, read_ply=False)   # initial_host reads and checks it
     sc = cfg.splat
     cap = gaussian_cap(cfg, ds, device.caps)
     seed = int(cfg.train.seed) + int(sc.seed)

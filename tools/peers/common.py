@@ -1,6 +1,9 @@
-"""Per-ray set-up shared by the peers: the march parameters in float64 (clrf computes them in
-double on devices with fp64), from clrf.references.reference so every peer marches the same segments."""
+"""What the peers share: the per-ray set-up (the march parameters in float64, as clrf computes
+them in double on devices with fp64, from clrf.references.reference, so every peer marches the
+same segments) and one Taichi initialisation for all the Taichi peers of a process."""
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
@@ -19,3 +22,17 @@ def ray_setup(origins, dirs, reso, bbox, step, degree):
             "t0": m["t0"].astype(np.float32),
             "nsteps": np.where(m["hit"], m["nsteps"], 0).astype(np.int32),
             "Y": reference.sh_basis(m["dir"], degree).astype(np.float32)}
+
+
+_TAICHI_READY = False
+
+
+def init_taichi():
+    """ti.init once per process for every Taichi peer: the CPU backend on all cores, float32,
+    warnings only (a second ti.init would reset the runtime and drop compiled kernels)."""
+    global _TAICHI_READY
+    if not _TAICHI_READY:
+        import taichi as ti
+        ti.init(arch=ti.cpu, cpu_max_num_threads=os.cpu_count() or 1, default_fp=ti.f32,
+                log_level=ti.WARN)
+        _TAICHI_READY = True

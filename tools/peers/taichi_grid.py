@@ -15,18 +15,7 @@ import os
 import numpy as np
 import taichi as ti
 
-from .common import COLOR_OFFSET, T_STOP, ray_setup
-
-_INIT = False
-
-
-def _init():
-    global _INIT
-    if not _INIT:
-        ti.init(arch=ti.cpu, cpu_max_num_threads=os.cpu_count() or 1, default_fp=ti.f32,
-                log_level=ti.WARN)
-        _INIT = True
-
+from .common import COLOR_OFFSET, T_STOP, init_taichi, ray_setup
 
 _KERNELS = {}
 
@@ -189,7 +178,7 @@ def _kernels(C):
 class TaichiGrid:
     def __init__(self, links, density, sh, origins, dirs, params, target, bbox=None):
         from bench_scenes import BBOX
-        _init()
+        init_taichi()
         self.links = np.ascontiguousarray(links, np.int32)
         self.density = np.ascontiguousarray(density, np.float32)
         self.sh = np.ascontiguousarray(sh, np.float32)

@@ -14,18 +14,10 @@ import os
 import numpy as np
 import taichi as ti
 
-_INIT = False
+from .common import init_taichi
+
 PRIME_Y = 2654435761
 PRIME_Z = 805459861
-
-
-def _init():
-    global _INIT
-    if not _INIT:
-        ti.init(arch=ti.cpu, cpu_max_num_threads=os.cpu_count() or 1, default_fp=ti.f32,
-                log_level=ti.WARN)
-        _INIT = True
-
 
 _KERNELS = {}
 
@@ -100,7 +92,7 @@ class TaichiHash:
     """points x [n, 3], table [L, T, F], res [L] (int), box lo [3] / inv_ext [3] (float32)."""
 
     def __init__(self, x, table, res, lo, inv_ext, genc):
-        _init()
+        init_taichi()
         self.x = np.ascontiguousarray(x, np.float32)
         self.table = np.ascontiguousarray(table, np.float32)
         self.res = np.ascontiguousarray(res, np.int32)

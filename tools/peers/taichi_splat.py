@@ -38,16 +38,7 @@ import taichi as ti
 
 from clrf.splat.raster import ALPHA_MAX, ALPHA_MIN, GRAD2D_NAMES, T_MIN, TILE
 
-_INIT = False
-
-
-def _init():
-    global _INIT
-    if not _INIT:
-        ti.init(arch=ti.cpu, cpu_max_num_threads=os.cpu_count() or 1, default_fp=ti.f32,
-                log_level=ti.WARN)
-        _INIT = True
-
+from .common import init_taichi
 
 _KERNELS = {}
 
@@ -168,7 +159,7 @@ class TaichiSplat:
 
     def __init__(self, xy, conic, opacity, color, ids, ranges, width, height, tile=TILE,
                  background=(0.0, 0.0, 0.0), grad_rgb=None):
-        _init()
+        init_taichi()
         self.width, self.height, self.tile = int(width), int(height), int(tile)
         ntx, nty = -(-self.width // self.tile), -(-self.height // self.tile)
         n = np.shape(xy)[0]
