@@ -278,6 +278,10 @@ void splat_raster_backward(const int width, const int height, const int ntx,
  *   The rows kept are the range |d_y| <= dmax that this gives (reached_rows); ROW_MARGIN
  *   (absolute, plus a relative part, on the power and on dmax) keeps float rounding on the
  *   safe side: a row is skipped only where the per-pixel test would skip every pixel.
+ *   The same bound along x (-d_x^2 det / (2C)) gives the columns the splat can reach: an entry
+ *   whose columns miss the tile's (its tile came from the square xy +- radius, wider than
+ *   the ellipse where alpha reaches ALPHA_MIN) is skipped whole. And a row whose power stays
+ *   below log(ALPHA_MIN / o), less the margin, in every lane is skipped before its exp.
  *
  * The backward sums each entry's per-pixel terms over the tile in vector registers and adds
  * them with one atomic per gradient component and (tile, entry) instead of one per pixel. The
@@ -322,33 +326,79 @@ CLRF_INLINE float hsum(VF v) {
     return c.x + c.y;
 }
 
-/* The rows [*r0, *r1) of the tile at y0 (rows < rows) where the splat (mean y my, conic and
- * opacity cop) can reach ALPHA_MIN: |dy| <= dmax with dmax^2 = 2 (margin - log(ALPHA_MIN / o))
- * A / det, from the bound above with the margin. Degenerate conics keep every row; an opacity
- * below ALPHA_MIN keeps none (alpha <= o there). */
-CLRF_INLINE void reached_rows(const float my, const float4 cop, const int y0, const int rows,
-                              int *r0, int *r1) {
-    *r0 = 0;
-    *r1 = rows;
-    if (!(cop.w >= ALPHA_MIN)) {
-        *r1 = 0;
-        return;
-    }
-    const float det = cop.x * cop.z - cop.y * cop.y;
-    if (!(cop.x > 0.0f) || !(det > 0.0f)) return;
-    const float log_thr = log(ALPHA_MIN / cop.w);
-    const float reach = -log_thr + ROW_MARGIN * (1.0f + fabs(log_thr));   /* >= 0 */
-    const float dmax = sqrt(2.0f * reach * (cop.x / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
-    if (!(dmax < 4.0f * TILE)) return;   /* huge, or not finite: every row */
-    /* row r's centre is y0 + r + 0.5; keep |my - centre| <= dmax */
-    const float lo = my - dmax - (float)y0 - 0.5f, hi = my + dmax - (float)y0 - 0.5f;
-    *r0 = clamp((int)ceil(lo), 0, rows);
-    *r1 = clamp((int)floor(hi) + 1, *r0, rows);
+/* any() / all() of a lane mask without branches: the builtins compile (PoCL 3.1, LLVM 15) to a
+ * chain of one test and branch per lane pair, data-dependent branches that mispredict in the
+ * inner loop; an OR / AND tree over the halves is a few shuffles and one test. */
+CLRF_INLINE int any_lane(const VI v) {
+#if TILE == 16
+    const int8 a = v.lo | v.hi;
+    const int4 b = a.lo | a.hi;
+#elif TILE == 8
+    const int4 b = v.lo | v.hi;
+#else
+    const int4 b = v;
+#endif
+    const int2 c = b.lo | b.hi;
+    return (c.x | c.y) < 0;
 }
 
-/* Per-lane alpha (0 where skipped) of splat (mean, cop) on a row: d = mean - pixel centre. */
-CLRF_INLINE VF row_alpha(const VF dx, const float dy, const float4 cop, VF *G_out, VF *raw_out) {
-    const VF power = -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+CLRF_INLINE int all_lane(const VI v) {
+#if TILE == 16
+    const int8 a = v.lo & v.hi;
+    const int4 b = a.lo & a.hi;
+#elif TILE == 8
+    const int4 b = v.lo & v.hi;
+#else
+    const int4 b = v;
+#endif
+    const int2 c = b.lo & b.hi;
+    return (c.x & c.y) < 0;
+}
+
+/* Where in the tile at (x0, y0) (rows x cols pixels) the splat (mean m, conic and opacity cop)
+ * can reach ALPHA_MIN: rows [*r0, *r1) with |dy| <= dmax_y, dmax_y^2 = 2 (margin -
+ * log(ALPHA_MIN / o)) A / det, from the bound above with the margin; returns 0 when the
+ * columns' range (|dx| <= dmax_x, dmax_x^2 = 2 (...) C / det) misses the tile's, or no row is
+ * left (the entry can be skipped), else 1. *pthr: the power below which a lane cannot reach
+ * ALPHA_MIN, less the margin (-INFINITY: no test). Degenerate conics keep every row and column;
+ * an opacity below ALPHA_MIN keeps none (alpha <= o there). */
+CLRF_INLINE int reached_rows(const float2 m, const float4 cop, const int x0, const int y0,
+                             const int rows, const int cols, int *r0, int *r1, float *pthr) {
+    *r0 = 0;
+    *r1 = rows;
+    *pthr = -INFINITY;
+    if (!(cop.w >= ALPHA_MIN)) {
+        *r1 = 0;
+        return 0;
+    }
+    const float det = cop.x * cop.z - cop.y * cop.y;
+    if (!(cop.x > 0.0f) || !(cop.z > 0.0f) || !(det > 0.0f)) return rows > 0;
+    const float log_thr = log(ALPHA_MIN / cop.w);
+    const float margin = ROW_MARGIN * (1.0f + fabs(log_thr));
+    *pthr = log_thr - margin;
+    const float reach = -log_thr + margin;   /* >= 0 */
+    const float dmax = sqrt(2.0f * reach * (cop.x / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
+    const float dmax_x = sqrt(2.0f * reach * (cop.z / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
+    if (dmax_x < 4.0f * TILE) {
+        /* column c's centre is x0 + c + 0.5; some column must have |m.x - centre| <= dmax_x */
+        const float lo = m.x - dmax_x - (float)x0 - 0.5f, hi = m.x + dmax_x - (float)x0 - 0.5f;
+        if (!(hi >= 0.0f) || !(lo <= (float)(cols - 1))) return 0;
+    }
+    if (!(dmax < 4.0f * TILE)) return rows > 0;   /* huge, or not finite: every row */
+    /* row r's centre is y0 + r + 0.5; keep |m.y - centre| <= dmax */
+    const float lo = m.y - dmax - (float)y0 - 0.5f, hi = m.y + dmax - (float)y0 - 0.5f;
+    *r0 = clamp((int)ceil(lo), 0, rows);
+    *r1 = clamp((int)floor(hi) + 1, *r0, rows);
+    return *r0 < *r1;
+}
+
+/* The power of splat (mean, cop) per lane of a row: d = mean - pixel centre. */
+CLRF_INLINE VF row_power(const VF dx, const float dy, const float4 cop) {
+    return -0.5f * (cop.x * dx * dx + cop.z * dy * dy) - cop.y * dx * dy;
+}
+
+/* Per-lane alpha (0 where skipped) of splat cop at the lanes' powers. */
+CLRF_INLINE VF row_alpha(const VF power, const float4 cop, VF *G_out, VF *raw_out) {
     const VF G = exp(power);
     const VF raw = cop.w * G;
     const VF alpha = fmin((VF)(ALPHA_MAX), raw);
@@ -388,14 +438,17 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
         const float4 cop = (float4)(vload3(g, conic), opacity[g]);
         const float3 c = vload3(g, color);
         int r0, r1;
-        reached_rows(m.y, cop, y0, rows, &r0, &r1);
+        float pthr;
+        if (!reached_rows(m, cop, x0, y0, rows, cols, &r0, &r1, &pthr)) continue;
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start + 1);
         for (int r = r0; r < r1; ++r) {
-            if (all(done[r])) continue;
+            if (all_lane(done[r])) continue;
             const float dy = m.y - ((float)(y0 + r) + 0.5f);
+            const VF power = row_power(dx, dy, cop);
+            if (!any_lane(power >= pthr)) continue;
             VF G, raw;
-            const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
+            const VF alpha = row_alpha(power, cop, &G, &raw);
             const VF nT = T[r] * (1.0f - alpha);
             const VI act = ~done[r] & (alpha != 0.0f);
             const VI stop = act & (nT < T_MIN);
@@ -407,7 +460,7 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
             Cb[r] = select(Cb[r], Cb[r] + c.z * w, use);
             T[r] = select(T[r], nT, use);
             last[r] = select(last[r], pos, use);
-            if (any(stop) && all(done[r])) --alive;
+            if (any_lane(stop) && all_lane(done[r])) --alive;
         }
     }
     for (int r = 0; r < rows; ++r) {
@@ -478,7 +531,8 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
         const float4 cop = (float4)(vload3(g, conic), opacity[g]);
         const float3 c = vload3(g, color);
         int r0, r1;
-        reached_rows(m.y, cop, y0, rows, &r0, &r1);
+        float pthr;
+        if (!reached_rows(m, cop, x0, y0, rows, cols, &r0, &r1, &pthr)) continue;
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start);
         VF s_cr = ZERO, s_cg = ZERO, s_cb = ZERO, s_o = ZERO, s_x = ZERO, s_y = ZERO;
@@ -486,10 +540,12 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
         int touched = 0;
         for (int r = r0; r < r1; ++r) {
             const float dy = m.y - ((float)(y0 + r) + 0.5f);
+            const VF power = row_power(dx, dy, cop);
+            if (!any_lane(power >= pthr)) continue;
             VF G, raw;
-            const VF alpha = row_alpha(dx, dy, cop, &G, &raw);
+            const VF alpha = row_alpha(power, cop, &G, &raw);
             const VI act = (pos < npix[r]) & (alpha != 0.0f);
-            if (!any(act)) continue;
+            if (!any_lane(act)) continue;
             touched = 1;
             const VF Tk = select(T[r], T[r] / (1.0f - alpha), act);
             T[r] = Tk;

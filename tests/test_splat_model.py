@@ -159,6 +159,9 @@ def test_initial_gaussians_from_points_random_and_beyond_the_box():
     lo, hi = ds.bbox
     assert "40 random in the scene box" in where and len(host["means"]) == 40
     assert np.all((host["means"] >= lo) & (host["means"] <= hi))
+    # random Gaussians start grey, as published (SH degree 0 in [0, 1/255])
+    dc = host["sh"][:, 0]
+    assert dc.min() >= 0 and dc.max() <= 1 / 255 + 1e-7 and dc.std() > 0
     unb = dataclasses.replace(ds, preset="real360", bbox=np.array([[-1.0] * 3, [1.0] * 3]))
     host, where = sm.initial_host(dataclasses.replace(sc, init_points=400), unb, 1000, 1)
     r = np.linalg.norm(host["means"], axis=1)

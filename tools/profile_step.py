@@ -78,8 +78,13 @@ def main(argv=None):
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     ds = checkpoint_dataset(state, a.data)
-    rays = training_rays(dev, ds, cfg.train.max_train_images,
-                         alpha=getattr(model, "random_background", False))
+    from clrf import registry
+    if registry.get(model.kind).batches == "views":   # the model draws its own views
+        model.attach(ds, cfg.train.max_train_images)
+        rays = None
+    else:
+        rays = training_rays(dev, ds, cfg.train.max_train_images,
+                             alpha=getattr(model, "random_background", False))
     it0 = int(state.get("iteration", 0))
     if a.set:                    # the untimed steps below adapt the batch to it
         model.config = changed_config(model, a.set)

@@ -448,7 +448,9 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
 
 
 def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int, outer: float = 0.0) -> dict:
-    """n Gaussians uniform in ``bbox`` [2, 3] with random colours; with ``outer`` > 1 (an
+    """n Gaussians uniform in ``bbox`` [2, 3], grey (colour 0.5 plus at most 1/255 of SH
+    degree 0, as the published code starts random points: a random colour per Gaussian costs
+    hundreds of steps at the published SH rate to undo); with ``outer`` > 1 (an
     unbounded scene whose cameras sit in the box), as many again beyond the box, out to
     ``outer`` times its half-size from its centre: directions uniform and distances uniform in
     1 / r, so that each shell the cameras see at a similar angular size holds a similar
@@ -462,7 +464,8 @@ def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int, outer: float
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
         r = 1.0 / rng.uniform(1.0 / outer, 1.0, n)
         means = np.concatenate([means, centre + d * (r[:, None] * half.max())])
-    return _gaussians_at(config, means, rng.uniform(0, 1, (len(means), 3)), rng)
+    rgb = 0.5 + SH_C0 * rng.uniform(0.0, 1.0 / 255.0, (len(means), 3))
+    return _gaussians_at(config, means, rgb, rng)
 
 
 def gaussians_from_points(config: SplatConfig, points, n: int, seed: int) -> dict:
