@@ -282,6 +282,8 @@ void splat_raster_backward(const int width, const int height, const int ntx,
  *   whose columns miss the tile's (its tile came from the square xy +- radius, wider than
  *   the ellipse where alpha reaches ALPHA_MIN) is skipped whole. And a row whose power stays
  *   below log(ALPHA_MIN / o), less the margin, in every lane is skipped before its exp.
+ *   These bounds are computed once a splat (splat_pack_rows), not once a list entry: an entry
+ *   loads one 64-byte record (position, conic, opacity, colour, bounds).
  *
  * The backward sums each entry's per-pixel terms over the tile in vector registers and adds
  * them with one atomic per gradient component and (tile, entry) instead of one per pixel. The
@@ -355,38 +357,57 @@ CLRF_INLINE int all_lane(const VI v) {
     return (c.x & c.y) < 0;
 }
 
-/* Where in the tile at (x0, y0) (rows x cols pixels) the splat (mean m, conic and opacity cop)
- * can reach ALPHA_MIN: rows [*r0, *r1) with |dy| <= dmax_y, dmax_y^2 = 2 (margin -
- * log(ALPHA_MIN / o)) A / det, from the bound above with the margin; returns 0 when the
- * columns' range (|dx| <= dmax_x, dmax_x^2 = 2 (...) C / det) misses the tile's, or no row is
- * left (the entry can be skipped), else 1. *pthr: the power below which a lane cannot reach
- * ALPHA_MIN, less the margin (-INFINITY: no test). Degenerate conics keep every row and column;
- * an opacity below ALPHA_MIN keeps none (alpha <= o there). */
-CLRF_INLINE int reached_rows(const float2 m, const float4 cop, const int x0, const int y0,
-                             const int rows, const int cols, int *r0, int *r1, float *pthr) {
+/* splat_pack_rows: each splat's record for the row kernels, one 64-byte line [n, 16]: x, y,
+ * conic A, B, C, opacity o, colour r, g, b, then what bounds its reach (so that a list entry
+ * needs one load and no log, sqrt or division):
+ *   s9  pthr: the power below which a lane cannot reach ALPHA_MIN, less the margin
+ *       (-INFINITY: no test),
+ *   sa  dmax_x and sb dmax_y: |dx| <= dmax_x, |dy| <= dmax_y hold wherever alpha can reach
+ *       ALPHA_MIN (dmax_y^2 = 2 (margin - log(ALPHA_MIN / o)) A / det from the bound above,
+ *       dmax_x likewise with C; INFINITY: no bound),
+ *   sc  1 when the splat can reach ALPHA_MIN at all (o >= ALPHA_MIN), else 0.
+ * Degenerate conics get no bounds (every row and column); the margin keeps rounding on the
+ * safe side. */
+__kernel void splat_pack_rows(const int n, __global const float *xy,
+                              __global const float *conic, __global const float *opacity,
+                              __global const float *color, __global float *rec) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float2 m = vload2(i, xy);
+    const float3 q = vload3(i, conic);
+    const float o = opacity[i];
+    const float3 c = vload3(i, color);
+    float pthr = -INFINITY, dmax_x = INFINITY, dmax_y = INFINITY;
+    const float det = q.x * q.z - q.y * q.y;
+    if (o >= ALPHA_MIN && q.x > 0.0f && q.z > 0.0f && det > 0.0f) {
+        const float log_thr = log(ALPHA_MIN / o);
+        const float margin = ROW_MARGIN * (1.0f + fabs(log_thr));
+        pthr = log_thr - margin;
+        const float reach = -log_thr + margin;   /* >= 0 */
+        dmax_y = sqrt(2.0f * reach * (q.x / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
+        dmax_x = sqrt(2.0f * reach * (q.z / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
+    }
+    vstore16((float16)(m.x, m.y, q.x, q.y, q.z, o, c.x, c.y, c.z, pthr, dmax_x, dmax_y,
+                       o >= ALPHA_MIN ? 1.0f : 0.0f, 0.0f, 0.0f, 0.0f), i, rec);
+}
+
+/* The rows [*r0, *r1) of the tile at (x0, y0) (rows x cols pixels) that record ``s``
+ * (splat_pack_rows) can reach; 0 when none, or when its columns miss the tile's (the entry is
+ * skipped whole: its tile came from the square xy +- radius, wider than the ellipse where
+ * alpha reaches ALPHA_MIN), else 1. */
+CLRF_INLINE int reached_rows(const float16 s, const int x0, const int y0, const int rows,
+                             const int cols, int *r0, int *r1) {
     *r0 = 0;
     *r1 = rows;
-    *pthr = -INFINITY;
-    if (!(cop.w >= ALPHA_MIN)) {
-        *r1 = 0;
-        return 0;
-    }
-    const float det = cop.x * cop.z - cop.y * cop.y;
-    if (!(cop.x > 0.0f) || !(cop.z > 0.0f) || !(det > 0.0f)) return rows > 0;
-    const float log_thr = log(ALPHA_MIN / cop.w);
-    const float margin = ROW_MARGIN * (1.0f + fabs(log_thr));
-    *pthr = log_thr - margin;
-    const float reach = -log_thr + margin;   /* >= 0 */
-    const float dmax = sqrt(2.0f * reach * (cop.x / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
-    const float dmax_x = sqrt(2.0f * reach * (cop.z / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
-    if (dmax_x < 4.0f * TILE) {
-        /* column c's centre is x0 + c + 0.5; some column must have |m.x - centre| <= dmax_x */
-        const float lo = m.x - dmax_x - (float)x0 - 0.5f, hi = m.x + dmax_x - (float)x0 - 0.5f;
+    if (!(s.sc > 0.0f)) return 0;
+    if (s.sa < 4.0f * TILE) {
+        /* column c's centre is x0 + c + 0.5; some column must have |x - centre| <= dmax_x */
+        const float lo = s.s0 - s.sa - (float)x0 - 0.5f, hi = s.s0 + s.sa - (float)x0 - 0.5f;
         if (!(hi >= 0.0f) || !(lo <= (float)(cols - 1))) return 0;
     }
-    if (!(dmax < 4.0f * TILE)) return rows > 0;   /* huge, or not finite: every row */
-    /* row r's centre is y0 + r + 0.5; keep |m.y - centre| <= dmax */
-    const float lo = m.y - dmax - (float)y0 - 0.5f, hi = m.y + dmax - (float)y0 - 0.5f;
+    if (!(s.sb < 4.0f * TILE)) return rows > 0;   /* huge, or not finite: every row */
+    /* row r's centre is y0 + r + 0.5; keep |y - centre| <= dmax_y */
+    const float lo = s.s1 - s.sb - (float)y0 - 0.5f, hi = s.s1 + s.sb - (float)y0 - 0.5f;
     *r0 = clamp((int)ceil(lo), 0, rows);
     *r1 = clamp((int)floor(hi) + 1, *r0, rows);
     return *r0 < *r1;
@@ -409,10 +430,8 @@ CLRF_INLINE VF row_alpha(const VF power, const float4 cop, VF *G_out, VF *raw_ou
 
 __kernel void splat_raster_forward_rows(const int width, const int height, const int ntx,
                                         const int ntiles, __global const int *ranges,
-                                        __global const int *ids, __global const float *xy,
-                                        __global const float *conic,
-                                        __global const float *opacity,
-                                        __global const float *color, const float4 bg,
+                                        __global const int *ids, __global const float *rec,
+                                        const float4 bg,
                                         __global float *out_rgb, __global float *out_T,
                                         __global int *out_n) {
     const int tile = get_global_id(0);
@@ -433,13 +452,13 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
     }
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
     for (int k = start; k < end && alive > 0; ++k) {
-        const int g = ids[k];
-        const float2 m = vload2(g, xy);
-        const float4 cop = (float4)(vload3(g, conic), opacity[g]);
-        const float3 c = vload3(g, color);
+        const float16 s = vload16(ids[k], rec);
         int r0, r1;
-        float pthr;
-        if (!reached_rows(m, cop, x0, y0, rows, cols, &r0, &r1, &pthr)) continue;
+        if (!reached_rows(s, x0, y0, rows, cols, &r0, &r1)) continue;
+        const float2 m = s.s01;
+        const float4 cop = s.s2345;
+        const float3 c = s.s678;
+        const float pthr = s.s9;
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start + 1);
         for (int r = r0; r < r1; ++r) {
@@ -454,10 +473,10 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
             const VI stop = act & (nT < T_MIN);
             done[r] |= stop;
             const VI use = act & ~stop;
-            const VF w = alpha * T[r];
-            Cr[r] = select(Cr[r], Cr[r] + c.x * w, use);
-            Cg[r] = select(Cg[r], Cg[r] + c.y * w, use);
-            Cb[r] = select(Cb[r], Cb[r] + c.z * w, use);
+            const VF w = select(ZERO, alpha * T[r], use);   /* 0: no change (c is finite) */
+            Cr[r] += c.x * w;
+            Cg[r] += c.y * w;
+            Cb[r] += c.z * w;
             T[r] = select(T[r], nT, use);
             last[r] = select(last[r], pos, use);
             if (any_lane(stop) && all_lane(done[r])) --alive;
@@ -482,10 +501,8 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
 
 __kernel void splat_raster_backward_rows(const int width, const int height, const int ntx,
                                          const int ntiles, __global const int *ranges,
-                                         __global const int *ids, __global const float *xy,
-                                         __global const float *conic,
-                                         __global const float *opacity,
-                                         __global const float *color, const float4 bg,
+                                         __global const int *ids, __global const float *rec,
+                                         const float4 bg,
                                          __global const float *out_T, __global const int *out_n,
                                          __global const float *grad_rgb,
                                          __global float *g_xy, __global float *g_conic,
@@ -497,8 +514,10 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
     const VF xs = (float)x0 + lane_centres();
     VF T[TILE], Sr[TILE], Sg[TILE], Sb[TILE], gr[TILE], gg[TILE], gb[TILE];
     VI npix[TILE];
-    int top = 0;   /* the largest n_contrib of the tile */
+    int rtop[TILE];   /* the largest n_contrib of each row */
+    int top = 0;      /* and of the tile */
     for (int r = 0; r < TILE; ++r) {
+        rtop[r] = 0;
         T[r] = (VF)(1.0f);
         Sr[r] = (VF)(bg.x);
         Sg[r] = (VF)(bg.y);
@@ -516,8 +535,9 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
             r3[i] = in ? grad_rgb[3 * (p0 + i)] : 0.0f;
             g3[i] = in ? grad_rgb[3 * (p0 + i) + 1] : 0.0f;
             b3[i] = in ? grad_rgb[3 * (p0 + i) + 2] : 0.0f;
-            top = max(top, nn[i]);
+            rtop[r] = max(rtop[r], nn[i]);
         }
+        top = max(top, rtop[r]);
         T[r] = VLOAD(0, tt);
         npix[r] = VLOADI(0, nn);
         gr[r] = VLOAD(0, r3);
@@ -527,46 +547,53 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
     const int start = ranges[2 * tile];
     for (int k = start + top - 1; k >= start; --k) {
         const int g = ids[k];
-        const float2 m = vload2(g, xy);
-        const float4 cop = (float4)(vload3(g, conic), opacity[g]);
-        const float3 c = vload3(g, color);
+        const float16 s = vload16(g, rec);
         int r0, r1;
-        float pthr;
-        if (!reached_rows(m, cop, x0, y0, rows, cols, &r0, &r1, &pthr)) continue;
+        if (!reached_rows(s, x0, y0, rows, cols, &r0, &r1)) continue;
+        const float2 m = s.s01;
+        const float4 cop = s.s2345;
+        const float3 c = s.s678;
+        const float pthr = s.s9;
         const VF dx = m.x - xs;
         const VI pos = (VI)(k - start);
         VF s_cr = ZERO, s_cg = ZERO, s_cb = ZERO, s_o = ZERO, s_x = ZERO, s_y = ZERO;
         VF s_a = ZERO, s_b = ZERO, s_c = ZERO;
         int touched = 0;
+        const int kpos = k - start;
         for (int r = r0; r < r1; ++r) {
+            if (kpos >= rtop[r]) continue;   /* past every pixel's last entry in this row */
             const float dy = m.y - ((float)(y0 + r) + 0.5f);
             const VF power = row_power(dx, dy, cop);
             if (!any_lane(power >= pthr)) continue;
             VF G, raw;
-            const VF alpha = row_alpha(power, cop, &G, &raw);
-            const VI act = (pos < npix[r]) & (alpha != 0.0f);
+            const VF alpha0 = row_alpha(power, cop, &G, &raw);
+            const VI act = (pos < npix[r]) & (alpha0 != 0.0f);
             if (!any_lane(act)) continue;
             touched = 1;
-            const VF Tk = select(T[r], T[r] / (1.0f - alpha), act);
+            /* inactive lanes get alpha 0 and dpow 0, so that they change nothing and add
+             * exact zeros (every factor below is finite: the conic is bounded by the
+             * dilation, dx and dy by the splat's reach) */
+            const VF alpha = select(ZERO, alpha0, act);
+            const VF Tk = T[r] / (1.0f - alpha);
             T[r] = Tk;
             const VF dalpha = Tk * (gr[r] * (c.x - Sr[r]) + gg[r] * (c.y - Sg[r]) +
                                     gb[r] * (c.z - Sb[r]));
-            Sr[r] = select(Sr[r], alpha * c.x + (1.0f - alpha) * Sr[r], act);
-            Sg[r] = select(Sg[r], alpha * c.y + (1.0f - alpha) * Sg[r], act);
-            Sb[r] = select(Sb[r], alpha * c.z + (1.0f - alpha) * Sb[r], act);
-            /* inactive lanes add exact zeros (select, not a multiply: no inf * 0) */
+            Sr[r] += alpha * (c.x - Sr[r]);
+            Sg[r] += alpha * (c.y - Sg[r]);
+            Sb[r] += alpha * (c.z - Sb[r]);
             const VF w = Tk * alpha;
-            s_cr += select(ZERO, w * gr[r], act);
-            s_cg += select(ZERO, w * gg[r], act);
-            s_cb += select(ZERO, w * gb[r], act);
+            s_cr += w * gr[r];
+            s_cg += w * gg[r];
+            s_cb += w * gb[r];
             const VI free = act & (raw < ALPHA_MAX);
-            const VF dpow = raw * dalpha;
-            s_o += select(ZERO, G * dalpha, free);
-            s_x += select(ZERO, -dpow * (cop.x * dx + cop.y * dy), free);
-            s_y += select(ZERO, -dpow * (cop.y * dx + cop.z * dy), free);
-            s_a += select(ZERO, -0.5f * dpow * dx * dx, free);
-            s_b += select(ZERO, -dpow * dx * dy, free);
-            s_c += select(ZERO, -0.5f * dpow * dy * dy, free);
+            const VF dG = select(ZERO, G * dalpha, free);
+            const VF dpow = cop.w * dG;
+            s_o += dG;
+            s_x -= dpow * (cop.x * dx + cop.y * dy);
+            s_y -= dpow * (cop.y * dx + cop.z * dy);
+            s_a -= 0.5f * dpow * dx * dx;
+            s_b -= dpow * dx * dy;
+            s_c -= 0.5f * dpow * dy * dy;
         }
         if (!touched) continue;
         atomic_add_f(&g_color[3 * g], hsum(s_cr));

@@ -128,7 +128,7 @@ def test_packed_composite_matches_reference(device):
                               for i in range(n)]).astype(int)
         c2 = np.array([max(0, min(hi, c) - min(lo, c)) for c in counts])
         o2 = np.concatenate([[0], np.cumsum(c2)])
-        return hm.Packed(n, len(sel), cla.to_device(q, o2.astype(np.int32)), o2,
+        return hm.Packed(n, len(sel), cla.to_device(q, o2.astype(np.int32)),
                          _up(device, t[sel]), _up(device, dt[sel]),
                          _up(device, np.zeros((len(sel), 3))),
                          _up(device, np.zeros((len(sel), 3)))), sel
@@ -171,7 +171,7 @@ def test_packed_keep_and_gather_match_reference(device):
     xyz, vdir = rng.normal(size=(m, 3)), rng.normal(size=(m, 3))
     extra = rng.normal(size=(m, 5)).astype(np.float32)
     q = device.queue
-    pk = hm.Packed(n, m, cla.to_device(q, off.astype(np.int32)), off, _up(device, t),
+    pk = hm.Packed(n, m, cla.to_device(q, off.astype(np.int32)), _up(device, t),
                    _up(device, dt), _up(device, xyz), _up(device, vdir))
     for t_stop in (1e-4, 0.3):
         want, T = rh.packed_keep(off, dt, sig, t_stop)

@@ -267,6 +267,38 @@ def test_splat_rasterize_backward_matches_reference(device, shape, n, width, hei
         assert np.abs(ref[name]).max() > 0, name
 
 
+@pytest.mark.parametrize("shape", sr.SHAPES)
+def test_splat_thin_faint_splats_skip_nothing_they_reach(device, shape):
+    """Needles (sigma 0.4 by 14 px at any angle) and faint splats (opacity near 1/255, whose
+    ellipse where alpha reaches ALPHA_MIN is far inside the 3-sigma square their tiles come
+    from): the CPU shape drops list entries whose ellipse misses the tile's columns and rows
+    whose power cannot reach the threshold before the exp; the image, the entries each pixel
+    used and the gradients must still be the twin's."""
+    width, height, n = 48, 40, 90
+    sp = _splats(n, width, height, seed=77, opacity=(0.0045, 0.9), sigma=(0.4, 14.0))
+    r, cam, proj, bins, ras, lists, want = _raster_both(device, sp, width, height, shape=shape)
+    _assert_raster(ras, want)
+    # many listed entries reach no pixel of their tile (brute force): the case the skip is for
+    ntx = cam.tiles()[0]
+    ys, xs = np.mgrid[0:height, 0:width] + 0.5
+    unreached = 0
+    for t, ids in enumerate(lists):
+        x0, y0 = (t % ntx) * rs.TILE, (t // ntx) * rs.TILE
+        px = xs[y0:y0 + rs.TILE, x0:x0 + rs.TILE].ravel()
+        py = ys[y0:y0 + rs.TILE, x0:x0 + rs.TILE].ravel()
+        for g in ids:
+            A, B, C = sp["conic"][g].astype(np.float64)
+            dx, dy = sp["xy"][g, 0] - px, sp["xy"][g, 1] - py
+            power = -0.5 * (A * dx * dx + C * dy * dy) - B * dx * dy
+            unreached += not np.any(sp["opacity"][g] * np.exp(power) >= sr.ALPHA_MIN)
+    assert unreached > 0.2 * bins.n_pairs, (unreached, bins.n_pairs)
+    grad = np.random.default_rng(78).normal(size=(height, width, 3)).astype(np.float32)
+    got = r.rasterize_backward(proj, bins, ras, cam, cla.to_device(device.queue, grad), BG)
+    ref = rs.rasterize_backward(_f64(sp), lists, want, width, height, grad, BG)
+    for name in sr.GRAD2D_NAMES:
+        _close_rel(got[name].get(), ref[name], tol.SPLAT_GRAD_REL_TO_MAX, name)
+
+
 @pytest.mark.parametrize("tile", [4, 8])
 def test_splat_rows_shape_with_small_tiles(device, tile):
     """The CPU shape with 4- and 8-pixel tiles (float4 / float8 rows), forward and backward

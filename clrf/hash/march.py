@@ -15,7 +15,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, scratch, upload
+from ..runtime.programs import launch, scratch
+from ..runtime.scan import row_offsets
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
 
@@ -26,11 +27,15 @@ class Packed:
     n: int
     m: int
     offsets: cla.Array        # int32 [n + 1] (device)
-    offsets_host: np.ndarray  # int64 [n + 1]
     t: cla.Array              # [M]
     dt: cla.Array             # [M] the segment each sample stands for (its bin's length)
     xyz: cla.Array            # [M, 3] the encoding's points (contracted under a Contraction)
     vdir: cla.Array           # [M, 3]
+
+    @property
+    def offsets_host(self) -> np.ndarray:
+        """The offsets as int64 numpy [n + 1] (a download: for tests and tools, not the step)."""
+        return self.offsets.get()[:self.n + 1].astype(np.int64)
 
 
 class Contraction:
@@ -71,8 +76,9 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     """The live samples of bins k0 .. k1-1 (default all S) of the rays origins/dirs [n, 3]
     (device) through the occupancy grid ``occ`` (OccupancyGrid), for rays with alive[i] != 0
     (uchar device array [n]; None: all). ``contract``: log-spaced bins and contracted points
-    (occ then covers Contraction.BOX). One host round trip (the per-ray counts); a scratch
-    byte per (ray, bin) marks the live ones."""
+    (occ then covers Contraction.BOX). The per-ray counts are scanned on the device; one
+    number comes back (the total, to size the sample arrays). A scratch byte per (ray, bin)
+    marks the live ones."""
     n = int(origins.shape[0])
     k1 = S if k1 is None else int(k1)
     dev, q = device, device.queue
@@ -92,11 +98,7 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
         cl.enqueue_nd_range_kernel(q, kern, (-(-W // 16), n), None)   # 16 bins an item
     launch(dev, prg.kernel("march_count"), n, (np.int32(n), np.int32(W), live.data, counts.data),
            dev.tuning.per_ray_local_size)
-    off = np.zeros(n + 1, np.int64)
-    if n:
-        np.cumsum(counts.get()[:n], out=off[1:])
-    m = int(off[-1])
-    offsets = upload(q, off.astype(np.int32))
+    offsets, m = row_offsets(dev, counts, n)
     t = scratch(dev, max(m, 1))
     dt = scratch(dev, max(m, 1))
     xyz = scratch(dev, (max(m, 1), 3))
@@ -106,7 +108,7 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
                bins + (centre, inv_half, live.data, offsets.data, t.data, dt.data, xyz.data,
                        vdir.data),
                dev.tuning.per_ray_local_size)
-    return Packed(n, m, offsets, off, *(a[:m] if m else a for a in (t, dt, xyz, vdir)))
+    return Packed(n, m, offsets, *(a[:m] if m else a for a in (t, dt, xyz, vdir)))
 
 
 def _bg4(background):
@@ -151,7 +153,8 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
     """The samples of pk in front of each ray's first point of transmittance < t_stop (see
     packed_keep in the kernel file), as a new Packed, and the same rows of each array in rows
     (device [M, ...] float32, C-contiguous); None (nothing copied) when that keeps more than
-    max_fraction of the samples. One host round trip (the kept counts)."""
+    max_fraction of the samples. The kept counts are scanned on the device; one number comes
+    back (the kept total)."""
     dev, q = device, device.queue
     prg = program(device)
     ls = dev.tuning.per_ray_local_size
@@ -160,13 +163,12 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
     if pk.m:
         launch(dev, prg.kernel("packed_keep"), n, (np.int32(n), pk.offsets.data, pk.dt.data,
                                                     sigma.data, np.float32(t_stop), keep.data), ls)
-    off = np.zeros(n + 1, np.int64)
-    if n and pk.m:
-        np.cumsum(keep.get()[:n], out=off[1:])
-    m = int(off[-1])
+    if pk.m:
+        offsets, m = row_offsets(dev, keep, n)
+    else:                        # no sample: packed_keep did not run
+        offsets, m = cla.zeros(q, n + 1, np.int32), 0
     if m > max_fraction * pk.m:
         return None
-    offsets = upload(q, off.astype(np.int32))
     out = []
     for a in (pk.t, pk.dt, pk.xyz, pk.vdir, *rows):
         if a.dtype != np.float32 or not a.flags.c_contiguous:
@@ -178,4 +180,4 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
                    (np.int32(n), np.int32(width), pk.offsets.data, offsets.data, a.data,
                     b.data), ls)
         out.append(b[:m] if m else b)
-    return Packed(n, m, offsets, off, *out[:4]), out[4:]
+    return Packed(n, m, offsets, *out[:4]), out[4:]

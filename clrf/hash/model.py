@@ -310,7 +310,8 @@ class HashModel:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
         g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
-        loss = float(np.sum(g["sq_err"].get()[:B], dtype=np.float64) * scale)
+        # summed on the device (pyopencl's reduction): one number comes back, not B
+        loss = float(cla.sum(g["sq_err"][:B], queue=q).get()) * scale
         self._adapt_batch(B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0

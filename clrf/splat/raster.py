@@ -124,10 +124,12 @@ class Binned:
 @dataclass
 class Raster:
     """The forward's image: rgb [H, W, 3], final transmittance T [H, W], n_contrib [H, W] int32
-    (list entries the backward walks)."""
+    (list entries the backward walks); for the rows shape also the splats' records the forward
+    used (splat_pack_rows), which the backward reuses."""
     rgb: cla.Array
     T: cla.Array
     n_contrib: cla.Array
+    records: cla.Array | None = None
 
 
 def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
@@ -347,15 +349,39 @@ class SplatRasterizer:
                 counts.data, offsets.data, cursor.data, ids.data, ranges.data), 1)
         return Binned(n_pairs, empty_keys, ids, ranges, ntx, nty)
 
-    def _tiles_launch(self, name: str, bins: Binned, args):
-        """Kernel ``name`` of the rasteriser's shape: one work-group of tile x tile work-items
-        per tile ("group"), or one work-item per tile ("rows", name + "_rows", which takes the
-        tile count after ntx)."""
+    def _records(self, proj: Projected) -> cla.Array:
+        """The rows shape's per-splat records [n, 16] (splat_pack_rows: the splat and the
+        bounds of its reach, one 64-byte line a list entry loads)."""
+        n = int(proj.n)
+        rec = scratch(self.device, (max(n, 1), 16))
+        if n:
+            launch(self.device, self.raster_program.kernel("splat_pack_rows"), n,
+                   (np.int32(n), proj.xy.data, proj.conic.data, proj.opacity.data,
+                    proj.color.data, rec.data), self.device.tuning.elementwise_local_size)
+        return rec
+
+    def _backward_records(self, proj: Projected, raster: Raster):
+        """The records for the backward (rows shape): the forward's, when it kept them for
+        these splats, else packed anew."""
+        if self.shape != "rows":
+            return None
+        rec = raster.records
+        if rec is None or rec.shape[0] != max(int(proj.n), 1):
+            rec = self._records(proj)
+        return rec
+
+    def _tiles_launch(self, name: str, bins: Binned, args, rec=None):
+        """Kernel ``name`` of the rasteriser's shape with ``args`` (width, height, ntx, ranges,
+        ids, xy, conic, opacity, color, then the kernel's own): one work-group of tile x tile
+        work-items per tile ("group"), or one work-item per tile ("rows", name + "_rows",
+        which takes the tile count after ntx and the splats' records ``rec`` instead of xy ..
+        color)."""
         t = self.tile
         if self.shape == "rows":
             ntiles = bins.ntx * bins.nty
             kernel = self.raster_program.kernel(name + "_rows")
-            launch(self.device, kernel, ntiles, args[:3] + (np.int32(ntiles),) + args[3:], 1)
+            launch(self.device, kernel, ntiles,
+                   args[:3] + (np.int32(ntiles),) + args[3:5] + (rec.data,) + args[9:], 1)
             return
         kernel = self.raster_program.kernel(name)
         kernel.set_args(*args)
@@ -382,12 +408,13 @@ class SplatRasterizer:
         dev = self.device
         H, W = int(camera.height), int(camera.width)
         out = Raster(scratch(dev, (H, W, 3)), scratch(dev, (H, W)),
-                     scratch(dev, (H, W), np.int32))
+                     scratch(dev, (H, W), np.int32),
+                     self._records(proj) if self.shape == "rows" else None)
         self._tiles_launch(
             "splat_raster_forward", bins,
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
-             self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data))
+             self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data), out.records)
         return out
 
     # ---- backward -------------------------------------------------------------------------------
@@ -412,7 +439,8 @@ class SplatRasterizer:
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
              self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,
-             g["xy"].data, g["conic"].data, g["opacity"].data, g["color"].data))
+             g["xy"].data, g["conic"].data, g["opacity"].data, g["color"].data),
+            self._backward_records(proj, raster))
         return g
 
     def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict) -> dict:

@@ -1,0 +1,58 @@
+"""Prefix sums on the device: the offsets of variable-length rows (samples per ray, entries per
+tile) from their counts, with pyopencl's scan kernel. The counts never cross to the host; the
+one value read back is the total, which sizes the buffers that follow.
+
+>>> offsets, total = row_offsets(device, counts_d)   # counts int32 [n] on the device
+>>> offsets                                          # int32 [n + 1]: 0, c0, c0 + c1, ...
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pyopencl as cl
+from pyopencl.scan import GenericScanKernel
+
+from .programs import scratch
+
+_SCANS: dict = {}
+
+
+def _offsets_scan(context):
+    """The int32 counts -> int32 [n + 1] offsets scan of ``context`` (built once): offsets[0] is
+    0 and offsets[i + 1] the inclusive sum to i; the total also in a one-item int64 array
+    (summed in 64 bits, so that a total past 2^31 is seen, not wrapped)."""
+    key = context.int_ptr
+    if key not in _SCANS:
+        with warnings.catch_warnings():
+            # pyopencl warns on any non-empty build log, chatter included (programs.build)
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            _SCANS[key] = GenericScanKernel(
+                context, np.int64,
+                arguments="__global const int *counts, __global int *offsets, "
+                          "__global long *total, const int n",
+                input_expr="counts[i]", scan_expr="a+b", neutral="0",
+                output_statement="offsets[i + 1] = (int)item; if (i == 0) offsets[0] = 0; "
+                                 "if (i + 1 == n) total[0] = item;")
+    return _SCANS[key]
+
+
+def row_offsets(device, counts, n: int | None = None):
+    """(offsets int32 [n + 1] on the device, total) of the first n (default all) int32
+    ``counts`` on the device. Reads one int64 back. Raises ValueError when the total does not
+    fit the int32 offsets."""
+    n = int(counts.shape[0]) if n is None else int(n)
+    offsets = scratch(device, (n + 1,), np.int32)
+    if n == 0:
+        offsets.fill(0)
+        return offsets, 0
+    total = scratch(device, (1,), np.int64)
+    _offsets_scan(device.context)(counts, offsets, total, np.int32(n), queue=device.queue,
+                                  size=n)
+    m = int(total.get()[0])
+    if m >= 1 << 31:
+        raise ValueError(f"{m} rows exceed the int32 offsets")
+    return offsets, m
+
+
+__all__ = ["row_offsets"]
