@@ -333,3 +333,19 @@ def test_a_third_party_reader_opens_the_export(trained, tmp_path):
     assert v.count == len(state["param_means"])
     np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], 1), state["param_means"])
     np.testing.assert_array_equal(v["opacity"], state["param_opacity_logits"].reshape(-1))
+
+
+def test_render_image_depth_pass_only_when_looked_up():
+    """The depth image is a second raster pass, run on the first r["depth"] and once."""
+    calls = []
+
+    def depth():
+        calls.append(1)
+        return np.ones((2, 2), np.float32)
+    r = sm.LazyDepth(depth, rgb=np.zeros((2, 2, 3)), acc=np.zeros((2, 2)))
+    assert not calls and set(dict(r)) == {"rgb", "acc"}
+    assert "depth" in r and not calls
+    assert r["depth"].shape == (2, 2) and r.get("depth").shape == (2, 2) and len(calls) == 1
+    with pytest.raises(KeyError):
+        r["normals"]
+    assert r.get("normals") is None

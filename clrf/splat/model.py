@@ -61,6 +61,27 @@ def camera_of(c2w, intrinsics, hw) -> SplatCamera:
     return SplatCamera(viewmat_of(c2w), fx, fy, cx, cy, int(hw[1]), int(hw[0]), CAMERA_NEAR)
 
 
+class LazyDepth(dict):
+    """A render's images (rgb, acc) whose "depth" is computed by ``depth_fn()`` when first
+    looked up (``r["depth"]``; ``"depth" in r`` and ``r.get`` count it as there too)."""
+
+    def __init__(self, depth_fn, **images):
+        super().__init__(**images)
+        self._depth_fn = depth_fn
+
+    def __missing__(self, key):
+        if key != "depth":
+            raise KeyError(key)
+        self["depth"] = value = self._depth_fn()
+        return value
+
+    def __contains__(self, key):
+        return key == "depth" or super().__contains__(key)
+
+    def get(self, key, default=None):
+        return self[key] if key in self else default
+
+
 # ---- the model ------------------------------------------------------------------------------
 GROUPS = ("means", "log_scales", "quats", "opacity_logits")   # Adam from clrf/runtime/optim.py
 
@@ -327,17 +348,21 @@ class SplatModel:
 
     def render_image(self, c2w, intrinsics, hw) -> dict:
         """rgb [H, W, 3], depth [H, W] (the opacity-weighted mean camera depth of the splats,
-        0 where nothing is seen), acc [H, W] (1 - the final transmittance) of one camera."""
+        0 where nothing is seen), acc [H, W] (1 - the final transmittance) of one camera. The
+        depth is a second raster pass, run when it is first looked up (the evaluation and the
+        viewer's colour frames never do)."""
         cam = camera_of(c2w, intrinsics, hw)
         proj, bins, ras = self.rast.forward(self.params, cam, self.background)
         rgb = download(ras.rgb)
-        acc = 1.0 - download(ras.T)
-        # depth: the same splats composited with their camera depth as colour, on black
-        depth = download(proj.depth)
-        proj.color.set(np.ascontiguousarray(np.repeat(depth[:, None], 3, 1), np.float32))
-        zs = download(self.rast.rasterize(proj, bins, cam, (0.0, 0.0, 0.0)).rgb)[..., 0]
-        depth_img = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(np.float32)
-        return {"rgb": rgb, "depth": depth_img, "acc": acc.astype(np.float32)}
+        acc = (1.0 - download(ras.T)).astype(np.float32)
+
+        def depth_image():
+            # the same splats composited with their camera depth as colour, on black
+            depth = download(proj.depth)
+            proj.color.set(np.ascontiguousarray(np.repeat(depth[:, None], 3, 1), np.float32))
+            zs = download(self.rast.rasterize(proj, bins, cam, (0.0, 0.0, 0.0)).rgb)[..., 0]
+            return np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(np.float32)
+        return LazyDepth(depth_image, rgb=rgb, acc=acc)
 
     def export_fields(self, points, dirs):
         raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "
