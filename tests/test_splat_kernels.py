@@ -534,3 +534,11 @@ def test_splat_bad_inputs(device):
     proj, bins, ras = r.forward(params, cam)
     with pytest.raises(ValueError, match="grad_rgb"):
         r.rasterize_backward(proj, bins, ras, cam, cla.zeros(device.queue, (17, 33), np.float32))
+
+
+def test_splat_default_tile_follows_the_shape(device):
+    """Models rasterise in 8-pixel tiles with the rows shape (CPUs), 16 with the work-group
+    shape (GPUs, or CLRF_FORCE_GPU_KERNELS=1)."""
+    tile = sr.default_tile(device)
+    assert sr.default_shape(device, tile) == ("rows" if tile == sr.CPU_TILE else "group")
+    assert tile == (sr.TILE if getattr(device.tuning, "gpu_kernels", False) else sr.CPU_TILE)

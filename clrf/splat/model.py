@@ -29,7 +29,7 @@ from ..runtime.optim import Optimizer, expon_lr
 from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
 from .loss import DeviceLoss
-from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer
+from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, default_tile
 
 SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
 INIT_OPACITY = 0.1
@@ -99,7 +99,7 @@ class SplatModel:
         self.bbox = np.asarray(bbox, np.float64).reshape(2, 3)
         self.seed = int(seed)
         self.max_count = int(max_count if max_count is not None else config.max_gaussians)
-        self.rast = SplatRasterizer(device, config.sh_degree)
+        self.rast = SplatRasterizer(device, config.sh_degree, default_tile(device))
         self.n_basis = self.rast.n_basis
         self.step = 0                  # Adam updates so far
         self.active_degree = 0
