@@ -3,7 +3,8 @@
  *
  * Binning (host order: count, exclusive scan, emit, sort, ranges; clrf/splat/raster.py):
  *   splat_count   counts[i] = (x1 - x0)(y1 - y0) tiles of Gaussian i's rect [N, 4] (0: culled)
- *   (scan)        offsets[i] = sum_{j < i} counts[j] (int64, on the device), P = the total
+ *   (scan)        offsets[i] = sum_{j < i} counts[j] (int32 [N + 1], on the device; the total P
+ *                 is summed in 64 bits and refused past int32: clrf/runtime/scan.py)
  *   splat_emit    for tile (tx, ty) of rect i, in row-major order from offsets[i]:
  *                   keys[k] = tile << 32 | bits(depth_i),  ids[k] = i
  *                 depth_i > near > 0, so its IEEE bits order like the depths as unsigned ints
@@ -53,13 +54,13 @@ __kernel void splat_count(const int n, __global const int *rect, __global int *c
 }
 
 __kernel void splat_emit(const int n, __global const int *rect, __global const float *depth,
-                         __global const long *offsets, const int ntx, __global ulong *keys,
+                         __global const int *offsets, const int ntx, __global ulong *keys,
                          __global int *ids) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const int4 r = vload4(i, rect);
     const ulong dbits = (ulong)as_uint(depth[i]);
-    long k = offsets[i];
+    int k = offsets[i];
     for (int ty = r.y; ty < r.w; ++ty)
         for (int tx = r.x; tx < r.z; ++tx, ++k) {
             keys[k] = ((ulong)(ty * ntx + tx) << 32) | dbits;
@@ -82,7 +83,7 @@ __kernel void splat_ranges(const int npairs, __global const ulong *keys, __globa
  * covers in its row: a list is then front to back, equal depths in ascending id, as the pair
  * sort leaves it, and each row's tiles belong to one work-item (no atomics).
  *   splat_row_count   counts [ntiles] of each tile's pairs (order-free)
- *   (scan)            tile offsets [ntiles] (int64, exclusive), the pair total
+ *   (scan)            tile offsets [ntiles + 1] (int32, exclusive), the pair total
  *   splat_row_fill    ids [P] and ranges [ntiles, 2] ([0, 0) for an empty tile) */
 __kernel void splat_row_count(const int n, __global const int *rect, const int ntx,
                               const int nty, __global int *tile_counts) {
@@ -99,12 +100,12 @@ __kernel void splat_row_count(const int n, __global const int *rect, const int n
 
 __kernel void splat_row_fill(const int n, __global const int *order, __global const int *rect,
                              const int ntx, const int nty, __global const int *tile_counts,
-                             __global const long *tile_offsets, __global int *cursor,
+                             __global const int *tile_offsets, __global int *cursor,
                              __global int *ids, __global int *ranges) {
     const int ty = get_global_id(0);
     if (ty >= nty) return;
     for (int tx = 0; tx < ntx; ++tx) {
-        const int t = ty * ntx + tx, start = (int)tile_offsets[t], cnt = tile_counts[t];
+        const int t = ty * ntx + tx, start = tile_offsets[t], cnt = tile_counts[t];
         cursor[t] = start;
         ranges[2 * t] = cnt ? start : 0;
         ranges[2 * t + 1] = cnt ? start + cnt : 0;
@@ -572,7 +573,7 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
             touched = 1;
             /* inactive lanes get alpha 0 and dpow 0, so that they change nothing and add
              * exact zeros (every factor below is finite: the conic is bounded by the
-             * dilation, dx and dy by the splat's reach) */
+             * dilation, dx and dy are differences of finite positions) */
             const VF alpha = select(ZERO, alpha0, act);
             const VF Tk = T[r] / (1.0f - alpha);
             T[r] = Tk;

@@ -37,10 +37,10 @@ def _offsets_scan(context):
     return _SCANS[key]
 
 
-def row_offsets(device, counts, n: int | None = None):
+def row_offsets(device, counts, n: int | None = None, what: str = "rows"):
     """(offsets int32 [n + 1] on the device, total) of the first n (default all) int32
-    ``counts`` on the device. Reads one int64 back. Raises ValueError when the total does not
-    fit the int32 offsets."""
+    ``counts`` on the device. Reads one int64 back. Raises ValueError (naming the rows as
+    ``what``) when the total does not fit the int32 offsets."""
     n = int(counts.shape[0]) if n is None else int(n)
     offsets = scratch(device, (n + 1,), np.int32)
     if n == 0:
@@ -51,7 +51,7 @@ def row_offsets(device, counts, n: int | None = None):
                                   size=n)
     m = int(total.get()[0])
     if m >= 1 << 31:
-        raise ValueError(f"{m} rows exceed the int32 offsets")
+        raise ValueError(f"{m} {what} exceed the int32 offsets")
     return offsets, m
 
 

@@ -27,9 +27,9 @@ import pyopencl as cl
 import pyopencl.array as cla
 import pyopencl.cltypes  # noqa: F401  (cl.cltypes.make_float4)
 from pyopencl.algorithm import RadixSort
-from pyopencl.scan import GenericScanKernel
 
 from ..runtime.programs import launch, scratch, upload
+from ..runtime.scan import row_offsets
 from ..runtime.validate import check_array
 
 TILE = 16                 # tile side in pixels (cl/splat.h TILE); 8 where 256 work-items fail
@@ -42,6 +42,7 @@ SIGMA_RADIUS = 3.0        # screen radius in standard deviations
 CAM_FLOATS = 20           # cl/splat.h camera buffer
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
+PAIRS = "(tile, Gaussian) pairs"   # what an int32 overflow of the binning names
 
 
 def defines(sh_degree: int, tile: int = TILE) -> dict:
@@ -147,8 +148,7 @@ _SORTERS: dict = {}
 
 
 def _sorters(context):
-    """(scan, pair sort, depth sort) for ``context``, built once: the exclusive int64 scan of
-    the counts (its last inclusive item is the total), pyopencl's radix sort of the pairs'
+    """(pair sort, depth sort) for ``context``, built once: pyopencl's radix sort of the pairs'
     (uint64 keys, ids) and of the Gaussians' (uint32 depth bits, ids)."""
     key = context.int_ptr
     if key in _SORTERS:
@@ -156,18 +156,12 @@ def _sorters(context):
     with warnings.catch_warnings():
         # pyopencl warns on any non-empty build log, chatter included (programs.build)
         warnings.simplefilter("ignore", cl.CompilerWarning)
-        scan = GenericScanKernel(
-            context, np.int64,
-            arguments="__global const int *counts, __global long *offsets, "
-                      "__global long *total, const int n",
-            input_expr="counts[i]", scan_expr="a+b", neutral="0",
-            output_statement="offsets[i] = prev_item; if (i + 1 == n) total[0] = item;")
         sort = RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
                          sort_arg_names=["keys", "ids"], key_dtype=np.uint64)
         depth_sort = RadixSort(context, "__global uint *keys, __global int *ids",
                                key_expr="keys[i]", sort_arg_names=["keys", "ids"],
                                key_dtype=np.uint32)
-    _SORTERS[key] = (scan, sort, depth_sort)
+    _SORTERS[key] = (sort, depth_sort)
     return _SORTERS[key]
 
 
@@ -227,7 +221,7 @@ class SplatRasterizer:
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
-        self.scan, self.sort, self.depth_sort = _sorters(device.context)
+        self.sort, self.depth_sort = _sorters(device.context)
 
     # ---- parameters ---------------------------------------------------------------------------
     def shapes(self, n: int) -> dict:
@@ -311,14 +305,10 @@ class SplatRasterizer:
         counts = scratch(dev, (n,), np.int32)
         launch(dev, self.raster_program.kernel("splat_count"), n,
                (np.int32(n), proj.rect.data, counts.data), ls)
-        offsets = scratch(dev, (n,), np.int64)
-        total = scratch(dev, (1,), np.int64)
-        self.scan(counts, offsets, total, np.int32(n), queue=q)
-        n_pairs = int(total.get()[0])              # the one host read of a forward
+        # the one host read of a forward: the pair total
+        offsets, n_pairs = row_offsets(dev, counts, n, PAIRS)
         if n_pairs == 0:
             return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
-        if n_pairs >= 1 << 31:
-            raise ValueError(f"{n_pairs} (tile, Gaussian) pairs exceed the int32 indices")
         keys = scratch(dev, (n_pairs,), np.uint64)
         ids = scratch(dev, (n_pairs,), np.int32)
         launch(dev, self.raster_program.kernel("splat_emit"), n,
@@ -341,12 +331,8 @@ class SplatRasterizer:
         counts = scratch(dev, (ntiles,), np.int32)
         launch(dev, prg.kernel("splat_row_count"), nty,
                (np.int32(n), proj.rect.data, np.int32(ntx), np.int32(nty), counts.data), 1)
-        offsets = scratch(dev, (ntiles,), np.int64)
-        total = scratch(dev, (1,), np.int64)
-        self.scan(counts, offsets, total, np.int32(ntiles), queue=q)
-        n_pairs = int(total.get()[0])              # the one host read of a forward
-        if n_pairs >= 1 << 31:
-            raise ValueError(f"{n_pairs} (tile, Gaussian) pairs exceed the int32 indices")
+        # the one host read of a forward: the pair total
+        offsets, n_pairs = row_offsets(dev, counts, ntiles, PAIRS)
         ranges = scratch(dev, (ntiles, 2), np.int32)
         if n_pairs == 0:
             ranges.fill(0)
