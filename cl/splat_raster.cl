@@ -76,46 +76,74 @@ __kernel void splat_ranges(const int npairs, __global const ulong *keys, __globa
     if (k == npairs - 1 || (int)(keys[k + 1] >> 32) != tile) ranges[2 * tile + 1] = k + 1;
 }
 
-/* Row binning (the CPU shape's binning, clrf/splat/raster.py): the same per-tile lists as
+/* Chunk binning (the CPU shape's binning, clrf/splat/raster.py): the same per-tile lists as
  * count / scan / emit / sort / ranges above, without sorting the pairs. The host sorts the
- * Gaussians by depth (a stable radix sort of their depth bits: n items, not n_pairs), and one
- * work-item per tile row walks them in that order, appending each to the lists of the tiles it
- * covers in its row: a list is then front to back, equal depths in ascending id, as the pair
- * sort leaves it, and each row's tiles belong to one work-item (no atomics).
- *   splat_row_count   counts [ntiles] of each tile's pairs (order-free)
- *   (scan)            tile offsets [ntiles + 1] (int32, exclusive), the pair total
- *   splat_row_fill    ids [P] and ranges [ntiles, 2] ([0, 0) for an empty tile) */
-__kernel void splat_row_count(const int n, __global const int *rect, const int ntx,
-                              const int nty, __global int *tile_counts) {
-    const int ty = get_global_id(0);
-    if (ty >= nty) return;
-    __global int *row = tile_counts + ty * ntx;
-    for (int tx = 0; tx < ntx; ++tx) row[tx] = 0;
-    for (int i = 0; i < n; ++i) {
-        const int4 r = vload4(i, rect);
-        if (ty < r.y || ty >= r.w) continue;
-        for (int tx = r.x; tx < r.z; ++tx) row[tx] += 1;
+ * Gaussians by depth (a stable radix sort of their depth bits, cl/sort.cl: n items, not
+ * n_pairs) and cuts that order into nchunks contiguous chunks of `chunk` Gaussians, one
+ * work-item a chunk. Tile binning is then one stable counting sort with the tiles as buckets:
+ *   splat_chunk_count    cc[c][t] = Gaussians of chunk c that cover tile t (each work-item
+ *                        writes only its own row of cc: no atomics, no shared cache lines
+ *                        but at the rows' ends)
+ *   splat_chunk_totals   counts[t] = sum over c of cc[c][t]
+ *   (scan)               tile offsets [ntiles + 1] (int32, exclusive), the pair total
+ *   splat_chunk_cursors  cc[c][t] = offsets[t] + sum over c' < c of cc[c'][t] (in place), and
+ *                        ranges [ntiles, 2] ([0, 0) for an empty tile)
+ *   splat_chunk_fill     chunk c appends its Gaussians, in order, at cc[c][t]++ of each tile t
+ *                        of their rects (row-major)
+ * A tile's list is then front to back, equal depths in ascending id, as the pair sort leaves
+ * it. The work is O(n + pairs), not O(tile rows x n). */
+__kernel void splat_chunk_count(const int n, const int chunk, const int nchunks,
+                                __global const int *order, __global const int *rect,
+                                const int ntx, const int ntiles, __global int *cc) {
+    const int c = get_global_id(0);
+    if (c >= nchunks) return;
+    __global int *h = cc + (size_t)c * ntiles;
+    for (int t = 0; t < ntiles; ++t) h[t] = 0;
+    const int lo = min(n, c * chunk), hi = min(n, lo + chunk);
+    for (int j = lo; j < hi; ++j) {
+        const int4 r = vload4(order[j], rect);
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx) h[ty * ntx + tx] += 1;
     }
 }
 
-__kernel void splat_row_fill(const int n, __global const int *order, __global const int *rect,
-                             const int ntx, const int nty, __global const int *tile_counts,
-                             __global const int *tile_offsets, __global int *cursor,
-                             __global int *ids, __global int *ranges) {
-    const int ty = get_global_id(0);
-    if (ty >= nty) return;
-    for (int tx = 0; tx < ntx; ++tx) {
-        const int t = ty * ntx + tx, start = tile_offsets[t], cnt = tile_counts[t];
-        cursor[t] = start;
-        ranges[2 * t] = cnt ? start : 0;
-        ranges[2 * t + 1] = cnt ? start + cnt : 0;
+__kernel void splat_chunk_totals(const int ntiles, const int nchunks, __global const int *cc,
+                                 __global int *counts) {
+    const int t = get_global_id(0);
+    if (t >= ntiles) return;
+    int s = 0;
+    for (int c = 0; c < nchunks; ++c) s += cc[(size_t)c * ntiles + t];
+    counts[t] = s;
+}
+
+__kernel void splat_chunk_cursors(const int ntiles, const int nchunks, __global int *cc,
+                                  __global const int *offsets, __global int *ranges) {
+    const int t = get_global_id(0);
+    if (t >= ntiles) return;
+    const int start = offsets[t], end = offsets[t + 1];
+    int run = start;
+    for (int c = 0; c < nchunks; ++c) {
+        const int k = cc[(size_t)c * ntiles + t];
+        cc[(size_t)c * ntiles + t] = run;
+        run += k;
     }
-    __global int *cur = cursor + ty * ntx;
-    for (int j = 0; j < n; ++j) {
+    ranges[2 * t] = end > start ? start : 0;
+    ranges[2 * t + 1] = end > start ? end : 0;
+}
+
+__kernel void splat_chunk_fill(const int n, const int chunk, const int nchunks,
+                               __global const int *order, __global const int *rect,
+                               const int ntx, const int ntiles, __global int *cc,
+                               __global int *ids) {
+    const int c = get_global_id(0);
+    if (c >= nchunks) return;
+    __global int *cur = cc + (size_t)c * ntiles;
+    const int lo = min(n, c * chunk), hi = min(n, lo + chunk);
+    for (int j = lo; j < hi; ++j) {
         const int g = order[j];
         const int4 r = vload4(g, rect);
-        if (ty < r.y || ty >= r.w) continue;
-        for (int tx = r.x; tx < r.z; ++tx) ids[cur[tx]++] = g;
+        for (int ty = r.y; ty < r.w; ++ty)
+            for (int tx = r.x; tx < r.z; ++tx) ids[cur[ty * ntx + tx]++] = g;
     }
 }
 

@@ -26,7 +26,7 @@ EVERY_IMPL_MODULES = {
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
     "test_hash_encode", "test_hash_kernels",
-    "test_splat_kernels", "test_splat_loss",
+    "test_splat_kernels", "test_splat_loss", "test_sort",
     "test_mlp_gpu",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each

@@ -10,7 +10,7 @@ prune, batch gather, fused loss), the optimisers, encode, sample, composite and 
 forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
 backward, the hash march (windows, alive rays,
 contraction) and Adam over spans, and the Gaussian splatting projection (forward, backward),
-binning (pyopencl's scan and radix sort) and tile rasteriser (forward, backward).
+binning (pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -75,6 +75,8 @@ CASES = [
     "tests/test_splat_kernels.py::"
     "test_splat_rasterize_backward_matches_reference[default-group-12-33-17]",
     "tests/test_splat_kernels.py::test_splat_rows_shape_with_small_tiles[default-8]",
+    "tests/test_splat_kernels.py::test_splat_rows_binning_in_many_chunks[default-None]",
+    "tests/test_sort.py::test_key_order_with_many_small_chunks",
     "tests/test_splat_kernels.py::test_splat_opacity_near_one_toy",
     "tests/test_splat_kernels.py::test_splat_no_gaussians",
     "tests/test_splat_loss.py::test_device_loss_matches_twin[default-0.2-37-23-noisy]",

@@ -239,6 +239,33 @@ def test_splat_binning_matches_reference(device, n, width, height, shape):
     np.testing.assert_array_equal(ranges, want)
 
 
+@pytest.mark.parametrize("cells", [None, 2 * 7 * 5])
+def test_splat_rows_binning_in_many_chunks(device, monkeypatch, cells):
+    """The rows shape's binning cuts the depth order into chunks (a work-item each): in 60
+    chunks of 5 Gaussians (or 2 of 150 where the (chunk, tile) counters are capped at 2 x 35
+    tiles), runs of equal depths and tiles cross chunk boundaries; ids and ranges vs the
+    twin's lists."""
+    from clrf.runtime import sort
+    monkeypatch.setattr(sort, "MIN_CHUNK", 4)
+    if cells is not None:
+        monkeypatch.setattr(sr, "CHUNK_CELLS", cells)
+    n, width, height = 300, 100, 70
+    assert sort.chunking(n, 64 if cells is None else 2) == ((5, 60) if cells is None else (150, 2))
+    sp = _splats(n, width, height, seed=11)
+    sp["depth"][::3] = np.float32(2.5)
+    r = SplatRasterizer(device, 0, shape="rows")
+    cam, _ = _camera(width, height)
+    bins = r.bin(_upload_splats(device, sp), cam)
+    ntx, nty = cam.tiles()
+    assert ntx * nty == 35
+    lists = rs.bin_gaussians(sp["rect"], sp["depth"], ntx, nty)
+    lens = np.array([len(x) for x in lists])
+    np.testing.assert_array_equal(bins.ids.get(), np.concatenate(lists))
+    ends = np.cumsum(lens)
+    want = np.where(lens[:, None] > 0, np.stack([ends - lens, ends], 1), 0)
+    np.testing.assert_array_equal(bins.ranges.get(), want)
+
+
 # ---- rasteriser ------------------------------------------------------------------------------
 @pytest.mark.parametrize("n,width,height", [(1, 1, 1), (12, 33, 17), (60, 32, 32),
                                             (150, 17, 40)])

@@ -30,6 +30,8 @@ from pyopencl.algorithm import RadixSort
 
 from ..runtime.programs import launch, scratch, upload
 from ..runtime.scan import row_offsets
+from ..runtime import sort as keysort
+from ..runtime.sort import key_order
 from ..runtime.validate import check_array
 
 TILE = 16                 # tile side in pixels (cl/splat.h TILE); 8 where 256 work-items fail
@@ -43,6 +45,7 @@ CAM_FLOATS = 20           # cl/splat.h camera buffer
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
 PAIRS = "(tile, Gaussian) pairs"   # what an int32 overflow of the binning names
+CHUNK_CELLS = 1 << 22    # the rows shape's binning: at most this many (chunk, tile) counters
 
 
 def defines(sh_degree: int, tile: int = TILE) -> dict:
@@ -147,9 +150,8 @@ def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
 _SORTERS: dict = {}
 
 
-def _sorters(context):
-    """(pair sort, depth sort) for ``context``, built once: pyopencl's radix sort of the pairs'
-    (uint64 keys, ids) and of the Gaussians' (uint32 depth bits, ids)."""
+def _pair_sort(context):
+    """pyopencl's radix sort of the pairs' (uint64 keys, ids) for ``context``, built once."""
     key = context.int_ptr
     if key in _SORTERS:
         return _SORTERS[key]
@@ -158,10 +160,7 @@ def _sorters(context):
         warnings.simplefilter("ignore", cl.CompilerWarning)
         sort = RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
                          sort_arg_names=["keys", "ids"], key_dtype=np.uint64)
-        depth_sort = RadixSort(context, "__global uint *keys, __global int *ids",
-                               key_expr="keys[i]", sort_arg_names=["keys", "ids"],
-                               key_dtype=np.uint32)
-    _SORTERS[key] = (sort, depth_sort)
+    _SORTERS[key] = sort
     return _SORTERS[key]
 
 
@@ -221,7 +220,7 @@ class SplatRasterizer:
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
-        self.sort, self.depth_sort = _sorters(device.context)
+        self.sort = _pair_sort(device.context)
 
     # ---- parameters ---------------------------------------------------------------------------
     def shapes(self, n: int) -> dict:
@@ -288,8 +287,7 @@ class SplatRasterizer:
     def bin(self, proj: Projected, camera: SplatCamera) -> Binned:
         """The per-tile lists of (tile, Gaussian) pairs, front to back. Shape "group": count,
         scan, emit, sort the pairs, range them. Shape "rows": sort the Gaussians by depth and
-        fill each tile row's lists in that order (splat_row_count / splat_row_fill; Binned.keys
-        is then empty). Both read one int64 (the pair count) back to the host to size the ids
+        count-sort that order into the tiles (splat_chunk_*; Binned.keys is then empty). Both read one int64 (the pair count) back to the host to size the ids
         and the sort's buffers, and give the same ids and ranges."""
         self.check_projected(proj)
         dev, q, n = self.device, self.device.queue, int(proj.n)
@@ -321,30 +319,37 @@ class SplatRasterizer:
         return Binned(n_pairs, keys, ids, ranges, ntx, nty)
 
     def _bin_rows(self, proj: Projected, n: int, ntx: int, nty: int, empty_keys, empty_ids):
-        """bin() for the rows shape (see there)."""
+        """bin() for the rows shape (see there): the Gaussians' stable depth order
+        (clrf/runtime/sort.py), then one counting sort of it into the tiles' lists, a chunk of
+        that order a work-item (splat_chunk_*)."""
         dev, q = self.device, self.device.queue
         ntiles = ntx * nty
         if n == 0:
             return Binned(0, empty_keys, empty_ids,
                           cla.zeros(q, (ntiles, 2), np.int32, allocator=dev.pool), ntx, nty)
         prg = self.raster_program
+        ls = dev.tuning.elementwise_local_size
+        # depth > near > 0 wherever a rect is not empty, so its bits order like the depths
+        order = key_order(dev, proj.depth.view(np.uint32), n)
+        most = max(1, min(keysort.MAX_CHUNKS, CHUNK_CELLS // ntiles))
+        chunk, nchunks = keysort.chunking(n, most)
+        cc = scratch(dev, (nchunks, ntiles), np.int32)
+        head = (np.int32(n), np.int32(chunk), np.int32(nchunks), order.data, proj.rect.data,
+                np.int32(ntx), np.int32(ntiles), cc.data)
+        launch(dev, prg.kernel("splat_chunk_count"), nchunks, head, 1)
         counts = scratch(dev, (ntiles,), np.int32)
-        launch(dev, prg.kernel("splat_row_count"), nty,
-               (np.int32(n), proj.rect.data, np.int32(ntx), np.int32(nty), counts.data), 1)
+        launch(dev, prg.kernel("splat_chunk_totals"), ntiles,
+               (np.int32(ntiles), np.int32(nchunks), cc.data, counts.data), ls)
         # the one host read of a forward: the pair total
         offsets, n_pairs = row_offsets(dev, counts, ntiles, PAIRS)
         ranges = scratch(dev, (ntiles, 2), np.int32)
         if n_pairs == 0:
             ranges.fill(0)
             return Binned(0, empty_keys, empty_ids, ranges, ntx, nty)
-        depth_bits = proj.depth.view(np.uint32).copy()   # depth > near > 0 where it matters
-        (_, order), _ = self.depth_sort(depth_bits, cla.arange(q, n, dtype=np.int32),
-                                        key_bits=32, queue=q, allocator=dev.pool)
+        launch(dev, prg.kernel("splat_chunk_cursors"), ntiles,
+               (np.int32(ntiles), np.int32(nchunks), cc.data, offsets.data, ranges.data), ls)
         ids = scratch(dev, (n_pairs,), np.int32)
-        cursor = scratch(dev, (ntiles,), np.int32)
-        launch(dev, prg.kernel("splat_row_fill"), nty,
-               (np.int32(n), order.data, proj.rect.data, np.int32(ntx), np.int32(nty),
-                counts.data, offsets.data, cursor.data, ids.data, ranges.data), 1)
+        launch(dev, prg.kernel("splat_chunk_fill"), nchunks, head + (ids.data,), 1)
         return Binned(n_pairs, empty_keys, ids, ranges, ntx, nty)
 
     def _records(self, proj: Projected) -> cla.Array:
