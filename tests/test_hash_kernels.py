@@ -237,6 +237,40 @@ def test_adam_weight_decay_and_clear_grad(device):
     np.testing.assert_array_equal(gd.get() != 0, outside)   # cleared inside the spans only
 
 
+def test_adam_over_many_spans_in_one_launch(device):
+    """Spans of every length against the work-group size (1, 63, 64, 65, 200 entries, touching
+    and apart) in one adam_groups launch (the GPU shape, forced): each entry inside steps
+    exactly as adam_step over its span alone does (the CPU shape); entries outside keep their
+    value, moments and gradient."""
+    from clrf.runtime.optim import ADAM_LOCAL_SIZE, Optimizer, span_groups
+    rng = np.random.default_rng(5)
+    n = 700
+    spans = [(0, 1), (1, 64), (100, 165), (165, 228), (300, 500), (640, 641), (650, 650)]
+    p, g = rng.normal(size=n), rng.normal(size=n) * 1e-2
+    m, v = rng.normal(size=n) * 1e-3, rng.uniform(0, 1e-4, n)
+
+    def run(dev):
+        arrs = [_up(dev, a) for a in (p, g, m, v)]
+        opt = Optimizer(dev, arrs[0], "adam", beta=0.9, beta2=0.99, eps=1e-8, grad=arrs[1],
+                        state=arrs[2], state2=arrs[3], weight_decay=0.01)
+        opt.step(None, 3e-3, t=7, clear_grad=True, spans=spans)
+        return [a.get() for a in arrs]
+
+    one = run(device.with_tuning(gpu_kernels=True))      # adam_groups
+    each = run(device.with_tuning(gpu_kernels=False))    # adam_step, a launch a span
+    for a, b, name in zip(one, each, ("p", "g", "m", "v")):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    inside = np.zeros(n, bool)
+    for a, b in spans:
+        inside[a:b] = True
+    for got, was in zip(one, (p, g, m, v)):
+        np.testing.assert_array_equal(got[~inside], np.float32(was[~inside]))
+    assert np.all(one[1][inside] == 0) and np.all(one[0][inside] != np.float32(p[inside]))
+    table = span_groups(spans, ADAM_LOCAL_SIZE)
+    assert table.shape == (1 + 1 + 2 + 1 + 4 + 1, 2)
+    assert table.tolist()[2:4] == [[100, 165], [164, 165]]
+
+
 def test_adam_moments_flush_below_float_min(device):
     """Moments that decay below FLT_MIN are stored as 0, never subnormal (x86 computes on
     subnormals ~100x slower): entries with no gradient and moments near FLT_MIN (or already

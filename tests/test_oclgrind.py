@@ -66,6 +66,7 @@ CASES = [
     "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
+    "tests/test_hash_kernels.py::test_adam_over_many_spans_in_one_launch",
     "tests/test_splat_kernels.py::test_splat_project_matches_reference[default-3]",
     "tests/test_splat_kernels.py::test_splat_project_backward_matches_reference[default-3]",
     "tests/test_splat_kernels.py::test_splat_binning_matches_reference[default-40-33-17-rows]",

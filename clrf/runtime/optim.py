@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from .programs import launch
@@ -23,6 +24,14 @@ def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):
         delay = 1.0
     t = min(max(step / max(max_steps, 1), 0.0), 1.0)
     return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+def span_groups(spans, local_size: int) -> np.ndarray:
+    """adam_groups' table: int32 [groups, 2] (first entry, end of its span) of each work-group
+    when the (start, stop) ``spans`` are cut into pieces of ``local_size`` entries."""
+    parts = [np.stack([np.arange(a, b, local_size), np.full(-(-(b - a) // local_size), b)], 1)
+             for a, b in spans if b > a]
+    return np.concatenate(parts).astype(np.int32) if parts else np.zeros((0, 2), np.int32)
 
 
 class Optimizer:
@@ -60,24 +69,43 @@ class Optimizer:
         if mode == "adam":
             self.state2 = state2 if state2 is not None else cla.zeros_like(param)
 
+    def _groups(self, spans):
+        """(adam_groups' table of ``spans`` on the device, the local size), built once per
+        spans (span_groups)."""
+        key = tuple(spans)
+        if getattr(self, "_groups_key", None) != key:
+            ls = max(1, min(ADAM_LOCAL_SIZE, self.device.caps.max_work_group_size))
+            self._groups_val = (cla.to_device(self.device.queue, span_groups(spans, ls)), ls)
+            self._groups_key = key
+        return self._groups_val
+
     def _kernel(self, name):
         return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
 
     def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False, spans=None):
         """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed).
         Adam: every entry, or only those in ``spans`` ((start, stop) index pairs of the flat
-        buffer: entries that can never get a gradient need no update); clear_grad zeroes the
-        gradient once read."""
+        buffer: entries that can never get a gradient need no update; one launch for them all
+        where the device runs the GPU-shaped kernels, a launch a span on CPUs); clear_grad
+        zeroes the gradient once read."""
         if self.mode == "adam":
             bc1, bc2 = 1.0 - self.beta ** t, 1.0 - self.beta2 ** t
-            kernel = self._kernel("adam_step")
-            for a, b in spans if spans is not None else ((0, int(self.param.size)),):
-                launch(self.device, kernel, b - a,
-                       (np.int32(a), np.int32(b), self.param.data, self.grad.data,
-                        self.state.data, self.state2.data, np.float32(lr),
-                        np.float32(self.beta), np.float32(self.beta2), np.float32(self.eps),
-                        np.float32(bc1), np.float32(bc2), np.float32(self.weight_decay),
-                        np.int32(bool(clear_grad))), ADAM_LOCAL_SIZE)
+            tail = (self.param.data, self.grad.data, self.state.data, self.state2.data,
+                    np.float32(lr), np.float32(self.beta), np.float32(self.beta2),
+                    np.float32(self.eps), np.float32(bc1), np.float32(bc2),
+                    np.float32(self.weight_decay), np.int32(bool(clear_grad)))
+            spans = [(0, int(self.param.size))] if spans is None else \
+                [(int(a), int(b)) for a, b in spans if b > a]
+            if len(spans) > 1 and getattr(self.device.tuning, "gpu_kernels", False):
+                groups, ls = self._groups(spans)          # every span in one launch
+                kernel = self._kernel("adam_groups")
+                kernel.set_args(groups.data, *tail)
+                cl.enqueue_nd_range_kernel(self.device.queue, kernel, (groups.shape[0] * ls,),
+                                           (ls,))
+                return
+            for a, b in spans:   # CPUs: a launch a span (faster there: cl/optim.cl)
+                launch(self.device, self._kernel("adam_step"), b - a,
+                       (np.int32(a), np.int32(b)) + tail, ADAM_LOCAL_SIZE)
             return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]
