@@ -48,9 +48,11 @@
 /* Loads and stores of 2, 3, 4 floats as scalar accesses, the loops unrolled, no hypot and no
  * early exit for culled Gaussians (their outputs are selected to zero): on 2 vCPUs of a Xeon
  * with PoCL 3.1 that took the forward from 15.3 to 10 ms and the backward from 22 to 14 ms over
- * 176k Gaussians. PoCL still runs both a work-item at a time: its loop vectoriser refuses any
- * instruction of a vector type (the float3 / float4 arithmetic here), which a scalar rewrite
- * would avoid. */
+ * 176k Gaussians. PoCL still runs both a work-item at a time: its loop vectoriser refuses a loop
+ * with any instruction of a vector type, and a rewrite in scalars alone did not help (the
+ * front end's SLP pass pairs scalars into <2 x float> operations before PoCL vectorises, and
+ * PoCL takes no option to stop it). Running Gaussians in explicit float8 / float16 lanes, as the
+ * rasteriser's rows shape does, is what would. */
 CLRF_INLINE float2 ld2(__global const float *a, const size_t i) {
     return (float2)(a[2 * i], a[2 * i + 1]);
 }
