@@ -4,7 +4,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
 from .programs import launch
@@ -68,12 +67,13 @@ class Optimizer:
         self.state2 = None
         if mode == "adam":
             self.state2 = state2 if state2 is not None else cla.zeros_like(param)
+        self._groups_key = self._groups_val = None   # adam_groups' table, for these spans
 
     def _groups(self, spans):
         """(adam_groups' table of ``spans`` on the device, the local size), built once per
         spans (span_groups)."""
         key = tuple(spans)
-        if getattr(self, "_groups_key", None) != key:
+        if self._groups_key != key:
             ls = max(1, min(ADAM_LOCAL_SIZE, self.device.caps.max_work_group_size))
             self._groups_val = (cla.to_device(self.device.queue, span_groups(spans, ls)), ls)
             self._groups_key = key
@@ -98,10 +98,8 @@ class Optimizer:
                 [(int(a), int(b)) for a, b in spans if b > a]
             if len(spans) > 1 and getattr(self.device.tuning, "gpu_kernels", False):
                 groups, ls = self._groups(spans)          # every span in one launch
-                kernel = self._kernel("adam_groups")
-                kernel.set_args(groups.data, *tail)
-                cl.enqueue_nd_range_kernel(self.device.queue, kernel, (groups.shape[0] * ls,),
-                                           (ls,))
+                launch(self.device, self._kernel("adam_groups"), groups.shape[0] * ls,
+                       (groups.data,) + tail, ls)
                 return
             for a, b in spans:   # CPUs: a launch a span (faster there: cl/optim.cl)
                 launch(self.device, self._kernel("adam_step"), b - a,

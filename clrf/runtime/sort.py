@@ -37,9 +37,8 @@ def key_order(device, keys, n: int | None = None, key_bits: int = 32):
         raise TypeError(f"keys: expected uint32, got {keys.dtype}")
     if not 1 <= int(key_bits) <= 32:
         raise ValueError(f"key_bits: must be in 1..32, got {key_bits}")
-    if n <= 1:
-        return scratch(device, (n,), np.int32).fill(0) if n == 1 else scratch(device, (0,),
-                                                                               np.int32)
+    if n <= 1:                   # nothing to sort: [] or [0]
+        return scratch(device, (n,), np.int32).fill(0)
     prg = device.program("sort.cl", {"RADIX_BITS": RADIX_BITS})
     count, offsets, scatter = (prg.kernel(k) for k in ("radix_count", "radix_offsets",
                                                         "radix_scatter"))

@@ -31,7 +31,6 @@ from pyopencl.algorithm import RadixSort
 from ..runtime.programs import launch, scratch, upload
 from ..runtime.scan import row_offsets
 from ..runtime import sort as keysort
-from ..runtime.sort import key_order
 from ..runtime.validate import check_array
 
 TILE = 16                 # tile side in pixels (cl/splat.h TILE); 8 where 256 work-items fail
@@ -287,8 +286,9 @@ class SplatRasterizer:
     def bin(self, proj: Projected, camera: SplatCamera) -> Binned:
         """The per-tile lists of (tile, Gaussian) pairs, front to back. Shape "group": count,
         scan, emit, sort the pairs, range them. Shape "rows": sort the Gaussians by depth and
-        count-sort that order into the tiles (splat_chunk_*; Binned.keys is then empty). Both read one int64 (the pair count) back to the host to size the ids
-        and the sort's buffers, and give the same ids and ranges."""
+        count-sort that order into the tiles (splat_chunk_*; Binned.keys is then empty). Both
+        read one int64 (the pair count) back to the host to size the ids and the sort's
+        buffers, and give the same ids and ranges."""
         self.check_projected(proj)
         dev, q, n = self.device, self.device.queue, int(proj.n)
         ntx, nty = camera.tiles(self.tile)
@@ -330,7 +330,7 @@ class SplatRasterizer:
         prg = self.raster_program
         ls = dev.tuning.elementwise_local_size
         # depth > near > 0 wherever a rect is not empty, so its bits order like the depths
-        order = key_order(dev, proj.depth.view(np.uint32), n)
+        order = keysort.key_order(dev, proj.depth.view(np.uint32), n)
         most = max(1, min(keysort.MAX_CHUNKS, CHUNK_CELLS // ntiles))
         chunk, nchunks = keysort.chunking(n, most)
         cc = scratch(dev, (nchunks, ntiles), np.int32)

@@ -4,7 +4,7 @@ carry (64 MiB with the wheels), and for splat_bonsai the initial Gaussians made 
 points triangulated from the training views need pycolmap, the `process` extra, which the GPU
 machine lacks).
 
-    python tools/gpu/pack.py splat_bonsai              # gpu-data/bonsai_800, gpu-data/bonsai_init.ply
+    python tools/gpu/pack.py splat_bonsai     # gpu-data/bonsai_800, gpu-data/bonsai_init.ply
     python tools/gpu/pack.py hash_lego --test-views 200
 
 Plans and what they take (sizes on disk):
