@@ -73,6 +73,20 @@ CLRF_INLINE void kahan_add(float *s, float *c, float x) {
 typedef struct { float s; float c; } ksum_t;
 CLRF_INLINE void ksum_add(ksum_t *k, float x) { kahan_add(&k->s, &k->c, x); }
 
+/* The rows a kernel covers of a buffer of n: n, or fewer where `count` (one int on the device:
+ * the live rows of a bounded buffer, written by an earlier kernel of the same queue) says so;
+ * null: n. A step that keeps its sizes on the device launches every kernel over the buffer's
+ * capacity n and passes the count: no size crosses to the host. */
+CLRF_INLINE int live_rows(const int n, __global const int *count) {
+    return count ? clamp(count[0], 0, n) : n;
+}
+
+/* live_rows rounded up to whole tiles of `tile` rows (scratch rows of tiled kernels), at most
+ * n_rows (itself a multiple of tile). */
+CLRF_INLINE int live_tile_rows(const int n_rows, __global const int *count, const int tile) {
+    return count ? min(n_rows, (clamp(count[0], 0, n_rows) + tile - 1) / tile * tile) : n_rows;
+}
+
 /* Element i of an array of float triples [n, 3]. */
 CLRF_INLINE float3 load3(__global const float *a, const size_t i) {
     return (float3)(a[3 * i], a[3 * i + 1], a[3 * i + 2]);

@@ -33,6 +33,9 @@
  * SH encoding (hash_sh_encode): the real SH basis of sh.h at degree 3 (16 coefficients,
  * "degree 4" in the 4-band count) of d / |d| (zero d -> the basis at (0, 0, 0)).
  *
+ * Every kernel covers the first live_rows(n_max, count) points (common.h): n_max, or the count
+ * on the device of a bounded buffer of n_max rows (null: n_max).
+ *
  * Defines read: HASH_LEVELS, HASH_FEATURES, HASH_LOG2_T, HASH_GRAD_OWNED.
  * Twin: clrf/references/reference_hash.py (float64).
  */
@@ -110,9 +113,11 @@ CLRF_INLINE float3 hash_unit(__global const float *x, const size_t i, const floa
 /* enc [n, L F]: one work-item per (point, level) of a 2-D range, i = get_global_id(0) (rounded
  * up past n), l = get_global_id(1), so neighbouring items read the same level's table (and no
  * item divides: a 64-bit division per item cost about a quarter of this kernel on a CPU). */
-__kernel void hash_forward(const int n, __global const float *x, const float4 lo,
+__kernel void hash_forward(const int n_max, __global const int *count,
+                           __global const float *x, const float4 lo,
                            const float4 inv_ext, __global const int *res,
                            __global const float *table, __global float *enc) {
+    const int n = live_rows(n_max, count);
     const size_t i = get_global_id(0);
     const int l = get_global_id(1);
     if (i >= (size_t)n || l >= HASH_LEVELS) return;
@@ -169,10 +174,12 @@ CLRF_INLINE void hash_scatter(__global float *g, const float3 u, const int N,
 #if HASH_GRAD_OWNED == 0
 /* grad [L, T, F] += dL/dtable of genc [n, L F]; one work-item per (point, level), the 2-D range
  * of hash_forward. `scratch` is unused on this path. */
-__kernel void hash_backward(const int n, __global const float *x, const float4 lo,
+__kernel void hash_backward(const int n_max, __global const int *count,
+                            __global const float *x, const float4 lo,
                             const float4 inv_ext, __global const int *res,
                             __global const float *genc, __global float *grad,
                             __global float *scratch) {
+    const int n = live_rows(n_max, count);
     const size_t i = get_global_id(0);
     const int l = get_global_id(1);
     if (i >= (size_t)n || l >= HASH_LEVELS) return;
@@ -184,10 +191,12 @@ __kernel void hash_backward(const int n, __global const float *x, const float4 l
  * owns level l's table and adds every point's level-l gradient into it with plain adds, in
  * point order. No two items write the same entry, so there are no atomics, no scratch copies
  * and no reduction, and the result is deterministic. `scratch` is unused. */
-__kernel void hash_backward(const int n, __global const float *x, const float4 lo,
+__kernel void hash_backward(const int n_max, __global const int *count,
+                            __global const float *x, const float4 lo,
                             const float4 inv_ext, __global const int *res,
                             __global const float *genc, __global float *grad,
                             __global float *scratch) {
+    const int n = live_rows(n_max, count);
     const int l = get_global_id(0);
     if (l >= HASH_LEVELS) return;
     __global float *g = grad + (size_t)l * HASH_T * HASH_FEATURES;
@@ -201,7 +210,9 @@ __kernel void hash_backward(const int n, __global const float *x, const float4 l
 /* SH basis (sh.h, degree 3: 16 coefficients) of the unit direction of d [n, 3] -> out [n, 16]. */
 #define SH_DEGREE 3
 #include "sh.h"
-__kernel void hash_sh_encode(const int n, __global const float *d, __global float *out) {
+__kernel void hash_sh_encode(const int n_max, __global const int *count,
+                             __global const float *d, __global float *out) {
+    const int n = live_rows(n_max, count);
     const size_t i = get_global_id(0);
     if (i >= (size_t)n) return;
     const float3 v = load3(d, i);

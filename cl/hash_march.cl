@@ -24,6 +24,8 @@
  * marks, the host turns the counts into offsets [n + 1] (exclusive prefix sum), march_compact
  * writes ray i's live samples in bin order at rows offsets[i] .. offsets[i+1]-1 of t [M],
  * dt [M], xyz [M, 3] (the encoding's point: contracted under HASH_CONTRACT), vdir [M, 3].
+ * A bounded packing (buffers of a fixed capacity C, sizes kept on the device) caps the offsets
+ * at C: a ray that crosses C keeps its first C - offsets[i] live samples, later rays none.
  *
  * Compositing over a ray's live samples (volrend.h), tau_k = sigma_k dt_k (sigma not > 0, NaN
  * included, counts as 0):
@@ -183,9 +185,10 @@ __kernel void march_compact(const int n, const int S, const int k0, const int k1
     const int W = k1 - k0;
     __global const uchar *row = live + (size_t)i * W;
     int j = offsets[i];
-    if (j == offsets[i + 1]) return;
+    const int j_end = offsets[i + 1];   /* less than the live bins where capped at capacity */
+    if (j == j_end) return;
     const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
-    for (int k = k0; k < k1; ++k) {
+    for (int k = k0; k < k1 && j < j_end; ++k) {
         if (!row[k - k0]) continue;
         float dt;
         const float t = bin_t(i, k, S, near, far, jitter, key, &dt);

@@ -55,6 +55,11 @@
  * a work-group runs a block of samples through every layer with the block's activations in
  * local memory and small register tiles per work-item. The CPU tiles' defines are then unused.
  *
+ * Sizes on the device: every kernel but mlp_reduce takes (n_max, count) for its rows, and covers
+ * live_rows(n_max, count) samples (common.h; mlp_weight_grad those rows rounded up to whole
+ * tiles): a step launched over a bounded buffer's capacity n_max reads its live rows from the
+ * device (null count: n_max). Chunks of the weight gradient past them write zero partials.
+ *
  * Defines read: MLP_WIDTH, MLP_DEPTH, MLP_SKIP, MLP_COLOR_WIDTH, MLP_COLOR_DEPTH, MLP_FEAT,
  * MLP_IN, MLP_DIR_IN, HIDDEN_ACT,
  * SIGMA_ACT, MLP_ROWS, MLP_COLS, DW_ROWS, DW_COLS, DW_CHUNK, MLP_PREFETCH, DW_PREFETCH_AHEAD,
@@ -315,9 +320,11 @@ inline void trunk_forward(const int n, const int r0, __global const float *x_enc
 
 /* sigma [n] only (the trunk and the head; no colour layers, no direction): A_all is scratch,
  * and its rows no longer hold a forward for a backward. */
-__kernel void mlp_density(const int n, __global const float *x_enc,
+__kernel void mlp_density(const int n_max, __global const int *count,
+                          __global const float *x_enc,
                           __global const float *params_t, __global float *A_all,
                           __global float *sigma_out) {
+    const int n = live_rows(n_max, count);
     const int tile = get_global_id(0);
     const int r0 = tile * MLP_ROWS;
     if (r0 >= n) return;
@@ -327,9 +334,11 @@ __kernel void mlp_density(const int n, __global const float *x_enc,
         sigma_out[r0 + r] = A[(size_t)r * NSLOT + SL_HD];
 }
 
-__kernel void mlp_forward(const int n, __global const float *x_enc, __global const float *d_enc,
+__kernel void mlp_forward(const int n_max, __global const int *count,
+                          __global const float *x_enc, __global const float *d_enc,
                           __global const float *params_t, __global float *A_all,
                           __global float *sigma_out, __global float *rgb_out) {
+    const int n = live_rows(n_max, count);
     const int tile = get_global_id(0);
     const int r0 = tile * MLP_ROWS;
     if (r0 >= n) return;
@@ -352,10 +361,12 @@ __kernel void mlp_forward(const int n, __global const float *x_enc, __global con
 
 /* Backward of tiles: dsigma [n], drgb [n, 3] (dL/d outputs) -> G [n_tiles*MLP_ROWS, NSLOT].
  * With want_input != 0 also dx_enc [n, MLP_IN] and dd_enc [n, MLP_DIR_IN] (else unused). */
-__kernel void mlp_backward(const int n, __global const float *dsigma, __global const float *drgb,
+__kernel void mlp_backward(const int n_max, __global const int *count,
+                           __global const float *dsigma, __global const float *drgb,
                            __global const float *params, __global const float *A_all,
                            __global float *G_all, const int want_input,
                            __global float *dx_enc, __global float *dd_enc) {
+    const int n = live_rows(n_max, count);
     const int tile = get_global_id(0);
     const int r0 = tile * MLP_ROWS;
     if (r0 >= n) return;
@@ -417,10 +428,12 @@ inline int wgrad_items_per_chunk(void) {
  * gid = p * wgrad_items_per_chunk() + e, chunk-major so that a chunk's rows of A and G are
  * read by all its layers while in cache; e runs over the layers in order, within a layer
  * e' = kb * njb + jb: DW_ROWS outputs j x DW_COLS (or a last 16) inputs k, njb = nout / DW_ROWS. */
-__kernel void mlp_weight_grad(const int n_rows, __global const float *A,
+__kernel void mlp_weight_grad(const int n_rows_max, __global const int *count,
+                              __global const float *A,
                               __global const float *G, __global float *partial) {
+    const int n_rows = live_tile_rows(n_rows_max, count, MLP_ROWS);
     const int ipc = wgrad_items_per_chunk();
-    const int n_chunks = (n_rows + DW_CHUNK - 1) / DW_CHUNK;
+    const int n_chunks = (n_rows_max + DW_CHUNK - 1) / DW_CHUNK;   /* chunks past the count: 0 */
     const int gid = get_global_id(0);
     if (gid >= ipc * n_chunks) return;
     const int p = gid / ipc;
@@ -432,7 +445,7 @@ __kernel void mlp_weight_grad(const int n_rows, __global const float *A,
     const int j0 = jb * DW_ROWS, k0 = kb * DW_COLS;
     /* a block of padding outputs only (head rows 1..15, rgb rows 3..15) writes its zeros */
     const int live = j0 < L.kout1 || (j0 + DW_ROWS > L.ko2 && j0 < L.ko2 + L.kout2);
-    const int s0 = p * DW_CHUNK, ns = live ? min(DW_CHUNK, n_rows - s0) : 0;
+    const int s0 = p * DW_CHUNK, ns = live ? clamp(n_rows - s0, 0, DW_CHUNK) : 0;
     __global const float *Lp = G + (size_t)s0 * NSLOT + L.out_off + j0;
     __global const float *Mp = A + (size_t)s0 * NSLOT + L.in_off + k0;
     __global float *out = partial + (size_t)p * n_params();

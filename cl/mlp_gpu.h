@@ -344,10 +344,12 @@ CLRF_INLINE void gpu_forward(const int n, const int r0, __global const float *x_
 }
 
 /* mlp_density of mlp.cl: sigma [n] only, A used as scratch; one work-group per GPU_BM rows. */
-__kernel GPU_WG_ATTR void mlp_density(const int n, __global const float *x_enc,
+__kernel GPU_WG_ATTR void mlp_density(const int n_max, __global const int *count,
+                                      __global const float *x_enc,
                                       __global const float *params_t, __global float *A_all,
                                       __global float *sigma_out) {
     __local float4 xt4[GPU_F4(GPU_XW * GPU_BM)], ws4[GPU_F4(GPU_BK * GPU_NC)];
+    const int n = live_rows(n_max, count);
     const int r0 = get_group_id(0) * GPU_BM;
     if (r0 >= n) return;                         /* the whole group */
     gpu_forward(n, r0, x_enc, x_enc, params_t, A_all, sigma_out, sigma_out, 0,
@@ -355,11 +357,13 @@ __kernel GPU_WG_ATTR void mlp_density(const int n, __global const float *x_enc,
 }
 
 /* mlp_forward of mlp.cl: sigma [n], rgb [n, 3] and every activation in A_all. */
-__kernel GPU_WG_ATTR void mlp_forward(const int n, __global const float *x_enc,
+__kernel GPU_WG_ATTR void mlp_forward(const int n_max, __global const int *count,
+                                      __global const float *x_enc,
                                       __global const float *d_enc,
                                       __global const float *params_t, __global float *A_all,
                                       __global float *sigma_out, __global float *rgb_out) {
     __local float4 xt4[GPU_F4(GPU_XW * GPU_BM)], ws4[GPU_F4(GPU_BK * GPU_NC)];
+    const int n = live_rows(n_max, count);
     const int r0 = get_group_id(0) * GPU_BM;
     if (r0 >= n) return;                         /* the whole group */
     gpu_forward(n, r0, x_enc, d_enc, params_t, A_all, sigma_out, rgb_out, 1,
@@ -371,7 +375,8 @@ __kernel GPU_WG_ATTR void mlp_forward(const int n, __global const float *x_enc,
  * of layer l overwrite Gt as the output gradients of layer l-1: h_{l-1} at its own columns, the
  * head's feature after its 16 rows of sigma and padding (those from gsig); the skip's x part
  * and the encoded direction's go to G only. */
-__kernel GPU_WG_ATTR void mlp_backward(const int n, __global const float *dsigma,
+__kernel GPU_WG_ATTR void mlp_backward(const int n_max, __global const int *count,
+                                       __global const float *dsigma,
                                        __global const float *drgb, __global const float *params,
                                        __global const float *A_all, __global float *G_all,
                                        const int want_input, __global float *dx_enc,
@@ -380,6 +385,7 @@ __kernel GPU_WG_ATTR void mlp_backward(const int n, __global const float *dsigma
     __local float gsig[GPU_BM];
     __local float *Gt = (__local float *)xt4, *Ws = (__local float *)ws4;
     const int lid = get_local_id(0);
+    const int n = live_rows(n_max, count);
     const int r0 = get_group_id(0) * GPU_BM;
     if (r0 >= n) return;                         /* the whole group */
     /* the head's and the rgb layer's output gradients (their padding rows 0) */
@@ -477,9 +483,11 @@ inline int gpu_wgrad_tiles(void) {
  * Work-group gid = p * gpu_wgrad_tiles() + e (chunk-major); e runs over the layers in order,
  * within a layer e' = kt * njt + jt: outputs jt * BJ .., inputs kt * BKW ... Work-item lid =
  * tj * KT + tk sums outputs tj * TJ .. x inputs tk * TK .. of the tile. */
-__kernel GPU_WG_ATTR void mlp_weight_grad(const int n_rows, const int chunk,
+__kernel GPU_WG_ATTR void mlp_weight_grad(const int n_rows_max, __global const int *count,
+                                          const int chunk,
                                           __global const float *A, __global const float *G,
                                           __global float *partial) {
+    const int n_rows = live_tile_rows(n_rows_max, count, GPU_BM);
     __local float4 gs4[GPU_F4(GPU_DW_BS * GPU_DW_BJ)], as4[GPU_F4(GPU_DW_BS * GPU_DW_BKW)];
     __local float *Gs = (__local float *)gs4, *As = (__local float *)as4;
     const int ipc = gpu_wgrad_tiles();

@@ -178,6 +178,22 @@ def _reference_step(model, o, d, target, background=None):
     return loss, mb["params"], gt, len(t)
 
 
+def seeded_model(dev, cfg, near=1.5, far=4.5, dense=False, **kw):
+    """A model of cfg with random tables, 60 % of the occupancy cells occupied and (dense)
+    sigma ~ e^4, so that rays go opaque within a few bins; kw: more HashModel arguments."""
+    model = HashModel(dev, cfg, near=near, far=far, bbox=BOX, background=(0.2, 0.5, 1.0), **kw)
+    rng = np.random.default_rng(3)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    if dense:
+        p = model.net.params.get()
+        p[model.net.layout.layers[model.spec.depth]["b_off"]] = 4.0
+        model.net.set_params(p)
+    occ = rng.random(cfg.occ_res ** 3) < 0.6
+    model.occ.ema.set(np.where(occ, 1.0, 0.0).astype(np.float32))
+    model.occ._threshold(0.5)
+    return model
+
+
 @pytest.mark.parametrize("path,contract,dense", [("atomics", "off", False),
                                                  ("owned", "off", False), ("owned", "on", False),
                                                  ("owned", "off", True), ("atomics", "on", True)])
@@ -186,20 +202,10 @@ def test_step_gradients_match_reference_chain(device, path, contract, dense):
     step keeps only the samples in front of transmittance train_t_stop (the chain too)."""
     dev = device.with_tuning(grad_slots=0 if path == "atomics" else 2)
     near, far = (1.5, 4.5) if contract == "off" else (0.05, 60.0)
-    model = HashModel(dev, dataclasses.replace(SMALL, contract=contract), near=near, far=far,
-                      bbox=BOX, background=(0.2, 0.5, 1.0))
+    model = seeded_model(dev, dataclasses.replace(SMALL, contract=contract), near, far, dense)
     assert (model.contraction is not None) == (contract == "on")
-    rng = np.random.default_rng(3)
-    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
-    if dense:                                 # sigma ~ e^4: rays go opaque within a few bins
-        p = model.net.params.get()
-        p[model.net.layout.layers[model.spec.depth]["b_off"]] = 4.0
-        model.net.set_params(p)
-    occ = (rng.random(SMALL.occ_res ** 3) < 0.6)
-    model.occ.ema.set(np.where(occ, 1.0, 0.0).astype(np.float32))
-    model.occ._threshold(0.5)
     o, d = _rays(24, seed=4)
-    target = rng.uniform(0, 1, (24, 3))
+    target = np.random.default_rng(5).uniform(0, 1, (24, 3))
     loss, live = model.loss_and_grad(0, _up(dev, o), _up(dev, d), _up(dev, target),
                                      jitter=False)
     rloss, gp, gt, rlive = _reference_step(model, o, d, target)

@@ -10,7 +10,9 @@ prune, batch gather, fused loss), the optimisers, encode, sample, composite and 
 forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
 backward, the hash march (windows, alive rays,
 contraction) and Adam over spans, and the Gaussian splatting projection (forward, backward),
-binning (pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward).
+binning (pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward),
+and the hash model's bounded step (capped offsets, the encoding and the MLP on both tilings
+reading a device count, a bounded step with the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -82,6 +84,11 @@ CASES = [
     "tests/test_splat_kernels.py::test_splat_no_gaussians",
     "tests/test_splat_loss.py::test_device_loss_matches_twin[default-0.2-37-23-noisy]",
     "tests/test_splat_loss.py::test_device_work_splits_and_accumulators",
+    "tests/test_scan.py::test_capped_offsets_match_clipped_cumsum[100]",
+    "tests/test_hash_bounded.py::test_hash_kernels_cover_the_device_count[atomics]",
+    "tests/test_hash_bounded.py::test_mlp_passes_cover_the_device_count[softplus-c3-50-33-cpu]",
+    "tests/test_hash_bounded.py::test_mlp_passes_cover_the_device_count[softplus-c3-50-33-gpu]",
+    "tests/test_hash_bounded.py::test_bounded_step_matches_reference_chain[gpu-False-True]",
 ]
 PYOPENCL_QUERY = re.compile(r"Function: clGetDeviceInfo\s+Error:\s+CL_INVALID_VALUE\s+"
                             r"For argument 'param_name'")

@@ -7,6 +7,7 @@ occupancy grid pruned, the batch adapted), not of a fresh model:
     python tools/profile_step.py --ckpt runs/lego400 --steps 40
     python tools/profile_step.py --ckpt runs/lego400 --steps 40 --json profile.json
     python tools/profile_step.py --ckpt runs/lego400 --set hash.train_t_stop=0   # without
+    python tools/profile_step.py --ckpt runs/lego400 --bounded on   # sizes kept on the device
 
 Each clrf launch (``pyopencl.enqueue_nd_range_kernel``) is followed by ``queue.finish()``,
 which serialises what an in-order queue does anyway; on a CPU device the per-launch wait adds a few microseconds. The step total is timed
@@ -66,6 +67,9 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=40, help="timed steps (default 40)")
     ap.add_argument("--device", default=None, help="CLRF_DEVICE-style spec")
     ap.add_argument("--json", default=None, help="write the figures here too")
+    ap.add_argument("--bounded", choices=("auto", "on", "off"), default="auto",
+                    help="a hash model's steps with their sizes on the device (on; the GPU "
+                         "default) or read back (off; the CPU default); auto: the device's")
     ap.add_argument("--set", action="append", default=[], metavar="hash.FIELD=VALUE",
                     help="profile with a hash model option changed (e.g. hash.train_t_stop=0 "
                          "or hash.batch_samples=262144); repeatable")
@@ -88,6 +92,10 @@ def main(argv=None):
     it0 = int(state.get("iteration", 0))
     if a.set:                    # the untimed steps below adapt the batch to it
         model.config = changed_config(model, a.set)
+    if a.bounded != "auto":
+        if not hasattr(model, "bounded"):
+            raise SystemExit(f"--bounded: the {model.kind} model has no bounded step")
+        model.bounded = a.bounded == "on"
 
     def step(i):
         n = model.batch_size
@@ -128,7 +136,8 @@ def main(argv=None):
 
     caps = dev.caps
     print(f"CPU: {cpu_model()}; OpenCL: {caps.platform_version}; device {caps.name}")
-    print(f"model: {model.describe()}")
+    print(f"model: {model.describe()}"
+          + (f"; bounded step: {model.bounded}" if hasattr(model, "bounded") else ""))
     print(f"{a.steps} steps, {rays_done / a.steps:,.0f} rays per step: {total / a.steps * 1e3:.1f} "
           f"ms per step ({rays_done / total:,.0f} rays/s); with a wait after each launch "
           f"{total_waited / a.steps * 1e3:.1f} ms")
@@ -144,7 +153,8 @@ def main(argv=None):
     if a.json:
         Path(a.json).write_text(json.dumps({
             "cpu": cpu_model(), "platform": caps.platform_version, "device": caps.name,
-            "model": model.describe(), "steps": a.steps, "rays_per_step": rays_done / a.steps,
+            "model": model.describe(), "bounded": getattr(model, "bounded", None),
+            "steps": a.steps, "rays_per_step": rays_done / a.steps,
             "ms_per_step": total / a.steps * 1e3,
             "ms_per_step_waited": total_waited / a.steps * 1e3,
             "kernels_ms_per_step": {k: v / a.steps * 1e3 for k, v in rows},

@@ -15,13 +15,14 @@ def hash_stage(hc, n_rays: int) -> StageEstimate:
     tables = 4 * table
     W, WC, din = hc.width, hc.color_width, pad(hc.levels * hc.features)
     nslot = din + W + 16 + hc.geo_features + 16 + hc.color_depth * WC + 16
-    # an adapted batch (hash.batch_samples) aims at batch_samples live samples; twice that
-    # covers a step whose rays hold more than the last step's
-    samples = 2 * hc.batch_samples if hc.batch_samples else hc.batch_rays * hc.samples
+    # an adapted batch (hash.batch_samples) aims at batch_samples live samples; BOUND_FACTOR
+    # times that covers a step whose rays hold more than the last step's (and is the bounded
+    # step's capacity on GPUs)
+    from .model import BATCH_RAYS_RANGE, BOUND_FACTOR
+    samples = BOUND_FACTOR * hc.batch_samples if hc.batch_samples else hc.batch_rays * hc.samples
     act = 2 * 4 * pad(samples) * nslot
     per_sample = 4 * samples * (2 * (din + 16) + 20)
     occ = 5 * hc.occ_res ** 3
-    from .model import BATCH_RAYS_RANGE
     rays = BATCH_RAYS_RANGE[1] if hc.batch_samples else hc.batch_rays
     alpha = 4 * int(n_rays) if hc.random_background else 0
     total = tables + act + per_sample + occ + ray_store_bytes(n_rays, rays) + alpha

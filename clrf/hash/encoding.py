@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, scratch, upload
+from ..runtime.programs import count_arg, launch, scratch, upload
 
 INIT_SCALE = 1e-4   # tables start uniform in +-INIT_SCALE (the published initialisation)
 SH_DIM = 16         # hash_sh_encode: degree 3 (4 bands), 16 coefficients
@@ -102,13 +102,15 @@ class HashEncoding:
                 spans.append((a, b))
         return spans
 
-    def forward(self, x, out=None):
-        """enc [n, L F] of points x [n, 3] (device float32)."""
+    def forward(self, x, out=None, count=None):
+        """enc [n, L F] of points x [n, 3] (device float32); ``count`` (int32 [1] on the
+        device, or None): only its first count rows (a bounded buffer of n)."""
         n = int(x.shape[0])
         out = out if out is not None else scratch(self.device, (n, self.dim))
         self._launch_points_levels(
             self.program.kernel("hash_forward"), n,
-            (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, self.table.data, out.data))
+            (np.int32(n), count_arg(count), x.data, self.lo4, self.inv4, self.res.data,
+             self.table.data, out.data))
         return out
 
     def _launch_points_levels(self, kernel, n, args):
@@ -121,12 +123,14 @@ class HashEncoding:
         cl.enqueue_nd_range_kernel(self.device.queue, kernel, (-(-n // ls) * ls, self.levels),
                                    (ls, 1))
 
-    def backward(self, x, genc):
-        """self.grad += dL/dtable for dL/denc genc [n, L F] at points x [n, 3]."""
+    def backward(self, x, genc, count=None):
+        """self.grad += dL/dtable for dL/denc genc [n, L F] at points x [n, 3] (the first
+        ``count`` rows: see forward)."""
         n = int(x.shape[0])
         if n == 0:
             return
-        args = (np.int32(n), x.data, self.lo4, self.inv4, self.res.data, genc.data,
+        args = (np.int32(n), count_arg(count), x.data, self.lo4, self.inv4, self.res.data,
+                genc.data,
                 self.grad.data, self.grad.data)
         k = self.program.kernel("hash_backward")
         if not self.owned:
@@ -135,10 +139,12 @@ class HashEncoding:
         k.set_args(*args)   # one work-item (and work-group) per level
         cl.enqueue_nd_range_kernel(self.device.queue, k, (self.levels,), (1,))
 
-    def sh_encode(self, d, out=None):
-        """SH basis (16) of the unit directions of d [n, 3] -> [n, 16]."""
+    def sh_encode(self, d, out=None, count=None):
+        """SH basis (16) of the unit directions of d [n, 3] -> [n, 16] (the first ``count``
+        rows: see forward)."""
         n = int(d.shape[0])
         out = out if out is not None else scratch(self.device, (n, SH_DIM))
-        launch(self.device, self.program.kernel("hash_sh_encode"), n, (np.int32(n), d.data,
-               out.data), self.device.tuning.elementwise_local_size)
+        launch(self.device, self.program.kernel("hash_sh_encode"), n,
+               (np.int32(n), count_arg(count), d.data, out.data),
+               self.device.tuning.elementwise_local_size)
         return out

@@ -22,16 +22,23 @@ SCENE_PRESETS = {
 }
 
 
+def _bounded(device) -> bool:
+    """Training steps keep their sizes on the device (HashModel.train_step) where the device
+    runs the GPU-shaped kernels: GPUs, or any device with CLRF_FORCE_GPU_KERNELS=1."""
+    return bool(getattr(device.tuning, "gpu_kernels", False))
+
+
 def create(device, cfg, ds, background):
     from .model import HashModel, ray_range, resolve_contract, resolve_max_res
     hc = resolve_max_res(resolve_contract(cfg.hash, ds), ds)
     near, far = ray_range(ds, hc.contract == "on", ds.unit_far() if ds.ndc else None)
-    return HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed)
+    return HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed,
+                     bounded=_bounded(device))
 
 
 def from_state(device, state, cfg):
     from .model import HashModel
-    return HashModel.from_state_dict(device, state)
+    return HashModel.from_state_dict(device, state, bounded=_bounded(device))
 
 
 KIND = Kind(name="hash", title="multiresolution hash encoding + tiny MLPs",

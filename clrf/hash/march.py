@@ -6,6 +6,8 @@ occupied cells) and their compositing (math and layouts in the kernel file's hea
 >>> g = packed_backward(dev, pk, sigma_d, rgb_d, bg, target_d, loss_scale)
 >>> kept, (xe,) = keep_front(dev, pk, sigma_d, 1e-4, (xe_d,))   # what lies before T < 1e-4
 >>> pk = march(dev, occ, origins_d, dirs_d, 256, 0.02, 1e3, contract=Contraction(box))
+>>> pk = march(dev, occ, origins_d, dirs_d, 128, 2.0, 6.0, cap=1 << 18)   # bounded: nothing
+>>> pk.m, pk.count, pk.total          # read back; m = 2^18 rows, count/total on the device
 """
 from __future__ import annotations
 
@@ -16,14 +18,16 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from ..runtime.programs import launch, scratch
-from ..runtime.scan import row_offsets
+from ..runtime.scan import capped_offsets, row_offsets
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
 
 
 @dataclass
 class Packed:
-    """The live samples of a batch of n rays: ray i's rows offsets[i] .. offsets[i+1]-1."""
+    """The live samples of a batch of n rays: ray i's rows offsets[i] .. offsets[i+1]-1.
+    Bounded (``count`` set): the arrays have m rows, a fixed capacity, of which the first
+    count[0] (on the device) are live; no size was read back."""
     n: int
     m: int
     offsets: cla.Array        # int32 [n + 1] (device)
@@ -31,6 +35,8 @@ class Packed:
     dt: cla.Array             # [M] the segment each sample stands for (its bin's length)
     xyz: cla.Array            # [M, 3] the encoding's points (contracted under a Contraction)
     vdir: cla.Array           # [M, 3]
+    count: cla.Array | None = None   # bounded: int32 [1] live rows (device), else None
+    total: cla.Array | None = None   # bounded: int64 [1] live samples before the cap (device)
 
     @property
     def offsets_host(self) -> np.ndarray:
@@ -72,13 +78,15 @@ def contract_points(device, contraction: Contraction, xyz):
 
 def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: bool = False,
           key: int = 0, k0: int = 0, k1: int | None = None, alive=None,
-          contract: Contraction | None = None) -> Packed:
+          contract: Contraction | None = None, cap: int | None = None) -> Packed:
     """The live samples of bins k0 .. k1-1 (default all S) of the rays origins/dirs [n, 3]
     (device) through the occupancy grid ``occ`` (OccupancyGrid), for rays with alive[i] != 0
     (uchar device array [n]; None: all). ``contract``: log-spaced bins and contracted points
     (occ then covers Contraction.BOX). The per-ray counts are scanned on the device; one
     number comes back (the total, to size the sample arrays). A scratch byte per (ray, bin)
-    marks the live ones."""
+    marks the live ones. ``cap``: bounded, nothing comes back: the arrays have cap rows and
+    the offsets stop at cap (a ray past it keeps the live samples that fit, later rays none;
+    Packed.total says how many there were)."""
     n = int(origins.shape[0])
     k1 = S if k1 is None else int(k1)
     dev, q = device, device.queue
@@ -98,7 +106,12 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
         cl.enqueue_nd_range_kernel(q, kern, (-(-W // 16), n), None)   # 16 bins an item
     launch(dev, prg.kernel("march_count"), n, (np.int32(n), np.int32(W), live.data, counts.data),
            dev.tuning.per_ray_local_size)
-    offsets, m = row_offsets(dev, counts, n)
+    count = total = None
+    if cap is None:
+        offsets, m = row_offsets(dev, counts, n)
+    else:
+        m = int(cap)
+        offsets, count, total = capped_offsets(dev, counts, n, m)
     t = scratch(dev, max(m, 1))
     dt = scratch(dev, max(m, 1))
     xyz = scratch(dev, (max(m, 1), 3))
@@ -108,7 +121,8 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
                bins + (centre, inv_half, live.data, offsets.data, t.data, dt.data, xyz.data,
                        vdir.data),
                dev.tuning.per_ray_local_size)
-    return Packed(n, m, offsets, *(a[:m] if m else a for a in (t, dt, xyz, vdir)))
+    return Packed(n, m, offsets, *(a[:m] if m else a for a in (t, dt, xyz, vdir)), count,
+                  total)
 
 
 def _bg4(background):
@@ -154,7 +168,8 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
     packed_keep in the kernel file), as a new Packed, and the same rows of each array in rows
     (device [M, ...] float32, C-contiguous); None (nothing copied) when that keeps more than
     max_fraction of the samples. The kept counts are scanned on the device; one number comes
-    back (the kept total)."""
+    back (the kept total). A bounded pk (count set): nothing comes back and the samples are
+    always copied (max_fraction is not checked), into arrays of pk's capacity."""
     dev, q = device, device.queue
     prg = program(device)
     ls = dev.tuning.per_ray_local_size
@@ -163,11 +178,15 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
     if pk.m:
         launch(dev, prg.kernel("packed_keep"), n, (np.int32(n), pk.offsets.data, pk.dt.data,
                                                     sigma.data, np.float32(t_stop), keep.data), ls)
-    if pk.m:
+    count = None
+    if pk.count is not None:
+        m = pk.m
+        offsets, count, _ = capped_offsets(dev, keep, n, m)
+    elif pk.m:
         offsets, m = row_offsets(dev, keep, n)
     else:                        # no sample: packed_keep did not run
         offsets, m = cla.zeros(q, n + 1, np.int32), 0
-    if m > max_fraction * pk.m:
+    if count is None and m > max_fraction * pk.m:
         return None
     out = []
     for a in (pk.t, pk.dt, pk.xyz, pk.vdir, *rows):
@@ -180,4 +199,4 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
                    (np.int32(n), np.int32(width), pk.offsets.data, offsets.data, a.data,
                     b.data), ls)
         out.append(b[:m] if m else b)
-    return Packed(n, m, offsets, *out[:4]), out[4:]
+    return Packed(n, m, offsets, *out[:4], count, pk.total), out[4:]

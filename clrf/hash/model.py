@@ -14,7 +14,8 @@ Network (the fused MLP of cl/mlp.cl, clrf.mlp.mlp.MLPSpec with depth 1):
 The published network has 15 features next to sigma (16 outputs); the kernel pads the head to
 16 + 16 outputs, so ``geo_features`` is 16.
 
-One training step on B rays (one host round trip: the per-ray counts of live samples):
+One training step on B rays (three numbers come back: the live and kept sample totals, which
+size the buffers, and the loss; a bounded step, on GPUs, waits for none of them: train_step):
   S stratified bins over [near, far] per ray; keep the samples inside the box in occupied
   cells, packed per ray (so the sample count adapts per ray)          (hash_march.cl)
   sigma of the M samples (hash encoding, density MLP); keep each ray's
@@ -46,6 +47,7 @@ import pyopencl.array as cla
 from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import Optimizer
+from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, upload
 from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
@@ -57,6 +59,7 @@ MAX_RENDER_SAMPLES = 1 << 20   # samples per render chunk (before compaction)
 BATCH_RAYS_RANGE = (256, 1 << 16)   # rays per step when config.batch_samples adapts them
 KEEP_BELOW = 0.85             # training-time termination copies the kept rows when >= 15 % go
 RENDER_WINDOW = 32             # bins marched per round of a render (then finished rays stop)
+BOUND_FACTOR = 2               # a bounded step's sample buffers: this many batch_samples
 
 
 CONTRACT_FAR = 1000.0   # contracted scenes: samples out to this many box half-sizes
@@ -130,7 +133,7 @@ class HashModel:
     kind = "hash"
 
     def __init__(self, device, config: HashConfig, near: float, far: float, bbox,
-                 background=(0.0, 0.0, 0.0), seed: int = 0):
+                 background=(0.0, 0.0, 0.0), seed: int = 0, bounded: bool = False):
         if not (np.isfinite(near) and np.isfinite(far) and 0 <= near < far):
             raise ValueError(f"near/far: need finite 0 <= near < far, got {near}, {far}")
         bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
@@ -146,6 +149,8 @@ class HashModel:
         self.bbox = box
         self.background = tuple(float(b) for b in bg)
         self.seed = int(seed)
+        self.bounded = bool(bounded)   # sizes stay on the device (see train_step)
+        self._marched = None           # bounded: (rays, Pending live samples) of the last step
         self.step = 0
         self.progress = 0.0   # spent fraction of the budget (on_iteration; lr_schedule "budget")
         self.batch_rays = c.batch_rays   # rays of the next step (adapted: config.batch_samples)
@@ -255,10 +260,20 @@ class HashModel:
         rng = np.random.default_rng([self.seed, int(it), 7])
         return tuple(float(x) for x in rng.random(3))
 
-    def train_step(self, it: int, origins, dirs, target, background=None) -> float:
+    def train_step(self, it: int, origins, dirs, target, background=None):
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
         on device; background: the RGB the targets are composited on (None: the model's own).
-        Returns the batch MSE (mean over rays and channels)."""
+        Returns the batch MSE (mean over rays and channels): a float, or with ``bounded`` a
+        Pending (clrf/runtime/pending.py; float() reads it).
+
+        ``bounded`` (GPUs: the registry's factory sets it from device.tuning.gpu_kernels): no
+        size is read back inside the step. The samples go to buffers of sample_capacity(B)
+        rows whose live count stays on the device, every kernel is launched over the capacity
+        and reads that count (cl/common.h live_rows), training-time termination always
+        compacts, Adam steps even when no sample was live, and the loss stays on the device
+        until read. The one number the host takes is the step's marched total, for the next
+        batch's size, copied without blocking right after the march and read at the end of
+        the step (the device then still has the step's network passes queued)."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -277,46 +292,67 @@ class HashModel:
                                   spans=self._table_spans)
             self._adam_net.step(None, lr, t=self.step + 1)
             self.net.sync_params()
+        if self._marched is not None:
+            rays, marched = self._marched
+            self._marched = None
+            self._adapt_batch(rays, int(marched))
         self.step += 1
         return loss
+
+    def sample_capacity(self, rays: int) -> int:
+        """Rows of a bounded step's sample buffers for a batch of ``rays``: every bin of every
+        ray, or BOUND_FACTOR times config.batch_samples where that is less (the batch adapts to
+        about batch_samples live samples; a ray past the capacity keeps what fits)."""
+        full = int(rays) * self.config.samples
+        target = self.config.batch_samples
+        return full if target <= 0 else min(full, BOUND_FACTOR * int(target))
 
     def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
         and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb. background:
-        the RGB behind the rays (None: the model's own)."""
+        the RGB behind the rays (None: the model's own). With ``bounded`` (see train_step) the
+        loss is a Pending and the live samples the buffers' capacity."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
         jitter = c.perturb if jitter is None else bool(jitter)
         pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
-                   step_key(self.seed, it, 0), contract=self.contraction)
+                   step_key(self.seed, it, 0), contract=self.contraction,
+                   cap=self.sample_capacity(B) if self.bounded else None)
         q = dev.queue
         marched = pk.m
+        if pk.total is not None:   # copied now, read at the end of the step
+            self._marched = (B, Pending(q, pk.total))
         if pk.m:
-            xe = self.enc.forward(pk.xyz)
+            xe = self.enc.forward(pk.xyz, count=pk.count)
             # training-time termination: the density first, then the whole network on each
             # ray's samples in front of transmittance train_t_stop, when that drops at least
             # 1 - KEEP_BELOW of them (else the density pass was the only extra cost)
             kept = None
             if c.train_t_stop > 0:
-                kept = keep_front(dev, pk, self.net.density(xe), c.train_t_stop, (xe,),
-                                  KEEP_BELOW)
+                kept = keep_front(dev, pk, self.net.density(xe, count=pk.count),
+                                  c.train_t_stop, (xe,), KEEP_BELOW)
             if kept is not None:
                 pk, (xe,) = kept
-            sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir))
+            sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir, count=pk.count),
+                                          count=pk.count)
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
         g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
         # summed on the device (pyopencl's reduction): one number comes back, not B
-        loss = float(cla.sum(g["sq_err"][:B], queue=q).get()) * scale
-        self._adapt_batch(B, marched)
+        sq = cla.sum(g["sq_err"][:B], queue=q)
+        if self.bounded:
+            loss = Pending(q, sq, scale)
+        else:
+            loss = float(sq.get()) * scale
+            self._adapt_batch(B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
         dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
-        self.enc.backward(pk.xyz, dx)
+        self.enc.backward(pk.xyz, dx, count=pk.count)
         return loss, pk.m
 
     def _adapt_batch(self, rays: int, live: int):
@@ -437,11 +473,12 @@ class HashModel:
                 "occ_threshold": self.occ.threshold}
 
     @classmethod
-    def from_state_dict(cls, device, state: dict) -> "HashModel":
+    def from_state_dict(cls, device, state: dict, bounded: bool = False) -> "HashModel":
         if state.get("kind") != cls.kind:
             raise ValueError(f"state_dict: kind is {state.get('kind')!r}, expected 'hash'")
         model = cls(device, HashConfig.from_dict(dict(state["config"])), state["near"],
-                    state["far"], state["bbox"], tuple(state["background"]), int(state["seed"]))
+                    state["far"], state["bbox"], tuple(state["background"]), int(state["seed"]),
+                    bounded)
         model.step = int(state["step"])
         model.batch_rays = int(state.get("batch_rays", model.config.batch_rays))
         for key, arr in (("table", model.enc.table), ("table_adam_m", model._adam_table.state),

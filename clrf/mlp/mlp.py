@@ -23,7 +23,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from .tiling import GPU_GROUPS_PER_CU, GPU_MIN_CHUNK, MLPTiling, mlp_tiling_for
-from ..runtime.programs import launch, scratch, upload
+from ..runtime.programs import count_arg, launch, scratch, upload
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
@@ -203,6 +203,7 @@ class MLP:
         self.group_bytes = GROUP_BYTES
         self.A = self.G = self.partial = None
         self._n = 0
+        self._count = None        # the last forward's device count (bounded buffers), or None
         self._stale = False       # density() overwrote the last forward's activations
         self._k = {name: self.program.kernel(name) for name in (
             "mlp_forward", "mlp_density", "mlp_backward", "mlp_weight_grad", "mlp_reduce",
@@ -257,18 +258,20 @@ class MLP:
         self.sync_params()
 
     # ---- passes -------------------------------------------------------------------------
-    def forward(self, x_enc, d_enc, sigma=None, rgb=None):
+    def forward(self, x_enc, d_enc, sigma=None, rgb=None, count=None):
         """sigma [n], rgb [n, 3] (device) of encoded inputs x_enc [n, in_dim], d_enc [n, dir_dim].
-        Keeps every activation in self.A for a following backward."""
+        Keeps every activation in self.A for a following backward. ``count`` (int32 [1] on the
+        device, or None): only its first count rows (a bounded buffer of n; the backward then
+        reads the same count)."""
         n = int(x_enc.shape[0])
         self._ensure_scratch(n)
         sigma = sigma if sigma is not None else scratch(self.device, n)
         rgb = rgb if rgb is not None else scratch(self.device, (n, 3))
-        self._n = n
+        self._n, self._count = n, count
         self._stale = False
         self._launch_tiles(self._k["mlp_forward"], n,
-                           (np.int32(n), x_enc.data, d_enc.data, self.params_t.data, self.A.data,
-                            sigma.data, rgb.data))
+                           (np.int32(n), count_arg(count), x_enc.data, d_enc.data,
+                            self.params_t.data, self.A.data, sigma.data, rgb.data))
         return sigma, rgb
 
     def _launch_tiles(self, kernel, n: int, args):
@@ -281,16 +284,18 @@ class MLP:
         else:
             launch(self.device, kernel, tiles, args, self.device.tuning.mlp_fused_local_size)
 
-    def density(self, x_enc, sigma=None):
+    def density(self, x_enc, sigma=None, count=None):
         """sigma [n] (device) of encoded positions x_enc [n, in_dim]: the trunk and the head
         only (no direction, no colour layers; about a third of a forward for the hash model's
-        networks). Uses the activation scratch: a backward must follow a forward, not this."""
+        networks). Uses the activation scratch: a backward must follow a forward, not this.
+        ``count``: as in forward."""
         n = int(x_enc.shape[0])
         self._ensure_scratch(n)
         sigma = sigma if sigma is not None else scratch(self.device, n)
         self._stale = True
         self._launch_tiles(self._k["mlp_density"], n,
-                           (np.int32(n), x_enc.data, self.params_t.data, self.A.data, sigma.data))
+                           (np.int32(n), count_arg(count), x_enc.data, self.params_t.data,
+                            self.A.data, sigma.data))
         return sigma
 
     def backward(self, dsigma, drgb, grad=None, accumulate=False, want_input=False):
@@ -309,9 +314,9 @@ class MLP:
         self._ensure_scratch(n, backward=True)
         dummy = self.A.data
         kb = self._k["mlp_backward"]
-        args = (np.int32(n), dsigma.data, drgb.data, self.params.data, self.A.data, self.G.data,
-                np.int32(bool(want_input)), dx.data if dx is not None else dummy,
-                dd.data if dd is not None else dummy)
+        args = (np.int32(n), count_arg(self._count), dsigma.data, drgb.data, self.params.data,
+                self.A.data, self.G.data, np.int32(bool(want_input)),
+                dx.data if dx is not None else dummy, dd.data if dd is not None else dummy)
         if self.gpu:     # one launch each: backward, weight gradient, reduce
             self._launch_tiles(kb, n, args)
             self.weight_grad(grad, accumulate)
@@ -345,7 +350,8 @@ class MLP:
         """Partial weight and bias gradients of chunks c0 .. c1-1 (after their backward), all
         layers in one launch."""
         k = self._k["mlp_weight_grad"]
-        k.set_args(np.int32(rows), self.A.data, self.G.data, self.partial.data)
+        k.set_args(np.int32(rows), count_arg(self._count), self.A.data, self.G.data,
+                   self.partial.data)
         ipc = self.layout.wgrad_items_per_chunk
         self._enqueue(k, c0 * ipc, (c1 - c0) * ipc)
 
@@ -369,8 +375,8 @@ class MLP:
                 wg = self.layout.gpu["wg"]
                 launch(self.device, self._k["mlp_weight_grad"],
                        n_chunks * self.layout.wgrad_items_per_chunk * wg,
-                       (np.int32(rows), np.int32(chunk), self.A.data, self.G.data,
-                        self.partial.data), wg)
+                       (np.int32(rows), count_arg(self._count), np.int32(chunk), self.A.data,
+                        self.G.data, self.partial.data), wg)
             self._reduce(grad, n_chunks, accumulate)
             return
         n_chunks = (rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk

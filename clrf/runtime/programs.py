@@ -189,6 +189,12 @@ def scratch(device, shape, dtype=np.float32):
     return cla.empty(device.queue, shape, dtype, allocator=device.pool)
 
 
+def count_arg(count):
+    """A kernel's ``count`` argument (cl/common.h live_rows): the buffer of an int32 [1] device
+    array holding a bounded buffer's live rows, or null (None: every row)."""
+    return None if count is None else count.data
+
+
 def launch(device, kernel, n: int, args, local_size: int | None = None, wait_for=None):
     """Run a 1-D kernel over ``n`` items (kernels bounds-check ``gid < n``).
 

@@ -4,6 +4,7 @@ one value read back is the total, which sizes the buffers that follow.
 
 >>> offsets, total = row_offsets(device, counts_d)   # counts int32 [n] on the device
 >>> offsets                                          # int32 [n + 1]: 0, c0, c0 + c1, ...
+>>> offsets, count, total = capped_offsets(device, counts_d, n, cap)   # nothing read back
 """
 from __future__ import annotations
 
@@ -18,23 +19,51 @@ from .programs import scratch
 _SCANS: dict = {}
 
 
-def _offsets_scan(context):
+def _offsets_scan(context, capped: bool = False):
     """The int32 counts -> int32 [n + 1] offsets scan of ``context`` (built once): offsets[0] is
     0 and offsets[i + 1] the inclusive sum to i; the total also in a one-item int64 array
-    (summed in 64 bits, so that a total past 2^31 is seen, not wrapped)."""
-    key = context.int_ptr
+    (summed in 64 bits, so that a total past 2^31 is seen, not wrapped). ``capped``: every
+    offset at most ``cap`` (two more arguments), and the capped total also in a one-item int32
+    array ``count`` (the live rows of a bounded buffer of cap rows)."""
+    key = (context.int_ptr, capped)
     if key not in _SCANS:
+        arguments = ("__global const int *counts, __global int *offsets, __global long *total, "
+                     "const int n")
+        item, last = "item", "total[0] = item;"
+        if capped:
+            arguments += ", __global int *count, const int cap"
+            item = "min(item, (long)cap)"
+            last = "total[0] = item; count[0] = (int)min(item, (long)cap);"
         with warnings.catch_warnings():
             # pyopencl warns on any non-empty build log, chatter included (programs.build)
             warnings.simplefilter("ignore", cl.CompilerWarning)
             _SCANS[key] = GenericScanKernel(
-                context, np.int64,
-                arguments="__global const int *counts, __global int *offsets, "
-                          "__global long *total, const int n",
+                context, np.int64, arguments=arguments,
                 input_expr="counts[i]", scan_expr="a+b", neutral="0",
-                output_statement="offsets[i + 1] = (int)item; if (i == 0) offsets[0] = 0; "
-                                 "if (i + 1 == n) total[0] = item;")
+                output_statement=f"offsets[i + 1] = (int){item}; if (i == 0) offsets[0] = 0; "
+                                 f"if (i + 1 == n) {{ {last} }}")
     return _SCANS[key]
+
+
+def capped_offsets(device, counts, n: int, cap: int):
+    """(offsets int32 [n + 1], count int32 [1], total int64 [1]), all on the device, of the
+    first n int32 ``counts`` with every offset capped at ``cap`` (rows past cap are dropped: a
+    bounded buffer of cap rows). count holds the capped total, total the whole one. Nothing is
+    read back: the kernels that follow read count on the device (common.h live_rows)."""
+    n, cap = int(n), int(cap)
+    if not 0 <= cap < 1 << 31:
+        raise ValueError(f"capacity {cap}: must be in 0 .. 2^31 - 1")
+    offsets = scratch(device, (n + 1,), np.int32)
+    count = scratch(device, (1,), np.int32)
+    total = scratch(device, (1,), np.int64)
+    if n == 0:
+        offsets.fill(0)
+        count.fill(0)
+        total.fill(0)
+        return offsets, count, total
+    _offsets_scan(device.context, True)(counts, offsets, total, np.int32(n), count,
+                                        np.int32(cap), queue=device.queue, size=n)
+    return offsets, count, total
 
 
 def row_offsets(device, counts, n: int | None = None, what: str = "rows"):
@@ -55,4 +84,4 @@ def row_offsets(device, counts, n: int | None = None, what: str = "rows"):
     return offsets, m
 
 
-__all__ = ["row_offsets"]
+__all__ = ["capped_offsets", "row_offsets"]

@@ -2,7 +2,10 @@
 
 Rays of every training pixel are built once (vectorised numpy) and kept on the device; each
 step draws a random batch on the device (cl/batch.cl), runs the model's fused step, and reads
-back one number (the batch loss). Held-out views are evaluated every ``eval_every`` seconds of
+back one number (the batch loss; a model may return it as a Pending, clrf/runtime/pending.py,
+which the loop reads once it has arrived, so that the host does not wait for the step; before
+an evaluation, a checkpoint or the end, the device's queue is drained inside the step's time,
+so the clock counts all of its work). Held-out views are evaluated every ``eval_every`` seconds of
 training; the clock excludes evaluation and checkpointing, so ``seconds`` in metrics.csv is
 pure training time. Outputs in the run directory:
 
@@ -38,6 +41,7 @@ from ..runtime.trust import ensure_trusted
 from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
+from ..runtime.pending import Pending
 from ..runtime.programs import launch, upload
 from ..runtime.progress import TrainProgress
 
@@ -312,6 +316,7 @@ class Trainer:
         finally:
             signal.signal(signal.SIGINT, old)
             loop.prog.close()
+        self._take_losses(loop)
         self.save()
         return self._finish(loop, interrupted)
 
@@ -339,6 +344,7 @@ class Trainer:
         t = self.cfg.train
         if not (self.seconds >= loop.next_eval or self._done()):
             return
+        self._take_losses(loop)
         ev = evaluate(self.model, self.ds, self.periodic_views, downscale=self.eval_downscale)
         loop.last_eval = ev
         losses = loop.losses
@@ -361,6 +367,7 @@ class Trainer:
 
     def _maybe_checkpoint(self, loop: "_Loop"):
         if self.seconds >= loop.next_ckpt:
+            self._take_losses(loop)    # a loss that became NaN keeps the last checkpoint
             self.save()
             loop.next_ckpt = self.seconds + self.cfg.train.checkpoint_every
 
@@ -380,21 +387,43 @@ class Trainer:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
         loop.batch = self.model.batch_size     # a model may adapt it step by step
         loss = train_on_batch(self.model, self.rays, t.seed, self.iteration, loop.batch)
+        if isinstance(loss, Pending):
+            # the device may still be running this step: before anything that reports or
+            # stops, wait for it inside the step's time, so that the clock counts its work
+            loop.pending.append((self.iteration, loss))
+            seconds = self.seconds + time.perf_counter() - t0
+            if seconds >= min(loop.next_eval, loop.next_ckpt, t.max_seconds) \
+                    or self.iteration + 1 >= t.max_iters:
+                self.device.queue.finish()
         dt = time.perf_counter() - t0
         if self.comm is not None:   # the slowest rank's time, the same on every rank
             from mpi4py import MPI
             dt = self.comm.allreduce(dt, op=MPI.MAX)
-        if not np.isfinite(loss):
-            raise FloatingPointError(f"training loss became {loss} at iteration "
-                                     f"{self.iteration}; the last checkpoint is kept")
+        if not isinstance(loss, Pending):
+            self._take_loss(loop, self.iteration, loss)
+        self._take_losses(loop, wait=False)
         self.seconds += dt
         self.iteration += 1
         self._rate = loop.batch / dt if dt > 0 else 0.0
-        loop.losses.append(loss)
-        loop.prog.update(f"it {self.iteration} loss {loss:.5f} PSNR {psnr_from_mse(loss):5.2f} "
+        last = loop.last_loss
+        loop.prog.update(f"it {self.iteration} loss {last:.5f} PSNR {psnr_from_mse(last):5.2f} "
                          f"{self._rate / 1e3:.1f}k rays/s", self.seconds)
         if self.viewer is not None:   # clrf train --view (clrf/viewer/live.py)
-            self.viewer.step(self, loss)
+            self.viewer.step(self, last)
+
+    def _take_losses(self, loop: "_Loop", wait: bool = True):
+        """The step losses still on the device (a model that returns a Pending) that have
+        arrived, in step order; wait: all of them."""
+        while loop.pending and (wait or loop.pending[0][1].ready):
+            it, loss = loop.pending.pop(0)
+            self._take_loss(loop, it, float(loss))
+
+    def _take_loss(self, loop: "_Loop", it: int, loss: float):
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss} at iteration {it}; the "
+                                     f"last checkpoint is kept")
+        loop.losses.append(loss)
+        loop.last_loss = loss
 
     def _finish(self, loop: "_Loop", interrupted: bool) -> dict:
         """The run's result: the final evaluation over every test view (renders, eval.json,
@@ -439,6 +468,8 @@ class _Loop:
     next_eval: float         # training seconds of the next periodic evaluation
     next_ckpt: float         # and of the next checkpoint
     losses: list = field(default_factory=list)   # batch losses since the last evaluation
+    pending: list = field(default_factory=list)  # (iteration, Pending) losses not yet read
+    last_loss: float = float("nan")              # the latest loss read
     last_eval: dict | None = None
 
 
