@@ -7,7 +7,8 @@
 #                 and hash cases
 #   tests         the grid, hash and splat kernel tests on the GPU (its own kernel shapes), and
 #                 the splat and MLP ones with CLRF_FORCE_GPU_KERNELS=0 (the CPU shapes there)
-#   hash_lego     clrf train --model hash on lego_400, 300 s, every test view; a step profile
+#   hash_lego     clrf train --model hash on lego_400, 300 s, every test view; step profiles
+#                 of the bounded step (sizes on the device) and of the host-sized one
 #   grid_lego     clrf train (the grid) on lego_400, 180 s, every test view
 #   hash_bonsai   clrf train --model hash on bonsai_800 at full resolution, 300 s
 #   splat_bonsai  clrf train --model splat on bonsai_800 at full resolution, 600 s, from
@@ -142,7 +143,7 @@ fi
 if plan tests; then
     KT=(tests/test_render.py tests/test_grid_ops.py tests/test_hash_encode.py
         tests/test_hash_kernels.py tests/test_splat_kernels.py tests/test_splat_loss.py
-        tests/test_sort.py tests/test_scan.py)
+        tests/test_sort.py tests/test_scan.py tests/test_hash_bounded.py)
     [ "$SMOKE" = 1 ] && KT=(tests/test_sort.py tests/test_splat_kernels.py -k "binning or no_gaussians")
     step kernel_tests 240 "$PY" -m pytest -q -p no:cacheprovider "${KT[@]}"
     CLRF_FORCE_GPU_KERNELS=0 step kernel_tests_cpu_shapes 120 "$PY" -m pytest -q \
@@ -186,8 +187,12 @@ SMALL=()    # smoke runs on a CPU: small images
 
 if plan hash_lego && need_data lego_400 hash_lego; then
     train_run hash_lego 480 --model hash --data "$DATA/lego_400" --max-seconds "$(SECS 300)" "${SMALL[@]}"
-    [ -f "$RUNS/hash_lego/eval.json" ] && step profile_hash_lego 60 "$PY" tools/profile_step.py \
-        --ckpt "$RUNS/hash_lego" --device "$DEVICE" --steps 40 --json "$OUT/profile_hash_lego.json"
+    # the bounded step (sizes on the device: the GPU default) and the host-sized one
+    for b in on off; do
+        [ -f "$RUNS/hash_lego/eval.json" ] && step "profile_hash_lego_bounded_$b" 45 "$PY" \
+            tools/profile_step.py --ckpt "$RUNS/hash_lego" --device "$DEVICE" --steps 40 \
+            --bounded "$b" --json "$OUT/profile_hash_lego_bounded_$b.json"
+    done
 fi
 if plan grid_lego && need_data lego_400 grid_lego; then
     train_run grid_lego 360 --data "$DATA/lego_400" --max-seconds "$(SECS 180)" "${SMALL[@]}"
