@@ -151,6 +151,75 @@ def test_tuner_cli(device, cache, capsys):
     assert at.cached_tiling(device.caps, tiny) is not None
 
 
+def test_gpu_candidates_start_at_the_default_and_differ():
+    c = caps(type_="gpu", width=1)
+    cands = at.gpu_candidates(c)
+    assert cands[0] == at.gpu_default(c) and len(set(cands)) == len(cands) > 8
+    assert all(g.wg >= 32 and g.local_max == c.local_mem_size for g in cands)
+    assert {g.tm for g in cands} >= {None, 2, 4} and {g.wg for g in cands} == {256, 128, 64}
+    small = replace(c, max_work_group_size=64)   # no group under 32 work-items
+    assert {g.wg for g in at.gpu_candidates(small)} == {64, 32}
+
+
+def test_gpu_cache_round_trip_and_choice(cache):
+    """A tuned GPU tiling is its own entry beside the CPU tile, read back with the device's
+    local memory, and chosen where the device runs the GPU tiling (its chunk from MLPSpec)."""
+    from types import SimpleNamespace
+    c = caps(type_="gpu", width=1)
+    gpu_dev, cpu_dev = FakeDevice(c), FakeDevice(c)
+    gpu_dev.tuning = SimpleNamespace(gpu_kernels=True)
+    assert at.cached_gpu_tiling(c, SPEC) is None
+    assert at.mlp_tiling_for(gpu_dev, SPEC).gpu == at.gpu_default(c)
+    tuned = at.GPUTiling(wg=128, local_max=1, tm=4, bk=8)
+    at.store_tiling(c, SPEC, at.MLPTiling(gpu=tuned), {"fwdbwd_s": 0.1})
+    assert at.cached_gpu_tiling(c, SPEC) == replace(tuned, local_max=c.local_mem_size)
+    assert at.cached_tiling(c, SPEC) is None               # no CPU tile was stored
+    assert at.mlp_tiling_for(gpu_dev, SPEC).gpu == replace(tuned, local_max=c.local_mem_size)
+    assert at.mlp_tiling_for(gpu_dev, replace(SPEC, dw_chunk=96)).gpu.chunk == 96
+    assert at.mlp_tiling_for(cpu_dev, SPEC) == at.device_default(c)
+    at.store_tiling(c, SPEC, at.MLPTiling(4, 32, 2, 16, 256), {})   # keeps the GPU entry
+    assert at.cached_gpu_tiling(c, SPEC) is not None
+    data = json.loads(cache.read_text())
+    data["entries"][at.device_key(c)][at.GPU_KEY + at.shape_key(SPEC)]["tm"] = "four"
+    cache.write_text(json.dumps(data))
+    assert at.cached_gpu_tiling(c, SPEC) is None
+
+
+def test_gpu_tuner_times_what_builds_and_the_mlp_uses_its_choice(device, cache, monkeypatch):
+    """The GPU tiling's tuner on the session device (forced): tilings that do not build are
+    left out, the fastest is cached, and an MLP built there afterwards runs it. Two of the
+    neighbours only: each GPU build takes seconds on a CPU."""
+    monkeypatch.setattr(at, "GPU_NEIGHBOURS", ({"tm": 2}, {"wg": 0.5}))
+    dev = device.with_tuning(gpu_kernels=True)
+    bad = at.GPUTiling(wg=64, local_max=int(device.caps.local_mem_size), tm=3)   # #error
+    timed = tuner.time_gpu_candidates(dev, SPEC, [bad, at.gpu_default(dev.caps)], n=96,
+                                      rounds=1)
+    assert len(timed) == 1 and timed[0][0].gpu.tm is None and timed[0][1] > 0
+    best, res = tuner.tune(dev, SPEC, n=96, rounds=1)
+    assert best.gpu is not None and best == min(res, key=lambda r: r[1])[0] and len(res) == 3
+    assert at.cached_gpu_tiling(dev.caps, SPEC) == best.gpu
+    assert MLP(dev, SPEC).tiling.gpu == best.gpu
+    assert at.cached_tiling(dev.caps, SPEC) is None     # the CPU tiles were not tuned
+
+
+def test_hash_tuner_cli(device, cache, capsys, monkeypatch):
+    """python -m clrf.hash.autotune tunes the networks a hash preset builds (the GPU tiling
+    with CLRF_FORCE_GPU_KERNELS=1; one neighbour of the default only)."""
+    monkeypatch.setattr(at, "GPU_NEIGHBOURS", ({"tm": 2},))
+    from clrf.hash import autotune as hash_cli
+    from clrf.hash.config import HashConfig
+    from clrf.hash.model import mlp_spec
+    dev = ["--device", f"{device.platform_index}:{device.device_index}"]
+    spec = mlp_spec(HashConfig.from_preset("tiny"))
+    assert hash_cli.main(["--preset", "tiny", "--rounds", "0", *dev]) == 2
+    assert "clrf: error: --samples and --rounds" in capsys.readouterr().err
+    monkeypatch.setenv("CLRF_FORCE_GPU_KERNELS", "1")
+    assert hash_cli.main(["--preset", "tiny", "--samples", "64", "--rounds", "1", *dev]) == 0
+    out = capsys.readouterr().out
+    assert "GPU tiling, 64 samples" in out and out.count("*") == 1 and out.count("GFLOP/s") == 2
+    assert at.cached_gpu_tiling(device.caps, spec) is not None
+
+
 def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
     out = tmp_path / "b.json"
     nerf_bench.main(["--samples", "16", "--repeats", "1", "--configs", "small-4x64",

@@ -65,6 +65,16 @@ BOUND_FACTOR = 2               # a bounded step's sample buffers: this many batc
 CONTRACT_FAR = 1000.0   # contracted scenes: samples out to this many box half-sizes
 
 
+def mlp_spec(config: HashConfig) -> MLPSpec:
+    """The fused MLP of a hash model of ``config`` (its input: levels x features hash
+    features, the SH basis of the view direction)."""
+    c = config
+    return MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
+                   in_dim=c.levels * c.features, dir_dim=SH_DIM, hidden_act="relu",
+                   sigma_act=c.density_act, color_depth=c.color_depth,
+                   features=c.geo_features, rows=c.mlp_rows)
+
+
 def budget_lr(lr: float, final: float, hold: float, progress: float) -> float:
     """lr while ``progress`` (the spent fraction of a run's budget, in [0, 1]) is below
     ``hold``, then falling exponentially to lr * final at progress 1."""
@@ -163,10 +173,7 @@ class HashModel:
                              f"near > 0, got {near}")
         self.enc = HashEncoding(device, c.levels, c.features, c.log2_table, c.min_res, c.max_res,
                                 (space[0], space[1]), seed=self.seed)
-        self.spec = MLPSpec(width=c.width, depth=1, skip=-1, color_width=c.color_width,
-                            in_dim=self.enc.dim, dir_dim=SH_DIM, hidden_act="relu",
-                            sigma_act=c.density_act, color_depth=c.color_depth,
-                            features=c.geo_features, rows=c.mlp_rows)
+        self.spec = mlp_spec(c)
         self.net = MLP(device, self.spec, seed=self.seed)
         self.occ = OccupancyGrid(device, c.occ_res, (space[0], space[1]))
         self.occ_prg = self.occ.prg

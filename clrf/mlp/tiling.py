@@ -55,8 +55,12 @@ built kernel allows fewer) and the local memory the kernel may use (the device's
 then picks its samples per work-item and K-slice rows as the largest that fit (mlp_gpu.h). The
 weight gradient's chunk (rows per partial gradient) is chosen per batch so that its work-groups
 fill the device (``GPU_GROUPS_PER_CU`` per compute unit, chunks of at least ``GPU_MIN_CHUNK``
-rows), unless ``MLPSpec.dw_chunk`` sets it. The GPU tiling is not tuned or cached; its
-sizes were chosen from the device limits (48 KiB of local memory on NVIDIA), not measured.
+rows), unless ``MLPSpec.dw_chunk`` sets it. The defaults were chosen from the device limits
+(48 KiB of local memory on NVIDIA), not measured; the tuner (clrf/mlp/autotune.py) times
+``gpu_candidates`` (work-group size, samples and columns per work-item, K-slice rows, the
+weight gradient's tile) at batches that fill a GPU (2^18 samples by default) and caches the
+fastest per device and MLP shape beside the CPU tiles, which ``mlp_tiling_for`` then prefers
+to ``gpu_default``.
 """
 from __future__ import annotations
 
@@ -138,6 +142,32 @@ def gpu_default(caps, chunk: int | None = None) -> GPUTiling:
     return GPUTiling(wg=wg, local_max=int(caps.local_mem_size), chunk=chunk)
 
 
+GPU_FIELDS = ("wg", "tm", "tn", "nc", "bk", "dw_bj", "dw_bs")   # tuned, cached
+GPU_KEY = "gpu "   # cache entries of the GPU tiling: this prefix and the shape key
+GPU_NEIGHBOURS = ({"tm": 4}, {"tm": 2}, {"tn": 2}, {"tn": 8}, {"bk": 8}, {"bk": 4},
+                  {"dw_bj": 32}, {"dw_bs": 32}, {"dw_bs": 8}, {"wg": 0.5}, {"wg": 0.5, "tm": 4},
+                  {"wg": 0.25})
+
+
+def gpu_candidates(caps) -> list:
+    """The GPU tilings the tuner times: gpu_default first (the kernel's own choices in the
+    device's local memory), then single changes of it (GPU_NEIGHBOURS; a float "wg" scales the
+    work-group, kept at 32 or more). Some may not build on a device (local memory, the
+    kernel's #error checks); the tuner skips those."""
+    base = gpu_default(caps)
+    out = [base]
+    for change in GPU_NEIGHBOURS:
+        c = dict(change)
+        if "wg" in c:
+            c["wg"] = int(base.wg * c["wg"])
+            if c["wg"] < 32:
+                continue
+        t = replace(base, **c)
+        if t not in out:
+            out.append(t)
+    return out
+
+
 NARROW_WIDTH = 128   # AVX-512: MLPs no wider than this get the narrow tile (module docstring)
 
 
@@ -217,11 +247,30 @@ def cached_tiling(caps, spec, path: Path | None = None) -> MLPTiling | None:
     return MLPTiling(*vals)
 
 
+def cached_gpu_tiling(caps, spec, path: Path | None = None) -> GPUTiling | None:
+    """The tuned GPU tiling for this device and MLP shape (with the device's local memory), or
+    None (absent or malformed entry)."""
+    e = load_cache(path).get(device_key(caps), {}).get(GPU_KEY + shape_key(spec))
+    if not isinstance(e, dict) or not isinstance(e.get("wg"), int):
+        return None
+    vals = {k: e.get(k) for k in GPU_FIELDS}
+    if not all(v is None or (isinstance(v, int) and not isinstance(v, bool) and v > 0)
+               for v in vals.values()):
+        return None
+    return GPUTiling(local_max=int(caps.local_mem_size), **vals)
+
+
 def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = None):
-    """Record ``tiling`` (and ``info``: timings) for this device and shape; atomic replace."""
+    """Record ``tiling`` (and ``info``: timings) for this device and shape; atomic replace.
+    A tiling with ``gpu`` set records the GPU tiling's fields (a separate entry)."""
     path = path or cache_path()
     entries = load_cache(path)
-    entries.setdefault(device_key(caps), {})[shape_key(spec)] = {**tile_fields(tiling), **info}
+    if tiling.gpu is not None:
+        key = GPU_KEY + shape_key(spec)
+        fields_ = {k: getattr(tiling.gpu, k) for k in GPU_FIELDS}
+    else:
+        key, fields_ = shape_key(spec), tile_fields(tiling)
+    entries.setdefault(device_key(caps), {})[key] = {**fields_, **info}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
     try:
@@ -237,12 +286,14 @@ def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:
     """The tile an MLP of ``spec`` uses on ``device``: MLPSpec fields that are set, then the
     tuned cache entry, then the device default. dw_chunk, when not set anywhere, is
     CHUNK_TILES * rows. Where the device's tuning asks for the GPU tiling (``gpu_kernels``), the
-    result carries ``gpu_default`` (with MLPSpec.dw_chunk as its chunk, when set)."""
+    result carries the tuned GPU tiling, else ``gpu_default`` (with MLPSpec.dw_chunk as its
+    chunk, when set)."""
     base = cached_tiling(device.caps, spec, path) or device_default(device.caps, spec)
     chosen = {k: getattr(spec, k) for k in TILE_FIELDS if getattr(spec, k) is not None}
     if "rows" in chosen and "dw_chunk" not in chosen and base.rows != chosen["rows"]:
         chosen["dw_chunk"] = CHUNK_TILES * chosen["rows"]
     tiling = replace(base, **chosen)
     if getattr(getattr(device, "tuning", None), "gpu_kernels", False):
-        tiling = replace(tiling, gpu=gpu_default(device.caps, spec.dw_chunk))
+        gpu = cached_gpu_tiling(device.caps, spec, path) or gpu_default(device.caps)
+        tiling = replace(tiling, gpu=replace(gpu, chunk=spec.dw_chunk))
     return tiling

@@ -1,5 +1,6 @@
 """``python -m clrf.nerf.autotune``: tune the fused MLP's tiles (clrf/mlp/autotune.py) for the
-shape of a NeRF preset, or any shape given by flags.
+shape of a NeRF preset, or any shape given by flags: the CPU register tiles, or on a device
+that runs the GPU tiling (GPUs; CLRF_FORCE_GPU_KERNELS=1) that tiling, at 2^18 samples.
 
     python -m clrf.nerf.autotune --preset tiny      # the shape `clrf train --model nerf` builds
     python -m clrf.nerf.autotune --width 256 --depth 8 --skip 4 --color-width 128 --in-dim 63 \\
@@ -11,12 +12,10 @@ import argparse
 import sys
 from dataclasses import replace
 
-from ..mlp.autotune import tune
-from ..mlp.tiling import cache_path
+from ..mlp.autotune import tune_command
 
 
 def main(argv=None) -> int:
-    from ..runtime.device import Device, DeviceError
     ap = argparse.ArgumentParser(prog="python -m clrf.nerf.autotune",
                                  description="Time fused-MLP tiles on a device; cache the best.")
     ap.add_argument("--device", default=None, help="'cpu', 'gpu', 'P:D' or an implementation ('pocl', 'intel', ...; default CLRF_DEVICE)")
@@ -31,12 +30,10 @@ def main(argv=None) -> int:
     ap.add_argument("--dir-dim", type=int, default=None, help="encoded direction dims")
     ap.add_argument("--hidden-act", default=None, choices=("relu", "softplus"))
     ap.add_argument("--sigma-act", default=None, choices=("relu", "softplus"))
-    ap.add_argument("--samples", type=int, default=4096, help="samples per timed pass")
+    ap.add_argument("--samples", type=int, default=None,
+                    help="samples per timed pass (default 4096; 2^18 for the GPU tiling)")
     ap.add_argument("--rounds", type=int, default=5, help="interleaved timing rounds")
     a = ap.parse_args(argv)
-    if a.samples < 1 or a.rounds < 1:
-        print("clrf: error: --samples and --rounds must be >= 1", file=sys.stderr)
-        return 2
     from .config import NerfConfig
     over = {k: getattr(a, k) for k in ("width", "depth", "skip", "color_width", "hidden_act",
                                        "sigma_act") if getattr(a, k) is not None}
@@ -48,25 +45,7 @@ def main(argv=None) -> int:
                   file=sys.stderr)
             return 2
     dims = {k: getattr(a, k) for k in ("in_dim", "dir_dim") if getattr(a, k) is not None}
-    spec = replace(cfg.mlp_spec(), **dims)
-    from ..runtime.programs import BuildError
-    try:
-        dev = Device(a.device)
-        best, res = tune(dev, spec, a.samples, a.rounds)
-    except (DeviceError, BuildError) as e:
-        print(f"clrf: error: {str(e).splitlines()[0]}", file=sys.stderr)
-        return 2
-    flop = spec.flops_per_sample()[1] * a.samples
-    print(f"device {dev}")
-    for t, s in res:
-        mark = "*" if t == best else " "
-        print(f"{mark} rows {t.rows:2d} cols {t.cols} dw_rows {t.dw_rows:2d} dw_cols {t.dw_cols} "
-              f"dw_chunk {t.dw_chunk:4d}: fwd+bwd {s * 1e3:8.2f} ms  {flop / s / 1e9:7.1f} GFLOP/s")
-    print(f"cached in {cache_path()}")
-    if dev.tuning.gpu_kernels:
-        print("note: this device runs the fused MLP's GPU tiling, which takes its sizes from the "
-              "device; the tuned CPU tile is used with CLRF_FORCE_GPU_KERNELS=0")
-    return 0
+    return tune_command(a.device, replace(cfg.mlp_spec(), **dims), a.samples, a.rounds)
 
 
 if __name__ == "__main__":
