@@ -321,3 +321,22 @@ def test_bonsai_smoke_with_background(scene, tmp_path):
     assert cli(["render", "--ckpt", str(out), "--max-views", "1", "--scale", "0.5",
                 "--out", str(tmp_path / "png")]) == 0
     assert (tmp_path / "png" / "orbit_000.png").is_file()
+
+
+def test_loss_stays_on_the_device_where_the_gpu_kernels_run(device):
+    """Where a device runs the GPU-shaped kernels the grid step returns its loss as a Pending
+    (read when the trainer reports), with the value the host-read step returns."""
+    from clrf.runtime.pending import Pending
+    rng = np.random.default_rng(81)
+    cfg = tiny_cfg(sh_degree=0)
+    q = device.queue
+    o, d = camera_rays(rng, cfg.batch_size)
+    batch = [cla.to_device(q, a) for a in (o, d, rng.uniform(0, 1, o.shape).astype(np.float32))]
+    host = GridModel.create(device, cfg, CUBE, BG_CONST)
+    lazy = GridModel.create(device.with_tuning(gpu_kernels=True), cfg, CUBE, BG_CONST)
+    assert not host.defer_loss and lazy.defer_loss
+    for it in range(2):
+        want = host.train_step(it, *batch)
+        got = lazy.train_step(it, *batch)
+        assert isinstance(want, float) and isinstance(got, Pending)
+        assert float(got) == want

@@ -19,6 +19,7 @@ from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
+from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, upload
 
 
@@ -48,6 +49,8 @@ class GridModel:
         self.background = tuple(float(b) for b in background)
         self.stage = stage          # index into cfg.reso of the current grid
         self.bg_model = bg_model    # GridBackground, or None: constant background only
+        # the step's loss stays on the device until read (GPUs; train_step)
+        self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self._set_grid(grid, opt_state)
 
     @classmethod
@@ -74,8 +77,11 @@ class GridModel:
                          c.lr_density_delay_steps, c.lr_density_delay_mult),
                 expon_lr(it, c.lr_sh, c.lr_sh_final, c.lr_decay_steps))
 
-    def train_step(self, it, origins, dirs, target) -> float:
-        """One RMSProp step on a batch (device arrays [B, 3]); returns the batch MSE."""
+    def train_step(self, it, origins, dirs, target):
+        """One RMSProp step on a batch (device arrays [B, 3]); returns the batch MSE: a float,
+        or where the device runs the GPU-shaped kernels (``defer_loss``) a Pending that the
+        trainer reads when it reports (clrf/runtime/pending.py), so that no step waits for
+        the device."""
         c = self.cfg
         B = origins.shape[0]
         q = self.device.queue
@@ -99,7 +105,10 @@ class GridModel:
         lr_d, lr_s = self.learning_rates(it)
         self.opt_density.step(self.touched, lr_d, clear_touched=False)
         self.opt_sh.step(self.touched, lr_s, clear_touched=True)
-        return float(cla.sum(self._sqerr).get()) / (3 * B)
+        loss, scale = cla.sum(self._sqerr, queue=q), 1.0 / (3 * B)
+        if self.defer_loss:
+            return Pending(q, loss, scale)
+        return float(loss.get()) * scale
 
     def _tv(self, it):
         """TV (and the sparsity prior) over one random contiguous window of the grid's cells;

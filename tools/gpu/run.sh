@@ -2,7 +2,8 @@
 # One GPU session's measurements, in plans that share one call's budget (~9 minutes):
 #   mlp           (default) the fused MLP's GPU tiling (cl/mlp_gpu.h): the MLP tests (the
 #                 device's own tiling, then CLRF_FORCE_GPU_KERNELS=1), tools/nerf_bench.py at
-#                 GPU batch sizes (samples/s and the fraction of the FMA peak of the same run,
+#                 GPU batch sizes after the GPU tiling's tuner on the hash networks
+#                 (samples/s and the fraction of the FMA peak of the same run,
 #                 the GPU tiling and, at 2^16, the CPU tiles), tools/bench.py's peak, NeRF MLP
 #                 and hash cases
 #   tests         the grid, hash and splat kernel tests on the GPU (its own kernel shapes), and
@@ -103,6 +104,9 @@ if [ -z "${OCL_ICD_VENDORS:-}" ] && ! grep -qsl nvidia /etc/OpenCL/vendors/*.icd
 fi
 command -v nvidia-smi > /dev/null && nvidia-smi > "$OUT/nvidia_smi.txt" 2>&1
 export CLRF_DEVICE="$DEVICE" CLRF_TEST_IMPLS=default
+# the tuner's cache (and PoCL's kernels) beside the runs, so that a warm machine keeps them
+export XDG_CACHE_HOME="${XDG_CACHE_HOME:-$RUNS/cache}"
+mkdir -p "$XDG_CACHE_HOME"
 
 step devices 60 "$PY" -m clrf.cli devices
 
@@ -126,6 +130,15 @@ if plan mlp; then
         NB=(--repeats 5)
         NB_CPU=(--gpu-samples 65536 --repeats 3)
     fi
+    # the tuner on the GPU tiling (the hash model's networks, 2^18 samples): its table of
+    # candidates against the default, and the cache the later steps and training runs read
+    if [ "$SMOKE" = 1 ]; then
+        CLRF_FORCE_GPU_KERNELS=1 step tune_hash 60 "$PY" -m clrf.hash.autotune --preset tiny \
+            --samples 256 --rounds 1
+    else
+        step tune_hash 90 "$PY" -m clrf.hash.autotune --rounds 5
+    fi
+    cp "$XDG_CACHE_HOME/clrf/mlp_tiling.json" "$OUT/" 2> /dev/null
     step nerf_bench_gpu 150 "$PY" tools/nerf_bench.py --gpu-sizes "${NB[@]}" --out "$OUT/nerf_bench_gpu.json"
     step nerf_bench_cpu_tiles 45 "$PY" tools/nerf_bench.py --gpu-sizes --tilings cpu \
         --gpu-configs small-4x64,hash-1x64-c2 "${NB_CPU[@]}" --out "$OUT/nerf_bench_cpu_tiles.json"
