@@ -41,6 +41,14 @@ def _grid_specs():
         add("grid.render", "grid", reso=256, degree=2, occupancy=0.05, rays="camera", mode=mode)
     add("grid.render", "grid", reso=256, degree=2, occupancy=0.05, rays="random", mode="fwd")
 
+    # GPU sizes: 2^18 rays a call, about the samples of a GPU's step (tools/gpu/run.sh runs
+    # them there; on a CPU each repetition takes seconds)
+    for mode in ("fwd", "fwdbwd"):
+        add("grid.render", "grid.gpu", reso=256, degree=2, occupancy=0.05, rays="camera",
+            mode=mode, n_rays=1 << 18)
+    add("grid.render", "grid.gpu", reso=128, degree=2, occupancy=1.0, rays="camera",
+        mode="fwdbwd", n_rays=1 << 18)
+
     # peers on the bar configuration (128^3 SH2 dense camera); taichi also on a pruned grid
     # (torch takes tens of seconds per repetition here: dense only, 3 repetitions)
     for occ in (1.0, 0.05):
@@ -69,6 +77,9 @@ def _hash_specs():
         for mode in ("fwd", "fwdbwd"):
             out.append(Spec(f"{prefix}/{mode}/L16F2T19", kind, dict(base, mode=mode),
                             "samples/s", dict(quick)))
+    for mode in ("fwd", "fwdbwd"):   # a GPU's size: 2^20 points a call
+        out.append(Spec(f"hash.gpu/{mode}/L16F2T19", "hash.encode",
+                        dict(base, mode=mode, n_points=1 << 20), "samples/s", dict(quick)))
     return out
 
 

@@ -104,9 +104,6 @@ if [ -z "${OCL_ICD_VENDORS:-}" ] && ! grep -qsl nvidia /etc/OpenCL/vendors/*.icd
 fi
 command -v nvidia-smi > /dev/null && nvidia-smi > "$OUT/nvidia_smi.txt" 2>&1
 export CLRF_DEVICE="$DEVICE" CLRF_TEST_IMPLS=default
-# the tuner's cache (and PoCL's kernels) beside the runs, so that a warm machine keeps them
-export XDG_CACHE_HOME="${XDG_CACHE_HOME:-$RUNS/cache}"
-mkdir -p "$XDG_CACHE_HOME"
 
 step devices 60 "$PY" -m clrf.cli devices
 
@@ -131,9 +128,9 @@ if plan mlp; then
         NB_CPU=(--gpu-samples 65536 --repeats 3)
     fi
     # the tuner on the GPU tiling (the hash model's networks, 2^18 samples): its table of
-    # candidates against the default, and the cache the later steps and training runs read
+    # candidates against the default, and the cache ($OUT/cache) this call's later steps read
     if [ "$SMOKE" = 1 ]; then
-        CLRF_FORCE_GPU_KERNELS=1 step tune_hash 60 "$PY" -m clrf.hash.autotune --preset tiny \
+        CLRF_FORCE_GPU_KERNELS=1 step tune_hash 150 "$PY" -m clrf.hash.autotune --preset tiny \
             --samples 256 --rounds 1
     else
         step tune_hash 90 "$PY" -m clrf.hash.autotune --rounds 5
@@ -147,7 +144,8 @@ if plan mlp; then
             --only 'peak/fma' --only 'nerf/mlp/small-4x64/*' --out "$OUT/bench.json"
     else
         step bench 90 "$PY" tools/bench.py --device "$DEVICE" --only 'peak/*' --only 'nerf/mlp/*' \
-            --only 'hash/*' --only 'splat.raster.clrf/*' --max-seconds 3 --out "$OUT/bench.json"
+            --only 'hash*' --only 'grid.gpu/*' --only 'splat.raster.clrf/*' --max-seconds 3 \
+            --out "$OUT/bench.json"
     fi
 fi
 
