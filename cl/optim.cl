@@ -19,7 +19,7 @@
  * adam_step (OPT_MODE 2; Kingma & Ba, with bias correction): p, g, m, v are float [n], one
  * work-item per parameter i0 <= i < n (no loops: PoCL vectorises across the group; a span
  * [i0, n) skips entries that never get a gradient, such as a hash table's unused rows;
- * adam_groups takes them all in one launch (GPUs)):
+ * adam_groups takes them all in one launch (GPUs), adam_multi the spans of several buffers):
  *   g' = g + wd p (L2 weight decay, wd a host argument; 0 for plain Adam); with clear_grad
  *   the gradient entry is set to 0 once read (for gradients that backward passes add into),
  *   m = b1 m + (1 - b1) g',  v = b2 v + (1 - b2) g'^2  (each set to 0 when below FLT_MIN),
@@ -116,5 +116,29 @@ __kernel void adam_groups(__global const int2 *groups, __global float *p, __glob
     const int i = r.x + (int)get_local_id(0);
     if (i >= r.y) return;
     adam_update(i, p, g, m, v, lr, b1, b2, eps, bc1, bc2, wd, clear_grad);
+}
+
+/* adam_multi (the GPU shape): Adam over spans of up to four buffers (p_b, g_b, m_b, v_b; the
+ * same b1, b2, eps and step count) in one launch, each buffer with its own learning rate lr_b,
+ * weight decay wd_b and clear_grad (bit b of clear_mask). Work-group k updates entries
+ * groups[k].y + local id below groups[k].z of buffer groups[k].x (the host cuts each span into
+ * work-group-sized pieces: clrf/runtime/optim.py AdamSet); unused buffers are null. */
+__kernel void adam_multi(__global const int4 *groups,
+                         __global float *p0, __global float *g0, __global float *m0,
+                         __global float *v0, __global float *p1, __global float *g1,
+                         __global float *m1, __global float *v1, __global float *p2,
+                         __global float *g2, __global float *m2, __global float *v2,
+                         __global float *p3, __global float *g3, __global float *m3,
+                         __global float *v3, const float4 lr, const float4 wd,
+                         const int clear_mask, const float b1, const float b2, const float eps,
+                         const float bc1, const float bc2) {
+    const int4 r = groups[get_group_id(0)];
+    const int i = r.y + (int)get_local_id(0);
+    if (i >= r.z) return;
+    const int b = r.x, clear = (clear_mask >> b) & 1;
+    if (b == 0) adam_update(i, p0, g0, m0, v0, lr.s0, b1, b2, eps, bc1, bc2, wd.s0, clear);
+    else if (b == 1) adam_update(i, p1, g1, m1, v1, lr.s1, b1, b2, eps, bc1, bc2, wd.s1, clear);
+    else if (b == 2) adam_update(i, p2, g2, m2, v2, lr.s2, b1, b2, eps, bc1, bc2, wd.s2, clear);
+    else adam_update(i, p3, g3, m3, v3, lr.s3, b1, b2, eps, bc1, bc2, wd.s3, clear);
 }
 #endif

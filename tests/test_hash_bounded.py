@@ -232,3 +232,22 @@ def test_trainer_reads_pending_losses(device, tmp_path):
     with pytest.raises(FloatingPointError, match="became nan at iteration"):
         tr.run()
     assert (tmp_path / "run" / "ckpt.npz").stat().st_mtime_ns == saved
+
+
+def test_gpu_shape_steps_tables_and_network_in_one_adam_launch(device):
+    """With the GPU-shaped kernels the tables' spans and the network take one Adam launch
+    (AdamSet): the same model as with a launch for each."""
+    from clrf.runtime.optim import AdamSet
+    dev = device.with_tuning(gpu_kernels=True)
+    one = seeded_model(dev, SMALL, bounded=True)
+    each = seeded_model(dev, SMALL, bounded=True)
+    assert isinstance(one._adam_all, AdamSet)
+    each._adam_all = None
+    for it in range(3):
+        o, d = _rays(32, seed=it)
+        t = np.random.default_rng(it).uniform(0, 1, (32, 3))
+        assert float(one.train_step(it, _up(dev, o), _up(dev, d), _up(dev, t))) == \
+            float(each.train_step(it, _up(dev, o), _up(dev, d), _up(dev, t)))
+    np.testing.assert_array_equal(one.enc.table.get(), each.enc.table.get())
+    np.testing.assert_array_equal(one.net.params.get(), each.net.params.get())
+    np.testing.assert_array_equal(one._adam_table.state2.get(), each._adam_table.state2.get())

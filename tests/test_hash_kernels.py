@@ -271,6 +271,46 @@ def test_adam_over_many_spans_in_one_launch(device):
     assert table.tolist()[2:4] == [[100, 165], [164, 165]]
 
 
+def test_adam_set_steps_every_buffer_in_one_launch(device):
+    """AdamSet (adam_multi: up to four buffers, the GPU shape) against each optimiser's own
+    step: every buffer with its own learning rate, weight decay, spans and clear flag, entries
+    outside the spans untouched; bad sets refused."""
+    import pytest
+    from clrf.runtime.optim import AdamSet, Optimizer
+    rng = np.random.default_rng(6)
+    sizes, lrs, wds = (700, 65, 1, 130), (3e-3, 1e-2, 5e-4, 2e-3), (0.01, 0.0, 0.0, 0.1)
+    spans = ([(0, 1), (1, 64), (100, 165), (300, 500)], None, None, [(64, 130)])
+    clear = (True, False, True, False)
+    data = [[rng.normal(size=n), rng.normal(size=n) * 1e-2, rng.normal(size=n) * 1e-3,
+             rng.uniform(0, 1e-4, n)] for n in sizes]
+
+    def opts():
+        out = []
+        for (p, g, m, v), wd in zip(data, wds):
+            arrs = [_up(device, a) for a in (p, g, m, v)]
+            out.append(Optimizer(device, arrs[0], "adam", beta=0.9, beta2=0.99, eps=1e-8,
+                                 grad=arrs[1], state=arrs[2], state2=arrs[3], weight_decay=wd))
+        return out
+
+    together, alone = opts(), opts()
+    AdamSet(device, together).step(lrs, 7, spans=spans, clear_grad=clear)
+    for o, lr, sp, c in zip(alone, lrs, spans, clear):
+        o.step(None, lr, t=7, clear_grad=c, spans=sp)
+    for a, b in zip(together, alone):
+        for x, y, name in ((a.param, b.param, "p"), (a.grad, b.grad, "g"),
+                           (a.state, b.state, "m"), (a.state2, b.state2, "v")):
+            np.testing.assert_array_equal(x.get(), y.get(), err_msg=name)
+    p0 = together[0].param.get()
+    assert np.all(p0[500:] == np.float32(data[0][0][500:])) and np.all(p0[:64] != data[0][0][:64])
+    with pytest.raises(ValueError, match="1 to 4"):
+        AdamSet(device, opts() + opts()[:1])
+    rms = Optimizer(device, _up(device, np.zeros(4)))
+    with pytest.raises(ValueError, match="same beta"):
+        AdamSet(device, [together[0], rms])
+    with pytest.raises(ValueError, match="one lr"):
+        AdamSet(device, together[:2]).step([1e-3], 1)
+
+
 def test_adam_moments_flush_below_float_min(device):
     """Moments that decay below FLT_MIN are stored as 0, never subnormal (x86 computes on
     subnormals ~100x slower): entries with no gradient and moments near FLT_MIN (or already

@@ -8,9 +8,9 @@ runs a small test of each kernel family (CASES) in a child pytest: grid forward 
 in both loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample,
 prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
 forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
-backward, the hash march (windows, alive rays,
-contraction) and Adam over spans, and the Gaussian splatting projection (forward, backward),
-binning (pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward),
+backward, the hash march (windows, alive rays, contraction), Adam over spans and over several
+buffers in one launch, the Gaussian splatting projection (forward, backward), binning
+(pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward),
 and the hash model's bounded step (capped offsets, the encoding and the MLP on both tilings
 reading a device count, a bounded step with the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
@@ -69,6 +69,7 @@ CASES = [
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
     "tests/test_hash_kernels.py::test_adam_over_many_spans_in_one_launch",
+    "tests/test_hash_kernels.py::test_adam_set_steps_every_buffer_in_one_launch",
     "tests/test_splat_kernels.py::test_splat_project_matches_reference[default-3]",
     "tests/test_splat_kernels.py::test_splat_project_backward_matches_reference[default-3]",
     "tests/test_splat_kernels.py::test_splat_binning_matches_reference[default-40-33-17-rows]",

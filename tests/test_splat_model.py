@@ -111,6 +111,36 @@ def test_views_cycle_and_inactive_sh_bands_stay_put(device):
     assert np.any(m.host_params()["sh"][:, 1:])
 
 
+def test_gpu_shape_steps_every_group_in_one_adam_launch(device):
+    """With the GPU-shaped kernels the four parameter groups take one Adam launch (AdamSet,
+    kept through a densification); from the same state and gradients it gives the parameters
+    and moments of a launch a group. (Same gradients, not same steps: the rasteriser's and
+    the loss's float sums vary in their last bits from run to run.)"""
+    from clrf.runtime.optim import AdamSet
+    from clrf.runtime.programs import upload
+    gpu, _ = _model(device.with_tuning(gpu_kernels=True), init_points=300)
+    assert isinstance(gpu._adam_groups, AdamSet)
+    gpu.densify()
+    assert isinstance(gpu._adam_groups, AdamSet) and gpu._adam_groups.optimizers[0] is \
+        gpu.opts["means"]
+    one, _ = _model(device, init_points=300)
+    each, _ = _model(device, init_points=300)
+    assert each._adam_groups is None
+    one._adam_groups = AdamSet(device, [one.opts[k] for k in sm.GROUPS])
+    rng = np.random.default_rng(3)
+    for t in (1, 2):
+        grads = {k: rng.normal(size=v.shape).astype(np.float32) * 1e-2
+                 for k, v in one.host_params().items()}
+        for m in (one, each):
+            m._adam({k: upload(device.queue, g) for k, g in grads.items()}, t)
+    a, b = one.host_params(), each.host_params()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    ma, mb = one.host_moments(), each.host_moments()
+    for k in ma:
+        np.testing.assert_array_equal(ma[k], mb[k], err_msg=k)
+
+
 def test_densify_and_prune_keep_the_cap(device):
     from clrf.interface import Budget
     m, _ = _model(device, init_points=300, max_gaussians=340, densify_grad_threshold=1e-9)

@@ -46,7 +46,7 @@ import pyopencl.array as cla
 
 from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
-from ..runtime.optim import Optimizer
+from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, upload
 from ..runtime.rng import step_key
@@ -183,6 +183,10 @@ class HashModel:
         self._adam_net = Optimizer(device, self.net.params, "adam", beta=c.beta1, beta2=c.beta2,
                                    eps=c.adam_eps, grad=self.net.grad,
                                    weight_decay=c.weight_decay)
+        # GPU shapes: the tables and the network in one launch; CPUs: a launch a table span
+        # and one for the network (faster on PoCL: cl/optim.cl)
+        self._adam_all = (AdamSet(device, [self._adam_table, self._adam_net])
+                          if getattr(device.tuning, "gpu_kernels", False) else None)
 
     # ---- evaluation of the fields at points ---------------------------------------------
     @property
@@ -295,9 +299,13 @@ class HashModel:
         loss, live = self.loss_and_grad(it, origins, dirs, target, background=background)
         if live:
             lr = self.lr_at(it)
-            self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True,
-                                  spans=self._table_spans)
-            self._adam_net.step(None, lr, t=self.step + 1)
+            if self._adam_all is not None:
+                self._adam_all.step([lr, lr], self.step + 1, spans=[self._table_spans, None],
+                                    clear_grad=[True, False])
+            else:
+                self._adam_table.step(None, lr, t=self.step + 1, clear_grad=True,
+                                      spans=self._table_spans)
+                self._adam_net.step(None, lr, t=self.step + 1)
             self.net.sync_params()
         if self._marched is not None:
             rays, marched = self._marched

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from .programs import launch
@@ -31,6 +32,77 @@ def span_groups(spans, local_size: int) -> np.ndarray:
     parts = [np.stack([np.arange(a, b, local_size), np.full(-(-(b - a) // local_size), b)], 1)
              for a, b in spans if b > a]
     return np.concatenate(parts).astype(np.int32) if parts else np.zeros((0, 2), np.int32)
+
+
+class AdamSet:
+    """Adam optimisers (Optimizer, mode "adam", the same betas and eps) over up to MAX buffers,
+    stepped in one launch (cl/optim.cl adam_multi): one launch for every parameter group of a
+    model where the device runs the GPU-shaped kernels. Each optimiser keeps its buffers,
+    moments, gradient (read at each step) and weight decay; lrs and spans are per optimiser.
+
+    >>> both = AdamSet(dev, [adam_table, adam_net])
+    >>> both.step([lr, lr], t, spans=[table_spans, None], clear_grad=[True, False])
+    """
+
+    MAX = 4
+
+    def __init__(self, device, optimizers):
+        opts = list(optimizers)
+        if not 1 <= len(opts) <= self.MAX:
+            raise ValueError(f"AdamSet: 1 to {self.MAX} optimisers, got {len(opts)}")
+        first = opts[0]
+        for o in opts:
+            if o.mode != "adam" or (o.beta, o.beta2, o.eps) != (first.beta, first.beta2,
+                                                                 first.eps):
+                raise ValueError("AdamSet: every optimiser must be Adam with the same beta, "
+                                 "beta2 and eps")
+        self.device = device
+        self.optimizers = opts
+        self._key = self._table = None
+
+    def _groups(self, spans):
+        """adam_multi's table (int32 [groups, 4]: buffer, first entry, end of its span, 0) on
+        the device and the local size, rebuilt when the spans change."""
+        key = tuple(tuple(s) for s in spans)
+        if self._key != key:
+            ls = max(1, min(ADAM_LOCAL_SIZE, self.device.caps.max_work_group_size))
+            parts = []
+            for b, sp in enumerate(spans):
+                g = span_groups(sp, ls)
+                parts.append(np.concatenate([np.full((len(g), 1), b, np.int32), g,
+                                             np.zeros((len(g), 1), np.int32)], 1))
+            table = np.concatenate(parts).astype(np.int32)
+            self._table = (cla.to_device(self.device.queue, table) if len(table) else None, ls)
+            self._key = key
+        return self._table
+
+    def step(self, lrs, t: int, spans=None, clear_grad=None):
+        """One Adam update of every optimiser: lrs[b] its learning rate, spans[b] its (start,
+        stop) entries (None: all), clear_grad[b] zeroes its gradient once read (default no)."""
+        opts = self.optimizers
+        spans = [None] * len(opts) if spans is None else list(spans)
+        clear = [False] * len(opts) if clear_grad is None else list(clear_grad)
+        if not len(lrs) == len(spans) == len(clear) == len(opts):
+            raise ValueError("AdamSet.step: one lr, span list and clear flag per optimiser")
+        spans = [[(0, int(o.param.size))] if sp is None else
+                 [(int(a), int(b)) for a, b in sp if b > a] for o, sp in zip(opts, spans)]
+        groups, ls = self._groups(spans)
+        if groups is None:
+            return
+        first = opts[0]
+        bufs = []
+        for b in range(self.MAX):
+            o = opts[b] if b < len(opts) else None
+            bufs += [None] * 4 if o is None else [o.param.data, o.grad.data, o.state.data,
+                                                  o.state2.data]
+        pad = lambda v: [float(x) for x in v] + [0.0] * (self.MAX - len(v))   # noqa: E731
+        f4 = cl.cltypes.make_float4
+        mask = sum(1 << b for b, c in enumerate(clear) if c)
+        launch(self.device, first._kernel("adam_multi"), groups.shape[0] * ls,
+               (groups.data, *bufs, f4(*pad(lrs)), f4(*pad([o.weight_decay for o in opts])),
+                np.int32(mask), np.float32(first.beta), np.float32(first.beta2),
+                np.float32(first.eps), np.float32(1.0 - first.beta ** t),
+                np.float32(1.0 - first.beta2 ** t)), ls)
 
 
 class Optimizer:

@@ -25,7 +25,7 @@ from dataclasses import asdict
 import numpy as np
 
 from ..interface import Budget, StateError, Unsupported
-from ..runtime.optim import Optimizer, expon_lr
+from ..runtime.optim import AdamSet, Optimizer, expon_lr
 from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
 from .loss import DeviceLoss
@@ -133,6 +133,9 @@ class SplatModel:
                                   eps=self.config.adam_eps, state=mom(f"{k}_m", host[k]),
                                   state2=mom(f"{k}_v", host[k]))
                      for k in GROUPS}
+        # GPU shapes: every group in one launch (the SH coefficients have their own kernel)
+        self._adam_groups = (AdamSet(self.device, [self.opts[k] for k in GROUPS])
+                             if getattr(self.device.tuning, "gpu_kernels", False) else None)
         self.sh_m = mom("sh_m", host["sh"])
         self.sh_v = mom("sh_v", host["sh"])
         stats = moments.get("stats")
@@ -208,14 +211,23 @@ class SplatModel:
                 np.float32(0.5 * cam.width), np.float32(0.5 * cam.height), self.accum.data,
                 self.count.data, self.max_radius.data))
         self.step += 1
-        t = self.step
+        self._adam(grads, self.step)
+        return self._loss_fn.read(stats)["mse"]
+
+    def _adam(self, grads, t: int):
+        """Adam step t of every parameter from grads (device arrays by PARAM_NAMES): the four
+        groups in one launch (GPU shapes) or a launch each, then the SH coefficients."""
         c = self.config
+        prg = self.device.program("splat_train.cl")
         lrs = {"means": self.lr_means, "log_scales": c.lr_scaling, "quats": c.lr_rotation,
                "opacity_logits": c.lr_opacity}
         for k in GROUPS:
-            opt = self.opts[k]
-            opt.grad = grads[k]
-            opt.step(None, lrs[k], t=t)
+            self.opts[k].grad = grads[k]
+        if self._adam_groups is not None:
+            self._adam_groups.step([lrs[k] for k in GROUPS], t)
+        else:
+            for k in GROUPS:
+                self.opts[k].step(None, lrs[k], t=t)
         b1, b2 = ADAM_BETAS
         nsh = int(self.params["sh"].size)
         launch(self.device, prg.kernel("splat_adam_sh"), nsh,
@@ -224,7 +236,6 @@ class SplatModel:
                 np.float32(b1), np.float32(b2), np.float32(c.adam_eps),
                 np.float32(1 - b1 ** t), np.float32(1 - b2 ** t), np.int32(self.n_basis),
                 np.int32((self.active_degree + 1) ** 2)))
-        return self._loss_fn.read(stats)["mse"]
 
     def _loss(self) -> DeviceLoss:
         """The device loss for the training views' size (built on first use)."""
