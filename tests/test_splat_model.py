@@ -141,6 +141,21 @@ def test_gpu_shape_steps_every_group_in_one_adam_launch(device):
         np.testing.assert_array_equal(ma[k], mb[k], err_msg=k)
 
 
+def test_gpu_shape_defers_the_loss(device):
+    """With the GPU-shaped kernels a step returns its loss as a Pending (read when the trainer
+    reports): the MSE entry of the loss's stats as the host read returns it."""
+    from clrf.runtime.pending import Pending
+    gpu, _ = _model(device.with_tuning(gpu_kernels=True), init_points=200)
+    assert gpu.defer_loss
+    m, _ = _model(device, init_points=200)
+    assert not m.defer_loss and isinstance(m.train_step(0), float)
+    m.defer_loss = True
+    loss = m.train_step(1)
+    assert isinstance(loss, Pending)
+    stats = m._loss_fn.read()
+    assert float(loss) == stats["mse"] and stats["mse"] != stats["loss"]
+
+
 def test_densify_and_prune_keep_the_cap(device):
     from clrf.interface import Budget
     m, _ = _model(device, init_points=300, max_gaussians=340, densify_grad_threshold=1e-9)

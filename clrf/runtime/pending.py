@@ -21,7 +21,9 @@ class Pending:
             raise ValueError(f"Pending: needs a one-item device array, got shape {arr.shape}")
         self._host = np.empty(1, arr.dtype)
         self._arr = arr           # the device buffer stays alive until the copy has run
-        self._event = cl.enqueue_copy(queue, self._host, arr.data, is_blocking=False)
+        # base_data and offset: a one-item slice of a larger array works too
+        self._event = cl.enqueue_copy(queue, self._host, arr.base_data, src_offset=arr.offset,
+                                      is_blocking=False)
         self._scale = float(scale)
         self._value = None
 

@@ -26,9 +26,10 @@ import numpy as np
 
 from ..interface import Budget, StateError, Unsupported
 from ..runtime.optim import AdamSet, Optimizer, expon_lr
+from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
-from .loss import DeviceLoss
+from .loss import STATS, DeviceLoss
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, default_tile
 
 SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
@@ -102,6 +103,8 @@ class SplatModel:
         self.rast = SplatRasterizer(device, config.sh_degree, default_tile(device))
         self.n_basis = self.rast.n_basis
         self.step = 0                  # Adam updates so far
+        # the step's loss stays on the device until read (GPU shapes; train_step)
+        self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.active_degree = 0
         self.lr_means = config.lr_position * self.extent
         self.resets = 0                # opacity resets so far (the schedule's count)
@@ -194,9 +197,10 @@ class SplatModel:
     def sample_length(self) -> float:
         return 1.0   # no ray marching; export's density level does not apply (export_fields)
 
-    def train_step(self, it, origins=None, dirs=None, target=None, background=None) -> float:
+    def train_step(self, it, origins=None, dirs=None, target=None, background=None):
         """One Adam step on the whole training view of step ``it`` (the rays' arguments are
-        unused: Kind.batches "views"); returns the view's mean squared error."""
+        unused: Kind.batches "views"); returns the view's mean squared error: a float, or with
+        ``defer_loss`` (the GPU shapes) a Pending the trainer reads when it reports."""
         ds = self._dataset()
         v = self.view_of(it)
         cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
@@ -212,6 +216,8 @@ class SplatModel:
                 self.count.data, self.max_radius.data))
         self.step += 1
         self._adam(grads, self.step)
+        if self.defer_loss:
+            return Pending(self.device.queue, stats[STATS.index("mse"):][:1])
         return self._loss_fn.read(stats)["mse"]
 
     def _adam(self, grads, t: int):
