@@ -68,9 +68,11 @@ class LiveViewer:
         from ..training.metrics import psnr_from_mse
         core = self.core
         core.model = trainer.model
-        core.update_stats(iteration=trainer.iteration, seconds=trainer.seconds, loss=float(loss),
-                          psnr=psnr_from_mse(float(loss)) if loss > 0 else math.inf,
-                          rays_per_s=float(trainer._rate), model=trainer.model.describe())
+        if math.isfinite(float(loss)):   # NaN: no loss read yet (a model that defers it)
+            core.update_stats(iteration=trainer.iteration, seconds=trainer.seconds,
+                              loss=float(loss),
+                              psnr=psnr_from_mse(float(loss)) if loss > 0 else math.inf,
+                              rays_per_s=float(trainer._rate), model=trainer.model.describe())
         self._maybe_stats()
         if core.n_clients():
             core.serve_pending(max_frames=4, max_seconds=1.0, budget=True)
