@@ -142,3 +142,26 @@ def test_short_training_on_tiny_lego(device, scene):
                       near=2.0, far=6.0, background=(0, 0, 0))
     losses = train(model, o, d, c, 40, 256)
     assert losses[-10:].mean() < 0.7 * losses[:10].mean()
+
+
+def test_gpu_shape_defers_the_loss_and_steps_both_networks_in_one_launch(device):
+    """With the GPU-shaped kernels the step's loss stays on the device (a Pending, summed
+    there) and the coarse and fine networks take one Adam launch: the same networks as a
+    launch each, the loss as the host's float64 sum within float32 rounding."""
+    from clrf.runtime.optim import AdamSet
+    from clrf.runtime.pending import Pending
+    dev = device.with_tuning(gpu_kernels=True)
+    cfg = TEST_CFG
+    one, each = (NerfModel(dev, cfg, near=2.0, far=6.0) for _ in range(2))
+    assert one.defer_loss and isinstance(one._adam_all, AdamSet) and not cfg.shared_net
+    each.defer_loss, each._adam_all = False, None
+    o, d, c = synthetic_scene(64, seed=3)
+    q = dev.queue
+    for it in range(3):
+        batch = [cla.to_device(q, a) for a in (o, d, c)]
+        got, want = one.train_step(it, *batch), each.train_step(it, *batch)
+        assert isinstance(got, Pending) and isinstance(want, float)
+        assert abs(float(got) - want) <= 1e-6 * want
+    for a, b in zip(one._nets(), each._nets()):
+        np.testing.assert_array_equal(a.params.get(), b.params.get())
+    assert NerfModel(device, cfg, near=2.0, far=6.0).defer_loss is False

@@ -23,7 +23,8 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import ops
-from ..runtime.optim import Optimizer
+from ..runtime.optim import AdamSet, Optimizer
+from ..runtime.pending import Pending
 from .config import NerfConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP
 from ..runtime.programs import download, upload
@@ -58,6 +59,11 @@ class NerfModel:
         self._adam = {id(n): Optimizer(device, n.params, "adam", beta=config.beta1,
                                        beta2=config.beta2, eps=config.adam_eps, grad=n.grad)
                       for n in self._nets()}
+        # GPU shapes: the loss stays on the device until read, and the networks' Adam steps
+        # take one launch (CPUs: a launch a network, the loss read back each step)
+        self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
+        self._adam_all = (AdamSet(device, [self._adam[id(n)] for n in self._nets()])
+                          if self.defer_loss and len(self._nets()) > 1 else None)
 
     def _nets(self):
         return [self.coarse] if self.fine is self.coarse else [self.coarse, self.fine]
@@ -73,9 +79,11 @@ class NerfModel:
     def lr_at(self, it: int) -> float:
         return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
 
-    def train_step(self, it: int, origins, dirs, target) -> float:
+    def train_step(self, it: int, origins, dirs, target):
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
-        on device. Returns the batch MSE (mean over rays and channels) of the fine network."""
+        on device. Returns the batch MSE (mean over rays and channels) of the fine network: a
+        float, or with ``defer_loss`` (the GPU shapes) a Pending the trainer reads when it
+        reports."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -106,10 +114,16 @@ class NerfModel:
             self.fine.backward(fb["sigma"], fb["rgb"], accumulate=self.fine is self.coarse)
             sq_err = fb["sq_err"]
         lr = self.lr_at(it)
-        for net in self._nets():
-            self._adam[id(net)].step(None, lr, t=self.step + 1)
+        nets = self._nets()
+        if self._adam_all is not None:
+            self._adam_all.step([lr] * len(nets), self.step + 1)
+        for net in nets:
+            if self._adam_all is None:
+                self._adam[id(net)].step(None, lr, t=self.step + 1)
             net.sync_params()
         self.step += 1
+        if self.defer_loss:   # summed on the device in float32, read when reported
+            return Pending(dev.queue, cla.sum(sq_err, queue=dev.queue), scale)
         return float(np.sum(sq_err.get(), dtype=np.float64) * scale)
 
     def render(self, origins: np.ndarray, dirs: np.ndarray, chunk: int = 4096) -> dict:
