@@ -18,8 +18,10 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_FAST_MATH             fast_math (0 / 1: -cl-fast-relaxed-math; changes results)
   CLRF_VERBOSE_BUILD         verbose_build (0 / 1: print the raw compiler logs)
   CLRF_FORCE_GPU_KERNELS     gpu_kernels (1: the GPU-shaped kernels on any device, e.g. to test
-                             them on PoCL or Oclgrind: the fused MLP's GPU tiling and the splat
-                             rasteriser's work-group per tile; 0: the CPU shapes, also on a GPU)
+                             them on PoCL or Oclgrind: the fused MLP's GPU tiling, the splat
+                             rasteriser's work-group per tile, steps that keep their sizes and
+                             losses on the device and one Adam launch a step; 0: the CPU
+                             shapes, also on a GPU)
 
 >>> t = Tuning.for_device(dev.caps)
 >>> gpu_path = t.replace(grad_slots=0, sample_record=False)
@@ -132,7 +134,9 @@ class Tuning:
     #                                memory (cl/mlp_gpu.h, clrf/mlp/tiling.py) instead of its
     #                                register tiles; the splat rasteriser's TILE x TILE
     #                                work-group per tile instead of one vectorised work-item per
-    #                                tile (cl/splat_raster.cl)
+    #                                tile (cl/splat_raster.cl); training steps that read nothing
+    #                                back (the hash model's bounded step, losses as Pending) and
+    #                                one Adam launch for all parameter buffers (AdamSet)
     elementwise_local_size: int = 64   # loop-free kernels: PoCL vectorises across the group
     per_ray_local_size: int = 16   # one ray per work-item with a loop over its samples
     encode_local_size: int = 8     # encode_forward: explicitly vectorised items (16 points)
