@@ -325,7 +325,8 @@ def test_bonsai_smoke_with_background(scene, tmp_path):
 
 def test_loss_stays_on_the_device_where_the_gpu_kernels_run(device):
     """Where a device runs the GPU-shaped kernels the grid step returns its loss as a Pending
-    (read when the trainer reports), with the value the host-read step returns."""
+    (read when the trainer reports), with the value the host-read step returns (equal on a
+    CPU; on a GPU the float atomics of the first step's gradients add in any order)."""
     from clrf.runtime.pending import Pending
     rng = np.random.default_rng(81)
     cfg = tiny_cfg(sh_degree=0)
@@ -339,4 +340,4 @@ def test_loss_stays_on_the_device_where_the_gpu_kernels_run(device):
         want = host.train_step(it, *batch)
         got = lazy.train_step(it, *batch)
         assert isinstance(want, float) and isinstance(got, Pending)
-        assert float(got) == want
+        assert float(got) == want if device.is_cpu else abs(float(got) - want) <= 1e-6 * want
