@@ -65,12 +65,17 @@ class OccupancyGrid:
 
     def _threshold(self, thr: float):
         self.threshold = float(thr)
+        self._fraction = None
         launch(self.device, self._k("occ_threshold"), self.n_cells,
                (np.int32(self.n_cells), np.float32(thr), self.ema.data, self.occ.data),
                self.device.tuning.elementwise_local_size)
 
     def occupied_fraction(self) -> float:
-        return float(np.count_nonzero(download(self.occ))) / self.n_cells
+        """The fraction of occupied cells (a download, cached until the next threshold: the
+        live viewer asks after every step)."""
+        if self._fraction is None:
+            self._fraction = float(np.count_nonzero(download(self.occ))) / self.n_cells
+        return self._fraction
 
     def update(self, density_fn, key: int, n_points: int, decay: float, threshold: float,
                start: int = 0):
