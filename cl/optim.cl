@@ -19,7 +19,7 @@
  * adam_step (OPT_MODE 2; Kingma & Ba, with bias correction): p, g, m, v are float [n], one
  * work-item per parameter i0 <= i < n (no loops: PoCL vectorises across the group; a span
  * [i0, n) skips entries that never get a gradient, such as a hash table's unused rows;
- * adam_groups takes them all in one launch (GPUs), adam_multi the spans of several buffers):
+ * adam_multi takes the spans of one or several buffers in one launch (GPUs)):
  *   g' = g + wd p (L2 weight decay, wd a host argument; 0 for plain Adam); with clear_grad
  *   the gradient entry is set to 0 once read (for gradients that backward passes add into),
  *   m = b1 m + (1 - b1) g',  v = b2 v + (1 - b2) g'^2  (each set to 0 when below FLT_MIN),
@@ -72,7 +72,7 @@ __kernel void update_rows(const int n_rows, const int D, __global float *param,
     if (clear_touched) touched[k] = 0;
 }
 #else
-/* The update of entry i (the formula above), shared by adam_step and adam_groups. */
+/* The update of entry i (the formula above), shared by adam_step and adam_multi. */
 CLRF_INLINE void adam_update(const int i, __global float *p, __global float *g, __global float *m,
                         __global float *v, const float lr, const float b1, const float b2,
                         const float eps, const float bc1, const float bc2, const float wd,
@@ -103,26 +103,13 @@ __kernel void adam_step(const int i0, const int n, __global float *p, __global f
     adam_update(i, p, g, m, v, lr, b1, b2, eps, bc1, bc2, wd, clear_grad);
 }
 
-/* adam_groups (the GPU shape): the same update over several spans of one buffer in one
- * launch: work-group k updates entries groups[k].x + local id below groups[k].y (the host cuts
- * each span into work-group-sized pieces: clrf/runtime/optim.py span_groups). On PoCL a launch
- * per span (adam_step) is faster (1.4 against 2.2 ms over a hash table's 5 spans, 1.7M
- * entries), so CPUs keep that. */
-__kernel void adam_groups(__global const int2 *groups, __global float *p, __global float *g,
-                          __global float *m, __global float *v, const float lr, const float b1,
-                          const float b2, const float eps, const float bc1, const float bc2,
-                          const float wd, const int clear_grad) {
-    const int2 r = groups[get_group_id(0)];
-    const int i = r.x + (int)get_local_id(0);
-    if (i >= r.y) return;
-    adam_update(i, p, g, m, v, lr, b1, b2, eps, bc1, bc2, wd, clear_grad);
-}
-
 /* adam_multi (the GPU shape): Adam over spans of up to four buffers (p_b, g_b, m_b, v_b; the
  * same b1, b2, eps and step count) in one launch, each buffer with its own learning rate lr_b,
  * weight decay wd_b and clear_grad (bit b of clear_mask). Work-group k updates entries
  * groups[k].y + local id below groups[k].z of buffer groups[k].x (the host cuts each span into
- * work-group-sized pieces: clrf/runtime/optim.py AdamSet); unused buffers are null. */
+ * work-group-sized pieces: clrf/runtime/optim.py AdamSet); unused buffers are null. On PoCL
+ * a launch per span (adam_step) is faster (1.4 against 2.2 ms over a hash table's 5 spans, 1.7M
+ * entries, measured with a one-buffer kernel of the same loop), so CPUs keep that. */
 __kernel void adam_multi(__global const int4 *groups,
                          __global float *p0, __global float *g0, __global float *m0,
                          __global float *v0, __global float *p1, __global float *g1,

@@ -239,7 +239,7 @@ def test_adam_weight_decay_and_clear_grad(device):
 
 def test_adam_over_many_spans_in_one_launch(device):
     """Spans of every length against the work-group size (1, 63, 64, 65, 200 entries, touching
-    and apart) in one adam_groups launch (the GPU shape, forced): each entry inside steps
+    and apart) in one adam_multi launch (the GPU shape, forced): each entry inside steps
     exactly as adam_step over its span alone does (the CPU shape); entries outside keep their
     value, moments and gradient."""
     from clrf.runtime.optim import ADAM_LOCAL_SIZE, Optimizer, span_groups
@@ -256,7 +256,7 @@ def test_adam_over_many_spans_in_one_launch(device):
         opt.step(None, 3e-3, t=7, clear_grad=True, spans=spans)
         return [a.get() for a in arrs]
 
-    one = run(device.with_tuning(gpu_kernels=True))      # adam_groups
+    one = run(device.with_tuning(gpu_kernels=True))      # adam_multi
     each = run(device.with_tuning(gpu_kernels=False))    # adam_step, a launch a span
     for a, b, name in zip(one, each, ("p", "g", "m", "v")):
         np.testing.assert_array_equal(a, b, err_msg=name)

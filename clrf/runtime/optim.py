@@ -27,8 +27,9 @@ def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):
 
 
 def span_groups(spans, local_size: int) -> np.ndarray:
-    """adam_groups' table: int32 [groups, 2] (first entry, end of its span) of each work-group
-    when the (start, stop) ``spans`` are cut into pieces of ``local_size`` entries."""
+    """The work-groups of AdamSet's table: int32 [groups, 2] (first entry, end of its span) of
+    each work-group when the (start, stop) ``spans`` are cut into pieces of ``local_size``
+    entries."""
     parts = [np.stack([np.arange(a, b, local_size), np.full(-(-(b - a) // local_size), b)], 1)
              for a, b in spans if b > a]
     return np.concatenate(parts).astype(np.int32) if parts else np.zeros((0, 2), np.int32)
@@ -139,17 +140,7 @@ class Optimizer:
         self.state2 = None
         if mode == "adam":
             self.state2 = state2 if state2 is not None else cla.zeros_like(param)
-        self._groups_key = self._groups_val = None   # adam_groups' table, for these spans
-
-    def _groups(self, spans):
-        """(adam_groups' table of ``spans`` on the device, the local size), built once per
-        spans (span_groups)."""
-        key = tuple(spans)
-        if self._groups_key != key:
-            ls = max(1, min(ADAM_LOCAL_SIZE, self.device.caps.max_work_group_size))
-            self._groups_val = (cla.to_device(self.device.queue, span_groups(spans, ls)), ls)
-            self._groups_key = key
-        return self._groups_val
+        self._one_launch = None   # AdamSet([self]): several spans in one launch (GPU shapes)
 
     def _kernel(self, name):
         return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
@@ -169,9 +160,9 @@ class Optimizer:
             spans = [(0, int(self.param.size))] if spans is None else \
                 [(int(a), int(b)) for a, b in spans if b > a]
             if len(spans) > 1 and getattr(self.device.tuning, "gpu_kernels", False):
-                groups, ls = self._groups(spans)          # every span in one launch
-                launch(self.device, self._kernel("adam_groups"), groups.shape[0] * ls,
-                       (groups.data,) + tail, ls)
+                if self._one_launch is None:              # every span in one launch
+                    self._one_launch = AdamSet(self.device, [self])
+                self._one_launch.step([lr], t, spans=[spans], clear_grad=[clear_grad])
                 return
             for a, b in spans:   # CPUs: a launch a span (faster there: cl/optim.cl)
                 launch(self.device, self._kernel("adam_step"), b - a,
