@@ -11,12 +11,43 @@ implementation names (``pocl,intel``). Oclgrind is not among them: the simulator
 kernel once, small, under its race and API checks (tests/test_oclgrind.py).
 """
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
-import clrf
-from clrf.testing import impls
+ROOT = Path(__file__).resolve().parent.parent
+# The tests test the installed clrf, never this checkout: child processes started with
+# `python -m ...` from the checkout must not import it either (Python 3.11+; older ones put
+# the working folder first, which the tests avoid by not starting children there)
+os.environ["PYTHONSAFEPATH"] = "1"
+SOURCE_TREE_VAR = "CLRF_TEST_SOURCE_TREE"   # =1: a developer's explicit run on the checkout
+
+import clrf  # noqa: E402
+from clrf.testing import impls  # noqa: E402
+
+
+def installed_outside_checkout() -> str | None:
+    """Why the imported clrf is not an install outside this checkout, or None when it is."""
+    where = Path(clrf.__file__).resolve().parent
+    if where == ROOT / "clrf" or ROOT in where.parents:
+        return (f"the tests imported clrf from the checkout ({where}), not from an install. "
+                f"Install clrf (`bash tools/setup.sh test`, a non-editable `pip install .`) and "
+                f"run the tests with the installed environment's pytest (`.venv/bin/pytest -q`, "
+                f"not `python -m pytest` from the checkout, which imports the folder it runs "
+                f"in); {SOURCE_TREE_VAR}=1 runs them on the checkout on purpose")
+    return None
+
+
+def pytest_configure(config):
+    why = installed_outside_checkout()
+    if why and os.environ.get(SOURCE_TREE_VAR) != "1":
+        pytest.exit(f"clrf: {why}", returncode=4)
+    if why:   # children import the checkout too
+        print(f"clrf: {SOURCE_TREE_VAR}=1: testing the checkout at {clrf.__file__}",
+              file=sys.stderr)
+        os.environ["PYTHONPATH"] = os.pathsep.join(
+            [str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
 
 # Mesa's rusticl shows its software device only when asked; set before any platform listing
 os.environ.setdefault("RUSTICL_ENABLE", "llvmpipe")

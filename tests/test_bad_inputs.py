@@ -716,8 +716,7 @@ def test_bad_input_in_a_real_process(tmp_path, name):
     build, needles = next(c[1:] for c in CASES if c[0] == name)
     args = [str(tmp_path / "out") if a == "OUT" else a for a in build(tmp_path)]
     before = _files(tmp_path)
-    root = Path(__file__).resolve().parent.parent
-    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ)   # the installed clrf (tests/conftest.py)
     p = subprocess.run([sys.executable, "-m", "clrf.cli", *args], env=env, capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 2, p.stderr

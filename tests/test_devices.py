@@ -396,3 +396,28 @@ def test_float_atomics_text_names_the_path():
     assert "PTX" in device.float_atomics_text(nv)
     other = dataclasses.replace(caps, float_atomics=False, platform="Portable Computing Language")
     assert device.float_atomics_text(other) == "emulated (CAS)"
+
+
+def test_a_slow_driver_is_not_the_default_even_when_its_probe_is_higher(machine):
+    """pip's generic-target PoCL can measure more FMA GFLOP/s than the distribution's PoCL and
+    still run clrf's kernels several times slower: it is not the default while a driver that
+    is not slow works, and the reason says so."""
+    machine.devs = [(fake_dev("pthread-AMD EPYC", PIP), Probe(None, 158.0)),
+                    (fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 120.0))]
+    ch = device.choose_device()
+    assert (ch.platform_index, ch.device_index) == (1, 0)
+    assert "0:0 measures 158.0 GFLOP/s but compiles for a generic CPU target" in ch.reason
+    assert device.choose_device("0:0").platform_index == 0    # asked for: still given
+    machine.devs = machine.devs[:1]                            # the only one: it is used
+    assert device.choose_device().platform_index == 0
+
+
+def test_rejected_devices_show_their_reason(machine, monkeypatch):
+    """A device refused for a cached failing self-check is listed with that verdict, never
+    with ': None'."""
+    machine.devs = [(fake_dev("pthread-haswell-AMD EPYC", DEBIAN), Probe(None, 65.0))]
+    monkeypatch.setattr(device, "known_wrong", lambda d: "the driver crashed during the check "
+                                                         "(killed by signal 11 (SIGSEGV))")
+    with pytest.raises(device.DeviceError) as e:
+        device.choose_device()
+    assert "SIGSEGV" in str(e.value) and ": None" not in str(e.value)

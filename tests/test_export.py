@@ -307,8 +307,7 @@ def test_cli_export_bad_level_as_a_process(trained, tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-    root = Path(__file__).resolve().parent.parent
-    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ)   # the installed clrf (tests/conftest.py)
     r = subprocess.run([sys.executable, "-m", "clrf.cli", "--quiet", "export", "--ckpt",
                         str(trained), "--mesh", str(tmp_path / "m.ply"), "--level", "1e30"],
                        capture_output=True, text=True, env=env, cwd=tmp_path)

@@ -152,8 +152,8 @@ def test_under_ulimit_v_the_run_refuses_instead_of_dying(tmp_path, device):
     out = tmp_path / "out"
     p = subprocess.run([sys.executable, "-c", code, "train", "--out", str(out), "--set",
                         "grid.reso=[[192,192,192]]", "--set", "grid.upsample_at=[]"],
-                       cwd=ROOT, capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "PYTHONPATH": str(ROOT),
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                       env={**os.environ,
                             # one device (PoCL where present): no other driver's threads
                             # under the limit
                             "CLRF_DEVICE": impls.present().get(

@@ -54,8 +54,7 @@ def _scene(path):
 
 
 def _start(out, resume, delay, data=None, options=TINY):
-    env = dict(os.environ,
-               PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ)   # the installed clrf (tests/conftest.py)
     args = ["--resume"] if resume else ["--data", str(data), *options]
     return subprocess.Popen([sys.executable, "-c", DELAYED_CLI, str(delay), "train", "--out",
                              str(out), "--max-seconds", "600", *args], env=env,

@@ -106,10 +106,10 @@ def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
     vendors = tmp_path / "vendors"
     vendors.mkdir()
     (vendors / "oclgrind.icd").write_text(f"{ICD}\n")
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("CLRF_", "OCLGRIND_"))}
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("CLRF_", "OCLGRIND_"))
+           or k == "CLRF_TEST_SOURCE_TREE"}
     env.update(OCL_ICD_VENDORS=str(vendors), CLRF_DEVICE="0:0", CLRF_TEST_IMPLS="default",
-               OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path),
-               PYTHONPATH=str(ROOT))
+               OCLGRIND_DATA_RACES="1", OCLGRIND_CHECK_API="1", XDG_CACHE_HOME=str(tmp_path))
     # Oclgrind's device reports every type, GPU among them: test_nerf_mlp.py's cases keep the
     # fused MLP's CPU tiles here; test_mlp_gpu.py's case forces the GPU tiling itself
     env["CLRF_FORCE_GPU_KERNELS"] = "0"

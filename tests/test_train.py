@@ -128,7 +128,7 @@ def test_config_precedence(tmp_path):
 
 def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     out = tmp_path / "r"
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ)   # the installed clrf (tests/conftest.py)
     cmd = [sys.executable, "-m", "clrf.cli", "train", "--out", str(out), "--max-seconds", "120",
            "--set", "train.checkpoint_every=0.5", *FAST]
     # SIGINT at its default in the child, whatever this process inherited: a shell starting

@@ -40,11 +40,11 @@ def is_stats(m):
 
 def start_training(out, seconds):
     """`clrf train --view --port 0` in a subprocess; (process, page URL)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = dict(os.environ)   # the installed clrf (tests/conftest.py)
     p = subprocess.Popen([sys.executable, "-m", "clrf.cli", "--quiet", "train", "--out", str(out),
                           "--max-seconds", str(seconds), "--view", "--port", "0", *FAST],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                         cwd=str(ROOT))
+                         cwd=str(out.parent))
     lines = queue.Queue()
     threading.Thread(target=lambda: [lines.put(x) for x in p.stderr], daemon=True).start()
     url, seen, deadline = None, [], time.monotonic() + START_TIMEOUT

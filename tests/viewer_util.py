@@ -32,11 +32,11 @@ class ViewProcess:
     """`clrf view --ckpt CK --port 0 ...` in a subprocess; .url once it has printed it."""
 
     def __init__(self, ckpt, *extra, exit_after=300):
-        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        env = dict(os.environ)   # the installed clrf (tests/conftest.py)
         self.p = subprocess.Popen(
             [sys.executable, "-m", "clrf.cli", "view", "--ckpt", str(ckpt), "--port", "0",
              "--exit-after", str(exit_after), *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=str(ROOT))
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=str(Path(ckpt).parent))
         self.lines = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
         self.output = []

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 EXIT_USAGE = 2
+EXIT_BUG = 1       # clrf's own failure (a bug to report), never the user's input
 
 
 class CliError(Exception):

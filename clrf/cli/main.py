@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import registry
 from ..training.models import checkpoint_dataset, load_data
-from .common import EXIT_USAGE, CliError, out_dir as _out_dir, user_errors as _user_errors
+from .common import EXIT_BUG, EXIT_USAGE, CliError, out_dir as _out_dir, user_errors as _user_errors
 
 
 def parse_set(items):
@@ -302,7 +302,8 @@ def cmd_devices(a):
     if a.check:
         return check_default(refresh=a.reprobe)
     print(format_devices(refresh=a.reprobe, workloads=format_choices(
-        [k.workload for k in registry.kinds() if k.workload is not None], measure=a.workloads)))
+        [k.workload for k in registry.kinds() if k.workload is not None], measure=a.workloads),
+        checks=[k.selfcheck for k in registry.kinds() if k.selfcheck]))
     return 0
 
 
@@ -311,8 +312,24 @@ def cmd_bench(a):
     return bench_main(["--reso", str(a.reso), "--degree", str(a.degree)])
 
 
+class _VersionAction(argparse.Action):
+    """--version: ``clrf 0.1.0 (commit 012b9a6)``; the commit is looked up only when asked."""
+
+    def __init__(self, option_strings, dest, **kw):
+        kw.setdefault("nargs", 0)
+        kw.setdefault("default", argparse.SUPPRESS)
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from ..version import describe
+        print(describe())
+        parser.exit()
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="clrf", description="Portable OpenCL radiance fields.")
+    p.add_argument("--version", action=_VersionAction,
+                   help="print clrf's version (and the commit it runs from or was built from)")
     p.add_argument("--device", default=None,
                    help="'auto', 'cpu', 'gpu', 'P:D' or an OpenCL implementation ('pocl', 'intel', "
                         "'rusticl', ...; optionally ':cpu'/':gpu') (default: $CLRF_DEVICE, else 'auto': the "
@@ -416,7 +433,8 @@ def build_parser():
 
     d = sub.add_parser("devices", help="list OpenCL devices, their probe figures and the default")
     d.add_argument("--reprobe", action="store_true",
-                   help="measure every device again instead of reading the cached figures")
+                   help="measure every device again and run its gradient self-checks again, "
+                        "instead of reading the cached figures and verdicts")
     d.add_argument("--workloads", action="store_true",
                    help="time each model kind's kernels on every working device (cached) and "
                         "show which device each --model gets by default")
@@ -443,11 +461,18 @@ def main(argv=None):
     if a.device is not None:
         import os
         os.environ["CLRF_DEVICE"] = a.device
+    import faulthandler
+    if not faulthandler.is_enabled():
+        faulthandler.enable()   # a crash inside a driver leaves the Python stack on stderr
+    from ..runtime.selfcheck import ClrfBug, InstallError
     try:
         return a.func(a)
-    except _user_errors() as e:
+    except (*_user_errors(), InstallError) as e:
         print(f"clrf: error: {e}", file=sys.stderr)
         return EXIT_USAGE
+    except ClrfBug as e:
+        print(f"clrf: internal error: {e}", file=sys.stderr)
+        return EXIT_BUG
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import pyopencl as cl
 import pyopencl.tools as cl_tools
 
-from .device_probe import (INSTALL_HINT, Candidate, Probe, cache_path, choice_reason,
+from .device_probe import (INSTALL_HINT, TIE, Candidate, Probe, cache_path, choice_reason,
                            cpu_flags, probe, rank, slow_reasons, slow_warning, warn_once)
 from .selfcheck import known_wrong
 from .tuning import Tuning, implementation
@@ -223,13 +223,25 @@ def _choose_ranked(devs, pool, what, listing, refresh, requested=False) -> Choic
     cands = tuple(_candidate(*d, probe(d[2], refresh)) for d in entries.values())
     # a device known to compute wrong gradients (a registered self-check, clrf/runtime/
     # selfcheck.py, e.g. the grid's) is never the default
-    ranked = [c for c in rank(list(cands)) if requested
-              or known_wrong(entries[(c.platform_index, c.device_index)][2]) is None]
+    wrong = {} if requested else {
+        (c.platform_index, c.device_index): why for c in cands if c.probe.ok
+        for why in [known_wrong(entries[(c.platform_index, c.device_index)][2])] if why}
+    ranked = [c for c in rank(list(cands)) if (c.platform_index, c.device_index) not in wrong]
+    if not requested:
+        # a slow driver (pip's PoCL compiling for a generic CPU, 3-10x slower in clrf's
+        # kernels than its FMA probe shows) is never the default over one that is not
+        flags = cpu_flags()
+        ranked.sort(key=lambda c: bool(slow_reasons(c, list(cands), flags)))
     if ranked:
         best = ranked[0]
         d = entries[(best.platform_index, best.device_index)]
         reason = (f"requested as {what}" + (f"; {choice_reason(ranked)}" if len(ranked) > 1
                                              else "")) if requested else choice_reason(ranked)
+        faster = [c for c in ranked[1:] if c.probe.gflops > best.probe.gflops * (1 + TIE)]
+        if not requested and faster:
+            why = slow_reasons(faster[0], list(cands), cpu_flags())[0]
+            reason = (f"{faster[0].spec} measures {faster[0].probe.gflops:.1f} GFLOP/s but "
+                      f"{why}")
         if requested:
             known = [_candidate(*o, p) for o in devs if (o[0], o[1]) not in entries
                      for p in [probe(o[2], measure_missing=False)] if p is not None]
@@ -238,7 +250,8 @@ def _choose_ranked(devs, pool, what, listing, refresh, requested=False) -> Choic
     msg = f"no working {what} OpenCL device. Devices:\n{listing}"
     if cands:
         msg += "\nRejected:\n" + "\n".join(
-            f"  {_describe(*entries[(c.platform_index, c.device_index)])}: {c.probe.error}"
+            f"  {_describe(*entries[(c.platform_index, c.device_index)])}: "
+            f"{c.probe.error or wrong.get((c.platform_index, c.device_index)) or 'unusable'}"
             for c in cands)
     if "cpu" in wanted:
         msg += ("\nOn Debian/Ubuntu `apt-get install pocl-opencl-icd` gives a CPU driver that "
@@ -339,8 +352,38 @@ def float_atomics_text(caps) -> str:
     return "emulated (CAS)"
 
 
-def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
-    """Text for ``clrf devices``: every device, its probe figure, capabilities and the default;
+def selfcheck_lines(cl_device, caps, checks, refresh: bool) -> list:
+    """``clrf devices``' lines on the gradient self-checks of one device: the cached verdicts,
+    each check run first (in a child process) with the device's own tuning when ``refresh``
+    (``--reprobe``) or when none is cached yet and ``refresh`` asks."""
+    from types import SimpleNamespace
+
+    from .device_probe import is_simulator
+    from .selfcheck import gradient_check, verdicts_for
+    out = []
+    for check in checks:
+        if refresh and not is_simulator(cl_device):
+            tuning = Tuning.from_env(caps)
+            res = gradient_check(SimpleNamespace(cl_device=cl_device, tuning=tuning), check,
+                                 refresh=True)
+            if not res.ok and tuning.grad_slots > 0:    # the fallback training would take
+                gradient_check(SimpleNamespace(
+                    cl_device=cl_device, tuning=tuning.replace(
+                        grad_slots=0, sample_record=False, grad_locks=0)), check, refresh=True)
+        found = verdicts_for(cl_device, check)
+        if not found:
+            out.append(f"      self-check    {check.what}: not run yet (runs before the first "
+                       f"training; `clrf devices --reprobe` runs it now)")
+        for v in found:
+            state = "passed" if v.ok else f"FAILED: {v.detail}"
+            out.append(f"      self-check    {check.what} ({v.path}): {state}")
+    return out
+
+
+def format_devices(refresh: bool = False, workloads: list | None = None,
+                   checks: list | None = None) -> str:
+    """Text for ``clrf devices``: every device, its probe figure, capabilities, the verdicts
+    of the gradient self-checks ``checks`` (run again with ``refresh``) and the default;
     ``workloads``: lines on each model kind's default (clrf/runtime/workload.py format_choices)."""
     devs = list_devices()
     if not devs:
@@ -368,6 +411,8 @@ def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
                      f"{float_atomics_text(c)}, int64 atomics "
                      f"{'yes' if c.int64_atomics else 'no'}, native float vector width "
                      f"{c.native_float_width}")
+        if pr.ok and checks:
+            lines.extend(selfcheck_lines(d, c, checks, refresh))
     env = os.environ.get("CLRF_DEVICE", "") or "unset"
     try:
         ch = choose_device()
@@ -380,8 +425,8 @@ def format_devices(refresh: bool = False, workloads: list | None = None) -> str:
         lines.append(f"default (CLRF_DEVICE={env}): none ({str(e).splitlines()[0]})")
     if workloads is not None:
         lines.extend(workloads)
-    lines.append(f"probe figures are cached in {cache_path()}; `clrf devices --reprobe` measures "
-                 f"again")
+    lines.append(f"probe figures and self-check verdicts are cached in {cache_path().parent}; "
+                 f"`clrf devices --reprobe` measures and checks again")
     return "\n".join(lines)
 
 

@@ -150,8 +150,57 @@ def fma_reference(iters: int, n: int = 1) -> np.ndarray:
                   axis=(1, 2))
 
 
+PROBE_TIMEOUT_S = 300       # a probe child that runs longer is taken as hung
+
+
+def locate(dev: "cl.Device") -> tuple:
+    """``(platform index, device index)`` of ``dev`` in ICD order, as ``clrf devices`` lists."""
+    for pi, p in enumerate(cl.get_platforms()):
+        if p.int_ptr != dev.platform.int_ptr:
+            continue
+        for di, d in enumerate(p.get_devices()):
+            if d.int_ptr == dev.int_ptr:
+                return pi, di
+    raise LookupError(f"device {dev.name!r} is not in the platform listing")
+
+
 def measure(dev: "cl.Device") -> Probe:
-    """Build and run the probe kernels on ``dev`` now (no cache); see the module doc."""
+    """Measure ``dev`` now (no cache) in a child process (clrf/runtime/isolate.py): a driver
+    that crashes while building or running the probe gives a Probe whose error says so, and
+    this process goes on. Devices the child cannot find are measured here."""
+    from .isolate import run_child
+    t_start = time.perf_counter()
+    when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    try:
+        pi, di = locate(dev)
+    except (LookupError, cl.Error):
+        return measure_here(dev)
+    out = run_child({"task": "probe", "platform": pi, "device": di, "name": dev.name},
+                    PROBE_TIMEOUT_S)
+    seconds = time.perf_counter() - t_start
+    if out.crash:
+        return Probe(f"the driver crashed while building or running the probe kernel "
+                     f"({out.crash})", seconds=seconds, when=when)
+    r = out.result
+    if r is None or r.get("name") != dev.name:
+        # no answer (the child could not start: a clrf problem, not the driver's), or the
+        # child's listing differs from ours: measure in this process
+        return measure_here(dev)
+    return Probe(r["error"], float(r["gflops"]), seconds, when)
+
+
+def child_probe(request: dict) -> dict:
+    """The probe child's work (clrf/runtime/child.py)."""
+    dev = cl.get_platforms()[request["platform"]].get_devices()[request["device"]]
+    if dev.name != request["name"]:
+        return {"name": dev.name}
+    pr = measure_here(dev)
+    return {"name": dev.name, "error": pr.error, "gflops": pr.gflops}
+
+
+def measure_here(dev: "cl.Device") -> Probe:
+    """Build and run the probe kernels on ``dev`` now, in this process (no cache); see the
+    module doc."""
     t_start = time.perf_counter()
     when = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     try:

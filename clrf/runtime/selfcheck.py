@@ -10,16 +10,80 @@ the tuning's gradient path, the sample-record switch, a hash of the check's sour
 version), and tells the device choice (clrf/runtime/device.py) which devices are known, from
 the cache alone, to compute wrong gradients on their float-atomic path: such a device is never
 the default.
+
+Only wrong numbers from a kernel (or a driver error, or a driver crash) are a verdict on a
+driver. A check runs in a child process (clrf/runtime/isolate.py), so a driver that crashes is
+refused with that reason instead of taking clrf down. An exception raised by clrf's own code
+while checking (an import that fails in a broken install, a bug) is no verdict: it is raised
+as ``InstallError`` or ``ClrfBug`` with its traceback and clrf's version, and never cached. A
+cached verdict carries clrf's version and a hash of the checking code beside the kernel
+sources' hash, so a new clrf checks again.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import importlib
+import inspect
+import sys
+import traceback
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
+
+import pyopencl as cl
 
 from .device_probe import cache_path, device_key
 from .jsonfile import read_dict, write_atomic
-from .programs import cl_dir
+from .programs import BuildError, cl_dir
+
+CHECK_TIMEOUT_S = 900     # a self-check child that runs longer is taken as hung
+ISOLATE = True            # run checks in a child process (tests of in-process fakes set False)
+
+
+class SelfCheckError(RuntimeError):
+    """A self-check could not reach a verdict because of clrf itself (never cached)."""
+
+
+class InstallError(SelfCheckError):
+    """clrf's installation is incomplete: one of its own modules cannot be imported."""
+
+
+class ClrfBug(SelfCheckError):
+    """clrf's own code raised an exception while checking a device: a bug to report."""
+
+
+def clrf_version() -> str:
+    from .. import __version__
+    return __version__
+
+
+def _own_error(exc: BaseException, what: str) -> SelfCheckError:
+    """The error to raise for an exception of clrf's own code while running ``what``."""
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip()
+    return _own_error_text(f"{type(exc).__name__}: {exc}", tb, what,
+                           getattr(exc, "name", None) if isinstance(exc, ImportError) else None)
+
+
+def _own_error_text(line: str, tb: str, what: str, missing: str | None) -> SelfCheckError:
+    import clrf
+    where = Path(clrf.__file__).resolve().parent
+    if missing and (missing == "clrf" or missing.startswith("clrf.")):
+        return InstallError(
+            f"clrf {clrf_version()} is installed incompletely: module '{missing}' is missing "
+            f"from {where} (needed by {what}). This is not the OpenCL driver's fault. Reinstall "
+            f"clrf (`bash tools/setup.sh`, or `pip install --force-reinstall .` in its "
+            f"folder)\n{tb}")
+    return ClrfBug(
+        f"clrf {clrf_version()} ({where}) raised {line} while running {what}: a bug in clrf, "
+        f"not a verdict on the OpenCL driver (nothing was cached). Please report it with this "
+        f"traceback\n{tb}")
+
+
+def is_driver_error(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from the OpenCL driver (a call it failed, a build it refused)
+    rather than from clrf's own code."""
+    return isinstance(exc, (cl.Error, BuildError))
 
 
 @dataclass(frozen=True)
@@ -68,10 +132,27 @@ def _cache_file():
     return cache_path().with_name("selfcheck.json")
 
 
+def code_hash(check: GradientCheck) -> str:
+    """Hash of the Python module that defines ``check.run`` (the checking code itself)."""
+    h = hashlib.sha256()
+    try:
+        h.update(Path(inspect.getsourcefile(check.run)).read_bytes())
+    except (TypeError, OSError):
+        h.update(check.run.__module__.encode())
+    return h.hexdigest()[:12]
+
+
+def _tail(check: GradientCheck) -> str:
+    """What a verdict of ``check`` is valid for besides the device and path: the kernel
+    sources, the check's version, clrf's version and the checking code."""
+    return "|".join([sources_hash(check.sources), f"v{check.version}",
+                     f"clrf{clrf_version()}", code_hash(check)])
+
+
 def check_key(device, check: GradientCheck) -> str:
     t = device.tuning
     return "|".join([device_key(device.cl_device), path_name(t), f"rec{int(t.sample_record)}",
-                     sources_hash(check.sources), f"v{check.version}"])
+                     _tail(check)])
 
 
 def _load() -> dict:
@@ -85,39 +166,137 @@ def _store(key: str, res: CheckResult) -> None:
 
 
 def run_check(device, check: GradientCheck) -> CheckResult:
-    """Run ``check`` on ``device`` with its own tuning now (no cache)."""
+    """Run ``check`` on ``device`` with its own tuning now, in this process (no cache). A
+    driver error is a failing verdict; an exception of clrf's own code raises InstallError
+    or ClrfBug (module doc)."""
     try:
         why = check.run(device)
-    except Exception as e:  # noqa: BLE001 - any driver failure means: not trusted
+    except Exception as e:  # noqa: BLE001 - sorted into driver verdicts and clrf's own errors
+        if not is_driver_error(e):
+            raise _own_error(e, f"the self-check of {check.what}") from e
         why = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
     return CheckResult(not why, why, path_name(device.tuning))
+
+
+def run_isolated(device, check: GradientCheck) -> CheckResult:
+    """``run_check`` in a child process (clrf/runtime/isolate.py): a driver that crashes
+    gives a failing verdict that says so."""
+    from .device_probe import locate
+    from .isolate import run_child
+    what = f"the self-check of {check.what}"
+    try:
+        pi, di = locate(device.cl_device)
+    except (LookupError, cl.Error):
+        return run_check(device, check)
+    module = sys.modules.get(check.run.__module__)
+    name = next((n for n, v in vars(module).items() if v is check), None) if module else None
+    if name is None:     # not a module-level check: the child could not find it
+        return run_check(device, check)
+    out = run_child({"task": "selfcheck", "platform": pi, "device": di,
+                     "name": device.cl_device.name, "module": module.__name__, "check": name,
+                     "tuning": dataclasses.asdict(device.tuning)}, CHECK_TIMEOUT_S)
+    if out.crash:
+        return CheckResult(False, f"the driver crashed during the check ({out.crash})",
+                           path_name(device.tuning))
+    r = out.result
+    if r is None:    # the child gave no answer: clrf's problem (it could not import, say)
+        missing = None
+        for line in out.failure.splitlines():
+            if "No module named" in line and "'" in line:
+                missing = line.split("'")[1]
+        last = (out.failure.strip().splitlines() or ["no output"])[-1]
+        raise _own_error_text(last, out.failure.rstrip(), what + " (in a child process)",
+                              missing)
+    if "own_error" in r:
+        raise (InstallError if r["own_error"] == "install" else ClrfBug)(r["detail"])
+    if r.get("name") != device.cl_device.name:     # the child's listing differs from ours
+        return run_check(device, check)
+    return CheckResult(bool(r["ok"]), str(r["detail"]), str(r["path"]))
+
+
+def child_check(request: dict) -> dict:
+    """The self-check child's work (clrf/runtime/child.py): the check
+    ``request['module'].request['check']`` on device P:D with the parent's tuning."""
+    from .device import Device, DeviceError
+    from .tuning import Tuning
+    try:
+        check = getattr(importlib.import_module(request["module"]), request["check"])
+        tuning = Tuning(**request["tuning"])
+    except Exception as e:  # noqa: BLE001 - clrf's own failure, reported to the parent
+        err = _own_error(e, f"the self-check {request.get('module')}.{request.get('check')}")
+        return {"own_error": "install" if isinstance(err, InstallError) else "bug",
+                "detail": str(err)}
+    path = path_name(tuning)
+    try:
+        device = Device(f"{request['platform']}:{request['device']}", tuning=tuning)
+    except (DeviceError, cl.Error) as e:
+        return {"name": request["name"], "ok": False, "path": path,
+                "detail": f"cannot open the device: {str(e).splitlines()[0]}"}
+    if device.cl_device.name != request["name"]:
+        return {"name": device.cl_device.name}
+    try:
+        res = run_check(device, check)
+    except SelfCheckError as e:
+        return {"own_error": "install" if isinstance(e, InstallError) else "bug",
+                "detail": str(e)}
+    return {"name": device.cl_device.name, "ok": res.ok, "detail": res.detail,
+            "path": res.path}
 
 
 def gradient_check(device, check: GradientCheck, refresh: bool = False,
                    run=None) -> CheckResult:
     """The cached verdict of ``check`` on ``device``'s gradient path, measured when missing
-    (with ``run(device)``, default ``run_check(device, check)``) and then cached."""
+    (with ``run(device)``, default: in a child process, ``run_isolated``) and then cached.
+    InstallError / ClrfBug pass through uncached."""
     key = check_key(device, check)
     if not refresh:
         e = _load().get(key)
         if isinstance(e, dict) and isinstance(e.get("ok"), bool):
             return CheckResult(e["ok"], str(e.get("detail", "")), str(e.get("path", "")))
-    res = run(device) if run is not None else run_check(device, check)
+    if run is not None:
+        res = run(device)
+    else:
+        res = run_isolated(device, check) if ISOLATE else run_check(device, check)
     _store(key, res)
     return res
 
 
+def cached_verdict(cl_device, tuning, check: GradientCheck) -> CheckResult | None:
+    """The cached verdict of ``check`` on ``cl_device`` with ``tuning``, or None (nothing is
+    run)."""
+    key = "|".join([device_key(cl_device), path_name(tuning), f"rec{int(tuning.sample_record)}",
+                    _tail(check)])
+    e = _load().get(key)
+    if isinstance(e, dict) and isinstance(e.get("ok"), bool):
+        return CheckResult(e["ok"], str(e.get("detail", "")), str(e.get("path", "")))
+    return None
+
+
+def checks() -> list:
+    """The registered checks."""
+    return list(_CHECKS)
+
+
+def verdicts_for(cl_device, check: GradientCheck) -> list:
+    """Every cached verdict of ``check`` on ``cl_device`` with the current kernels and clrf,
+    one per gradient path (nothing is run)."""
+    head, tail = device_key(cl_device) + "|", "|" + _tail(check)
+    return [CheckResult(e["ok"], str(e.get("detail", "")), str(e.get("path", "")))
+            for k, e in _load().items()
+            if k.startswith(head) and k.endswith(tail) and isinstance(e, dict)
+            and isinstance(e.get("ok"), bool)]
+
+
 def known_wrong(cl_device, checks=None) -> str | None:
     """Why ``cl_device`` is known (from the cache only; nothing is run) to compute wrong
-    gradients on its float-atomic path with the current kernels under one of ``checks``
-    (default: the registered ones), or None."""
+    gradients (or to crash) on its float-atomic path with the current kernels and clrf under
+    one of ``checks`` (default: the registered ones), or None."""
     head = device_key(cl_device) + "|atomics|"
     entries = _load()
     for check in (_CHECKS if checks is None else checks):
-        tail = f"|{sources_hash(check.sources)}|v{check.version}"
+        tail = "|" + _tail(check)
         for k, e in entries.items():
             if (k.startswith(head) and k.endswith(tail) and isinstance(e, dict)
                     and e.get("ok") is False):
                 return str(e.get("detail", "wrong gradients"))
     return None
-

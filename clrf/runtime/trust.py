@@ -11,7 +11,9 @@ def ensure_trusted(device, checks, log=None):
     """Before training: the device's gradient path passes every check of ``checks`` (cached
     verdicts), else the float-atomic path replaces it (``device.tuning`` is changed, with a
     warning through ``log``) when that one passes them; else DeviceError naming the device and
-    its driver. Returns each check's passing CheckResult."""
+    its driver. Returns each check's passing CheckResult. InstallError / ClrfBug (clrf's own
+    failure while checking, clrf/runtime/selfcheck.py) pass through: they say nothing about
+    the device."""
     passed = []
     for check in checks:
         res = gradient_check(device, check)
@@ -31,8 +33,8 @@ def ensure_trusted(device, checks, log=None):
                 passed.append(res)
                 continue
         raise DeviceError(
-            f"device {device!r}, driver {device.caps.driver_version}: {check.what} computes "
-            f"wrong gradients ({first.path}: {first.detail}); clrf will not train on it. Choose "
+            f"device {device!r}, driver {device.caps.driver_version}: fails the gradient "
+            f"self-check of {check.what} ({first.path}: {first.detail}); clrf will not train on it. Choose "
             f"another device with --device / CLRF_DEVICE (`clrf devices` lists them) or update "
             f"the OpenCL driver")
     return passed
