@@ -17,6 +17,7 @@
 """
 from __future__ import annotations
 
+import argparse
 import configparser
 import contextlib
 import importlib.util
@@ -90,13 +91,18 @@ def setup_extras():
     return names
 
 
-def check_clrf(args):
+def check_clrf(args, relaxed=False):
+    """``args`` parse with clrf's parser (``relaxed``: no argument is required), and a
+    `train`'s configuration values build; `--help` / `--version` count as parsing."""
     from clrf.cli.main import build_parser, parse_set
     err = io.StringIO()
     try:
-        with contextlib.redirect_stderr(err):
-            a = build_parser().parse_args(args)
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            parser = build_parser()
+            a = (_relaxed(parser) if relaxed else parser).parse_args(args)
     except SystemExit as e:
+        if e.code == 0:
+            return
         raise AssertionError(f"`clrf {' '.join(args)}` does not parse: {err.getvalue().strip()}"
                              ) from e
     if a.cmd == "train":   # the configuration values too (keys, types, ranges)
@@ -154,6 +160,118 @@ def readme_shell_commands():
     return out
 
 
+def doc_files():
+    return [README] + sorted((ROOT / "docs").glob("*.md"))
+
+
+_OPTIONAL = re.compile(r"\[(--?[^\[\]]*)\]")    # a synopsis's [--flag VALUE]
+
+
+def inline_clrf_commands(text):
+    """`clrf ...` commands written inline (one backtick span each) in Markdown prose, as token
+    lists: a usage synopsis's ``[optional]`` brackets dropped, ``...`` dropped, and ``a|b``
+    alternatives of one token expanded into one command each."""
+    out = []
+    for span in re.findall(r"`((?:\.venv/bin/)?clrf [^`\n]+)`", _strip_fenced(text)):
+        try:
+            toks = shlex.split(_OPTIONAL.sub(r" \1 ", span), comments=True)
+        except ValueError:
+            toks = span.split()
+        alts = [[]]
+        for tok in toks:
+            if tok in ("...", "\u2026"):
+                continue
+            choices = tok.split("|") if "|" in tok else [tok]
+            alts = [a + [c] for a in alts for c in choices]
+        out += alts
+    return out
+
+
+def _strip_fenced(text):
+    return re.sub(r"^\s*```.*?^\s*```", "", text, flags=re.S | re.M)
+
+
+def docs_commands():
+    """(file, command, inline) of every shell block line and inline `clrf ...` span of
+    README.md and docs/*.md."""
+    out = []
+    for doc in doc_files():
+        text = doc.read_text()
+        for lang, lines in fenced_blocks(text):
+            if lang in SHELL_LANGS:
+                # a usage synopsis line (`clrf eval --ckpt DIR [--data PATH]`) is checked as
+                # prose is; every other line as a command to run
+                synopsis = [x for x in lines if re.match(r"\s*clrf .*\[", x)]
+                out += [(doc, c, False) for c in shell_commands(
+                    [x for x in lines if x not in synopsis])]
+                out += [(doc, c, True) for x in synopsis
+                        for c in inline_clrf_commands(f"`{x.split('#')[0].strip()}`")]
+        out += [(doc, c, True) for c in inline_clrf_commands(text)]
+    return out
+
+
+def _number_or_placeholder(kind):
+    def parse(text):
+        return text if re.fullmatch(r"[A-Z][A-Z0-9_]*", text) else kind(text)
+    return parse
+
+
+def _relaxed(parser):
+    """``parser`` with no argument required, its subcommands' too: prose names a command
+    without the arguments a run needs (`clrf eval` reads a checkpoint)."""
+    for act in parser._actions:
+        act.required = False
+        if act.type in (int, float):   # a synopsis's placeholder value (`--port N`)
+            act.type = _number_or_placeholder(act.type)
+        if isinstance(act.choices, dict):      # the subcommands
+            for sub in act.choices.values():
+                _relaxed(sub)
+    return parser
+
+
+@pytest.mark.parametrize("where,cmd,inline", [(d.relative_to(ROOT).as_posix(), c, i)
+                                              for d, c, i in docs_commands()
+                                              if Path(c[0]).name == "clrf"],
+                         ids=lambda x: x if isinstance(x, str) else
+                         " ".join(x)[:50] if isinstance(x, list) else str(x))
+def test_every_clrf_command_in_the_docs_parses(where, cmd, inline):
+    """Every `clrf ...` of README.md and docs/*.md, in a shell block (as written: required
+    arguments too) or inline in prose (a command named without all its arguments), parses with
+    the real parser: unknown commands, flags, choices and configuration keys fail. An upper
+    case word where the command goes (`clrf COMMAND --help`) is a placeholder."""
+    args = cmd[1:]
+    if inline and args and re.fullmatch(r"[A-Z_]+", args[0]):
+        return
+    try:
+        check_clrf(args, relaxed=inline)
+    except AssertionError as e:
+        raise AssertionError(f"{where}: {e}") from None
+
+
+def test_inline_checker_rejects_wrong_commands():
+    text = "use `clrf train --model grid|voxels`, `clrf evaluate` or `clrf eval --no-such`"
+    cmds = inline_clrf_commands(text)
+    assert ["clrf", "train", "--model", "grid"] in cmds
+    bad = [c for c in cmds if c != ["clrf", "train", "--model", "grid"]]
+    assert len(bad) == 3
+    for c in bad:
+        with pytest.raises(AssertionError):
+            check_clrf(c[1:], relaxed=True)
+    check_clrf(["eval"], relaxed=True)
+    with pytest.raises(AssertionError):
+        check_clrf(["eval"])
+
+
+def test_readme_names_every_representation_and_section():
+    from clrf import registry
+    from clrf.cli.config_flags import sections
+    text = README.read_text()
+    for name in registry.names():
+        assert f"--model {name}" in text, f"README.md never shows `--model {name}`"
+    for name, _, _ in sections():
+        assert f"`{name}`" in text, f"README.md never names the configuration section `{name}`"
+
+
 def test_readme_has_command_blocks():
     cmds = readme_shell_commands()
     progs = {Path(c[0]).name for c in cmds}
@@ -205,10 +323,6 @@ def _anchors(path):
             slug = re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
             out.add(slug)
     return out
-
-
-def doc_files():
-    return [README] + sorted((ROOT / "docs").glob("*.md"))
 
 
 def broken_links(doc, text=None):

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.append(str(Path(__file__).resolve().parent.parent))   # the checkout's clrf only where none is installed
 from clrf.references import reference  # noqa: E402
 from clrf.testing.benchmark import camera_rays  # noqa: E402,F401  (same view as `clrf bench`)
 

@@ -45,7 +45,7 @@ from pyopencl.cache import create_built_program_from_source_cached  # noqa: E402
 from pyopencl.characterize import has_src_build_cache  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+sys.path.append(str(ROOT))   # the checkout's clrf only where none is installed
 
 from clrf.runtime.device import probe_capabilities  # noqa: E402
 from clrf.runtime.programs import build_flags  # noqa: E402

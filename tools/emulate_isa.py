@@ -49,7 +49,8 @@ def main(argv=None) -> None:
                        "PYOPENCL_NO_CACHE": "1", "OPENBLAS_CORETYPE": blas,
                        "XDG_CACHE_HOME": os.path.join(scratch, "cache")})
     here = os.path.dirname(os.path.abspath(__file__))
-    sys.path[:0] = [os.path.dirname(here), here]
+    sys.path[:0] = [here]
+    sys.path.append(os.path.dirname(here))   # the checkout's clrf only where none is installed
     import clrf.runtime.device as device
 
     probe = device.probe_capabilities

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.append(str(Path(__file__).resolve().parents[1]))   # the checkout's clrf only where none is installed
 
 import clrf  # noqa: E402
 from bench.framework import Context  # noqa: E402

@@ -50,7 +50,7 @@ import numpy as np
 
 import pyopencl.array as cla
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))   # this checkout's clrf first
+sys.path.append(str(Path(__file__).resolve().parent.parent))   # the checkout's clrf where none is installed (PYTHONPATH=. for the checkout's)
 
 import clrf  # noqa: E402
 from clrf.mlp.tiling import CHUNK_TILES, MLPTiling, device_default, tile_fields  # noqa: E402

@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.append(str(Path(__file__).resolve().parents[1]))   # the checkout's clrf only where none is installed
 
 from profile_step import cpu_model  # noqa: E402  (tools/ is on the path when run as a script)
 

@@ -2,7 +2,7 @@
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.append(str(Path(__file__).resolve().parent.parent))   # the checkout's clrf only where none is installed
 from clrf.testing.benchmark import main  # noqa: E402
 
 if __name__ == "__main__":

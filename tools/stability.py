@@ -8,9 +8,10 @@ import sys
 from pathlib import Path
 
 TOOLS = Path(__file__).resolve().parent
-for _p in (str(TOOLS.parent), str(TOOLS)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
+if str(TOOLS) not in sys.path:
+    sys.path.insert(0, str(TOOLS))
+if str(TOOLS.parent) not in sys.path:   # the checkout's clrf only where none is installed
+    sys.path.append(str(TOOLS.parent))
 
 from stability.runner import main  # noqa: E402  (the package tools/stability/)
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.append(str(Path(__file__).resolve().parent.parent))   # the checkout's clrf only where none is installed
 
 WAIT = 300.0   # seconds any one frame may take before the run is abandoned
 

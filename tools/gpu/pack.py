@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+sys.path.append(str(ROOT))   # the checkout's clrf only where none is installed
 
 SCENE = {"hash_lego": "lego_400", "grid_lego": "lego_400", "hash_bonsai": "bonsai_800",
          "splat_bonsai": "bonsai_800"}
