@@ -20,7 +20,9 @@ case "$1 $2" in
   "-m pip") echo "${*:3}" >> "$FAKE_STATE/pip" ;;
   "-m clrf.cli")
     echo "$*" >> "$FAKE_STATE/checks"
+    if [ -e "$FAKE_STATE/intel" ]; then exit "${FAKE_INTEL:-$FAKE_BEFORE}"; fi
     if [ -e "$FAKE_STATE/installed" ]; then exit "$FAKE_AFTER"; else exit "$FAKE_BEFORE"; fi ;;
+  "-m clrf.runtime.icd") touch "$FAKE_STATE/intel" ;;
   *) exit 99 ;;
 esac
 """
@@ -44,7 +46,7 @@ def _script(path: Path, text: str):
 
 
 def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False,
-              extras="test", mpi_tools=False, browser=False):
+              extras="test", mpi_tools=False, browser=False, intel=None):
     repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
     for p in (repo / "tools", stubs, state):
         p.mkdir(parents=True)
@@ -66,6 +68,8 @@ def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail
            "FAKE_BEFORE": str(before), "FAKE_AFTER": str(after), "FAKE_UID": str(uid),
            "FAKE_SUDO_OK": "1" if sudo_ok else "", "FAKE_APT_FAIL": "1" if apt_fail else "",
            "CLRF_DEVICE": "1:0"}
+    if intel is not None:             # what the check answers once Intel's runtime is in
+        env["FAKE_INTEL"] = str(intel)
     r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), extras],
                        env=env, capture_output=True, text=True, timeout=60)
     apt_log = (state / "apt").read_text() if (state / "apt").exists() else ""
@@ -93,8 +97,24 @@ def test_setup_installs_distribution_pocl_when_needed(tmp_path, before, after, u
     assert ("install -y -qq pocl-opencl-icd" in apt_log) == installs
     assert bool(apt_log) == (installs or apt_fail)  # apt-get is never run when not needed
     assert says in r.stderr
-    assert len(checks) == (2 if installs else 1)    # probed again after an install
+    # probed again after an install, and once more after trying Intel's runtime from PyPI
+    # when no fast driver came of it (the fake runtime changes nothing here)
+    intel_tried = (after if installs else before) != 0
+    assert len(checks) == 1 + installs + intel_tried
+    assert ("Intel's CPU runtime" in r.stderr) == intel_tried
     assert all(c == "-m clrf.cli devices --check" for c in checks)
+
+
+@pytest.mark.parametrize("before, intel, rc", [(3, 0, 0), (1, 0, 0), (1, 1, 1), (3, 3, 0)])
+def test_setup_tries_intels_runtime_without_the_distributions_pocl(tmp_path, before, intel, rc):
+    """No apt-get (or no root): pip's PoCL is slow or broken, so Intel's CPU runtime comes
+    from PyPI; clrf then picks whichever measures faster."""
+    r, apt_log, checks = run_setup(tmp_path, before, apt=False, intel=intel)
+    assert r.returncode == rc, r.stderr
+    assert "trying Intel's CPU runtime" in r.stderr
+    pip_log = (tmp_path / "state" / "pip").read_text()
+    assert ".[pocl,intel]" in pip_log
+    assert len(checks) == 2
 
 
 @pytest.mark.parametrize("mpi_tools, uid, sudo_ok, apt_fail, rc, installs, says", [
