@@ -212,3 +212,35 @@ def test_default_first_run_config_is_valid():
     g = cfg.grid
     assert not g.sphere_bound and len(g.reso) >= 2
     assert len(g.upsample_at) == len(g.reso) - 1 and g.upsample_at[-1] <= 600
+
+
+def test_eval_interval_keeps_evaluation_under_its_share():
+    from clrf.training.trainer import EVAL_SHARE, eval_interval
+    assert eval_interval(10.0, 1.0) == 10.0            # cheap: every eval_every seconds
+    for cost in (2.0, 30.0, 120.0):                      # slow: stretched to the share
+        gap = eval_interval(10.0, cost)
+        assert gap >= 10.0 and cost / (gap + cost) == pytest.approx(EVAL_SHARE)
+
+
+def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
+    """Each evaluation made 1 s slower than training's 0.2 s interval: the run evaluates
+    about every 5.7 s of training instead, so evaluation stays near 15 % of the wall time
+    (the start's and the end's evaluations aside), and the untrained model's point renders
+    one view."""
+    import clrf.training.trainer as tr
+    real = tr.evaluate
+
+    def slow(*a, **k):
+        time.sleep(1.0)
+        return real(*a, **k)
+    monkeypatch.setattr(tr, "evaluate", slow)
+    out = tmp_path / "r"
+    opts = [o if o != "train.eval_every=1.0" else "train.eval_every=0.2" for o in FAST]
+    assert run_cli("train", "--out", out, "--max-seconds", 13, *opts,
+                   "--set", "train.final_eval=false") == 0
+    rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
+    # at 0 s (one view), then every >= 1 s * 0.85 / 0.15 = 5.7 s, and before stopping
+    assert rows[0]["eval_views"] == "1" and all(r["eval_views"] == "2" for r in rows[1:])
+    secs = [float(r["seconds"]) for r in rows]
+    gaps = np.diff(secs[:-1])
+    assert len(rows) <= 4 and all(g >= 5.6 for g in gaps), secs

@@ -23,6 +23,7 @@ from __future__ import annotations
 import copy
 import os
 import sys
+import time
 from dataclasses import dataclass, field
 
 import pyopencl as cl
@@ -334,9 +335,14 @@ class Device:
         key = (source, tuple(sorted((defines or {}).items())), self.tuning.fast_math)
         prg = self._programs.get(key)
         if prg is None:
+            t0 = time.perf_counter()
             prg = self._programs[key] = build(self, source, defines or {}, self.tuning.fast_math,
                                               self.tuning.verbose_build)
+            self.build_seconds += time.perf_counter() - t0
         return prg
+
+    build_seconds = 0.0   # wall seconds this device has spent building programs (one-off costs
+    #                       that a caller timing its work can leave out: Trainer's evaluations)
 
     def finish(self):
         self.queue.finish()
