@@ -256,3 +256,12 @@ def test_pips_pocl_trains_or_is_refused_never_a_crash(tmp_path):
         assert "clrf: error: device" in p.stderr, p.stderr[-3000:]
     else:
         assert (tmp_path / "run" / "eval.json").is_file()
+
+
+def test_version_names_the_commit_only_in_a_clrf_checkout(tmp_path):
+    from clrf import version
+    assert version.git_commit(tmp_path) is None              # no repository
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    assert version.git_commit(tmp_path) is None              # a repository, not clrf's
+    text = version.describe()
+    assert text.startswith(f"clrf {clrf.__version__}")

@@ -116,3 +116,14 @@ def test_the_probe_runs_in_a_child(device, cache):
     pr = device_probe.measure(device.cl_device)
     assert pr.ok, pr.error
     assert pr.gflops > 0
+
+
+def test_reprobe_runs_the_checks_again_and_lists_the_verdicts(device, cache):
+    """`clrf devices --reprobe` re-runs each check (in a child) with the device's own tuning
+    and lists every cached verdict; without it, nothing runs and a missing verdict says so."""
+    from clrf.runtime.device import selfcheck_lines
+    lines = selfcheck_lines(device.cl_device, device.caps, [faults.WRONG], refresh=False)
+    assert len(lines) == 1 and "not run yet" in lines[0]
+    lines = selfcheck_lines(device.cl_device, device.caps, [faults.WRONG], refresh=True)
+    assert any("FAILED: every gradient is zero" in x for x in lines), lines
+    assert selfcheck.verdicts_for(device.cl_device, faults.WRONG)
