@@ -57,7 +57,7 @@ EVERY_IMPL_MODULES = {
     "test_bricks", "test_nerf_mlp", "test_nerf_encode", "test_nerf_sample",
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
     "test_hash_encode", "test_hash_kernels",
-    "test_splat_kernels", "test_splat_loss", "test_sort",
+    "test_splat_kernels", "test_splat_loss", "test_sort", "test_splat_exposure",
     "test_mlp_gpu",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
@@ -74,7 +74,7 @@ SLOW_IMPL_TESTS = {
     "test_splat_project_matches_reference", "test_splat_binning_matches_reference",
     "test_splat_rasterize_matches_reference", "test_splat_rasterize_backward_matches_reference",
     "test_small_network_under_every_pass", "test_device_loss_matches_twin",
-    "test_splat_rows_shape_with_small_tiles",
+    "test_splat_rows_shape_with_small_tiles", "test_backward_matches_the_twin",
 }
 
 def pytest_generate_tests(metafunc):

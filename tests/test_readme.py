@@ -131,6 +131,8 @@ def check_command(cmd, extras):
     prog, args = Path(cmd[0]).name, cmd[1:]
     if prog == "clrf":
         check_clrf(args)
+    elif prog == "pytest":      # the venv's test runner: its options are pytest's
+        assert cmd[0] in (".venv/bin/pytest", "pytest"), f"{what}: run the venv's pytest"
     elif re.fullmatch(r"python(3(\.\d+)?)?", prog):
         check_python(args, what)
     elif prog == "bash" and args[:1] == ["tools/setup.sh"]:

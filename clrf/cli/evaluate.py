@@ -66,7 +66,8 @@ def cmd_eval(a):
     per_view = []
     with bar(len(views), f"eval {a.protocol or 'test'}", "view") as b:
         for v in views:
-            ev = evaluate(model, ds, [v], keep_images=lp_why is None)
+            ev = evaluate(model, ds, [v], keep_images=lp_why is None,
+                          half_fitted=getattr(model, "exposure", None) is not None)
             m = ev["views"][0]
             if lp_why is None:
                 m["lpips"] = lpips(ev["images"][0], ds.images[v], net, a.lpips_backbone)
@@ -79,6 +80,9 @@ def cmd_eval(a):
            "lpips": (float(np.mean([m["lpips"] for m in per_view])) if lp_why is None else None),
            "lpips_net": net, "lpips_unavailable": lp_why,
            "n_views": len(per_view), "resolution": [W, H]}
+    if "psnr_half_fitted" in per_view[0]:   # a model with a colour transform per image
+        for k in ("psnr_half_fitted", "psnr_right_half"):
+            res[k] = float(np.mean([m[k] for m in per_view]))
     if pd is not None:
         ph, pw = pd.protocol_hw
         standard = pd.standard and len(per_view) == full

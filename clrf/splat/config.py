@@ -82,6 +82,14 @@ class SplatConfig:
     #                                 degree by one (published: 1,000 of 30,000 steps)
     seed: int = 0                   # initialisation and training-view order seed (added to
     #                                 train.seed)
+    exposure: bool = False          # learn a colour transform (3 x 3 matrix and offset) per
+    #                                 training image, for captures whose exposure or white
+    #                                 balance changes (phones); test views are scored under
+    #                                 the identity (clrf/splat/exposure.py)
+    lr_exposure: float = 0.01       # Adam learning rate of the transforms (each row steps
+    #                                 only when its image is trained: a few dozen times a run)
+    exposure_reg: float = 0.001     # pull of each transform toward the identity,
+    #                                 reg (|A - I|^2 + |b|^2) added to the loss
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "SplatConfig":
@@ -138,6 +146,8 @@ class SplatConfig:
             (0 < self.sh_increase_every <= 1, "splat.sh_increase_every",
              "must be a budget fraction in (0, 1]"),
             (self.seed >= 0, "splat.seed", "must be >= 0"),
+            (0 < self.lr_exposure <= 1, "splat.lr_exposure", "must be in (0, 1]"),
+            (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),
         ]
 
 

@@ -113,6 +113,7 @@ class SplatModel:
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
         self._loss_fn = None           # DeviceLoss for the views' size
+        self.exposure = None           # Exposure: a colour transform per image (splat.exposure)
         self._targets = None           # view -> its training image on the device
         self.train_views = None
         self.hw = None
@@ -171,6 +172,12 @@ class SplatModel:
             raise ValueError(f"dataset {ds.name}: no training views")
         self._ds, self.train_views, self.hw = ds, views, tuple(int(v) for v in ds.hw)
         self._loss_fn = self._targets = None
+        n_images = len(ds.images)
+        if self.config.exposure and (self.exposure is None
+                                     or self.exposure.n_images != n_images):
+            from .exposure import Exposure
+            self.exposure = Exposure(self.device, n_images, self.config.lr_exposure,
+                                     self.config.exposure_reg)
 
     def _dataset(self):
         if self._ds is None:
@@ -206,7 +213,12 @@ class SplatModel:
         cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
         bg = self.background
         proj, bins, ras = self.rast.forward(self.params, cam, bg)
-        grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
+        if self.exposure is None:
+            grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
+        else:   # the loss sees the render under image v's colour transform
+            shown = self.exposure.apply(ras.rgb, v)
+            grad, stats = self._loss().loss_and_grad(shown, self._target(v))
+            grad = self.exposure.backward_and_step(ras.rgb, grad, v)
         g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg)
         grads = self.rast.project_backward(self.params, cam, g2d)
         prg = self.device.program("splat_train.cl")
@@ -412,6 +424,8 @@ class SplatModel:
             st[f"param_{k}"] = v
         for k, v in self.host_moments().items():
             st[f"adam_{k}"] = v
+        if self.exposure is not None:
+            st.update(self.exposure.state_dict())
         return st
 
     @classmethod
@@ -435,6 +449,14 @@ class SplatModel:
         m = cls(device, config, host, tuple(state["background"]), float(state["extent"]),
                 state["bbox"], int(state["seed"]), int(state["max_count"]))
         m._set_host(host, moments)
+        if "exposure" in state:
+            from .exposure import Exposure
+            try:
+                m.exposure = Exposure(device, len(state["exposure"]), config.lr_exposure,
+                                      config.exposure_reg, state=state)
+            except (KeyError, ValueError, TypeError) as e:
+                raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
+                                 ) from None
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])
         m.resets = int(state["resets"])

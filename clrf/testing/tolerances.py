@@ -366,3 +366,16 @@ SPLAT_LONG_GRAD_REL_TO_MAX = 1e-5
 SPLAT_FD_EPS = 1e-6
 SPLAT_FD_ATOL = 1e-7
 SPLAT_FD_RTOL = 1e-6
+
+# The splat model's colour transform (cl/splat_exposure.cl): out = A rgb + b is 3 products
+# and 3 sums of terms <= ~2 in float32: a few ulps, 1e-6 absolute + relative is ~10x that.
+EXPOSURE_ATOL = 1e-6
+EXPOSURE_RTOL = 1e-6
+# Its dL/dP: sums over n pixels in float32 (a work-item's CHUNK pixels in order, then the
+# items): error ~ sqrt(n) * 6e-8 * |terms| for terms ~ N(0, 1); 1e-5 sqrt(n) absolute + 1e-5
+# relative is ~20x that. dL/drgb = A^T g is 3 products: 1e-6 absolute + 1e-5 relative.
+EXPOSURE_SUM_ATOL_PER_SQRT_N = 1e-5
+EXPOSURE_GRAD_RTOL = 1e-5
+# Three Adam steps against the float64 twin: each update is lr * m / (sqrt(v) + eps) with m, v
+# formed in float32 (relative error ~1e-7 each), so rows agree to ~lr * 1e-6.
+EXPOSURE_ADAM_ATOL = 1e-6

@@ -126,13 +126,17 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
     return model.train_step(it, bo, bd, bc, background=bg)
 
 
-def evaluate(model, ds, views, keep_images=False, downscale=1):
+def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False):
     """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
 
     downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
     images (f^2 times fewer rays; for cheap evaluations between checkpoints).
     keep_images: True keeps every render in ``res["images"]`` (float [H, W, 3] in [0, 1]); an
-    integer k keeps the first k."""
+    integer k keeps the first k.
+    half_fitted: also NeRF-W's protocol for models with a colour transform per training image
+    (the splat model's splat.exposure): each view's right half scored after a colour
+    transform fitted on its left half (``psnr_half_fitted``), beside the right half as
+    rendered (``psnr_right_half``)."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     per_view, images = [], []
     keep = len(views) if keep_images is True else int(keep_images)
@@ -140,8 +144,12 @@ def evaluate(model, ds, views, keep_images=False, downscale=1):
         rgb = render_view(model, np.asarray(ds.poses[v], np.float64),
                           np.asarray(ds.intrinsics, np.float64) / downscale, (H, W),
                           lambda: view_rays(ds, ds.poses[v:v + 1], downscale))["rgb"]
-        m = image_metrics(rgb, downscale_image(ds.images[v], downscale))
+        gt = downscale_image(ds.images[v], downscale)
+        m = image_metrics(rgb, gt)
         m["view"] = int(v)
+        if half_fitted:
+            from ..references.reference_exposure import half_fitted_psnr
+            m["psnr_half_fitted"], m["psnr_right_half"] = half_fitted_psnr(rgb, gt)
         per_view.append(m)
         if i < keep:
             images.append(np.clip(rgb, 0, 1))
@@ -149,6 +157,9 @@ def evaluate(model, ds, views, keep_images=False, downscale=1):
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
            "ssim": float(np.mean([m["ssim"] for m in per_view])),
            "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
+    if half_fitted:
+        for k in ("psnr_half_fitted", "psnr_right_half"):
+            res[k] = float(np.mean([m[k] for m in per_view]))
     if keep:
         res["images"] = images
     return res
@@ -442,12 +453,17 @@ class Trainer:
         result = {"iteration": self.iteration, "seconds": self.seconds,
                   "interrupted": interrupted}
         if t.final_eval and not interrupted:
-            ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS)
+            fitted = getattr(self.model, "exposure", None) is not None
+            ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS,
+                          half_fitted=fitted)
             if self.primary:
                 result["renders"] = [str(p) for p in save_renders(
                     self.out, self.ds, self.test_views, ev.pop("images"))]
             result.update(psnr=ev["psnr"], ssim=ev["ssim"], ssim_window=SSIM_NAME,
                           views=ev["views"], n_views=len(self.test_views))
+            if fitted:
+                result.update(psnr_half_fitted=ev["psnr_half_fitted"],
+                              psnr_right_half=ev["psnr_right_half"])
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
@@ -459,6 +475,11 @@ class Trainer:
             loop.prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
                               f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
                               f"({self.iteration} iterations)")
+            if fitted:
+                loop.prog.message(
+                    f"final, NeRF-W protocol (colour fitted on each view's left half): right "
+                    f"halves PSNR {ev['psnr_half_fitted']:.2f} (as rendered "
+                    f"{ev['psnr_right_half']:.2f}); {self.model.exposure.describe()}")
         elif loop.last_eval is not None:
             result.update(psnr=loop.last_eval["psnr"], ssim=loop.last_eval["ssim"],
                           ssim_window=SSIM_NAME)
