@@ -14,4 +14,4 @@ def __getattr__(name):
 
 __all__ = ["Device", "DeviceError", "SparseGrid", "render_rays", "render_rays_backward",
            "NerfModel", "NerfConfig"]
-__version__ = "0.1.0"
+from .runtime.version import VERSION as __version__  # noqa: E402

@@ -321,7 +321,7 @@ class _VersionAction(argparse.Action):
         super().__init__(option_strings, dest, **kw)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from ..version import describe
+        from ..runtime.version import describe
         print(describe())
         parser.exit()
 

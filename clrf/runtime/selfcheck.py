@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import inspect
 import sys
 import traceback
@@ -54,20 +53,19 @@ class ClrfBug(SelfCheckError):
 
 
 def clrf_version() -> str:
-    from .. import __version__
-    return __version__
+    from .version import VERSION
+    return VERSION
 
 
-def _own_error(exc: BaseException, what: str) -> SelfCheckError:
+def own_error(exc: BaseException, what: str) -> SelfCheckError:
     """The error to raise for an exception of clrf's own code while running ``what``."""
     tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)).rstrip()
-    return _own_error_text(f"{type(exc).__name__}: {exc}", tb, what,
+    return own_error_text(f"{type(exc).__name__}: {exc}", tb, what,
                            getattr(exc, "name", None) if isinstance(exc, ImportError) else None)
 
 
-def _own_error_text(line: str, tb: str, what: str, missing: str | None) -> SelfCheckError:
-    import clrf
-    where = Path(clrf.__file__).resolve().parent
+def own_error_text(line: str, tb: str, what: str, missing: str | None) -> SelfCheckError:
+    where = Path(__file__).resolve().parent.parent      # the clrf package (this is runtime/)
     if missing and (missing == "clrf" or missing.startswith("clrf.")):
         return InstallError(
             f"clrf {clrf_version()} is installed incompletely: module '{missing}' is missing "
@@ -173,7 +171,7 @@ def run_check(device, check: GradientCheck) -> CheckResult:
         why = check.run(device)
     except Exception as e:  # noqa: BLE001 - sorted into driver verdicts and clrf's own errors
         if not is_driver_error(e):
-            raise _own_error(e, f"the self-check of {check.what}") from e
+            raise own_error(e, f"the self-check of {check.what}") from e
         why = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
     return CheckResult(not why, why, path_name(device.tuning))
 
@@ -205,42 +203,13 @@ def run_isolated(device, check: GradientCheck) -> CheckResult:
             if "No module named" in line and "'" in line:
                 missing = line.split("'")[1]
         last = (out.failure.strip().splitlines() or ["no output"])[-1]
-        raise _own_error_text(last, out.failure.rstrip(), what + " (in a child process)",
+        raise own_error_text(last, out.failure.rstrip(), what + " (in a child process)",
                               missing)
     if "own_error" in r:
         raise (InstallError if r["own_error"] == "install" else ClrfBug)(r["detail"])
     if r.get("name") != device.cl_device.name:     # the child's listing differs from ours
         return run_check(device, check)
     return CheckResult(bool(r["ok"]), str(r["detail"]), str(r["path"]))
-
-
-def child_check(request: dict) -> dict:
-    """The self-check child's work (clrf/runtime/child.py): the check
-    ``request['module'].request['check']`` on device P:D with the parent's tuning."""
-    from .device import Device, DeviceError
-    from .tuning import Tuning
-    try:
-        check = getattr(importlib.import_module(request["module"]), request["check"])
-        tuning = Tuning(**request["tuning"])
-    except Exception as e:  # noqa: BLE001 - clrf's own failure, reported to the parent
-        err = _own_error(e, f"the self-check {request.get('module')}.{request.get('check')}")
-        return {"own_error": "install" if isinstance(err, InstallError) else "bug",
-                "detail": str(err)}
-    path = path_name(tuning)
-    try:
-        device = Device(f"{request['platform']}:{request['device']}", tuning=tuning)
-    except (DeviceError, cl.Error) as e:
-        return {"name": request["name"], "ok": False, "path": path,
-                "detail": f"cannot open the device: {str(e).splitlines()[0]}"}
-    if device.cl_device.name != request["name"]:
-        return {"name": device.cl_device.name}
-    try:
-        res = run_check(device, check)
-    except SelfCheckError as e:
-        return {"own_error": "install" if isinstance(e, InstallError) else "bug",
-                "detail": str(e)}
-    return {"name": device.cl_device.name, "ok": res.ok, "detail": res.detail,
-            "path": res.path}
 
 
 def gradient_check(device, check: GradientCheck, refresh: bool = False,

@@ -1,4 +1,5 @@
-"""clrf's version, and the commit it was built from where that is known.
+"""clrf's version (``VERSION``, which ``clrf.__version__`` and setup.cfg read), and the commit
+it was built from where that is known.
 
 ``describe()`` gives ``clrf 0.1.0 (commit 012b9a6)``: the commit is read from git when clrf
 runs from a git checkout, else from ``_build_commit.py``, which the wheel build writes
@@ -6,10 +7,11 @@ runs from a git checkout, else from ``_build_commit.py``, which the wheel build 
 """
 from __future__ import annotations
 
+import re
 import subprocess
 from pathlib import Path
 
-from . import __version__
+VERSION = "0.1.0"
 
 
 def git_commit(folder: Path) -> str | None:
@@ -36,17 +38,18 @@ def git_commit(folder: Path) -> str | None:
 
 def commit() -> str | None:
     """The commit this clrf runs from (a checkout) or was built from (a wheel), or None."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent      # the clrf package (this is clrf/runtime)
     found = git_commit(here)
     if found:
         return found
-    try:
-        from ._build_commit import COMMIT
-    except ImportError:
+    try:   # read, not imported: the file exists only in a built wheel
+        text = (here / "_build_commit.py").read_text()
+    except OSError:
         return None
-    return COMMIT or None
+    m = re.search(r"^COMMIT = '([^']*)'", text, flags=re.M)
+    return (m.group(1) or None) if m else None
 
 
 def describe() -> str:
     c = commit()
-    return f"clrf {__version__}" + (f" (commit {c})" if c else "")
+    return f"clrf {VERSION}" + (f" (commit {c})" if c else "")
