@@ -143,6 +143,13 @@ class Kind:
     batches        "rays": train_step gets a batch of rays drawn from every training pixel;
                    "views": the model draws its own training views (it got the dataset at
                    create) and train_step gets None for origins, dirs and target
+    world_cameras  True: the kind needs world-space cameras, so a forward-facing capture (NDC
+                   rays for the others) comes to it as its world-space view
+                   (clrf/data/world.py), in training and in evaluation alike
+    wants_points   (cfg) -> bool: a new run of this configuration starts from the scene's
+                   sparse points, so train.points "auto" triangulates a photographed capture
+                   that has none where pycolmap is installed (clrf/data/triangulate.py);
+                   None: never
     """
     name: str
     title: str
@@ -158,6 +165,8 @@ class Kind:
     exports: Mapping = field(default_factory=dict)
     batches: str = "rays"
     check: Optional[Callable] = None
+    world_cameras: bool = False
+    wants_points: Optional[Callable] = None
 
 
 def render_view(model, c2w, intrinsics, hw, rays):

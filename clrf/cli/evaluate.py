@@ -27,11 +27,14 @@ def _lpips_setup(a):
 
 def _views_and_data(a, state):
     """(dataset, views, protocol info or None) for the command's arguments."""
-    from ..training.models import checkpoint_dataset
+    from ..training.models import checkpoint_dataset, dataset_for
     if a.protocol:
+        from .. import registry
         from ..data.protocols import prepare
         path = a.data if a.data is not None else state["run_config"]["train"].get("data", "")
         pd = prepare(a.protocol, path, a.allow_downscaled, a.scene_type)
+        # as the run's model kind takes the scene (world-space cameras where it needs them)
+        pd.dataset = dataset_for(str(state.get("kind", registry.DEFAULT)), pd.dataset)
         meta = state["dataset"]
         if bool(meta["ndc"]) != bool(pd.dataset.ndc):
             from .common import CliError

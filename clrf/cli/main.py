@@ -90,11 +90,14 @@ def cmd_train(a):
     if cfg.train.downscale != first and data_path:
         ds = load_data(data_path, cfg.train.downscale)
     cfg.train.data = str(data_path)
-    if cfg.train.points != "auto":
-        from ..data.triangulate import with_points
-        ds = with_points(ds, cfg.train.points)
-    comm = _mpi_world()
     kind = registry.get(cfg.train.model)
+    from ..training.models import dataset_for
+    ds = dataset_for(kind.name, ds)   # world-space cameras for the kinds that need them
+    from ..data.triangulate import points_for_run
+    # a resumed run's model comes from its checkpoint: no points to triangulate for it
+    wants = not a.resume and kind.wants_points is not None and bool(kind.wants_points(cfg))
+    ds, points_note = points_for_run(ds, cfg.train.points, wants)
+    comm = _mpi_world()
     factory = kind
     if comm is not None and a.view:
         raise CliError("--view: the viewer runs with single-process training; drop --view "
@@ -124,6 +127,8 @@ def cmd_train(a):
     n_rays = n_views * ds.hw[0] * ds.hw[1]
     if kind.check is not None:
         kind.check(cfg, ds, dev.caps)
+    if points_note and (comm is None or comm.Get_rank() == 0):
+        print(f"clrf: {points_note}", file=sys.stderr)
     if comm is None:
         plan = check_training_fits(dev.caps, dev.is_cpu, cfg, n_rays, dev.tuning, host_budget())
         print(f"clrf: memory: {plan.describe()}", file=sys.stderr)
@@ -239,7 +244,7 @@ def cmd_render(a):
     elif a.views == "test":
         ds = checkpoint_dataset(state, a.data)
         poses = ds.poses[np.asarray(ds.split.get("test", ds.split.get("val")))]
-    elif a.views == "spiral" or meta["ndc"]:
+    elif a.views == "spiral" or meta["ndc"] or meta.get("preset") == "forward_facing":
         ds = checkpoint_dataset(state, a.data)
         poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)
     elif str(meta.get("preset", "")).startswith("real360") and not a.radius:
@@ -371,8 +376,8 @@ def build_parser():
     r = sub.add_parser("render", help="render test views or an orbit from a checkpoint")
     r.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
     r.add_argument("--views", choices=["test", "orbit", "spiral"], default="orbit",
-                   help="test views, an orbit around the box, or a forward-facing spiral (NDC "
-                        "scenes always get the spiral for orbit)")
+                   help="test views, an orbit around the box, or a forward-facing spiral "
+                        "(forward-facing scenes always get the spiral for orbit)")
     r.add_argument("--out", required=True, help="output folder for PNGs (and orbit.gif)")
     r.add_argument("--video", action="store_true", help="also write VIEWS.mp4 (H.264)")
     r.add_argument("--fps", type=float, default=None,

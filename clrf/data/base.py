@@ -35,6 +35,10 @@ class Dataset:
     #                                    images = rgb * alpha + background * (1 - alpha)
     points: np.ndarray | None = None   # float32 [P, 6]: a sparse point cloud of the scene (COLMAP's
     #                                    points3D), xyz in the poses' frame and RGB in [0, 1]
+    depth_bounds: np.ndarray | None = None   # float64 [N, 2]: per view the (near, far) depth of
+    #                                    the scene along its viewing axis, in the poses' units
+    #                                    (forward-facing captures: LLFF's bounds, rescaled with the
+    #                                    poses; None elsewhere); clrf.data.world uses them
 
     @property
     def hw(self):

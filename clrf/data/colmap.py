@@ -44,7 +44,7 @@ from .cameras import camera_dirs, distort
 from .base import Dataset, DataError
 from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale_image,
                  holdout_split, inside, limit_split, parse_background, read_image, require_dir, warn)
-from .llff import normalize_capture, scene_extent
+from .llff import depth_bounds, normalize_capture, scene_extent
 
 # model id -> (name, number of parameters); the models clrf reads
 CAMERA_MODELS = {mid: (name, len(params)) for name, (mid, params) in MODELS.items()}
@@ -402,6 +402,7 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
     poses = poses[keep].astype(np.float32)
     return Dataset(name=root.name, images=images, poses=poses, intrinsics=ref["intr"],
                    split=split, background=bg, distortion=dist, points=points,
+                   depth_bounds=depth_bounds(kind, bounds, keep),
                    **scene_extent(kind, poses, ref["intr"], images.shape[1:3], dist))
 
 

@@ -13,7 +13,9 @@ Processing (as NeRF's load_llff_data):
 3. forward-facing: scale translations and bounds by 1 / (0.75 min(bounds)), then recentre on
    the average camera (its pose becomes the identity). Rays go to NDC with near plane 1
    (``clrf.data.cameras.to_ndc``); ``near``, ``far`` are 0, 1 in NDC; bbox is [-1, 1] in NDC z and
-   in x, y the extent of every view's frustum (``scene_extent``), ~1.3-1.5 on fern;
+   in x, y the extent of every view's frustum (``scene_extent``), ~1.3-1.5 on fern. The
+   rescaled bounds stay with the dataset (``depth_bounds``): models that need world-space
+   cameras (the splat model) take the capture without NDC (``clrf.data.world``);
 4. real 360 (Mip-NeRF 360): the bounds are not used (bonsai's are placeholders); the world is
    re-centred on the focus point (the point closest to all optical axes) with z along the mean
    camera up, and scaled so the farthest camera is at distance 1. bbox = [-1, 1]^3, the cube
@@ -105,13 +107,28 @@ def normalize_capture(poses, bounds, kind, path, bounds_name="bounds (columns 15
         if not np.all(bounds > 0):
             raise DataError(f"{path}: {bounds_name} must be positive for a forward-facing "
                             f"scene; regenerate them or pass kind='real360'")
-        sc = 1.0 / (bounds.min() * BD_FACTOR)
-        poses[:, :3, 3] *= sc
+        poses[:, :3, 3] *= forward_facing_scale(bounds)
         poses = np.linalg.inv(average_pose(poses)) @ poses
         poses[:, 3] = [0.0, 0.0, 0.0, 1.0]
     else:
         poses = _recentre_360(poses, path)
     return poses, kind
+
+
+def forward_facing_scale(bounds) -> float:
+    """Step 3's scale of a forward-facing capture with depth ``bounds`` [N, 2]: the nearest
+    bound becomes 1 / BD_FACTOR."""
+    return 1.0 / (float(np.min(bounds)) * BD_FACTOR)
+
+
+def depth_bounds(kind, bounds, keep):
+    """The Dataset's ``depth_bounds`` [len(keep), 2] of the kept views: a forward-facing
+    capture's bounds in the units of its normalised poses; None for a 360 capture (whose
+    bounds are not used)."""
+    if kind != "forward_facing":
+        return None
+    b = np.asarray(bounds, np.float64)
+    return b[keep] * forward_facing_scale(b)
 
 
 def scene_extent(kind, poses, intrinsics, hw, distortion=None) -> dict:
@@ -197,4 +214,5 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
     intr = np.array([focal, focal, W0 / 2.0 / extra, H0 / 2.0 / extra])
     poses = poses[keep].astype(np.float32)
     return Dataset(name=root.name, images=images, poses=poses, intrinsics=intr, split=split,
-                   background=bg, **scene_extent(kind, poses, intr, images.shape[1:3]))
+                   background=bg, depth_bounds=depth_bounds(kind, bounds, keep),
+                   **scene_extent(kind, poses, intr, images.shape[1:3]))

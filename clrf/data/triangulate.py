@@ -17,6 +17,12 @@ views at 200x133 where matching pairs and triangulating them gives thousands of 
 result is cached under ``$XDG_CACHE_HOME/clrf/points/`` (default ``~/.cache``) by a hash of the
 views' pixels, poses and intrinsics, so a second run on the same capture starts at once.
 
+``train.points`` "auto" keeps what the capture has; for a model that starts from points
+(Kind.wants_points: the splat model) it also triangulates a photographed capture without
+points (CAPTURE_PRESETS: LLFF, mip-NeRF 360, instant-ngp; not the rendered synthetic scenes,
+which start random in their box as published) when pycolmap is installed, and otherwise says
+once how to get them (``points_for_run``).
+
 >>> ds = with_points(load_dataset("data/bonsai_800", downscale=4), "triangulate")
 >>> ds.points.shape                                    # (P, 6): xyz, RGB in [0, 1]
 """
@@ -40,6 +46,9 @@ MIN_ANGLE_DEG = 1.0     # smallest angle between the two rays of a kept point
 MAX_POINTS = 200000     # points kept at most (a seeded random subset beyond it)
 MIN_PAIR_INLIERS = 15   # verified pairs with fewer inlier matches are skipped
 MODES = ("auto", "triangulate", "none")
+CAPTURE_PRESETS = ("forward_facing", "real360", "real360_box")   # photographed scenes
+SETUP_HINT = ("`bash tools/setup.sh process` (or `pip install clrf[process]`) installs "
+              "pycolmap")
 CACHE_VERSION = 2
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -193,4 +202,37 @@ def with_points(ds, mode: str = "auto"):
     return dataclasses.replace(ds, points=triangulate(ds))
 
 
-__all__ = ["triangulate", "triangulate_pairs", "with_points", "projection", "MODES"]
+def have_pycolmap() -> bool:
+    """True when pycolmap imports (the ``process`` extra)."""
+    from .process import ProcessError, _pycolmap
+    try:
+        _pycolmap()
+    except ProcessError:
+        return False
+    return True
+
+
+def points_for_run(ds, mode: str = "auto", wanted: bool = False):
+    """(``ds`` with sparse points per ``train.points``, a line for the log or ""). ``wanted``:
+    the run's model starts from points; then "auto" triangulates a photographed capture
+    (CAPTURE_PRESETS, world-space cameras) that has none, where pycolmap is installed. Where it
+    is not, or no point triangulates, the capture stays without points and the line says so
+    and how to get them (the caller prints it once the run's inputs have passed their checks:
+    a model that cannot start without points refuses the run with its own message)."""
+    if mode != "auto" or not wanted or ds.points is not None or ds.ndc \
+            or ds.preset not in CAPTURE_PRESETS:
+        return with_points(ds, mode), ""
+    if not have_pycolmap():
+        return ds, (f"points: {ds.name} has no sparse points and pycolmap is not installed, so "
+                    f"the model starts from random ones; for points triangulated from its "
+                    f"posed views (better first Gaussians), {SETUP_HINT} (or set "
+                    f"train.points=none to silence this)")
+    try:
+        return dataclasses.replace(ds, points=triangulate(ds)), ""
+    except DataError as e:
+        return ds, (f"points: {str(e).split(';')[0]}; the model starts from random ones "
+                    f"(set train.points=none to skip the triangulation)")
+
+
+__all__ = ["triangulate", "triangulate_pairs", "with_points", "points_for_run", "have_pycolmap",
+           "projection", "MODES", "CAPTURE_PRESETS"]

@@ -34,6 +34,10 @@ class SplatConfig:
     init_points: int = 100000       # random Gaussians at the start (init "random"); with
     #                                 "points" the sparse points are subsampled to this many;
     #                                 capped by max_gaussians and by what fits the device
+    init_max_pixels: float = 0.0    # largest standard deviation of a first Gaussian (points
+    #                                 or random), in pixels of the nearest training view that
+    #                                 sees it in front; 0: none (published: the 3-nearest-
+    #                                 neighbour distance whatever it covers on screen)
     max_gaussians: int = 1000000    # hard cap on the number of Gaussians (densification stops
     #                                 adding at it); also lowered to what fits the device
     lr_position: float = 1.6e-4     # Adam learning rate of the means at the start, times the
@@ -117,6 +121,7 @@ class SplatConfig:
             (self.sh_degree in (0, 1, 2, 3), "splat.sh_degree", "must be 0, 1, 2 or 3"),
             (self.init in INIT_MODES, "splat.init", f"must be one of {list(INIT_MODES)}"),
             (1 <= self.init_points <= 1 << 24, "splat.init_points", "must be in 1..16777216"),
+            (self.init_max_pixels >= 0, "splat.init_max_pixels", "must be >= 0 (0: no limit)"),
             (1 <= self.max_gaussians <= 1 << 26, "splat.max_gaussians",
              "must be in 1..67108864"),
             (0 < self.lr_position <= 1, "splat.lr_position", "must be in (0, 1]"),

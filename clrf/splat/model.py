@@ -511,17 +511,41 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
             "sh": sh}
 
 
-def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int, outer: float = 0.0) -> dict:
+def frustum_means(ds, n: int, rng) -> np.ndarray:
+    """n random points [n, 3] in the training views' frusta of a world-space forward-facing
+    dataset ``ds`` (clrf/data/world.py): a training view uniformly, a point uniform over its
+    image (pinhole, as the rasteriser), a depth along its axis uniform in 1 / depth between
+    the view's bounds (``ds.depth_bounds``), as NDC spaces the volumetric models' samples."""
+    b = np.asarray(ds.depth_bounds, np.float64)
+    views = np.asarray(ds.split["train"])
+    pick = views[rng.integers(0, len(views), n)]
+    H, W = ds.hw
+    fx, fy, cx, cy = (float(v) for v in ds.intrinsics)
+    u = rng.uniform(0.0, W, n)
+    v = rng.uniform(0.0, H, n)
+    d_cam = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones(n)], 1)   # OpenGL axes, z = -1
+    p = np.asarray(ds.poses, np.float64)[pick]
+    inv = rng.uniform(1.0 / b[pick, 1], 1.0 / b[pick, 0])
+    return p[:, :3, 3] + np.einsum("nij,nj->ni", p[:, :3, :3], d_cam) / inv[:, None]
+
+
+def initial_gaussians(config: SplatConfig, n: int, bbox, seed: int, outer: float = 0.0,
+                      frusta=None) -> dict:
     """n Gaussians uniform in ``bbox`` [2, 3], grey (colour 0.5 plus at most 1/255 of SH
     degree 0, as the published code starts random points: a random colour per Gaussian costs
     hundreds of steps at the published SH rate to undo); with ``outer`` > 1 (an
     unbounded scene whose cameras sit in the box), as many again beyond the box, out to
     ``outer`` times its half-size from its centre: directions uniform and distances uniform in
     1 / r, so that each shell the cameras see at a similar angular size holds a similar
-    number (what the far background needs)."""
+    number (what the far background needs). ``frusta``: a world-space forward-facing dataset,
+    whose training views' frusta between their depth bounds take the n instead of the box
+    (``frustum_means``)."""
     rng = np.random.default_rng((seed, 1))
     lo, hi = np.asarray(bbox, np.float64)
-    means = rng.uniform(lo, hi, (n, 3))
+    if frusta is not None:
+        means = frustum_means(frusta, n, rng)
+    else:
+        means = rng.uniform(lo, hi, (n, 3))
     if outer > 1.0:
         centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         d = rng.normal(size=(n, 3))
@@ -570,25 +594,66 @@ def gaussians_from_ply(sc: SplatConfig, path, cap: int) -> tuple[dict, str]:
 UNBOUNDED_REACH = 16.0   # random init of unbounded scenes: out to 16 box half-sizes
 
 
+def limit_scales(host: dict, ds, max_px: float) -> dict:
+    """``host`` with every Gaussian's scales at most ``max_px`` pixels of the nearest training
+    view of ``ds`` that has it in front (depth z: max_px z / fx); Gaussians no training view
+    has in front stay as they are."""
+    views = np.asarray(ds.split["train"])
+    p = np.asarray(ds.poses, np.float64)[views]
+    m = np.asarray(host["means"], np.float64)
+    z = np.full(len(m), np.inf)
+    for c2w in p:   # the depth along each view's axis (OpenGL: the camera looks down -z)
+        d = (m - c2w[:3, 3]) @ -c2w[:3, 2]
+        z = np.minimum(z, np.where(d > CAMERA_NEAR, d, np.inf))
+    cap = np.log(max_px * np.where(np.isfinite(z), z, 1.0) / float(ds.intrinsics[0]))
+    cap = np.where(np.isfinite(z), cap, np.inf)[:, None]
+    return dict(host, log_scales=np.minimum(host["log_scales"], cap).astype(np.float32))
+
+
 def initial_host(sc: SplatConfig, ds, cap: int, seed: int) -> tuple[dict, str]:
-    """(the first Gaussians of a run on dataset ``ds`` under the cap, where they came from)."""
+    """(the first Gaussians of a run on dataset ``ds`` under the cap, where they came from);
+    their scales limited to splat.init_max_pixels where it is set (a splat PLY is taken as
+    it is)."""
     if sc.init_ply:
         return gaussians_from_ply(sc, sc.init_ply, cap)
+    host, where = _initial_host(sc, ds, cap, seed)
+    if sc.init_max_pixels > 0:
+        host = limit_scales(host, ds, sc.init_max_pixels)
+    return host, where
+
+
+def _initial_host(sc: SplatConfig, ds, cap: int, seed: int) -> tuple[dict, str]:
     points = getattr(ds, "points", None)
     has_points = points is not None and len(points) > 0
     if sc.init == "points" and not has_points:
-        raise Unsupported(f"dataset {ds.name}: splat.init = 'points' but it has no sparse "
-                          f"points (COLMAP's sparse/0/points3D); use splat.init = 'random' "
-                          f"or 'auto', or pose the photos with `clrf process`")
+        raise Unsupported(no_points_message(ds))
     if sc.init != "random" and has_points:
         n = max(1, min(len(points), sc.init_points, cap))
         return (gaussians_from_points(sc, points, n, seed),
                 f"{n} of the capture's {len(points)} sparse points")
+    if forward_facing(ds):
+        n = max(1, min(sc.init_points, cap))
+        return (initial_gaussians(sc, n, ds.bbox, seed, frusta=ds),
+                f"{n} random in the training views' frusta between their depth bounds")
     unbounded = getattr(ds, "preset", "") == "real360"
     n = max(1, min(sc.init_points, cap // 2 if unbounded else cap))
     host = initial_gaussians(sc, n, ds.bbox, seed, UNBOUNDED_REACH if unbounded else 0.0)
     where = f"{n} random in the scene box" + (f" and {n} beyond it" if unbounded else "")
     return host, where
+
+
+def forward_facing(ds) -> bool:
+    """A forward-facing capture in world space (clrf/data/world.py): per-view depth bounds,
+    no NDC."""
+    return getattr(ds, "depth_bounds", None) is not None and not ds.ndc
+
+
+def no_points_message(ds) -> str:
+    """The bad-input message of splat.init 'points' on a dataset without sparse points."""
+    return (f"dataset {ds.name}: splat.init = 'points' but it has no sparse points (COLMAP's "
+            f"sparse/0/points3D, or for a photographed capture points triangulated from its "
+            f"posed views, which needs pycolmap: `bash tools/setup.sh process`); use "
+            f"splat.init = 'random' or 'auto', or pose the photos with `clrf process`")
 
 
 def gaussian_cap(cfg, ds, caps) -> int:
@@ -605,19 +670,18 @@ def gaussian_cap(cfg, ds, caps) -> int:
 
 def check_inputs(cfg, ds, caps, read_ply: bool = True):
     """A new run's inputs, before anything is planned or written (Kind.check): world-space
-    cameras, sparse points where splat.init asks for them, a readable splat.init_ply under the
-    cap (``read_ply``: create_model reads the file once itself). Raises Unsupported or
+    cameras (a forward-facing capture comes as its world-space view, Kind.world_cameras),
+    sparse points where splat.init asks for them, a readable splat.init_ply under the cap
+    (``read_ply``: create_model reads the file once itself). Raises Unsupported or
     SplatFileError (bad input)."""
     if ds.ndc:
-        raise Unsupported(f"dataset {ds.name}: the splat model needs world-space cameras; this "
-                          f"forward-facing scene is trained in NDC, which it does not support: "
-                          f"use --model grid, nerf or hash for it")
+        raise Unsupported(f"dataset {ds.name}: the splat model needs world-space cameras and "
+                          f"this one is in NDC; load it with clrf.data.world.world_space (clrf "
+                          f"train does)")
     sc = cfg.splat
     points = getattr(ds, "points", None)
     if not sc.init_ply and sc.init == "points" and (points is None or len(points) == 0):
-        raise Unsupported(f"dataset {ds.name}: splat.init = 'points' but it has no sparse "
-                          f"points (COLMAP's sparse/0/points3D); use splat.init = 'random' "
-                          f"or 'auto', or pose the photos with `clrf process`")
+        raise Unsupported(no_points_message(ds))
     if sc.init_ply and read_ply:
         gaussians_from_ply(sc, sc.init_ply, gaussian_cap(cfg, ds, caps))
 

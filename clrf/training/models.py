@@ -29,17 +29,30 @@ def load_model(device, ckpt):
     return model, state, cfg
 
 
-def load_data(path, downscale=1):
+def load_data(path, downscale=1, kind=None):
     """The dataset at ``path`` (None or "": the built-in procedural scene), downscaled by an
-    integer factor."""
+    integer factor, as model kind ``kind`` (a name; None: as loaded) takes it
+    (``dataset_for``)."""
     from ..data import load_dataset
     opts = {"downscale": int(downscale)} if downscale and int(downscale) > 1 else {}
-    return load_dataset(path or None, **opts)
+    ds = load_dataset(path or None, **opts)
+    return ds if kind is None else dataset_for(kind, ds)
+
+
+def dataset_for(kind, ds):
+    """Dataset ``ds`` as model kind ``kind`` (a name) trains and is evaluated on it: a
+    forward-facing capture with world-space cameras for a kind that needs them
+    (Kind.world_cameras; clrf/data/world.py), else ``ds`` itself."""
+    if ds.ndc and registry.get(kind).world_cameras:
+        from ..data.world import world_space
+        return world_space(ds)
+    return ds
 
 
 def checkpoint_dataset(state, data_override=None):
     """The dataset of a checkpoint's run (or ``data_override``), loaded at the resolution the
-    run trained on."""
+    run trained on, as its model kind takes it."""
     tr = state["run_config"]["train"]
     path = data_override if data_override is not None else tr.get("data", "")
-    return load_data(path, tr.get("downscale", 1) if path else 1)
+    return load_data(path, tr.get("downscale", 1) if path else 1,
+                     str(state.get("kind", registry.DEFAULT)))
