@@ -143,6 +143,11 @@ class Kind:
     batches        "rays": train_step gets a batch of rays drawn from every training pixel;
                    "views": the model draws its own training views (it got the dataset at
                    create) and train_step gets None for origins, dirs and target
+    programs       (device, cfg) -> None: asks ``device.program`` for every program a run of
+                   ``cfg`` builds (training, rendering, the workload and self-check), through
+                   the same functions the model calls; on a recording stand-in
+                   (clrf/runtime/catalog.py) this lists them for offline builds
+                   (tools/gpu_builds.py). None: none listed
     """
     name: str
     title: str
@@ -158,6 +163,7 @@ class Kind:
     exports: Mapping = field(default_factory=dict)
     batches: str = "rays"
     check: Optional[Callable] = None
+    programs: Optional[Callable] = None
 
 
 def render_view(model, c2w, intrinsics, hw, rays):

@@ -33,6 +33,19 @@ def write_splats(model, path):
     return write(model, path)
 
 
+def programs(device, cfg):
+    """Every program a splat run of ``cfg`` asks ``device`` for (Kind.programs): projection and
+    rasteriser at the device's default tile, the loss, the densification statistics, the
+    rows shape's depth sort and Adam."""
+    from ..runtime import optim, sort
+    from . import loss, raster
+    raster.programs(device, cfg.splat.sh_degree, raster.default_tile(device))
+    loss.program(device)
+    device.program("splat_train.cl")                       # model.py
+    sort.program(device)
+    optim.program(device, "adam")
+
+
 SPLATS = Export(help="3D Gaussian splats in the standard 3DGS PLY layout (x, y, z, nx, ny, nz, "
                      "f_dc_0..2, f_rest_*, opacity, scale_0..2, rot_0..3)",
                 suffix=".ply", write=write_splats)
@@ -40,4 +53,4 @@ SPLATS = Export(help="3D Gaussian splats in the standard 3DGS PLY layout (x, y, 
 KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole views)",
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
-            exports={"splats": SPLATS}, batches="views", check=check)
+            exports={"splats": SPLATS}, batches="views", check=check, programs=programs)
