@@ -43,7 +43,8 @@ The targets' capabilities are assumptions (no device is queried): see TARGETS.
 Exit status 1 when a build fails (each failing file, defines and target is listed), else 0.
 --check adds the checks of tests/test_gpu_builds.py: no GPU-shape kernel (GPU_SHAPE_KERNELS)
 spills on the --no-spill targets (default gfx1100, tgllp), and no kernel's local memory
-exceeds its target's (LOCAL_LIMIT).
+exceeds its target's (LOCAL_LIMIT). The grid renderer spills on tgllp today (docs/performance.md;
+the test lists it as a known failure), so --check fails there.
 """
 from __future__ import annotations
 
@@ -172,14 +173,14 @@ def _first_line(cmd) -> str:
 
 
 def find_tools() -> Tools:
-    clang = os.environ.get("CLRF_CLANG") or shutil.which("clang-19")
+    clang = shutil.which(os.environ.get("CLRF_CLANG") or "clang-19")
     libclc = None
     for cand in (os.environ.get("CLRF_LIBCLC"), LIBCLC_IN_CHECKOUT):
         if cand and (Path(cand) / "gfx1100-amdgcn-mesa-mesa3d.bc").is_file():
             libclc = Path(cand)
             break
-    ocloc = os.environ.get("CLRF_OCLOC") or shutil.which("ocloc")
-    ptxas = os.environ.get("CLRF_PTXAS") or shutil.which("ptxas")
+    ocloc = shutil.which(os.environ.get("CLRF_OCLOC") or "ocloc")
+    ptxas = shutil.which(os.environ.get("CLRF_PTXAS") or "ptxas")
     t = Tools(clang, libclc, ocloc, ptxas)
     if clang:
         t.versions["clang"] = _first_line([clang, "--version"])
@@ -653,15 +654,17 @@ def markdown(jobs, targets, tools: Tools, command: str) -> str:
                 cells.append("-" if f is None else _cell(by_name[n].vendor, f))
             if any(c != "-" for c in cells):
                 lines.append(f"| {src} {k} | " + " | ".join(cells) + " |")
-    lines += ["", "Every program, per target (all shapes: gpu, gpu-cpu, cpu; OpenCL C 3.0 and "
-              "the CL1.2 builds):", "",
-              "| target | compiles | failed | kernels spilling (gpu shape / any shape) | "
-              "most local memory | compile s |", "| --- | --- | --- | --- | --- | --- |"]
+    shapes = sorted({j.shape for j in jobs}, key=lambda s: (s.endswith("CL1.2"), s))
+    lines += ["", f"Every program built, per target (shapes: {', '.join(shapes)}). Spilling: "
+              "the GPU-shape kernels above that spill in the gpu shape / every kernel that "
+              "spills in any program built (the CPU-shaped ones included).", "",
+              "| target | compiles | failed | spilling | most local memory | compile s |",
+              "| --- | --- | --- | --- | --- | --- |"]
     for n in targets:
         js = [j for j in jobs if j.target == n]
         bs = {id(j.build): j.build for j in js}.values()
         nf = sum(not b.ok for b in bs)
-        sp_gpu = {(s, k) for _, _, s, k, _, _ in spills(js, (n,), ("gpu",), None)}
+        sp_gpu = {(s, k) for _, _, s, k, _, _ in spills(js, (n,), ("gpu",))}
         sp_all = {(s, k) for _, _, s, k, _, _ in
                   spills(js, (n,), tuple({j.shape for j in js}), None)}
         loc = max(((f.get("local") or 0, f"{j.entry.source} {k}") for j in js
