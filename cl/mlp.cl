@@ -209,10 +209,16 @@ DEFINE_GEMM_DW(gemm_dw2, DW_ROWS, T2, DW_LOADS2, T2_FMA)
 DEFINE_GEMM_DW(gemm_dw1, DW_ROWS, T1, DW_LOADS1, T1_FMA)
 
 
+/* The helpers from here on are static inline: an inline definition alone (C99) gives no
+ * external one to call where a compiler does not inline it, and clang's NVPTX build of the
+ * tiles left calls to layer_forward and trunk_forward unresolved (tools/gpu_builds.py). The
+ * gemm tiles above stay inline: as static functions, inlined with their restrict arguments,
+ * they carry llvm.experimental.noalias.scope.decl, which Oclgrind 21.10 cannot run. */
+
 /* Forward of one layer for the MLP_ROWS rows starting at A (row stride NSLOT): MLP_COLS-wide
  * column blocks, then 16-wide ones for the rest (nout is a multiple of 16). */
-inline void layer_forward(const layer_t L, __global const float *Pt, __global float *A,
-                          const int act) {
+static inline void layer_forward(const layer_t L, __global const float *Pt, __global float *A,
+                                 const int act) {
     int j0 = 0;
 #if MLP_COLS == 32
     for (; j0 + 32 <= L.nout; j0 += 32) {
@@ -240,7 +246,7 @@ inline void layer_forward(const layer_t L, __global const float *Pt, __global fl
  * which the backward's activation derivative reads after the next column block's product. A
  * was written by the forward long before (from DRAM), and each row's few lines per layer are
  * too short a stream for the hardware prefetcher. */
-inline void prefetch_act(__global const float *A, const int k0, const int k1) {
+static inline void prefetch_act(__global const float *A, const int k0, const int k1) {
 #if MLP_PREFETCH
     for (int r = 0; r < MLP_ROWS; ++r)
         for (int k = k0; k < k1; k += 16) MLP_PREFETCH_LINE(A + (size_t)r * NSLOT + k);
@@ -250,8 +256,8 @@ inline void prefetch_act(__global const float *A, const int k0, const int k1) {
 /* Backward through one layer's weights for MLP_ROWS rows: G[in] = (G[out] W) * act'(A[in])
  * for the first nin input columns (a multiple of 16), where the (hidden) activation derivative
  * applies to the first n_act of them only. The sum runs over the live outputs (layer_t). */
-inline void layer_backward(const layer_t L, __global const float *P, __global float *G,
-                           __global const float *A, const int n_act, const int nin) {
+static inline void layer_backward(const layer_t L, __global const float *P, __global float *G,
+                                  __global const float *A, const int n_act, const int nin) {
     int k0 = 0;
 #if MLP_COLS == 32
     for (; k0 + 32 <= nin; k0 += 32) {
@@ -289,8 +295,8 @@ inline void layer_backward(const layer_t L, __global const float *P, __global fl
 }
 
 /* Copy `dim` input columns of rows r0.. into a padded slot range (zeros beyond dim and n). */
-inline void load_input(const int n, const int r0, __global const float *src, const int dim,
-                       const int dim_p, __global float *A, const int off) {
+static inline void load_input(const int n, const int r0, __global const float *src, const int dim,
+                              const int dim_p, __global float *A, const int off) {
     for (int r = 0; r < MLP_ROWS; ++r) {
         const int row = r0 + r;
         for (int k = 0; k < dim_p; ++k)
@@ -304,8 +310,8 @@ inline void load_input(const int n, const int r0, __global const float *src, con
  * activation (kept for the backward); sigma [n], rgb [n, 3]. */
 /* The encoded positions of the tile at row r0 into A, then the trunk and the head: A's slots
  * up to SL_HD, sigma activated. */
-inline void trunk_forward(const int n, const int r0, __global const float *x_enc,
-                          __global const float *params_t, __global float *A) {
+static inline void trunk_forward(const int n, const int r0, __global const float *x_enc,
+                                 __global const float *params_t, __global float *A) {
     load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_X);
 #if MLP_SKIP >= 0
     load_input(n, r0, x_enc, MLP_IN, IN_P, A, SL_XS);
@@ -410,11 +416,11 @@ __kernel void mlp_backward(const int n_max, __global const int *count,
 }
 
 /* Work-items of one chunk in mlp_weight_grad: per layer (nout / DW_ROWS) x ceil(nin / DW_COLS). */
-inline int wgrad_items(const layer_t L) {
+static inline int wgrad_items(const layer_t L) {
     return (L.nout / DW_ROWS) * ((L.nin + DW_COLS - 1) / DW_COLS);
 }
 
-inline int wgrad_items_per_chunk(void) {
+static inline int wgrad_items_per_chunk(void) {
     int n = 0;
     for (int l = 0; l < NLAYER; ++l) n += wgrad_items(layer_desc(l));
     return n;

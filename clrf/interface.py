@@ -150,6 +150,11 @@ class Kind:
                    sparse points, so train.points "auto" triangulates a photographed capture
                    that has none where pycolmap is installed (clrf/data/triangulate.py);
                    None: never
+    programs       (device, cfg) -> None: asks ``device.program`` for every program a run of
+                   ``cfg`` builds (training, rendering, the workload and self-check), through
+                   the same functions the model calls; on a recording stand-in
+                   (clrf/runtime/catalog.py) this lists them for offline builds
+                   (tools/gpu_builds.py). None: none listed
     """
     name: str
     title: str
@@ -167,6 +172,7 @@ class Kind:
     check: Optional[Callable] = None
     world_cameras: bool = False
     wants_points: Optional[Callable] = None
+    programs: Optional[Callable] = None
 
 
 def render_view(model, c2w, intrinsics, hw, rays):

@@ -161,6 +161,16 @@ def test_gpu_candidates_start_at_the_default_and_differ():
     assert {g.wg for g in at.gpu_candidates(small)} == {64, 32}
 
 
+def test_gpu_default_samples_per_work_item_on_intel_gpus():
+    """Intel GPUs get INTEL_GPU_TM samples per work-item (the kernel's choice spilled there,
+    tools/gpu_builds.py); other GPUs leave it to the kernel."""
+    intel = replace(caps(type_="gpu", width=1), platform="Intel(R) OpenCL Graphics")
+    assert at.gpu_default(intel).tm == at.INTEL_GPU_TM == 2
+    assert at.gpu_default(intel).defines()["GPU_TM"] == 2
+    assert at.gpu_default(caps(type_="gpu", width=1)).tm is None
+    assert at.gpu_candidates(intel)[0].tm == 2 and {g.tm for g in at.gpu_candidates(intel)} >= {2, 4}
+
+
 def test_gpu_cache_round_trip_and_choice(cache):
     """A tuned GPU tiling is its own entry beside the CPU tile, read back with the device's
     local memory, and chosen where the device runs the GPU tiling (its chunk from MLPSpec)."""

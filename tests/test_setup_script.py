@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-TOOLS = ("env", "rm", "dirname", "mkdir", "cp", "cat", "touch", "true")
+TOOLS = ("env", "rm", "dirname", "mkdir", "cp", "cat", "touch", "true", "mktemp")
 
 FAKE_PYTHON = """#!/bin/bash
 case "$1 $2" in
@@ -29,7 +29,15 @@ esac
 FAKE_APT = """#!/bin/bash
 echo "$*" >> "$FAKE_STATE/apt"
 [ -n "$FAKE_APT_FAIL" ] && exit 100
-case "$*" in *install*) touch "$FAKE_STATE/installed" ;; esac
+case "$*" in
+  *install*) touch "$FAKE_STATE/installed" ;;
+  "download libclc-19") touch "libclc-19_1%3a19.1.7_all.deb" ;;   # into the current folder
+esac
+"""
+FAKE_DPKG_DEB = """#!/bin/bash
+echo "$*" >> "$FAKE_STATE/dpkg-deb"
+[ "$1" = "-x" ] && [ -e "$2" ] || exit 2
+mkdir -p "$3/usr/lib/clc" && touch "$3/usr/lib/clc/gfx1100-amdgcn-mesa-mesa3d.bc"
 """
 FAKE_ID = '#!/bin/bash\necho "$FAKE_UID"\n'
 FAKE_SUDO = """#!/bin/bash
@@ -46,7 +54,7 @@ def _script(path: Path, text: str):
 
 
 def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False,
-              extras="test", mpi_tools=False, browser=False, intel=None):
+              extras="test", mpi_tools=False, browser=False, intel=None, gpucc_tools=False):
     repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
     for p in (repo / "tools", stubs, state):
         p.mkdir(parents=True)
@@ -60,6 +68,10 @@ def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail
         _script(stubs / "apt-get", FAKE_APT)
     if mpi_tools:                       # an MPI library already installed
         for tool in ("mpicc", "mpirun"):
+            _script(stubs / tool, "#!/bin/bash\n")
+    _script(stubs / "dpkg-deb", FAKE_DPKG_DEB)
+    if gpucc_tools:                     # clang-19 and ocloc already installed
+        for tool in ("clang-19", "ocloc"):
             _script(stubs / tool, "#!/bin/bash\n")
     if browser:                         # Chromium and its driver already installed
         for tool in ("chromium", "chromedriver"):
@@ -163,3 +175,24 @@ def test_setup_installs_the_eval_extra_without_torchvision(tmp_path):
     r, _, _ = run_setup(tmp_path / "b", 0, extras="test")
     assert not any("lpips" in line for line in (tmp_path / "b" / "state" / "pip").read_text()
                    .splitlines())
+
+
+def test_setup_gpucc_installs_the_offline_compilers_once(tmp_path):
+    """Extra gpucc: clang-19 and ocloc from apt, libclc-19's bitcode downloaded and unpacked
+    into .gpucc/ (never installed: it would remove mesa-opencl-icd); not a pip extra. A second
+    run with everything in place asks apt for nothing."""
+    r, apt_log, _ = run_setup(tmp_path, 0, extras="test,gpucc")
+    assert r.returncode == 0, r.stderr
+    assert "install -y -qq clang-19 intel-opencl-icd" in apt_log
+    assert "download libclc-19" in apt_log and "install -y -qq libclc" not in apt_log
+    repo = tmp_path / "repo"
+    assert (repo / ".gpucc/libclc/usr/lib/clc/gfx1100-amdgcn-mesa-mesa3d.bc").exists()
+    pip = (tmp_path / "state" / "pip").read_text().splitlines()
+    assert "install -q .[pocl,test]" in pip, pip
+    # again, with the compilers on PATH and the bitcode unpacked: nothing to do
+    bc = tmp_path / "b" / "repo" / ".gpucc/libclc/usr/lib/clc/gfx1100-amdgcn-mesa-mesa3d.bc"
+    bc.parent.mkdir(parents=True)
+    bc.touch()
+    r, apt_log, _ = run_setup(tmp_path / "b", 0, extras="gpucc", gpucc_tools=True)
+    assert r.returncode == 0, r.stderr
+    assert apt_log == ""

@@ -46,6 +46,23 @@ def test_implementation_entries():
         Tuning().replace(**entry)
 
 
+def test_amd_wave64_gpus_get_groups_of_a_wave():
+    """AMD's GCN / CDNA GPUs (gfx6xx-gfx9xx under ROCm) run 64-wide waves: the small groups
+    become 64 (tuning.WAVE64_GPU); RDNA and other GPUs keep theirs."""
+    def amd(name, kind="gpu"):
+        c = caps(kind, platform="OpenCL 2.1 AMD-APP", name="AMD Accelerated Parallel Processing")
+        c.name = name
+        return Tuning.for_device(c)
+    for name in ("gfx90a:sramecc+:xnack-", "gfx942", "gfx908", "gfx906", "gfx803"):
+        t = amd(name)
+        assert (t.grid_local_size, t.per_ray_local_size, t.encode_local_size) == (64, 64, 64)
+        assert t.gpu_kernels and t.grad_slots == 0
+    base = Tuning()
+    for t in (amd("gfx1100"), amd("gfx1030"), amd("gfx90a", kind="cpu")):
+        assert (t.grid_local_size, t.per_ray_local_size, t.encode_local_size) == (
+            base.grid_local_size, base.per_ray_local_size, base.encode_local_size)
+
+
 def test_environment_overrides():
     env = {"CLRF_GRAD_SLOTS": "0", "CLRF_SAMPLE_RECORD": "0", "CLRF_PREFETCH": "0",
            "CLRF_MLP_PREFETCH": "0",

@@ -17,6 +17,13 @@
 #   bash tools/setup.sh impls    # plus Mesa's rusticl and the Oclgrind simulator (Debian
 #                                # mesa-opencl-icd oclgrind), the other implementations the
 #                                # tests run every kernel on when present
+#   bash tools/setup.sh gpucc    # plus the offline GPU compilers of tools/gpu_builds.py
+#                                # (every kernel built for AMD, Intel and NVIDIA GPUs, no GPU
+#                                # needed): Debian's clang-19, libclc-19's bitcode unpacked
+#                                # into .gpucc/ (not installed: the package would remove
+#                                # mesa-opencl-icd, whose rusticl needs libclc-15) and Intel's
+#                                # ocloc (intel-opencl-icd, or intel-ocloc where it is split
+#                                # off); NVIDIA's ptxas is used when the CUDA toolkit has it
 #   bash tools/setup.sh view      # plus the web viewer (`clrf view`, `clrf train --view`)
 #   bash tools/setup.sh view,test # plus headless Chromium for the viewer's browser test:
 #                                # Debian's chromium and chromium-driver when chromium or
@@ -83,6 +90,41 @@ case ",${1:-}," in
         fi ;;
 esac
 extras=${extras//,impls/}
+# extra "gpucc": offline compilers for AMD, Intel and NVIDIA GPUs (tools/gpu_builds.py)
+case ",${1:-}," in
+    *,gpucc,*)
+        gpucc_pkgs=""
+        command -v clang-19 >/dev/null || gpucc_pkgs="clang-19"
+        if ! command -v ocloc >/dev/null; then
+            # newer Debian/Ubuntu ship ocloc on its own (intel-ocloc); bookworm in the ICD
+            if apt-cache show intel-ocloc >/dev/null 2>&1; then
+                gpucc_pkgs="$gpucc_pkgs intel-ocloc"
+            else
+                gpucc_pkgs="$gpucc_pkgs intel-opencl-icd"
+            fi
+        fi
+        if [ -n "$gpucc_pkgs" ]; then
+            echo "clrf: extra 'gpucc': installing$( printf ' %s' $gpucc_pkgs )" >&2
+            # shellcheck disable=SC2086
+            apt_install "clang-19 and Intel's ocloc" $gpucc_pkgs || exit 1
+        fi
+        clc=.gpucc/libclc
+        if [ ! -e "$clc/usr/lib/clc/gfx1100-amdgcn-mesa-mesa3d.bc" ]; then
+            echo "clrf: extra 'gpucc': unpacking libclc-19's bitcode into $clc" >&2
+            tmp=$(mktemp -d)
+            # apt-get download runs as the calling user and writes into the current folder
+            if ! (cd "$tmp" && apt-get download libclc-19 >/dev/null); then
+                echo "clrf: apt-get download libclc-19 failed" >&2
+                rm -rf "$tmp"
+                exit 1
+            fi
+            rm -rf "$clc"
+            mkdir -p "$clc"
+            dpkg-deb -x "$tmp"/libclc-19_*.deb "$clc"
+            rm -rf "$tmp"
+        fi ;;
+esac
+extras=${extras//,gpucc/}
 # extras "view" and "test" together: the browser test needs a system Chromium and its driver
 case ",${1:-}," in
     *,view,*)

@@ -32,7 +32,7 @@ import pyopencl.array as cla
 
 from ..runtime.programs import launch
 from .grid import SparseGrid
-from .ops import TV_EPS
+from .ops import program as ops_program
 from .render import block_occupancy, grad_slots, grid_program, launch_backward
 
 # Per-ray floats a brick contributes to the exchange: rgb (3), logT, depth, acc, key.
@@ -321,7 +321,7 @@ def tv_grad_brick(bgrid: BrickGrid, param, grad, touched, start: int, n_cells: i
     total = int(np.prod(b.reso))
     n_cells = int(min(n_cells, total))
     own = tuple(h - l for l, h in zip(b.lo, b.hi))
-    prg = dev.program("grid_ops.cl", {"SH_DEGREE": bgrid.sh_degree, "TV_EPS": TV_EPS, "BRICK": 1})
+    prg = ops_program(dev, bgrid.sh_degree, brick=True)
     mk = cl.cltypes.make_int4
     r = bgrid.reso
     launch(dev, prg.kernel("tv_grad"), int(np.prod(own)),

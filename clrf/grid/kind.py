@@ -57,6 +57,51 @@ def from_state(device, state, cfg):
     return GridModel.from_state_dict(device, state, cfg.grid)
 
 
+def programs(device, cfg):
+    """Every program a grid run of ``cfg`` asks ``device`` for (Kind.programs), through the
+    functions the model calls: per stage's resolution the render forward and the training
+    step's fused backward (with the tuning's gradient slots and ray order, the MSI's per-ray
+    background), the distributed bricks' variants, the self-check's and the workload's, TV,
+    export, the MSI background and the optimiser."""
+    from types import SimpleNamespace
+
+    from ..runtime import optim
+    from . import bricks, msi, ops, workload
+    from .model import export_program
+    from .render import grid_program
+    c, t = cfg.grid, device.tuning
+    slots = max(0, int(t.grad_slots))
+    record = slots > 0 and t.sample_record
+    bg = c.background_layers > 0
+
+    def grid(sh, reso):      # what grid_program reads of a grid
+        return SimpleNamespace(device=device, sh_degree=sh, reso=tuple(reso),
+                               march_reso=tuple(reso))
+    for reso in c.reso:
+        g = grid(c.sh_degree, reso)
+        grid_program(g, step=c.step)         # block occupancy, max weight, ray order keys
+        for order in ((False, True) if t.ray_order > 0 else (False,)):
+            grid_program(g, step=c.step, bg_per_ray=bg, ray_order=order)
+            grid_program(g, 1, True, step=c.step, slots=slots, record=record, bg_per_ray=bg,
+                         ray_order=order)
+        if bg:
+            grid_program(g, step=c.step, bg_per_ray=True)              # ray_exit
+        bricks._program(g, c.step)                                     # MPI ranks
+        bricks._program(g, c.step, track_touched=True, slots=slots, record=record)
+    for sh, step in ((0, 0.25), (1, 0.5)):         # the self-check (selfcheck.py)
+        g = grid(sh, (6, 5, 4))
+        grid_program(g, step=step)
+        grid_program(g, 0, False, step=step, slots=slots, record=record)
+    g = grid(2, (workload.WORK_RESO,) * 3)                 # the device workload
+    grid_program(g, 1, False, step=0.5, slots=slots, record=record)
+    ops.program(device, c.sh_degree)
+    ops.program(device, c.sh_degree, brick=True)
+    export_program(device, c.sh_degree)
+    if bg:
+        msi.program(device, c.background_layers, c.background_height)
+    optim.program(device, c.optimizer)
+
+
 class Distributed:
     """Plenoxels over MPI ranks, one brick each (clrf/grid/dist_model.py): the checks of a
     run's settings, the per-rank configuration the memory guard budgets, and the factories."""
@@ -96,4 +141,4 @@ class Distributed:
 KIND = Kind(name="grid", title="Plenoxels: a sparse voxel grid of density and SH colour",
             config=GridConfig, create=create, from_state=from_state, memory=budget.memory,
             scene_presets=SCENE_PRESETS, workload=WORKLOAD, selfcheck=selfcheck.CHECK,
-            distributed=Distributed)
+            distributed=Distributed, programs=programs)

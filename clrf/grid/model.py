@@ -39,6 +39,11 @@ def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
                                   np.zeros((n, sh_dim(cfg.sh_degree)), np.float32), bbox)
 
 
+def export_program(device, sh_degree: int):
+    """cl/export.cl for SH degree ``sh_degree`` on ``device``."""
+    return device.program("export.cl", {"SH_DEGREE": sh_degree})
+
+
 class GridModel:
     kind = "grid"
 
@@ -208,7 +213,7 @@ class GridModel:
         q = self.device.queue
         sigma, rgb = cla.empty(q, n, np.float32), cla.empty(q, (n, 3), np.float32)
         g = self.grid
-        prg = self.device.program("export.cl", {"SH_DEGREE": g.sh_degree})
+        prg = export_program(self.device, g.sh_degree)
         launch(self.device, prg.kernel("sample_fields"), n,
                (np.int32(n), points.data, *g.geometry_args(), g.links.data, g.density.data,
                 g.sh.data, sigma.data, rgb.data))

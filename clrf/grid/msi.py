@@ -40,6 +40,11 @@ def _float4(v):
     return cl.cltypes.make_float4(v[0], v[1], v[2], 0.0)
 
 
+def program(device, layers: int, height: int):
+    """cl/background.cl for ``layers`` spheres of ``height`` rows on ``device``."""
+    return device.program("background.cl", {"BG_LAYERS": layers, "BG_H": height})
+
+
 class MSIBackground:
     """The background's parameters on the device and its forward/backward launches.
 
@@ -77,8 +82,7 @@ class MSIBackground:
         return (self.layers, self.height, self.width)
 
     def _program(self):
-        return self.device.program("background.cl", {"BG_LAYERS": self.layers,
-                                                     "BG_H": self.height})
+        return program(self.device, self.layers, self.height)
 
     def _common_args(self, origins_d, dirs_d, t_start_d):
         return (origins_d.data, dirs_d.data, t_start_d.data, self.density.data, self.color.data,

@@ -12,8 +12,17 @@ from .render import render_max_weight_device
 TV_EPS = 1e-9
 
 
+def program(device, sh_degree: int, brick: bool = False):
+    """cl/grid_ops.cl for SH degree ``sh_degree`` on ``device``; brick: the BRICK variant
+    (clrf/grid/bricks.py)."""
+    d = {"SH_DEGREE": sh_degree, "TV_EPS": TV_EPS}
+    if brick:
+        d["BRICK"] = 1
+    return device.program("grid_ops.cl", d)
+
+
 def _prg(grid):
-    return grid.device.program("grid_ops.cl", {"SH_DEGREE": grid.sh_degree, "TV_EPS": TV_EPS})
+    return program(grid.device, grid.sh_degree)
 
 
 def tv_grad(grid, param, grad, touched, start: int, n_cells: int, scale: float,

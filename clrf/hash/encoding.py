@@ -44,6 +44,15 @@ def box_args(box):
     return f4(*lo, 0.0), f4(*inv, 0.0), lo.astype(np.float32), inv.astype(np.float32)
 
 
+def program(device, levels: int, features: int, log2_t: int):
+    """cl/hash.cl for ``levels`` x ``features`` tables of 2^log2_t rows on ``device``: the
+    table gradient owned per level (no atomics) where the device's tuning has gradient slots
+    (CPUs), else added with atomics."""
+    return device.program("hash.cl", {
+        "HASH_LEVELS": int(levels), "HASH_FEATURES": int(features), "HASH_LOG2_T": int(log2_t),
+        "HASH_GRAD_OWNED": int(int(device.tuning.grad_slots) > 0)})
+
+
 class HashEncoding:
     """The tables [L, T, F] (float32) and their gradient on a device. The backward's
     accumulation follows device.tuning.grad_slots like the grid's: 0 (GPUs) float atomics,
@@ -63,9 +72,7 @@ class HashEncoding:
         self.lo4, self.inv4, self.lo, self.inv_ext = box_args(box)
         self.box = (tuple(float(v) for v in box[0]), tuple(float(v) for v in box[1]))
         self.owned = int(device.tuning.grad_slots) > 0
-        self.program = device.program("hash.cl", {
-            "HASH_LEVELS": self.levels, "HASH_FEATURES": self.features,
-            "HASH_LOG2_T": self.log2_t, "HASH_GRAD_OWNED": int(self.owned)})
+        self.program = program(device, self.levels, self.features, self.log2_t)
         q = device.queue
         self.shape = (self.levels, self.T, self.features)
         if table is None:

@@ -22,6 +22,22 @@ SCENE_PRESETS = {
 }
 
 
+def programs(device, cfg):
+    """Every program a hash run of ``cfg`` asks ``device`` for (Kind.programs): the encoding,
+    the marcher (box and contracted), the occupancy grid, the fused MLP and Adam."""
+    from ..mlp import mlp
+    from ..runtime import optim
+    from . import encoding, march
+    from .model import mlp_spec
+    c = cfg.hash
+    encoding.program(device, c.levels, c.features, c.log2_table)
+    for contract in (False, True):
+        march.program(device, contract)
+    device.program("hash_occ.cl", {})                      # occupancy.py
+    mlp.program(device, mlp_spec(c))
+    optim.program(device, "adam")
+
+
 def _bounded(device) -> bool:
     """Training steps keep their sizes on the device (HashModel.train_step) where the device
     runs the GPU-shaped kernels: GPUs, or any device with CLRF_FORCE_GPU_KERNELS=1."""
@@ -43,4 +59,4 @@ def from_state(device, state, cfg):
 
 KIND = Kind(name="hash", title="multiresolution hash encoding + tiny MLPs",
             config=HashConfig, presets=HASH_PRESETS, scene_presets=SCENE_PRESETS,
-            create=create, from_state=from_state, memory=budget.memory)
+            create=create, from_state=from_state, memory=budget.memory, programs=programs)

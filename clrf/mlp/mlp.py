@@ -171,6 +171,17 @@ def init_params(spec: MLPSpec, layout: Layout, rng: np.random.Generator) -> np.n
     return p
 
 
+def program(device, spec: MLPSpec, tiling: MLPTiling | None = None):
+    """cl/mlp.cl for an MLP of ``spec`` with ``tiling`` (default ``mlp_tiling_for(device,
+    spec)``) on ``device``: the GPU tiling's defines, or the CPU tiles' with the tuning's
+    software prefetch."""
+    tiling = tiling or mlp_tiling_for(device, spec)
+    d = {**spec.defines(), **tiling.defines()}
+    if tiling.gpu is None:
+        d["MLP_PREFETCH"] = int(device.tuning.mlp_prefetch)
+    return device.program("mlp.cl", d)
+
+
 class MLP:
     """One NeRF MLP on a device: parameters, their transposed copy, scratch and gradients.
     ``tiling`` is the register tile it was built with (MLPTiling; ``tiling.gpu`` set: the GPU
@@ -185,9 +196,7 @@ class MLP:
         if self.gpu:
             self.program = self._build_gpu()
         else:
-            self.program = device.program("mlp.cl", {
-                **spec.defines(), **self.tiling.defines(),
-                "MLP_PREFETCH": int(device.tuning.mlp_prefetch)})
+            self.program = program(device, spec, self.tiling)
         self.layout = read_layout(device, self.program)
         q = device.queue
         if params is None:
@@ -215,7 +224,7 @@ class MLP:
         (CL_KERNEL_WORK_GROUP_SIZE: registers), rebuilt with half the group until it fits."""
         dev = self.device
         while True:
-            prg = dev.program("mlp.cl", {**self.spec.defines(), **self.tiling.defines()})
+            prg = program(dev, self.spec, self.tiling)
             wg = self.tiling.gpu.wg
             info = cl.kernel_work_group_info.WORK_GROUP_SIZE
             most = min(prg.kernel(k).get_work_group_info(info, dev.cl_device)

@@ -52,7 +52,8 @@ On an NVIDIA H100 they reached 0.8 % of the FP32 FMA peak. Devices whose tuning 
 of samples through every layer with the block's activations in local memory. ``gpu_default``
 gives the work-group size (256, clamped to the device's maximum; the MLP halves it where a
 built kernel allows fewer) and the local memory the kernel may use (the device's); the kernel
-then picks its samples per work-item and K-slice rows as the largest that fit (mlp_gpu.h). The
+then picks its samples per work-item and K-slice rows as the largest that fit (mlp_gpu.h),
+except on Intel GPUs, whose samples per work-item are INTEL_GPU_TM (register spills). The
 weight gradient's chunk (rows per partial gradient) is chosen per batch so that its work-groups
 fill the device (``GPU_GROUPS_PER_CU`` per compute unit, chunks of at least ``GPU_MIN_CHUNK``
 rows), unless ``MLPSpec.dw_chunk`` sets it. The defaults were chosen from the device limits
@@ -77,6 +78,13 @@ CACHE_VERSION = 3   # bumped when cl/mlp.cl's kernels change (work split, v2; so
 
 
 GPU_WG = 256            # work-items per group of the GPU tiling (before the device's clamp)
+INTEL_GPU_TM = 2        # GPU_TM (samples per work-item) on Intel GPUs: with the kernel's own
+# choice (the most that fit in local memory: 8) IGC spilled 5.2-7.7 KB per thread of
+# mlp_forward / mlp_density / mlp_backward at SIMD8 on Xe-LP (tgllp) and up to 1 KB on Xe-HPG
+# (dg2); with 4 the hash model's backward still spilled (192 / 96 B); with 2 nothing spills on
+# tgllp for any MLP shape the library builds, and on dg2 only the NeRF tiny forward, 256 B
+# (tools/gpu_builds.py, ocloc of compute runtime 22.43). Not measured on such a GPU; the tuner
+# still times 4 (GPU_NEIGHBOURS).
 GPU_GROUPS_PER_CU = 4   # the GPU weight gradient: chunks enough for this many groups per unit
 GPU_MIN_CHUNK = 256     # ... but no chunk under this many rows (16 staging steps of 16)
 
@@ -135,11 +143,15 @@ def tile_fields(tiling: MLPTiling) -> dict:
 
 def gpu_default(caps, chunk: int | None = None) -> GPUTiling:
     """The GPU tiling on a device (Capabilities): GPU_WG work-items per group, clamped to the
-    largest power of two the device allows, and the device's local memory."""
+    largest power of two the device allows, and the device's local memory; on Intel GPUs
+    INTEL_GPU_TM samples per work-item (elsewhere the kernel's choice)."""
+    from ..runtime.tuning import implementation
     wg = 1
     while wg * 2 <= min(GPU_WG, caps.max_work_group_size):
         wg *= 2
-    return GPUTiling(wg=wg, local_max=int(caps.local_mem_size), chunk=chunk)
+    intel = implementation(getattr(caps, "platform", "")) == "intel-gpu"
+    return GPUTiling(wg=wg, local_max=int(caps.local_mem_size),
+                     tm=INTEL_GPU_TM if intel else None, chunk=chunk)
 
 
 GPU_FIELDS = ("wg", "tm", "tn", "nc", "bk", "dw_bj", "dw_bs")   # tuned, cached

@@ -107,6 +107,10 @@ def _bg4(background):
     return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
 
 
+def _composite_prg(device, grad_mode: int):
+    return device.program("composite.cl", {"GRAD_MODE": grad_mode})
+
+
 def composite_forward(device, t, sigma, rgb, far: float, background=(0, 0, 0),
                       want_weights: bool = False):
     """dict of rgb [n, 3], depth [n], acc [n] (+ weights [n, K]) for t [n, K], sigma [n*K],
@@ -115,7 +119,7 @@ def composite_forward(device, t, sigma, rgb, far: float, background=(0, 0, 0),
     out = {"rgb": _empty(device, (n, 3)), "depth": _empty(device, n), "acc": _empty(device, n)}
     if want_weights:
         out["weights"] = _empty(device, (n, K))
-    prg = device.program("composite.cl", {"GRAD_MODE": 0})
+    prg = _composite_prg(device, 0)
     launch(device, prg.kernel("composite_forward"), n,
            (np.int32(n), np.int32(K), np.float32(far), t.data, sigma.data, rgb.data,
             _bg4(background), out["rgb"].data, out["depth"].data, out["acc"].data,
@@ -136,7 +140,7 @@ def composite_backward(device, t, sigma, rgb, far: float, ray_in, background=(0,
             out["sq_err"] = _empty(device, n)
         if want_weights:
             out["weights"] = _empty(device, (n, K))
-    prg = device.program("composite.cl", {"GRAD_MODE": int(bool(mse))})
+    prg = _composite_prg(device, int(bool(mse)))
     launch(device, prg.kernel("composite_backward"), n,
            (np.int32(n), np.int32(K), np.float32(far), t.data, sigma.data, rgb.data,
             _bg4(background), ray_in.data, out["sq_err"].data if mse else None,

@@ -7,13 +7,14 @@ import numpy as np
 from ..runtime.workload import Workload, best_time
 
 WORK_SAMPLES = 8192
+SPEC_FIELDS = dict(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=15)  # MLPSpec
 
 
 def nerf_rate(device) -> float:
     import pyopencl.array as cla
 
     from ..mlp.mlp import MLP, MLPSpec
-    spec = MLPSpec(width=64, depth=4, skip=-1, color_width=32, in_dim=51, dir_dim=15)
+    spec = MLPSpec(**SPEC_FIELDS)
     net = MLP(device, spec)
     q = device.queue
     rng = np.random.default_rng(4)

@@ -26,6 +26,11 @@ def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):
     return delay * math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
 
 
+def program(device, mode: str):
+    """cl/optim.cl for optimiser ``mode`` (MODES) on ``device``."""
+    return device.program("optim.cl", {"OPT_MODE": MODES[mode]})
+
+
 def span_groups(spans, local_size: int) -> np.ndarray:
     """The work-groups of AdamSet's table: int32 [groups, 2] (first entry, end of its span) of
     each work-group when the (start, stop) ``spans`` are cut into pieces of ``local_size``
@@ -143,7 +148,7 @@ class Optimizer:
         self._one_launch = None   # AdamSet([self]): several spans in one launch (GPU shapes)
 
     def _kernel(self, name):
-        return self.device.program("optim.cl", {"OPT_MODE": MODES[self.mode]}).kernel(name)
+        return program(self.device, self.mode).kernel(name)
 
     def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False, spans=None):
         """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed).

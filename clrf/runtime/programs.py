@@ -44,12 +44,17 @@ def build_options(device) -> dict:
     pointers (PoCL's CPU targets; NVIDIA's compiler rejects the address-space change, SPIR
     targets get OpenCL C's ``prefetch()``), CLRF_PTX_ATOMICS where float atomic adds go
     through inline PTX (NVIDIA, ``ptx_atomics``)."""
-    caps = device.caps
+    return capability_defines(device.caps, ptx_atomics(device))
+
+
+def capability_defines(caps, ptx: bool = False) -> dict:
+    """build_options from a device's Capabilities alone, ``ptx`` standing for the PTX probe's
+    answer (tools/gpu_builds.py builds for GPUs that are not here with it)."""
     return {
         "CLRF_NATIVE_FLOAT_ATOMICS": int(caps.float_atomics),
         "CLRF_HAS_FP64": int(caps.fp64),
         "CLRF_BUILTIN_PREFETCH": int(implementation(caps.platform) == "pocl"),
-        "CLRF_PTX_ATOMICS": int(ptx_atomics(device)),
+        "CLRF_PTX_ATOMICS": int(ptx),
     }
 
 
@@ -99,14 +104,20 @@ def build_flags(device, defines: dict, fast_math: bool = False) -> list:
     (sorted by name; floats as float literals), ``-cl-std=CL3.0`` where the gradient slots'
     locks use acquire/release atomics (CLRF_ACQ_REL), then ``-cl-fast-relaxed-math`` if
     asked."""
-    allopts = dict(build_options(device))
+    return caps_build_flags(device.caps, build_options(device), defines, fast_math)
+
+
+def caps_build_flags(caps, capability: dict, defines: dict, fast_math: bool = False) -> list:
+    """build_flags for a device's Capabilities and its capability defines (build_options or
+    capability_defines)."""
+    allopts = dict(capability)
     allopts.update(defines)
-    if int(allopts.get("GRAD_SLOTS", 0)) > 0 and device.caps.acq_rel:
+    if int(allopts.get("GRAD_SLOTS", 0)) > 0 and caps.acq_rel:
         allopts["CLRF_ACQ_REL"] = 1      # the slot and block locks order plain memory
     opts = [f"-I{cl_dir()}"] + [f"-D{k}={_fmt(v)}" for k, v in sorted(allopts.items())]
     if allopts.get("CLRF_ACQ_REL"):
         opts.append("-cl-std=CL3.0")     # C11-style atomics with memory order and scope
-    if device.caps.type != "cpu" and getattr(device.caps, "cr_divide_sqrt", False):
+    if caps.type != "cpu" and getattr(caps, "cr_divide_sqrt", False):
         # GPUs divide to 2.5 ulp by default; correctly rounded, a voxel centre (x + 0.5) * r / r
         # lands exactly on x + 0.5 as on CPUs and in the float64 references (grid resampling
         # decides allocation by "weight > 0" there)

@@ -18,6 +18,11 @@ MAX_CHUNKS = 64          # work-items of a pass; a few per core balance a CPU's 
 MIN_CHUNK = 1024         # fewer items a chunk cost more in histograms than they save
 
 
+def program(device):
+    """cl/sort.cl on ``device``."""
+    return device.program("sort.cl", {"RADIX_BITS": RADIX_BITS})
+
+
 def chunking(n: int, max_chunks: int | None = None) -> tuple[int, int]:
     """(chunk, nchunks): n items cut into nchunks contiguous chunks of ``chunk`` items (the last
     shorter), at most ``max_chunks`` (default MAX_CHUNKS) of them and none under MIN_CHUNK
@@ -39,7 +44,7 @@ def key_order(device, keys, n: int | None = None, key_bits: int = 32):
         raise ValueError(f"key_bits: must be in 1..32, got {key_bits}")
     if n <= 1:                   # nothing to sort: [] or [0]
         return scratch(device, (n,), np.int32).fill(0)
-    prg = device.program("sort.cl", {"RADIX_BITS": RADIX_BITS})
+    prg = program(device)
     count, offsets, scatter = (prg.kernel(k) for k in ("radix_count", "radix_offsets",
                                                         "radix_scatter"))
     chunk, nchunks = chunking(n)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from dataclasses import dataclass
 
 # CPU devices sort batches of at least this many rays (the keys kernel, the host round trip
@@ -73,6 +74,22 @@ IMPLEMENTATIONS = {   # CPU devices only
     "pocl": {"prefetch": True, "mlp_prefetch": True},
     "intel": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
 }
+
+# GPUs that run 64 work-items in lockstep: AMD's GCN and CDNA (ROCm names them gfx6xx to
+# gfx9xx; Instinct MI100 to MI300 are gfx908, gfx90a, gfx942). tools/gpu_builds.py builds every
+# kernel for gfx90a and gfx942 as wave64 (clang has no wave32 there), so the CPU-sized groups
+# would fill a wave by half (the grid renderer's 32 rays), a quarter (16 rays of the per-ray
+# kernels) or an eighth (8 items of the encoding). Groups of 64 fill one wave; RDNA (gfx10+,
+# wave32 by default) keeps the defaults. Not measured on such a GPU.
+WAVE64_GPU = {"grid_local_size": 64, "per_ray_local_size": 64, "encode_local_size": 64}
+
+
+def amd_wave64(caps) -> bool:
+    """Whether ``caps`` is an AMD GPU of 64-wide waves (WAVE64_GPU) under AMD's OpenCL."""
+    return (caps.type == "gpu" and implementation(getattr(caps, "platform", "")) == "amd"
+            and re.match(r"gfx[6-9][0-9a-f]", getattr(caps, "name", "").strip().lower())
+            is not None)
+
 
 ENV = {
     "CLRF_GRAD_SLOTS": ("grad_slots", int),
@@ -148,7 +165,7 @@ class Tuning:
         """Defaults from capabilities: CPU devices get one slot (with its per-sample record)
         per compute unit, block-locked gradient adds (GRAD_LOCKS_LOG2) and sorted rays from
         RAY_ORDER_MIN_RAYS on, GPU devices the fused MLP's GPU tiling; then each
-        implementation's entry (IMPLEMENTATIONS)."""
+        implementation's entry (IMPLEMENTATIONS), or for AMD's wave64 GPUs WAVE64_GPU."""
         cpu = caps.type == "cpu"
         # the slots and block locks need locks that order plain memory between work-groups,
         # which OpenCL 1.2 atomics do not promise: without acquire/release atomics a CPU
@@ -158,6 +175,8 @@ class Tuning:
                 grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
                 ray_order=RAY_ORDER_MIN_RAYS if cpu else 0, gpu_kernels=caps.type == "gpu")
         impl = implementation(getattr(caps, "platform", ""))
+        if amd_wave64(caps):
+            return t.replace(**WAVE64_GPU)
         return t.replace(**(IMPLEMENTATIONS.get(impl, {}) if cpu else {}))
 
     @classmethod

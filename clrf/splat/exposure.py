@@ -26,6 +26,11 @@ ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-15
 
 
+def program(device):
+    """cl/splat_exposure.cl on ``device`` (its one build; clrf/runtime/catalog.py lists it)."""
+    return device.program("splat_exposure.cl")
+
+
 class Exposure:
     """The transforms of ``n_images`` training images on ``device`` (module doc)."""
 
@@ -49,7 +54,7 @@ class Exposure:
         self.m = upload(q, np.ascontiguousarray(zeros))
         self.v = upload(q, np.ascontiguousarray(second))
         self.steps = steps.copy()       # Adam steps of each row (host: no read-back)
-        self._prg = device.program("splat_exposure.cl")
+        self._prg = program(device)
 
     def apply(self, rgb, v: int):
         """A_v rgb + b_v, a new device array shaped like ``rgb``."""

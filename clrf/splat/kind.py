@@ -46,6 +46,21 @@ def write_splats(model, path):
     return write(model, path)
 
 
+def programs(device, cfg):
+    """Every program a splat run of ``cfg`` asks ``device`` for (Kind.programs): projection and
+    rasteriser at the device's default tile, the loss, the densification statistics, the
+    rows shape's depth sort and Adam, and the colour transform per image (splat.exposure;
+    listed whatever cfg says: the offline builds cover every program a run may build)."""
+    from ..runtime import optim, sort
+    from . import exposure, loss, raster
+    raster.programs(device, cfg.splat.sh_degree, raster.default_tile(device))
+    loss.program(device)
+    device.program("splat_train.cl")                       # model.py
+    sort.program(device)
+    optim.program(device, "adam")
+    exposure.program(device)
+
+
 SPLATS = Export(help="3D Gaussian splats in the standard 3DGS PLY layout (x, y, z, nx, ny, nz, "
                      "f_dc_0..2, f_rest_*, opacity, scale_0..2, rot_0..3)",
                 suffix=".ply", write=write_splats)
@@ -54,4 +69,4 @@ KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole v
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
             exports={"splats": SPLATS}, batches="views", check=check, world_cameras=True,
-            wants_points=wants_points)
+            wants_points=wants_points, programs=programs)

@@ -61,6 +61,11 @@ def defines() -> dict:
     return d
 
 
+def program(device):
+    """cl/splat_loss.cl on ``device``."""
+    return device.program("splat_loss.cl", defines())
+
+
 # The reduction's map and merge. fp64: lanes (|x - y|, s, (x - y)^2, 0) in double (the
 # difference of two floats is exact there). Else lanes (0, 1) |x - y|, (2, 3) s, (4, 5)
 # (x - y)^2 as float pairs (hi, lo) merged with TwoSum on the heads (cl/reduce.h).
@@ -143,7 +148,7 @@ class DeviceLoss:
         if fp64 and not device.caps.fp64:
             raise ValueError("DeviceLoss: fp64=True but the device has no cl_khr_fp64")
         self.fp64 = bool(fp64)
-        self.program = device.program("splat_loss.cl", defines())
+        self.program = program(device)
         self._sums_kernel = _sums_kernel(device.context, self.fp64)
         self.has_ssim = lam > 0.0
         if self.has_ssim:

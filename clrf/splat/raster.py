@@ -54,6 +54,13 @@ def defines(sh_degree: int, tile: int = TILE) -> dict:
             "FRUSTUM_GUARD": FRUSTUM_GUARD, "SIGMA_RADIUS": SIGMA_RADIUS}
 
 
+def programs(device, sh_degree: int, tile: int = TILE) -> tuple:
+    """(cl/splat_project.cl, cl/splat_raster.cl) for SH degree ``sh_degree`` and tiles of
+    ``tile`` pixels on ``device`` (both shapes' kernels are in the second)."""
+    d = defines(sh_degree, tile)
+    return device.program("splat_project.cl", d), device.program("splat_raster.cl", d)
+
+
 @dataclass(frozen=True)
 class SplatCamera:
     """A pinhole camera: ``viewmat`` [4, 4] world-to-camera (x right, y down, z forward),
@@ -213,9 +220,7 @@ class SplatRasterizer:
             raise ValueError(f"tile {self.tile}: {self.tile ** 2} work-items exceed this "
                              f"device's work-group limit {device.caps.max_work_group_size}; "
                              f"use a smaller tile")
-        d = defines(self.sh_degree, self.tile)
-        self.proj_program = device.program("splat_project.cl", d)
-        self.raster_program = device.program("splat_raster.cl", d)
+        self.proj_program, self.raster_program = programs(device, self.sh_degree, self.tile)
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
