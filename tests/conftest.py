@@ -30,7 +30,7 @@ from clrf.testing import impls  # noqa: E402
 def installed_outside_checkout() -> str | None:
     """Why the imported clrf is not an install outside this checkout, or None when it is."""
     where = Path(clrf.__file__).resolve().parent
-    if where == ROOT / "clrf" or ROOT in where.parents:
+    if where == (ROOT / "clrf").resolve():     # (a venv inside the checkout is an install)
         return (f"the tests imported clrf from the checkout ({where}), not from an install. "
                 f"Install clrf (`bash tools/setup.sh test`, a non-editable `pip install .`) and "
                 f"run the tests with the installed environment's pytest (`.venv/bin/pytest -q`, "
