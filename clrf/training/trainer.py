@@ -491,6 +491,7 @@ class Trainer:
 
 
 EVAL_SHARE = 0.15   # periodic evaluations take at most this share of the wall time
+EVAL_STRETCH_MIN_S = 1.0   # ... once one takes at least this long (short test runs keep theirs)
 
 
 def eval_interval(every: float, eval_wall: float) -> float:
@@ -503,6 +504,8 @@ def eval_interval(every: float, eval_wall: float) -> float:
     >>> eval_interval(10.0, 1.0), eval_interval(10.0, 30.0)
     (10.0, 170.0)
     """
+    if eval_wall < EVAL_STRETCH_MIN_S:    # a quick evaluation keeps the configured rhythm
+        return float(every)
     return max(float(every), float(eval_wall) * (1.0 - EVAL_SHARE) / EVAL_SHARE)
 
 
