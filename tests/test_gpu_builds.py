@@ -197,12 +197,10 @@ def test_known_spills(builds, target, source, kernel):
     assert not found, "\n".join(f"{s} {k}: {f}" for _, _, s, k, f, _ in found)
 
 
-def test_nothing_needs_fp64(builds, tmp_path):
+def test_nothing_needs_fp64(builds):
     """Intel's Xe-LP and Xe-HPG have no fp64: their compiler rejects a double (a canary
     kernel shows it does), and every program built there with CLRF_HAS_FP64=0."""
-    canary = tmp_path / "fp64.cl"
-    canary.write_text("__kernel void k(__global float *o) { double x = o[0]; "
-                      "o[0] = (float)(x * 3.0); }\n")
+    canary = Path(__file__).parent / "fixtures" / "fp64_canary.cl"
     tools = gb.find_tools()
     b = gb.run_build(gb.Build(str(canary), (), "tgllp", "CL3.0"), gb.TARGETS["tgllp"], tools)
     assert not b.ok and "double" in b.log
