@@ -21,6 +21,8 @@
  * Defines read: none.
  */
 
+#include "adam.h"
+
 #define EXPOSURE_ROW 12
 
 /* entry k of the identity row: A = I (k = 0, 4, 8), b = 0 */
@@ -74,11 +76,5 @@ __kernel void exposure_adam(const int items, __global const float *partials,
     for (int it = 0; it < items; ++it) gk += partials[(size_t)it * EXPOSURE_ROW + k];
     gk += 2.0f * reg * (P[i] - identity_entry(k));
     if (!isfinite(gk)) return;
-    float mi = b1 * m[i] + (1.0f - b1) * gk;
-    float vi = b2 * vm[i] + (1.0f - b2) * gk * gk;
-    mi = fabs(mi) < FLT_MIN ? 0.0f : mi;   /* no subnormal moments (see cl/optim.cl) */
-    vi = vi < FLT_MIN ? 0.0f : vi;
-    m[i] = mi;
-    vm[i] = vi;
-    P[i] -= lr * (mi / bc1) / (sqrt(vi / bc2) + eps);
+    adam_apply(i, gk, P, m, vm, lr, b1, b2, eps, bc1, bc2);
 }

@@ -14,6 +14,8 @@
  *   radius).
  */
 
+#include "adam.h"
+
 __kernel void splat_adam_sh(const int n, __global float *p, __global const float *g,
                             __global float *m, __global float *v, const float lr_dc,
                             const float lr_rest, const float b1, const float b2, const float eps,
@@ -25,14 +27,7 @@ __kernel void splat_adam_sh(const int n, __global float *p, __global const float
     if (b >= active_basis) return;
     const float gi = g[i];
     if (!isfinite(gi)) return;
-    float mi = b1 * m[i] + (1.0f - b1) * gi;
-    float vi = b2 * v[i] + (1.0f - b2) * gi * gi;
-    mi = fabs(mi) < FLT_MIN ? 0.0f : mi;   /* no subnormal moments (see cl/optim.cl) */
-    vi = vi < FLT_MIN ? 0.0f : vi;
-    m[i] = mi;
-    v[i] = vi;
-    const float lr = b == 0 ? lr_dc : lr_rest;
-    p[i] -= lr * (mi / bc1) / (sqrt(vi / bc2) + eps);
+    adam_apply(i, gi, p, m, v, b == 0 ? lr_dc : lr_rest, b1, b2, eps, bc1, bc2);
 }
 
 __kernel void splat_densify_stats(const int n, __global const float *grad_xy,
