@@ -153,7 +153,7 @@ class Kind:
     programs       (device, cfg) -> None: asks ``device.program`` for every program a run of
                    ``cfg`` builds (training, rendering, the workload and self-check), through
                    the same functions the model calls; on a recording stand-in
-                   (clrf/runtime/catalog.py) this lists them for offline builds
+                   (clrf/training/catalog.py) this lists them for offline builds
                    (tools/gpu_builds.py). None: none listed
     """
     name: str

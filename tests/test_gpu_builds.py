@@ -8,7 +8,7 @@ Xe-LP and Xe-HPG have none: their compiler rejects any double), every file build
 
 The compilers come with ``bash tools/setup.sh gpucc`` (clang-19, libclc-19's bitcode in
 .gpucc/, Intel's ocloc; NVIDIA's ptxas from the CUDA toolkit when present); without them the
-build tests skip, saying so. The catalog tests (clrf/runtime/catalog.py lists every program:
+build tests skip, saying so. The catalog tests (clrf/training/catalog.py lists every program:
 each kernel file, each define the kernels read) need no compiler.
 
 The builds run once per module (two compiler processes at a time; PLAN): on gfx1100 every
@@ -126,7 +126,7 @@ def test_catalog_sets_every_define_the_kernels_read():
         set_by |= {f[2:].split("=")[0] for f in flags if f.startswith("-D")}
     missing = knobs - set_by - set(LEFT_AT_DEFAULT)
     assert not missing, (f"defines the kernels read that no program of the catalog sets: "
-                         f"{sorted(missing)} (clrf/runtime/catalog.py, Kind.programs; or add "
+                         f"{sorted(missing)} (clrf/training/catalog.py, Kind.programs; or add "
                          f"them to LEFT_AT_DEFAULT with the reason)")
     stale = set(LEFT_AT_DEFAULT) - knobs
     assert not stale, f"LEFT_AT_DEFAULT names what no kernel reads: {sorted(stale)}"

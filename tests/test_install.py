@@ -126,12 +126,14 @@ def _fresh_venv(tmp_path: Path, wheel: Path) -> Path:
     site = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()"
                                 "['purelib'])"], capture_output=True, text=True,
                                check=True).stdout.strip())
-    ours = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
-    (site / "outer_deps.pth").write_text("\n".join(sorted(ours)) + "\n")
+    # the wheel first, into the bare venv: with the .pth already there pip would see the clrf
+    # of this environment (the one under test) as installed, and skip the wheel
     r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q",
                         "--no-deps", str(wheel)], capture_output=True, text=True,
                        env=_clean_env())
     assert r.returncode == 0, r.stderr[-3000:]
+    ours = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
+    (site / "outer_deps.pth").write_text("\n".join(sorted(ours)) + "\n")
     r = subprocess.run([str(py), "-c", "import clrf; print(clrf.__file__)"],
                        capture_output=True, text=True, cwd=tmp_path, env=_clean_env())
     assert Path(r.stdout.strip()).resolve().is_relative_to(venv.resolve()), r.stdout + r.stderr
@@ -217,9 +219,14 @@ def test_a_broken_install_is_an_install_error_and_a_reinstall_trains(wheel, tmp_
     verdicts = cache / "clrf" / "selfcheck.json"
     assert not verdicts.exists() or "references" not in verdicts.read_text()
 
+    # the reinstall sees only the venv (not this environment's clrf, which it could uninstall)
+    pth = site.parent / "outer_deps.pth"
+    kept = pth.read_text()
+    pth.unlink()
     r = subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "-q",
                         "--no-deps", "--force-reinstall", str(wheel)],
                        capture_output=True, text=True, env=_clean_env())
+    pth.write_text(kept)
     assert r.returncode == 0, r.stderr[-3000:]
     p = subprocess.run([clrf_bin, "--quiet", "train", "--out", "fixed", *SHORT_RUN],
                        capture_output=True, text=True, cwd=work, env=env, timeout=600)

@@ -43,17 +43,19 @@ def test_training_learns_each_images_gain(device):
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
                                        ("exposure_reg", -0.1)])
-def test_bad_settings_are_one_clear_error(key, value, capsys):
+def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
-    rc = cli(["--quiet", "train", "--model", "splat", "--set", "splat.exposure=true",
+    rc = cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "run"),
+              "--set", "splat.exposure=true",
               "--set", f"splat.{key}={value}", "--max-seconds", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("clrf: error:") == 1 and f"splat.{key}" in err, err
 
 
-def test_exposure_on_a_model_without_it_is_one_clear_error(capsys):
+def test_exposure_on_a_model_without_it_is_one_clear_error(capsys, tmp_path):
     from clrf.cli.main import main as cli
-    rc = cli(["--quiet", "train", "--model", "hash", "--set", "hash.exposure=true",
+    rc = cli(["--quiet", "train", "--model", "hash", "--out", str(tmp_path / "run"),
+              "--set", "hash.exposure=true",
               "--max-seconds", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("clrf: error:") == 1 and "hash.exposure" in err, err

@@ -49,7 +49,7 @@ def test_train_writes_every_output(trained):
     assert secs == sorted(secs) and secs[-1] >= 4.0
     losses = [float(r["train_loss"]) for r in rows if r["train_loss"]]
     assert losses[-1] < 0.5 * losses[0], "training must reduce the loss"
-    psnr = [float(r["eval_psnr"]) for r in rows]
+    psnr = [float(r["eval_psnr"]) for r in rows if r["eval_psnr"]]   # (some rows: loss only)
     assert psnr[-1] > psnr[0] + 3
     cfg = json.loads((trained / "config.json").read_text())
     assert cfg["grid"]["reso"] == [[16, 16, 16], [32, 32, 32]] and cfg["train"]["preset"] == "procedural"
@@ -233,14 +233,45 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     def slow(*a, **k):
         time.sleep(1.0)
         return real(*a, **k)
-    monkeypatch.setattr(tr, "evaluate", slow)
     out = tmp_path / "r"
     opts = [o if o != "train.eval_every=1.0" else "train.eval_every=0.2" for o in FAST]
+    # the programs built first (a cold build is training time, and would make two steps
+    # seconds long)
+    assert run_cli("--quiet", "train", "--out", tmp_path / "warm", "--max-seconds", 60, *opts,
+                   "--set", "train.max_iters=10", "--set", "train.final_eval=false") == 0
+    monkeypatch.setattr(tr, "evaluate", slow)
     assert run_cli("train", "--out", out, "--max-seconds", 13, *opts,
                    "--set", "train.final_eval=false") == 0
-    rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
+    every = read_csv(out / "metrics.csv")
+    rows = [r for r in every if r["eval_psnr"]]
+    # between them, the training loss keeps the configured 0.2 s rhythm in rows of its own
+    loss_only = [r for r in every if not r["eval_psnr"]]
+    assert len(loss_only) >= 20 and all(r["train_loss"] and r["rays_per_s"] for r in loss_only)
+    loss_secs = [float(r["seconds"]) for r in every if r["train_loss"]]
+    assert max(np.diff(loss_secs)) < 1.0, loss_secs
     # at 0 s (one view), then every >= 1 s * 0.85 / 0.15 = 5.7 s, and before stopping
     assert rows[0]["eval_views"] == "1" and all(r["eval_views"] == "2" for r in rows[1:])
     secs = [float(r["seconds"]) for r in rows]
     gaps = np.diff(secs[:-1])
     assert len(rows) <= 4 and all(g >= 5.6 for g in gaps), secs
+
+
+def test_program_builds_are_not_training_time(tmp_path, monkeypatch):
+    """A first run builds its programs (seconds each, cold): the training clock leaves them out,
+    as the evaluations' timing does, so a short budget still trains. Each build made 1 s
+    slower here: with the builds counted, the 1.5 s budget would end after the first step."""
+    import clrf.runtime.programs as programs
+    real = programs.build
+
+    def slow(*a, **k):
+        time.sleep(1.0)
+        return real(*a, **k)
+    monkeypatch.setattr(programs, "build", slow)
+    out = tmp_path / "r"
+    t0 = time.perf_counter()
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 1.5, *FAST,
+                   "--set", "train.final_eval=false") == 0
+    wall = time.perf_counter() - t0
+    st = checkpoint.load(out)
+    assert st["iteration"] > 20 and st["seconds"] >= 1.5
+    assert wall > st["seconds"] + 2.0     # the builds happened, outside the clock

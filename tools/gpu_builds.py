@@ -22,7 +22,7 @@ setup script unpacks it: installing libclc-19 would remove Mesa's OpenCL, which 
 libclc-15). NVIDIA's own OpenCL compiler is not clang: the nvptx figures are clang's, a
 stand-in.
 
-What is built: clrf/runtime/catalog.py lists every (kernel file, defines) pair the library asks
+What is built: clrf/training/catalog.py lists every (kernel file, defines) pair the library asks
 a device for, through the model kinds' own functions, for every scene preset and section
 preset. For each target it is asked for three shapes:
   gpu      the target's own tuning (clrf/runtime/tuning.py Tuning.for_device of the target's
@@ -66,7 +66,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from clrf.runtime.catalog import library_programs  # noqa: E402
+from clrf.training.catalog import library_programs  # noqa: E402
 from clrf.runtime.device import Capabilities  # noqa: E402
 from clrf.runtime.programs import caps_build_flags, capability_defines, cl_dir  # noqa: E402
 from clrf.runtime.tuning import Tuning, implementation  # noqa: E402

@@ -27,7 +27,7 @@ ADAM_EPS = 1e-15
 
 
 def program(device):
-    """cl/splat_exposure.cl on ``device`` (its one build; clrf/runtime/catalog.py lists it)."""
+    """cl/splat_exposure.cl on ``device`` (its one build; clrf/training/catalog.py lists it)."""
     return device.program("splat_exposure.cl")
 
 

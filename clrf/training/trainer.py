@@ -8,11 +8,13 @@ an evaluation, a checkpoint or the end, the device's queue is drained inside the
 so the clock counts all of its work). Held-out views are evaluated every ``eval_every`` seconds of
 training, or less often where an evaluation is slow, so that evaluations take at most
 EVAL_SHARE of the wall time (``eval_interval``; the untrained model's point renders one view);
-the clock excludes evaluation and checkpointing, so ``seconds`` in metrics.csv is
-pure training time. Outputs in the run directory:
+the clock excludes evaluation, checkpointing and one-off program builds, so ``seconds`` in
+metrics.csv is pure training time. Outputs in the run directory:
 
 - ``config.json``       the effective configuration (feed it back with --config)
 - ``metrics.csv``       iteration, seconds, train_loss, train_psnr, eval_psnr, eval_ssim, ...
+                        (a row every ``eval_every`` seconds; where evaluations are spaced
+                        out, the rows between them hold the training loss alone)
 - ``error_vs_time.png`` eval PSNR against training seconds
 - ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
 - ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation (``ssim_window``:
@@ -196,7 +198,8 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in csv.DictReader(open(csv_path)) if r["eval_psnr"]]
+    every = list(csv.DictReader(open(csv_path)))
+    rows = [r for r in every if r["eval_psnr"]]
     # the final evaluation over every test view is the row after the last periodic one
     final = rows[-1] if len(rows) > 1 and not rows[-1]["train_loss"] and rows[-1]["eval_views"] \
         and rows[-1]["eval_views"] != rows[-2]["eval_views"] else None
@@ -212,7 +215,7 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
             ax.plot([float(final["seconds"])], [float(final["eval_psnr"])], "*", ms=10,
                     label=f"final: all {final['eval_views']} test views, "
                           f"{float(final['eval_psnr']):.2f} dB")
-        tr = [(float(r["seconds"]), float(r["train_psnr"])) for r in periodic if r["train_psnr"]]
+        tr = [(float(r["seconds"]), float(r["train_psnr"])) for r in every if r["train_psnr"]]
         if tr:
             ax.plot(*zip(*tr), "-", alpha=0.5, label="train PSNR (batch)")
         ax.legend(loc="lower right")
@@ -345,6 +348,7 @@ class Trainer:
                  f"({version[3] if len(version) > 3 else ''})")
         return _Loop(prog=prog, batch=self.model.batch_size, title=title,
                      next_eval=self.seconds + (0 if self.iteration == 0 else t.eval_every),
+                     next_row=self.seconds + t.eval_every,
                      next_ckpt=self.seconds + t.checkpoint_every)
 
     def _done(self) -> bool:
@@ -355,9 +359,21 @@ class Trainer:
         """A periodic evaluation when one is due (and always before stopping): a metrics row,
         the plot, a progress line, the viewer told."""
         t = self.cfg.train
-        if not (self.seconds >= loop.next_eval or self._done()):
+        due = self.seconds >= loop.next_eval or self._done()
+        if not due and self.seconds < loop.next_row:
             return
         self._take_losses(loop)
+        loop.next_row = self.seconds + t.eval_every
+        if not due:
+            # the evaluations are stretched (eval_interval); the training loss keeps
+            # train.eval_every's rhythm in metrics.csv, in a row of its own
+            if loop.losses:
+                lt = float(np.mean(loop.losses))
+                self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
+                          train_loss=f"{lt:.6g}", train_psnr=f"{psnr_from_mse(lt):.3f}",
+                          rays_per_s=f"{self._rate:.0f}", model=self.model.describe())
+                loop.losses = []
+            return
         # the untrained model's point of the curve: one view (an untrained model renders
         # slowest, nothing is pruned yet, and its figure only anchors the curve)
         views = self.periodic_views[:1] if self.iteration == 0 else self.periodic_views
@@ -402,7 +418,7 @@ class Trainer:
         """One training step: the model's per-iteration work (pruning, upsampling), a batch,
         the fused step; the clock counts only this (the slowest rank's time under MPI)."""
         t = self.cfg.train
-        t0 = time.perf_counter()
+        t0, built = time.perf_counter(), getattr(self.device, "build_seconds", 0.0)
         msg = self.model.on_iteration(self.iteration, self.budget())
         if msg:
             loop.prog.message(f"it {self.iteration:6d}  {msg}")
@@ -413,10 +429,13 @@ class Trainer:
             # stops, wait for it inside the step's time, so that the clock counts its work
             loop.pending.append((self.iteration, loss))
             seconds = self.seconds + time.perf_counter() - t0
-            if seconds >= min(loop.next_eval, loop.next_ckpt, t.max_seconds) \
+            if seconds >= min(loop.next_eval, loop.next_row, loop.next_ckpt, t.max_seconds) \
                     or self.iteration + 1 >= t.max_iters:
                 self.device.queue.finish()
-        dt = time.perf_counter() - t0
+        # without one-off program builds (a first run's cold builds would otherwise spend
+        # seconds of a short budget, and shift its PSNR-against-time curve)
+        dt = max(0.0, time.perf_counter() - t0
+                 - (getattr(self.device, "build_seconds", 0.0) - built))
         if self.comm is not None:   # the slowest rank's time, the same on every rank
             from mpi4py import MPI
             dt = self.comm.allreduce(dt, op=MPI.MAX)
@@ -517,6 +536,7 @@ class _Loop:
     title: str               # of the PSNR-against-time plot
     next_eval: float         # training seconds of the next periodic evaluation
     next_ckpt: float         # and of the next checkpoint
+    next_row: float          # and of the next metrics row (train.eval_every)
     losses: list = field(default_factory=list)   # batch losses since the last evaluation
     pending: list = field(default_factory=list)  # (iteration, Pending) losses not yet read
     last_loss: float = float("nan")              # the latest loss read

@@ -76,7 +76,7 @@ class Recorder:
 def kind_configs(kind):
     """(label, Config) for every scene preset and every preset of ``kind``'s section (its
     default first): the runs ``clrf train --preset P [--set KIND.preset=Q]`` configures."""
-    from ..training.config import PRESETS, build_config
+    from .config import PRESETS, build_config
     for scene in PRESETS:
         for own in ("", *sorted(kind.presets)):
             over = {kind.name: {"preset": own}} if own else None
@@ -88,7 +88,7 @@ def library_programs(caps, tuning) -> list:
     """Every program clrf builds on a device with ``caps`` (clrf.runtime.device.Capabilities)
     and ``tuning`` (clrf.runtime.tuning.Tuning), as Entry objects in the order first asked."""
     from .. import registry
-    from .device_probe import PROBE_CHAINS, PROBE_WIDTH
+    from ..runtime.device_probe import PROBE_CHAINS, PROBE_WIDTH
     rec = Recorder(caps, tuning)
     for kind in registry.kinds():
         if kind.programs is None:
