@@ -38,12 +38,27 @@
  *   code): dL/dv = sum_b (sum_c gc_c sh[b, c]) dY_b/dv, dL/dm += (dL/dv - v (v . dL/dv)) / |m -
  *   campos|;  dL/dlogit = dL/dopacity o (1 - o);  dL/dm += R^T dL/dt.
  *
- * Defines read: SH_DEGREE (sh.h), TILE and the constants of splat.h.
- * Twin: clrf/references/reference_splat.py project / project_backward (float64).
+ * The camera's gradient (POSE_GRAD=1, splat.pose_opt: clrf/splat/pose.py): the backward also
+ * writes each Gaussian's share of dL/dR and dL/dt of the world-to-camera transform (R, t),
+ * d_cam [12, N] component-major (d_cam[k N + i]: k = 3 r + c for dL/dR[r, c], 9 + r for
+ * dL/dt[r]; the host sums over i). R enters through t_c = R m + t, through T = J R and through
+ * the camera centre campos = -R^T t of the view direction (dL/dcampos = -g_dir, g_dir the view
+ * direction's pull on the mean above):
+ *   dL/dR = g_t m^T + J^T dL/dT + t g_dir^T,   dL/dt = g_t + R g_dir,
+ * g_t = dL/dt_c with every term above (the mean in pixels and J's dependence on t_c).
+ *
+ * Defines read: SH_DEGREE (sh.h), TILE, POSE_GRAD (0 or 1, default 0) and the constants of
+ * splat.h.
+ * Twin: clrf/references/reference_splat.py project / project_backward / camera_backward
+ * (float64).
  */
 #include "common.h"
 #include "sh.h"
 #include "splat.h"
+
+#ifndef POSE_GRAD
+#define POSE_GRAD 0
+#endif
 
 /* Loads and stores of 2, 3, 4 floats as scalar accesses, the loops unrolled, no hypot and no
  * early exit for culled Gaussians (their outputs are selected to zero): on 2 vCPUs of a Xeon
@@ -290,7 +305,11 @@ __kernel void splat_project_backward(const int n, __global const float *means,
                                      __global const float *g_color,
                                      __global const float *g_opacity, __global float *d_means,
                                      __global float *d_log_scales, __global float *d_quats,
-                                     __global float *d_logits, __global float *d_sh) {
+                                     __global float *d_logits, __global float *d_sh
+#if POSE_GRAD
+                                     , __global float *d_cam
+#endif
+                                     ) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const float3 m = load3(means, i);
@@ -321,6 +340,9 @@ __kernel void splat_project_backward(const int n, __global const float *means,
     }
     const float3 gdir = sh_dir_grad(dir, w);
     float3 gm = (gdir - dir * (dir.x * gdir.x + dir.y * gdir.y + dir.z * gdir.z)) / dist;
+#if POSE_GRAD
+    const float3 g_dir = gm;   /* the view direction's pull on the mean (-dL/dcampos) */
+#endif
 
     /* opacity */
     const float o = safe_sigmoid(opacity_logits[i]);
@@ -371,6 +393,30 @@ __kernel void splat_project_backward(const int n, __global const float *means,
     gt.z += (P.clamp_x ? 1.0f : 2.0f) * fx * P.rx * iz2 * dJ[2];
     gt.y += P.clamp_y ? 0.0f : -fy * iz2 * dJ[5];
     gt.z += (P.clamp_y ? 1.0f : 2.0f) * fy * P.ry * iz2 * dJ[5];
+#if POSE_GRAD
+    {
+        /* dL/dR = g_t m^T + J^T dT + t g_dir^T, dL/dt = g_t + R g_dir (the header) */
+        const float J00 = fx / z, J02 = -fx * P.rx / z, J11 = fy / z, J12 = -fy * P.ry / z;
+        const float gtv[3] = {gt.x, gt.y, gt.z};
+        const float mv[3] = {m.x, m.y, m.z};
+        const float gdv[3] = {g_dir.x, g_dir.y, g_dir.z};
+        const float tv[3] = {cam[CAM_T], cam[CAM_T + 1], cam[CAM_T + 2]};
+#pragma unroll
+        for (int c = 0; c < 3; ++c) {
+            const float jt0 = J00 * dT[c], jt1 = J11 * dT[3 + c];
+            const float jt2 = J02 * dT[c] + J12 * dT[3 + c];
+            d_cam[(size_t)c * n + i] = v ? gtv[0] * mv[c] + jt0 + tv[0] * gdv[c] : 0.0f;
+            d_cam[(size_t)(3 + c) * n + i] = v ? gtv[1] * mv[c] + jt1 + tv[1] * gdv[c] : 0.0f;
+            d_cam[(size_t)(6 + c) * n + i] = v ? gtv[2] * mv[c] + jt2 + tv[2] * gdv[c] : 0.0f;
+        }
+#pragma unroll
+        for (int r = 0; r < 3; ++r)
+            d_cam[(size_t)(9 + r) * n + i] =
+                v ? gtv[r] + cam[CAM_R + 3 * r] * gdv[0] + cam[CAM_R + 3 * r + 1] * gdv[1]
+                        + cam[CAM_R + 3 * r + 2] * gdv[2]
+                  : 0.0f;
+    }
+#endif
     gm += (float3)(cam[CAM_R + 0] * gt.x + cam[CAM_R + 3] * gt.y + cam[CAM_R + 6] * gt.z,
                    cam[CAM_R + 1] * gt.x + cam[CAM_R + 4] * gt.y + cam[CAM_R + 7] * gt.z,
                    cam[CAM_R + 2] * gt.x + cam[CAM_R + 5] * gt.y + cam[CAM_R + 8] * gt.z);

@@ -86,6 +86,9 @@ def cmd_eval(a):
     if "psnr_half_fitted" in per_view[0]:   # a model with a colour transform per image
         for k in ("psnr_half_fitted", "psnr_right_half"):
             res[k] = float(np.mean([m[k] for m in per_view]))
+    pose = getattr(model, "pose", None)
+    if pose is not None:   # splat.pose_opt: how far the training poses were corrected
+        res["pose_correction"] = pose.summary()
     if pd is not None:
         ph, pw = pd.protocol_hw
         standard = pd.standard and len(per_view) == full
@@ -102,6 +105,11 @@ def cmd_eval(a):
           f"SSIM {res['ssim']:.4f}{lp}  (render {secs:.1f} s)")
     if lp_why is not None:
         print(lp_why)
+    if pose is not None:
+        pc = res["pose_correction"]
+        print(f"training poses corrected by {pc['rotation_deg']:.3f} deg and "
+              f"{pc['translation']:.4g} ({100 * pc['translation_rel']:.2f} % of the scene's "
+              f"extent) on average over {pc['images']} images (the test views keep theirs)")
     if pd is not None and not res["standard"]:
         print(res["note"])
     default = f"eval_{a.protocol}.json" if a.protocol else "eval_cli.json"

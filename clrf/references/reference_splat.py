@@ -301,6 +301,32 @@ def _sh_dir_grad(dirs, w, degree):
 def project_backward(params, cam, grads2d) -> dict:
     """dL/d(means, log_scales, quats, opacity_logits, sh) from dL/d(xy, conic, color, opacity)
     of the projected splats (derivation: cl/splat_project.cl's header)."""
+    return _backward(params, cam, grads2d)[0]
+
+
+def camera_backward(params, cam, grads2d) -> dict:
+    """Each Gaussian's share of dL/dR [n, 3, 3] and dL/dt [n, 3] of the camera's world-to-camera
+    transform ``viewmat`` = [R t] (zeros for culled Gaussians; sum over the Gaussians for the
+    camera's gradient), as cl/splat_project.cl's backward with POSE_GRAD=1:
+    dL/dR = g_t m^T + J^T dL/dT + t g_dir^T, dL/dt = g_t + R g_dir."""
+    _, part = _backward(params, cam, grads2d)
+    I, gt, dT, g_dir = part["I"], part["gt"], part["dT"], part["g_dir"]
+    m = np.asarray(params["means"], np.float64)
+    R, z = I["R"], I["z"]
+    t = np.asarray(cam["viewmat"], np.float64)[:3, 3]
+    n = m.shape[0]
+    J = np.zeros((n, 2, 3))
+    J[:, 0, 0], J[:, 0, 2] = I["fx"] / z, -I["fx"] * I["rx"] / z
+    J[:, 1, 1], J[:, 1, 2] = I["fy"] / z, -I["fy"] * I["ry"] / z
+    dR = (gt[:, :, None] * m[:, None, :] + np.transpose(J, (0, 2, 1)) @ dT
+          + t[None, :, None] * g_dir[:, None, :])
+    dt = gt + g_dir @ R.T
+    vis = I["vis"]
+    return {"R": np.where(vis[:, None, None], dR, 0.0), "t": np.where(vis[:, None], dt, 0.0)}
+
+
+def _backward(params, cam, grads2d):
+    """(project_backward's dict, its intermediates: I, gt = dL/dt_c, dT = dL/dT, g_dir)."""
     I = _intermediates(params, cam)
     vis = I["vis"]
     R, fx, fy = I["R"], I["fx"], I["fy"]
@@ -318,6 +344,7 @@ def project_backward(params, cam, grads2d) -> dict:
     gdir = _sh_dir_grad(dirs, w, degree)
     gm = (gdir - dirs * np.sum(dirs * gdir, 1, keepdims=True)) / np.where(dist > 0, dist,
                                                                           1)[:, None]
+    g_dir = gm
     # opacity
     o = sigmoid(np.asarray(params["opacity_logits"], np.float64))
     d_logit = gop * o * (1 - o)
@@ -363,7 +390,7 @@ def project_backward(params, cam, grads2d) -> dict:
            "sh": d_sh}
     for k in out:
         out[k] = np.where(vis.reshape((-1,) + (1,) * (out[k].ndim - 1)), out[k], 0.0)
-    return out
+    return out, {"I": I, "gt": gt, "dT": dT, "g_dir": g_dir}
 
 
 def render(params, cam, background=(0.0, 0.0, 0.0), tile=TILE):

@@ -94,6 +94,13 @@ class SplatConfig:
     #                                 only when its image is trained: a few dozen times a run)
     exposure_reg: float = 0.001     # pull of each transform toward the identity,
     #                                 reg (|A - I|^2 + |b|^2) added to the loss
+    pose_opt: bool = False          # refine each training camera's pose (a rotation and a
+    #                                 translation of its frame), for poses from structure
+    #                                 from motion that are a little off; test views keep
+    #                                 their given poses (clrf/splat/pose.py)
+    lr_pose: float = 0.001          # Adam learning rate of the corrections: radians per
+    #                                 step, translations this times the scene's extent
+    pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "SplatConfig":
@@ -153,6 +160,8 @@ class SplatConfig:
             (self.seed >= 0, "splat.seed", "must be >= 0"),
             (0 < self.lr_exposure <= 1, "splat.lr_exposure", "must be in (0, 1]"),
             (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),
+            (0 < self.lr_pose <= 0.1, "splat.lr_pose", "must be in (0, 0.1] (radians a step)"),
+            (self.pose_reg >= 0, "splat.pose_reg", "must be >= 0"),
         ]
 
 

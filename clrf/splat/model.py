@@ -30,7 +30,7 @@ from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
 from .loss import STATS, DeviceLoss
-from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, default_tile
+from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
 
 SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
 INIT_OPACITY = 0.1
@@ -114,6 +114,7 @@ class SplatModel:
         self._ds = None                # the training views (create, or loaded on demand)
         self._loss_fn = None           # DeviceLoss for the views' size
         self.exposure = None           # Exposure: a colour transform per image (splat.exposure)
+        self.pose = None               # PoseCorrection: one per training camera (splat.pose_opt)
         self._targets = None           # view -> its training image on the device
         self.train_views = None
         self.hw = None
@@ -178,6 +179,10 @@ class SplatModel:
             from .exposure import Exposure
             self.exposure = Exposure(self.device, n_images, self.config.lr_exposure,
                                      self.config.exposure_reg)
+        if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
+            from .pose import PoseCorrection
+            self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
+                                       self.extent)
 
     def _dataset(self):
         if self._ds is None:
@@ -211,6 +216,8 @@ class SplatModel:
         ds = self._dataset()
         v = self.view_of(it)
         cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
+        if self.pose is not None:
+            cam = self.pose.camera(cam, v)
         bg = self.background
         proj, bins, ras = self.rast.forward(self.params, cam, bg)
         if self.exposure is None:
@@ -220,7 +227,10 @@ class SplatModel:
             grad, stats = self._loss().loss_and_grad(shown, self._target(v))
             grad = self.exposure.backward_and_step(ras.rgb, grad, v)
         g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg)
-        grads = self.rast.project_backward(self.params, cam, g2d)
+        grads = self.rast.project_backward(self.params, cam, g2d,
+                                           camera_grad=self.pose is not None)
+        if self.pose is not None:   # reads twelve numbers: the camera's gradient
+            self.pose.step(v, cam.viewmat, *camera_gradient(grads["camera"]))
         prg = self.device.program("splat_train.cl")
         launch(self.device, prg.kernel("splat_densify_stats"), self.n,
                (np.int32(self.n), g2d["xy"].data, proj.radius.data,
@@ -409,7 +419,8 @@ class SplatModel:
     def describe(self) -> str:
         start = f" (from {self.initialised_from})" if self.step == 0 and \
             self.initialised_from else ""
-        return f"{self.n} Gaussians, SH degree {self.active_degree}{start}"
+        pose = f", {self.pose.describe()}" if self.pose is not None and self.step else ""
+        return f"{self.n} Gaussians, SH degree {self.active_degree}{start}{pose}"
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -426,6 +437,8 @@ class SplatModel:
             st[f"adam_{k}"] = v
         if self.exposure is not None:
             st.update(self.exposure.state_dict())
+        if self.pose is not None:
+            st.update(self.pose.state_dict())
         return st
 
     @classmethod
@@ -456,6 +469,14 @@ class SplatModel:
                                       config.exposure_reg, state=state)
             except (KeyError, ValueError, TypeError) as e:
                 raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
+                                 ) from None
+        if "pose" in state:
+            from .pose import PoseCorrection
+            try:
+                m.pose = PoseCorrection(len(state["pose"]), config.lr_pose, config.pose_reg,
+                                        m.extent, state=state)
+            except (KeyError, ValueError, TypeError) as e:
+                raise StateError(f"state_dict: the pose corrections are unreadable ({e})"
                                  ) from None
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])

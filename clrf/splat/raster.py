@@ -13,6 +13,8 @@ pairs after the scan, to size the sort's buffers (``bin``):
 >>> ras = r.rasterize(proj, bins, camera)    # Raster: rgb [H, W, 3], T [H, W], n_contrib
 >>> g2d = r.rasterize_backward(proj, bins, ras, camera, grad_rgb_d)
 >>> grads = r.project_backward(params, camera, g2d)   # dict of device arrays (PARAM_NAMES)
+>>> grads = r.project_backward(params, camera, g2d, camera_grad=True)
+>>> dR, dt = camera_gradient(grads["camera"])  # dL/d(R, t) of camera.viewmat (splat.pose_opt)
 
 ``render(gaussians, camera)`` and ``render_backward(gaussians, camera, grad_rgb)`` do the same
 from and to numpy.
@@ -52,6 +54,23 @@ def defines(sh_degree: int, tile: int = TILE) -> dict:
     return {"SH_DEGREE": int(sh_degree), "TILE": int(tile), "ALPHA_MAX": ALPHA_MAX,
             "ALPHA_MIN": ALPHA_MIN, "T_MIN": T_MIN, "COV_DILATION": COV_DILATION,
             "FRUSTUM_GUARD": FRUSTUM_GUARD, "SIGMA_RADIUS": SIGMA_RADIUS}
+
+
+def pose_program(device, sh_degree: int, tile: int = TILE):
+    """cl/splat_project.cl with POSE_GRAD=1: its backward also writes the camera's gradient."""
+    return device.program("splat_project.cl", dict(defines(sh_degree, tile), POSE_GRAD=1))
+
+
+def camera_gradient(d_cam) -> tuple:
+    """(dL/dR [3, 3], dL/dt [3]) float64 of the camera's world-to-camera [R t] from the
+    backward's per-Gaussian shares ``d_cam`` [12, n] (a device array): twelve sums on the device,
+    one read of twelve numbers."""
+    n = int(d_cam.shape[1])
+    if n == 0:
+        return np.zeros((3, 3)), np.zeros(3)
+    sums = [cla.sum(d_cam[k]) for k in range(12)]
+    g = np.array([float(x.get()) for x in sums], np.float64)
+    return g[:9].reshape(3, 3), g[9:]
 
 
 def programs(device, sh_degree: int, tile: int = TILE) -> tuple:
@@ -451,9 +470,11 @@ class SplatRasterizer:
             self._backward_records(proj, raster))
         return g
 
-    def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict) -> dict:
+    def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict,
+                         camera_grad: bool = False) -> dict:
         """dL/d(PARAM_NAMES) (device arrays) from the projected outputs' gradients ``grads2d``
-        (GRAD2D_NAMES, e.g. rasterize_backward's)."""
+        (GRAD2D_NAMES, e.g. rasterize_backward's); with ``camera_grad`` also "camera": each
+        Gaussian's share of dL/d(R, t) of the camera, [12, n] (``camera_gradient`` sums it)."""
         n = self.check_params(params)
         for name, shape in (("xy", (n, 2)), ("conic", (n, 3)), ("opacity", (n,)),
                             ("color", (n, 3))):
@@ -462,13 +483,20 @@ class SplatRasterizer:
         out = {name: scratch(dev, shape) for name, shape in self.shapes(n).items()}
         cam = self._camera(camera)
         p = params
-        launch(dev, self.proj_program.kernel("splat_project_backward"), n,
-               (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
+        args = (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
                 p["opacity_logits"].data, p["sh"].data, cam.data, np.int32(camera.width),
                 np.int32(camera.height), grads2d["xy"].data, grads2d["conic"].data,
                 grads2d["color"].data, grads2d["opacity"].data, out["means"].data,
                 out["log_scales"].data, out["quats"].data, out["opacity_logits"].data,
-                out["sh"].data), dev.tuning.elementwise_local_size)
+                out["sh"].data)
+        prg = self.proj_program
+        if camera_grad:
+            prg = pose_program(dev, self.sh_degree, self.tile)
+            out["camera"] = scratch(dev, (12, n))
+            args += (out["camera"].data,)
+        if n:
+            launch(dev, prg.kernel("splat_project_backward"), n, args,
+                   dev.tuning.elementwise_local_size)
         return out
 
     # ---- numpy conveniences ---------------------------------------------------------------------

@@ -366,6 +366,10 @@ SPLAT_LONG_GRAD_REL_TO_MAX = 1e-5
 SPLAT_FD_EPS = 1e-6
 SPLAT_FD_ATOL = 1e-7
 SPLAT_FD_RTOL = 1e-6
+# The camera's gradient (splat.pose_opt): the float32 sum over the Gaussians of their shares of
+# dL/d(R, t), each within SPLAT_GRAD_REL_TO_MAX of the largest share, compared relative to the
+# sum of the shares' magnitudes (what a sum's rounding scales with).
+SPLAT_CAMERA_SUM_REL = 1e-5
 
 # The splat model's colour transform (cl/splat_exposure.cl): out = A rgb + b is 3 products
 # and 3 sums of terms <= ~2 in float32: a few ulps, 1e-6 absolute + relative is ~10x that.

@@ -483,6 +483,9 @@ class Trainer:
             if fitted:
                 result.update(psnr_half_fitted=ev["psnr_half_fitted"],
                               psnr_right_half=ev["psnr_right_half"])
+            pose = getattr(self.model, "pose", None)
+            if pose is not None:   # splat.pose_opt: the mean correction of the training poses
+                result["pose_correction"] = pose.summary()
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
@@ -499,6 +502,9 @@ class Trainer:
                     f"final, NeRF-W protocol (colour fitted on each view's left half): right "
                     f"halves PSNR {ev['psnr_half_fitted']:.2f} (as rendered "
                     f"{ev['psnr_right_half']:.2f}); {self.model.exposure.describe()}")
+            if pose is not None:
+                loop.prog.message(f"final: training {pose.describe()} (mean over "
+                                  f"{result['pose_correction']['images']} images)")
         elif loop.last_eval is not None:
             result.update(psnr=loop.last_eval["psnr"], ssim=loop.last_eval["ssim"],
                           ssim_window=SSIM_NAME)

@@ -1,0 +1,283 @@
+"""Pose refinement (splat.pose_opt): the camera's gradient out of the projection's backward
+(cl/splat_project.cl with POSE_GRAD=1) against its float64 twin
+(clrf/references/reference_splat.py camera_backward) and the twin against central differences,
+stiff Gaussians included; the host's chain to the per-camera correction (clrf/splat/pose.py)
+against central differences; a perturbed camera recovered on a fixed scene; and a run that
+refines, saves, reports and resumes its poses."""
+import json
+
+import numpy as np
+import pyopencl.array as cla
+import pytest
+
+from clrf.references import reference_splat as rs
+from clrf.splat import SplatRasterizer
+from clrf.splat import pose as sp
+from clrf.splat.raster import camera_gradient
+from clrf.testing import tolerances as tol
+
+from test_splat_kernels import _camera, _f64, _gaussians, _stiff_gaussians
+
+
+def _g2d(n, seed):
+    rng = np.random.default_rng(seed)
+    g = {"xy": rng.normal(size=(n, 2)), "conic": rng.normal(size=(n, 3)) * 10.0,
+         "color": rng.normal(size=(n, 3)), "opacity": rng.normal(size=n)}
+    return {k: v.astype(np.float32) for k, v in g.items()}
+
+
+def _loss(g, cam, g2d):
+    """L = sum of the projected outputs weighted by g2d (so dL/d(outputs) = g2d)."""
+    p = rs.project(g, cam)
+    return sum(float(np.sum(p[k] * g2d[k])) for k in ("xy", "conic", "color", "opacity"))
+
+
+def test_twin_camera_gradient_vs_finite_differences():
+    """dL/dR and dL/dt of the twin (summed over ordinary and stiff Gaussians: clamped x/z and
+    y/z, one just past the near plane, a zero-volume disc, a huge one) against central
+    differences of its forward in every entry of the 3 x 4 [R t]."""
+    g = _f64(_stiff_gaussians(3, seed=5))
+    g2d = _f64(_g2d(len(g["means"]), 6))
+    _, cam = _camera()
+    cam = dict(cam, viewmat=np.asarray(cam["viewmat"], np.float64))
+    I = rs._intermediates(g, cam)
+    assert I["clamp_x"][I["vis"]].any() and I["clamp_y"][I["vis"]].any()
+    got = rs.camera_backward(g, cam, g2d)
+    assert np.all(got["R"][~I["vis"]] == 0) and np.all(got["t"][~I["vis"]] == 0)
+    analytic = np.concatenate([got["R"].sum(0), got["t"].sum(0)[:, None]], 1)
+    eps = tol.SPLAT_FD_EPS
+    fd = np.zeros((3, 4))
+    for idx in np.ndindex(3, 4):
+        plus, minus = cam["viewmat"].copy(), cam["viewmat"].copy()
+        plus[idx] += eps
+        minus[idx] -= eps
+        fd[idx] = (_loss(g, dict(cam, viewmat=plus), g2d)
+                   - _loss(g, dict(cam, viewmat=minus), g2d)) / (2 * eps)
+    assert np.abs(fd).min() > 1e-2
+    np.testing.assert_allclose(analytic, fd, rtol=tol.SPLAT_FD_RTOL,
+                               atol=tol.SPLAT_FD_ATOL * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_camera_gradient_on_the_device_matches_the_twin(device, degree):
+    """splat_project_backward with POSE_GRAD=1: each Gaussian's share of dL/d(R, t) as the
+    twin's (culled ones zero, stiff ones included), their sums as camera_gradient reads them,
+    and the parameters' gradients bit for bit those of the program without it."""
+    g = _stiff_gaussians(degree, seed=5)
+    n = len(g["means"])
+    g2d = _g2d(n, 6)
+    cam, rcam = _camera()
+    r = SplatRasterizer(device, degree)
+    params = r.upload(g)
+    g2d_d = {k: cla.to_device(device.queue, v) for k, v in g2d.items()}
+    plain = r.project_backward(params, cam, g2d_d)
+    got = r.project_backward(params, cam, g2d_d, camera_grad=True)
+    for name in plain:
+        np.testing.assert_array_equal(got[name].get(), plain[name].get(), err_msg=name)
+    want = rs.camera_backward(_f64(g), rcam, _f64(g2d))
+    shares = got["camera"].get()
+    assert shares.shape == (12, n) and np.all(np.isfinite(shares))
+    want_shares = np.concatenate([want["R"].reshape(n, 9), want["t"]], 1).T
+    vis = rs.project(_f64(g), rcam)["visible"]
+    assert np.all(shares[:, ~vis] == 0)
+    scale = np.abs(want_shares).max()
+    assert np.abs(shares - want_shares).max() <= tol.SPLAT_GRAD_REL_TO_MAX * scale
+    dR, dt = camera_gradient(got["camera"])
+    # the sums: float32 rounding of n terms, relative to the sum of their magnitudes
+    mag = np.abs(want_shares).sum(1)
+    err = np.abs(np.concatenate([dR.ravel(), dt]) - want_shares.sum(1))
+    assert np.all(err <= tol.SPLAT_CAMERA_SUM_REL * mag), (err, mag)
+
+
+def test_camera_gradient_of_no_gaussians(device):
+    r = SplatRasterizer(device, 0)
+    g = {k: v[:0] for k, v in _gaussians(1, 0, 0).items()}
+    cam, _ = _camera()
+    out = r.project_backward(r.upload(g), cam, {k: cla.zeros(device.queue, s, np.float32)
+                                                for k, s in (("xy", (0, 2)), ("conic", (0, 3)),
+                                                             ("color", (0, 3)),
+                                                             ("opacity", (0,)))},
+                             camera_grad=True)
+    dR, dt = camera_gradient(out["camera"])
+    assert not dR.any() and not dt.any()
+
+
+# ---- the host's chain -------------------------------------------------------------------------
+def test_exp_and_left_jacobian():
+    rng = np.random.default_rng(1)
+    for w in (np.zeros(3), 1e-9 * rng.normal(size=3), 0.02 * rng.normal(size=3),
+              rng.normal(size=3), np.array([np.pi - 1e-3, 0, 0])):
+        E = sp.so3_exp(w)
+        np.testing.assert_allclose(E @ E.T, np.eye(3), atol=1e-14)
+        assert np.linalg.det(E) == pytest.approx(1.0, abs=1e-14)
+        assert sp.rotation_angle(E) == pytest.approx(np.linalg.norm(w), abs=1e-12)
+        # Exp(w + d) = Exp(J_l(w) d) Exp(w) to first order
+        J = sp.left_jacobian(w)
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = 1e-6
+            lhs = (sp.so3_exp(w + d) - sp.so3_exp(w - d)) / 2e-6
+            np.testing.assert_allclose(lhs, sp.hat(J[:, k]) @ E, atol=1e-8)
+    # the series near 0 and the closed form meet
+    w = np.array([3e-7, -2e-7, 1e-7])
+    np.testing.assert_allclose(sp.so3_exp(w), np.eye(3) + sp.hat(w), atol=1e-13)
+
+
+def test_pose_gradient_vs_finite_differences():
+    """PoseCorrection.gradient (reg 0, then reg > 0) against central differences of the loss
+    in the correction (w, tau) of a camera already corrected by a few degrees."""
+    g = _f64(_gaussians(30, 2, seed=11))
+    g2d = _f64(_g2d(30, 12))
+    _, cam0 = _camera()
+    V0 = np.asarray(cam0["viewmat"], np.float64)
+    for reg in (0.0, 0.3):
+        pc = sp.PoseCorrection(2, lr=1e-3, reg=reg, scale=2.5)
+        pc.params[1] = [0.03, -0.05, 0.02, 0.04, -0.02, 0.05]
+
+        def loss(p):
+            V = sp.corrected_viewmat(V0, p[:3], p[3:])
+            return (_loss(g, dict(cam0, viewmat=V), g2d) + reg * np.sum(p[:3] ** 2)
+                    + reg * np.sum((p[3:] / 2.5) ** 2))
+        V = pc.viewmat(V0, 1)
+        part = rs.camera_backward(g, dict(cam0, viewmat=V), g2d)
+        got = pc.gradient(1, V, part["R"].sum(0), part["t"].sum(0))
+        fd = np.zeros(6)
+        for k in range(6):
+            d = np.zeros(6)
+            d[k] = 1e-6
+            fd[k] = (loss(pc.params[1] + d) - loss(pc.params[1] - d)) / 2e-6
+        assert np.abs(fd).min() > 1e-2
+        np.testing.assert_allclose(got, fd, rtol=tol.SPLAT_FD_RTOL,
+                                   atol=tol.SPLAT_FD_ATOL * np.abs(fd).max())
+
+
+def test_pose_state_round_trip_and_bad_values():
+    pc = sp.PoseCorrection(3, lr=1e-3, reg=1e-4, scale=2.0)
+    pc.step(2, np.eye(4), np.arange(9.0).reshape(3, 3), np.ones(3))
+    assert pc.steps.tolist() == [0, 0, 1] and pc.params[2].any() and not pc.params[:2].any()
+    back = sp.PoseCorrection(3, lr=1e-3, reg=1e-4, scale=2.0, state=pc.state_dict())
+    for k, v in pc.state_dict().items():
+        np.testing.assert_array_equal(back.state_dict()[k], v)
+    s = pc.summary()
+    assert s["images"] == 1 and s["rotation_deg"] > 0 and s["translation"] > 0
+    before = pc.params.copy()
+    pc.step(0, np.eye(4), np.full((3, 3), np.nan), np.ones(3))   # a NaN step changes nothing
+    np.testing.assert_array_equal(pc.params, before)
+    for bad in ({"n_images": 0}, {"lr": 0.0}, {"reg": -1.0}, {"scale": 0.0}):
+        kw = {**dict(n_images=2, lr=1e-3, reg=0.0, scale=1.0), **bad}
+        with pytest.raises(ValueError):
+            sp.PoseCorrection(**kw)
+
+
+# ---- recovering a perturbed camera --------------------------------------------------------------
+def test_a_perturbed_camera_is_recovered_on_a_fixed_scene(device):
+    """A fixed scene of 400 Gaussians rendered by the true camera is the target; the camera
+    starts turned by 2 degrees and moved by 2 % of its distance; Adam on its correction alone
+    (the device's render, loss gradient, backward and camera_gradient) takes the rotation error
+    down by at least 70 % and the translation error by at least half."""
+    rng = np.random.default_rng(4)
+    g = _gaussians(400, 1, seed=4, spread=0.7, log_scale=(-3.2, -2.2), logit=(0.5, 3.0))
+    g["sh"][:, 0] = rng.uniform(-1.2, 1.2, (400, 3))        # strong colours: a textured view
+    W = H = 48
+    true = rs.look_at((0.4, -0.3, -3.0), (0, 0, 0))
+    cam_true, _ = _camera(W, H, eye=(0.4, -0.3, -3.0), f=(50.0, 50.0))
+    r = SplatRasterizer(device, 1)
+    params = r.upload(g)
+    target = r.forward(params, cam_true)[2].rgb.get()
+    axis = rng.normal(size=3)
+    turn = sp.so3_exp(np.radians(2.0) * axis / np.linalg.norm(axis))
+    dist = float(np.linalg.norm(true[:3, 3]))
+    move = rng.normal(size=3)
+    given = np.eye(4)
+    given[:3, :3] = turn @ true[:3, :3]
+    given[:3, 3] = turn @ true[:3, 3] + 0.02 * dist * move / np.linalg.norm(move)
+    cam0 = type(cam_true)(given, cam_true.fx, cam_true.fy, cam_true.cx, cam_true.cy, W, H,
+                          cam_true.near)
+
+    def errors(V):
+        return (np.degrees(sp.rotation_angle(V[:3, :3] @ true[:3, :3].T)),
+                float(np.linalg.norm(-V[:3, :3].T @ V[:3, 3] + true[:3, :3].T @ true[:3, 3])))
+    pc = sp.PoseCorrection(1, lr=2e-3, reg=0.0, scale=dist)
+    rot0, pos0 = errors(given)
+    for _ in range(150):
+        cam = pc.camera(cam0, 0)
+        proj, bins, ras = r.forward(params, cam)
+        grad = cla.to_device(device.queue, (2.0 * (ras.rgb.get() - target) / target.size)
+                             .astype(np.float32))
+        g2d = r.rasterize_backward(proj, bins, ras, cam, grad)
+        out = r.project_backward(params, cam, g2d, camera_grad=True)
+        pc.step(0, cam.viewmat, *camera_gradient(out["camera"]))
+    rot1, pos1 = errors(pc.viewmat(given, 0))
+    print(f"rotation {rot0:.3f} -> {rot1:.3f} deg, position {pos0:.4f} -> {pos1:.4f}")
+    assert rot1 <= 0.3 * rot0 and pos1 <= 0.5 * pos0, (rot0, rot1, pos0, pos1)
+
+
+# ---- through the trainer and the command line -----------------------------------------------------
+def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
+    from clrf.cli.main import main as cli
+    from clrf.outputs import checkpoint
+    out = tmp_path / "run"
+    args = ["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "3",
+            "--set", "splat.preset=tiny", "--set", "splat.pose_opt=true",
+            "--set", "train.eval_views=1"]
+    assert cli(args) == 0
+    st = checkpoint.load(out)
+    steps = np.asarray(st["pose_steps"])
+    assert st["pose"].shape == (len(steps), 6) and steps.sum() == st["step"] > 0
+    assert np.all(np.isfinite(st["pose"])) and np.abs(st["pose"][steps > 0]).max() > 0
+    final = json.loads((out / "eval.json").read_text())
+    pc = final["pose_correction"]
+    assert pc["images"] == int((steps > 0).sum()) and pc["rotation_deg"] > 0
+    capsys.readouterr()
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "1", "--lpips", "none",
+                "--out", str(tmp_path / "e.json")]) == 0
+    said = capsys.readouterr().out
+    assert "training poses corrected by" in said
+    assert json.loads((tmp_path / "e.json").read_text())["pose_correction"] == pc
+    # resumed: the corrections and their Adam state carry on
+    assert cli(["--quiet", "train", "--out", str(out), "--resume", "--max-seconds",
+                str(st["seconds"] + 1.0)]) == 0
+    st2 = checkpoint.load(out)
+    assert np.asarray(st2["pose_steps"]).sum() > steps.sum()
+    assert np.all(np.asarray(st2["pose_steps"]) >= steps)
+
+
+@pytest.mark.parametrize("setting", ["splat.lr_pose=0", "splat.lr_pose=-1",
+                                     "splat.pose_reg=-0.1", "hash.pose_opt=true"])
+def test_bad_pose_settings_are_one_clear_error(setting, tmp_path, capsys):
+    from clrf.cli.main import main as cli
+    model = setting.split(".")[0]
+    rc = cli(["--quiet", "train", "--model", model, "--out", str(tmp_path / "run"),
+              "--set", "splat.pose_opt=true" if model == "splat" else "train.seed=0",
+              "--set", setting, "--max-seconds", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("clrf: error:") == 1 and setting.split("=")[0] in err, err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_the_measurement_tools_perturb_and_score_poses(tmp_path, scene):
+    """tools/perturb_capture.py --poses turns every training camera by exactly 1 degree and
+    moves it by 1 % of its distance; tools/pose_error.py reads those errors back from a run on
+    the perturbed copy, and the corrected ones where the run refined its poses."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    src = scene("lego_400")
+    cap = tmp_path / "lego_poses"
+    subprocess.run([sys.executable, str(root / "tools" / "perturb_capture.py"), str(src),
+                    str(cap), "--poses"], check=True, capture_output=True)
+    from clrf.cli.main import main as cli
+    out = tmp_path / "run"
+    assert cli(["--quiet", "train", "--model", "splat", "--data", str(cap), "--out", str(out),
+                "--max-seconds", "2", "--set", "splat.preset=tiny", "--set",
+                "splat.pose_opt=true", "--set", "train.downscale=8", "--set",
+                "train.final_eval=false", "--set", "train.eval_views=1"]) == 0
+    p = subprocess.run([sys.executable, str(root / "tools" / "pose_error.py"), str(out),
+                        str(src), "--json"], capture_output=True, text=True, check=True)
+    res = json.loads(p.stdout)
+    assert res["views"] == 100
+    assert res["given"]["rotation_deg"] == pytest.approx(1.0, abs=1e-6)
+    assert res["given"]["centre"] == pytest.approx(0.01 * res["camera_distance"], rel=1e-6)
+    assert np.isfinite(res["corrected"]["rotation_deg"]) and "rotation_error_reduction" in res

@@ -1,0 +1,77 @@
+"""How far a run's training cameras are from the true ones, before and after splat.pose_opt:
+
+    python tools/perturb_capture.py $CLRF_DATA/lego_400 /tmp/lego_poses --poses
+    clrf train --model splat --data /tmp/lego_poses --out runs/poses --set splat.pose_opt=true
+    python tools/pose_error.py runs/poses $CLRF_DATA/lego_400
+
+Reads the run's checkpoint (its data folder, the given poses, the corrections), loads the true
+poses from TRUE (the capture before perturbation, the same views in the same order) and prints
+the mean rotation error (degrees) and camera-centre error (scene units and % of the mean camera
+distance to the origin) of the training views as given and as corrected, with --json the same
+as one JSON object. A run without pose_opt reports the given poses' errors only.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.append(str(Path(__file__).resolve().parents[1]))   # an installed clrf comes first
+
+from clrf.data import load_dataset  # noqa: E402
+from clrf.outputs import checkpoint  # noqa: E402
+from clrf.splat.model import viewmat_of  # noqa: E402
+from clrf.splat.pose import PoseCorrection, rotation_angle  # noqa: E402
+
+
+def errors(views, true) -> dict:
+    """Mean rotation (degrees) and centre errors of world-to-camera ``views`` against ``true``
+    ([n, 4, 4] each)."""
+    rot = [np.degrees(rotation_angle(V[:3, :3] @ T[:3, :3].T)) for V, T in zip(views, true)]
+    centre = [np.linalg.norm(-V[:3, :3].T @ V[:3, 3] + T[:3, :3].T @ T[:3, 3])
+              for V, T in zip(views, true)]
+    return {"rotation_deg": float(np.mean(rot)), "centre": float(np.mean(centre))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run", type=Path, help="the run's folder (its ckpt.npz)")
+    ap.add_argument("true", type=Path, help="the capture with the true poses")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args(argv)
+    st = checkpoint.load(a.run)
+    given_ds = load_dataset(st["run_config"]["train"]["data"])
+    true_ds = load_dataset(str(a.true))
+    train = np.asarray(given_ds.split["train"])
+    if len(true_ds.poses) != len(given_ds.poses) or \
+            not np.array_equal(np.asarray(true_ds.split["train"]), train):
+        ap.error(f"{a.true}: not the same views as the run's data "
+                 f"({st['run_config']['train']['data']})")
+    given = [viewmat_of(given_ds.poses[v]) for v in train]
+    true = [viewmat_of(true_ds.poses[v]) for v in train]
+    dist = float(np.mean([np.linalg.norm(-T[:3, :3].T @ T[:3, 3]) for T in true]))
+    out = {"views": int(len(train)), "camera_distance": dist, "given": errors(given, true)}
+    if "pose" in st:
+        pc = PoseCorrection(len(st["pose"]), 1e-3, 0.0, 1.0, state=st)
+        out["corrected"] = errors([pc.viewmat(V, v) for V, v in zip(given, train)], true)
+        out["rotation_error_reduction"] = 1.0 - (out["corrected"]["rotation_deg"]
+                                                 / max(out["given"]["rotation_deg"], 1e-12))
+    if a.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    for k in ("given", "corrected"):
+        if k in out:
+            e = out[k]
+            print(f"{k:9s} rotation error {e['rotation_deg']:.4f} deg, centre error "
+                  f"{e['centre']:.4g} ({100 * e['centre'] / dist:.3f} % of the camera "
+                  f"distance), mean over {out['views']} training views")
+    if "corrected" in out:
+        print(f"rotation error down by {100 * out['rotation_error_reduction']:.1f} %")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
