@@ -47,8 +47,25 @@
  *   dL/dR = g_t m^T + J^T dL/dT + t g_dir^T,   dL/dt = g_t + R g_dir,
  * g_t = dL/dt_c with every term above (the mean in pixels and J's dependence on t_c).
  *
- * Defines read: SH_DEGREE (sh.h), TILE, POSE_GRAD (0 or 1, default 0) and the constants of
- * splat.h.
+ * Anti-aliasing (ANTIALIASED=1, splat.antialiased; Mip-Splatting, Yu et al. 2024): both
+ * kernels take one more input, filter3d [N], each Gaussian's 3D filter variance f2 (the
+ * training views' sampling limit, splat_filter3d below), which widens it and scales
+ * its opacity so that its integral is kept, and the screen-space dilation is compensated alike:
+ *   se_k = sqrt(s_k^2 + f2)  (Sigma3 = Rot diag(se^2) Rot^T),  c3 = prod_k s_k / se_k,
+ *   c2 = sqrt(max(0, det(Sigma2 - COV_DILATION I) / det(Sigma2))),  opacity = sigmoid(logit) c3 c2.
+ * Backward: dL/dc = dL/dopacity sigmoid(logit); c2 adds to G_S2 through the two
+ * determinants (d c2 = c2 / 2 (d det0 / det0 - d det1 / det1)); c3 adds
+ * dL/dc3 c3 f2 / se_k^2 to dL/dlog_s_k, and the covariance's share of dL/dlog_s_k is
+ * dL/dse_k s_k^2 / se_k. Without ANTIALIASED the outputs are bit for bit those without it.
+ *
+ * splat_filter3d: f2 [N] of each Gaussian from the training cameras cams [V, CAM_FLOATS]
+ * (each of width x height pixels): over the cameras that see its mean (t_z > near and the
+ * projection within FILTER3D_MARGIN of the image on every side), the finest sampling interval
+ * in world units, min t_z / fx; f2 = FILTER3D_VAR (that interval)^2 (Mip-Splatting's 3D
+ * filter). A Gaussian no camera sees gets -1 (the host gives it the largest f2 of the others).
+ *
+ * Defines read: SH_DEGREE (sh.h), TILE, POSE_GRAD (0 or 1, default 0), ANTIALIASED (0 or 1,
+ * default 0) and the constants of splat.h.
  * Twin: clrf/references/reference_splat.py project / project_backward / camera_backward
  * (float64).
  */
@@ -58,6 +75,15 @@
 
 #ifndef POSE_GRAD
 #define POSE_GRAD 0
+#endif
+#ifndef ANTIALIASED
+#define ANTIALIASED 0
+#endif
+#ifndef FILTER3D_VAR
+#define FILTER3D_VAR 0.2f       /* the 3D filter's variance in sampling intervals squared */
+#endif
+#ifndef FILTER3D_MARGIN
+#define FILTER3D_MARGIN 0.15f   /* a camera sees a mean within this share of the image outside */
 #endif
 
 /* Loads and stores of 2, 3, 4 floats as scalar accesses, the loops unrolled, no hypot and no
@@ -111,6 +137,10 @@ typedef struct {
     float4 qn;         /* unit quaternion (w, x, y, z) */
     float qlen;        /* |q| before normalising */
     float s[3];        /* scales exp(log_scale) */
+    float se[3];       /* the scales Sigma3 is built from: s, or sqrt(s^2 + f2) (ANTIALIASED) */
+    float c3, c2;      /* opacity factors of the 3D and 2D filters (1 without ANTIALIASED) */
+    float det0n, detn; /* det of Sigma2 without and with the dilation, over sc^2 */
+    float sc;          /* max(a, c): the scale the conic is formed at */
     float Rq[9];       /* rotation of qn, row-major */
     float S3[9];       /* Sigma3 = Rq diag(s^2) Rq^T, row-major (symmetric) */
     float rx, ry;      /* x/z, y/z clamped to +-FRUSTUM_GUARD tan(half fov) */
@@ -129,8 +159,8 @@ typedef struct {
  * its determinant cannot overflow. An out-pointer, not a returned struct: a struct return is
  * inlined with an llvm.experimental.noalias.scope.decl, which Oclgrind 21.10 cannot run. */
 CLRF_INLINE void splat_project_one(const float3 m, const float3 ls, const float4 q,
-                                   __global const float *cam, const int width, const int height,
-                                   splat_proj_t *out) {
+                                   const float f2, __global const float *cam, const int width,
+                                   const int height, splat_proj_t *out) {
     splat_proj_t P;
     const float fx = cam[CAM_FX], fy = cam[CAM_FY];
     P.tc = (float3)(cam[CAM_R + 0] * m.x + cam[CAM_R + 1] * m.y + cam[CAM_R + 2] * m.z
@@ -146,6 +176,19 @@ CLRF_INLINE void splat_project_one(const float3 m, const float3 ls, const float4
     P.s[0] = exp(ls.x);
     P.s[1] = exp(ls.y);
     P.s[2] = exp(ls.z);
+#if ANTIALIASED
+    P.c3 = 1.0f;
+#pragma unroll
+    for (int k = 0; k < 3; ++k) {
+        P.se[k] = sqrt(P.s[k] * P.s[k] + f2);
+        P.c3 *= P.s[k] / P.se[k];
+    }
+#else
+    P.se[0] = P.s[0];
+    P.se[1] = P.s[1];
+    P.se[2] = P.s[2];
+    P.c3 = 1.0f;
+#endif
     splat_quat_rot(P.qn, P.Rq);
 #pragma unroll
     for (int i = 0; i < 3; ++i)
@@ -154,7 +197,7 @@ CLRF_INLINE void splat_project_one(const float3 m, const float3 ls, const float4
             float acc = 0.0f;
 #pragma unroll
             for (int k = 0; k < 3; ++k)
-                acc += P.Rq[3 * i + k] * (P.s[k] * P.s[k]) * P.Rq[3 * j + k];
+                acc += P.Rq[3 * i + k] * (P.se[k] * P.se[k]) * P.Rq[3 * j + k];
             P.S3[3 * i + j] = acc;
         }
     const float z = P.visible ? P.tc.z : 1.0f;
@@ -183,6 +226,18 @@ CLRF_INLINE void splat_project_one(const float3 m, const float3 ls, const float4
     const float sc = fmax(P.a, P.c);
     const float an = P.a / sc, bn = P.b / sc, cn = P.c / sc;
     const float detn = an * cn - bn * bn;
+    P.sc = sc;
+    P.detn = detn;
+#if ANTIALIASED
+    {
+        const float dn = COV_DILATION / sc;
+        P.det0n = (an - dn) * (cn - dn) - bn * bn;
+        P.c2 = P.det0n > 0.0f && detn > 0.0f ? sqrt(P.det0n / detn) : 0.0f;
+    }
+#else
+    P.det0n = detn;
+    P.c2 = 1.0f;
+#endif
     P.visible = P.visible && isfinite(P.a) && isfinite(P.b) && isfinite(P.c) && detn > 0.0f;
     const float inv = P.visible ? 1.0f / (detn * sc) : 0.0f;
     P.conic = (float3)(cn * inv, -bn * inv, an * inv);
@@ -265,12 +320,21 @@ __kernel void splat_project(const int n, __global const float *means,
                             const int ntx, const int nty, __global float *xy,
                             __global float *conic, __global float *radius, __global float *depth,
                             __global float *color, __global float *opacity,
-                            __global int *rect) {
+                            __global int *rect
+#if ANTIALIASED
+                            , __global const float *filter3d
+#endif
+                            ) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const float3 m = load3(means, i);
     splat_proj_t P;
-    splat_project_one(m, load3(log_scales, i), ld4(quats, i), cam, width, height, &P);
+#if ANTIALIASED
+    const float f2 = filter3d[i];
+#else
+    const float f2 = 0.0f;
+#endif
+    splat_project_one(m, load3(log_scales, i), ld4(quats, i), f2, cam, width, height, &P);
     /* culled Gaussians compute the same and store zeros (an early exit kept this scalar) */
     const int v = P.visible;
     float dist;
@@ -286,7 +350,11 @@ __kernel void splat_project(const int n, __global const float *means,
     depth[i] = v ? P.tc.z : 0.0f;
     st3(v ? (float3)(fmax(col.x, 0.0f), fmax(col.y, 0.0f), fmax(col.z, 0.0f)) : (float3)(0.0f),
         color, i);
+#if ANTIALIASED
+    opacity[i] = v ? safe_sigmoid(opacity_logits[i]) * (P.c3 * P.c2) : 0.0f;
+#else
     opacity[i] = v ? safe_sigmoid(opacity_logits[i]) : 0.0f;
+#endif
     const int2 sx = splat_tile_span(P.xy.x, P.radius, ntx);
     const int2 sy = splat_tile_span(P.xy.y, P.radius, nty);
     rect[4 * i] = v ? sx.x : 0;
@@ -306,6 +374,9 @@ __kernel void splat_project_backward(const int n, __global const float *means,
                                      __global const float *g_opacity, __global float *d_means,
                                      __global float *d_log_scales, __global float *d_quats,
                                      __global float *d_logits, __global float *d_sh
+#if ANTIALIASED
+                                     , __global const float *filter3d
+#endif
 #if POSE_GRAD
                                      , __global float *d_cam
 #endif
@@ -314,7 +385,12 @@ __kernel void splat_project_backward(const int n, __global const float *means,
     if (i >= n) return;
     const float3 m = load3(means, i);
     splat_proj_t P;
-    splat_project_one(m, load3(log_scales, i), ld4(quats, i), cam, width, height, &P);
+#if ANTIALIASED
+    const float f2 = filter3d[i];
+#else
+    const float f2 = 0.0f;
+#endif
+    splat_project_one(m, load3(log_scales, i), ld4(quats, i), f2, cam, width, height, &P);
     /* culled Gaussians compute the same and store zeros (no early exit, as the forward) */
     const int v = P.visible;
     const float fx = cam[CAM_FX], fy = cam[CAM_FY];
@@ -346,7 +422,12 @@ __kernel void splat_project_backward(const int n, __global const float *means,
 
     /* opacity */
     const float o = safe_sigmoid(opacity_logits[i]);
+#if ANTIALIASED
+    d_logits[i] = v ? g_opacity[i] * (P.c3 * P.c2) * o * (1.0f - o) : 0.0f;
+    const float g_c = g_opacity[i] * o;   /* dL/d(c3 c2) */
+#else
     d_logits[i] = v ? g_opacity[i] * o * (1.0f - o) : 0.0f;
+#endif
 
     /* the mean in pixels */
     const float2 gxy = ld2(g_xy, i);
@@ -361,7 +442,21 @@ __kernel void splat_project_backward(const int n, __global const float *means,
     const float p10 = B * gq.x + C * hB, p11 = B * hB + C * gq.z;
     const float s00 = -(p00 * A + p01 * B), s11 = -(p10 * B + p11 * C);
     const float s01 = -0.5f * ((p00 * B + p01 * C) + (p10 * A + p11 * B));
+#if ANTIALIASED
+    /* c2 = sqrt(det0 / det1): d c2 / d(a, c, b) over the normalised determinants */
+    float t00 = 0.0f, t01 = 0.0f, t11 = 0.0f;
+    if (P.c2 > 0.0f) {
+        const float g2 = g_c * P.c3 * 0.5f * P.c2 / P.sc;
+        const float an = P.a / P.sc, bn = P.b / P.sc, cn = P.c / P.sc;
+        const float dn = COV_DILATION / P.sc;
+        t00 = g2 * ((cn - dn) / P.det0n - cn / P.detn);
+        t11 = g2 * ((an - dn) / P.det0n - an / P.detn);
+        t01 = g2 * (-bn / P.det0n + bn / P.detn);   /* half of d/db: b sits twice in Sigma2 */
+    }
+    const float GS[4] = {s00 + t00, s01 + t01, s01 + t01, s11 + t11};
+#else
     const float GS[4] = {s00, s01, s01, s11};
+#endif
 
     /* Sigma2 -> T (dT = 2 G_S2 T Sigma3 = 2 G_S2 V) and Sigma3 (G3 = T^T G_S2 T) */
     float dT[6], GT[6];   /* GT = G_S2 T */
@@ -429,12 +524,26 @@ __kernel void splat_project_backward(const int n, __global const float *means,
 #pragma unroll
         for (int k = 0; k < 3; ++k) {
             const float dM = 2.0f * (G3[3 * j] * P.Rq[k] + G3[3 * j + 1] * P.Rq[3 + k]
-                                     + G3[3 * j + 2] * P.Rq[6 + k]) * P.s[k];
+                                     + G3[3 * j + 2] * P.Rq[6 + k]) * P.se[k];
             ds[k] += dM * P.Rq[3 * j + k];
-            dR[3 * j + k] = dM * P.s[k];
+            dR[3 * j + k] = dM * P.se[k];
         }
+#if ANTIALIASED
+    /* the covariance's share (through se) and c3's: dlog c3 / dlog s_k = f2 / se_k^2 */
+    float3 dls;
+    {
+        float d3[3];
+#pragma unroll
+        for (int k = 0; k < 3; ++k)
+            d3[k] = ds[k] * (P.s[k] * P.s[k] / P.se[k])
+                    + g_c * P.c2 * P.c3 * f2 / (P.se[k] * P.se[k]);
+        dls = (float3)(d3[0], d3[1], d3[2]);
+    }
+    st3(v ? dls : (float3)(0.0f), d_log_scales, i);
+#else
     st3(v ? (float3)(ds[0] * P.s[0], ds[1] * P.s[1], ds[2] * P.s[2]) : (float3)(0.0f),
         d_log_scales, i);
+#endif
 
     /* Rot(q^) -> q^ -> q */
     const float qw = P.qn.x, qx = P.qn.y, qy = P.qn.z, qz = P.qn.w;
@@ -448,4 +557,31 @@ __kernel void splat_project_backward(const int n, __global const float *means,
             + qy * dR[5] + qx * dR[6] + qy * dR[7]);
     const float along = qw * gqn.x + qx * gqn.y + qy * gqn.z + qz * gqn.w;
     st4(v ? (gqn - P.qn * along) / P.qlen : (float4)(0.0f), d_quats, i);
+}
+
+__kernel void splat_filter3d(const int n, __global const float *means, __global const float *cams,
+                             const int n_cams, const int width, const int height,
+                             __global float *f2) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float3 m = load3(means, i);
+    const float w = (float)width, h = (float)height;
+    float best = INFINITY;
+    for (int k = 0; k < n_cams; ++k) {
+        __global const float *cam = cams + (size_t)k * CAM_FLOATS;
+        const float x = cam[CAM_R + 0] * m.x + cam[CAM_R + 1] * m.y + cam[CAM_R + 2] * m.z
+                        + cam[CAM_T];
+        const float y = cam[CAM_R + 3] * m.x + cam[CAM_R + 4] * m.y + cam[CAM_R + 5] * m.z
+                        + cam[CAM_T + 1];
+        const float z = cam[CAM_R + 6] * m.x + cam[CAM_R + 7] * m.y + cam[CAM_R + 8] * m.z
+                        + cam[CAM_T + 2];
+        if (!(z > cam[CAM_NEAR])) continue;
+        const float u = cam[CAM_FX] * x / z + cam[CAM_CX];
+        const float v = cam[CAM_FY] * y / z + cam[CAM_CY];
+        if (u < -FILTER3D_MARGIN * w || u > (1.0f + FILTER3D_MARGIN) * w
+            || v < -FILTER3D_MARGIN * h || v > (1.0f + FILTER3D_MARGIN) * h)
+            continue;
+        best = fmin(best, z / cam[CAM_FX]);
+    }
+    f2[i] = isfinite(best) ? FILTER3D_VAR * best * best : -1.0f;
 }

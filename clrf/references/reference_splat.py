@@ -25,6 +25,8 @@ T_MIN = float(np.float32(1e-4))
 COV_DILATION = float(np.float32(0.3))
 FRUSTUM_GUARD = float(np.float32(1.3))
 SIGMA_RADIUS = 3.0
+FILTER3D_VAR = float(np.float32(0.2))
+FILTER3D_MARGIN = float(np.float32(0.15))
 
 
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
@@ -71,7 +73,9 @@ def tile_rect(xy, radius, ntx, nty, tile=TILE) -> np.ndarray:
 
 
 def _intermediates(params, cam):
-    """Everything the projection computes (as cl/splat_project.cl splat_project_one)."""
+    """Everything the projection computes (as cl/splat_project.cl splat_project_one). With
+    ``params["filter3d"]`` (f2 [n], the 3D filter's variance) the anti-aliased projection
+    (ANTIALIASED=1): scales widened to se = sqrt(s^2 + f2), opacity factors c3 and c2."""
     m = np.asarray(params["means"], np.float64)
     ls = np.asarray(params["log_scales"], np.float64)
     q = np.asarray(params["quats"], np.float64)
@@ -86,8 +90,12 @@ def _intermediates(params, cam):
     qlen = np.sqrt(qq)
     qn = np.where(vis[:, None], q / np.where(qlen > 0, qlen, 1)[:, None], [1.0, 0, 0, 0])
     s = np.exp(ls)
+    aa = params.get("filter3d") is not None
+    f2 = np.asarray(params["filter3d"], np.float64) if aa else np.zeros(n)
+    se = np.sqrt(s * s + f2[:, None]) if aa else s
+    c3 = np.prod(s / se, 1) if aa else np.ones(n)
     Rq = quat_rot(qn)
-    S3 = np.einsum("nik,nk,njk->nij", Rq, s * s, Rq)
+    S3 = np.einsum("nik,nk,njk->nij", Rq, se * se, Rq)
     z = np.where(vis, tc[:, 2], 1.0)
     lim_x = FRUSTUM_GUARD * 0.5 * cam["width"] / fx
     lim_y = FRUSTUM_GUARD * 0.5 * cam["height"] / fy
@@ -107,6 +115,10 @@ def _intermediates(params, cam):
         sc = np.maximum(a, c)
         an, bn, cn = a / sc, b / sc, c / sc
         detn = an * cn - bn * bn
+        dn = COV_DILATION / sc
+        det0n = (an - dn) * (cn - dn) - bn * bn
+        c2 = (np.where((det0n > 0) & (detn > 0), np.sqrt(np.abs(det0n / detn)), 0.0) if aa
+              else np.ones(n))
         vis &= np.isfinite(a) & np.isfinite(b) & np.isfinite(c) & (detn > 0)
         inv = np.where(vis, 1.0 / np.where(vis, detn * sc, 1.0), 0.0)
         conic = np.stack([cn * inv, -bn * inv, an * inv], 1)
@@ -114,9 +126,30 @@ def _intermediates(params, cam):
         lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
         radius = np.where(vis, SIGMA_RADIUS * np.sqrt(np.where(vis, lam, 0.0)), 0.0)
     xy = np.stack([fx * tc[:, 0] / z + cam["cx"], fy * tc[:, 1] / z + cam["cy"]], 1)
+    I.update(aa=aa, f2=f2, se=se, c3=c3, c2=c2, sc=sc, a=a, b=b, c=c, detn=detn, det0n=det0n)
     I.update(tc=tc, vis=vis, qn=qn, qlen=qlen, s=s, Rq=Rq, S3=S3, z=z, rx=rx, ry=ry,
              clamp_x=clamp_x, clamp_y=clamp_y, Tm=Tm, Vm=Vm, conic=conic, xy=xy, radius=radius)
     return I
+
+
+def filter3d(means, cams) -> np.ndarray:
+    """Each Gaussian's 3D filter variance f2 [n] over the training cameras ``cams`` (camera
+    dicts): FILTER3D_VAR (min t_z / fx)^2 over the cameras that see its mean (t_z > near, the
+    projection within FILTER3D_MARGIN of the image); -1 where none does (splat_filter3d)."""
+    m = np.asarray(means, np.float64)
+    best = np.full(m.shape[0], np.inf)
+    for cam in cams:
+        V = np.asarray(cam["viewmat"], np.float64)
+        tc = m @ V[:3, :3].T + V[:3, 3]
+        z = tc[:, 2]
+        front = z > cam["near"]
+        zs = np.where(front, z, 1.0)
+        u = cam["fx"] * tc[:, 0] / zs + cam["cx"]
+        v = cam["fy"] * tc[:, 1] / zs + cam["cy"]
+        w, h, k = cam["width"], cam["height"], FILTER3D_MARGIN
+        seen = front & (u >= -k * w) & (u <= (1 + k) * w) & (v >= -k * h) & (v <= (1 + k) * h)
+        best = np.where(seen, np.minimum(best, zs / cam["fx"]), best)
+    return np.where(np.isfinite(best), FILTER3D_VAR * best * best, -1.0)
 
 
 def _view_dirs(means, cam):
@@ -148,7 +181,8 @@ def project(params, cam, tile=TILE) -> dict:
     ntx, nty = tiles(cam, tile)
     out = {"xy": I["xy"], "conic": I["conic"], "radius": I["radius"], "depth": I["tc"][:, 2],
            "color": np.maximum(col, 0.0),
-           "opacity": sigmoid(np.asarray(params["opacity_logits"], np.float64))}
+           "opacity": sigmoid(np.asarray(params["opacity_logits"], np.float64))
+           * I["c3"] * I["c2"]}
     for k in out:
         out[k] = np.where(vis.reshape((-1,) + (1,) * (out[k].ndim - 1)), out[k], 0.0)
     out["rect"] = tile_rect(out["xy"], out["radius"], ntx, nty, tile)
@@ -347,7 +381,9 @@ def _backward(params, cam, grads2d):
     g_dir = gm
     # opacity
     o = sigmoid(np.asarray(params["opacity_logits"], np.float64))
-    d_logit = gop * o * (1 - o)
+    c3, c2 = I["c3"], I["c2"]
+    d_logit = gop * c3 * c2 * o * (1 - o)
+    g_c = gop * o                        # dL/d(c3 c2) (ANTIALIASED)
     # mean in pixels
     gt = np.stack([gxy[:, 0] * fx / z, gxy[:, 1] * fy / z,
                    -(gxy[:, 0] * fx * tc[:, 0] + gxy[:, 1] * fy * tc[:, 1]) / z ** 2], 1)
@@ -358,6 +394,17 @@ def _backward(params, cam, grads2d):
                    np.stack([gq[:, 1] / 2, gq[:, 2]], -1)], 1)
     GS = -Q @ GQ @ Q
     GS = 0.5 * (GS + np.transpose(GS, (0, 2, 1)))
+    if I["aa"]:   # c2 = sqrt(det0 / det1) through Sigma2's entries (b counts twice)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sc, detn, det0n = I["sc"], I["detn"], I["det0n"]
+            an, bn, cn, dn = I["a"] / sc, I["b"] / sc, I["c"] / sc, COV_DILATION / sc
+            g2 = np.where(c2 > 0, g_c * c3 * 0.5 * c2 / sc, 0.0)
+            live = c2 > 0
+            GS[:, 0, 0] += np.where(live, g2 * ((cn - dn) / det0n - cn / detn), 0.0)
+            GS[:, 1, 1] += np.where(live, g2 * ((an - dn) / det0n - an / detn), 0.0)
+            off = np.where(live, g2 * (-bn / det0n + bn / detn), 0.0)
+            GS[:, 0, 1] += off
+            GS[:, 1, 0] += off
     Tm, Vm = I["Tm"], I["Vm"]
     dT = 2 * GS @ Vm
     G3 = np.transpose(Tm, (0, 2, 1)) @ GS @ Tm
@@ -369,11 +416,14 @@ def _backward(params, cam, grads2d):
     gt[:, 2] += np.where(I["clamp_y"], 1.0, 2.0) * fy * I["ry"] / z ** 2 * dJ[:, 1, 2]
     gm = gm + gt @ R
     # Sigma3 = M M^T, M = Rq diag(s)
-    Rq, s = I["Rq"], I["s"]
-    M = Rq * s[:, None, :]
+    Rq, s, se = I["Rq"], I["s"], I["se"]
+    M = Rq * se[:, None, :]
     dM = 2 * G3 @ M
-    d_ls = np.sum(dM * Rq, 1) * s
-    dR = dM * s[:, None, :]
+    # the covariance's share through se (= s without the filter) and c3's
+    d_ls = np.sum(dM * Rq, 1) * s * s / se
+    if I["aa"]:
+        d_ls = d_ls + (g_c * c2 * c3)[:, None] * I["f2"][:, None] / (se * se)
+    dR = dM * se[:, None, :]
     qw, qx, qy, qz = (I["qn"][:, k] for k in range(4))
     g = lambda j, k: dR[:, j, k]  # noqa: E731
     gqn = 2 * np.stack([

@@ -101,6 +101,11 @@ class SplatConfig:
     lr_pose: float = 0.001          # Adam learning rate of the corrections: radians per
     #                                 step, translations this times the scene's extent
     pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    antialiased: bool = False       # Mip-Splatting's filters: a 3D low-pass filter per
+    #                                 Gaussian bounded by the training views' sampling rate
+    #                                 and the screen-space dilation with opacity compensation,
+    #                                 so a render at another scale (zoom, clrf render --scale)
+    #                                 neither fattens nor needles thin things
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "SplatConfig":

@@ -27,7 +27,7 @@ import numpy as np
 from ..interface import Budget, StateError, Unsupported
 from ..runtime.optim import AdamSet, Optimizer, expon_lr
 from ..runtime.pending import Pending
-from ..runtime.programs import download, launch, upload
+from ..runtime.programs import download, launch, scratch, upload
 from .config import SplatConfig
 from .loss import STATS, DeviceLoss
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
@@ -37,6 +37,7 @@ INIT_OPACITY = 0.1
 RESET_OPACITY = 0.01
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 CAMERA_NEAR = 0.01
+FILTER3D_EVERY = 100            # steps between recomputations of the 3D filter (Mip-Splatting)
 ADAM_BETAS = (0.9, 0.999)       # PyTorch's defaults, as the published code uses
 
 
@@ -100,7 +101,8 @@ class SplatModel:
         self.bbox = np.asarray(bbox, np.float64).reshape(2, 3)
         self.seed = int(seed)
         self.max_count = int(max_count if max_count is not None else config.max_gaussians)
-        self.rast = SplatRasterizer(device, config.sh_degree, default_tile(device))
+        self.rast = SplatRasterizer(device, config.sh_degree, default_tile(device),
+                                    antialiased=config.antialiased)
         self.n_basis = self.rast.n_basis
         self.step = 0                  # Adam updates so far
         # the step's loss stays on the device until read (GPU shapes; train_step)
@@ -115,6 +117,8 @@ class SplatModel:
         self._loss_fn = None           # DeviceLoss for the views' size
         self.exposure = None           # Exposure: a colour transform per image (splat.exposure)
         self.pose = None               # PoseCorrection: one per training camera (splat.pose_opt)
+        self.filter3d = None           # f2 [n] of the 3D filter (splat.antialiased; None: stale)
+        self.filter_step = -1          # the step it was computed at
         self._targets = None           # view -> its training image on the device
         self.train_views = None
         self.hw = None
@@ -148,6 +152,36 @@ class SplatModel:
         self.accum, self.count, self.max_radius = (upload(q, np.ascontiguousarray(s, np.float32))
                                                    for s in stats)
         self.n = n
+        self.filter3d = None   # the Gaussians changed: the 3D filter is recomputed when needed
+
+    # ---- anti-aliasing ----------------------------------------------------------------------
+    def training_cameras(self) -> list:
+        """The SplatCameras of the training views (with their pose corrections)."""
+        ds = self._dataset()
+        cams = []
+        for v in self.train_views:
+            cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
+            cams.append(self.pose.camera(cam, v) if self.pose is not None else cam)
+        return cams
+
+    def update_filter(self):
+        """Recompute each Gaussian's 3D filter from the training cameras (splat.antialiased:
+        after the Gaussians change, and every FILTER3D_EVERY steps as they move)."""
+        self.filter3d = self.rast.filter3d(self.params["means"], self.training_cameras())
+        self.filter_step = self.step
+
+    def _rparams(self) -> dict:
+        """The rasteriser's inputs: the parameters, and the 3D filter when anti-aliased (a
+        model without training views and without a stored filter renders with f2 = 0)."""
+        if not self.rast.antialiased:
+            return self.params
+        if self.filter3d is None:
+            if self._ds is not None:
+                self.update_filter()
+            else:
+                self.filter3d = scratch(self.device, (self.n,))
+                self.filter3d.fill(0.0)
+        return dict(self.params, filter3d=self.filter3d)
 
     def host_params(self) -> dict:
         return {k: download(v) for k, v in self.params.items()}
@@ -219,7 +253,10 @@ class SplatModel:
         if self.pose is not None:
             cam = self.pose.camera(cam, v)
         bg = self.background
-        proj, bins, ras = self.rast.forward(self.params, cam, bg)
+        if self.rast.antialiased and self.step - self.filter_step >= FILTER3D_EVERY:
+            self.filter3d = None
+        params = self._rparams()
+        proj, bins, ras = self.rast.forward(params, cam, bg)
         if self.exposure is None:
             grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
         else:   # the loss sees the render under image v's colour transform
@@ -227,8 +264,7 @@ class SplatModel:
             grad, stats = self._loss().loss_and_grad(shown, self._target(v))
             grad = self.exposure.backward_and_step(ras.rgb, grad, v)
         g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg)
-        grads = self.rast.project_backward(self.params, cam, g2d,
-                                           camera_grad=self.pose is not None)
+        grads = self.rast.project_backward(params, cam, g2d, camera_grad=self.pose is not None)
         if self.pose is not None:   # reads twelve numbers: the camera's gradient
             self.pose.step(v, cam.viewmat, *camera_gradient(grads["camera"]))
         prg = self.device.program("splat_train.cl")
@@ -391,7 +427,7 @@ class SplatModel:
         depth is a second raster pass, run when it is first looked up (the evaluation and the
         viewer's colour frames never do)."""
         cam = camera_of(c2w, intrinsics, hw)
-        proj, bins, ras = self.rast.forward(self.params, cam, self.background)
+        proj, bins, ras = self.rast.forward(self._rparams(), cam, self.background)
         rgb = download(ras.rgb)
         acc = (1.0 - download(ras.T)).astype(np.float32)
 
@@ -439,6 +475,8 @@ class SplatModel:
             st.update(self.exposure.state_dict())
         if self.pose is not None:
             st.update(self.pose.state_dict())
+        if self.rast.antialiased:
+            st["filter3d"] = download(self._rparams()["filter3d"])
         return st
 
     @classmethod
@@ -462,6 +500,11 @@ class SplatModel:
         m = cls(device, config, host, tuple(state["background"]), float(state["extent"]),
                 state["bbox"], int(state["seed"]), int(state["max_count"]))
         m._set_host(host, moments)
+        if config.antialiased and "filter3d" in state:
+            f2 = np.ascontiguousarray(state["filter3d"], np.float32)
+            if f2.shape != (n,):
+                raise StateError(f"state_dict['filter3d']: shape {f2.shape}, expected ({n},)")
+            m.filter3d = upload(device.queue, f2)
         if "exposure" in state:
             from .exposure import Exposure
             try:
@@ -729,9 +772,21 @@ def write_splats(model: SplatModel, path) -> str:
     """``clrf export --splats FILE.ply``: the Gaussians in the 3DGS PLY layout."""
     from .ply import write_splat_ply
     p = model.host_params()
+    note = ""
+    if model.rast.antialiased:
+        # the 3D filter baked in, for viewers without it: scales sqrt(s^2 + f2), opacity
+        # times prod s / se (the screen-space compensation is the viewer's own)
+        f2 = download(model._rparams()["filter3d"]).astype(np.float64)
+        s = np.exp(p["log_scales"].astype(np.float64))
+        se = np.sqrt(s * s + f2[:, None])
+        o = 1.0 / (1.0 + np.exp(-p["opacity_logits"].astype(np.float64))) * np.prod(s / se, 1)
+        o = np.clip(o, 1e-7, 1 - 1e-7)
+        p["log_scales"] = np.log(se).astype(np.float32)
+        p["opacity_logits"] = np.log(o / (1 - o)).astype(np.float32)
+        note = " (the 3D anti-aliasing filter baked into scales and opacities)"
     n = write_splat_ply(path, p["means"], p["log_scales"], p["quats"], p["opacity_logits"],
                         p["sh"])
-    return f"saved {path}: {n} Gaussians, SH degree {model.config.sh_degree}"
+    return f"saved {path}: {n} Gaussians, SH degree {model.config.sh_degree}{note}"
 
 
 __all__ = ["SplatModel", "create_model", "model_from_state", "write_splats"]

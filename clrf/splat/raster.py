@@ -16,6 +16,10 @@ pairs after the scan, to size the sort's buffers (``bin``):
 >>> grads = r.project_backward(params, camera, g2d, camera_grad=True)
 >>> dR, dt = camera_gradient(grads["camera"])  # dL/d(R, t) of camera.viewmat (splat.pose_opt)
 
+``SplatRasterizer(dev, 3, antialiased=True)`` projects with Mip-Splatting's 3D and 2D filters
+(splat.antialiased; cl/splat_project.cl): its params carry "filter3d" [n], each Gaussian's 3D
+filter variance, from ``r.filter3d(params["means"], training_cameras)``.
+
 ``render(gaussians, camera)`` and ``render_backward(gaussians, camera, grad_rgb)`` do the same
 from and to numpy.
 """
@@ -42,6 +46,8 @@ T_MIN = 1e-4              # a pixel stops before its transmittance would fall be
 COV_DILATION = 0.3        # low-pass filter added to the 2D covariance's diagonal (px^2)
 FRUSTUM_GUARD = 1.3       # x/z, y/z clamped to this times the half-frustum's tangent
 SIGMA_RADIUS = 3.0        # screen radius in standard deviations
+FILTER3D_VAR = 0.2        # the 3D filter's variance in the finest sampling interval squared
+FILTER3D_MARGIN = 0.15    # a training camera sees a mean within this share outside its image
 CAM_FLOATS = 20           # cl/splat.h camera buffer
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
@@ -56,9 +62,20 @@ def defines(sh_degree: int, tile: int = TILE) -> dict:
             "FRUSTUM_GUARD": FRUSTUM_GUARD, "SIGMA_RADIUS": SIGMA_RADIUS}
 
 
-def pose_program(device, sh_degree: int, tile: int = TILE):
+def project_defines(sh_degree: int, tile: int = TILE, antialiased: bool = False) -> dict:
+    """cl/splat_project.cl's defines: the shared ones, the 3D filter's constants and, for the
+    anti-aliased projection, ANTIALIASED=1."""
+    d = dict(defines(sh_degree, tile), FILTER3D_VAR=FILTER3D_VAR,
+             FILTER3D_MARGIN=FILTER3D_MARGIN)
+    if antialiased:
+        d["ANTIALIASED"] = 1
+    return d
+
+
+def pose_program(device, sh_degree: int, tile: int = TILE, antialiased: bool = False):
     """cl/splat_project.cl with POSE_GRAD=1: its backward also writes the camera's gradient."""
-    return device.program("splat_project.cl", dict(defines(sh_degree, tile), POSE_GRAD=1))
+    return device.program("splat_project.cl",
+                          dict(project_defines(sh_degree, tile, antialiased), POSE_GRAD=1))
 
 
 def camera_gradient(d_cam) -> tuple:
@@ -73,11 +90,11 @@ def camera_gradient(d_cam) -> tuple:
     return g[:9].reshape(3, 3), g[9:]
 
 
-def programs(device, sh_degree: int, tile: int = TILE) -> tuple:
+def programs(device, sh_degree: int, tile: int = TILE, antialiased: bool = False) -> tuple:
     """(cl/splat_project.cl, cl/splat_raster.cl) for SH degree ``sh_degree`` and tiles of
     ``tile`` pixels on ``device`` (both shapes' kernels are in the second)."""
-    d = defines(sh_degree, tile)
-    return device.program("splat_project.cl", d), device.program("splat_raster.cl", d)
+    return (device.program("splat_project.cl", project_defines(sh_degree, tile, antialiased)),
+            device.program("splat_raster.cl", defines(sh_degree, tile)))
 
 
 @dataclass(frozen=True)
@@ -175,6 +192,20 @@ def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
 _SORTERS: dict = {}
 
 
+def _fill_unseen(context):
+    """f2[i] < 0 (no training camera sees Gaussian i) -> the largest f2, max(0, top[0])."""
+    from pyopencl.elementwise import ElementwiseKernel
+    key = context.int_ptr
+    if key not in _FILLERS:
+        _FILLERS[key] = ElementwiseKernel(context, "float *f2, __global const float *top",
+                                          "if (f2[i] < 0.0f) f2[i] = fmax(top[0], 0.0f)",
+                                          "splat_fill_unseen")
+    return _FILLERS[key]
+
+
+_FILLERS: dict = {}
+
+
 def _pair_sort(context):
     """pyopencl's radix sort of the pairs' (uint64 keys, ids) for ``context``, built once."""
     key = context.int_ptr
@@ -221,7 +252,8 @@ class SplatRasterizer:
     shape) or "rows" (one work-item per tile, the CPU shape; tiles of 4, 8 or 16); both compute
     the same images and gradients to float32 rounding."""
 
-    def __init__(self, device, sh_degree: int = 3, tile: int = TILE, shape: str | None = None):
+    def __init__(self, device, sh_degree: int = 3, tile: int = TILE, shape: str | None = None,
+                 antialiased: bool = False):
         if int(sh_degree) not in (0, 1, 2, 3):
             raise ValueError(f"sh_degree: must be 0, 1, 2 or 3, got {sh_degree}")
         if int(tile) not in (4, 8, 16, 32):
@@ -239,7 +271,9 @@ class SplatRasterizer:
             raise ValueError(f"tile {self.tile}: {self.tile ** 2} work-items exceed this "
                              f"device's work-group limit {device.caps.max_work_group_size}; "
                              f"use a smaller tile")
-        self.proj_program, self.raster_program = programs(device, self.sh_degree, self.tile)
+        self.antialiased = bool(antialiased)
+        self.proj_program, self.raster_program = programs(device, self.sh_degree, self.tile,
+                                                          self.antialiased)
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
@@ -258,11 +292,39 @@ class SplatRasterizer:
         return int(np.shape(params["means"])[0]) if np.ndim(params["means"]) else -1
 
     def check_params(self, params: dict) -> int:
-        """Checks device parameters (dtype float32, shapes, contiguity); returns n."""
+        """Checks device parameters (dtype float32, shapes, contiguity; "filter3d" [n] too when
+        anti-aliased); returns n."""
         n = self._count(params)
         for name, shape in self.shapes(n).items():
             _check_device_array(name, params[name], shape)
+        if self.antialiased:
+            if params.get("filter3d") is None:
+                raise KeyError("gaussians: the anti-aliased rasteriser needs 'filter3d' [n] "
+                               "(SplatRasterizer.filter3d)")
+            _check_device_array("filter3d", params["filter3d"], (n,))
         return n
+
+    def filter3d(self, means, cameras) -> cla.Array:
+        """Each Gaussian's 3D filter variance f2 [n] (splat_filter3d) over ``cameras`` (the
+        training views' SplatCameras, all of one size); a mean no camera sees gets the largest
+        f2 of the others (0 when none is seen)."""
+        n = int(means.shape[0])
+        dev = self.device
+        f2 = scratch(dev, (n,))
+        if n == 0:
+            return f2
+        cams = list(cameras)
+        if not cams:
+            raise ValueError("filter3d: no training cameras")
+        if len({(int(c.width), int(c.height)) for c in cams}) != 1:
+            raise ValueError("filter3d: the training cameras differ in image size")
+        buf = upload(dev.queue, np.stack([c.buffer() for c in cams]))
+        launch(dev, self.proj_program.kernel("splat_filter3d"), n,
+               (np.int32(n), means.data, buf.data, np.int32(len(cams)),
+                np.int32(cams[0].width), np.int32(cams[0].height), f2.data),
+               dev.tuning.elementwise_local_size)
+        _fill_unseen(dev.context)(f2, cla.max(f2))
+        return f2
 
     def upload(self, gaussians: dict) -> dict:
         """Host arrays (any float dtype, finite) -> validated float32 device arrays."""
@@ -291,12 +353,15 @@ class SplatRasterizer:
                          scratch(dev, (n,)), scratch(dev, (n, 3)), scratch(dev, (n,)),
                          scratch(dev, (n, 4), np.int32))
         p = params
-        launch(dev, self.proj_program.kernel("splat_project"), n,
-               (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
+        args = (np.int32(n), p["means"].data, p["log_scales"].data, p["quats"].data,
                 p["opacity_logits"].data, p["sh"].data, cam.data, np.int32(camera.width),
                 np.int32(camera.height), np.int32(ntx), np.int32(nty), proj.xy.data,
                 proj.conic.data, proj.radius.data, proj.depth.data, proj.color.data,
-                proj.opacity.data, proj.rect.data), dev.tuning.elementwise_local_size)
+                proj.opacity.data, proj.rect.data)
+        if self.antialiased:
+            args += (p["filter3d"].data,)
+        launch(dev, self.proj_program.kernel("splat_project"), n, args,
+               dev.tuning.elementwise_local_size)
         return proj
 
     def check_projected(self, proj: Projected):
@@ -489,9 +554,11 @@ class SplatRasterizer:
                 grads2d["color"].data, grads2d["opacity"].data, out["means"].data,
                 out["log_scales"].data, out["quats"].data, out["opacity_logits"].data,
                 out["sh"].data)
+        if self.antialiased:
+            args += (p["filter3d"].data,)
         prg = self.proj_program
         if camera_grad:
-            prg = pose_program(dev, self.sh_degree, self.tile)
+            prg = pose_program(dev, self.sh_degree, self.tile, self.antialiased)
             out["camera"] = scratch(dev, (12, n))
             args += (out["camera"].data,)
         if n:
