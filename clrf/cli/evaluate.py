@@ -4,7 +4,9 @@ or under a published protocol (``--protocol``, clrf/data/protocols.py).
 Output JSON (default CKPT/eval_cli.json, or CKPT/eval_PROTOCOL.json with --protocol): the means
 ``psnr``, ``ssim`` (``ssim_window`` names it), ``lpips`` (null when unavailable, the reason in
 ``lpips_unavailable``), ``views`` (per view), ``n_views``, ``resolution`` [W, H]; with a protocol
-also ``protocol``, ``protocol_resolution``, ``standard`` (false: NOT the protocol) and ``note``.
+also ``protocol``, ``protocol_resolution``, ``standard`` (false: NOT the protocol) and ``note``;
+with ``--downscale N`` (the test views rendered at 1/N of the training resolution against the
+test images box-averaged by N) also ``downscale``.
 """
 from __future__ import annotations
 
@@ -29,6 +31,10 @@ def _views_and_data(a, state):
     """(dataset, views, protocol info or None) for the command's arguments."""
     from ..training.models import checkpoint_dataset, dataset_for
     if a.protocol:
+        if getattr(a, "downscale", 1) != 1:
+            from .common import CliError
+            raise CliError("--downscale does not apply with --protocol: a protocol fixes its "
+                           "resolution")
         from .. import registry
         from ..data.protocols import prepare
         path = a.data if a.data is not None else state["run_config"]["train"].get("data", "")
@@ -53,9 +59,13 @@ def cmd_eval(a):
     from ..training.metrics import SSIM_NAME
     from ..training.models import load_model
     from ..training.perceptual import lpips
+    from ..data.io import downscale_image
     from ..runtime.progress import bar
     from ..training.trainer import evaluate
 
+    if a.downscale < 1:
+        from .common import CliError
+        raise CliError(f"--downscale {a.downscale}: must be a whole factor >= 1")
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
     ds, views, pd = _views_and_data(a, state)
@@ -69,20 +79,23 @@ def cmd_eval(a):
     per_view = []
     with bar(len(views), f"eval {a.protocol or 'test'}", "view") as b:
         for v in views:
-            ev = evaluate(model, ds, [v], keep_images=lp_why is None,
+            ev = evaluate(model, ds, [v], keep_images=lp_why is None, downscale=a.downscale,
                           half_fitted=getattr(model, "exposure", None) is not None)
             m = ev["views"][0]
             if lp_why is None:
-                m["lpips"] = lpips(ev["images"][0], ds.images[v], net, a.lpips_backbone)
+                m["lpips"] = lpips(ev["images"][0], downscale_image(ds.images[v], a.downscale),
+                                   net, a.lpips_backbone)
             per_view.append(m)
             b.update(1)
     secs = time.perf_counter() - t
-    H, W = (int(x) for x in ds.hw)
+    H, W = (int(x) // a.downscale for x in ds.hw)
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
            "ssim": float(np.mean([m["ssim"] for m in per_view])), "ssim_window": SSIM_NAME,
            "lpips": (float(np.mean([m["lpips"] for m in per_view])) if lp_why is None else None),
            "lpips_net": net, "lpips_unavailable": lp_why,
            "n_views": len(per_view), "resolution": [W, H]}
+    if a.downscale != 1:   # test images box-averaged: a zoomed-out view
+        res["downscale"] = a.downscale
     if "psnr_half_fitted" in per_view[0]:   # a model with a colour transform per image
         for k in ("psnr_half_fitted", "psnr_right_half"):
             res[k] = float(np.mean([m[k] for m in per_view]))
@@ -136,6 +149,10 @@ def add_eval_parser(sub, func):
     e.add_argument("--out", default=None,
                    help="JSON output (default: CKPT/eval_cli.json, CKPT/eval_PROTOCOL.json)")
     e.add_argument("--max-views", type=int, default=0)
+    e.add_argument("--downscale", type=int, default=1, metavar="N",
+                   help="render the test views at 1/N of the run's training resolution and "
+                        "score them against the test images box-averaged by N (a zoomed-out "
+                        "view: what splat.antialiased is for)")
     described = "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items())
     e.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
                    help="evaluate under a published protocol, whatever the run trained at: "
