@@ -152,7 +152,7 @@ def add_eval_parser(sub, func):
     e.add_argument("--downscale", type=int, default=1, metavar="N",
                    help="render the test views at 1/N of the run's training resolution and "
                         "score them against the test images box-averaged by N (a zoomed-out "
-                        "view: what splat.antialiased is for)")
+                        "view)")
     described = "; ".join(f"{k}: {v}" for k, v in PROTOCOLS.items())
     e.add_argument("--protocol", choices=sorted(PROTOCOLS), default=None,
                    help="evaluate under a published protocol, whatever the run trained at: "
