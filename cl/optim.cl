@@ -32,6 +32,7 @@
  * tests/test_nerf_model.py.
  */
 #include "common.h"
+#include "adam.h"
 
 #ifndef OPT_MODE
 #define OPT_MODE 0  /* 0: RMSProp, 1: SGD, 2: Adam */
@@ -81,17 +82,7 @@ CLRF_INLINE void adam_update(const int i, __global float *p, __global float *g, 
     if (clear_grad) g[i] = 0.0f;         /* the next backward adds into a zero gradient */
     if (!isfinite(g0)) return;
     const float gi = g0 + wd * p[i];     /* L2 weight decay (0: plain Adam) */
-    float mi = b1 * m[i] + (1.0f - b1) * gi;
-    float vi = b2 * v[i] + (1.0f - b2) * gi * gi;
-    /* moments below FLT_MIN are stored as 0: a moment that decays geometrically (an entry the
-     * batches stopped reaching) would otherwise turn subnormal, and x86 CPUs compute on
-     * subnormals ~100x slower (9 % of lego_400's table moments were subnormal after 900 s, which
-     * tripled this kernel's time). Their contribution, below 1e-38 / eps, is nil. */
-    mi = fabs(mi) < FLT_MIN ? 0.0f : mi;
-    vi = vi < FLT_MIN ? 0.0f : vi;
-    m[i] = mi;
-    v[i] = vi;
-    p[i] -= lr * (mi / bc1) / (sqrt(vi / bc2) + eps);
+    adam_apply(i, gi, p, m, v, lr, b1, b2, eps, bc1, bc2);
 }
 
 __kernel void adam_step(const int i0, const int n, __global float *p, __global float *g,

@@ -79,6 +79,12 @@
 #ifndef ANTIALIASED
 #define ANTIALIASED 0
 #endif
+/* Gaussian i's 3D filter variance: the kernels' filter3d input, or none */
+#if ANTIALIASED
+#define SPLAT_F2(i) filter3d[i]
+#else
+#define SPLAT_F2(i) 0.0f
+#endif
 #ifndef FILTER3D_VAR
 #define FILTER3D_VAR 0.2f       /* the 3D filter's variance in sampling intervals squared */
 #endif
@@ -329,11 +335,7 @@ __kernel void splat_project(const int n, __global const float *means,
     if (i >= n) return;
     const float3 m = load3(means, i);
     splat_proj_t P;
-#if ANTIALIASED
-    const float f2 = filter3d[i];
-#else
-    const float f2 = 0.0f;
-#endif
+    const float f2 = SPLAT_F2(i);
     splat_project_one(m, load3(log_scales, i), ld4(quats, i), f2, cam, width, height, &P);
     /* culled Gaussians compute the same and store zeros (an early exit kept this scalar) */
     const int v = P.visible;
@@ -385,11 +387,7 @@ __kernel void splat_project_backward(const int n, __global const float *means,
     if (i >= n) return;
     const float3 m = load3(means, i);
     splat_proj_t P;
-#if ANTIALIASED
-    const float f2 = filter3d[i];
-#else
-    const float f2 = 0.0f;
-#endif
+    const float f2 = SPLAT_F2(i);
     splat_project_one(m, load3(log_scales, i), ld4(quats, i), f2, cam, width, height, &P);
     /* culled Gaussians compute the same and store zeros (no early exit, as the forward) */
     const int v = P.visible;

@@ -13,7 +13,8 @@ from clrf.splat import SplatCamera, SplatRasterizer
 from clrf.splat import raster as sr
 from clrf.testing import tolerances as tol
 
-from test_splat_kernels import BG, PARAMS, _camera, _close_rel, _f64, _gaussians, _stiff_gaussians
+from test_splat_kernels import (BG, PARAMS, _assert_fd, _camera, _close_rel, _f64, _gaussians,
+                                _stiff_gaussians)
 
 
 def _with_filter(g, seed, top=3e-4):
@@ -53,18 +54,7 @@ def test_twin_gradient_vs_finite_differences():
 
     def loss(p):
         return float(np.sum(rs.render(p, cam, BG)[2]["rgb"] * w))
-    eps = tol.SPLAT_FD_EPS
-    for name in PARAMS:
-        fd = np.zeros_like(g[name])
-        for idx in np.ndindex(g[name].shape):
-            plus = {k: v.copy() for k, v in g.items()}
-            minus = {k: v.copy() for k, v in g.items()}
-            plus[name][idx] += eps
-            minus[name][idx] -= eps
-            fd[idx] = (loss(plus) - loss(minus)) / (2 * eps)
-        assert np.abs(fd).max() > 1e-3, name
-        np.testing.assert_allclose(grads[name], fd, rtol=tol.SPLAT_FD_RTOL,
-                                   atol=tol.SPLAT_FD_ATOL, err_msg=name)
+    _assert_fd(g, loss, grads)
 
 
 def test_without_the_filter_the_twin_is_the_plain_projection():
