@@ -561,9 +561,8 @@ class SplatRasterizer:
             prg = pose_program(dev, self.sh_degree, self.tile, self.antialiased)
             out["camera"] = scratch(dev, (12, n))
             args += (out["camera"].data,)
-        if n:
-            launch(dev, prg.kernel("splat_project_backward"), n, args,
-                   dev.tuning.elementwise_local_size)
+        launch(dev, prg.kernel("splat_project_backward"), n, args,
+               dev.tuning.elementwise_local_size)
         return out
 
     # ---- numpy conveniences ---------------------------------------------------------------------
