@@ -122,20 +122,6 @@ CLRF_INLINE void st4(const float4 v, __global float *a, const size_t i) {
     a[4 * i + 3] = v.w;
 }
 
-/* Rotation matrix (row-major) of the unit quaternion q = (w, x, y, z). */
-CLRF_INLINE void splat_quat_rot(const float4 q, float *Rq) {
-    const float w = q.x, x = q.y, y = q.z, z = q.w;
-    Rq[0] = 1.0f - 2.0f * (y * y + z * z);
-    Rq[1] = 2.0f * (x * y - w * z);
-    Rq[2] = 2.0f * (x * z + w * y);
-    Rq[3] = 2.0f * (x * y + w * z);
-    Rq[4] = 1.0f - 2.0f * (x * x + z * z);
-    Rq[5] = 2.0f * (y * z - w * x);
-    Rq[6] = 2.0f * (x * z - w * y);
-    Rq[7] = 2.0f * (y * z + w * x);
-    Rq[8] = 1.0f - 2.0f * (x * x + y * y);
-}
-
 /* Everything the projection of one Gaussian computes; the backward reads the intermediates. */
 typedef struct {
     int visible;       /* 0: culled (see the header); the outputs are then zeros */

@@ -38,6 +38,13 @@
  * g_color [N, 3] with float atomics (common.h atomic_add_f); the caller zeroes them first.
  * The stopping rule and the skip threshold are treated as constants (piecewise derivative).
  *
+ * Built with -D RENDER_DEPTH=1 (a render that asks for depth: clrf render, the viewer's depth
+ * view) the forwards take each splat's camera depth z [N] and also write out_depth [H, W] =
+ * sum_k T_k alpha_k z_k in the same pass (the host divides by 1 - T_end for the mean depth).
+ * Built with -D ABSGRAD=1 (splat.absgrad) the backwards also add |dL/dxy| per pixel into
+ * g_xy_abs [N, 2] (each pixel's term's absolute value, per component: the densification test
+ * on absolute screen gradients, where opposite pixels' terms cannot cancel).
+ *
  * Local memory per work-group: TILE_PIXELS x (float2 xy + float4 (A, B, C, o) + float4 colour)
  * = 40 TILE_PIXELS bytes (10 KiB for TILE 16), + int ids in the backward.
  * Defines read: TILE and the constants of splat.h.
@@ -45,6 +52,13 @@
  */
 #include "common.h"
 #include "splat.h"
+
+#ifndef RENDER_DEPTH
+#define RENDER_DEPTH 0
+#endif
+#ifndef ABSGRAD
+#define ABSGRAD 0
+#endif
 
 __kernel void splat_count(const int n, __global const int *rect, __global int *counts) {
     const int i = get_global_id(0);
@@ -169,7 +183,11 @@ void splat_raster_forward(const int width, const int height, const int ntx,
                           __global const float *xy, __global const float *conic,
                           __global const float *opacity, __global const float *color,
                           const float4 bg, __global float *out_rgb, __global float *out_T,
-                          __global int *out_n) {
+                          __global int *out_n
+#if RENDER_DEPTH
+                          , __global const float *depth, __global float *out_depth
+#endif
+                          ) {
     __local float2 l_xy[TILE_PIXELS];
     __local float4 l_cop[TILE_PIXELS];   /* conic A, B, C and opacity */
     __local float4 l_col[TILE_PIXELS];
@@ -180,7 +198,7 @@ void splat_raster_forward(const int width, const int height, const int ntx,
     const int inside = px < width && py < height;
     const float2 pix = (float2)((float)px + 0.5f, (float)py + 0.5f);
     const int start = ranges[2 * tile], end = ranges[2 * tile + 1];
-    float T = 1.0f;
+    float T = 1.0f, D = 0.0f;
     float3 C = (float3)(0.0f);
     int last = 0, done = !inside;
     if (lid == 0) l_done = 0;
@@ -193,7 +211,11 @@ void splat_raster_forward(const int width, const int height, const int ntx,
             const int g = ids[base + lid];
             l_xy[lid] = vload2(g, xy);
             l_cop[lid] = (float4)(vload3(g, conic), opacity[g]);
+#if RENDER_DEPTH
+            l_col[lid] = (float4)(vload3(g, color), depth[g]);
+#else
             l_col[lid] = (float4)(vload3(g, color), 0.0f);
+#endif
         }
         barrier(CLK_LOCAL_MEM_FENCE);
         if (done) continue;
@@ -209,6 +231,7 @@ void splat_raster_forward(const int width, const int height, const int ntx,
                 break;
             }
             C += l_col[j].xyz * (alpha * T);
+            D += l_col[j].w * (alpha * T);
             T = nT;
             last = base - start + j + 1;
         }
@@ -219,6 +242,11 @@ void splat_raster_forward(const int width, const int height, const int ntx,
     vstore3(C + T * bg.xyz, p, out_rgb);
     out_T[p] = T;
     out_n[p] = last;
+#if RENDER_DEPTH
+    out_depth[p] = D;
+#else
+    (void)D;
+#endif
 }
 
 __kernel __attribute__((reqd_work_group_size(TILE, TILE, 1)))
@@ -229,7 +257,11 @@ void splat_raster_backward(const int width, const int height, const int ntx,
                            const float4 bg, __global const float *out_T,
                            __global const int *out_n, __global const float *grad_rgb,
                            __global float *g_xy, __global float *g_conic,
-                           __global float *g_opacity, __global float *g_color) {
+                           __global float *g_opacity, __global float *g_color
+#if ABSGRAD
+                           , __global float *g_xy_abs
+#endif
+                           ) {
     __local int l_id[TILE_PIXELS];
     __local float2 l_xy[TILE_PIXELS];
     __local float4 l_cop[TILE_PIXELS];
@@ -283,8 +315,14 @@ void splat_raster_backward(const int width, const int height, const int ntx,
             if (raw >= ALPHA_MAX) continue;   /* clamped: alpha is constant */
             atomic_add_f(&g_opacity[gi], G * dalpha);
             const float dpow = raw * dalpha;
-            atomic_add_f(&g_xy[2 * gi], -dpow * (cop.x * d.x + cop.y * d.y));
-            atomic_add_f(&g_xy[2 * gi + 1], -dpow * (cop.y * d.x + cop.z * d.y));
+            const float gx = -dpow * (cop.x * d.x + cop.y * d.y);
+            const float gy = -dpow * (cop.y * d.x + cop.z * d.y);
+            atomic_add_f(&g_xy[2 * gi], gx);
+            atomic_add_f(&g_xy[2 * gi + 1], gy);
+#if ABSGRAD
+            atomic_add_f(&g_xy_abs[2 * gi], fabs(gx));
+            atomic_add_f(&g_xy_abs[2 * gi + 1], fabs(gy));
+#endif
             atomic_add_f(&g_conic[3 * gi], -0.5f * dpow * d.x * d.x);
             atomic_add_f(&g_conic[3 * gi + 1], -dpow * d.x * d.y);
             atomic_add_f(&g_conic[3 * gi + 2], -0.5f * dpow * d.y * d.y);
@@ -394,12 +432,14 @@ CLRF_INLINE int all_lane(const VI v) {
  *   sa  dmax_x and sb dmax_y: |dx| <= dmax_x, |dy| <= dmax_y hold wherever alpha can reach
  *       ALPHA_MIN (dmax_y^2 = 2 (margin - log(ALPHA_MIN / o)) A / det from the bound above,
  *       dmax_x likewise with C; INFINITY: no bound),
- *   sc  1 when the splat can reach ALPHA_MIN at all (o >= ALPHA_MIN), else 0.
+ *   sc  1 when the splat can reach ALPHA_MIN at all (o >= ALPHA_MIN), else 0,
+ *   sd  its camera depth z (RENDER_DEPTH's forward composites it).
  * Degenerate conics get no bounds (every row and column); the margin keeps rounding on the
  * safe side. */
 __kernel void splat_pack_rows(const int n, __global const float *xy,
                               __global const float *conic, __global const float *opacity,
-                              __global const float *color, __global float *rec) {
+                              __global const float *color, __global const float *depth,
+                              __global float *rec) {
     const int i = get_global_id(0);
     if (i >= n) return;
     const float2 m = vload2(i, xy);
@@ -417,7 +457,7 @@ __kernel void splat_pack_rows(const int n, __global const float *xy,
         dmax_x = sqrt(2.0f * reach * (q.z / det)) * (1.0f + ROW_MARGIN) + ROW_MARGIN;
     }
     vstore16((float16)(m.x, m.y, q.x, q.y, q.z, o, c.x, c.y, c.z, pthr, dmax_x, dmax_y,
-                       o >= ALPHA_MIN ? 1.0f : 0.0f, 0.0f, 0.0f, 0.0f), i, rec);
+                       o >= ALPHA_MIN ? 1.0f : 0.0f, depth[i], 0.0f, 0.0f), i, rec);
 }
 
 /* The rows [*r0, *r1) of the tile at (x0, y0) (rows x cols pixels) that record ``s``
@@ -462,7 +502,11 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
                                         __global const int *ids, __global const float *rec,
                                         const float4 bg,
                                         __global float *out_rgb, __global float *out_T,
-                                        __global int *out_n) {
+                                        __global int *out_n
+#if RENDER_DEPTH
+                                        , __global float *out_depth
+#endif
+                                        ) {
     const int tile = get_global_id(0);
     if (tile >= ntiles) return;
     const int x0 = (tile % ntx) * TILE, y0 = (tile / ntx) * TILE;
@@ -470,11 +514,17 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
     const VF xs = (float)x0 + lane_centres();
     const VI lanes_in = (VI)(cols) > CONCAT(convert_int, TILE)(lane_centres());
     VF T[TILE], Cr[TILE], Cg[TILE], Cb[TILE];
+#if RENDER_DEPTH
+    VF Dz[TILE];
+#endif
     VI last[TILE], done[TILE];
     int alive = 0;   /* rows with a pixel still compositing */
     for (int r = 0; r < TILE; ++r) {
         T[r] = (VF)(1.0f);
         Cr[r] = Cg[r] = Cb[r] = (VF)(0.0f);
+#if RENDER_DEPTH
+        Dz[r] = (VF)(0.0f);
+#endif
         last[r] = (VI)(0);
         done[r] = r < rows ? ~lanes_in : (VI)(-1);
         alive += r < rows && cols > 0;
@@ -506,6 +556,9 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
             Cr[r] += c.x * w;
             Cg[r] += c.y * w;
             Cb[r] += c.z * w;
+#if RENDER_DEPTH
+            Dz[r] += s.sd * w;
+#endif
             T[r] = select(T[r], nT, use);
             last[r] = select(last[r], pos, use);
             if (any_lane(stop) && all_lane(done[r])) --alive;
@@ -525,6 +578,10 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
             out_T[p0 + i] = tt[i];
             out_n[p0 + i] = nn[i];
         }
+#if RENDER_DEPTH
+        VSTORE(Dz[r], 0, tt);
+        for (int i = 0; i < cols; ++i) out_depth[p0 + i] = tt[i];
+#endif
     }
 }
 
@@ -535,7 +592,11 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
                                          __global const float *out_T, __global const int *out_n,
                                          __global const float *grad_rgb,
                                          __global float *g_xy, __global float *g_conic,
-                                         __global float *g_opacity, __global float *g_color) {
+                                         __global float *g_opacity, __global float *g_color
+#if ABSGRAD
+                                         , __global float *g_xy_abs
+#endif
+                                         ) {
     const int tile = get_global_id(0);
     if (tile >= ntiles) return;
     const int x0 = (tile % ntx) * TILE, y0 = (tile / ntx) * TILE;
@@ -587,6 +648,9 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
         const VI pos = (VI)(k - start);
         VF s_cr = ZERO, s_cg = ZERO, s_cb = ZERO, s_o = ZERO, s_x = ZERO, s_y = ZERO;
         VF s_a = ZERO, s_b = ZERO, s_c = ZERO;
+#if ABSGRAD
+        VF s_ax = ZERO, s_ay = ZERO;
+#endif
         int touched = 0;
         const int kpos = k - start;
         for (int r = r0; r < r1; ++r) {
@@ -618,8 +682,14 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
             const VF dG = select(ZERO, G * dalpha, free);
             const VF dpow = cop.w * dG;
             s_o += dG;
-            s_x -= dpow * (cop.x * dx + cop.y * dy);
-            s_y -= dpow * (cop.y * dx + cop.z * dy);
+            const VF gx = dpow * (cop.x * dx + cop.y * dy);
+            const VF gy = dpow * (cop.y * dx + cop.z * dy);
+            s_x -= gx;
+            s_y -= gy;
+#if ABSGRAD
+            s_ax += fabs(gx);
+            s_ay += fabs(gy);
+#endif
             s_a -= 0.5f * dpow * dx * dx;
             s_b -= dpow * dx * dy;
             s_c -= 0.5f * dpow * dy * dy;
@@ -634,6 +704,10 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
         atomic_add_f(&g_conic[3 * g], hsum(s_a));
         atomic_add_f(&g_conic[3 * g + 1], hsum(s_b));
         atomic_add_f(&g_conic[3 * g + 2], hsum(s_c));
+#if ABSGRAD
+        atomic_add_f(&g_xy_abs[2 * g], hsum(s_ax));
+        atomic_add_f(&g_xy_abs[2 * g + 1], hsum(s_ay));
+#endif
     }
 }
 #endif /* TILE 4, 8 or 16 */

@@ -92,8 +92,9 @@ class Model(Protocol):
     def state_dict(self) -> dict: ...
 
     # Optional, for models that render whole cameras rather than rays (Kind.batches "views"):
-    #   render_image(c2w [4, 4], intrinsics (fx, fy, cx, cy), hw (H, W)) -> dict of numpy
-    #   rgb [H, W, 3], depth [H, W], acc [H, W]  (OpenGL camera axes: x right, y up, -z ahead)
+    #   render_image(c2w [4, 4], intrinsics (fx, fy, cx, cy), hw (H, W), depth=True) -> dict
+    #   of numpy rgb [H, W, 3], acc [H, W] and, where asked, depth [H, W] (OpenGL camera
+    #   axes: x right, y up, -z ahead)
     # Evaluation, `clrf render` and the viewer use it where a model has it (render_view).
     #   attach(ds, max_images): the training views of dataset ds (the first max_images; 0:
     #   all); the trainer calls it after create and after from_state (a resumed run).
@@ -175,12 +176,13 @@ class Kind:
     programs: Optional[Callable] = None
 
 
-def render_view(model, c2w, intrinsics, hw, rays):
+def render_view(model, c2w, intrinsics, hw, rays, depth: bool = True):
     """rgb [H, W, 3], depth [H, W], acc [H, W] of one camera: the model's render_image where it
-    has one, else its render of ``rays()`` (a callable returning origins, dirs [H*W, 3])."""
+    has one (its depth only where ``depth`` asks for it), else its render of ``rays()`` (a
+    callable returning origins, dirs [H*W, 3])."""
     H, W = int(hw[0]), int(hw[1])
     if hasattr(model, "render_image"):
-        return model.render_image(c2w, intrinsics, (H, W))
+        return model.render_image(c2w, intrinsics, (H, W), depth=depth)
     o, d = rays()
     # every output the model gives, as an image (rgb [H, W, 3], depth and acc [H, W])
     return {k: np.asarray(v).reshape(H, W, *np.shape(v)[1:])

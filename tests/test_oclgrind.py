@@ -9,7 +9,8 @@ in both loss modes with touched marks, the MSI background, bricks, grid ops (TV,
 prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
 forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
 backward, the hash march (windows, alive rays, contraction), Adam over spans and over several
-buffers in one launch, the Gaussian splatting projection (forward, backward), binning
+buffers in one launch, the Gaussian splatting projection (forward, backward; anti-aliased;
+the camera's gradient), the MCMC strategy's regularisers and noise, binning
 (pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward),
 and the hash model's bounded step (capped offsets, the encoding and the MLP on both tilings
 reading a device count, a bounded step with the GPU tiling).
@@ -90,6 +91,9 @@ CASES = [
     "tests/test_splat_pose.py::test_camera_gradient_on_the_device_matches_the_twin[default-3]",
     "tests/test_splat_antialias.py::test_project_and_backward_match_the_twin[default-3]",
     "tests/test_splat_antialias.py::test_filter3d_matches_the_twin[default]",
+    "tests/test_splat_strategy.py::test_mcmc_reg_matches_the_twin_and_central_differences"
+    "[default]",
+    "tests/test_splat_strategy.py::test_mcmc_noise_matches_the_twin[default]",
     "tests/test_scan.py::test_capped_offsets_match_clipped_cumsum[100]",
     "tests/test_hash_bounded.py::test_hash_kernels_cover_the_device_count[atomics]",
     "tests/test_hash_bounded.py::test_mlp_passes_cover_the_device_count[softplus-c3-50-33-cpu]",

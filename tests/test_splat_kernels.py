@@ -294,6 +294,42 @@ def test_splat_rasterize_backward_matches_reference(device, shape, n, width, hei
         assert np.abs(ref[name]).max() > 0, name
 
 
+@pytest.mark.parametrize("shape,tile", [("group", 16), ("rows", 16), ("rows", 8)])
+def test_splat_depth_and_absgrad_match_reference(device, shape, tile):
+    """The render record's depth (RENDER_DEPTH: sum_k T_k alpha_k z_k, in the forward's own
+    pass) and the absolute screen gradients (ABSGRAD: |dL/dxy| per pixel, summed) vs the twin;
+    the variant builds give the plain build's image and gradients."""
+    width, height, n = 37, 29, 70
+    sp = _splats(n, width, height, seed=410 + tile, tile=tile)
+    r = SplatRasterizer(device, 0, tile=tile, shape=shape)
+    cam, _ = _camera(width, height)
+    proj = _upload_splats(device, sp)
+    bins = r.bin(proj, cam)
+    ras = r.rasterize(proj, bins, cam, BG, depth=True)
+    plain = r.rasterize(proj, bins, cam, BG)
+    assert plain.depth is None
+    ntx, nty = cam.tiles(tile)
+    lists = rs.bin_gaussians(sp["rect"], sp["depth"], ntx, nty)
+    want = rs.rasterize(_f64(sp), lists, width, height, BG, tile=tile)
+    _assert_raster(ras, want)
+    np.testing.assert_array_equal(ras.rgb.get(), plain.rgb.get())
+    _close_rel(ras.depth.get(), want["depth"], tol.SPLAT_RASTER_ATOL, "depth")
+    assert want["depth"].max() > 1.0
+    grad = np.random.default_rng(tile).normal(size=(height, width, 3)).astype(np.float32)
+    g_dev = cla.to_device(device.queue, grad)
+    got = r.rasterize_backward(proj, bins, ras, cam, g_dev, BG, absgrad=True)
+    base = r.rasterize_backward(proj, bins, plain, cam, g_dev, BG)
+    ref = rs.rasterize_backward(_f64(sp), lists, want, width, height, grad, BG, tile=tile)
+    for name in sr.GRAD2D_NAMES + ("xy_abs",):
+        _close_rel(got[name].get(), ref[name], tol.SPLAT_GRAD_REL_TO_MAX, name)
+    for name in sr.GRAD2D_NAMES:
+        _close_rel(got[name].get(), base[name].get(), tol.SPLAT_GRAD_REL_TO_MAX, name)
+    # opposite pixels' terms cancel in xy, not in xy_abs
+    assert np.all(ref["xy_abs"] >= np.abs(ref["xy"]) - 1e-12)
+    assert np.sum(ref["xy_abs"]) > 1.5 * np.sum(np.abs(ref["xy"]))
+    assert "xy_abs" not in base
+
+
 @pytest.mark.parametrize("shape", sr.SHAPES)
 def test_splat_thin_faint_splats_skip_nothing_they_reach(device, shape):
     """Needles (sigma 0.4 by 14 px at any angle) and faint splats (opacity near 1/255, whose

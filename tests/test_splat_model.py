@@ -120,7 +120,7 @@ def test_gpu_shape_steps_every_group_in_one_adam_launch(device):
     from clrf.runtime.programs import upload
     gpu, _ = _model(device.with_tuning(gpu_kernels=True), init_points=300)
     assert isinstance(gpu._adam_groups, AdamSet)
-    gpu.densify()
+    gpu.refine()
     assert isinstance(gpu._adam_groups, AdamSet) and gpu._adam_groups.optimizers[0] is \
         gpu.opts["means"]
     one, _ = _model(device, init_points=300)
@@ -165,14 +165,14 @@ def test_densify_and_prune_keep_the_cap(device):
     p = m.params["opacity_logits"].get()
     p[:60] = -10.0
     m.params["opacity_logits"].set(p)
-    msg = m.densify()
+    msg = m.refine()
     assert "60 pruned" in msg and m.n <= 340
     assert m.n == 340            # every remaining Gaussian is a candidate: filled to the cap
     for it in range(4, 6):
         assert np.isfinite(m.train_step(it))
     assert m.n <= 340
     # the budget hook densifies only inside [densify_from, densify_until) and after enough steps
-    m.last_densify = 0
+    m.refine_state.last_refine = 0
     assert m.on_iteration(10, Budget(10, 1.0, 0.01, None)) is None
     assert "densified" in m.on_iteration(30, Budget(30, 1.0, 0.05, None))
     assert m.n <= 340 and m.describe().startswith(f"{m.n} Gaussians")
@@ -380,17 +380,25 @@ def test_a_third_party_reader_opens_the_export(trained, tmp_path):
     np.testing.assert_array_equal(v["opacity"], state["param_opacity_logits"].reshape(-1))
 
 
-def test_render_image_depth_pass_only_when_looked_up():
-    """The depth image is a second raster pass, run on the first r["depth"] and once."""
-    calls = []
-
-    def depth():
-        calls.append(1)
-        return np.ones((2, 2), np.float32)
-    r = sm.LazyDepth(depth, rgb=np.zeros((2, 2, 3)), acc=np.zeros((2, 2)))
-    assert not calls and set(dict(r)) == {"rgb", "acc"}
-    assert "depth" in r and not calls
-    assert r["depth"].shape == (2, 2) and r.get("depth").shape == (2, 2) and len(calls) == 1
-    with pytest.raises(KeyError):
-        r["normals"]
-    assert r.get("normals") is None
+def test_render_image_depth_in_the_same_pass_where_asked(device):
+    """render_image's depth (RENDER_DEPTH, composited in the colour's own raster pass) is the
+    twin's opacity-weighted mean camera depth; without depth=True no depth is made and the
+    colour is the same."""
+    from clrf.references import reference_splat as rs
+    m, ds = _model(device, init_points=400, sh_degree=0)
+    c2w, K, hw = ds.poses[0], ds.intrinsics, ds.hw
+    with_d = m.render_image(c2w, K, hw)
+    without = m.render_image(c2w, K, hw, depth=False)
+    assert set(without) == {"rgb", "acc"} and set(with_d) == {"rgb", "acc", "depth"}
+    np.testing.assert_array_equal(with_d["rgb"], without["rgb"])
+    cam = sm.camera_of(c2w, K, hw)
+    rcam = {"viewmat": cam.viewmat, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
+            "width": cam.width, "height": cam.height, "near": cam.near}
+    p = {k: v.astype(np.float64) for k, v in m.host_params().items()}
+    _, _, ref = rs.render(p, rcam, m.background, tile=m.rast.tile)
+    acc = 1 - ref["T"]
+    want = np.where(acc > 1e-6, ref["depth"] / np.maximum(acc, 1e-6), 0.0)
+    seen = acc > 0.05
+    assert seen.mean() > 0.05
+    np.testing.assert_allclose(with_d["depth"][seen], want[seen], rtol=1e-3)
+    assert np.all(with_d["depth"][acc < 1e-7] == 0)

@@ -266,7 +266,7 @@ def cmd_render(a):
         for i, p in enumerate(poses):
             if fovs is not None:
                 spec = spec_from_fov(float(fovs[i]), pw, ph, meta)
-            r = render_pose(model, spec, p)
+            r = render_pose(model, spec, p, depth=bool(a.depth))
             frame = to_uint8(r["rgb"])
             frames.append(frame)
             tmp = out / f".{a.views}_{i:03d}.png"

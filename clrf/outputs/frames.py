@@ -104,8 +104,9 @@ def frame_rays(spec: ViewSpec, pose):
     return view_rays(spec, check_pose(pose)[None])
 
 
-def render_pose(model, spec: ViewSpec, pose, near: float = 0.0) -> dict:
-    """Render one camera: rgb [H, W, 3], depth [H, W], acc [H, W] float32 numpy.
+def render_pose(model, spec: ViewSpec, pose, near: float = 0.0, depth: bool = True) -> dict:
+    """Render one camera: rgb [H, W, 3], depth [H, W], acc [H, W] float32 numpy (a model that
+    renders whole cameras leaves the depth out unless ``depth``).
 
     near > 0 moves every ray's origin ``near`` along its direction first (direction z = -1 in
     camera axes, so near is a distance along the viewing axis): matter closer to the camera than
@@ -117,7 +118,8 @@ def render_pose(model, spec: ViewSpec, pose, near: float = 0.0) -> dict:
         if near > 0 and not spec.ndc:
             o = (o + np.float32(near) * d).astype(np.float32)
         return o, d
-    return render_view(model, np.asarray(pose, np.float64), spec.intrinsics, spec.hw, rays)
+    return render_view(model, np.asarray(pose, np.float64), spec.intrinsics, spec.hw, rays,
+                       depth)
 
 
 def to_uint8(img) -> np.ndarray:

@@ -225,17 +225,22 @@ def _tile_pixels(t, ntx, width, height, tile):
 
 
 def rasterize(proj, lists, width, height, background=(0.0, 0.0, 0.0), tile=TILE) -> dict:
-    """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W]) of the per-tile lists (front to back)."""
+    """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W], depth [H, W]: sum_k T_k alpha_k z_k of
+    the splats' camera depths, cl/splat_raster.cl RENDER_DEPTH) of the per-tile lists (front
+    to back)."""
     bg = np.asarray(background, np.float64)
     ntx = -(-width // tile)
     rgb = np.zeros((height, width, 3))
     T_out = np.ones((height, width))
     n_out = np.zeros((height, width), np.int64)
+    d_out = np.zeros((height, width))
     col = np.asarray(proj["color"], np.float64)
+    z = np.asarray(proj["depth"], np.float64)
     for t, ids in enumerate(lists):
         px, py = _tile_pixels(t, ntx, width, height, tile)
         T = np.ones(px.size)
         C = np.zeros((px.size, 3))
+        D = np.zeros(px.size)
         last = np.zeros(px.size, np.int64)
         if ids.size:
             alpha = _tile_alpha(proj, ids, px, py)[0]
@@ -248,6 +253,7 @@ def rasterize(proj, lists, width, height, background=(0.0, 0.0, 0.0), tile=TILE)
                 done |= stop
                 act &= ~stop
                 C[act] += (a * T)[act, None] * col[ids[k]]
+                D[act] += (a * T)[act] * z[ids[k]]
                 T = np.where(act, nT, T)
                 last = np.where(act, k + 1, last)
                 if done.all():
@@ -255,17 +261,19 @@ def rasterize(proj, lists, width, height, background=(0.0, 0.0, 0.0), tile=TILE)
         rgb[py, px] = C + T[:, None] * bg
         T_out[py, px] = T
         n_out[py, px] = last
-    return {"rgb": rgb, "T": T_out, "n_contrib": n_out}
+        d_out[py, px] = D
+    return {"rgb": rgb, "T": T_out, "n_contrib": n_out, "depth": d_out}
 
 
 def rasterize_backward(proj, lists, fwd, width, height, grad_rgb, background=(0.0, 0.0, 0.0),
                        tile=TILE) -> dict:
     """dL/d(xy, conic, opacity, color) of the compositing for dL/drgb ``grad_rgb`` [H, W, 3]
-    (the derivation is in cl/splat_raster.cl's header); ``fwd`` is rasterize's output."""
+    (the derivation is in cl/splat_raster.cl's header), and "xy_abs": the per-pixel terms of
+    dL/dxy summed in absolute value (ABSGRAD); ``fwd`` is rasterize's output."""
     bg = np.asarray(background, np.float64)
     n = np.asarray(proj["xy"]).shape[0]
     g = {"xy": np.zeros((n, 2)), "conic": np.zeros((n, 3)), "opacity": np.zeros(n),
-         "color": np.zeros((n, 3))}
+         "color": np.zeros((n, 3)), "xy_abs": np.zeros((n, 2))}
     col = np.asarray(proj["color"], np.float64)
     conic = np.asarray(proj["conic"], np.float64)
     ntx = -(-width // tile)
@@ -294,7 +302,9 @@ def rasterize_backward(proj, lists, fwd, width, height, grad_rgb, background=(0.
             g["opacity"][i] += np.sum(np.where(free, G[:, k] * dalpha, 0.0))
             dx, dy = d[:, k, 0], d[:, k, 1]
             A, B, C = conic[i]
-            g["xy"][i] += [np.sum(-dpow * (A * dx + B * dy)), np.sum(-dpow * (B * dx + C * dy))]
+            gx, gy = -dpow * (A * dx + B * dy), -dpow * (B * dx + C * dy)
+            g["xy"][i] += [np.sum(gx), np.sum(gy)]
+            g["xy_abs"][i] += [np.sum(np.abs(gx)), np.sum(np.abs(gy))]
             g["conic"][i] += [np.sum(-0.5 * dpow * dx * dx), np.sum(-dpow * dx * dy),
                               np.sum(-0.5 * dpow * dy * dy)]
     return g

@@ -38,6 +38,25 @@ class SplatConfig:
     #                                 or random), in pixels of the nearest training view that
     #                                 sees it in front; 0: none (published: the 3-nearest-
     #                                 neighbour distance whatever it covers on screen)
+    strategy: str = "default"       # density control (clrf/splat/strategy.py): "default"
+    #                                 (clone, split and prune by screen-space gradients, as
+    #                                 published) or "mcmc" (3DGS as MCMC: a fixed budget of
+    #                                 Gaussians, dead ones relocated onto live ones, noise on
+    #                                 the means; grows by mcmc_growth to max_gaussians)
+    mcmc_until: float = 0.833       # mcmc: budget fraction after which it stops relocating
+    #                                 and adding (published: 25,000 of 30,000 steps)
+    mcmc_growth: float = 1.05       # mcmc: each refinement multiplies the count by this, up
+    #                                 to the cap (published: 5 %)
+    mcmc_noise_lr: float = 5e5      # mcmc: the means' noise, times their learning rate and
+    #                                 covariance (published: 5e5)
+    mcmc_opacity_reg: float = 0.01  # mcmc: L1 pull of the opacities toward 0 (published)
+    mcmc_scale_reg: float = 0.01    # mcmc: L1 pull of the scales toward 0 (published)
+    init_opacity: float = 0.0       # opacity of the first Gaussians; 0: the strategy's
+    #                                 published value (default 0.1, mcmc 0.5)
+    init_scale: float = 0.0         # their size in units of the mean distance to the 3
+    #                                 nearest neighbours; 0: the strategy's published value
+    #                                 (default 1, mcmc 0.1: small Gaussians, which also keep
+    #                                 the first steps of a CPU run fast)
     max_gaussians: int = 1000000    # hard cap on the number of Gaussians (densification stops
     #                                 adding at it); also lowered to what fits the device
     lr_position: float = 1.6e-4     # Adam learning rate of the means at the start, times the
@@ -65,6 +84,12 @@ class SplatConfig:
     #                                 screen-space position gradient norm (in NDC units: the
     #                                 pixel gradient times (W/2, H/2), as published) over the
     #                                 views that saw it reaches this (published: 2e-4)
+    absgrad: bool = False           # default strategy: the densify test on absolute screen
+    #                                 gradients (each pixel's |dL/dxy| summed, so opposite
+    #                                 pixels cannot cancel; gsplat's absgrad), against
+    #                                 densify_absgrad_threshold
+    densify_absgrad_threshold: float = 8e-4   # the threshold with absgrad (gsplat pairs
+    #                                 absgrad with 0.0008: absolute sums are larger)
     percent_dense: float = 0.01     # Gaussians larger than this fraction of the scene extent
     #                                 are split, smaller ones cloned (published: 0.01)
     prune_opacity: float = 0.005    # Gaussians with opacity below this are removed at each
@@ -107,6 +132,14 @@ class SplatConfig:
     #                                 so a render at another scale (zoom, clrf render --scale)
     #                                 neither fattens nor needles thin things
 
+    def first_opacity(self) -> float:
+        """The first Gaussians' opacity (init_opacity, or the strategy's published value)."""
+        return self.init_opacity or (0.5 if self.strategy == "mcmc" else 0.1)
+
+    def first_scale(self) -> float:
+        """The first Gaussians' size factor (init_scale, or the strategy's published value)."""
+        return self.init_scale or (0.1 if self.strategy == "mcmc" else 1.0)
+
     @staticmethod
     def from_preset(name: str, **overrides) -> "SplatConfig":
         """``"full"`` (the defaults) or ``"tiny"``: few initial Gaussians and a small cap,
@@ -134,6 +167,16 @@ class SplatConfig:
             (self.init in INIT_MODES, "splat.init", f"must be one of {list(INIT_MODES)}"),
             (1 <= self.init_points <= 1 << 24, "splat.init_points", "must be in 1..16777216"),
             (self.init_max_pixels >= 0, "splat.init_max_pixels", "must be >= 0 (0: no limit)"),
+            (self.strategy in STRATEGIES, "splat.strategy", f"must be one of {list(STRATEGIES)}"),
+            (frac(self.mcmc_until), "splat.mcmc_until", "must be a budget fraction in [0, 1]"),
+            (1.0 <= self.mcmc_growth <= 2.0, "splat.mcmc_growth", "must be in [1, 2]"),
+            (self.mcmc_noise_lr >= 0, "splat.mcmc_noise_lr", "must be >= 0 (0: no noise)"),
+            (self.mcmc_opacity_reg >= 0, "splat.mcmc_opacity_reg", "must be >= 0"),
+            (self.mcmc_scale_reg >= 0, "splat.mcmc_scale_reg", "must be >= 0"),
+            (0 <= self.init_opacity < 1, "splat.init_opacity",
+             "must be in (0, 1), or 0 for the strategy's published value"),
+            (self.init_scale >= 0, "splat.init_scale",
+             "must be > 0, or 0 for the strategy's published value"),
             (1 <= self.max_gaussians <= 1 << 26, "splat.max_gaussians",
              "must be in 1..67108864"),
             (0 < self.lr_position <= 1, "splat.lr_position", "must be in (0, 1]"),
@@ -152,6 +195,8 @@ class SplatConfig:
              "must be a budget fraction in (0, 1]"),
             (self.densify_min_steps >= 1, "splat.densify_min_steps", "must be >= 1"),
             (self.densify_grad_threshold > 0, "splat.densify_grad_threshold", "must be > 0"),
+            (self.densify_absgrad_threshold > 0, "splat.densify_absgrad_threshold",
+             "must be > 0"),
             (0 < self.percent_dense < 1, "splat.percent_dense", "must be in (0, 1)"),
             (0 <= self.prune_opacity < 1, "splat.prune_opacity", "must be in [0, 1)"),
             (self.prune_screen_size > 0, "splat.prune_screen_size", "must be > 0 pixels"),
@@ -171,6 +216,7 @@ class SplatConfig:
 
 
 INIT_MODES = ("auto", "points", "random")
+STRATEGIES = ("default", "mcmc")   # clrf/splat/strategy.py
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).
 SPLAT_PRESETS = {

@@ -50,15 +50,18 @@ def programs(device, cfg):
     """Every program a splat run of ``cfg`` asks ``device`` for (Kind.programs): projection and
     rasteriser at the device's default tile, the loss, the densification statistics, the
     rows shape's depth sort and Adam, the colour transform per image (splat.exposure), the
-    projection with the camera's gradient (splat.pose_opt) and the anti-aliased projection
-    (splat.antialiased); the options' programs listed whatever cfg says: the offline builds
-    cover every program a run may build)."""
+    projection with the camera's gradient (splat.pose_opt), the anti-aliased projection
+    (splat.antialiased), the rasteriser with depth (renders that ask for it) and with absolute
+    screen gradients (splat.absgrad); the options' programs listed whatever cfg says: the
+    offline builds cover every program a run may build)."""
     from ..runtime import optim, sort
     from . import exposure, loss, raster
     degree, tile = cfg.splat.sh_degree, raster.default_tile(device)
     for aa in (False, True):    # splat.antialiased
         raster.programs(device, degree, tile, aa)
         raster.pose_program(device, degree, tile, aa)
+    raster.raster_program(device, degree, tile, depth=True)
+    raster.raster_program(device, degree, tile, absgrad=True)
     loss.program(device)
     device.program("splat_train.cl")                       # model.py
     sort.program(device)

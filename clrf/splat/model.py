@@ -13,10 +13,11 @@ step moves no image between host and device and reads back the one pair count of
 The loss statistics are read when the trainer asks for the step's error.
 
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
-densification (clone small / split large Gaussians whose mean screen-space gradient is high,
-prune transparent and, after the first opacity reset, huge ones; never above max_gaussians),
-the opacity resets and the SH degree's increase. Densification runs on the host: it downloads
-the parameters and moments, edits them with numpy and uploads them again.
+SH degree's increase and the density strategy (splat.strategy, clrf/splat/strategy.py: the
+published clone / split / prune with opacity resets, or MCMC's relocation under a fixed cap).
+A refinement runs on the host: it downloads the parameters and moments, edits them with numpy
+(clrf/splat/params.py edit_rows) and uploads them again. The parameters, their moments and
+learning rates follow one table (clrf/splat/params.py TABLE).
 """
 from __future__ import annotations
 
@@ -30,11 +31,13 @@ from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, scratch, upload
 from .config import SplatConfig
 from .loss import STATS, DeviceLoss
+from .params import NAMES, learning_rates, moment_keys
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
+from .strategy import RefineState, StepInfo, logit, make_strategy
+
+assert NAMES == PARAM_NAMES, "clrf/splat/params.py TABLE and the rasteriser's PARAM_NAMES"
 
 SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 dc)
-INIT_OPACITY = 0.1
-RESET_OPACITY = 0.01
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 CAMERA_NEAR = 0.01
 FILTER3D_EVERY = 100            # steps between recomputations of the 3D filter (Mip-Splatting)
@@ -43,14 +46,6 @@ ADAM_BETAS = (0.9, 0.999)       # PyTorch's defaults, as the published code uses
 
 class NotExportable(Unsupported, NotImplementedError):
     """What a splat model cannot export (a density field for --mesh / --points)."""
-
-
-def logit(p):
-    return np.log(p / (1.0 - p))
-
-
-def sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-x))
 
 
 def viewmat_of(c2w) -> np.ndarray:
@@ -63,29 +58,9 @@ def camera_of(c2w, intrinsics, hw) -> SplatCamera:
     return SplatCamera(viewmat_of(c2w), fx, fy, cx, cy, int(hw[1]), int(hw[0]), CAMERA_NEAR)
 
 
-class LazyDepth(dict):
-    """A render's images (rgb, acc) whose "depth" is computed by ``depth_fn()`` when first
-    looked up (``r["depth"]``; ``"depth" in r`` and ``r.get`` count it as there too)."""
-
-    def __init__(self, depth_fn, **images):
-        super().__init__(**images)
-        self._depth_fn = depth_fn
-
-    def __missing__(self, key):
-        if key != "depth":
-            raise KeyError(key)
-        self["depth"] = value = self._depth_fn()
-        return value
-
-    def __contains__(self, key):
-        return key == "depth" or super().__contains__(key)
-
-    def get(self, key, default=None):
-        return self[key] if key in self else default
-
-
 # ---- the model ------------------------------------------------------------------------------
 GROUPS = ("means", "log_scales", "quats", "opacity_logits")   # Adam from clrf/runtime/optim.py
+#                                     (the SH coefficients: cl/splat_train.cl splat_adam_sh)
 
 
 class SplatModel:
@@ -109,9 +84,8 @@ class SplatModel:
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.active_degree = 0
         self.lr_means = config.lr_position * self.extent
-        self.resets = 0                # opacity resets so far (the schedule's count)
-        self.last_reset = 0            # the step of the last reset (0: none yet)
-        self.last_densify = 0          # the iteration of the last densification (0: none)
+        self.strategy = make_strategy(config)   # density control (splat.strategy)
+        self.refine_state = RefineState()        # its running state
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
         self._loss_fn = None           # DeviceLoss for the views' size
@@ -129,24 +103,23 @@ class SplatModel:
         """Upload parameters (and Adam moments, zeros where absent) and fresh statistics."""
         q = self.device.queue
         n = int(host["means"].shape[0])
-        self.params = {k: upload(q, np.ascontiguousarray(host[k], np.float32))
-                       for k in PARAM_NAMES}
+        self.params = {k: upload(q, np.ascontiguousarray(host[k], np.float32)) for k in NAMES}
         moments = moments or {}
 
         def mom(key, like):
             a = moments.get(key)
             return upload(q, np.ascontiguousarray(a if a is not None else np.zeros_like(like),
                                                   np.float32))
+        # Adam's two moments of every table entry
+        self.moments = {k: tuple(mom(mk, host[k]) for mk in moment_keys(k)) for k in NAMES}
         b1, b2 = ADAM_BETAS
         self.opts = {k: Optimizer(self.device, self.params[k], "adam", beta=b1, beta2=b2,
-                                  eps=self.config.adam_eps, state=mom(f"{k}_m", host[k]),
-                                  state2=mom(f"{k}_v", host[k]))
+                                  eps=self.config.adam_eps, state=self.moments[k][0],
+                                  state2=self.moments[k][1])
                      for k in GROUPS}
         # GPU shapes: every group in one launch (the SH coefficients have their own kernel)
         self._adam_groups = (AdamSet(self.device, [self.opts[k] for k in GROUPS])
                              if getattr(self.device.tuning, "gpu_kernels", False) else None)
-        self.sh_m = mom("sh_m", host["sh"])
-        self.sh_v = mom("sh_v", host["sh"])
         stats = moments.get("stats")
         stats = np.zeros((3, n), np.float32) if stats is None else stats
         self.accum, self.count, self.max_radius = (upload(q, np.ascontiguousarray(s, np.float32))
@@ -187,12 +160,7 @@ class SplatModel:
         return {k: download(v) for k, v in self.params.items()}
 
     def host_moments(self) -> dict:
-        out = {}
-        for k in GROUPS:
-            out[f"{k}_m"] = download(self.opts[k].state)
-            out[f"{k}_v"] = download(self.opts[k].state2)
-        out["sh_m"] = download(self.sh_m)
-        out["sh_v"] = download(self.sh_v)
+        out = {mk: download(a) for k in NAMES for mk, a in zip(moment_keys(k), self.moments[k])}
         out["stats"] = np.stack([download(self.accum), download(self.count),
                                  download(self.max_radius)])
         return out
@@ -263,17 +231,17 @@ class SplatModel:
             shown = self.exposure.apply(ras.rgb, v)
             grad, stats = self._loss().loss_and_grad(shown, self._target(v))
             grad = self.exposure.backward_and_step(ras.rgb, grad, v)
-        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg)
+        absgrad = self.strategy.absgrad
+        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg, absgrad=absgrad)
         grads = self.rast.project_backward(params, cam, g2d, camera_grad=self.pose is not None)
         if self.pose is not None:   # reads twelve numbers: the camera's gradient
             self.pose.step(v, cam.viewmat, *camera_gradient(grads["camera"]))
-        prg = self.device.program("splat_train.cl")
-        launch(self.device, prg.kernel("splat_densify_stats"), self.n,
-               (np.int32(self.n), g2d["xy"].data, proj.radius.data,
-                np.float32(0.5 * cam.width), np.float32(0.5 * cam.height), self.accum.data,
-                self.count.data, self.max_radius.data))
+        self.strategy.after_backward(
+            self, StepInfo(proj.radius, g2d["xy_abs" if absgrad else "xy"], int(cam.width),
+                           int(cam.height)), grads)
         self.step += 1
         self._adam(grads, self.step)
+        self.strategy.after_step(self)
         if self.defer_loss:
             return Pending(self.device.queue, stats[STATS.index("mse"):][:1])
         return self._loss_fn.read(stats)["mse"]
@@ -283,8 +251,7 @@ class SplatModel:
         groups in one launch (GPU shapes) or a launch each, then the SH coefficients."""
         c = self.config
         prg = self.device.program("splat_train.cl")
-        lrs = {"means": self.lr_means, "log_scales": c.lr_scaling, "quats": c.lr_rotation,
-               "opacity_logits": c.lr_opacity}
+        lrs = learning_rates(c, self.lr_means)
         for k in GROUPS:
             self.opts[k].grad = grads[k]
         if self._adam_groups is not None:
@@ -294,9 +261,11 @@ class SplatModel:
                 self.opts[k].step(None, lrs[k], t=t)
         b1, b2 = ADAM_BETAS
         nsh = int(self.params["sh"].size)
+        sh_m, sh_v = self.moments["sh"]
+        lr_dc, lr_rest = lrs["sh"]
         launch(self.device, prg.kernel("splat_adam_sh"), nsh,
-               (np.int32(nsh), self.params["sh"].data, grads["sh"].data, self.sh_m.data,
-                self.sh_v.data, np.float32(c.lr_feature_dc), np.float32(c.lr_feature_rest),
+               (np.int32(nsh), self.params["sh"].data, grads["sh"].data, sh_m.data,
+                sh_v.data, np.float32(lr_dc), np.float32(lr_rest),
                 np.float32(b1), np.float32(b2), np.float32(c.adam_eps),
                 np.float32(1 - b1 ** t), np.float32(1 - b2 ** t), np.int32(self.n_basis),
                 np.int32((self.active_degree + 1) ** 2)))
@@ -317,127 +286,57 @@ class SplatModel:
         return self._targets[int(v)]
 
     def on_iteration(self, it: int, budget: Budget):
-        """Schedules from the budget fraction: the means' rate, the SH degree, densification,
-        opacity resets. Returns a log line when the Gaussians changed."""
+        """Schedules from the budget fraction: the means' rate, the SH degree and the density
+        strategy's (refinement, opacity resets). Returns a log line when the Gaussians
+        changed."""
         c = self.config
         f = float(budget.fraction)
         self.progress = f
         self.lr_means = expon_lr(f, c.lr_position * self.extent,
                                  c.lr_position_final * self.extent, 1.0)
         self.active_degree = min(c.sh_degree, int(f / c.sh_increase_every))
-        msgs = []
-        if (c.densify_from <= f < c.densify_until and self.step > 0
-                and it - self.last_densify >= c.densify_min_steps
-                and int(f / c.densify_every) > int(self._densify_frac / c.densify_every)):
-            msgs.append(self.densify())
-            self.last_densify = it
-            self._densify_frac = f
-        if c.opacity_reset_every > 0 and f < c.densify_until:
-            k = int(f / c.opacity_reset_every)
-            if k > self.resets and self.step - self.last_reset >= c.opacity_reset_min_steps:
-                self.resets = k
-                self.last_reset = self.step
-                self.reset_opacity()
-                msgs.append("opacities reset to 0.01")
-        return "; ".join(msgs) or None
+        return "; ".join(self.strategy.on_iteration(self, it, f)) or None
 
-    _densify_frac = 0.0
+    def refine(self) -> str:
+        """One refinement of the density strategy now (host side: the parameters and moments
+        down, the strategy's edit, up again); the count stays at or below the cap. Returns a
+        log line."""
+        return self.apply_refine(self.strategy)
 
-    def densify(self) -> str:
-        """Clone / split / prune from the accumulated statistics (host side); the count stays
-        at or below the cap. Returns a log line."""
-        c = self.config
-        p = self.host_params()
+    def apply_refine(self, strategy) -> str:
         mo = self.host_moments()
-        accum, count, max_radius = mo.pop("stats")
-        grad = np.where(count > 0, accum / np.maximum(count, 1), 0.0)
-        scale = np.exp(p["log_scales"]).max(axis=1)
-        big = c.percent_dense * self.extent
-        cand = grad >= c.densify_grad_threshold
+        stats = mo.pop("stats")
         rng = np.random.default_rng((self.seed, 7, self.step))
-        n0 = self.n
-        # prune first: the room it frees is the room for new Gaussians
-        prune = sigmoid(p["opacity_logits"]) < c.prune_opacity
-        if self.resets > 0:
-            prune |= (max_radius > c.prune_screen_size) | (scale > c.prune_world_size * self.extent)
-        keep = ~prune
-        if not keep.any():   # never remove every Gaussian
-            keep[np.argmax(p["opacity_logits"])] = True
-        room = self.max_count - int(keep.sum())
-        cand &= keep
-        # the highest gradients first when the cap does not leave room for every candidate;
-        # a split adds one Gaussian net (two replace one), a clone one
-        idx = np.flatnonzero(cand)
-        if len(idx) > max(room, 0):
-            idx = idx[np.argsort(-grad[idx])[:max(room, 0)]]
-        clone = idx[scale[idx] <= big]
-        split = idx[scale[idx] > big]
-        keys = list(PARAM_NAMES)
-        names_of = {k: (f"{k}_m" if k in GROUPS else "sh_m",
-                        f"{k}_v" if k in GROUPS else "sh_v") for k in keys}
-        # split children: two samples of each Gaussian, scales / 1.6
-        new = {}
-        if len(split):
-            s = np.exp(p["log_scales"][split]).astype(np.float64)
-            qn = p["quats"][split].astype(np.float64)
-            qn /= np.maximum(np.linalg.norm(qn, axis=1, keepdims=True), 1e-12)
-            R = quat_rot(qn)
-            children = []
-            for _ in range(2):
-                z = rng.standard_normal((len(split), 3)) * s
-                children.append(p["means"][split] + np.einsum("nij,nj->ni", R, z))
-            new["means"] = np.concatenate(children).astype(np.float32)
-            new["log_scales"] = np.tile(np.log(s / 1.6), (2, 1)).astype(np.float32)
-            for k in ("quats", "opacity_logits", "sh"):
-                new[k] = np.concatenate([p[k][split]] * 2)
-        remove = ~keep
-        remove[split] = True
-        out = {}
-        for k in keys:
-            parts = [p[k][~remove], p[k][clone]]
-            if len(split):
-                parts.append(new[k])
-            out[k] = np.concatenate(parts)
-        moms = {}
-        n_added = len(clone) + 2 * len(split)
-        for k in keys:
-            for mk in names_of[k]:
-                a = mo[mk][~remove]
-                moms[mk] = np.concatenate([a, np.zeros((n_added,) + a.shape[1:], np.float32)])
-        moms["stats"] = np.zeros((3, len(out["means"])), np.float32)
-        self._set_host(out, moms)
-        return (f"densified: {n0} -> {self.n} Gaussians ({len(clone)} cloned, {len(split)} "
-                f"split, {int((~keep).sum())} pruned)")
+        host, moments, msg = strategy.refine(
+            self.host_params(), mo, stats, extent=self.extent, cap=self.max_count,
+            resets=self.refine_state.resets, rng=rng)
+        self._set_host(host, moments)
+        return msg
 
-    def reset_opacity(self):
-        """Opacities above RESET_OPACITY are lowered to it (their Adam moments zeroed)."""
-        lo = logit(RESET_OPACITY)
+    def reset_opacity(self, value: float):
+        """Opacities above ``value`` are lowered to it (their Adam moments zeroed)."""
+        lo = logit(value)
         p = download(self.params["opacity_logits"])
         self.params["opacity_logits"].set(np.minimum(p, np.float32(lo)).astype(np.float32))
-        self.opts["opacity_logits"].state.fill(0)
-        self.opts["opacity_logits"].state2.fill(0)
+        for a in self.moments["opacity_logits"]:
+            a.fill(0)
 
     def render(self, origins, dirs) -> dict:
         raise Unsupported("the splat model renders whole cameras, not single rays (so --points "
                           "does not apply: export its Gaussians with --splats FILE.ply)")
 
-    def render_image(self, c2w, intrinsics, hw) -> dict:
-        """rgb [H, W, 3], depth [H, W] (the opacity-weighted mean camera depth of the splats,
-        0 where nothing is seen), acc [H, W] (1 - the final transmittance) of one camera. The
-        depth is a second raster pass, run when it is first looked up (the evaluation and the
-        viewer's colour frames never do)."""
+    def render_image(self, c2w, intrinsics, hw, depth: bool = True) -> dict:
+        """rgb [H, W, 3], acc [H, W] (1 - the final transmittance) and, with ``depth``, depth
+        [H, W] (the opacity-weighted mean camera depth of the splats, 0 where nothing is
+        seen; composited in the same raster pass, RENDER_DEPTH) of one camera."""
         cam = camera_of(c2w, intrinsics, hw)
-        proj, bins, ras = self.rast.forward(self._rparams(), cam, self.background)
-        rgb = download(ras.rgb)
-        acc = (1.0 - download(ras.T)).astype(np.float32)
-
-        def depth_image():
-            # the same splats composited with their camera depth as colour, on black
-            depth = download(proj.depth)
-            proj.color.set(np.ascontiguousarray(np.repeat(depth[:, None], 3, 1), np.float32))
-            zs = download(self.rast.rasterize(proj, bins, cam, (0.0, 0.0, 0.0)).rgb)[..., 0]
-            return np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(np.float32)
-        return LazyDepth(depth_image, rgb=rgb, acc=acc)
+        _, _, ras = self.rast.forward(self._rparams(), cam, self.background, depth=depth)
+        out = {"rgb": download(ras.rgb), "acc": (1.0 - download(ras.T)).astype(np.float32)}
+        if depth:
+            zs, acc = download(ras.depth), out["acc"]
+            out["depth"] = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(
+                np.float32)
+        return out
 
     def export_fields(self, points, dirs):
         raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "
@@ -463,10 +362,9 @@ class SplatModel:
         st = {"kind": self.kind, "config": asdict(self.config),
               "background": list(self.background), "extent": self.extent,
               "bbox": self.bbox.tolist(), "seed": self.seed, "max_count": self.max_count,
-              "step": self.step, "active_degree": self.active_degree, "resets": self.resets,
-              "last_reset": self.last_reset,
-              "last_densify": self.last_densify, "densify_frac": self._densify_frac,
+              "step": self.step, "active_degree": self.active_degree,
               "progress": self.progress, "lr_means": self.lr_means}
+        st.update(self.refine_state.state_dict())
         for k, v in self.host_params().items():
             st[f"param_{k}"] = v
         for k, v in self.host_moments().items():
@@ -523,23 +421,10 @@ class SplatModel:
                                  ) from None
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])
-        m.resets = int(state["resets"])
-        m.last_reset = int(state.get("last_reset", 0))
-        m.last_densify = int(state["last_densify"])
-        m._densify_frac = float(state["densify_frac"])
+        m.refine_state = RefineState.from_state(state)
         m.progress = float(state["progress"])
         m.lr_means = float(state["lr_means"])
         return m
-
-
-def quat_rot(q):
-    """Rotation matrices [n, 3, 3] of unit quaternions [n, 4] (w, x, y, z)."""
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
 
 
 def scene_extent(ds) -> float:
@@ -552,8 +437,9 @@ def scene_extent(ds) -> float:
 
 def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
     """Gaussians at ``means`` [n, 3] with colours ``rgb`` [n, 3] in [0, 1] (degree 0 only):
-    isotropic scales from the mean squared distance to the 3 nearest neighbours, opacity 0.1,
-    no rotation (the published initialisation)."""
+    isotropic scales from the mean squared distance to the 3 nearest neighbours (times
+    config.first_scale()), opacity config.first_opacity(), no rotation (the published
+    initialisation: 1 and 0.1; MCMC's: 0.1 and 0.5)."""
     from scipy.spatial import cKDTree
     means = np.asarray(means, np.float64)
     n = len(means)
@@ -563,7 +449,7 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
         d2 = np.mean(d[:, 1:] ** 2, axis=1)
     else:
         d2 = np.full(n, 1e-2)
-    log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)))
+    log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)) * config.first_scale())
     nb = (config.sh_degree + 1) ** 2
     sh = np.zeros((n, nb, 3), np.float32)
     sh[:, 0, :] = (np.asarray(rgb, np.float64) - 0.5) / SH_C0
@@ -571,7 +457,7 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
     quats[:, 0] = 1
     return {"means": means.astype(np.float32),
             "log_scales": np.repeat(log_s[:, None], 3, 1).astype(np.float32),
-            "quats": quats, "opacity_logits": np.full(n, logit(INIT_OPACITY), np.float32),
+            "quats": quats, "opacity_logits": np.full(n, logit(config.first_opacity()), np.float32),
             "sh": sh}
 
 

@@ -94,7 +94,19 @@ def programs(device, sh_degree: int, tile: int = TILE, antialiased: bool = False
     """(cl/splat_project.cl, cl/splat_raster.cl) for SH degree ``sh_degree`` and tiles of
     ``tile`` pixels on ``device`` (both shapes' kernels are in the second)."""
     return (device.program("splat_project.cl", project_defines(sh_degree, tile, antialiased)),
-            device.program("splat_raster.cl", defines(sh_degree, tile)))
+            raster_program(device, sh_degree, tile))
+
+
+def raster_program(device, sh_degree: int, tile: int = TILE, depth: bool = False,
+                   absgrad: bool = False):
+    """cl/splat_raster.cl, with RENDER_DEPTH=1 (the forwards also composite each splat's
+    camera depth) and / or ABSGRAD=1 (the backwards also sum |dL/dxy| per pixel)."""
+    d = defines(sh_degree, tile)
+    if depth:
+        d["RENDER_DEPTH"] = 1
+    if absgrad:
+        d["ABSGRAD"] = 1
+    return device.program("splat_raster.cl", d)
 
 
 @dataclass(frozen=True)
@@ -171,11 +183,13 @@ class Binned:
 class Raster:
     """The forward's image: rgb [H, W, 3], final transmittance T [H, W], n_contrib [H, W] int32
     (list entries the backward walks); for the rows shape also the splats' records the forward
-    used (splat_pack_rows), which the backward reuses."""
+    used (splat_pack_rows), which the backward reuses; where asked (``depth=True``) depth
+    [H, W], sum_k T_k alpha_k z_k of the same pass (divide by 1 - T for the mean depth)."""
     rgb: cla.Array
     T: cla.Array
     n_contrib: cla.Array
     records: cla.Array | None = None
+    depth: cla.Array | None = None
 
 
 def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
@@ -449,7 +463,8 @@ class SplatRasterizer:
         if n:
             launch(self.device, self.raster_program.kernel("splat_pack_rows"), n,
                    (np.int32(n), proj.xy.data, proj.conic.data, proj.opacity.data,
-                    proj.color.data, rec.data), self.device.tuning.elementwise_local_size)
+                    proj.color.data, proj.depth.data, rec.data),
+                   self.device.tuning.elementwise_local_size)
         return rec
 
     def _backward_records(self, proj: Projected, raster: Raster):
@@ -462,20 +477,25 @@ class SplatRasterizer:
             rec = self._records(proj)
         return rec
 
-    def _tiles_launch(self, name: str, bins: Binned, args, rec=None):
-        """Kernel ``name`` of the rasteriser's shape with ``args`` (width, height, ntx, ranges,
-        ids, xy, conic, opacity, color, then the kernel's own): one work-group of tile x tile
-        work-items per tile ("group"), or one work-item per tile ("rows", name + "_rows",
-        which takes the tile count after ntx and the splats' records ``rec`` instead of xy ..
-        color)."""
+    def _tiles_launch(self, name: str, bins: Binned, args, rec=None, program=None,
+                      group_tail=(), rows_tail=()):
+        """Kernel ``name`` of the rasteriser's shape (of ``program``, default the plain
+        build) with ``args`` (width, height, ntx, ranges, ids, xy, conic, opacity, color, then
+        the kernel's own) and a variant's trailing arguments: one work-group of tile x tile
+        work-items per tile ("group", + ``group_tail``), or one work-item per tile ("rows",
+        name + "_rows", which takes the tile count after ntx and the splats' records ``rec``
+        instead of xy .. color, + ``rows_tail``)."""
         t = self.tile
+        program = program or self.raster_program
         if self.shape == "rows":
             ntiles = bins.ntx * bins.nty
-            kernel = self.raster_program.kernel(name + "_rows")
+            kernel = program.kernel(name + "_rows")
             launch(self.device, kernel, ntiles,
-                   args[:3] + (np.int32(ntiles),) + args[3:5] + (rec.data,) + args[9:], 1)
+                   args[:3] + (np.int32(ntiles),) + args[3:5] + (rec.data,) + args[9:]
+                   + tuple(rows_tail), 1)
             return
-        kernel = self.raster_program.kernel(name)
+        args = tuple(args) + tuple(group_tail)
+        kernel = program.kernel(name)
         kernel.set_args(*args)
         try:
             cl.enqueue_nd_range_kernel(self.device.queue, kernel,
@@ -494,27 +514,36 @@ class SplatRasterizer:
         return cl.cltypes.make_float4(*bg, 0.0)
 
     def rasterize(self, proj: Projected, bins: Binned, camera: SplatCamera,
-                  background=(0.0, 0.0, 0.0)) -> Raster:
-        """splat_raster_forward: the image of the binned splats over ``background``."""
+                  background=(0.0, 0.0, 0.0), depth: bool = False) -> Raster:
+        """splat_raster_forward: the image of the binned splats over ``background``; with
+        ``depth`` also their composited camera depth, in the same pass (RENDER_DEPTH)."""
         self.check_projected(proj)
         dev = self.device
         H, W = int(camera.height), int(camera.width)
         out = Raster(scratch(dev, (H, W, 3)), scratch(dev, (H, W)),
                      scratch(dev, (H, W), np.int32),
-                     self._records(proj) if self.shape == "rows" else None)
+                     self._records(proj) if self.shape == "rows" else None,
+                     scratch(dev, (H, W)) if depth else None)
+        program, group_tail, rows_tail = None, (), ()
+        if depth:
+            program = raster_program(dev, self.sh_degree, self.tile, depth=True)
+            group_tail, rows_tail = (proj.depth.data, out.depth.data), (out.depth.data,)
         self._tiles_launch(
             "splat_raster_forward", bins,
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
-             self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data), out.records)
+             self._bg(background), out.rgb.data, out.T.data, out.n_contrib.data), out.records,
+            program, group_tail, rows_tail)
         return out
 
     # ---- backward -------------------------------------------------------------------------------
     def rasterize_backward(self, proj: Projected, bins: Binned, raster: Raster,
                            camera: SplatCamera, grad_rgb: cla.Array,
-                           background=(0.0, 0.0, 0.0)) -> dict:
+                           background=(0.0, 0.0, 0.0), absgrad: bool = False) -> dict:
         """dL/d(xy, conic, opacity, color) [n, ...] (device, GRAD2D_NAMES) for dL/drgb
-        ``grad_rgb`` [H, W, 3] (device float32), from the forward's ``raster``."""
+        ``grad_rgb`` [H, W, 3] (device float32), from the forward's ``raster``; with
+        ``absgrad`` also "xy_abs" [n, 2], the per-pixel terms of dL/dxy summed in absolute
+        value (ABSGRAD)."""
         self.check_projected(proj)
         H, W = int(camera.height), int(camera.width)
         _check_device_array("grad_rgb", grad_rgb, (H, W, 3))
@@ -524,6 +553,11 @@ class SplatRasterizer:
         g = {"xy": cla.zeros(q, (n, 2), np.float32), "conic": cla.zeros(q, (n, 3), np.float32),
              "opacity": cla.zeros(q, (n,), np.float32),
              "color": cla.zeros(q, (n, 3), np.float32)}
+        program, tail = None, ()
+        if absgrad:
+            g["xy_abs"] = cla.zeros(q, (n, 2), np.float32)
+            program = raster_program(self.device, self.sh_degree, self.tile, absgrad=True)
+            tail = (g["xy_abs"].data,)
         if bins.n_pairs == 0:
             return g
         self._tiles_launch(
@@ -532,7 +566,7 @@ class SplatRasterizer:
              proj.xy.data, proj.conic.data, proj.opacity.data, proj.color.data,
              self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,
              g["xy"].data, g["conic"].data, g["opacity"].data, g["color"].data),
-            self._backward_records(proj, raster))
+            self._backward_records(proj, raster), program, tail, tail)
         return g
 
     def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict,
@@ -566,27 +600,31 @@ class SplatRasterizer:
         return out
 
     # ---- numpy conveniences ---------------------------------------------------------------------
-    def forward(self, params: dict, camera: SplatCamera, background=(0.0, 0.0, 0.0)):
-        """(Projected, Binned, Raster) of device parameters."""
+    def forward(self, params: dict, camera: SplatCamera, background=(0.0, 0.0, 0.0),
+                depth: bool = False):
+        """(Projected, Binned, Raster) of device parameters (``depth``: Raster.depth too)."""
         proj = self.project(params, camera)
         bins = self.bin(proj, camera)
-        return proj, bins, self.rasterize(proj, bins, camera, background)
+        return proj, bins, self.rasterize(proj, bins, camera, background, depth)
 
     def render(self, gaussians: dict, camera: SplatCamera,
                background=(0.0, 0.0, 0.0)) -> dict:
-        """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W]) as numpy arrays."""
-        _, _, ras = self.forward(self.upload(gaussians), camera, background)
-        return {"rgb": ras.rgb.get(), "T": ras.T.get(), "n_contrib": ras.n_contrib.get()}
+        """dict(rgb [H, W, 3], T [H, W], n_contrib [H, W], depth [H, W] (sum_k T_k alpha_k
+        z_k)) as numpy arrays."""
+        _, _, ras = self.forward(self.upload(gaussians), camera, background, depth=True)
+        return {"rgb": ras.rgb.get(), "T": ras.T.get(), "n_contrib": ras.n_contrib.get(),
+                "depth": ras.depth.get()}
 
     def render_backward(self, gaussians: dict, camera: SplatCamera, grad_rgb,
-                        background=(0.0, 0.0, 0.0)) -> dict:
+                        background=(0.0, 0.0, 0.0), absgrad: bool = False) -> dict:
         """dL/d(PARAM_NAMES) as numpy arrays for dL/drgb ``grad_rgb`` [H, W, 3], plus the
-        screen-space gradients under "grad2d" (a dict of GRAD2D_NAMES)."""
+        screen-space gradients under "grad2d" (a dict of GRAD2D_NAMES, and "xy_abs" with
+        ``absgrad``)."""
         params = self.upload(gaussians)
         g = check_array("grad_rgb", grad_rgb, ndim=3)
         proj, bins, ras = self.forward(params, camera, background)
         g2d = self.rasterize_backward(proj, bins, ras, camera,
-                                      upload(self.device.queue, g), background)
+                                      upload(self.device.queue, g), background, absgrad)
         out = {k: v.get() for k, v in self.project_backward(params, camera, g2d).items()}
         out["grad2d"] = {k: v.get() for k, v in g2d.items()}
         return out

@@ -145,7 +145,8 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     for i, v in enumerate(views):
         rgb = render_view(model, np.asarray(ds.poses[v], np.float64),
                           np.asarray(ds.intrinsics, np.float64) / downscale, (H, W),
-                          lambda: view_rays(ds, ds.poses[v:v + 1], downscale))["rgb"]
+                          lambda: view_rays(ds, ds.poses[v:v + 1], downscale),
+                          depth=False)["rgb"]
         gt = downscale_image(ds.images[v], downscale)
         m = image_metrics(rgb, gt)
         m["view"] = int(v)

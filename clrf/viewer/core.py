@@ -126,7 +126,7 @@ def frame_image(model, fr: Frame, meta):
     """Render one validated frame with the shared render path; uint8 [h, w, 3]. meta: the
     checkpoint's dataset metadata (its NDC frame, if the scene has one)."""
     spec = spec_from_fov(fr.fov, fr.width, fr.height, meta)
-    r = render_pose(model, spec, fr.pose, fr.near)
+    r = render_pose(model, spec, fr.pose, fr.near, depth=fr.output == "depth")
     if fr.output == "depth":
         return depth_image(r["depth"], r["acc"])
     if fr.output == "acc":
