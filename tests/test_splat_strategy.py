@@ -16,6 +16,8 @@ from clrf.splat import params as sp
 from clrf.splat import strategy as ss
 from clrf.splat.config import SplatConfig
 
+from test_splat_model import _model
+
 
 def _host(n, n_basis=4, seed=0):
     rng = np.random.default_rng(seed)
@@ -274,16 +276,6 @@ def test_mcmc_noise_matches_the_twin(device):
 
 
 # ---- through the model ------------------------------------------------------------------------
-def _model(device, **splat):
-    from clrf.data import load_dataset
-    from clrf.training.config import build_config
-    from clrf import registry
-    ds = load_dataset(None)
-    cfg = build_config("procedural", overrides={"train": {"model": "splat"},
-                                                "splat": {"preset": "tiny", **splat}})
-    return registry.get("splat").create(device, cfg, ds, ds.background), ds
-
-
 def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
     from clrf.interface import Budget
     from clrf.splat.model import SplatModel
