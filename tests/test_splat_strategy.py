@@ -224,8 +224,12 @@ def test_mcmc_reg_matches_the_twin_and_central_differences(device):
             _up(device, host["log_scales"]).data, go.data, gs.data, np.float32(ro / n),
             np.float32(rs_ / (3 * n))))
     to, ts = rst.mcmc_reg_grads(host["opacity_logits"], host["log_scales"], ro, rs_)
-    np.testing.assert_allclose(go.get(), g_o0 + to, rtol=1e-5, atol=1e-12)
-    np.testing.assert_allclose(gs.get(), g_s0 + ts, rtol=1e-5, atol=1e-12)
+    # the kernel's float32 sum g0 + term: its own rounding, a few float32 epsilons of the two
+    # operands (where they nearly cancel, of the result), and 1e-5 of the term's float32 math
+    eps = float(np.finfo(np.float32).eps)
+    for got, g0, term in ((go.get(), g_o0, to), (gs.get(), g_s0, ts)):
+        bound = 1e-5 * np.abs(term) + 4 * eps * (np.abs(g0) + np.abs(term))
+        assert np.all(np.abs(got - (g0 + term)) <= bound), np.max(np.abs(got - (g0 + term)))
 
     def loss(lo, ls):
         return ro * rst.sigmoid(lo).mean() + rs_ * np.exp(ls).mean()
@@ -291,7 +295,7 @@ def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
     assert m.n == 330 and any(msg and "relocated" in msg for msg in msgs)
     # the stats kernel does not run for mcmc: its statistics stay zero
     assert not np.any(m.host_moments()["stats"])
-    # noise moved the transparent means more than the Adam step alone would
+    # the means moved (Adam and noise; the noise itself: test_mcmc_noise_matches_the_twin)
     assert np.any(m.host_params()["means"][:300] != p0["means"])
     st = m.state_dict()
     assert st["strategy_last_refine"] == m.refine_state.last_refine > 0

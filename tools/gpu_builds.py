@@ -218,7 +218,9 @@ class Build:
         return (self.source, self.flags, self.target, self.std)
 
 
-KERNEL_RE = re.compile(r"\b__kernel\b.{0,200}?\bvoid\s+(\w+)\s*\(", re.S)
+# a kernel's name: after its qualifier at the start of a line, spelt with or without the
+# underscores
+KERNEL_RE = re.compile(r"^[ \t]*(?:__)?kernel\b.{0,200}?\bvoid\s+(\w+)\s*\(", re.S | re.M)
 
 
 def kernel_names(source: str, _seen=None) -> set:

@@ -169,6 +169,7 @@ def _raw_color(params, cam):
 
 
 def sigmoid(x):
+    x = np.asarray(x, np.float64)
     e = np.exp(-np.abs(x))
     return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
 

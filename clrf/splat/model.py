@@ -301,13 +301,10 @@ class SplatModel:
         """One refinement of the density strategy now (host side: the parameters and moments
         down, the strategy's edit, up again); the count stays at or below the cap. Returns a
         log line."""
-        return self.apply_refine(self.strategy)
-
-    def apply_refine(self, strategy) -> str:
         mo = self.host_moments()
         stats = mo.pop("stats")
         rng = np.random.default_rng((self.seed, 7, self.step))
-        host, moments, msg = strategy.refine(
+        host, moments, msg = self.strategy.refine(
             self.host_params(), mo, stats, extent=self.extent, cap=self.max_count,
             resets=self.refine_state.resets, rng=rng)
         self._set_host(host, moments)

@@ -24,11 +24,12 @@ without a device or a dataset; every edit goes through ``params.edit_rows``.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 
 import numpy as np
+from scipy.special import comb
 
+from ..references.reference_strategy import quat_rot, sigmoid
 from ..runtime.programs import launch
 from .config import STRATEGIES
 from .params import edit_rows
@@ -40,22 +41,6 @@ OPACITY_EPS = 1.1920929e-07     # float32's epsilon: relocated opacities stay be
 
 def logit(p):
     return np.log(p / (1.0 - p))
-
-
-def sigmoid(x):
-    return 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
-
-
-def quat_rot(q):
-    """Rotation matrices [n, 3, 3] of quaternions [n, 4] (w, x, y, z; normalised here)."""
-    q = np.asarray(q, np.float64)
-    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)
 
 
 @dataclass(frozen=True)
@@ -150,7 +135,7 @@ class DefaultStrategy:
         """The schedule's edits of this iteration: log lines."""
         st, msgs = model.refine_state, []
         if self.schedule.due(st, it, f, model.step):
-            msgs.append(model.apply_refine(self))
+            msgs.append(model.refine())
             st.last_refine, st.refine_frac = it, f
         if self.reset_every > 0 and f < self.schedule.stop:
             k = int(f / self.reset_every)
@@ -213,9 +198,8 @@ def relocation(opacity, scale, copies):
     N = np.clip(np.asarray(copies, np.int64), 1, MCMC_MAX_COPIES)
     o_new = 1.0 - np.power(1.0 - o, 1.0 / N)
     k = np.arange(1, MCMC_MAX_COPIES + 1)
-    binom = np.array([[math.comb(int(nn), int(kk)) for kk in k] for nn in range(
-        MCMC_MAX_COPIES + 1)], np.float64)                       # C(N, k), 0 for k > N
-    terms = binom[N] * (-1.0) ** (k + 1) * np.power(o_new[:, None], k) / np.sqrt(k)
+    binom = comb(N[:, None], k)                                  # C(N, k), 0 for k > N
+    terms = binom * (-1.0) ** (k + 1) * np.power(o_new[:, None], k) / np.sqrt(k)
     denom = terms.sum(1)
     s = np.asarray(scale, np.float64)
     factor = o / np.maximum(denom, 1e-300)
@@ -270,7 +254,7 @@ class MCMCStrategy:
         if not self.schedule.due(st, it, f, model.step):
             return []
         st.last_refine, st.refine_frac = it, f
-        return [model.apply_refine(self)]
+        return [model.refine()]
 
     def refine(self, host: dict, moments: dict, stats=None, *, extent: float = 1.0, cap: int,
                resets: int = 0, rng) -> tuple:
@@ -303,12 +287,13 @@ class MCMCStrategy:
                                   np.exp(np.asarray(host["log_scales"], np.float64)[picked]),
                                   copies)
         o_new = np.clip(o_new, self.min_opacity, 1.0 - OPACITY_EPS)
-        rows = {"opacity_logits": logit(o_new), "log_scales": np.log(s_new)}
-        host, moments = edit_rows(host, moments, assign=(picked, rows))
         copied = {k_: np.asarray(host[k_])[picked] for k_ in host}
-        if dst is None:
-            return edit_rows(host, moments, append=copied)
-        return edit_rows(host, moments, assign=(dst, copied))
+        copied.update(opacity_logits=logit(o_new), log_scales=np.log(s_new))
+        if dst is None:   # the drawn rows changed, their copies appended: one edit
+            return edit_rows(host, moments, assign=(picked, copied), append=copied)
+        both = np.concatenate([picked, dst])
+        return edit_rows(host, moments,
+                         assign=(both, {k_: np.concatenate([v, v]) for k_, v in copied.items()}))
 
 
 def make_strategy(config):
