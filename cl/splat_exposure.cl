@@ -1,26 +1,56 @@
 /* splat_exposure.cl: a learned colour transform per training image (exposure and white
  * balance of phone captures), applied to the splat model's render before the loss
- * (clrf/splat/exposure.py; float64 twin: clrf/references/reference_exposure.py).
+ * (clrf/splat/exposure.py), and to the hash model's rays (clrf/hash/exposure.py); float64
+ * twin: clrf/references/reference_exposure.py.
  *
- * Layout: P [V, 12] floats, row v = image v: A (3 x 3, row-major) then b (3). A render rgb
- * [n, 3] (n = H W pixels, channel fastest) becomes
- *     out_p,i = sum_j A_ij rgb_p,j + b_i.
- * The identity (A = I, b = 0) leaves it unchanged; test views are scored under it.
+ * Layout: P [V, 12] floats, row v = image v: A (3 x 3, row-major) then b (3). A pixel of
+ * premultiplied colour c (the sum of the splats' weighted colours), opacity alpha = 1 - T and
+ * background bg is shown as
+ *     out = A (c + T bg) + b          a capture without alpha: the background stands for
+ *                                     scene light, which the exposure changes too;
+ *     out = A c + alpha b + T bg      a masked capture (RGBA, composited on bg when loaded):
+ *                                     its background is not the camera's and stays bg.
+ * For the second the splat model renders on bg' = A^-1 (bg - b) (clrf/splat/exposure.py), so
+ * that its render rgb' = c + T bg' gives out = A rgb' + b in both cases, and the rasteriser's
+ * backward from dL/drgb' = A^T dL/dout is exact, the background's share included (the first
+ * renders on bg' = bg). The identity (A = I, b = 0, bg' = bg) leaves the render unchanged;
+ * test views are scored under it.
  *
- * exposure_apply     out = A rgb + b, one work-item per pixel.
- * exposure_backward  from g = dL/dout: dL/drgb_p = A^T g_p (one work-item per CHUNK pixels,
+ * exposure_apply     out = A rgb' + b, one work-item per pixel.
+ * exposure_backward  from g = dL/dout: dL/drgb'_p = A^T g_p (one work-item per CHUNK pixels,
  *                    in order), and the work-item's partial sums of dL/dA_ij = sum_p g_p,i
- *                    rgb_p,j and dL/db_i = sum_p g_p,i, 12 floats per work-item in
- *                    partials [items, 12].
+ *                    x_p,j and dL/db_i = sum_p g_p,i y_p, 12 floats per work-item in
+ *                    partials [items, 12]: x = rgb', y = 1 without alpha (masked = 0);
+ *                    x = rgb' - T bg' = c, y = 1 - T for a masked capture.
  * exposure_adam      one work-item per entry k < 12 of row v: the partials summed in item order
  *                    (deterministic), plus the pull toward the identity, d/dP of
  *                    reg (|A - I|^2 + |b|^2) = 2 reg (P - I); then Adam (cl/optim.cl's update,
  *                    bias-corrected with the row's own step count through bc1, bc2); a
  *                    non-finite gradient leaves P, m, v unchanged.
  *
+ * Ray batches (the hash model: a batch holds rays of many images; ray i belongs to row
+ * index[i] / pixels, index being its place in the concatenated training images). Each ray's
+ * composite state [n, 8] (cl/hash_march.cl packed_forward: premultiplied colour c, then
+ * opacity a; T = 1 - a) on the step's background bg gives out as above (masked or not), and:
+ * exposure_rays      the residual r = out - target [n, 3], sq [n] = |r|^2, the target
+ *                    eff = c - A^T r for the marcher's backward run on a black background
+ *                    (its 2 s (c - eff) is then dL/dc = 2 s A^T r: the colour's gradient
+ *                    through the transform), and bgt [n] = T r.(dout/dT): the background's
+ *                    share, T r.(A bg), or T r.(bg - b) masked;
+ * exposure_rays_bg   adds that share to dL/dsigma of each live sample j of ray i,
+ *                    -2 s dt_j bgt_i (dT/dsigma_j = -dt_j T), which the black background left
+ *                    out;
+ * exposure_rays_grad one work-group (EXPOSURE_LS items) per row v, in a fixed order: dL/dP_v of
+ *                    L = s sum_i |r_i|^2 (dL/dA = 2 s sum r x^T, dL/db = 2 s sum y r over the
+ *                    rays of row v; x = c + T bg, y = 1, or masked x = c, y = a), plus the pull
+ *                    2 reg (P_v - I) weighted by the row's share of the batch (its rays / n), so
+ *                    that a row's pull against its data is that of the splat model's
+ *                    whole-image step; grad [V, 12].
+ *
  * Defines read: none.
  */
 
+#include "common.h"
 #include "adam.h"
 
 #define EXPOSURE_ROW 12
@@ -40,6 +70,7 @@ __kernel void exposure_apply(const int n, __global const float *rgb,
 }
 
 __kernel void exposure_backward(const int n, const int chunk, __global const float *rgb,
+                                const int masked, __global const float *T, const float4 bg,
                                 __global const float *grad_out, __global const float *P,
                                 const int v, __global float *grad_rgb,
                                 __global float *partials) {
@@ -51,7 +82,9 @@ __kernel void exposure_backward(const int n, const int chunk, __global const flo
     float s[EXPOSURE_ROW];
     for (int k = 0; k < EXPOSURE_ROW; ++k) s[k] = 0.0f;
     for (int p = p0; p < p1; ++p) {
-        const float r = rgb[3 * p], g = rgb[3 * p + 1], b = rgb[3 * p + 2];
+        const float t = masked ? T[p] : 0.0f;
+        const float r = rgb[3 * p] - t * bg.x, g = rgb[3 * p + 1] - t * bg.y;
+        const float b = rgb[3 * p + 2] - t * bg.z, op = 1.0f - t;
         const float g0 = grad_out[3 * p], g1 = grad_out[3 * p + 1], g2 = grad_out[3 * p + 2];
         grad_rgb[3 * p] = a[0] * g0 + a[3] * g1 + a[6] * g2;
         grad_rgb[3 * p + 1] = a[1] * g0 + a[4] * g1 + a[7] * g2;
@@ -59,7 +92,7 @@ __kernel void exposure_backward(const int n, const int chunk, __global const flo
         s[0] += g0 * r; s[1] += g0 * g; s[2] += g0 * b;
         s[3] += g1 * r; s[4] += g1 * g; s[5] += g1 * b;
         s[6] += g2 * r; s[7] += g2 * g; s[8] += g2 * b;
-        s[9] += g0; s[10] += g1; s[11] += g2;
+        s[9] += g0 * op; s[10] += g1 * op; s[11] += g2 * op;
     }
     for (int k = 0; k < EXPOSURE_ROW; ++k) partials[(size_t)item * EXPOSURE_ROW + k] = s[k];
 }
@@ -77,4 +110,85 @@ __kernel void exposure_adam(const int items, __global const float *partials,
     gk += 2.0f * reg * (P[i] - identity_entry(k));
     if (!isfinite(gk)) return;
     adam_apply(i, gk, P, m, vm, lr, b1, b2, eps, bc1, bc2);
+}
+
+#define EXPOSURE_LS 64
+
+__kernel void exposure_rays(const int n, const int pixels, __global const int *index,
+                            __global const float *state, const int masked, const float4 bg,
+                            __global const float *target, __global const float *P,
+                            __global float *resid, __global float *eff, __global float *sq,
+                            __global float *bgt) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    __global const float *s = state + (size_t)i * 8;
+    const float t = 1.0f - s[3];
+    __global const float *a = P + (size_t)(index[i] / pixels) * EXPOSURE_ROW;
+    /* x, y: what A and b multiply; d = dout/dT */
+    const float3 c = (float3)(s[0], s[1], s[2]);
+    const float3 Ab = (float3)(a[0] * bg.x + a[1] * bg.y + a[2] * bg.z,
+                               a[3] * bg.x + a[4] * bg.y + a[5] * bg.z,
+                               a[6] * bg.x + a[7] * bg.y + a[8] * bg.z);
+    const float3 b = (float3)(a[9], a[10], a[11]);
+    const float3 x = masked ? c : c + t * bg.xyz;
+    const float y = masked ? s[3] : 1.0f;
+    const float3 d = masked ? bg.xyz - b : Ab;
+    const float3 e = (float3)(a[0] * x.x + a[1] * x.y + a[2] * x.z,
+                              a[3] * x.x + a[4] * x.y + a[5] * x.z,
+                              a[6] * x.x + a[7] * x.y + a[8] * x.z)
+                     + y * b + (masked ? t * bg.xyz : (float3)(0.0f)) - load3(target, i);
+    resid[3 * i] = e.x; resid[3 * i + 1] = e.y; resid[3 * i + 2] = e.z;
+    eff[3 * i] = c.x - (a[0] * e.x + a[3] * e.y + a[6] * e.z);
+    eff[3 * i + 1] = c.y - (a[1] * e.x + a[4] * e.y + a[7] * e.z);
+    eff[3 * i + 2] = c.z - (a[2] * e.x + a[5] * e.y + a[8] * e.z);
+    sq[i] = dot(e, e);
+    bgt[i] = t * dot(e, d);
+}
+
+__kernel void exposure_rays_bg(const int n, __global const int *offsets,
+                               __global const float *dt, __global const float *sigma,
+                               __global const float *bgt, const float scale,
+                               __global float *dsigma) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float k = 2.0f * scale * bgt[i];
+    for (int j = offsets[i]; j < offsets[i + 1]; ++j)
+        if (sigma[j] > 0.0f) dsigma[j] -= k * dt[j];
+}
+
+__kernel __attribute__((reqd_work_group_size(EXPOSURE_LS, 1, 1)))
+void exposure_rays_grad(const int n, const int pixels, __global const int *index,
+                        __global const float *state, const int masked, const float4 bg,
+                        __global const float *resid,
+                        __global const float *P, const float scale, const float reg,
+                        __global float *grad) {
+    __local float part[EXPOSURE_LS * (EXPOSURE_ROW + 1)];
+    const int v = get_group_id(0), l = get_local_id(0);
+    float s[EXPOSURE_ROW + 1];
+    for (int k = 0; k <= EXPOSURE_ROW; ++k) s[k] = 0.0f;
+    for (int i = l; i < n; i += EXPOSURE_LS) {
+        if (index[i] / pixels != v) continue;
+        __global const float *st = state + (size_t)i * 8;
+        const float t = masked ? 0.0f : 1.0f - st[3], op = masked ? st[3] : 1.0f;
+        const float x0 = st[0] + t * bg.x, x1 = st[1] + t * bg.y, x2 = st[2] + t * bg.z;
+        const float e0 = resid[3 * i], e1 = resid[3 * i + 1], e2 = resid[3 * i + 2];
+        s[0] += e0 * x0; s[1] += e0 * x1; s[2] += e0 * x2;
+        s[3] += e1 * x0; s[4] += e1 * x1; s[5] += e1 * x2;
+        s[6] += e2 * x0; s[7] += e2 * x1; s[8] += e2 * x2;
+        s[9] += e0 * op; s[10] += e1 * op; s[11] += e2 * op;
+        s[12] += 1.0f;
+    }
+    for (int k = 0; k <= EXPOSURE_ROW; ++k) part[l * (EXPOSURE_ROW + 1) + k] = s[k];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int h = EXPOSURE_LS / 2; h > 0; h >>= 1) {      /* a fixed tree: deterministic */
+        if (l < h)
+            for (int k = 0; k <= EXPOSURE_ROW; ++k)
+                part[l * (EXPOSURE_ROW + 1) + k] += part[(l + h) * (EXPOSURE_ROW + 1) + k];
+        barrier(CLK_LOCAL_MEM_FENCE);
+    }
+    if (l < EXPOSURE_ROW) {
+        const float share = part[EXPOSURE_ROW] / (float)max(n, 1);
+        const size_t j = (size_t)v * EXPOSURE_ROW + l;
+        grad[j] = 2.0f * scale * part[l] + 2.0f * reg * share * (P[j] - identity_entry(l));
+    }
 }

@@ -58,7 +58,7 @@ EVERY_IMPL_MODULES = {
     "test_nerf_composite", "test_selfcheck", "test_build_log", "test_stability",
     "test_hash_encode", "test_hash_kernels",
     "test_splat_kernels", "test_splat_loss", "test_sort", "test_splat_exposure",
-    "test_splat_pose", "test_splat_antialias", "test_splat_strategy",
+    "test_splat_pose", "test_splat_antialias", "test_splat_strategy", "test_hash_exposure",
     "test_mlp_gpu",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each

@@ -19,8 +19,8 @@ def _rows(rng, n_images):
     return P.astype(np.float32)
 
 
-def _exposure(device, P):
-    exp = Exposure(device, len(P), lr=0.01, reg=0.0)
+def _exposure(device, P, masked=False):
+    exp = Exposure(device, len(P), lr=0.01, reg=0.0, masked=masked)
     exp.P = upload(device.queue, np.ascontiguousarray(P))
     return exp
 
@@ -36,15 +36,21 @@ def test_apply_matches_the_twin(device, n):
                                atol=tol.EXPOSURE_ATOL)
 
 
+BG = (1.0, 0.75, 0.25)
+
+
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
 @pytest.mark.parametrize("n", SIZES)
-def test_backward_matches_the_twin(device, n):
+def test_backward_matches_the_twin(device, n, masked):
     rng = np.random.default_rng(100 + n)
     P = _rows(rng, 4)
     rgb = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    T = rng.uniform(0, 1, n).astype(np.float32)
     g = rng.normal(0, 1, (n, 3)).astype(np.float32)
-    exp = _exposure(device, P)
-    grad_rgb, partials = exp.backward(upload(device.queue, rgb), upload(device.queue, g), 1)
-    want_rgb, want_p = ref.backward(rgb, g, P, 1)
+    exp = _exposure(device, P, masked)
+    q = device.queue
+    grad_rgb, partials = exp.backward(upload(q, rgb), upload(q, T), BG, upload(q, g), 1)
+    want_rgb, want_p = ref.backward(rgb, g, P, 1, T if masked else None, BG)
     np.testing.assert_allclose(download(grad_rgb), want_rgb, rtol=tol.EXPOSURE_GRAD_RTOL,
                                atol=tol.EXPOSURE_ATOL)
     got_p = download(partials).astype(np.float64).sum(axis=0)
@@ -52,26 +58,43 @@ def test_backward_matches_the_twin(device, n):
                                atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5)
 
 
-def test_twin_gradient_matches_finite_differences():
-    """The twin's dL/dP and dL/drgb against central differences of L = sum(w * out)."""
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_twin_gradient_matches_finite_differences(masked):
+    """What the loss sees (``shown``: masked, A c + (1 - T) b + T bg; else A (c + T bg) + b) is
+    A rgb' + b of the render on bg' (A^-1 (bg - b) masked, else bg); the twin's dL/dP (bg' held as that function of P) and dL/drgb' = A^T g
+    against central differences of L = sum(w * shown) in P, in the premultiplied colour c and
+    in T (the rasteriser's background term, (A^T g).bg')."""
     rng = np.random.default_rng(5)
     P = _rows(rng, 2).astype(np.float64)
-    rgb = rng.uniform(0, 1, (9, 3))
+    c = rng.uniform(0, 1, (9, 3))
+    T = rng.uniform(0, 1, 9)
     w = rng.normal(0, 1, (9, 3))
-    grad_rgb, grad_p = ref.backward(rgb, w, P, 1)
+    bg2 = ref.render_background(P, 1, BG, masked)
+    rgb2 = c + T[:, None] * bg2
+    np.testing.assert_allclose(ref.apply(rgb2, P, 1), ref.shown(c, T, BG, P, 1, masked),
+                               atol=1e-12)
+    grad_rgb, grad_p = ref.backward(rgb2, w, P, 1, T if masked else None, bg2)
     h = 1e-6
+
+    def L(P_=P, c_=c, T_=T):
+        return np.sum(w * ref.shown(c_, T_, BG, P_, 1, masked))
     for k in range(ref.ROW):
         Pp, Pm = P.copy(), P.copy()
         Pp[1, k] += h
         Pm[1, k] -= h
-        fd = (np.sum(w * ref.apply(rgb, Pp, 1)) - np.sum(w * ref.apply(rgb, Pm, 1))) / (2 * h)
+        fd = (L(P_=Pp) - L(P_=Pm)) / (2 * h)
         assert fd == pytest.approx(grad_p[k], rel=tol.FD_RTOL, abs=tol.FD_ATOL)
     for i in range(3):
-        x1, x0 = rgb.copy(), rgb.copy()
+        x1, x0 = c.copy(), c.copy()
         x1[4, i] += h
         x0[4, i] -= h
-        fd = (np.sum(w * ref.apply(x1, P, 1)) - np.sum(w * ref.apply(x0, P, 1))) / (2 * h)
+        fd = (L(c_=x1) - L(c_=x0)) / (2 * h)
         assert fd == pytest.approx(grad_rgb[4, i], rel=tol.FD_RTOL, abs=tol.FD_ATOL)
+    t1, t0 = T.copy(), T.copy()
+    t1[6] += h
+    t0[6] -= h
+    fd = (L(T_=t1) - L(T_=t0)) / (2 * h)
+    assert fd == pytest.approx(grad_rgb[6] @ bg2, rel=tol.FD_RTOL, abs=tol.FD_ATOL)
 
 
 def test_adam_step_matches_the_twin_and_pulls_toward_identity(device):
@@ -80,13 +103,15 @@ def test_adam_step_matches_the_twin_and_pulls_toward_identity(device):
     n = 2 * CHUNK + 3
     rgb = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     g = rng.normal(0, 1e-3, (n, 3)).astype(np.float32)
-    exp = Exposure(device, 3, lr=0.02, reg=0.5)
+    exp = Exposure(device, 3, lr=0.02, reg=0.5, masked=True)
     exp.P = upload(device.queue, np.ascontiguousarray(P))
     want_P, want_m, want_v = P.astype(np.float64), np.zeros((3, 12)), np.zeros((3, 12))
+    T = rng.uniform(0, 1, n).astype(np.float32)
+    q = device.queue
     for t in (1, 2, 3):
         rows = download(exp.P)
-        _, grad_p = ref.backward(rgb, g, rows, 2)
-        exp.backward_and_step(upload(device.queue, rgb), upload(device.queue, g), 2)
+        _, grad_p = ref.backward(rgb, g, rows, 2, T, BG)
+        exp.backward_and_step(upload(q, rgb), upload(q, T), BG, upload(q, g), 2)
         want_P, want_m, want_v = ref.adam(want_P, want_m, want_v, 2, grad_p, 0.02, 0.5, 0.9,
                                           0.999, 1e-15, t)
     got = exp.rows()
@@ -96,26 +121,32 @@ def test_adam_step_matches_the_twin_and_pulls_toward_identity(device):
     # a zero image gradient: only the pull, so the row moves toward the identity
     before = np.abs(got[2] - ref.IDENTITY).sum()
     for _ in range(5):
-        exp.backward_and_step(upload(device.queue, rgb),
-                              upload(device.queue, np.zeros_like(g)), 2)
+        exp.backward_and_step(upload(q, rgb), upload(q, T), BG, upload(q, np.zeros_like(g)),
+                              2)
     assert np.abs(exp.rows()[2] - ref.IDENTITY).sum() < before
 
 
 def test_stiff_inputs_leave_finite_rows(device):
     """Huge and non-finite gradients: a NaN gradient skips the step; huge ones move a row by
     about the learning rate (Adam's normalised step), never to inf."""
-    exp = Exposure(device, 2, lr=0.01, reg=1e-3)
+    exp = Exposure(device, 2, lr=0.01, reg=1e-3, masked=True)
+    q = device.queue
     rgb = np.full((CHUNK + 1, 3), 0.5, np.float32)
+    T = upload(q, np.linspace(0, 1, CHUNK + 1).astype(np.float32))
     for scale in (1e30, 0.0):
         g = np.full_like(rgb, scale)
-        exp.backward_and_step(upload(device.queue, rgb), upload(device.queue, g), 0)
+        exp.backward_and_step(upload(q, rgb), T, BG, upload(q, g), 0)
     rows = exp.rows()
     assert np.all(np.isfinite(rows))
     assert np.abs(rows[0] - ref.IDENTITY).max() <= 0.02 + 1e-6
     g = np.full_like(rgb, np.nan)
     before = exp.rows()
-    exp.backward_and_step(upload(device.queue, rgb), upload(device.queue, g), 0)
+    exp.backward_and_step(upload(q, rgb), T, BG, upload(q, g), 0)
     assert np.array_equal(exp.rows(), before)
+    # the background to render on: A^-1 (bg - b), and bg itself where A is singular
+    assert np.allclose(exp.background(0, BG), ref.render_background(rows, 0, BG), atol=1e-5)
+    exp.P.set(np.zeros((2, ref.ROW), np.float32))
+    assert exp.background(1, BG) == BG
 
 
 def test_half_fitted_protocol_recovers_a_colour_change():
@@ -125,3 +156,69 @@ def test_half_fitted_protocol_recovers_a_colour_change():
     target = np.clip(render @ A.T + 0.02, 0, 1)
     fitted, plain = ref.half_fitted_psnr(render, target)
     assert fitted > 100 and plain < 30
+
+
+def test_recentre_takes_the_geometric_mean_out():
+    """After recentre the rows' matrix logarithms average to zero, each row is the old one times
+    one common inverse (the scene can follow with one transform), untrained rows stay, and a
+    uniform gain pair 0.6 / 1.5 centres on their geometric mean sqrt(0.9)."""
+    from scipy.linalg import logm
+    rng = np.random.default_rng(11)
+    P = _rows(rng, 6).astype(np.float64)
+    P[:, :9] *= 0.5                                   # far from the identity: a real drift
+    P[:, [0, 4, 8]] += 0.5
+    rows = [0, 2, 3, 5]
+    out = ref.recentre(P, rows)
+    mean_log = np.mean([np.real(logm(ref.affine(out[v]))) for v in rows], axis=0)
+    assert np.abs(mean_log).max() < 1e-10
+    G = np.linalg.inv(ref.affine(out[0])) @ ref.affine(P[0])   # old = new G
+    for v in rows:
+        np.testing.assert_allclose(ref.affine(out[v]) @ G, ref.affine(P[v]), atol=1e-12)
+    assert np.array_equal(out[[1, 4]], P[[1, 4]])
+    pair = np.tile(ref.IDENTITY, (2, 1))
+    pair[0, [0, 4, 8]], pair[1, [0, 4, 8]] = 0.6, 1.5
+    got = ref.recentre(pair, [0, 1])
+    np.testing.assert_allclose(got[0, [0, 4, 8]], 0.6 / np.sqrt(0.9), rtol=1e-12)
+    # a transform with no real logarithm (a reflection) leaves the rows as they were
+    bad = pair.copy()
+    bad[0, 0] = -1.0
+    assert np.array_equal(ref.recentre(bad, [0, 1]), bad)
+
+
+def test_device_rows_recentre_as_the_twin(device):
+    rng = np.random.default_rng(13)
+    P = _rows(rng, 5)
+    exp = _exposure(device, P)
+    exp.steps[[0, 1, 3]] = 2
+    exp.recentre()
+    np.testing.assert_allclose(exp.rows(), ref.recentre(P, [0, 1, 3]), atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_fit_recovers_a_transform_in_one_step(device, masked):
+    """Targets made by a known transform of a render (rendered on the background that
+    transform asks for): the fit with eta 1 and no pull recovers it, the device path (render and
+    T downloaded) as the twin; eta 0.5 goes half-way; a pull keeps it nearer the identity."""
+    rng = np.random.default_rng(21)
+    n = 500
+    c = rng.uniform(0, 0.8, (n, 3))
+    T = rng.uniform(0, 1, n)
+    T[:100] = 1.0                                    # background only
+    true = ref.IDENTITY + np.concatenate([rng.normal(0, 0.15, 9), rng.normal(0, 0.05, 3)])
+    P = np.stack([ref.IDENTITY, true])
+    target = ref.shown(c, T, BG, P, 1, masked)
+    start = ref.IDENTITY
+    bg_r = ref.render_background(start[None], 0, BG, masked)
+    rgb = c + T[:, None] * bg_r                      # the render under the current row
+    got = ref.fit_row(rgb, T, bg_r, BG, target, start, 0.0, 1.0, masked)
+    np.testing.assert_allclose(got, true, atol=1e-9)
+    half = ref.fit_row(rgb, T, bg_r, BG, target, start, 0.0, 0.5, masked)
+    np.testing.assert_allclose(half, 0.5 * (start + true), atol=1e-9)
+    pulled = ref.fit_row(rgb, T, bg_r, BG, target, start, 0.1, 1.0, masked)
+    assert np.abs(pulled - start).sum() < np.abs(true - start).sum()
+    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked)
+    q = device.queue
+    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
+            target, 1.0)
+    np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
+    assert exp.steps.tolist() == [0, 1]

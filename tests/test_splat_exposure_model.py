@@ -52,13 +52,14 @@ def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     assert rc == 2 and err.count("clrf: error:") == 1 and f"splat.{key}" in err, err
 
 
-def test_exposure_on_a_model_without_it_is_one_clear_error(capsys, tmp_path):
+@pytest.mark.parametrize("model", ["grid", "nerf"])
+def test_exposure_on_a_model_without_it_is_one_clear_error(model, capsys, tmp_path):
     from clrf.cli.main import main as cli
-    rc = cli(["--quiet", "train", "--model", "hash", "--out", str(tmp_path / "run"),
-              "--set", "hash.exposure=true",
+    rc = cli(["--quiet", "train", "--model", model, "--out", str(tmp_path / "run"),
+              "--set", f"{model}.exposure=true",
               "--max-seconds", "1"])
     err = capsys.readouterr().err
-    assert rc == 2 and err.count("clrf: error:") == 1 and "hash.exposure" in err, err
+    assert rc == 2 and err.count("clrf: error:") == 1 and f"{model}.exposure" in err, err
 
 
 def test_a_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):

@@ -77,6 +77,14 @@ class HashConfig:
     #                                 rays while every bin is live, more once the occupancy grid
     #                                 prunes; 0: always batch_rays
     mlp_rows: int | None = None     # samples per work-item in the fused MLP; None: per device
+    exposure: bool = False          # learn a colour transform (3 x 3 matrix and offset) per
+    #                                 training image, for captures whose exposure or white
+    #                                 balance changes (phones); test views are scored under
+    #                                 the identity (clrf/hash/exposure.py)
+    lr_exposure: float = 1e-3       # Adam learning rate of the transforms (every image with
+    #                                 rays in a batch steps: each step, on a full batch)
+    exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
+    #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "HashConfig":
@@ -131,6 +139,8 @@ class HashConfig:
             (self.occ_tau >= 0, "hash.occ_tau", "must be >= 0"),
             (self.occ_warmup >= 0, "hash.occ_warmup", "must be >= 0"),
             (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
+            (0 < self.lr_exposure <= 1, "hash.lr_exposure", "must be in (0, 1]"),
+            (self.exposure_reg >= 0, "hash.exposure_reg", "must be >= 0"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
             (self.lr_schedule in ("budget", "steps"), "hash.lr_schedule",
              "must be 'budget' or 'steps'"),

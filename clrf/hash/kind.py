@@ -34,6 +34,9 @@ def programs(device, cfg):
     for contract in (False, True):
         march.program(device, contract)
     device.program("hash_occ.cl", {})                      # occupancy.py
+    if c.exposure:
+        from ..splat.exposure import program as exposure_program
+        exposure_program(device)                           # exposure.py
     mlp.program(device, mlp_spec(c))
     optim.program(device, "adam")
 
@@ -48,8 +51,15 @@ def create(device, cfg, ds, background):
     from .model import HashModel, ray_range, resolve_contract, resolve_max_res
     hc = resolve_max_res(resolve_contract(cfg.hash, ds), ds)
     near, far = ray_range(ds, hc.contract == "on", ds.unit_far() if ds.ndc else None)
-    return HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed,
-                     bounded=_bounded(device))
+    model = HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed,
+                      bounded=_bounded(device))
+    if hc.exposure:   # a row per training image, in the trainer's ray store's order
+        views = ds.split["train"]
+        if cfg.train.max_train_images:
+            views = views[:cfg.train.max_train_images]
+        model.attach_exposure(len(views), int(ds.hw[0]) * int(ds.hw[1]),
+                              masked=ds.alpha is not None)
+    return model
 
 
 def from_state(device, state, cfg):

@@ -187,6 +187,24 @@ class HashModel:
         # and one for the network (faster on PoCL: cl/optim.cl)
         self._adam_all = (AdamSet(device, [self._adam_table, self._adam_net])
                           if getattr(device.tuning, "gpu_kernels", False) else None)
+        self.exposure = None           # RayExposure (hash.exposure): attach_exposure
+
+    def attach_exposure(self, n_images: int, pixels: int, masked: bool,
+                        state: dict | None = None):
+        """hash.exposure: a colour transform per training image of ``pixels`` pixels (masked:
+        an RGBA capture, whose background the transforms leave alone); training steps then
+        need each ray's index in the concatenated training images."""
+        from .exposure import RayExposure
+        c = self.config
+        self.exposure = RayExposure(self.device, n_images, pixels, c.lr_exposure,
+                                    c.exposure_reg, (c.beta1, c.beta2), state=state,
+                                    masked=masked)
+
+    @property
+    def ray_index(self) -> bool:
+        """Whether train_step needs each ray's index in the training images (the trainer
+        passes it)."""
+        return self.exposure is not None
 
     # ---- evaluation of the fields at points ---------------------------------------------
     @property
@@ -271,7 +289,7 @@ class HashModel:
         rng = np.random.default_rng([self.seed, int(it), 7])
         return tuple(float(x) for x in rng.random(3))
 
-    def train_step(self, it: int, origins, dirs, target, background=None):
+    def train_step(self, it: int, origins, dirs, target, background=None, index=None):
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
         on device; background: the RGB the targets are composited on (None: the model's own).
         Returns the batch MSE (mean over rays and channels): a float, or with ``bounded`` a
@@ -284,7 +302,10 @@ class HashModel:
         compacts, Adam steps even when no sample was live, and the loss stays on the device
         until read. The one number the host takes is the step's marched total, for the next
         batch's size, copied without blocking right after the march and read at the end of
-        the step (the device then still has the step's network passes queued)."""
+        the step (the device then still has the step's network passes queued).
+
+        index: each ray's place in the concatenated training images (int32 device [B]),
+        needed with hash.exposure (``ray_index``)."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -295,8 +316,11 @@ class HashModel:
         if dirs.shape[0] != B or target.shape[0] != B or B == 0:
             raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
                              f"{origins.shape}, {dirs.shape}, {target.shape}")
+        if self.exposure is not None and (index is None or int(index.shape[0]) != B):
+            raise ValueError("train_step: hash.exposure needs each ray's image index [B]")
         self.maybe_update_occupancy(it)
-        loss, live = self.loss_and_grad(it, origins, dirs, target, background=background)
+        loss, live = self.loss_and_grad(it, origins, dirs, target, background=background,
+                                        index=index)
         if live:
             lr = self.lr_at(it)
             if self._adam_all is not None:
@@ -322,13 +346,16 @@ class HashModel:
         target = self.config.batch_samples
         return full if target <= 0 else min(full, BOUND_FACTOR * int(target))
 
-    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None):
+    def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None,
+                      index=None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
         and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb. background:
         the RGB behind the rays (None: the model's own). With ``bounded`` (see train_step) the
-        loss is a Pending and the live samples the buffers' capacity."""
+        loss is a Pending and the live samples the buffers' capacity. With hash.exposure the
+        loss compares each ray's colour under its image's transform (index: the rays' places
+        in the training images), and the transforms take their Adam step here."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
@@ -356,9 +383,19 @@ class HashModel:
         else:
             sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
-        g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
-        # summed on the device (pyopencl's reduction): one number comes back, not B
-        sq = cla.sum(g["sq_err"][:B], queue=q)
+        if self.exposure is not None:   # the backward sees the target whose gradient is the
+            state = cla.zeros(q, (B, STATE), np.float32)   # one through the transform
+            if pk.m:
+                packed_forward(dev, pk, sigma, rgb, state)
+            eff, sq_rays = self.exposure.forward(state, bg, target, index)
+            g = packed_backward(dev, pk, sigma, rgb, (0.0, 0.0, 0.0), eff, scale)
+            self.exposure.add_background(pk, sigma, scale, g["sigma"])
+            sq = cla.sum(sq_rays, queue=q)
+            self.exposure.backward_and_step(state, bg, index, scale)
+        else:
+            g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
+            # summed on the device (pyopencl's reduction): one number comes back, not B
+            sq = cla.sum(g["sq_err"][:B], queue=q)
         if self.bounded:
             loss = Pending(q, sq, scale)
         else:
@@ -471,7 +508,8 @@ class HashModel:
         return (f"hash L{c.levels} F{c.features} T2^{c.log2_table} {c.min_res}-{c.max_res}, "
                 f"MLP {c.width}+{c.geo_features} / {c.color_depth}x{c.color_width}, "
                 f"{c.samples} samples{' (contracted scene)' if self.contraction else ''}, "
-                f"occupied {100 * self.occ.occupied_fraction():.1f}%")
+                f"occupied {100 * self.occ.occupied_fraction():.1f}%"
+                + (f", {self.exposure.describe()}" if self.exposure is not None else ""))
 
     # ---- checkpoints --------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -485,7 +523,8 @@ class HashModel:
                 "mlp_params": download(self.net.params),
                 "mlp_adam_m": download(self._adam_net.state),
                 "mlp_adam_v": download(self._adam_net.state2), "occ_ema": download(self.occ.ema),
-                "occ_threshold": self.occ.threshold}
+                "occ_threshold": self.occ.threshold,
+                **(self.exposure.state_dict() if self.exposure is not None else {})}
 
     @classmethod
     def from_state_dict(cls, device, state: dict, bounded: bool = False) -> "HashModel":
@@ -507,4 +546,12 @@ class HashModel:
             arr.set(np.ascontiguousarray(v))
         model.net.sync_params()
         model.occ._threshold(float(state["occ_threshold"]))
+        if "exposure" in state:
+            try:
+                rows = np.asarray(state["exposure"])
+                model.attach_exposure(len(rows), int(state["exposure_pixels"]),
+                                      bool(state["exposure_masked"]), state=state)
+            except (KeyError, ValueError) as e:
+                raise ValueError(f"state_dict: the exposure transforms are unreadable ({e})") \
+                    from e
         return model

@@ -1,5 +1,5 @@
-"""Float64 twin of cl/splat_exposure.cl (the splat model's colour transform per training image)
-and the evaluation protocol of NeRF in the Wild for captures with changing exposure: fit a
+"""Float64 twin of cl/splat_exposure.cl (the colour transform per training image: the splat
+model's whole images, the hash model's ray batches) and the evaluation protocol of NeRF in the Wild for captures with changing exposure: fit a
 transform on the left half of a test image, score the right half.
 
 Row v of P [V, 12]: A (3 x 3, row-major), then b (3); out = A rgb + b per pixel.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 ROW = 12
+MEAN_ITERATIONS = 20   # recentre's fixed-point iterations (a few reach 1e-13 near the identity)
 IDENTITY = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0], np.float64)
 
 
@@ -24,12 +25,42 @@ def apply(rgb, P, v):
     return np.asarray(rgb, np.float64).reshape(-1, 3) @ A.T + b
 
 
-def backward(rgb, grad_out, P, v):
-    """(dL/drgb [n, 3], dL/dP_v [12]) from dL/dout ``grad_out`` [n, 3]."""
+def shown(c, T, background, P, v, masked=True):
+    """What the loss sees of a pixel of premultiplied colour c [n, 3], transmittance T [n] on
+    ``background``: A c + (1 - T) b + T bg for a masked (RGBA) capture, whose background the
+    exposure leaves alone; A (c + T bg) + b without alpha."""
+    A, b = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
+    T = np.asarray(T, np.float64).reshape(-1, 1)
+    c = np.asarray(c, np.float64).reshape(-1, 3)
+    bg = np.asarray(background, np.float64)[:3]
+    if not masked:
+        return (c + T * bg) @ A.T + b
+    return c @ A.T + (1 - T) * b + T * bg
+
+
+def render_background(P, v, background, masked=True):
+    """The background bg' to render with, so that A (c + T bg') + b is ``shown``:
+    A^-1 (bg - b) for a masked capture, else bg."""
+    bg = np.asarray(background, np.float64)[:3]
+    if not masked:
+        return bg
+    A, b = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
+    return np.linalg.solve(A, bg - b)
+
+
+def backward(rgb, grad_out, P, v, T=None, background=None):
+    """(dL/drgb' [n, 3], dL/dP_v [12]) from dL/dout ``grad_out`` [n, 3] of out = A rgb' + b.
+    A masked capture (T and its render's ``background`` bg' given): rgb' = c + T bg', bg'
+    the function A^-1 (bg - b) of P (``render_background``), so dL/dA = sum g c^T and
+    dL/db = sum g (1 - T). T None: a capture without alpha, dL/dA = sum g rgb'^T,
+    dL/db = sum g."""
     A, _ = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
+    T = np.zeros(len(x)) if T is None else np.asarray(T, np.float64).reshape(-1)
+    if background is not None:
+        x = x - T[:, None] * np.asarray(background, np.float64)[:3]
     g = np.asarray(grad_out, np.float64).reshape(-1, 3)
-    return g @ A, np.concatenate([(g.T @ x).ravel(), g.sum(axis=0)])
+    return g @ A, np.concatenate([(g.T @ x).ravel(), (g * (1 - T)[:, None]).sum(axis=0)])
 
 
 def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t):
@@ -43,6 +74,133 @@ def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t):
     vm[v] = b2 * vm[v] + (1 - b2) * g * g
     P[v] -= lr * (m[v] / (1 - b1 ** t)) / (np.sqrt(vm[v] / (1 - b2 ** t)) + eps)
     return P, m, vm
+
+
+def _ray_terms(state, background, P, index, pixels, masked):
+    """(x, y, d, A, b) of a ray batch: out = A x + y b (+ T bg masked), d = dout/dT."""
+    st = np.asarray(state, np.float64).reshape(-1, 8)
+    c, a = st[:, :3], st[:, 3:4]
+    bg = np.asarray(background, np.float64)[:3]
+    rows = np.asarray(P, np.float64).reshape(-1, ROW)[np.asarray(index) // int(pixels)]
+    A, b = rows[:, :9].reshape(-1, 3, 3), rows[:, 9:]
+    if masked:
+        return c, a, bg - b, A, b
+    return c + (1 - a) * bg, np.ones_like(a), np.einsum("nij,j->ni", A, bg), A, b
+
+
+def rays(state, background, target, P, index, pixels, masked=True):
+    """(residual r = out - target [n, 3], the marcher's target eff = c - A^T r [n, 3] (its
+    backward on a black background), sq = |r|^2 [n], the background's share bgt = T r.dout/dT
+    [n]) of a ray batch: c, a = state[:, :3], state[:, 3] (premultiplied colour, opacity),
+    T = 1 - a, out = A c + a b + T bg (masked) or A (c + T bg) + b; ray i's row is
+    index[i] // pixels."""
+    x, y, d, A, b = _ray_terms(state, background, P, index, pixels, masked)
+    st = np.asarray(state, np.float64).reshape(-1, 8)
+    T = 1 - st[:, 3:4]
+    out = np.einsum("nij,nj->ni", A, x) + y * b
+    if masked:
+        out = out + T * np.asarray(background, np.float64)[:3]
+    r = out - np.asarray(target, np.float64).reshape(-1, 3)
+    eff = st[:, :3] - np.einsum("nji,nj->ni", A, r)
+    return r, eff, np.sum(r * r, axis=1), T[:, 0] * np.sum(r * d, axis=1)
+
+
+def rays_loss(state, background, target, P, index, pixels, scale, masked=True):
+    """L = scale sum_i |r_i|^2 of a ray batch (``rays``; what rays_grad differentiates, the
+    pull aside)."""
+    return float(scale * rays(state, background, target, P, index, pixels, masked)[2].sum())
+
+
+def rays_bg(offsets, dt, sigma, bgt, scale, dsigma):
+    """dsigma [m] (a copy) with each live sample j of ray i given -2 scale dt_j bgt_i."""
+    out = np.array(dsigma, np.float64)
+    for i in range(len(offsets) - 1):
+        for j in range(offsets[i], offsets[i + 1]):
+            if sigma[j] > 0:
+                out[j] -= 2.0 * scale * dt[j] * bgt[i]
+    return out
+
+
+def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=True):
+    """dL/dP [V, 12] of rays_loss from its residuals (dL/dA = 2 s sum r x^T, dL/db =
+    2 s sum y r: x = c, y = a masked, else x = c + T bg, y = 1), plus each row's pull
+    2 reg (P_v - I) weighted by its share of the batch (its rays / n)."""
+    c, a, _, _, _ = _ray_terms(state, background, P, index, pixels, masked)
+    r = np.asarray(resid, np.float64).reshape(-1, 3)
+    P = np.asarray(P, np.float64).reshape(-1, ROW)
+    row = np.asarray(index) // int(pixels)
+    g = np.zeros_like(P)
+    n = len(r)
+    for v in range(len(P)):
+        sel = row == v
+        g[v, :9] = 2.0 * scale * (r[sel].T @ c[sel]).ravel()
+        g[v, 9:] = 2.0 * scale * (a[sel] * r[sel]).sum(axis=0)
+        g[v] += 2.0 * reg * (sel.sum() / max(n, 1)) * (P[v] - IDENTITY)
+    return g
+
+
+def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True):
+    """The row moved by ``eta`` toward the least-squares transform of a whole render (a
+    Gauss-Newton step of the squared error, which is quadratic in the row): the render rgb
+    [n, 3] and transmittance T [n] on ``render_bg``; masked: regress target - T bg on
+    [c, 1 - T] (c = rgb - T render_bg), else target on [rgb, 1]; pulled toward the identity by
+    reg n |M - I|^2 (the loss's pull, per pixel). Returns the new 12-float row (float64)."""
+    x = np.asarray(rgb, np.float64).reshape(-1, 3)
+    y = np.asarray(target, np.float64).reshape(-1, 3)
+    n = len(x)
+    if masked:
+        t = np.asarray(T, np.float64).reshape(-1, 1)
+        F = np.concatenate([x - t * np.asarray(render_bg, np.float64)[:3], 1 - t], axis=1)
+        y = y - t * np.asarray(background, np.float64)[:3]
+    else:
+        F = np.concatenate([x, np.ones((n, 1))], axis=1)
+    E = np.concatenate([np.eye(3), np.zeros((1, 3))])           # the identity, as M^T
+    Mt = np.linalg.solve(F.T @ F + reg * n * np.eye(4), F.T @ y + reg * n * E)
+    fitted = np.concatenate([Mt[:3].T.ravel(), Mt[3]])
+    row = np.asarray(row, np.float64)
+    return row + eta * (fitted - row)
+
+
+def affine(row) -> np.ndarray:
+    """The 4 x 4 matrix [[A, b], [0, 0, 0, 1]] of a 12-float row."""
+    A, b = split(row)
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = A, b
+    return M
+
+
+def recentre(P, rows):
+    """P [V, 12] (float64 copy) with the geometric mean G = expm(mean logm(M_v)) of the rows
+    ``rows`` taken out of each of them, M_v <- M_v G^-1, so that their mean logarithm is zero
+    (iterated: for matrices that do not commute one such step only nears it).
+    The data cannot tell a scene x and transforms M_v from G x and M_v G^-1, so the transforms
+    would otherwise drift with the scene's colours along that direction (a gauge: only their
+    pull toward the identity holds it, weakly); fixed there, the scene has the images' mean
+    exposure, in the geometric sense (gains 0.6 and 1.5 around 0.95, not 1.05). Returns P
+    unchanged when a logarithm is not real and finite (a transform far from the identity)."""
+    from scipy.linalg import expm, logm
+    P = np.array(P, np.float64).reshape(-1, ROW)
+    rows = np.asarray(rows, np.int64)
+    if len(rows) == 0:
+        return P
+    M = [affine(P[v]) for v in rows]
+    for _ in range(MEAN_ITERATIONS):   # matrices do not commute: the mean's fixed point
+        logs = [logm(m) for m in M]
+        if not all(np.all(np.isfinite(L)) and np.abs(np.imag(L)).max() <= 1e-9
+                   for L in logs):
+            return P.copy() if _ == 0 else _rows_of(P, rows, M)
+        mean = np.mean(np.real(logs), axis=0)
+        if np.abs(mean).max() < 1e-13:
+            break
+        Ginv = np.linalg.inv(expm(mean))
+        M = [m @ Ginv for m in M]
+    return _rows_of(P, rows, M)
+
+
+def _rows_of(P, rows, M):
+    for v, m in zip(rows, M):
+        P[v] = np.concatenate([m[:3, :3].ravel(), m[:3, 3]])
+    return P
 
 
 def fit_affine(render, target):

@@ -181,6 +181,8 @@ class SplatModel:
             from .exposure import Exposure
             self.exposure = Exposure(self.device, n_images, self.config.lr_exposure,
                                      self.config.exposure_reg)
+        if self.exposure is not None:   # an RGBA capture: its background stays (exposure.py)
+            self.exposure.masked = ds.alpha is not None
         if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
             from .pose import PoseCorrection
             self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
@@ -221,6 +223,8 @@ class SplatModel:
         if self.pose is not None:
             cam = self.pose.camera(cam, v)
         bg = self.background
+        if self.exposure is not None:   # the background the transform takes to bg (exposure.py)
+            bg = self.exposure.background(v, bg)
         if self.rast.antialiased and self.step - self.filter_step >= FILTER3D_EVERY:
             self.filter3d = None
         params = self._rparams()
@@ -230,7 +234,13 @@ class SplatModel:
         else:   # the loss sees the render under image v's colour transform
             shown = self.exposure.apply(ras.rgb, v)
             grad, stats = self._loss().loss_and_grad(shown, self._target(v))
-            grad = self.exposure.backward_and_step(ras.rgb, grad, v)
+            c = self.config
+            if c.exposure_fit > 0 and self.progress >= c.exposure_fit_after:
+                grad, _ = self.exposure.backward(ras.rgb, ras.T, bg, grad, v)
+                self.exposure.fit(v, ras.rgb, ras.T, bg, self.background, ds.images[v],
+                                  c.exposure_fit)
+            else:
+                grad = self.exposure.backward_and_step(ras.rgb, ras.T, bg, grad, v)
         absgrad = self.strategy.absgrad
         g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg, absgrad=absgrad)
         grads = self.rast.project_backward(params, cam, g2d, camera_grad=self.pose is not None)
@@ -242,6 +252,8 @@ class SplatModel:
         self.step += 1
         self._adam(grads, self.step)
         self.strategy.after_step(self)
+        if self.exposure is not None and self.step % len(self.train_views) == 0:
+            self.exposure.recentre()    # after each pass over the views (exposure.py)
         if self.defer_loss:
             return Pending(self.device.queue, stats[STATS.index("mse"):][:1])
         return self._loss_fn.read(stats)["mse"]
@@ -286,15 +298,19 @@ class SplatModel:
         return self._targets[int(v)]
 
     def on_iteration(self, it: int, budget: Budget):
-        """Schedules from the budget fraction: the means' rate, the SH degree and the density
-        strategy's (refinement, opacity resets). Returns a log line when the Gaussians
-        changed."""
+        """Schedules from the budget fraction: the means', the pose corrections' and the colour
+        transforms' rates, the SH degree and the density strategy's (refinement, opacity resets). Returns a log line
+        when the Gaussians changed."""
         c = self.config
         f = float(budget.fraction)
         self.progress = f
         self.lr_means = expon_lr(f, c.lr_position * self.extent,
                                  c.lr_position_final * self.extent, 1.0)
         self.active_degree = min(c.sh_degree, int(f / c.sh_increase_every))
+        if self.pose is not None:
+            self.pose.lr = expon_lr(f, c.lr_pose, c.lr_pose_final, 1.0)
+        if self.exposure is not None:
+            self.exposure.lr = expon_lr(f, c.lr_exposure, c.lr_exposure_final, 1.0)
         return "; ".join(self.strategy.on_iteration(self, it, f)) or None
 
     def refine(self) -> str:

@@ -122,10 +122,11 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
     if rays is None:   # the model draws its own training views
         return model.train_step(it, None, None, None)
     bg = model.step_background(it) if rays.alpha is not None else None
-    bo, bd, bc, _ = rays.batch(seed * 1000003 + it, n, bg)
-    if bg is None:
-        return model.train_step(it, bo, bd, bc)
-    return model.train_step(it, bo, bd, bc, background=bg)
+    bo, bd, bc, bi = rays.batch(seed * 1000003 + it, n, bg)
+    kw = {} if bg is None else {"background": bg}
+    if getattr(model, "ray_index", False):   # a colour transform per image (hash.exposure)
+        kw["index"] = bi
+    return model.train_step(it, bo, bd, bc, **kw)
 
 
 def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False):
