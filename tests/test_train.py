@@ -247,8 +247,11 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     # between them, the training loss keeps the configured 0.2 s rhythm in rows of its own
     loss_only = [r for r in every if not r["eval_psnr"]]
     assert len(loss_only) >= 20 and all(r["train_loss"] and r["rays_per_s"] for r in loss_only)
-    loss_secs = [float(r["seconds"]) for r in every if r["train_loss"]]
-    assert max(np.diff(loss_secs)) < 1.0, loss_secs
+    # (a step that changes the model, the grid's upsampling, may alone take a second)
+    losses = [r for r in every if r["train_loss"]]
+    gaps = [float(b["seconds"]) - float(a["seconds"]) for a, b in zip(losses, losses[1:])
+            if a["model"] == b["model"]]
+    assert len(gaps) >= 20 and max(gaps) < 1.0, [(r["seconds"], r["model"]) for r in losses]
     # at 0 s (one view), then every >= 1 s * 0.85 / 0.15 = 5.7 s, and before stopping
     assert rows[0]["eval_views"] == "1" and all(r["eval_views"] == "2" for r in rows[1:])
     secs = [float(r["seconds"]) for r in rows]
