@@ -61,9 +61,10 @@ def test_backward_matches_the_twin(device, n, masked):
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
 def test_twin_gradient_matches_finite_differences(masked):
     """What the loss sees (``shown``: masked, A c + (1 - T) b + T bg; else A (c + T bg) + b) is
-    A rgb' + b of the render on bg' (A^-1 (bg - b) masked, else bg); the twin's dL/dP (bg' held as that function of P) and dL/drgb' = A^T g
-    against central differences of L = sum(w * shown) in P, in the premultiplied colour c and
-    in T (the rasteriser's background term, (A^T g).bg')."""
+    A rgb' + b of the render on bg' (A^-1 (bg - b) masked, else bg); the twin's dL/dP (bg' held
+    as that function of P) and dL/drgb' = A^T g against central differences of
+    L = sum(w * shown) in P, in the premultiplied colour c and in T (the rasteriser's
+    background term, (A^T g).bg')."""
     rng = np.random.default_rng(5)
     P = _rows(rng, 2).astype(np.float64)
     c = rng.uniform(0, 1, (9, 3))

@@ -11,9 +11,10 @@ model's, clrf/splat/exposure.py). The kernels (cl/splat_exposure.cl ``exposure_r
 clrf/references/reference_exposure.py) take each ray's composite state, so the marcher's
 backward is unchanged: run on a black background, it is given the target ``c - A^T r`` (r the
 residual), whose loss gradient is the colour's through the transform, and
-``exposure_rays_bg`` adds the background's share to the densities' gradient. Every row that had rays takes one Adam
-step a training step (pyopencl's device arrays, cl/optim.cl's Adam); the pull toward the
-identity is weighted by each row's share of the batch. Test views are scored under the
+``exposure_rays_bg`` adds the background's share to the densities' gradient. Every row takes
+one Adam step a training step (pyopencl's device arrays, cl/optim.cl's Adam); the pull toward
+the identity is weighted by each row's share of the batch, and every RECENTRE_EVERY steps the
+rows' common mean is taken out of them. Test views are scored under the
 identity, as published, and NeRF-W's half-fitted protocol beside it.
 
 >>> exp = RayExposure(dev, n_images=100, pixels=400 * 400, lr=1e-3, reg=1e-3)
@@ -81,8 +82,8 @@ class RayExposure:
         sq = scratch(self.device, n)
         launch(self.device, self._prg.kernel("exposure_rays"), n,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
-                np.int32(self.masked), self._bg(background), target.data, self.P.data, self._resid.data, eff.data,
-                sq.data, self._bgt.data))
+                np.int32(self.masked), self._bg(background), target.data, self.P.data,
+                self._resid.data, eff.data, sq.data, self._bgt.data))
         return eff, sq
 
     def add_background(self, pk, sigma, loss_scale: float, dsigma):
@@ -99,8 +100,8 @@ class RayExposure:
         n = int(self._resid.shape[0])
         launch(self.device, self._prg.kernel("exposure_rays_grad"), self.n_images * LOCAL,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
-                np.int32(self.masked), self._bg(background), self._resid.data, self.P.data, np.float32(loss_scale),
-                np.float32(self.reg), self.grad.data), local_size=LOCAL)
+                np.int32(self.masked), self._bg(background), self._resid.data, self.P.data,
+                np.float32(loss_scale), np.float32(self.reg), self.grad.data), local_size=LOCAL)
         self.steps += 1
         self.opt.step(None, self.lr, t=self.steps)
         self._resid = self._bgt = None
@@ -109,7 +110,8 @@ class RayExposure:
 
     def recentre(self):
         """Takes the rows' geometric mean transform out of them
-        (``reference_exposure.recentre``); the model calls it every RECENTRE_EVERY steps."""
+        (``reference_exposure.recentre``); ``backward_and_step`` calls it every
+        RECENTRE_EVERY steps."""
         P = recentre(self.rows(), np.arange(self.n_images))
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 

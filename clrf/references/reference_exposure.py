@@ -1,6 +1,7 @@
 """Float64 twin of cl/splat_exposure.cl (the colour transform per training image: the splat
-model's whole images, the hash model's ray batches) and the evaluation protocol of NeRF in the Wild for captures with changing exposure: fit a
-transform on the left half of a test image, score the right half.
+model's whole images, the hash model's ray batches) and the evaluation protocol of NeRF in the
+Wild for captures with changing exposure: fit a transform on the left half of a test image,
+score the right half.
 
 Row v of P [V, 12]: A (3 x 3, row-major), then b (3); out = A rgb + b per pixel.
 """

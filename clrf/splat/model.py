@@ -299,8 +299,8 @@ class SplatModel:
 
     def on_iteration(self, it: int, budget: Budget):
         """Schedules from the budget fraction: the means', the pose corrections' and the colour
-        transforms' rates, the SH degree and the density strategy's (refinement, opacity resets). Returns a log line
-        when the Gaussians changed."""
+        transforms' rates, the SH degree and the density strategy's (refinement, opacity
+        resets). Returns a log line when the Gaussians changed."""
         c = self.config
         f = float(budget.fraction)
         self.progress = f
