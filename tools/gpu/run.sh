@@ -103,9 +103,27 @@ if [ -z "${OCL_ICD_VENDORS:-}" ] && ! grep -qsl nvidia /etc/OpenCL/vendors/*.icd
     fi
 fi
 command -v nvidia-smi > /dev/null && nvidia-smi > "$OUT/nvidia_smi.txt" 2>&1
-export CLRF_DEVICE="$DEVICE" CLRF_TEST_IMPLS=default
+export CLRF_DEVICE="$DEVICE" CLRF_TEST_IMPLS=default CLRF_TEST_SOURCE_TREE=1   # the checkout, on purpose
 
 step devices 60 "$PY" -m clrf.cli devices
+
+# ---- headline: the first call of a session, in the issue's order of priority: the kernel tests
+# on the device's own shapes (MLP tiling included), the fused MLP at 2^18 samples, lego_400 hash
+# for RUN_HASH_S seconds (default 180) with its step profile (the bounded step and its host share)
+if plan headline; then
+    KT=(tests/test_mlp_gpu.py tests/test_render.py tests/test_hash_encode.py tests/test_hash_kernels.py
+        tests/test_hash_bounded.py tests/test_splat_kernels.py tests/test_sort.py tests/test_scan.py)
+    [ "$SMOKE" = 1 ] && KT=(tests/test_mlp_gpu.py::test_small_network_under_every_pass
+                            tests/test_sort.py)
+    step kernel_tests 170 "$PY" -m pytest -q -p no:cacheprovider -rfE "${KT[@]}"
+    if [ "$SMOKE" = 1 ]; then
+        NB=(--gpu-samples 256 --repeats 1 --min-sample-s 0.01 --force-gpu-kernels)
+    else
+        NB=(--gpu-samples 262144 --repeats 3)
+    fi
+    step nerf_bench_2e18 70 "$PY" tools/nerf_bench.py --gpu-sizes "${NB[@]}" \
+        --out "$OUT/nerf_bench_2e18.json"
+fi
 
 # ---- mlp: the MLP tests on the device's own tiling (the GPU tiling on a GPU), then forced by
 # the environment; tools/nerf_bench.py at GPU sizes; tools/bench.py's cases of the earlier runs
@@ -196,6 +214,13 @@ SECS() { [ "$SMOKE" = 1 ] && echo 10 || echo "$1"; }
 SMALL=()    # smoke runs on a CPU: small images
 [ "$SMOKE" = 1 ] && SMALL=(--set train.downscale=8 --set train.eval_downscale=2)
 
+if plan headline && need_data lego_400 headline; then
+    train_run hash_lego_180 "$(( ${RUN_HASH_S:-180} + 60 ))" --model hash --data "$DATA/lego_400" \
+        --max-seconds "$(SECS "${RUN_HASH_S:-180}")" "${SMALL[@]}"
+    [ -f "$RUNS/hash_lego_180/eval.json" ] && step profile_hash_lego_bounded_on 40 "$PY" \
+        tools/profile_step.py --ckpt "$RUNS/hash_lego_180" --device "$DEVICE" --steps 40 \
+        --bounded on --json "$OUT/profile_hash_lego_bounded_on.json"
+fi
 if plan hash_lego && need_data lego_400 hash_lego; then
     train_run hash_lego 480 --model hash --data "$DATA/lego_400" --max-seconds "$(SECS 300)" "${SMALL[@]}"
     # the bounded step (sizes on the device: the GPU default) and the host-sized one
