@@ -8,6 +8,7 @@ bounded step's loss and gradients against the float64 chain, also when the capac
 batch's samples short; the batch-size adaptation and the trainer reading the losses late.
 tests/test_oclgrind.py runs the small kernel cases under Oclgrind."""
 import dataclasses
+import time
 
 import numpy as np
 import pyopencl.array as cla
@@ -205,6 +206,15 @@ def test_trainer_reads_pending_losses(device, tmp_path):
     def create(dev, cfg, ds, bg):
         model = kind.create(dev, cfg, ds, bg)
         model.bounded = True
+        step = model.train_step
+
+        def paced_step(*args, **kw):
+            # 10 ms a step or more on any device, so a row falls due mid-run (an H200 ran
+            # the 40 steps in 0.2 s: only the last row held a loss)
+            time.sleep(0.01)
+            return step(*args, **kw)
+
+        model.train_step = paced_step
         return model
 
     bounded = dataclasses.replace(kind, create=create)

@@ -250,6 +250,34 @@ def test_render_matches_reference_chain(device, oversample):
                                atol=tol.RENDER_ATOL + 1e-4)
 
 
+def test_render_chunks_do_not_change_the_image(device, monkeypatch):
+    """A render's rays go in chunks sized by RENDER_ROUND_SAMPLES (CPU shapes, GPU shapes) or
+    by the caller: the chunking changes how many rays a round marches, never the pixels."""
+    import clrf.hash.model as hm
+    cfg = dataclasses.replace(SMALL, samples=40)
+    model = HashModel(device, cfg, near=1.5, far=4.5, bbox=BOX, background=(0.2, 0.5, 1.0))
+    rng = np.random.default_rng(5)
+    model.enc.table.set(rng.uniform(-1, 1, model.enc.shape).astype(np.float32))
+    o, d = _rays(300, seed=6)
+    whole = model.render(o, d)
+    for chunk in (1, 37, 128):
+        part = model.render(o, d, chunk=chunk)
+        for k in ("rgb", "depth", "acc"):
+            np.testing.assert_allclose(part[k], whole[k], rtol=1e-6, atol=1e-6, err_msg=k)
+    # the default chunk: a round of RENDER_WINDOW bins holds the device's share of samples
+    seen = []
+    real = model._render_chunk
+    monkeypatch.setattr(model, "_render_chunk", lambda od, dd: seen.append(od.shape[0])
+                        or real(od, dd))
+    window = hm.RENDER_WINDOW
+    monkeypatch.setattr(hm, "RENDER_ROUND_SAMPLES", (64 * window, 256 * window))
+    gpu = bool(device.tuning.gpu_kernels)
+    model.render(o, d)
+    assert seen == ([256, 44] if gpu else [64] * 4 + [44])
+    for k, v in model.render(o, d).items():
+        np.testing.assert_allclose(v, whole[k], rtol=1e-6, atol=1e-6, err_msg=k)
+
+
 def test_step_on_another_background_matches_reference_chain(device):
     """Random-background training: a step told another background composites on it (loss and
     gradients as the float64 chain with that background), and step_background draws a colour
