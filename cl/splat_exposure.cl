@@ -16,8 +16,14 @@
  * renders on bg' = bg). The identity (A = I, b = 0, bg' = bg) leaves the render unchanged;
  * test views are scored under it.
  *
- * exposure_apply     out = A rgb' + b, one work-item per pixel.
- * exposure_backward  from g = dL/dout: dL/drgb'_p = A^T g_p (one work-item per CHUNK pixels,
+ * With clip set, out is clamped to [0, 1] as a camera clips a pixel it over- or under-exposes
+ * (splat.exposure_clip): an image brightened past white holds no more of the scene there, and
+ * its clipped channels pass no gradient (to the scene or the row) instead of pulling the
+ * transform down to keep the unclipped value near 1.
+ *
+ * exposure_apply     out = A rgb' + b (clamped with clip), one work-item per pixel.
+ * exposure_backward  from g = dL/dout (a channel's g taken as 0 with clip where A rgb' + b
+ *                    lies outside [0, 1]): dL/drgb'_p = A^T g_p (one work-item per CHUNK pixels,
  *                    in order), and the work-item's partial sums of dL/dA_ij = sum_p g_p,i
  *                    x_p,j and dL/db_i = sum_p g_p,i y_p, 12 floats per work-item in
  *                    partials [items, 12]: x = rgb', y = 1 without alpha (masked = 0);
@@ -58,21 +64,30 @@
 /* entry k of the identity row: A = I (k = 0, 4, 8), b = 0 */
 inline float identity_entry(int k) { return (k == 0 || k == 4 || k == 8) ? 1.0f : 0.0f; }
 
+/* A rgb + b of one pixel (row a) */
+inline float3 exposure_affine(__global const float *a, const float r, const float g,
+                              const float b) {
+    return (float3)(a[0] * r + a[1] * g + a[2] * b + a[9], a[3] * r + a[4] * g + a[5] * b + a[10],
+                    a[6] * r + a[7] * g + a[8] * b + a[11]);
+}
+
 __kernel void exposure_apply(const int n, __global const float *rgb,
-                             __global const float *P, const int v, __global float *out) {
+                             __global const float *P, const int v, const int clip,
+                             __global float *out) {
     const int p = get_global_id(0);
     if (p >= n) return;
     __global const float *a = P + (size_t)v * EXPOSURE_ROW;
-    const float r = rgb[3 * p], g = rgb[3 * p + 1], b = rgb[3 * p + 2];
-    out[3 * p] = a[0] * r + a[1] * g + a[2] * b + a[9];
-    out[3 * p + 1] = a[3] * r + a[4] * g + a[5] * b + a[10];
-    out[3 * p + 2] = a[6] * r + a[7] * g + a[8] * b + a[11];
+    float3 o = exposure_affine(a, rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]);
+    if (clip) o = clamp(o, 0.0f, 1.0f);
+    out[3 * p] = o.x;
+    out[3 * p + 1] = o.y;
+    out[3 * p + 2] = o.z;
 }
 
 __kernel void exposure_backward(const int n, const int chunk, __global const float *rgb,
                                 const int masked, __global const float *T, const float4 bg,
                                 __global const float *grad_out, __global const float *P,
-                                const int v, __global float *grad_rgb,
+                                const int v, const int clip, __global float *grad_rgb,
                                 __global float *partials) {
     const int item = get_global_id(0);
     const int p0 = item * chunk;
@@ -85,7 +100,13 @@ __kernel void exposure_backward(const int n, const int chunk, __global const flo
         const float t = masked ? T[p] : 0.0f;
         const float r = rgb[3 * p] - t * bg.x, g = rgb[3 * p + 1] - t * bg.y;
         const float b = rgb[3 * p + 2] - t * bg.z, op = 1.0f - t;
-        const float g0 = grad_out[3 * p], g1 = grad_out[3 * p + 1], g2 = grad_out[3 * p + 2];
+        float g0 = grad_out[3 * p], g1 = grad_out[3 * p + 1], g2 = grad_out[3 * p + 2];
+        if (clip) {   /* a clipped channel passes nothing */
+            const float3 o = exposure_affine(a, rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]);
+            g0 = (o.x < 0.0f || o.x > 1.0f) ? 0.0f : g0;
+            g1 = (o.y < 0.0f || o.y > 1.0f) ? 0.0f : g1;
+            g2 = (o.z < 0.0f || o.z > 1.0f) ? 0.0f : g2;
+        }
         grad_rgb[3 * p] = a[0] * g0 + a[3] * g1 + a[6] * g2;
         grad_rgb[3 * p + 1] = a[1] * g0 + a[4] * g1 + a[7] * g2;
         grad_rgb[3 * p + 2] = a[2] * g0 + a[5] * g1 + a[8] * g2;

@@ -223,3 +223,102 @@ def test_fit_recovers_a_transform_in_one_step(device, masked):
             target, 1.0)
     np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
     assert exp.steps.tolist() == [0, 1]
+
+
+@pytest.mark.parametrize("n", [7, 3 * CHUNK + 5])
+def test_clipped_apply_and_backward_match_the_twin(device, n):
+    """splat.exposure_clip: out clamped to [0, 1] as a camera clips; a channel whose A rgb' + b
+    lies outside [0, 1] passes no gradient to the render or the row. Transforms far from the
+    identity so that about a third of the channels clip at each end."""
+    rng = np.random.default_rng(300 + n)
+    P = _rows(rng, 3)
+    P[2, [0, 4, 8]] = 1.8                            # gains that push bright pixels past white
+    P[2, 9:] = -0.3                                  # an offset that pushes dark ones below 0
+    rgb = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    rgb[0], rgb[1] = 0.02, 0.98                      # one pixel clipped at each end
+    T = rng.uniform(0, 1, n).astype(np.float32)
+    g = rng.normal(0, 1, (n, 3)).astype(np.float32)
+    unclipped = ref.apply(rgb, P, 2)
+    low, high = np.mean(unclipped < 0), np.mean(unclipped > 1)
+    assert low > 0 and high > 0 and (n < 100 or (0.1 < low < 0.5 and 0.1 < high < 0.5))
+    for masked in (True, False):
+        exp = _exposure(device, P, masked)
+        exp.clip = True
+        q = device.queue
+        got = download(exp.apply(upload(q, rgb), 2))
+        assert got.min() >= 0 and got.max() <= 1
+        np.testing.assert_allclose(got, ref.apply(rgb, P, 2, clip=True), rtol=tol.EXPOSURE_RTOL,
+                                   atol=tol.EXPOSURE_ATOL)
+        grad_rgb, partials = exp.backward(upload(q, rgb), upload(q, T), BG, upload(q, g), 2)
+        want_rgb, want_p = ref.backward(rgb, g, P, 2, T if masked else None, BG, clip=True)
+        plain_rgb, _ = ref.backward(rgb, g, P, 2, T if masked else None, BG)
+        assert np.abs(want_rgb - plain_rgb).max() > 0.1     # the clip changed the gradient
+        np.testing.assert_allclose(download(grad_rgb), want_rgb, rtol=tol.EXPOSURE_GRAD_RTOL,
+                                   atol=tol.EXPOSURE_ATOL)
+        np.testing.assert_allclose(download(partials).astype(np.float64).sum(axis=0), want_p,
+                                   rtol=tol.EXPOSURE_GRAD_RTOL,
+                                   atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5)
+
+
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_clipped_twin_gradient_matches_finite_differences(masked):
+    """The clipped twin's dL/dP and dL/dc against central differences of
+    L = sum(w * clip(shown)), at points away from the clip's kinks (no channel within 1e-3 of
+    0 or 1), with about a third of the channels clipped."""
+    rng = np.random.default_rng(8)
+    P = _rows(rng, 2).astype(np.float64)
+    P[1, [0, 4, 8]] += 0.6
+    c = rng.uniform(0, 1, (40, 3))
+    T = rng.uniform(0, 1, 40)
+    out = ref.shown(c, T, BG, P, 1, masked)
+    ok = np.all((np.abs(out) > 1e-3) & (np.abs(out - 1) > 1e-3), axis=1)
+    c, T = c[ok], T[ok]
+    out = out[ok]
+    assert 0.1 < np.mean((out > 1) | (out < 0)) < 0.8
+    w = rng.normal(0, 1, c.shape)
+    bg2 = ref.render_background(P, 1, BG, masked)
+    rgb2 = c + T[:, None] * bg2
+    grad_rgb, grad_p = ref.backward(rgb2, w, P, 1, T if masked else None, bg2, clip=True)
+    h = 1e-7
+
+    def L(P_=P, c_=c):
+        return np.sum(w * ref.shown(c_, T, BG, P_, 1, masked, clip=True))
+    for k in range(ref.ROW):
+        Pp, Pm = P.copy(), P.copy()
+        Pp[1, k] += h
+        Pm[1, k] -= h
+        fd = (L(P_=Pp) - L(P_=Pm)) / (2 * h)
+        assert fd == pytest.approx(grad_p[k], rel=tol.FD_RTOL, abs=tol.FD_ATOL), k
+    for p in range(len(c)):
+        for i in range(3):
+            x1, x0 = c.copy(), c.copy()
+            x1[p, i] += h
+            x0[p, i] -= h
+            fd = (L(c_=x1) - L(c_=x0)) / (2 * h)
+            assert fd == pytest.approx(grad_rgb[p, i], rel=tol.FD_RTOL, abs=tol.FD_ATOL)
+
+
+def test_clipped_fit_leaves_out_saturated_targets():
+    """With clip, the fit regresses only pixels whose target channels all lie inside (0, 1):
+    targets made by a transform that clips a third of them give the transform back (without
+    clip the clipped pixels bias it), and a fit with fewer than four pixels left keeps the row."""
+    rng = np.random.default_rng(22)
+    n = 600
+    c = rng.uniform(0, 0.8, (n, 3))
+    T = rng.uniform(0, 0.5, n)
+    true = ref.IDENTITY.copy()
+    true[[0, 4, 8]] = 1.5
+    P = np.stack([ref.IDENTITY, true])
+    target = ref.shown(c, T, BG, P, 1, False, clip=True)
+    assert 0.1 < np.mean(np.any(target >= 1, axis=1)) < 0.9
+    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, False)
+    rgb = c + T[:, None] * bg_r
+    got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, False, clip=True)
+    np.testing.assert_allclose(got, true, atol=1e-9)
+    biased = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, False)
+    assert np.abs(biased - true).max() > 0.05
+    few = np.ones_like(target)
+    few[:3] = 0.5
+    np.testing.assert_array_equal(
+        ref.fit_row(rgb, T, bg_r, BG, few, ref.IDENTITY, 0.0, 1.0, False, clip=True),
+        ref.IDENTITY)

@@ -20,23 +20,23 @@ def split(row):
     return row[:9].reshape(3, 3), row[9:12]
 
 
-def apply(rgb, P, v):
-    """out [n, 3] = A_v rgb + b_v for rgb [n, 3]."""
+def apply(rgb, P, v, clip=False):
+    """out [n, 3] = A_v rgb + b_v for rgb [n, 3]; clip: clamped to [0, 1], as a camera clips."""
     A, b = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
-    return np.asarray(rgb, np.float64).reshape(-1, 3) @ A.T + b
+    out = np.asarray(rgb, np.float64).reshape(-1, 3) @ A.T + b
+    return np.clip(out, 0.0, 1.0) if clip else out
 
 
-def shown(c, T, background, P, v, masked=True):
+def shown(c, T, background, P, v, masked=True, clip=False):
     """What the loss sees of a pixel of premultiplied colour c [n, 3], transmittance T [n] on
     ``background``: A c + (1 - T) b + T bg for a masked (RGBA) capture, whose background the
-    exposure leaves alone; A (c + T bg) + b without alpha."""
+    exposure leaves alone; A (c + T bg) + b without alpha; clip: clamped to [0, 1]."""
     A, b = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
     T = np.asarray(T, np.float64).reshape(-1, 1)
     c = np.asarray(c, np.float64).reshape(-1, 3)
     bg = np.asarray(background, np.float64)[:3]
-    if not masked:
-        return (c + T * bg) @ A.T + b
-    return c @ A.T + (1 - T) * b + T * bg
+    out = (c + T * bg) @ A.T + b if not masked else c @ A.T + (1 - T) * b + T * bg
+    return np.clip(out, 0.0, 1.0) if clip else out
 
 
 def render_background(P, v, background, masked=True):
@@ -49,18 +49,21 @@ def render_background(P, v, background, masked=True):
     return np.linalg.solve(A, bg - b)
 
 
-def backward(rgb, grad_out, P, v, T=None, background=None):
+def backward(rgb, grad_out, P, v, T=None, background=None, clip=False):
     """(dL/drgb' [n, 3], dL/dP_v [12]) from dL/dout ``grad_out`` [n, 3] of out = A rgb' + b.
     A masked capture (T and its render's ``background`` bg' given): rgb' = c + T bg', bg'
     the function A^-1 (bg - b) of P (``render_background``), so dL/dA = sum g c^T and
     dL/db = sum g (1 - T). T None: a capture without alpha, dL/dA = sum g rgb'^T,
-    dL/db = sum g."""
+    dL/db = sum g. clip: out clamped to [0, 1]; a channel clipped there passes nothing."""
     A, _ = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
+    g = np.asarray(grad_out, np.float64).reshape(-1, 3)
+    if clip:
+        out = apply(x, P, v)
+        g = np.where((out < 0) | (out > 1), 0.0, g)
     T = np.zeros(len(x)) if T is None else np.asarray(T, np.float64).reshape(-1)
     if background is not None:
         x = x - T[:, None] * np.asarray(background, np.float64)[:3]
-    g = np.asarray(grad_out, np.float64).reshape(-1, 3)
     return g @ A, np.concatenate([(g.T @ x).ravel(), (g * (1 - T)[:, None]).sum(axis=0)])
 
 
@@ -140,15 +143,23 @@ def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=Tru
     return g
 
 
-def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True):
+def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, clip=False):
     """The row moved by ``eta`` toward the least-squares transform of a whole render (a
     Gauss-Newton step of the squared error, which is quadratic in the row): the render rgb
     [n, 3] and transmittance T [n] on ``render_bg``; masked: regress target - T bg on
     [c, 1 - T] (c = rgb - T render_bg), else target on [rgb, 1]; pulled toward the identity by
-    reg n |M - I|^2 (the loss's pull, per pixel). Returns the new 12-float row (float64)."""
+    reg n |M - I|^2 (the loss's pull, per pixel); clip: pixels with a clipped target channel
+    (0 or 1: the camera's clip hides what the transform gave there) are left out. Returns the
+    new 12-float row (float64)."""
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
     y = np.asarray(target, np.float64).reshape(-1, 3)
+    if clip:
+        keep = np.all((y > 0) & (y < 1), axis=1)
+        x, y = x[keep], y[keep]
+        T = np.asarray(T, np.float64).reshape(-1)[keep]
     n = len(x)
+    if n < 4:    # too few pixels left to fit the row's four columns
+        return np.asarray(row, np.float64).copy()
     if masked:
         t = np.asarray(T, np.float64).reshape(-1, 1)
         F = np.concatenate([x - t * np.asarray(render_bg, np.float64)[:3], 1 - t], axis=1)

@@ -129,6 +129,9 @@ class SplatConfig:
     #                                 formed: a fit to an unformed render is noise)
     exposure_reg: float = 0.001     # pull of each transform toward the identity,
     #                                 reg (|A - I|^2 + |b|^2) added to the loss
+    exposure_clip: bool = False     # the transformed render clamped to [0, 1], as the camera
+    #                                 clipped what it over- or under-exposed; clipped channels
+    #                                 pass no gradient (cl/splat_exposure.cl)
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation of its frame), for poses from structure
     #                                 from motion that are a little off; test views keep

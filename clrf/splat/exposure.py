@@ -44,11 +44,12 @@ class Exposure:
     """The transforms of ``n_images`` training images on ``device`` (module doc)."""
 
     def __init__(self, device, n_images: int, lr: float, reg: float, state: dict | None = None,
-                 masked: bool = False):
+                 masked: bool = False, clip: bool = False):
         if n_images < 1:
             raise ValueError(f"Exposure needs at least one image, got {n_images}")
         self.device, self.n_images = device, int(n_images)
         self.masked = bool(masked)     # an RGBA capture: the background stays (module doc)
+        self.clip = bool(clip)         # clamped to [0, 1] as a camera clips (exposure_clip)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -69,11 +70,12 @@ class Exposure:
         self._prg = program(device)
 
     def apply(self, rgb, v: int):
-        """A_v rgb + b_v, a new device array shaped like ``rgb``."""
+        """A_v rgb + b_v (clamped to [0, 1] with ``clip``), a new device array shaped like
+        ``rgb``."""
         out = scratch(self.device, rgb.shape)
         n = int(rgb.size) // 3
         launch(self.device, self._prg.kernel("exposure_apply"), n,
-               (np.int32(n), rgb.data, self.P.data, np.int32(v), out.data))
+               (np.int32(n), rgb.data, self.P.data, np.int32(v), np.int32(self.clip), out.data))
         return out
 
     def background(self, v: int, background) -> tuple:
@@ -104,8 +106,8 @@ class Exposure:
         bg = cl.cltypes.make_float4(*(float(c) for c in background[:3]), 0.0)
         launch(self.device, self._prg.kernel("exposure_backward"), items,
                (np.int32(n), np.int32(CHUNK), rgb.data, np.int32(self.masked), T.data, bg,
-                grad_out.data,
-                self.P.data, np.int32(v), grad_rgb.data, partials.data))
+                grad_out.data, self.P.data, np.int32(v), np.int32(self.clip), grad_rgb.data,
+                partials.data))
         return grad_rgb, partials
 
     def backward_and_step(self, rgb, T, background, grad_out, v: int):
@@ -132,7 +134,7 @@ class Exposure:
         Adam steps would not. The row's Adam step count goes on, its moments stay."""
         row = download(self.P[v:v + 1]).reshape(ROW)
         new = fit_row(download(rgb), download(T), render_bg, background, target, row,
-                      self.reg, eta, self.masked)
+                      self.reg, eta, self.masked, self.clip)
         if np.all(np.isfinite(new)):
             self.P[v:v + 1].set(np.ascontiguousarray(new.astype(np.float32)[None]))
         self.steps[v] += 1

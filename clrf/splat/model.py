@@ -183,6 +183,7 @@ class SplatModel:
                                      self.config.exposure_reg)
         if self.exposure is not None:   # an RGBA capture: its background stays (exposure.py)
             self.exposure.masked = ds.alpha is not None
+            self.exposure.clip = self.config.exposure_clip
         if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
             from .pose import PoseCorrection
             self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
@@ -420,7 +421,8 @@ class SplatModel:
             from .exposure import Exposure
             try:
                 m.exposure = Exposure(device, len(state["exposure"]), config.lr_exposure,
-                                      config.exposure_reg, state=state)
+                                      config.exposure_reg, state=state,
+                                      clip=config.exposure_clip)
             except (KeyError, ValueError, TypeError) as e:
                 raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
                                  ) from None
