@@ -215,7 +215,7 @@ SMALL=()    # smoke runs on a CPU: small images
 [ "$SMOKE" = 1 ] && SMALL=(--set train.downscale=8 --set train.eval_downscale=2)
 
 if plan headline && need_data lego_400 headline; then
-    train_run hash_lego_180 "$(( ${RUN_HASH_S:-180} + 60 ))" --model hash --data "$DATA/lego_400" \
+    train_run hash_lego_180 "$(( ${RUN_HASH_S:-180} + 90 ))" --model hash --data "$DATA/lego_400" \
         --max-seconds "$(SECS "${RUN_HASH_S:-180}")" "${SMALL[@]}"
     [ -f "$RUNS/hash_lego_180/eval.json" ] && step profile_hash_lego_bounded_on 40 "$PY" \
         tools/profile_step.py --ckpt "$RUNS/hash_lego_180" --device "$DEVICE" --steps 40 \
