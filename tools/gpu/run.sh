@@ -217,7 +217,7 @@ SMALL=()    # smoke runs on a CPU: small images
 if plan headline && need_data lego_400 headline; then
     train_run hash_lego_180 "$(( ${RUN_HASH_S:-180} + 90 ))" --model hash --data "$DATA/lego_400" \
         --max-seconds "$(SECS "${RUN_HASH_S:-180}")" "${SMALL[@]}"
-    [ -f "$RUNS/hash_lego_180/eval.json" ] && step profile_hash_lego_bounded_on 40 "$PY" \
+    [ -f "$RUNS/hash_lego_180/ckpt.npz" ] && step profile_hash_lego_bounded_on 40 "$PY" \
         tools/profile_step.py --ckpt "$RUNS/hash_lego_180" --device "$DEVICE" --steps 40 \
         --bounded on --json "$OUT/profile_hash_lego_bounded_on.json"
 fi
@@ -225,7 +225,7 @@ if plan hash_lego && need_data lego_400 hash_lego; then
     train_run hash_lego 480 --model hash --data "$DATA/lego_400" --max-seconds "$(SECS 300)" "${SMALL[@]}"
     # the bounded step (sizes on the device: the GPU default) and the host-sized one
     for b in on off; do
-        [ -f "$RUNS/hash_lego/eval.json" ] && step "profile_hash_lego_bounded_$b" 45 "$PY" \
+        [ -f "$RUNS/hash_lego/ckpt.npz" ] && step "profile_hash_lego_bounded_$b" 45 "$PY" \
             tools/profile_step.py --ckpt "$RUNS/hash_lego" --device "$DEVICE" --steps 40 \
             --bounded "$b" --json "$OUT/profile_hash_lego_bounded_$b.json"
     done
