@@ -214,32 +214,53 @@ def test_default_first_run_config_is_valid():
     assert len(g.upsample_at) == len(g.reso) - 1 and g.upsample_at[-1] <= 600
 
 
-def test_eval_interval_keeps_evaluation_under_its_share():
-    from clrf.training.trainer import EVAL_SHARE, eval_interval
-    assert eval_interval(10.0, 1.0) == 10.0            # cheap: every eval_every seconds
-    for cost in (2.0, 30.0, 120.0):                      # slow: stretched to the share
-        gap = eval_interval(10.0, cost)
-        assert gap >= 10.0 and cost / (gap + cost) == pytest.approx(EVAL_SHARE)
+def test_next_evaluation_keeps_all_of_them_under_their_share():
+    from clrf.training.trainer import EVAL_SHARE, next_eval_at
+    assert next_eval_at(5.0, 10.0, 0.2, 0.5) == 15.0      # cheap: every eval_every seconds
+    for spent, cost in ((0.0, 3.0), (3.0, 30.0), (200.0, 120.0)):   # slow: stretched
+        t = next_eval_at(5.0, 10.0, spent, cost)
+        assert t >= 15.0 and (spent + cost) / (t + spent + cost) == pytest.approx(EVAL_SHARE)
+    # already within the share at eval_every's point: that point
+    assert next_eval_at(100.0, 10.0, 2.0, 2.0) == 110.0
+
+
+def test_the_untrained_point_renders_a_small_view():
+    from clrf.training.trainer import ANCHOR_PIXELS, EVAL_MIN_SIDE, anchor_downscale
+    for hw in ((533, 800), (400, 400), (1080, 1920), (64, 64), (3000, 12)):
+        f = anchor_downscale(hw)
+        small = (hw[0] // f) * (hw[1] // f) <= ANCHOR_PIXELS
+        assert small or min(hw) // (f + 1) < EVAL_MIN_SIDE, (hw, f)
+        assert f == 1 or (hw[0] // (f - 1)) * (hw[1] // (f - 1)) > ANCHOR_PIXELS   # the least
+    assert anchor_downscale((533, 800), 8) == 8      # never finer than the periodic ones
+
+
+def _slow_evaluations(monkeypatch, per_view):
+    """evaluate made ``per_view`` seconds slower a view; returns the (downscale, views) of
+    each call."""
+    import clrf.training.trainer as tr
+    real, calls = tr.evaluate, []
+
+    def slow(model, ds, views, *a, **k):
+        calls.append((k.get("downscale", 1), len(views)))
+        time.sleep(per_view * len(views))
+        return real(model, ds, views, *a, **k)
+    monkeypatch.setattr(tr, "evaluate", slow)
+    return calls
 
 
 def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
-    """Each evaluation made 1 s slower than training's 0.2 s interval: the run evaluates
-    about every 5.7 s of training instead, so evaluation stays near 15 % of the wall time
-    (the start's and the end's evaluations aside), and the untrained model's point renders
-    one view."""
-    import clrf.training.trainer as tr
-    real = tr.evaluate
-
-    def slow(*a, **k):
-        time.sleep(1.0)
-        return real(*a, **k)
+    """Each evaluation made 0.5 s a view slower, against training's 0.2 s interval: each is
+    put off until the evaluations so far and the next one's cost (predicted from the last
+    one's per pixel, before it runs) are at most 15 % of the wall time; the untrained
+    model's point renders one view, and the run's last periodic evaluation comes before
+    stopping (no final one here)."""
     out = tmp_path / "r"
     opts = [o if o != "train.eval_every=1.0" else "train.eval_every=0.2" for o in FAST]
     # the programs built first (a cold build is training time, and would make two steps
     # seconds long)
     assert run_cli("--quiet", "train", "--out", tmp_path / "warm", "--max-seconds", 60, *opts,
                    "--set", "train.max_iters=10", "--set", "train.final_eval=false") == 0
-    monkeypatch.setattr(tr, "evaluate", slow)
+    calls = _slow_evaluations(monkeypatch, 0.5)
     assert run_cli("train", "--out", out, "--max-seconds", 13, *opts,
                    "--set", "train.final_eval=false") == 0
     every = read_csv(out / "metrics.csv")
@@ -252,11 +273,27 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     gaps = [float(b["seconds"]) - float(a["seconds"]) for a, b in zip(losses, losses[1:])
             if a["model"] == b["model"]]
     assert len(gaps) >= 20 and max(gaps) < 1.0, [(r["seconds"], r["model"]) for r in losses]
-    # at 0 s (one view), then every >= 1 s * 0.85 / 0.15 = 5.7 s, and before stopping
-    assert rows[0]["eval_views"] == "1" and all(r["eval_views"] == "2" for r in rows[1:])
+    # at 0 s (one view: 0.5 s), then 2 views (1 s) once 1.5 s is 15 % of the wall time
+    # (8.5 s of training), the next once 2.5 s is (14.2 s: past the budget), and before stopping
+    assert [c[1] for c in calls] == [1, 2, 2] and [r["eval_views"] for r in rows] == ["1", "2", "2"]
     secs = [float(r["seconds"]) for r in rows]
-    gaps = np.diff(secs[:-1])
-    assert len(rows) <= 4 and all(g >= 5.6 for g in gaps), secs
+    assert secs[0] == 0.0 and 8.4 <= secs[1] <= 9.5 and secs[2] >= 13.0, secs
+
+
+def test_the_final_evaluation_closes_the_curve(tmp_path, monkeypatch):
+    """With the final evaluation on, no periodic one runs just before it (the final row,
+    every test view, ends the curve); the untrained model's point is one view, downscaled
+    where a view has more than ANCHOR_PIXELS."""
+    import clrf.training.trainer as tr
+    monkeypatch.setattr(tr, "ANCHOR_PIXELS", 20 * 20)        # the 64x64 scene: downscale 4
+    calls = _slow_evaluations(monkeypatch, 0.0)
+    out = tmp_path / "r"
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 3, *FAST) == 0
+    rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
+    assert calls[0] == (4, 1) and all(c == (1, 2) for c in calls[1:-1]) and calls[-1][1] == 8
+    assert rows[0]["eval_views"] == "1" and rows[-1]["eval_views"] == "8"
+    assert [r["eval_views"] for r in rows[1:-1]] == ["2"] * (len(rows) - 2)
+    assert float(rows[-2]["seconds"]) < float(rows[-1]["seconds"]), rows
 
 
 def test_program_builds_are_not_training_time(tmp_path, monkeypatch):

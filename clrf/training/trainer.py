@@ -7,7 +7,9 @@ which the loop reads once it has arrived, so that the host does not wait for the
 an evaluation, a checkpoint or the end, the device's queue is drained inside the step's time,
 so the clock counts all of its work). Held-out views are evaluated every ``eval_every`` seconds of
 training, or less often where an evaluation is slow, so that evaluations take at most
-EVAL_SHARE of the wall time (``eval_interval``; the untrained model's point renders one view);
+EVAL_SHARE of the wall time (``next_eval_at``; the untrained model's point renders one view,
+downscaled to at most ANCHOR_PIXELS; with ``train.final_eval`` the final evaluation closes
+the curve, else one more periodic one before stopping);
 the clock excludes evaluation, checkpointing and one-off program builds, so ``seconds`` in
 metrics.csv is pure training time. Outputs in the run directory:
 
@@ -361,13 +363,15 @@ class Trainer:
         """A periodic evaluation when one is due (and always before stopping): a metrics row,
         the plot, a progress line, the viewer told."""
         t = self.cfg.train
-        due = self.seconds >= loop.next_eval or self._done()
+        # before stopping too, unless the final evaluation over every test view follows (its
+        # row ends the curve)
+        due = self.seconds >= loop.next_eval or (self._done() and not t.final_eval)
         if not due and self.seconds < loop.next_row:
             return
         self._take_losses(loop)
         loop.next_row = self.seconds + t.eval_every
         if not due:
-            # the evaluations are stretched (eval_interval); the training loss keeps
+            # the evaluations are stretched (next_eval_at); the training loss keeps
             # train.eval_every's rhythm in metrics.csv, in a row of its own
             if loop.losses:
                 lt = float(np.mean(loop.losses))
@@ -376,14 +380,20 @@ class Trainer:
                           rays_per_s=f"{self._rate:.0f}", model=self.model.describe())
                 loop.losses = []
             return
-        # the untrained model's point of the curve: one view (an untrained model renders
-        # slowest, nothing is pruned yet, and its figure only anchors the curve)
-        views = self.periodic_views[:1] if self.iteration == 0 else self.periodic_views
+        # the untrained model's point of the curve: one view of at most ANCHOR_PIXELS (an
+        # untrained model renders slowest, nothing is pruned yet, and its figure only
+        # anchors the curve: a 800x533 hash view took 3 minutes there on 2 vCPUs)
+        if self.iteration == 0:
+            views, scale = self.periodic_views[:1], anchor_downscale(self.ds.hw,
+                                                                      self.eval_downscale)
+        else:
+            views, scale = self.periodic_views, self.eval_downscale
         t0, built = time.perf_counter(), getattr(self.device, "build_seconds", 0.0)
-        ev = evaluate(self.model, self.ds, views, downscale=self.eval_downscale)
+        ev = evaluate(self.model, self.ds, views, downscale=scale)
         # its cost without one-off program builds (the first evaluation builds the renderer)
         loop.eval_wall = max(0.0, time.perf_counter() - t0
                              - (getattr(self.device, "build_seconds", 0.0) - built))
+        loop.eval_spent += loop.eval_wall
         loop.last_eval = ev
         losses = loop.losses
         lt = float(np.mean(losses)) if losses else float("nan")
@@ -400,7 +410,11 @@ class Trainer:
                           f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
                           f"({len(views)} view{'s' if len(views) > 1 else ''})  "
                           f"{self.model.describe()}")
-        loop.next_eval = self.seconds + eval_interval(t.eval_every, loop.eval_wall)
+        # the next one's cost predicted from this one's per pixel, before it runs
+        predicted = loop.eval_wall * (len(self.periodic_views) * _pixels(self.ds.hw,
+                                                                         self.eval_downscale)
+                                      / (len(views) * _pixels(self.ds.hw, scale)))
+        loop.next_eval = next_eval_at(self.seconds, t.eval_every, loop.eval_spent, predicted)
         if self.viewer is not None:
             self.viewer.evaluated(self, ev)
 
@@ -519,21 +533,44 @@ class Trainer:
 
 EVAL_SHARE = 0.15   # periodic evaluations take at most this share of the wall time
 EVAL_STRETCH_MIN_S = 1.0   # ... once one takes at least this long (short test runs keep theirs)
+ANCHOR_PIXELS = 128 * 128  # the untrained model's one view is downscaled to at most this
 
 
-def eval_interval(every: float, eval_wall: float) -> float:
-    """Training seconds until the next periodic evaluation: ``train.eval_every``, stretched
-    so that an evaluation that took ``eval_wall`` seconds of wall time is at most EVAL_SHARE
-    of the time (e / (interval + e) <= share). A capture whose views are slow to render
-    (500x500 hash views before the occupancy grid has pruned anything: 30 s a view) then
-    trains most of the time, and ``--max-seconds S`` ends near S of wall time.
+def next_eval_at(seconds: float, every: float, spent: float, predicted: float) -> float:
+    """Training seconds of the next periodic evaluation: ``train.eval_every`` after
+    ``seconds``, or later where evaluations are slow, so that all of them (``spent`` wall
+    seconds so far, and the next one's ``predicted`` cost) stay within EVAL_SHARE of the
+    wall time: (spent + predicted) / (t + spent + predicted) <= share. The cost is predicted
+    before the evaluation runs (from the last one's per pixel), so not even the first slow
+    one oversteps: a capture whose views are slow to render (500x500 hash views before the
+    occupancy grid has pruned anything: 30 s a view) trains most of the time, and
+    ``--max-seconds S`` ends near S of wall time.
 
-    >>> eval_interval(10.0, 1.0), eval_interval(10.0, 30.0)
-    (10.0, 170.0)
+    >>> next_eval_at(20.0, 10.0, 0.5, 0.5), next_eval_at(20.0, 10.0, 30.0, 30.0)
+    (30.0, 340.0)
     """
-    if eval_wall < EVAL_STRETCH_MIN_S:    # a quick evaluation keeps the configured rhythm
-        return float(every)
-    return max(float(every), float(eval_wall) * (1.0 - EVAL_SHARE) / EVAL_SHARE)
+    if predicted < EVAL_STRETCH_MIN_S:    # a quick evaluation keeps the configured rhythm
+        return float(seconds) + float(every)
+    return max(float(seconds) + float(every),
+               (float(spent) + float(predicted)) * (1.0 - EVAL_SHARE) / EVAL_SHARE)
+
+
+def anchor_downscale(hw, downscale: int = 1) -> int:
+    """The periodic evaluations' ``downscale``, or more, until a view has at most
+    ANCHOR_PIXELS pixels (the untrained model's point), its short side no less than the SSIM
+    window.
+
+    >>> anchor_downscale((533, 800)), anchor_downscale((100, 100)), anchor_downscale((20, 4000))
+    (6, 1, 1)
+    """
+    f = max(1, int(downscale))
+    while _pixels(hw, f) > ANCHOR_PIXELS and min(hw) // (f + 1) >= EVAL_MIN_SIDE:
+        f += 1
+    return f
+
+
+def _pixels(hw, downscale: int) -> int:
+    return (int(hw[0]) // downscale) * (int(hw[1]) // downscale)
 
 
 @dataclass
@@ -550,6 +587,7 @@ class _Loop:
     last_loss: float = float("nan")              # the latest loss read
     last_eval: dict | None = None
     eval_wall: float = 0.0                       # wall seconds of the latest evaluation
+    eval_spent: float = 0.0                      # and of all periodic ones of this run
 
 
 def dataset_meta(ds):
