@@ -19,15 +19,18 @@
  * With clip set, out is clamped to [0, 1] as a camera clips a pixel it over- or under-exposes
  * (splat.exposure_clip): an image brightened past white holds no more of the scene there, and
  * its clipped channels pass no gradient (to the scene or the row) instead of pulling the
- * transform down to keep the unclipped value near 1.
+ * transform down to keep the unclipped value near 1. With clip = 2 (splat.exposure_clip_inward)
+ * a clipped channel still passes a gradient that would bring it back inside [0, 1] (a render
+ * past white where the capture was not white is pulled down; one that the capture clipped
+ * too, target 1, passes nothing): a surrogate, not the clamp's derivative.
  *
  * exposure_apply     out = A rgb' + b (clamped with clip), one work-item per pixel.
  * exposure_backward  from g = dL/dout (a channel's g taken as 0 with clip where A rgb' + b
- *                    lies outside [0, 1]): dL/drgb'_p = A^T g_p (one work-item per CHUNK pixels,
- *                    in order), and the work-item's partial sums of dL/dA_ij = sum_p g_p,i
- *                    x_p,j and dL/db_i = sum_p g_p,i y_p, 12 floats per work-item in
- *                    partials [items, 12]: x = rgb', y = 1 without alpha (masked = 0);
- *                    x = rgb' - T bg' = c, y = 1 - T for a masked capture.
+ *                    lies outside [0, 1], exposure_clip_grad): dL/drgb'_p = A^T g_p (one
+ *                    work-item per CHUNK pixels, in order), and the work-item's partial sums
+ *                    of dL/dA_ij = sum_p g_p,i x_p,j and dL/db_i = sum_p g_p,i y_p, 12 floats
+ *                    per work-item in partials [items, 12]: x = rgb', y = 1 without alpha
+ *                    (masked = 0); x = rgb' - T bg' = c, y = 1 - T for a masked capture.
  * exposure_adam      one work-item per entry k < 12 of row v: the partials summed in item order
  *                    (deterministic), plus the pull toward the identity, d/dP of
  *                    reg (|A - I|^2 + |b|^2) = 2 reg (P - I); then Adam (cl/optim.cl's update,
@@ -71,6 +74,14 @@ inline float3 exposure_affine(__global const float *a, const float r, const floa
                     a[6] * r + a[7] * g + a[8] * b + a[11]);
 }
 
+/* dL/dout of one channel of value o (before the clamp) with clip: 0 outside [0, 1] (clip 1),
+ * or there unless it points back inside (clip 2: g > 0 above 1, g < 0 below 0) */
+inline float exposure_clip_grad(const float o, const float g, const int clip) {
+    const int outside = o < 0.0f || o > 1.0f;
+    const int inward = (o > 1.0f && g > 0.0f) || (o < 0.0f && g < 0.0f);
+    return (outside && !(clip == 2 && inward)) ? 0.0f : g;
+}
+
 __kernel void exposure_apply(const int n, __global const float *rgb,
                              __global const float *P, const int v, const int clip,
                              __global float *out) {
@@ -101,11 +112,11 @@ __kernel void exposure_backward(const int n, const int chunk, __global const flo
         const float r = rgb[3 * p] - t * bg.x, g = rgb[3 * p + 1] - t * bg.y;
         const float b = rgb[3 * p + 2] - t * bg.z, op = 1.0f - t;
         float g0 = grad_out[3 * p], g1 = grad_out[3 * p + 1], g2 = grad_out[3 * p + 2];
-        if (clip) {   /* a clipped channel passes nothing */
+        if (clip) {   /* a clipped channel passes nothing, or only inward (clip 2) */
             const float3 o = exposure_affine(a, rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]);
-            g0 = (o.x < 0.0f || o.x > 1.0f) ? 0.0f : g0;
-            g1 = (o.y < 0.0f || o.y > 1.0f) ? 0.0f : g1;
-            g2 = (o.z < 0.0f || o.z > 1.0f) ? 0.0f : g2;
+            g0 = exposure_clip_grad(o.x, g0, clip);
+            g1 = exposure_clip_grad(o.y, g1, clip);
+            g2 = exposure_clip_grad(o.z, g2, clip);
         }
         grad_rgb[3 * p] = a[0] * g0 + a[3] * g1 + a[6] * g2;
         grad_rgb[3 * p + 1] = a[1] * g0 + a[4] * g1 + a[7] * g2;

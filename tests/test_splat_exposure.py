@@ -225,10 +225,12 @@ def test_fit_recovers_a_transform_in_one_step(device, masked):
     assert exp.steps.tolist() == [0, 1]
 
 
+@pytest.mark.parametrize("clip", [1, 2], ids=["clip", "inward"])
 @pytest.mark.parametrize("n", [7, 3 * CHUNK + 5])
-def test_clipped_apply_and_backward_match_the_twin(device, n):
+def test_clipped_apply_and_backward_match_the_twin(device, n, clip):
     """splat.exposure_clip: out clamped to [0, 1] as a camera clips; a channel whose A rgb' + b
-    lies outside [0, 1] passes no gradient to the render or the row. Transforms far from the
+    lies outside [0, 1] passes no gradient to the render or the row (clip 2,
+    splat.exposure_clip_inward: only one pointing back inside). Transforms far from the
     identity so that about a third of the channels clip at each end."""
     rng = np.random.default_rng(300 + n)
     P = _rows(rng, 3)
@@ -243,14 +245,14 @@ def test_clipped_apply_and_backward_match_the_twin(device, n):
     assert low > 0 and high > 0 and (n < 100 or (0.1 < low < 0.5 and 0.1 < high < 0.5))
     for masked in (True, False):
         exp = _exposure(device, P, masked)
-        exp.clip = True
+        exp.clip = clip
         q = device.queue
         got = download(exp.apply(upload(q, rgb), 2))
         assert got.min() >= 0 and got.max() <= 1
         np.testing.assert_allclose(got, ref.apply(rgb, P, 2, clip=True), rtol=tol.EXPOSURE_RTOL,
                                    atol=tol.EXPOSURE_ATOL)
         grad_rgb, partials = exp.backward(upload(q, rgb), upload(q, T), BG, upload(q, g), 2)
-        want_rgb, want_p = ref.backward(rgb, g, P, 2, T if masked else None, BG, clip=True)
+        want_rgb, want_p = ref.backward(rgb, g, P, 2, T if masked else None, BG, clip=clip)
         plain_rgb, _ = ref.backward(rgb, g, P, 2, T if masked else None, BG)
         assert np.abs(want_rgb - plain_rgb).max() > 0.1     # the clip changed the gradient
         np.testing.assert_allclose(download(grad_rgb), want_rgb, rtol=tol.EXPOSURE_GRAD_RTOL,
@@ -258,6 +260,23 @@ def test_clipped_apply_and_backward_match_the_twin(device, n):
         np.testing.assert_allclose(download(partials).astype(np.float64).sum(axis=0), want_p,
                                    rtol=tol.EXPOSURE_GRAD_RTOL,
                                    atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5)
+
+
+def test_inward_clip_passes_only_gradients_back_into_range():
+    """clip 2 (splat.exposure_clip_inward): a channel clipped above 1 passes dL/dout > 0 (which
+    lowers it), one clipped below 0 passes dL/dout < 0; the other direction, and everything
+    with clip 1, passes nothing there; inside [0, 1] both pass all of it."""
+    P = np.tile(ref.IDENTITY, (1, 1)).astype(np.float64)
+    P[0, [0, 4, 8]] = 2.0
+    P[0, 9:] = -1.0                                 # out = 2 rgb - 1
+    rgb = np.array([[1.1, 1.1, 0.6], [-0.1, -0.1, 0.7]])   # out 1.2 1.2 0.2 / -1.2 -1.2 0.4
+    g = np.array([[1.0, -1.0, 0.5], [-1.0, 1.0, -0.5]])
+    passed = {1: np.array([[0, 0, 1], [0, 0, 1]], float),
+              2: np.array([[1, 0, 1], [1, 0, 1]], float)}
+    for clip, mask in passed.items():
+        grad_rgb, grad_p = ref.backward(rgb, g, P, 0, clip=clip)
+        np.testing.assert_allclose(grad_rgb, (g * mask) @ P[0, :9].reshape(3, 3), atol=1e-15)
+        np.testing.assert_allclose(grad_p[9:], (g * mask).sum(axis=0), atol=1e-15)
 
 
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])

@@ -42,7 +42,8 @@ def test_training_learns_each_images_gain(device):
 
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
-                                       ("exposure_reg", -0.1)])
+                                       ("exposure_reg", -0.1),
+                                       ("exposure_clip_inward", "true")])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "run"),

@@ -216,12 +216,12 @@ def test_default_first_run_config_is_valid():
 
 def test_next_evaluation_keeps_all_of_them_under_their_share():
     from clrf.training.trainer import EVAL_SHARE, next_eval_at
-    assert next_eval_at(5.0, 10.0, 0.2, 0.5) == 15.0      # cheap: every eval_every seconds
-    for spent, cost in ((0.0, 3.0), (3.0, 30.0), (200.0, 120.0)):   # slow: stretched
-        t = next_eval_at(5.0, 10.0, spent, cost)
-        assert t >= 15.0 and (spent + cost) / (t + spent + cost) == pytest.approx(EVAL_SHARE)
+    assert next_eval_at(5.0, 10.0, 0.2, 0.2, 4) == 15.0    # cheap: every eval_every seconds
+    for spent, view in ((0.0, 3.0), (3.0, 30.0), (200.0, 120.0), (2.0, 0.8)):   # stretched
+        t = next_eval_at(5.0, 10.0, spent, view, 4)
+        assert t >= 15.0 and (spent + view) / (t + spent + view) == pytest.approx(EVAL_SHARE)
     # already within the share at eval_every's point: that point
-    assert next_eval_at(100.0, 10.0, 2.0, 2.0) == 110.0
+    assert next_eval_at(100.0, 10.0, 2.0, 2.0, 4) == 110.0
 
 
 def test_the_untrained_point_renders_a_small_view():
@@ -234,33 +234,38 @@ def test_the_untrained_point_renders_a_small_view():
     assert anchor_downscale((533, 800), 8) == 8      # never finer than the periodic ones
 
 
-def _slow_evaluations(monkeypatch, per_view):
-    """evaluate made ``per_view`` seconds slower a view; returns the (downscale, views) of
-    each call."""
+def _slow_views(monkeypatch, per_view):
+    """Every view the trainer renders made ``per_view`` seconds slower; returns the list of
+    (downscale, views) of each evaluation."""
     import clrf.training.trainer as tr
-    real, calls = tr.evaluate, []
+    render, evaluate, calls = tr.render_view, tr.evaluate, []
 
-    def slow(model, ds, views, *a, **k):
-        calls.append((k.get("downscale", 1), len(views)))
-        time.sleep(per_view * len(views))
-        return real(model, ds, views, *a, **k)
-    monkeypatch.setattr(tr, "evaluate", slow)
+    def slow_render(*a, **k):
+        time.sleep(per_view)
+        return render(*a, **k)
+
+    def counted(model, ds, views, *a, **k):
+        ev = evaluate(model, ds, views, *a, **k)
+        calls.append((k.get("downscale", 1), len(ev["views"])))
+        return ev
+    monkeypatch.setattr(tr, "render_view", slow_render)
+    monkeypatch.setattr(tr, "evaluate", counted)
     return calls
 
 
 def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
-    """Each evaluation made 0.5 s a view slower, against training's 0.2 s interval: each is
-    put off until the evaluations so far and the next one's cost (predicted from the last
-    one's per pixel, before it runs) are at most 15 % of the wall time; the untrained
-    model's point renders one view, and the run's last periodic evaluation comes before
-    stopping (no final one here)."""
+    """Each view made 0.6 s slower, against training's 0.2 s interval: each evaluation is put
+    off until the evaluations so far and one more view (its cost predicted from the last
+    evaluation's per pixel, before it runs) are at most 15 % of the wall time, and renders
+    as many views as fit (here one); the untrained model's point renders one view, and the
+    run's last periodic evaluation comes before stopping (no final one here)."""
     out = tmp_path / "r"
     opts = [o if o != "train.eval_every=1.0" else "train.eval_every=0.2" for o in FAST]
     # the programs built first (a cold build is training time, and would make two steps
     # seconds long)
     assert run_cli("--quiet", "train", "--out", tmp_path / "warm", "--max-seconds", 60, *opts,
                    "--set", "train.max_iters=10", "--set", "train.final_eval=false") == 0
-    calls = _slow_evaluations(monkeypatch, 0.5)
+    calls = _slow_views(monkeypatch, 0.6)
     assert run_cli("train", "--out", out, "--max-seconds", 13, *opts,
                    "--set", "train.final_eval=false") == 0
     every = read_csv(out / "metrics.csv")
@@ -273,11 +278,32 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     gaps = [float(b["seconds"]) - float(a["seconds"]) for a, b in zip(losses, losses[1:])
             if a["model"] == b["model"]]
     assert len(gaps) >= 20 and max(gaps) < 1.0, [(r["seconds"], r["model"]) for r in losses]
-    # at 0 s (one view: 0.5 s), then 2 views (1 s) once 1.5 s is 15 % of the wall time
-    # (8.5 s of training), the next once 2.5 s is (14.2 s: past the budget), and before stopping
-    assert [c[1] for c in calls] == [1, 2, 2] and [r["eval_views"] for r in rows] == ["1", "2", "2"]
+    # 0.6 s at 0 s; the next view fits once 1.2 s is 15 % of the wall time (6.8 s of
+    # training), the next at 1.8 s (10.2 s); a second view would end past EVAL_STRETCH_MIN_S;
+    # then before stopping
+    assert [c[1] for c in calls] == [1, 1, 1, 1], calls
+    assert [r["eval_views"] for r in rows] == ["1"] * 4
     secs = [float(r["seconds"]) for r in rows]
-    assert secs[0] == 0.0 and 8.4 <= secs[1] <= 9.5 and secs[2] >= 13.0, secs
+    assert secs[0] == 0.0 and 6.7 <= secs[1] <= 7.6 and 10.1 <= secs[2] <= 11.4, secs
+    assert secs[3] >= 13.0, secs
+
+
+def test_an_evaluation_renders_the_views_its_share_allows(tmp_path, monkeypatch):
+    """Views of 0.3 s, four an evaluation (1.2 s: spaced out): an evaluation starts a view only
+    where it would end within its share, or EVAL_STRETCH_MIN_S, of the wall time: one view at
+    0 s, three of the four at 3.4 s (0.3 s and one more view are 15 % of the wall time
+    then), three before stopping."""
+    out = tmp_path / "r"
+    assert run_cli("--quiet", "train", "--out", tmp_path / "warm", "--max-seconds", 60, *FAST,
+                   "--set", "train.max_iters=10", "--set", "train.final_eval=false") == 0
+    calls = _slow_views(monkeypatch, 0.3)
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 8, *FAST,
+                   "--set", "train.eval_views=4", "--set", "train.final_eval=false") == 0
+    rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
+    assert [c[1] for c in calls] == [1, 3, 3], calls
+    assert [r["eval_views"] for r in rows] == ["1", "3", "3"]
+    secs = [float(r["seconds"]) for r in rows]
+    assert 3.3 <= secs[1] <= 4.2 and secs[2] >= 8.0, secs
 
 
 def test_the_final_evaluation_closes_the_curve(tmp_path, monkeypatch):
@@ -286,7 +312,7 @@ def test_the_final_evaluation_closes_the_curve(tmp_path, monkeypatch):
     where a view has more than ANCHOR_PIXELS."""
     import clrf.training.trainer as tr
     monkeypatch.setattr(tr, "ANCHOR_PIXELS", 20 * 20)        # the 64x64 scene: downscale 4
-    calls = _slow_evaluations(monkeypatch, 0.0)
+    calls = _slow_views(monkeypatch, 0.0)
     out = tmp_path / "r"
     assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 3, *FAST) == 0
     rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]

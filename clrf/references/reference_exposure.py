@@ -54,13 +54,18 @@ def backward(rgb, grad_out, P, v, T=None, background=None, clip=False):
     A masked capture (T and its render's ``background`` bg' given): rgb' = c + T bg', bg'
     the function A^-1 (bg - b) of P (``render_background``), so dL/dA = sum g c^T and
     dL/db = sum g (1 - T). T None: a capture without alpha, dL/dA = sum g rgb'^T,
-    dL/db = sum g. clip: out clamped to [0, 1]; a channel clipped there passes nothing."""
+    dL/db = sum g. clip: out clamped to [0, 1]; a channel clipped there passes nothing
+    (clip 1 or True), or only a g that points back inside (clip 2: g > 0 above 1, g < 0
+    below 0; a surrogate, not the clamp's derivative)."""
     A, _ = split(np.asarray(P, np.float64).reshape(-1, ROW)[v])
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
     g = np.asarray(grad_out, np.float64).reshape(-1, 3)
     if clip:
         out = apply(x, P, v)
-        g = np.where((out < 0) | (out > 1), 0.0, g)
+        outside = (out < 0) | (out > 1)
+        if clip == 2:
+            outside &= ~(((out > 1) & (g > 0)) | ((out < 0) & (g < 0)))
+        g = np.where(outside, 0.0, g)
     T = np.zeros(len(x)) if T is None else np.asarray(T, np.float64).reshape(-1)
     if background is not None:
         x = x - T[:, None] * np.asarray(background, np.float64)[:3]

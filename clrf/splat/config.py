@@ -132,6 +132,10 @@ class SplatConfig:
     exposure_clip: bool = False     # the transformed render clamped to [0, 1], as the camera
     #                                 clipped what it over- or under-exposed; clipped channels
     #                                 pass no gradient (cl/splat_exposure.cl)
+    exposure_clip_inward: bool = False   # with exposure_clip, a clipped channel still
+    #                                 passes a gradient that would bring it back inside
+    #                                 [0, 1] (a render past white where the capture was not
+    #                                 white is pulled down)
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation of its frame), for poses from structure
     #                                 from motion that are a little off; test views keep
@@ -231,6 +235,8 @@ class SplatConfig:
             (0 < self.lr_exposure_final <= self.lr_exposure, "splat.lr_exposure_final",
              "must be in (0, splat.lr_exposure]"),
             (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),
+            (self.exposure_clip or not self.exposure_clip_inward, "splat.exposure_clip_inward",
+             "needs splat.exposure_clip=true"),
             (0 <= self.exposure_fit <= 1, "splat.exposure_fit", "must be in [0, 1]"),
             (0 <= self.exposure_fit_after <= 1, "splat.exposure_fit_after",
              "must be in [0, 1]"),

@@ -49,7 +49,9 @@ class Exposure:
             raise ValueError(f"Exposure needs at least one image, got {n_images}")
         self.device, self.n_images = device, int(n_images)
         self.masked = bool(masked)     # an RGBA capture: the background stays (module doc)
-        self.clip = bool(clip)         # clamped to [0, 1] as a camera clips (exposure_clip)
+        # clamped to [0, 1] as a camera clips (exposure_clip): 0 no, 1 clipped channels pass
+        # no gradient, 2 only one that points back inside (exposure_clip_inward)
+        self.clip = int(clip)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))

@@ -183,7 +183,7 @@ class SplatModel:
                                      self.config.exposure_reg)
         if self.exposure is not None:   # an RGBA capture: its background stays (exposure.py)
             self.exposure.masked = ds.alpha is not None
-            self.exposure.clip = self.config.exposure_clip
+            self.exposure.clip = clip_mode(self.config)
         if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
             from .pose import PoseCorrection
             self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
@@ -422,7 +422,7 @@ class SplatModel:
             try:
                 m.exposure = Exposure(device, len(state["exposure"]), config.lr_exposure,
                                       config.exposure_reg, state=state,
-                                      clip=config.exposure_clip)
+                                      clip=clip_mode(config))
             except (KeyError, ValueError, TypeError) as e:
                 raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
                                  ) from None
@@ -440,6 +440,14 @@ class SplatModel:
         m.progress = float(state["progress"])
         m.lr_means = float(state["lr_means"])
         return m
+
+
+def clip_mode(config: SplatConfig) -> int:
+    """The exposure transform's clip (clrf/splat/exposure.py): 0 none, 1 clipped channels pass
+    no gradient, 2 only one pointing back inside [0, 1]."""
+    if not config.exposure_clip:
+        return 0
+    return 2 if config.exposure_clip_inward else 1
 
 
 def scene_extent(ds) -> float:

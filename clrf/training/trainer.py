@@ -7,7 +7,8 @@ which the loop reads once it has arrived, so that the host does not wait for the
 an evaluation, a checkpoint or the end, the device's queue is drained inside the step's time,
 so the clock counts all of its work). Held-out views are evaluated every ``eval_every`` seconds of
 training, or less often where an evaluation is slow, so that evaluations take at most
-EVAL_SHARE of the wall time (``next_eval_at``; the untrained model's point renders one view,
+EVAL_SHARE of the wall time (``next_eval_at``; an evaluation renders as many of its views as
+that share allows, at least one; the untrained model's point renders one view,
 downscaled to at most ANCHOR_PIXELS; with ``train.final_eval`` the final evaluation closes
 the curve, else one more periodic one before stopping);
 the clock excludes evaluation, checkpointing and one-off program builds, so ``seconds`` in
@@ -131,7 +132,8 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
     return model.train_step(it, bo, bd, bc, **kw)
 
 
-def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False):
+def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False,
+             seconds=None):
     """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
 
     downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
@@ -141,11 +143,19 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     half_fitted: also NeRF-W's protocol for models with a colour transform per training image
     (the splat model's splat.exposure): each view's right half scored after a colour
     transform fitted on its left half (``psnr_half_fitted``), beside the right half as
-    rendered (``psnr_right_half``)."""
+    rendered (``psnr_right_half``).
+    seconds: a further view is started only where, at the mean time of those before it, it
+    would end within this many seconds of wall time (the first always is; ``res["views"]``
+    lists those rendered)."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     per_view, images = [], []
     keep = len(views) if keep_images is True else int(keep_images)
+    t0 = time.perf_counter()
     for i, v in enumerate(views):
+        if i and seconds is not None:
+            spent = time.perf_counter() - t0
+            if spent + spent / i > seconds:
+                break
         rgb = render_view(model, np.asarray(ds.poses[v], np.float64),
                           np.asarray(ds.intrinsics, np.float64) / downscale, (H, W),
                           lambda: view_rays(ds, ds.poses[v:v + 1], downscale),
@@ -388,8 +398,13 @@ class Trainer:
                                                                       self.eval_downscale)
         else:
             views, scale = self.periodic_views, self.eval_downscale
+        # as many of the views as the evaluations' share of the wall time allows (at least
+        # one; a quick evaluation all of them)
+        allowance = EVAL_SHARE / (1.0 - EVAL_SHARE) * self.seconds - loop.eval_spent
         t0, built = time.perf_counter(), getattr(self.device, "build_seconds", 0.0)
-        ev = evaluate(self.model, self.ds, views, downscale=scale)
+        ev = evaluate(self.model, self.ds, views, downscale=scale,
+                      seconds=max(allowance, EVAL_STRETCH_MIN_S))
+        views = views[:len(ev["views"])]
         # its cost without one-off program builds (the first evaluation builds the renderer)
         loop.eval_wall = max(0.0, time.perf_counter() - t0
                              - (getattr(self.device, "build_seconds", 0.0) - built))
@@ -410,11 +425,11 @@ class Trainer:
                           f"{ev['psnr']:.2f}  SSIM {ev['ssim']:.3f}  "
                           f"({len(views)} view{'s' if len(views) > 1 else ''})  "
                           f"{self.model.describe()}")
-        # the next one's cost predicted from this one's per pixel, before it runs
-        predicted = loop.eval_wall * (len(self.periodic_views) * _pixels(self.ds.hw,
-                                                                         self.eval_downscale)
-                                      / (len(views) * _pixels(self.ds.hw, scale)))
-        loop.next_eval = next_eval_at(self.seconds, t.eval_every, loop.eval_spent, predicted)
+        # a view's cost at the periodic size, predicted from this one's per pixel
+        view = loop.eval_wall * _pixels(self.ds.hw, self.eval_downscale) / (
+            len(views) * _pixels(self.ds.hw, scale))
+        loop.next_eval = next_eval_at(self.seconds, t.eval_every, loop.eval_spent, view,
+                                      len(self.periodic_views))
         if self.viewer is not None:
             self.viewer.evaluated(self, ev)
 
@@ -536,23 +551,25 @@ EVAL_STRETCH_MIN_S = 1.0   # ... once one takes at least this long (short test r
 ANCHOR_PIXELS = 128 * 128  # the untrained model's one view is downscaled to at most this
 
 
-def next_eval_at(seconds: float, every: float, spent: float, predicted: float) -> float:
-    """Training seconds of the next periodic evaluation: ``train.eval_every`` after
-    ``seconds``, or later where evaluations are slow, so that all of them (``spent`` wall
-    seconds so far, and the next one's ``predicted`` cost) stay within EVAL_SHARE of the
-    wall time: (spent + predicted) / (t + spent + predicted) <= share. The cost is predicted
-    before the evaluation runs (from the last one's per pixel), so not even the first slow
-    one oversteps: a capture whose views are slow to render (500x500 hash views before the
-    occupancy grid has pruned anything: 30 s a view) trains most of the time, and
-    ``--max-seconds S`` ends near S of wall time.
+def next_eval_at(seconds: float, every: float, spent: float, view: float,
+                 views: int) -> float:
+    """Training seconds of the next periodic evaluation of ``views`` views, each predicted to
+    take ``view`` seconds: ``train.eval_every`` after ``seconds``, or, where an evaluation
+    takes EVAL_STRETCH_MIN_S or more, once the evaluations so far (``spent`` wall seconds)
+    and one more view fit in EVAL_SHARE of the wall time,
+    (spent + view) / (t + spent + view) <= share; the evaluation then renders as many views
+    as the share allows (``Trainer._maybe_eval``). The cost is predicted before the
+    evaluation runs, so not even the first slow one oversteps: a capture whose views are
+    slow to render (800x533 hash views before the occupancy grid has pruned anything: 3
+    minutes a view) trains most of the time, and ``--max-seconds S`` ends near S of wall time.
 
-    >>> next_eval_at(20.0, 10.0, 0.5, 0.5), next_eval_at(20.0, 10.0, 30.0, 30.0)
+    >>> next_eval_at(20.0, 10.0, 0.5, 0.1, 4), next_eval_at(20.0, 10.0, 30.0, 30.0, 4)
     (30.0, 340.0)
     """
-    if predicted < EVAL_STRETCH_MIN_S:    # a quick evaluation keeps the configured rhythm
+    if view * views < EVAL_STRETCH_MIN_S:   # a quick evaluation keeps the configured rhythm
         return float(seconds) + float(every)
     return max(float(seconds) + float(every),
-               (float(spent) + float(predicted)) * (1.0 - EVAL_SHARE) / EVAL_SHARE)
+               (float(spent) + float(view)) * (1.0 - EVAL_SHARE) / EVAL_SHARE)
 
 
 def anchor_downscale(hw, downscale: int = 1) -> int:
