@@ -370,8 +370,8 @@ class Trainer:
         return self.seconds >= t.max_seconds or self.iteration >= t.max_iters
 
     def _maybe_eval(self, loop: "_Loop"):
-        """A periodic evaluation when one is due (and always before stopping): a metrics row,
-        the plot, a progress line, the viewer told."""
+        """A periodic evaluation when one is due (and before stopping where no final one
+        follows): a metrics row, the plot, a progress line, the viewer told."""
         t = self.cfg.train
         # before stopping too, unless the final evaluation over every test view follows (its
         # row ends the curve)
@@ -402,12 +402,17 @@ class Trainer:
         # one; a quick evaluation all of them)
         allowance = EVAL_SHARE / (1.0 - EVAL_SHARE) * self.seconds - loop.eval_spent
         t0, built = time.perf_counter(), getattr(self.device, "build_seconds", 0.0)
+        # (under MPI every rank renders them all: a rank's render may be collective)
         ev = evaluate(self.model, self.ds, views, downscale=scale,
-                      seconds=max(allowance, EVAL_STRETCH_MIN_S))
+                      seconds=None if self.comm is not None else
+                      max(allowance, EVAL_STRETCH_MIN_S))
         views = views[:len(ev["views"])]
         # its cost without one-off program builds (the first evaluation builds the renderer)
         loop.eval_wall = max(0.0, time.perf_counter() - t0
                              - (getattr(self.device, "build_seconds", 0.0) - built))
+        if self.comm is not None:   # the slowest rank's: every rank evaluates next together
+            from mpi4py import MPI
+            loop.eval_wall = self.comm.allreduce(loop.eval_wall, op=MPI.MAX)
         loop.eval_spent += loop.eval_wall
         loop.last_eval = ev
         losses = loop.losses
