@@ -235,14 +235,16 @@ def test_the_untrained_point_renders_a_small_view():
 
 
 def _slow_views(monkeypatch, per_view):
-    """Every view the trainer renders made ``per_view`` seconds slower; returns the list of
-    (downscale, views) of each evaluation."""
+    """Every view the trainer renders made to take ``per_view`` seconds (a render taking less);
+    returns the list of (downscale, views) of each evaluation."""
     import clrf.training.trainer as tr
     render, evaluate, calls = tr.render_view, tr.evaluate, []
 
-    def slow_render(*a, **k):
-        time.sleep(per_view)
-        return render(*a, **k)
+    def slow_render(*a, **k):     # each view per_view seconds in all, whatever the load
+        t0 = time.perf_counter()
+        out = render(*a, **k)
+        time.sleep(max(0.0, per_view - (time.perf_counter() - t0)))
+        return out
 
     def counted(model, ds, views, *a, **k):
         ev = evaluate(model, ds, views, *a, **k)
@@ -254,7 +256,7 @@ def _slow_views(monkeypatch, per_view):
 
 
 def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
-    """Each view made 0.6 s slower, against training's 0.2 s interval: each evaluation is put
+    """Each view made to take 0.6 s, against training's 0.2 s interval: each evaluation is put
     off until the evaluations so far and one more view (its cost predicted from the last
     evaluation's per pixel, before it runs) are at most 15 % of the wall time, and renders
     as many views as fit (here one); the untrained model's point renders one view, and the
