@@ -235,16 +235,14 @@ def test_the_untrained_point_renders_a_small_view():
 
 
 def _slow_views(monkeypatch, per_view):
-    """Every view the trainer renders made to take ``per_view`` seconds (a render taking less);
-    returns the list of (downscale, views) of each evaluation."""
+    """Every view the trainer renders made ``per_view`` seconds slower; returns the list of
+    (downscale, views) of each evaluation."""
     import clrf.training.trainer as tr
     render, evaluate, calls = tr.render_view, tr.evaluate, []
 
-    def slow_render(*a, **k):     # each view per_view seconds in all, whatever the load
-        t0 = time.perf_counter()
-        out = render(*a, **k)
-        time.sleep(max(0.0, per_view - (time.perf_counter() - t0)))
-        return out
+    def slow_render(*a, **k):
+        time.sleep(per_view)
+        return render(*a, **k)
 
     def counted(model, ds, views, *a, **k):
         ev = evaluate(model, ds, views, *a, **k)
@@ -256,7 +254,7 @@ def _slow_views(monkeypatch, per_view):
 
 
 def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
-    """Each view made to take 0.6 s, against training's 0.2 s interval: each evaluation is put
+    """Each view made 0.6 s slower, against training's 0.2 s interval: each evaluation is put
     off until the evaluations so far and one more view (its cost predicted from the last
     evaluation's per pixel, before it runs) are at most 15 % of the wall time, and renders
     as many views as fit (here one); the untrained model's point renders one view, and the
@@ -282,36 +280,37 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     assert len(gaps) >= 20 and max(gaps) < 1.0, [(r["seconds"], r["model"]) for r in losses]
     # 0.6 s at 0 s; the next view fits once 1.2 s is 15 % of the wall time (6.8 s of
     # training), the next at 1.8 s (10.2 s); a second view would end past EVAL_STRETCH_MIN_S;
-    # then before stopping
+    # then before stopping (the first render's one-off program loads are not counted, and a
+    # loaded machine renders slower: ranges)
     assert [c[1] for c in calls] == [1, 1, 1, 1], calls
     assert [r["eval_views"] for r in rows] == ["1"] * 4
     secs = [float(r["seconds"]) for r in rows]
-    assert secs[0] == 0.0 and 6.7 <= secs[1] <= 7.6 and 10.1 <= secs[2] <= 11.4, secs
+    assert secs[0] == 0.0 and 5.9 <= secs[1] <= 9.0 and 9.5 <= secs[2] < 13.0, secs
     assert secs[3] >= 13.0, secs
 
 
 def test_an_evaluation_renders_the_views_its_share_allows(tmp_path, monkeypatch):
-    """Views of 0.3 s, four an evaluation (1.2 s: spaced out): an evaluation starts a view only
-    where it would end within its share, or EVAL_STRETCH_MIN_S, of the wall time: one view at
-    0 s, three of the four at 3.4 s (0.3 s and one more view are 15 % of the wall time
-    then), three before stopping."""
+    """Views 0.35 s slower, four an evaluation (1.4 s: spaced out): an evaluation starts a
+    view only where it would end within its share, or EVAL_STRETCH_MIN_S, of the wall time:
+    one view at 0 s, two of the four at about 4 s (0.35 s and one more view are 15 % of the
+    wall time then), two before stopping."""
     out = tmp_path / "r"
     assert run_cli("--quiet", "train", "--out", tmp_path / "warm", "--max-seconds", 60, *FAST,
                    "--set", "train.max_iters=10", "--set", "train.final_eval=false") == 0
-    calls = _slow_views(monkeypatch, 0.3)
-    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 8, *FAST,
+    calls = _slow_views(monkeypatch, 0.35)
+    assert run_cli("--quiet", "train", "--out", out, "--max-seconds", 6.5, *FAST,
                    "--set", "train.eval_views=4", "--set", "train.final_eval=false") == 0
     rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
-    assert [c[1] for c in calls] == [1, 3, 3], calls
-    assert [r["eval_views"] for r in rows] == ["1", "3", "3"]
+    assert [c[1] for c in calls] == [1, 2, 2], calls
+    assert [r["eval_views"] for r in rows] == ["1", "2", "2"]
     secs = [float(r["seconds"]) for r in rows]
-    assert 3.3 <= secs[1] <= 4.2 and secs[2] >= 8.0, secs
+    assert 3.0 <= secs[1] <= 5.0 and secs[2] >= 6.5, secs
 
 
-def test_the_final_evaluation_closes_the_curve(tmp_path, monkeypatch):
-    """With the final evaluation on, no periodic one runs just before it (the final row,
-    every test view, ends the curve); the untrained model's point is one view, downscaled
-    where a view has more than ANCHOR_PIXELS."""
+def test_the_untrained_point_is_one_downscaled_view(tmp_path, monkeypatch):
+    """The untrained model's point is one view, downscaled where a view has more than
+    ANCHOR_PIXELS; the quick periodic evaluations that follow render every periodic view at
+    full size, the last before stopping, and the final one every test view."""
     import clrf.training.trainer as tr
     monkeypatch.setattr(tr, "ANCHOR_PIXELS", 20 * 20)        # the 64x64 scene: downscale 4
     calls = _slow_views(monkeypatch, 0.0)
@@ -320,8 +319,8 @@ def test_the_final_evaluation_closes_the_curve(tmp_path, monkeypatch):
     rows = [r for r in read_csv(out / "metrics.csv") if r["eval_psnr"]]
     assert calls[0] == (4, 1) and all(c == (1, 2) for c in calls[1:-1]) and calls[-1][1] == 8
     assert rows[0]["eval_views"] == "1" and rows[-1]["eval_views"] == "8"
-    assert [r["eval_views"] for r in rows[1:-1]] == ["2"] * (len(rows) - 2)
-    assert float(rows[-2]["seconds"]) < float(rows[-1]["seconds"]), rows
+    assert len(rows) >= 3 and [r["eval_views"] for r in rows[1:-1]] == ["2"] * (len(rows) - 2)
+    assert rows[-2]["seconds"] == rows[-1]["seconds"]     # before stopping, then the final
 
 
 def test_program_builds_are_not_training_time(tmp_path, monkeypatch):

@@ -9,8 +9,7 @@ so the clock counts all of its work). Held-out views are evaluated every ``eval_
 training, or less often where an evaluation is slow, so that evaluations take at most
 EVAL_SHARE of the wall time (``next_eval_at``; an evaluation renders as many of its views as
 that share allows, at least one; the untrained model's point renders one view,
-downscaled to at most ANCHOR_PIXELS; with ``train.final_eval`` the final evaluation closes
-the curve, else one more periodic one before stopping);
+downscaled to at most ANCHOR_PIXELS; one more before stopping);
 the clock excludes evaluation, checkpointing and one-off program builds, so ``seconds`` in
 metrics.csv is pure training time. Outputs in the run directory:
 
@@ -370,12 +369,10 @@ class Trainer:
         return self.seconds >= t.max_seconds or self.iteration >= t.max_iters
 
     def _maybe_eval(self, loop: "_Loop"):
-        """A periodic evaluation when one is due (and before stopping where no final one
-        follows): a metrics row, the plot, a progress line, the viewer told."""
+        """A periodic evaluation when one is due (and always before stopping): a metrics row,
+        the plot, a progress line, the viewer told."""
         t = self.cfg.train
-        # before stopping too, unless the final evaluation over every test view follows (its
-        # row ends the curve)
-        due = self.seconds >= loop.next_eval or (self._done() and not t.final_eval)
+        due = self.seconds >= loop.next_eval or self._done()
         if not due and self.seconds < loop.next_row:
             return
         self._take_losses(loop)
