@@ -369,6 +369,7 @@ void splat_raster_backward(const int width, const int height, const int ntx,
 #define VSTOREI CONCAT(vstore, TILE)
 #define ZERO ((VF)(0.0f))
 #define ROW_MARGIN 1e-3f
+#define NGRAD (9 + 2 * ABSGRAD)   /* gradient floats a Gaussian in the backward's copies */
 
 /* The lanes' x offsets 0.5, 1.5, ... as a vector. */
 CLRF_INLINE VF lane_centres(void) {
@@ -585,20 +586,16 @@ __kernel void splat_raster_forward_rows(const int width, const int height, const
     }
 }
 
-__kernel void splat_raster_backward_rows(const int width, const int height, const int ntx,
-                                         const int ntiles, __global const int *ranges,
-                                         __global const int *ids, __global const float *rec,
-                                         const float4 bg,
-                                         __global const float *out_T, __global const int *out_n,
-                                         __global const float *grad_rgb,
-                                         __global float *g_xy, __global float *g_conic,
-                                         __global float *g_opacity, __global float *g_color
-#if ABSGRAD
-                                         , __global float *g_xy_abs
-#endif
-                                         ) {
-    const int tile = get_global_id(0);
-    if (tile >= ntiles) return;
+/* One tile of the backward: its entries' per-pixel terms summed over the tile in vector
+ * registers, then added to the Gaussians' rows of ``acc`` ([n, NGRAD]: dL/d(x, y), conic A, B, C,
+ * opacity, colour r, g, b, then with ABSGRAD |dL/dx|, |dL/dy|), which no other work-item
+ * writes (splat_raster_backward_rows). */
+CLRF_INLINE void backward_rows_tile(const int tile, const int width, const int height,
+                                    const int ntx, __global const int *ranges,
+                                    __global const int *ids, __global const float *rec,
+                                    const float4 bg, __global const float *out_T,
+                                    __global const int *out_n,
+                                    __global const float *grad_rgb, __global float *acc) {
     const int x0 = (tile % ntx) * TILE, y0 = (tile / ntx) * TILE;
     const int rows = min(TILE, height - y0), cols = min(TILE, width - x0);
     const VF xs = (float)x0 + lane_centres();
@@ -695,19 +692,69 @@ __kernel void splat_raster_backward_rows(const int width, const int height, cons
             s_c -= 0.5f * dpow * dy * dy;
         }
         if (!touched) continue;
-        atomic_add_f(&g_color[3 * g], hsum(s_cr));
-        atomic_add_f(&g_color[3 * g + 1], hsum(s_cg));
-        atomic_add_f(&g_color[3 * g + 2], hsum(s_cb));
-        atomic_add_f(&g_opacity[g], hsum(s_o));
-        atomic_add_f(&g_xy[2 * g], hsum(s_x));
-        atomic_add_f(&g_xy[2 * g + 1], hsum(s_y));
-        atomic_add_f(&g_conic[3 * g], hsum(s_a));
-        atomic_add_f(&g_conic[3 * g + 1], hsum(s_b));
-        atomic_add_f(&g_conic[3 * g + 2], hsum(s_c));
+        __global float *a = acc + (size_t)g * NGRAD;
+        a[0] += hsum(s_x);
+        a[1] += hsum(s_y);
+        a[2] += hsum(s_a);
+        a[3] += hsum(s_b);
+        a[4] += hsum(s_c);
+        a[5] += hsum(s_o);
+        a[6] += hsum(s_cr);
+        a[7] += hsum(s_cg);
+        a[8] += hsum(s_cb);
 #if ABSGRAD
-        atomic_add_f(&g_xy_abs[2 * g], hsum(s_ax));
-        atomic_add_f(&g_xy_abs[2 * g + 1], hsum(s_ay));
+        a[9] += hsum(s_ax);
+        a[10] += hsum(s_ay);
 #endif
     }
+}
+
+/* The backward over every tile, without atomics: work-item w of ``copies`` zeroes its own
+ * copy w of the gradients ([copies, n, NGRAD], backward_rows_tile's layout) and adds into it
+ * the tiles w, w + copies, w + 2 copies, ...; splat_backward_rows_sum then adds the copies up
+ * in the order 0, 1, ... Each copy is written by one work-item alone, the sum runs in a later
+ * launch, and which tiles a copy holds does not depend on scheduling: the gradients are the
+ * same from run to run (float atomics add in whatever order the threads reach them). */
+__kernel void splat_raster_backward_rows(const int width, const int height, const int ntx,
+                                         const int ntiles, __global const int *ranges,
+                                         __global const int *ids, __global const float *rec,
+                                         const float4 bg,
+                                         __global const float *out_T, __global const int *out_n,
+                                         __global const float *grad_rgb, const int n,
+                                         const int copies, __global float *acc) {
+    const int w = get_global_id(0);
+    if (w >= copies) return;
+    __global float *mine = acc + (size_t)w * (size_t)n * NGRAD;
+    const size_t len = (size_t)n * NGRAD;
+    for (size_t i = 0; i < len; ++i) mine[i] = 0.0f;
+    for (int tile = w; tile < ntiles; tile += copies)
+        backward_rows_tile(tile, width, height, ntx, ranges, ids, rec, bg, out_T, out_n,
+                           grad_rgb, mine);
+}
+
+/* Gaussian i's gradients: the sum of its rows of the ``copies`` copies, in copy order. */
+__kernel void splat_backward_rows_sum(const int n, const int copies,
+                                      __global const float *acc,
+                                      __global float *g_xy, __global float *g_conic,
+                                      __global float *g_opacity, __global float *g_color
+#if ABSGRAD
+                                      , __global float *g_xy_abs
+#endif
+                                      ) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    float t[NGRAD];
+    for (int j = 0; j < NGRAD; ++j) t[j] = 0.0f;
+    for (int c = 0; c < copies; ++c) {
+        __global const float *a = acc + ((size_t)c * (size_t)n + (size_t)i) * NGRAD;
+        for (int j = 0; j < NGRAD; ++j) t[j] += a[j];
+    }
+    vstore2((float2)(t[0], t[1]), i, g_xy);
+    vstore3((float3)(t[2], t[3], t[4]), i, g_conic);
+    g_opacity[i] = t[5];
+    vstore3((float3)(t[6], t[7], t[8]), i, g_color);
+#if ABSGRAD
+    vstore2((float2)(t[9], t[10]), i, g_xy_abs);
+#endif
 }
 #endif /* TILE 4, 8 or 16 */

@@ -294,6 +294,33 @@ def test_splat_rasterize_backward_matches_reference(device, shape, n, width, hei
         assert np.abs(ref[name]).max() > 0, name
 
 
+@pytest.mark.parametrize("copies", [1, 3, 7])
+def test_splat_rows_backward_copies_match_reference_and_repeat(device, copies):
+    """The rows shape's backward adds each work-item's tiles into a copy of its own and sums
+    the copies afterwards (no atomics): any number of copies gives the twin's gradients, and a
+    second run gives the same bits."""
+    width, height, n = 41, 27, 90
+    sp = _splats(n, width, height, seed=520 + copies, tile=8)
+    r = SplatRasterizer(device, 0, tile=8, shape="rows")
+    r.backward_copies = lambda: copies
+    cam, _ = _camera(width, height)
+    proj = _upload_splats(device, sp)
+    bins = r.bin(proj, cam)
+    assert cam.tiles(8)[0] * cam.tiles(8)[1] > copies   # every copy holds tiles
+    ras = r.rasterize(proj, bins, cam, BG)
+    lists = rs.bin_gaussians(sp["rect"], sp["depth"], *cam.tiles(8))
+    want = rs.rasterize(_f64(sp), lists, width, height, BG, tile=8)
+    grad = np.random.default_rng(copies).normal(size=(height, width, 3)).astype(np.float32)
+    g_dev = cla.to_device(device.queue, grad)
+    ref = rs.rasterize_backward(_f64(sp), lists, want, width, height, grad, BG, tile=8)
+    first = r.rasterize_backward(proj, bins, ras, cam, g_dev, BG, absgrad=True)
+    again = r.rasterize_backward(proj, bins, ras, cam, g_dev, BG, absgrad=True)
+    for name in sr.GRAD2D_NAMES + ("xy_abs",):
+        _close_rel(first[name].get(), ref[name], tol.SPLAT_GRAD_REL_TO_MAX, name)
+        assert np.abs(ref[name]).max() > 0, name
+        np.testing.assert_array_equal(first[name].get(), again[name].get(), err_msg=name)
+
+
 @pytest.mark.parametrize("shape,tile", [("group", 16), ("rows", 16), ("rows", 8)])
 def test_splat_depth_and_absgrad_match_reference(device, shape, tile):
     """The render record's depth (RENDER_DEPTH: sum_k T_k alpha_k z_k, in the forward's own

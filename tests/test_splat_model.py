@@ -278,6 +278,9 @@ def test_memory_estimate_names_the_cap(device):
     stages, fix = budget.memory(cfg, 100 * 100, device.caps)
     assert "splat.max_gaussians" in fix and stages[0].total > 0
     assert budget.bytes_per_gaussian(3) > budget.bytes_per_gaussian(0) > 0
+    # the CPU backward's gradient copies (ABSGRAD's 11 floats) are counted at their most
+    from clrf.splat.raster import BACKWARD_COPIES
+    assert budget.BACKWARD_COPY_BYTES >= 4 * BACKWARD_COPIES * 11
 
 
 # ---- through the command line -----------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Memory estimate of a Gaussian-splatting run: per Gaussian its parameters with gradient and
 two Adam moments, the projected splats and their gradients, the (tile, Gaussian) pairs and the
-sort's copies of them; per pixel of a view the image, its gradient, the rasteriser's per-pixel
+sort's copies of them, the CPU backward's gradient copies; per pixel of a view the image, its gradient, the rasteriser's per-pixel
 state and the device loss's planes; per training pixel its target (the training images live on
 the device)."""
 from __future__ import annotations
@@ -11,6 +11,8 @@ PARAM_FLOATS_WITHOUT_SH = 3 + 3 + 4 + 1      # means, log scales, quaternion, op
 PROJECTED_BYTES = 4 * (2 + 3 + 1 + 1 + 3 + 1) + 16   # xy, conic, radius, depth, colour,
 #                                                      opacity, int4 rect
 GRAD2D_BYTES = 4 * (2 + 3 + 1 + 3)
+BACKWARD_COPY_BYTES = 4 * 4 * (9 + 2)   # the CPU backward's gradient copies: at most 4 of 11
+#                                         floats (clrf/splat/raster.py BACKWARD_COPIES)
 PAIRS_PER_GAUSSIAN = 16     # tiles a Gaussian covers on average (a guess on the safe side)
 PAIR_BYTES = 8 + 4          # uint64 key + int32 id
 SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
@@ -22,7 +24,8 @@ TARGET_BYTES = 4 * 3        # a training pixel on the device
 
 def bytes_per_gaussian(sh_degree: int) -> int:
     floats = PARAM_FLOATS_WITHOUT_SH + 3 * (sh_degree + 1) ** 2
-    return (4 * floats * 4 + PROJECTED_BYTES + GRAD2D_BYTES + 4 * DENSIFY_FLOATS
+    return (4 * floats * 4 + PROJECTED_BYTES + GRAD2D_BYTES + BACKWARD_COPY_BYTES
+            + 4 * DENSIFY_FLOATS
             + SORT_COPIES * PAIRS_PER_GAUSSIAN * PAIR_BYTES)
 
 

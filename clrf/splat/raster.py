@@ -53,6 +53,7 @@ PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
 PAIRS = "(tile, Gaussian) pairs"   # what an int32 overflow of the binning names
 CHUNK_CELLS = 1 << 22    # the rows shape's binning: at most this many (chunk, tile) counters
+BACKWARD_COPIES = 4      # the rows shape's backward: at most this many gradient copies
 
 
 def defines(sh_degree: int, tile: int = TILE) -> dict:
@@ -550,16 +551,24 @@ class SplatRasterizer:
         _check_device_array("T", raster.T, (H, W))
         _check_device_array("n_contrib", raster.n_contrib, (H, W), np.int32)
         q, n = self.device.queue, int(proj.n)
-        g = {"xy": cla.zeros(q, (n, 2), np.float32), "conic": cla.zeros(q, (n, 3), np.float32),
-             "opacity": cla.zeros(q, (n,), np.float32),
-             "color": cla.zeros(q, (n, 3), np.float32)}
+        if self.shape == "rows" and bins.n_pairs:   # _backward_rows writes every row
+            def new(shape):
+                return cla.empty(q, shape, np.float32)
+        else:
+            def new(shape):
+                return cla.zeros(q, shape, np.float32)
+        g = {"xy": new((n, 2)), "conic": new((n, 3)), "opacity": new((n,)),
+             "color": new((n, 3))}
         program, tail = None, ()
         if absgrad:
-            g["xy_abs"] = cla.zeros(q, (n, 2), np.float32)
+            g["xy_abs"] = new((n, 2))
             program = raster_program(self.device, self.sh_degree, self.tile, absgrad=True)
             tail = (g["xy_abs"].data,)
         if bins.n_pairs == 0:
             return g
+        if self.shape == "rows":
+            return self._backward_rows(proj, bins, raster, W, H, grad_rgb, background, g,
+                                       program or self.raster_program)
         self._tiles_launch(
             "splat_raster_backward", bins,
             (np.int32(W), np.int32(H), np.int32(bins.ntx), bins.ranges.data, bins.ids.data,
@@ -567,6 +576,28 @@ class SplatRasterizer:
              self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,
              g["xy"].data, g["conic"].data, g["opacity"].data, g["color"].data),
             self._backward_records(proj, raster), program, tail, tail)
+        return g
+
+    def backward_copies(self) -> int:
+        """The rows shape's gradient copies (splat_raster_backward_rows): one per compute unit,
+        at most BACKWARD_COPIES."""
+        return max(1, min(BACKWARD_COPIES, int(self.device.caps.compute_units)))
+
+    def _backward_rows(self, proj, bins, raster, W, H, grad_rgb, background, g, program):
+        """rasterize_backward for the rows shape: the tiles into per-work-item copies of the
+        gradients, then their sum into ``g`` (no atomics; the same result every run)."""
+        dev, n, copies = self.device, int(proj.n), self.backward_copies()
+        ntiles = bins.ntx * bins.nty
+        acc = scratch(dev, (copies, n, 9 + 2 * int("xy_abs" in g)))
+        launch(dev, program.kernel("splat_raster_backward_rows"), copies,
+               (np.int32(W), np.int32(H), np.int32(bins.ntx), np.int32(ntiles),
+                bins.ranges.data, bins.ids.data, self._backward_records(proj, raster).data,
+                self._bg(background), raster.T.data, raster.n_contrib.data, grad_rgb.data,
+                np.int32(n), np.int32(copies), acc.data), 1)
+        outs = tuple(g[k].data for k in GRAD2D_NAMES + (("xy_abs",) if "xy_abs" in g else ()))
+        launch(dev, program.kernel("splat_backward_rows_sum"), n,
+               (np.int32(n), np.int32(copies), acc.data) + outs,
+               dev.tuning.elementwise_local_size)
         return g
 
     def project_backward(self, params: dict, camera: SplatCamera, grads2d: dict,
