@@ -353,9 +353,11 @@ void splat_raster_backward(const int width, const int height, const int ntx,
  *   loads one 64-byte record (position, conic, opacity, colour, bounds).
  *
  * The backward sums each entry's per-pixel terms over the tile in vector registers and adds
- * them with one atomic per gradient component and (tile, entry) instead of one per pixel. The
- * sums run in another order than the work-group kernel's atomics: results agree to float32
- * rounding. Private state: 5 vectors a row (T, C or S, and the pixel's list position).
+ * them once per gradient component and (tile, entry) instead of once per pixel, with no
+ * atomics: into a copy of the gradients that only its work-item writes, the copies summed by
+ * a second kernel (splat_raster_backward_rows below). The sums run in another order than the
+ * work-group kernel's atomics: results agree to float32 rounding. Private state: 5 vectors a
+ * row (T, C or S, and the pixel's list position).
  */
 #if TILE == 4 || TILE == 8 || TILE == 16
 #define SPLAT_ROWS 1
