@@ -1,8 +1,8 @@
 """Memory estimate of a Gaussian-splatting run: per Gaussian its parameters with gradient and
-two Adam moments, the projected splats and their gradients, the (tile, Gaussian) pairs and the
-sort's copies of them, the CPU backward's gradient copies; per pixel of a view the image, its gradient, the rasteriser's per-pixel
-state and the device loss's planes; per training pixel its target (the training images live on
-the device)."""
+two Adam moments, the projected splats and their gradients, the CPU backward's gradient copies,
+the (tile, Gaussian) pairs and the sort's copies of them; per pixel of a view the image, its
+gradient, the rasteriser's per-pixel state and the device loss's planes; per training pixel its
+target (the training images live on the device)."""
 from __future__ import annotations
 
 from ..runtime.memory import StageEstimate
