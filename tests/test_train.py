@@ -340,5 +340,7 @@ def test_program_builds_are_not_training_time(tmp_path, monkeypatch):
                    "--set", "train.final_eval=false") == 0
     wall = time.perf_counter() - t0
     st = checkpoint.load(out)
-    assert st["iteration"] > 20 and st["seconds"] >= 1.5
+    # with the builds on the clock the run would stop after its first step; off it, a 1.5 s
+    # budget trains about 20-30 steps here (20 on a loaded machine), so a few is the bound
+    assert st["iteration"] > 5 and st["seconds"] >= 1.5
     assert wall > st["seconds"] + 2.0     # the builds happened, outside the clock
