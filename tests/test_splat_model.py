@@ -278,9 +278,10 @@ def test_memory_estimate_names_the_cap(device):
     stages, fix = budget.memory(cfg, 100 * 100, device.caps)
     assert "splat.max_gaussians" in fix and stages[0].total > 0
     assert budget.bytes_per_gaussian(3) > budget.bytes_per_gaussian(0) > 0
-    # the CPU backward's gradient copies (ABSGRAD's 11 floats) are counted at their most
-    from clrf.splat.raster import BACKWARD_COPIES
-    assert budget.BACKWARD_COPY_BYTES >= 4 * BACKWARD_COPIES * 11
+    # the CPU backward's gradient copies (ABSGRAD's 11 floats each) are counted
+    assert budget.bytes_per_gaussian(3, 4) - budget.bytes_per_gaussian(3) == 4 * 4 * 11
+    want = budget.backward_copies(device.caps) if device.caps.type == "cpu" else 0
+    assert budget.copies_on(device.caps) == want
 
 
 # ---- through the command line -----------------------------------------------------------------

@@ -6,13 +6,12 @@ target (the training images live on the device)."""
 from __future__ import annotations
 
 from ..runtime.memory import StageEstimate
+from .raster import BACKWARD_COPIES, BACKWARD_FLOATS, backward_copies
 
 PARAM_FLOATS_WITHOUT_SH = 3 + 3 + 4 + 1      # means, log scales, quaternion, opacity logit
 PROJECTED_BYTES = 4 * (2 + 3 + 1 + 1 + 3 + 1) + 16   # xy, conic, radius, depth, colour,
 #                                                      opacity, int4 rect
 GRAD2D_BYTES = 4 * (2 + 3 + 1 + 3)
-BACKWARD_COPY_BYTES = 4 * 4 * (9 + 2)   # the CPU backward's gradient copies: at most 4 of 11
-#                                         floats (clrf/splat/raster.py BACKWARD_COPIES)
 PAIRS_PER_GAUSSIAN = 16     # tiles a Gaussian covers on average (a guess on the safe side)
 PAIR_BYTES = 8 + 4          # uint64 key + int32 id
 SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
@@ -22,18 +21,29 @@ PIXEL_BYTES = 4 * (3 + 3 + 1 + 1) + LOSS_PLANE_BYTES   # rgb, its gradient, T, n
 TARGET_BYTES = 4 * 3        # a training pixel on the device
 
 
-def bytes_per_gaussian(sh_degree: int) -> int:
+def bytes_per_gaussian(sh_degree: int, copies: int = 0) -> int:
+    """Bytes a Gaussian takes, with ``copies`` gradient copies of the CPU backward."""
     floats = PARAM_FLOATS_WITHOUT_SH + 3 * (sh_degree + 1) ** 2
-    return (4 * floats * 4 + PROJECTED_BYTES + GRAD2D_BYTES + BACKWARD_COPY_BYTES
-            + 4 * DENSIFY_FLOATS
+    return (4 * floats * 4 + PROJECTED_BYTES + GRAD2D_BYTES + 4 * DENSIFY_FLOATS
+            + 4 * BACKWARD_FLOATS * int(copies)
             + SORT_COPIES * PAIRS_PER_GAUSSIAN * PAIR_BYTES)
 
 
-def splat_stage(sc, n_gaussians: int, n_pixels: int, train_pixels: int = 0) -> StageEstimate:
+def copies_on(caps) -> int:
+    """The CPU backward's gradient copies on a device of ``caps`` (none on a GPU, which adds
+    with atomics; the most where the device is not known)."""
+    if caps is None:
+        return BACKWARD_COPIES
+    return backward_copies(caps) if getattr(caps, "type", "cpu") == "cpu" else 0
+
+
+def splat_stage(sc, n_gaussians: int, n_pixels: int, train_pixels: int = 0,
+                copies: int = 0) -> StageEstimate:
     """StageEstimate of a splatting run of SplatConfig ``sc`` at ``n_gaussians`` Gaussians,
-    views of ``n_pixels`` pixels and ``train_pixels`` pixels of training images."""
+    views of ``n_pixels`` pixels, ``train_pixels`` pixels of training images and ``copies``
+    gradient copies of the CPU backward."""
     n = int(n_gaussians)
-    total = (n * bytes_per_gaussian(sc.sh_degree) + PIXEL_BYTES * int(n_pixels)
+    total = (n * bytes_per_gaussian(sc.sh_degree, copies) + PIXEL_BYTES * int(n_pixels)
              + TARGET_BYTES * int(train_pixels))
     sh = 4 * n * 3 * (sc.sh_degree + 1) ** 2
     pairs = n * PAIRS_PER_GAUSSIAN * PAIR_BYTES
@@ -45,7 +55,7 @@ def splat_stage(sc, n_gaussians: int, n_pixels: int, train_pixels: int = 0) -> S
 def fitting_gaussians(sc, caps, n_pixels: int, share: float = 0.5, train_pixels: int = 0) -> int:
     """How many Gaussians fit in ``share`` of the device's memory (and its largest buffer)
     beside views of ``n_pixels`` pixels and ``train_pixels`` pixels of training images."""
-    per = bytes_per_gaussian(sc.sh_degree)
+    per = bytes_per_gaussian(sc.sh_degree, copies_on(caps))
     room = (int(share * caps.global_mem_size) - PIXEL_BYTES * int(n_pixels)
             - TARGET_BYTES * int(train_pixels))
     by_total = max(1, room // per)
@@ -66,4 +76,4 @@ def memory(cfg, n_rays: int, caps, tuning=None, is_cpu: bool = True):
         if caps is not None else sc.max_gaussians
     # n_rays (every training pixel: the images on the device) bounds a view's pixels, and so
     # does a 2048 x 2048 view here
-    return [splat_stage(sc, n, view, int(n_rays))], SPLAT_FIX
+    return [splat_stage(sc, n, view, int(n_rays), copies_on(caps) if is_cpu else 0)], SPLAT_FIX

@@ -53,7 +53,15 @@ PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh")
 GRAD2D_NAMES = ("xy", "conic", "opacity", "color")
 PAIRS = "(tile, Gaussian) pairs"   # what an int32 overflow of the binning names
 CHUNK_CELLS = 1 << 22    # the rows shape's binning: at most this many (chunk, tile) counters
-BACKWARD_COPIES = 4      # the rows shape's backward: at most this many gradient copies
+BACKWARD_COPIES = 64     # the rows shape's backward: at most this many gradient copies
+BACKWARD_FLOATS = 9 + 2  # a Gaussian's floats in one copy (GRAD2D_NAMES, ABSGRAD's two more)
+
+
+def backward_copies(caps) -> int:
+    """The rows shape's gradient copies on a device of capabilities ``caps``
+    (splat_raster_backward_rows): one per compute unit, so that every core adds, at most
+    BACKWARD_COPIES."""
+    return max(1, min(BACKWARD_COPIES, int(caps.compute_units)))
 
 
 def defines(sh_degree: int, tile: int = TILE) -> dict:
@@ -551,17 +559,14 @@ class SplatRasterizer:
         _check_device_array("T", raster.T, (H, W))
         _check_device_array("n_contrib", raster.n_contrib, (H, W), np.int32)
         q, n = self.device.queue, int(proj.n)
-        if self.shape == "rows" and bins.n_pairs:   # _backward_rows writes every row
-            def new(shape):
-                return cla.empty(q, shape, np.float32)
-        else:
-            def new(shape):
-                return cla.zeros(q, shape, np.float32)
-        g = {"xy": new((n, 2)), "conic": new((n, 3)), "opacity": new((n,)),
-             "color": new((n, 3))}
+        # _backward_rows writes every row; elsewhere the atomics add into zeros
+        alloc = cla.empty if self.shape == "rows" and bins.n_pairs else cla.zeros
+        g = {k: alloc(q, shape, np.float32)
+             for k, shape in (("xy", (n, 2)), ("conic", (n, 3)), ("opacity", (n,)),
+                              ("color", (n, 3)))}
         program, tail = None, ()
         if absgrad:
-            g["xy_abs"] = new((n, 2))
+            g["xy_abs"] = alloc(q, (n, 2), np.float32)
             program = raster_program(self.device, self.sh_degree, self.tile, absgrad=True)
             tail = (g["xy_abs"].data,)
         if bins.n_pairs == 0:
@@ -579,16 +584,15 @@ class SplatRasterizer:
         return g
 
     def backward_copies(self) -> int:
-        """The rows shape's gradient copies (splat_raster_backward_rows): one per compute unit,
-        at most BACKWARD_COPIES."""
-        return max(1, min(BACKWARD_COPIES, int(self.device.caps.compute_units)))
+        """The rows shape's gradient copies on this device (module backward_copies)."""
+        return backward_copies(self.device.caps)
 
     def _backward_rows(self, proj, bins, raster, W, H, grad_rgb, background, g, program):
         """rasterize_backward for the rows shape: the tiles into per-work-item copies of the
         gradients, then their sum into ``g`` (no atomics; the same result every run)."""
         dev, n, copies = self.device, int(proj.n), self.backward_copies()
         ntiles = bins.ntx * bins.nty
-        acc = scratch(dev, (copies, n, 9 + 2 * int("xy_abs" in g)))
+        acc = scratch(dev, (copies, n, BACKWARD_FLOATS - 2 * int("xy_abs" not in g)))
         launch(dev, program.kernel("splat_raster_backward_rows"), copies,
                (np.int32(W), np.int32(H), np.int32(bins.ntx), np.int32(ntiles),
                 bins.ranges.data, bins.ids.data, self._backward_records(proj, raster).data,
