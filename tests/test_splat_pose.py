@@ -123,19 +123,21 @@ def test_exp_and_left_jacobian():
     np.testing.assert_allclose(sp.so3_exp(w), np.eye(3) + sp.hat(w), atol=1e-13)
 
 
-def test_pose_gradient_vs_finite_differences():
+@pytest.mark.parametrize("pivot", [0.0, 3.0])
+def test_pose_gradient_vs_finite_differences(pivot):
     """PoseCorrection.gradient (reg 0, then reg > 0) against central differences of the loss
-    in the correction (w, tau) of a camera already corrected by a few degrees."""
+    in the correction (w, tau) of a camera already corrected by a few degrees, turned about
+    its centre (pivot 0) and about a point 3 units ahead (the scene's centre)."""
     g = _f64(_gaussians(30, 2, seed=11))
     g2d = _f64(_g2d(30, 12))
     _, cam0 = _camera()
     V0 = np.asarray(cam0["viewmat"], np.float64)
     for reg in (0.0, 0.3):
-        pc = sp.PoseCorrection(2, lr=1e-3, reg=reg, scale=2.5)
+        pc = sp.PoseCorrection(2, lr=1e-3, reg=reg, scale=2.5, pivots=[1.0, pivot])
         pc.params[1] = [0.03, -0.05, 0.02, 0.04, -0.02, 0.05]
 
         def loss(p):
-            V = sp.corrected_viewmat(V0, p[:3], p[3:])
+            V = sp.corrected_viewmat(V0, p[:3], p[3:], pivot)
             return (_loss(g, dict(cam0, viewmat=V), g2d) + reg * np.sum(p[:3] ** 2)
                     + reg * np.sum((p[3:] / 2.5) ** 2))
         V = pc.viewmat(V0, 1)
@@ -151,8 +153,33 @@ def test_pose_gradient_vs_finite_differences():
                                    atol=tol.SPLAT_FD_ATOL * np.abs(fd).max())
 
 
+def test_a_turn_about_the_pivot_keeps_the_pivot_and_moves_the_centre():
+    """corrected_viewmat turns the camera about the point ``pivot`` ahead of it: that point's
+    camera coordinates stay (0, 0, pivot), the camera centre moves by 2 pivot sin(|w| / 2) as
+    centre_shift says, and a shift tau moves every camera coordinate by tau."""
+    V0 = rs.look_at((0.4, -0.3, -3.0), (0, 0, 0))
+    centre0 = -V0[:3, :3].T @ V0[:3, 3]
+    ahead = centre0 + 3.0 * V0[2, :3]          # 3 units along the optical axis (OpenCV +z)
+    w = np.radians(2.0) * np.array([0.6, -0.8, 0.0])
+    pc = sp.PoseCorrection(1, lr=1e-3, reg=0.0, scale=1.0, pivots=[3.0])
+    pc.params[0, :3] = w
+    V = pc.viewmat(V0, 0)
+    np.testing.assert_allclose(V[:3, :3] @ ahead + V[:3, 3], [0, 0, 3.0], atol=1e-12)
+    centre = -V[:3, :3].T @ V[:3, 3]
+    moved = np.linalg.norm(centre - centre0)
+    assert moved == pytest.approx(2 * 3.0 * np.sin(np.radians(2.0) / 2), rel=1e-12)
+    assert pc.centre_shift(0) == pytest.approx(moved, rel=1e-12)
+    pc.params[0, 3:] = [0.01, -0.02, 0.03]
+    x = np.array([0.2, 0.1, -0.3, 1.0])
+    np.testing.assert_allclose(pc.viewmat(V0, 0) @ x - V @ x, [0.01, -0.02, 0.03, 0.0],
+                               atol=1e-12)
+    assert pc.centre_shift(0) == pytest.approx(
+        np.linalg.norm(-pc.viewmat(V0, 0)[:3, :3].T @ pc.viewmat(V0, 0)[:3, 3] - centre0),
+        rel=1e-12)
+
+
 def test_pose_state_round_trip_and_bad_values():
-    pc = sp.PoseCorrection(3, lr=1e-3, reg=1e-4, scale=2.0)
+    pc = sp.PoseCorrection(3, lr=1e-3, reg=1e-4, scale=2.0, pivots=[0.0, 1.5, 4.0])
     pc.step(2, np.eye(4), np.arange(9.0).reshape(3, 3), np.ones(3))
     assert pc.steps.tolist() == [0, 0, 1] and pc.params[2].any() and not pc.params[:2].any()
     back = sp.PoseCorrection(3, lr=1e-3, reg=1e-4, scale=2.0, state=pc.state_dict())
@@ -160,21 +187,27 @@ def test_pose_state_round_trip_and_bad_values():
         np.testing.assert_array_equal(back.state_dict()[k], v)
     s = pc.summary()
     assert s["images"] == 1 and s["rotation_deg"] > 0 and s["translation"] > 0
+    # a checkpoint written before the pivots turned its cameras about their centres
+    old = {k: v for k, v in pc.state_dict().items() if k != "pose_pivot"}
+    assert not sp.PoseCorrection(3, 1e-3, 1e-4, 2.0, state=old, pivots=[1, 1, 1]).pivots.any()
     before = pc.params.copy()
     pc.step(0, np.eye(4), np.full((3, 3), np.nan), np.ones(3))   # a NaN step changes nothing
     np.testing.assert_array_equal(pc.params, before)
-    for bad in ({"n_images": 0}, {"lr": 0.0}, {"reg": -1.0}, {"scale": 0.0}):
+    for bad in ({"n_images": 0}, {"lr": 0.0}, {"reg": -1.0}, {"scale": 0.0},
+                {"pivots": [1.0, -1.0]}, {"pivots": [1.0, np.inf]}):
         kw = {**dict(n_images=2, lr=1e-3, reg=0.0, scale=1.0), **bad}
         with pytest.raises(ValueError):
             sp.PoseCorrection(**kw)
 
 
 # ---- recovering a perturbed camera --------------------------------------------------------------
-def test_a_perturbed_camera_is_recovered_on_a_fixed_scene(device):
+@pytest.mark.parametrize("about", ["centre", "scene"])
+def test_a_perturbed_camera_is_recovered_on_a_fixed_scene(device, about):
     """A fixed scene of 400 Gaussians rendered by the true camera is the target; the camera
     starts turned by 2 degrees and moved by 2 % of its distance; Adam on its correction alone
-    (the device's render, loss gradient, backward and camera_gradient) takes the rotation error
-    down by at least 70 % and the translation error by at least half."""
+    (the device's render, loss gradient, backward and camera_gradient), turned about the
+    camera's centre or about the scene's, takes the rotation error down by at least 70 % and
+    the translation error by at least half."""
     rng = np.random.default_rng(4)
     g = _gaussians(400, 1, seed=4, spread=0.7, log_scale=(-3.2, -2.2), logit=(0.5, 3.0))
     g["sh"][:, 0] = rng.uniform(-1.2, 1.2, (400, 3))        # strong colours: a textured view
@@ -197,7 +230,8 @@ def test_a_perturbed_camera_is_recovered_on_a_fixed_scene(device):
     def errors(V):
         return (np.degrees(sp.rotation_angle(V[:3, :3] @ true[:3, :3].T)),
                 float(np.linalg.norm(-V[:3, :3].T @ V[:3, 3] + true[:3, :3].T @ true[:3, 3])))
-    pc = sp.PoseCorrection(1, lr=2e-3, reg=0.0, scale=dist)
+    pivot = 0.0 if about == "centre" else float(given[2, 3])   # the origin's depth
+    pc = sp.PoseCorrection(1, lr=2e-3, reg=0.0, scale=dist, pivots=[pivot])
     rot0, pos0 = errors(given)
     for _ in range(150):
         cam = pc.camera(cam0, 0)
@@ -212,7 +246,49 @@ def test_a_perturbed_camera_is_recovered_on_a_fixed_scene(device):
     assert rot1 <= 0.3 * rot0 and pos1 <= 0.5 * pos0, (rot0, rot1, pos0, pos1)
 
 
-# ---- through the trainer and the command line -----------------------------------------------------
+def test_refine_view_pose_brings_a_test_camera_back(device):
+    """SplatModel.refine_view_pose (clrf eval --refine-poses): a model holding a fixed scene of
+    400 Gaussians, a test camera given 1.5 degrees and 2 % of its distance off; the refined
+    camera-to-world pose is within 30 % of the rotation error and half the centre error, and
+    its render is closer to the true image than the given pose's."""
+    from clrf.splat.config import SplatConfig
+    from clrf.splat.model import OPENGL_TO_OPENCV, SplatModel
+    rng = np.random.default_rng(8)
+    g = _gaussians(400, 1, seed=8, spread=0.7, log_scale=(-3.2, -2.2), logit=(0.5, 3.0))
+    g["sh"][:, 0] = rng.uniform(-1.2, 1.2, (400, 3))
+    W = H = 48
+    true = rs.look_at((-0.5, 0.3, -3.0), (0, 0, 0))
+    dist = float(np.linalg.norm(true[:3, 3]))
+    model = SplatModel(device, SplatConfig(sh_degree=1), g, (0.0, 0.0, 0.0), dist,
+                       [[-1, -1, -1], [1, 1, 1]])
+    intr = (50.0, 50.0, W / 2, H / 2)
+
+    def c2w_of(V):
+        return np.linalg.inv(OPENGL_TO_OPENCV @ V)
+    target = model.render_image(c2w_of(true), intr, (H, W), depth=False)["rgb"]
+    axis, move = rng.normal(size=3), rng.normal(size=3)
+    turn = sp.so3_exp(np.radians(1.5) * axis / np.linalg.norm(axis))
+    given = np.eye(4)
+    given[:3, :3] = turn @ true[:3, :3]
+    given[:3, 3] = turn @ true[:3, 3] + 0.02 * dist * move / np.linalg.norm(move)
+
+    def errors(c2w):
+        V = OPENGL_TO_OPENCV @ np.linalg.inv(c2w)
+        return (np.degrees(sp.rotation_angle(V[:3, :3] @ true[:3, :3].T)),
+                float(np.linalg.norm(-V[:3, :3].T @ V[:3, 3] + true[:3, :3].T @ true[:3, 3])))
+    c2w, summary = model.refine_view_pose(c2w_of(given), intr, (H, W), target, 120, 3e-3)
+    (rot0, pos0), (rot1, pos1) = errors(c2w_of(given)), errors(c2w)
+    print(f"rotation {rot0:.3f} -> {rot1:.3f} deg, position {pos0:.4f} -> {pos1:.4f}")
+    assert rot1 <= 0.3 * rot0 and pos1 <= 0.5 * pos0, (rot0, rot1, pos0, pos1)
+    assert summary["images"] == 1 and summary["rotation_deg"] > 0.3 * 1.5
+    err = [np.mean((model.render_image(c, intr, (H, W), depth=False)["rgb"] - target) ** 2)
+           for c in (c2w_of(given), c2w)]
+    assert err[1] < 0.25 * err[0], err
+    with pytest.raises(ValueError):
+        model.refine_view_pose(c2w, intr, (H, W), target, 0, 1e-3)
+
+
+# ---- through the trainer and the command line ----------------------------------------------------
 def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
     from clrf.cli.main import main as cli
     from clrf.outputs import checkpoint
@@ -234,6 +310,22 @@ def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
     said = capsys.readouterr().out
     assert "training poses corrected by" in said
     assert json.loads((tmp_path / "e.json").read_text())["pose_correction"] == pc
+    # BARF's protocol beside the plain scores: each test view refined against its own image
+    assert cli(["eval", "--ckpt", str(out), "--max-views", "2", "--lpips", "none",
+                "--refine-poses", "3", "--out", str(tmp_path / "r.json")]) == 0
+    assert "with each test view's pose refined (3 steps" in capsys.readouterr().out
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert r["n_views"] == 2 and r["poses_refined"]["steps"] == 3
+    assert np.isfinite(r["psnr_poses_refined"]) and 0 < r["ssim_poses_refined"] <= 1
+    assert r["poses_refined"]["rotation_deg"] > 0
+    assert all("psnr_poses_refined" in m for m in r["views"])
+    for bad, why in ((["--refine-poses", "2", "--downscale", "2"], "--downscale"),
+                     (["--refine-poses", "-1"], "step count"),
+                     (["--refine-poses", "2", "--refine-poses-lr", "0"], "--refine-poses-lr")):
+        assert cli(["eval", "--ckpt", str(out), "--max-views", "1", "--lpips", "none",
+                    "--out", str(tmp_path / "bad.json"), *bad]) == 2
+        assert why in capsys.readouterr().err
+        assert not (tmp_path / "bad.json").exists()
     # resumed: the corrections and their Adam state carry on
     assert cli(["--quiet", "train", "--out", str(out), "--resume", "--set",
                 "train.max_iters=60"]) == 0
@@ -281,3 +373,37 @@ def test_the_measurement_tools_perturb_and_score_poses(tmp_path, scene):
     assert res["given"]["rotation_deg"] == pytest.approx(1.0, abs=1e-6)
     assert res["given"]["centre"] == pytest.approx(0.01 * res["camera_distance"], rel=1e-6)
     assert np.isfinite(res["corrected"]["rotation_deg"]) and "rotation_error_reduction" in res
+    assert np.isfinite(res["corrected_aligned"]["rotation_deg"])
+    assert "rotation_error_reduction_aligned" in res
+    # 100 random 1-degree turns hardly share a common part: aligning removes little of them
+    assert 0.8 < res["given_aligned"]["rotation_deg"] < 1.1
+
+
+def test_pose_error_alignment_removes_a_common_similarity():
+    """tools/pose_error.py's Umeyama alignment: cameras that are the true ones moved together by
+    a similarity of the world (scale, turn, shift) align back exactly; per-camera errors stay."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "tools" / "pose_error.py"
+    spec = importlib.util.spec_from_file_location("pose_error", path)
+    pe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pe)
+    rng = np.random.default_rng(3)
+    true = [rs.look_at(rng.normal(size=3) * 3 + 0.1, (0, 0, 0)) for _ in range(12)]
+    Q, s, b = sp.so3_exp([0.1, -0.2, 0.05]), 1.3, np.array([0.2, -0.1, 0.4])
+    moved = []
+    for T in true:       # the world x -> s Q x + b, the cameras with it
+        V = np.eye(4)
+        V[:3, :3] = T[:3, :3] @ Q.T
+        V[:3, 3] = s * T[:3, 3] - T[:3, :3] @ Q.T @ b
+        moved.append(V)
+    assert pe.errors(moved, true)["rotation_deg"] > 5
+    back = pe.errors(pe.aligned(moved, true), true)
+    assert back["rotation_deg"] < 1e-6 and back["centre"] < 1e-9
+    turned = [np.diag([1.0, 1, 1, 1]) for _ in true]
+    for i, V in enumerate(moved):
+        turned[i][:3, :3] = sp.so3_exp(np.radians(1.0) * np.eye(3)[i % 3]) @ V[:3, :3]
+        turned[i][:3, 3] = sp.so3_exp(np.radians(1.0) * np.eye(3)[i % 3]) @ V[:3, 3]
+    # each turned about its own centre: the centres align exactly, the turns remain
+    left = pe.errors(pe.aligned(turned, true), true)
+    assert left["centre"] < 1e-9 and left["rotation_deg"] == pytest.approx(1.0, abs=1e-6)

@@ -6,7 +6,11 @@ Output JSON (default CKPT/eval_cli.json, or CKPT/eval_PROTOCOL.json with --proto
 ``lpips_unavailable``), ``views`` (per view), ``n_views``, ``resolution`` [W, H]; with a protocol
 also ``protocol``, ``protocol_resolution``, ``standard`` (false: NOT the protocol) and ``note``;
 with ``--downscale N`` (the test views rendered at 1/N of the training resolution against the
-test images box-averaged by N) also ``downscale``.
+test images box-averaged by N) also ``downscale``; with ``--refine-poses N`` (splat runs) also
+``psnr_poses_refined`` and ``ssim_poses_refined``: each test view scored again after N steps of
+a pose correction of its own against its own image, the scene held still (BARF's protocol for
+runs that refine their poses: such a scene may sit a little off the given poses' frame), and
+``poses_refined``, the test corrections' mean.
 """
 from __future__ import annotations
 
@@ -68,6 +72,8 @@ def cmd_eval(a):
         raise CliError(f"--downscale {a.downscale}: must be a whole factor >= 1")
     dev = Device(a.device)
     model, state, cfg = load_model(dev, a.ckpt)
+    if a.refine_poses:
+        _check_refine(a, model)
     ds, views, pd = _views_and_data(a, state)
     full = len(views)
     if a.max_views:
@@ -85,6 +91,8 @@ def cmd_eval(a):
             if lp_why is None:
                 m["lpips"] = lpips(ev["images"][0], downscale_image(ds.images[v], a.downscale),
                                    net, a.lpips_backbone)
+            if a.refine_poses:
+                m.update(_refined(model, ds, v, a))
             per_view.append(m)
             b.update(1)
     secs = time.perf_counter() - t
@@ -102,6 +110,14 @@ def cmd_eval(a):
     pose = getattr(model, "pose", None)
     if pose is not None:   # splat.pose_opt: how far the training poses were corrected
         res["pose_correction"] = pose.summary()
+    if a.refine_poses:   # the same views, each after a correction of its own (BARF's protocol)
+        for k in ("psnr", "ssim"):
+            res[f"{k}_poses_refined"] = float(np.mean([m[f"{k}_poses_refined"]
+                                                       for m in per_view]))
+        res["poses_refined"] = {
+            "steps": a.refine_poses, "lr": _refine_lr(a, model),
+            "rotation_deg": float(np.mean([m["pose_refined_deg"] for m in per_view])),
+            "translation_rel": float(np.mean([m["pose_refined_rel"] for m in per_view]))}
     if pd is not None:
         ph, pw = pd.protocol_hw
         standard = pd.standard and len(per_view) == full
@@ -123,6 +139,13 @@ def cmd_eval(a):
         print(f"training poses corrected by {pc['rotation_deg']:.3f} deg and "
               f"{pc['translation']:.4g} ({100 * pc['translation_rel']:.2f} % of the scene's "
               f"extent) on average over {pc['images']} images (the test views keep theirs)")
+    if a.refine_poses:
+        pr = res["poses_refined"]
+        print(f"with each test view's pose refined ({a.refine_poses} steps against its own "
+              f"image, the scene held still): PSNR {res['psnr_poses_refined']:.3f}  SSIM "
+              f"{res['ssim_poses_refined']:.4f}; the test poses moved by "
+              f"{pr['rotation_deg']:.3f} deg and {100 * pr['translation_rel']:.2f} % of the "
+              f"scene's extent on average")
     if pd is not None and not res["standard"]:
         print(res["note"])
     default = f"eval_{a.protocol}.json" if a.protocol else "eval_cli.json"
@@ -138,6 +161,37 @@ def cmd_eval(a):
     print(f"saved {out}")
     sys.stdout.flush()
     return 0
+
+
+def _refine_lr(a, model) -> float:
+    return float(a.refine_poses_lr if a.refine_poses_lr is not None else model.config.lr_pose)
+
+
+def _check_refine(a, model):
+    """--refine-poses applies to splat runs at their own resolution; one clear error else."""
+    from .common import CliError
+    if a.refine_poses < 0:
+        raise CliError(f"--refine-poses {a.refine_poses}: must be a step count >= 0")
+    if not hasattr(model, "refine_view_pose"):
+        raise CliError(f"--refine-poses: the {getattr(model, 'kind', '?')} model cannot refine "
+                       f"a camera's pose; only --model splat runs can")
+    if a.downscale != 1:
+        raise CliError("--refine-poses does not apply with --downscale: the poses are refined "
+                       "at the test images' own resolution")
+    if a.refine_poses_lr is not None and not 0 < a.refine_poses_lr <= 0.1:
+        raise CliError(f"--refine-poses-lr {a.refine_poses_lr}: must be in (0, 0.1] (radians "
+                       f"a step)")
+
+
+def _refined(model, ds, v, a) -> dict:
+    """View v's metrics after its pose is refined against its own image (--refine-poses)."""
+    from ..training.metrics import image_metrics
+    c2w, pc = model.refine_view_pose(np.asarray(ds.poses[v], np.float64), ds.intrinsics, ds.hw,
+                                     ds.images[v], a.refine_poses, _refine_lr(a, model))
+    rgb = model.render_image(c2w, ds.intrinsics, ds.hw, depth=False)["rgb"]
+    m = image_metrics(rgb, ds.images[v])
+    return {"psnr_poses_refined": m["psnr"], "ssim_poses_refined": m["ssim"],
+            "pose_refined_deg": pc["rotation_deg"], "pose_refined_rel": pc["translation_rel"]}
 
 
 def add_eval_parser(sub, func):
@@ -164,6 +218,15 @@ def add_eval_parser(sub, func):
     e.add_argument("--scene-type", choices=["indoor", "outdoor"], default=None,
                    help="mipnerf360: indoor (1/2 resolution) or outdoor (1/4) for a scene whose "
                         "name is not one of the published ones")
+    e.add_argument("--refine-poses", type=int, default=0, metavar="N",
+                   help="splat runs: also score each test view after N Adam steps of a pose "
+                        "correction of its own against its own image, the scene held still "
+                        "(BARF's protocol for runs trained with splat.pose_opt, whose scene may "
+                        "sit a little off the given poses' frame); about N training steps of "
+                        "time a view")
+    e.add_argument("--refine-poses-lr", type=float, default=None, metavar="RAD",
+                   help="with --refine-poses: the first step's rate in radians, falling to a "
+                        "tenth (default: the run's splat.lr_pose)")
     e.add_argument("--lpips", choices=["alex", "vgg", "none"], default="alex",
                    help="LPIPS backbone (default alex; vgg as the NeRF paper's Blender table); "
                         "needs the 'eval' extra and the backbone's ImageNet weights, else the "

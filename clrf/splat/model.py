@@ -187,7 +187,14 @@ class SplatModel:
         if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
             from .pose import PoseCorrection
             self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
-                                       self.extent)
+                                       self.extent, pivots=[self.pivot_depth(c2w)
+                                                            for c2w in ds.poses])
+
+    def pivot_depth(self, c2w) -> float:
+        """The depth of the scene box's centre in camera ``c2w`` (0 where it lies behind): the
+        point a pose correction turns the camera about (clrf/splat/pose.py)."""
+        centre = np.append(self.bbox.mean(0), 1.0)
+        return max(float((viewmat_of(c2w) @ centre)[2]), 0.0)
 
     def _dataset(self):
         if self._ds is None:
@@ -355,6 +362,33 @@ class SplatModel:
     def export_fields(self, points, dirs):
         raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "
                             "--points do not apply; export the Gaussians with --splats FILE.ply")
+
+    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float):
+        """Test-time pose refinement (BARF's protocol for runs that refine their poses): ``steps``
+        Adam steps of a correction of this one camera (clrf/splat/pose.py, turned about the
+        scene's centre, no pull toward the given pose) against ``image`` [H, W, 3] under the
+        training loss, the Gaussians held still, the rate falling log-linearly from ``lr`` to a
+        tenth of it. Returns (the corrected camera-to-world pose, the correction's summary)."""
+        from .pose import PoseCorrection
+        if steps < 1 or not lr > 0:
+            raise ValueError(f"refine_view_pose: steps >= 1 and lr > 0, got {steps}, {lr}")
+        H, W = (int(x) for x in hw)
+        cam0 = camera_of(c2w, intrinsics, (H, W))
+        pc = PoseCorrection(1, lr, 0.0, self.extent, pivots=[self.pivot_depth(c2w)])
+        loss = (self._loss() if self.hw is not None and tuple(self.hw) == (H, W)
+                else DeviceLoss(self.device, H, W, self.config.lambda_dssim))
+        target = upload(self.device.queue, np.ascontiguousarray(image, np.float32))
+        params = self._rparams()
+        for k in range(int(steps)):
+            pc.lr = lr * 0.1 ** (k / max(int(steps) - 1, 1))
+            cam = pc.camera(cam0, 0)
+            proj, bins, ras = self.rast.forward(params, cam, self.background)
+            grad, _ = loss.loss_and_grad(ras.rgb, target)
+            g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, self.background)
+            out = self.rast.project_backward(params, cam, g2d, camera_grad=True)
+            pc.step(0, cam.viewmat, *camera_gradient(out["camera"]))
+        V = pc.viewmat(cam0.viewmat, 0)
+        return np.linalg.inv(OPENGL_TO_OPENCV @ V), pc.summary([0])
 
     def export_block(self, block: int) -> int:
         return max(1, min(int(block), 1 << 20))

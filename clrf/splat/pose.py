@@ -2,15 +2,21 @@
 more so from a video, are a little off, and a splat fitted to slightly wrong cameras blurs.
 
 Training camera v owns a rotation vector w_v and a translation tau_v (float64, on the host: six
-numbers an image) that correct its world-to-camera transform [R0 t0]:
+numbers an image) that correct its world-to-camera transform [R0 t0] about a pivot p_v = (0, 0,
+d_v) on its optical axis, d_v ahead (the depth of the scene's centre in that camera):
 
-    R = Exp(w) R0,    t = Exp(w) t0 + tau,
+    R = Exp(w) R0,    t = Exp(w) (t0 - p) + p + tau,
 
-a rotation and a shift of the camera's own frame (Exp: Rodrigues' formula). The projection's
-backward with POSE_GRAD=1 gives dL/dR and dL/dt of the corrected camera (cl/splat_project.cl;
-``raster.camera_gradient`` sums the Gaussians' shares on the device and reads twelve numbers).
-A rotation phi of the frame moves R to Exp(phi) R and t - tau to Exp(phi) (t - tau), so with
-M = dL/dR R^T + dL/dt (t - tau)^T:
+a rotation of the camera's own frame about the pivot, then a shift (Exp: Rodrigues' formula).
+Turning a camera about its own centre and shifting it sideways both slide the whole image, so in
+those two coordinates the loss has a long narrow valley, which a per-coordinate optimiser such as
+Adam walks slowly; about a pivot in the scene, w moves the image only by parallax around the
+pivot and tau slides it, two nearly independent effects (d_v = 0 is the camera's centre).
+
+The projection's backward with POSE_GRAD=1 gives dL/dR and dL/dt of the corrected camera
+(cl/splat_project.cl; ``raster.camera_gradient`` sums the Gaussians' shares on the device and
+reads twelve numbers). A rotation phi of the frame about the pivot moves R to Exp(phi) R and
+t - tau - p to Exp(phi) (t - tau - p), so with M = dL/dR R^T + dL/dt (t - tau - p)^T:
 
     dL/dphi = (M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]),
     dL/dw = J_l(w)^T dL/dphi,    dL/dtau = dL/dt,
@@ -19,11 +25,13 @@ J_l the left Jacobian of SO(3) (Exp(w + d) = Exp(J_l(w) d) Exp(w) to first order
 ``reg (|w|^2 + |tau / scale|^2)`` toward the identity keeps the corrections small (scale: the
 scene's extent, so that the pull does not depend on the capture's units), and each image takes
 an Adam step (its own step count) when it is trained: rotations at ``lr`` radians, translations
-at ``lr * scale``. Test views keep their given poses, as published protocols evaluate them.
+at ``lr * scale``. Test views keep their given poses, as published protocols evaluate them;
+``clrf eval --refine-poses N`` also scores them after N steps of a correction of their own
+against their own image, the scene held still (``refine_view_pose`` in clrf/splat/model.py).
 
->>> pose = PoseCorrection(n_images=100, lr=1e-3, reg=1e-4, scale=4.0)
+>>> pose = PoseCorrection(n_images=100, lr=1e-3, reg=1e-4, scale=4.0, pivots=depths)
 >>> cam = pose.camera(cam0, v)                  # SplatCamera with view v's corrected viewmat
->>> pose.step(v, cam, dR, dt)                   # from raster.camera_gradient
+>>> pose.step(v, cam.viewmat, dR, dt)           # from raster.camera_gradient
 >>> pose.summary()                               # mean rotation (degrees) and translation
 """
 from __future__ import annotations
@@ -76,21 +84,24 @@ def rotation_angle(R) -> float:
     return float(np.arctan2(s, c))
 
 
-def corrected_viewmat(viewmat, w, tau) -> np.ndarray:
-    """[Exp(w) R0, Exp(w) t0 + tau] of world-to-camera ``viewmat`` [4, 4]."""
+def corrected_viewmat(viewmat, w, tau, pivot: float = 0.0) -> np.ndarray:
+    """[Exp(w) R0, Exp(w) (t0 - p) + p + tau] of world-to-camera ``viewmat`` [4, 4], p = (0, 0,
+    pivot)."""
     V = np.asarray(viewmat, np.float64)
     E = so3_exp(w)
+    p = np.array([0.0, 0.0, float(pivot)])
     out = np.eye(4)
     out[:3, :3] = E @ V[:3, :3]
-    out[:3, 3] = E @ V[:3, 3] + np.asarray(tau, np.float64)
+    out[:3, 3] = E @ (V[:3, 3] - p) + p + np.asarray(tau, np.float64)
     return out
 
 
-def pose_gradient(viewmat, w, tau, dR, dt) -> tuple:
+def pose_gradient(viewmat, w, tau, dR, dt, pivot: float = 0.0) -> tuple:
     """(dL/dw, dL/dtau) from dL/dR, dL/dt of the corrected camera ``viewmat`` (module doc)."""
     V = np.asarray(viewmat, np.float64)
     R, t = V[:3, :3], V[:3, 3]
-    M = np.asarray(dR, np.float64) @ R.T + np.outer(dt, t - np.asarray(tau, np.float64))
+    arm = t - np.asarray(tau, np.float64) - np.array([0.0, 0.0, float(pivot)])
+    M = np.asarray(dR, np.float64) @ R.T + np.outer(dt, arm)
     g_phi = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
     return left_jacobian(w).T @ g_phi, np.asarray(dt, np.float64).copy()
 
@@ -99,7 +110,7 @@ class PoseCorrection:
     """The corrections of ``n_images`` training cameras (module doc)."""
 
     def __init__(self, n_images: int, lr: float, reg: float, scale: float,
-                 state: dict | None = None):
+                 state: dict | None = None, pivots=None):
         if n_images < 1:
             raise ValueError(f"PoseCorrection needs at least one image, got {n_images}")
         if not (lr > 0 and reg >= 0 and scale > 0):
@@ -111,17 +122,26 @@ class PoseCorrection:
         self.m = np.zeros((self.n_images, 6))
         self.v = np.zeros((self.n_images, 6))
         self.steps = np.zeros(self.n_images, np.int64)
+        # each image's pivot depth d_v (module doc); a checkpoint's own wins over ``pivots``,
+        # and one written before pivots existed turned its cameras about their centres (0)
+        self.pivots = np.zeros(self.n_images)
+        if pivots is not None:
+            self.pivots = np.asarray(pivots, np.float64).reshape(self.n_images).copy()
+        if not np.all(np.isfinite(self.pivots)) or (self.pivots < 0).any():
+            raise ValueError("PoseCorrection: the pivot depths must be finite and >= 0")
         if state is not None:
             for key, attr, shape in (("pose", "params", (self.n_images, 6)),
                                      ("pose_m", "m", (self.n_images, 6)),
                                      ("pose_v", "v", (self.n_images, 6))):
                 setattr(self, attr, np.asarray(state[key], np.float64).reshape(shape).copy())
             self.steps = np.asarray(state["pose_steps"], np.int64).reshape(self.n_images).copy()
+            self.pivots = (np.asarray(state["pose_pivot"], np.float64).reshape(self.n_images)
+                           .copy() if "pose_pivot" in state else np.zeros(self.n_images))
 
     def viewmat(self, viewmat, v: int) -> np.ndarray:
         """Image v's corrected world-to-camera [4, 4]."""
         p = self.params[int(v)]
-        return corrected_viewmat(viewmat, p[:3], p[3:])
+        return corrected_viewmat(viewmat, p[:3], p[3:], self.pivots[int(v)])
 
     def camera(self, cam, v: int):
         """``cam`` (a SplatCamera with image v's given pose) with the corrected pose."""
@@ -131,7 +151,7 @@ class PoseCorrection:
         """dL/d(w, tau) of image v, the pull toward the identity included, from dL/dR, dL/dt of
         its corrected camera ``viewmat``."""
         p = self.params[int(v)]
-        gw, gtau = pose_gradient(viewmat, p[:3], p[3:], dR, dt)
+        gw, gtau = pose_gradient(viewmat, p[:3], p[3:], dR, dt, self.pivots[int(v)])
         gw = gw + 2.0 * self.reg * p[:3]
         gtau = gtau + 2.0 * self.reg * p[3:] / self.scale ** 2
         return np.concatenate([gw, gtau])
@@ -155,18 +175,25 @@ class PoseCorrection:
 
     def state_dict(self) -> dict:
         return {"pose": self.params.copy(), "pose_m": self.m.copy(), "pose_v": self.v.copy(),
-                "pose_steps": self.steps.copy()}
+                "pose_steps": self.steps.copy(), "pose_pivot": self.pivots.copy()}
+
+    def centre_shift(self, v: int) -> float:
+        """How far image v's correction moved its camera's centre: in the given camera's frame
+        the corrected centre is p - Exp(w)^T (p + tau)."""
+        w, tau = self.params[int(v), :3], self.params[int(v), 3:]
+        p = np.array([0.0, 0.0, self.pivots[int(v)]])
+        return float(np.linalg.norm(p - so3_exp(w).T @ (p + tau)))
 
     def summary(self, trained=None) -> dict:
         """The mean correction over the trained images (those that took a step, or the indices
-        ``trained``): rotation in degrees, translation in scene units and relative to the
-        scene's extent."""
+        ``trained``): rotation in degrees, translation (how far the camera centre moved) in
+        scene units and relative to the scene's extent."""
         idx = np.flatnonzero(self.steps > 0) if trained is None else np.asarray(trained)
         if len(idx) == 0:
             return {"images": 0, "rotation_deg": 0.0, "translation": 0.0,
                     "translation_rel": 0.0}
         rot = [np.degrees(np.linalg.norm(self.params[i, :3])) for i in idx]
-        tr = [np.linalg.norm(self.params[i, 3:]) for i in idx]
+        tr = [self.centre_shift(i) for i in idx]
         return {"images": int(len(idx)), "rotation_deg": float(np.mean(rot)),
                 "translation": float(np.mean(tr)),
                 "translation_rel": float(np.mean(tr) / self.scale)}
