@@ -221,12 +221,12 @@ def add_eval_parser(sub, func):
     e.add_argument("--refine-poses", type=int, default=0, metavar="N",
                    help="splat runs: also score each test view after N Adam steps of a pose "
                         "correction of its own against its own image, the scene held still "
-                        "(BARF's protocol for runs trained with splat.pose_opt, whose scene may "
-                        "sit a little off the given poses' frame); about N training steps of "
-                        "time a view")
+                        "(BARF's protocol for runs that refined their training poses, whose "
+                        "scene may sit a little off the given poses' frame); about N training "
+                        "steps of time a view")
     e.add_argument("--refine-poses-lr", type=float, default=None, metavar="RAD",
                    help="with --refine-poses: the first step's rate in radians, falling to a "
-                        "tenth (default: the run's splat.lr_pose)")
+                        "tenth (default: the run's own pose learning rate)")
     e.add_argument("--lpips", choices=["alex", "vgg", "none"], default="alex",
                    help="LPIPS backbone (default alex; vgg as the NeRF paper's Blender table); "
                         "needs the 'eval' extra and the backbone's ImageNet weights, else the "
