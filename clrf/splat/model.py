@@ -380,7 +380,7 @@ class SplatModel:
         target = upload(self.device.queue, np.ascontiguousarray(image, np.float32))
         params = self._rparams()
         for k in range(int(steps)):
-            pc.lr = lr * 0.1 ** (k / max(int(steps) - 1, 1))
+            pc.lr = expon_lr(k, lr, 0.1 * lr, int(steps) - 1)
             cam = pc.camera(cam0, 0)
             proj, bins, ras = self.rast.forward(params, cam, self.background)
             grad, _ = loss.loss_and_grad(ras.rgb, target)

@@ -84,12 +84,17 @@ def rotation_angle(R) -> float:
     return float(np.arctan2(s, c))
 
 
+def pivot_point(pivot: float) -> np.ndarray:
+    """p = (0, 0, pivot): the point on the optical axis a correction turns the camera about."""
+    return np.array([0.0, 0.0, float(pivot)])
+
+
 def corrected_viewmat(viewmat, w, tau, pivot: float = 0.0) -> np.ndarray:
     """[Exp(w) R0, Exp(w) (t0 - p) + p + tau] of world-to-camera ``viewmat`` [4, 4], p = (0, 0,
     pivot)."""
     V = np.asarray(viewmat, np.float64)
     E = so3_exp(w)
-    p = np.array([0.0, 0.0, float(pivot)])
+    p = pivot_point(pivot)
     out = np.eye(4)
     out[:3, :3] = E @ V[:3, :3]
     out[:3, 3] = E @ (V[:3, 3] - p) + p + np.asarray(tau, np.float64)
@@ -100,7 +105,7 @@ def pose_gradient(viewmat, w, tau, dR, dt, pivot: float = 0.0) -> tuple:
     """(dL/dw, dL/dtau) from dL/dR, dL/dt of the corrected camera ``viewmat`` (module doc)."""
     V = np.asarray(viewmat, np.float64)
     R, t = V[:3, :3], V[:3, 3]
-    arm = t - np.asarray(tau, np.float64) - np.array([0.0, 0.0, float(pivot)])
+    arm = t - np.asarray(tau, np.float64) - pivot_point(pivot)
     M = np.asarray(dR, np.float64) @ R.T + np.outer(dt, arm)
     g_phi = np.array([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
     return left_jacobian(w).T @ g_phi, np.asarray(dt, np.float64).copy()
@@ -181,7 +186,7 @@ class PoseCorrection:
         """How far image v's correction moved its camera's centre: in the given camera's frame
         the corrected centre is p - Exp(w)^T (p + tau)."""
         w, tau = self.params[int(v), :3], self.params[int(v), 3:]
-        p = np.array([0.0, 0.0, self.pivots[int(v)]])
+        p = pivot_point(self.pivots[int(v)])
         return float(np.linalg.norm(p - so3_exp(w).T @ (p + tau)))
 
     def summary(self, trained=None) -> dict:
