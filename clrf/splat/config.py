@@ -148,7 +148,7 @@ class SplatConfig:
     #                                 lego_400 with 1-degree errors, 900 s: 3e-3 to 3e-4
     #                                 reached 1 degree of correction in half the time of a
     #                                 constant 1e-3, with the same rotation error, and its
-    #                                 test views refined to 0.49 dB more)
+    #                                 test views refined at the same rate to 0.50 dB more)
     pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
     antialiased: bool = False       # Mip-Splatting's filters: a 3D low-pass filter per
     #                                 Gaussian bounded by the training views' sampling rate
