@@ -35,7 +35,9 @@
  *                    (deterministic), plus the pull toward the identity, d/dP of
  *                    reg (|A - I|^2 + |b|^2) = 2 reg (P - I); then Adam (cl/optim.cl's update,
  *                    bias-corrected with the row's own step count through bc1, bc2); a
- *                    non-finite gradient leaves P, m, v unchanged.
+ *                    non-finite gradient leaves P, m, v unchanged. diagonal = 1: the
+ *                    off-diagonal entries of A are not trained (they keep their value, 0: a
+ *                    gain and an offset per channel).
  *
  * Ray batches (the hash model: a batch holds rays of many images; ray i belongs to row
  * index[i] / pixels, index being its place in the concatenated training images). Each ray's
@@ -133,9 +135,9 @@ __kernel void exposure_adam(const int items, __global const float *partials,
                             __global float *P, __global float *m, __global float *vm,
                             const int v, const float lr, const float reg, const float b1,
                             const float b2, const float eps, const float bc1,
-                            const float bc2) {
+                            const float bc2, const int diagonal) {
     const int k = get_global_id(0);
-    if (k >= EXPOSURE_ROW) return;
+    if (k >= EXPOSURE_ROW || (diagonal && k < 9 && k % 4 != 0)) return;
     const size_t i = (size_t)v * EXPOSURE_ROW + k;
     float gk = 0.0f;
     for (int it = 0; it < items; ++it) gk += partials[(size_t)it * EXPOSURE_ROW + k];

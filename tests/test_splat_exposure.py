@@ -195,6 +195,88 @@ def test_device_rows_recentre_as_the_twin(device):
     np.testing.assert_allclose(exp.rows(), ref.recentre(P, [0, 1, 3]), atol=1e-6)
 
 
+def test_diagonal_adam_trains_gains_and_offsets_only(device):
+    """splat.exposure_matrix=diagonal: the kernel's step matches the twin's, A's off-diagonal
+    entries keep their values bit for bit (0 from the identity, or whatever a row held), their
+    moments stay zero, and the gains and offsets move as the full model's would."""
+    rng = np.random.default_rng(17)
+    P = np.tile(ref.IDENTITY, (3, 1)).astype(np.float32)
+    P[1] += rng.normal(0, 0.2, ref.ROW).astype(np.float32)    # a row with off-diagonals
+    n = CHUNK + 9
+    rgb = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    g = rng.normal(0, 1e-3, (n, 3)).astype(np.float32)
+    T = rng.uniform(0, 1, n).astype(np.float32)
+    exp = Exposure(device, 3, lr=0.02, reg=0.5, masked=True, diagonal=True)
+    exp.P = upload(device.queue, np.ascontiguousarray(P))
+    want_P, want_m, want_v = P.astype(np.float64), np.zeros((3, 12)), np.zeros((3, 12))
+    q = device.queue
+    off = ~ref.TRAINED_DIAGONAL
+    for v in (0, 1, 0):
+        rows = download(exp.P)
+        _, grad_p = ref.backward(rgb, g, rows, v, T, BG)
+        assert np.abs(grad_p[off]).max() > 0                  # the data would move them
+        exp.backward_and_step(upload(q, rgb), upload(q, T), BG, upload(q, g), v)
+        want_P, want_m, want_v = ref.adam(want_P, want_m, want_v, v, grad_p, 0.02, 0.5, 0.9,
+                                          0.999, 1e-15, int(exp.steps[v]), diagonal=True)
+    got = exp.rows()
+    np.testing.assert_allclose(got, want_P, rtol=0, atol=tol.EXPOSURE_ADAM_ATOL)
+    assert np.array_equal(got[:, off], P[:, off])
+    assert not download(exp.m).reshape(3, 12)[:, off].any()
+    assert np.abs(got[0, ref.TRAINED_DIAGONAL] - P[0, ref.TRAINED_DIAGONAL]).min() > 0
+    # the full model moves the same row's off-diagonal entries
+    full = ref.adam(P, np.zeros((3, 12)), np.zeros((3, 12)), 0, grad_p, 0.02, 0.5, 0.9, 0.999,
+                    1e-15, 1)[0]
+    assert np.abs(full[0, off] - P[0, off]).min() > 0
+
+
+def test_diagonal_rows_recentre_to_diagonal_rows(device):
+    """A diagonal model's rows stay diagonal through recentre, their zeros exact; their gains
+    centre on the geometric mean (0.6 and 1.5 around sqrt(0.9))."""
+    P = np.tile(ref.IDENTITY, (3, 1)).astype(np.float32)
+    P[0, [0, 4, 8]], P[1, [0, 4, 8]], P[0, 9:] = 0.6, 1.5, 0.02
+    exp = Exposure(device, 3, lr=0.01, reg=0.0, masked=True, diagonal=True)
+    exp.P = upload(device.queue, np.ascontiguousarray(P))
+    exp.steps[[0, 1]] = 1
+    exp.recentre()
+    got = exp.rows()
+    assert not got[:, ~ref.TRAINED_DIAGONAL].any()
+    np.testing.assert_allclose(got[1, [0, 4, 8]], 1.5 / np.sqrt(0.9), rtol=1e-6)
+    np.testing.assert_allclose(got[:, ref.TRAINED_DIAGONAL],
+                               ref.recentre(P, [0, 1])[:, ref.TRAINED_DIAGONAL], atol=1e-6)
+
+
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_diagonal_fit_recovers_gains_and_offsets(device, masked):
+    """A target made by a gain and an offset per channel: the diagonal fit recovers them with
+    eta 1 and no pull, leaves A's off-diagonal entries as they were, and a target made with
+    mixing channels is fitted by the full model only (the diagonal's error stays)."""
+    rng = np.random.default_rng(23)
+    n = 400
+    c = rng.uniform(0, 0.8, (n, 3))
+    T = rng.uniform(0, 1, n)
+    T[:80] = 1.0
+    true = ref.IDENTITY.copy()
+    true[[0, 4, 8]], true[9:] = (0.7, 1.2, 0.95), (0.03, -0.02, 0.01)
+    P = np.stack([ref.IDENTITY, true])
+    target = ref.shown(c, T, BG, P, 1, masked)
+    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
+    rgb = c + T[:, None] * bg_r
+    got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, diagonal=True)
+    np.testing.assert_allclose(got, true, atol=1e-9)
+    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, diagonal=True)
+    q = device.queue
+    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
+            target, 1.0)
+    np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
+    mixed = true.copy()
+    mixed[1] = 0.2
+    target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, mixed]), 1, masked)
+    diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, diagonal=True)
+    assert diag[1] == 0.0
+    full = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked)
+    np.testing.assert_allclose(full, mixed, atol=1e-9)
+
+
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
 def test_fit_recovers_a_transform_in_one_step(device, masked):
     """Targets made by a known transform of a render (rendered on the background that

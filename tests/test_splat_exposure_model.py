@@ -43,6 +43,7 @@ def test_training_learns_each_images_gain(device):
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
                                        ("exposure_reg", -0.1),
+                                       ("exposure_matrix", "mixed"),
                                        ("exposure_clip_inward", "true")])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
@@ -76,3 +77,55 @@ def test_a_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
     assert cli(["--quiet", "eval", "--ckpt", str(out), "--max-views", "2", "--lpips", "none",
                 "--out", str(tmp_path / "e.json")]) == 0
     assert "psnr_half_fitted" in json.loads((tmp_path / "e.json").read_text())
+
+
+@pytest.mark.parametrize("no_clip", [False, True], ids=["clipped", "no-clip"])
+def test_perturb_capture_changes_exposure_as_recorded(tmp_path, no_clip):
+    """tools/perturb_capture.py --exposure: every training image is its source times the
+    recorded gain and channel factors, rounded to 8 bits and clipped as a camera would (alpha
+    and the test images untouched); --no-clip divides every gain by 1.65, so that nothing
+    clips; --no-clip without --exposure is refused."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import imageio.v3 as iio
+    src = tmp_path / "src"
+    rng = np.random.default_rng(5)
+    for split, n in (("train", 12), ("test", 2)):
+        (src / split).mkdir(parents=True)
+        frames = []
+        for i in range(n):
+            img = rng.integers(0, 256, (6, 5, 4), dtype=np.uint8)
+            img[0, 0, :3] = 255                     # a white pixel: clips at any gain > 1
+            iio.imwrite(src / split / f"r_{i}.png", img)
+            frames.append({"file_path": f"./{split}/r_{i}",
+                           "transform_matrix": np.eye(4).tolist()})
+        (src / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": 0.7, "frames": frames}))
+    tool = Path(__file__).resolve().parents[1] / "tools" / "perturb_capture.py"
+    out = tmp_path / "out"
+    args = [sys.executable, str(tool), str(src), str(out), "--exposure"]
+    subprocess.run(args + (["--no-clip"] if no_clip else []), check=True, capture_output=True)
+    rec = json.loads((out / "perturbation.json").read_text())
+    assert rec["no_clip"] is no_clip and len(rec["frames"]) == 12
+    clipped = 0
+    for i, f in enumerate(rec["frames"]):
+        a = iio.imread(src / "train" / f"r_{i}.png").astype(np.float64)
+        b = iio.imread(out / "train" / f"r_{i}.png").astype(np.float64)
+        k = f["gain"] * np.asarray(f["channel"])
+        want = a[..., :3] * k
+        clipped += int((want > 255.0 + 1e-9).any())
+        np.testing.assert_allclose(b[..., :3], np.clip(want, 0, 255), atol=0.5 + 1e-9)
+        assert np.array_equal(a[..., 3], b[..., 3])
+        lo, hi = (0.6 * 0.9, 1.5 * 1.1)
+        if no_clip:
+            lo, hi = lo / 1.65, hi / 1.65
+        assert np.all((k >= lo) & (k <= hi + 1e-12))
+    assert (clipped == 0) if no_clip else (clipped > 0)
+    for i in range(2):
+        assert np.array_equal(iio.imread(src / "test" / f"r_{i}.png"),
+                              iio.imread(out / "test" / f"r_{i}.png"))
+    p = subprocess.run([sys.executable, str(tool), str(src), str(tmp_path / "x"), "--no-clip"],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "--no-clip goes with --exposure" in p.stderr

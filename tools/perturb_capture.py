@@ -6,6 +6,10 @@ split, to measure what splat.exposure (and pose refinement) recover:
 
 --exposure  each training image (RGB, alpha kept) times a gain drawn from [0.6, 1.5] and each
             channel times one from [0.9, 1.1], clipped to [0, 1] as a camera would;
+--no-clip   (with --exposure) the same draws, every gain divided by 1.65 (the largest
+            gain times the largest channel factor), so that no channel clips: what the clip
+            costs, apart from the changes themselves (the scene then trains darker than the
+            untouched test views, so compare scores that fit a colour transform);
 --poses     each training pose turned by --degrees (1) about a random axis through the camera
             and moved by --move (1 %) of the camera's distance to the origin, in a random
             direction.
@@ -23,6 +27,9 @@ import imageio.v3 as iio
 import numpy as np
 
 
+NO_CLIP = 1.5 * 1.1    # --no-clip: the largest gain times the largest channel factor
+
+
 def rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     """3 x 3 rotation by ``degrees`` about the unit vector ``axis`` (Rodrigues)."""
     a = np.radians(degrees)
@@ -36,6 +43,7 @@ def main(argv=None) -> int:
     ap.add_argument("src", type=Path)
     ap.add_argument("out", type=Path)
     ap.add_argument("--exposure", action="store_true")
+    ap.add_argument("--no-clip", action="store_true")
     ap.add_argument("--poses", action="store_true")
     ap.add_argument("--degrees", type=float, default=1.0)
     ap.add_argument("--move", type=float, default=0.01)
@@ -43,6 +51,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if not (a.src / "transforms_train.json").is_file():
         ap.error(f"{a.src}: no transforms_train.json (a Blender-layout capture)")
+    if a.no_clip and not a.exposure:
+        ap.error("--no-clip goes with --exposure")
     if a.out.exists():
         ap.error(f"{a.out} exists; pick a new folder")
     shutil.copytree(a.src, a.out)
@@ -54,7 +64,7 @@ def main(argv=None) -> int:
         if a.exposure:
             path = a.out / (f["file_path"].lstrip("./") + ".png")
             img = iio.imread(path).astype(np.float64) / 255.0
-            gain = rng.uniform(0.6, 1.5)
+            gain = rng.uniform(0.6, 1.5) / (NO_CLIP if a.no_clip else 1.0)
             channel = rng.uniform(0.9, 1.1, 3)
             img[..., :3] = np.clip(img[..., :3] * gain * channel, 0.0, 1.0)
             iio.imwrite(path, np.round(img * 255.0).astype(np.uint8))
@@ -71,7 +81,8 @@ def main(argv=None) -> int:
         record.append(entry)
     (a.out / "transforms_train.json").write_text(json.dumps(meta, indent=2))
     (a.out / "perturbation.json").write_text(json.dumps(
-        {"source": str(a.src), "seed": a.seed, "exposure": a.exposure, "poses": a.poses,
+        {"source": str(a.src), "seed": a.seed, "exposure": a.exposure, "no_clip": a.no_clip,
+         "poses": a.poses,
          "frames": record}, indent=2))
     for extra in ("MANIFEST.sha256",):     # the copy no longer matches the source's manifest
         (a.out / extra).unlink(missing_ok=True)

@@ -12,6 +12,8 @@ import numpy as np
 ROW = 12
 MEAN_ITERATIONS = 20   # recentre's fixed-point iterations (a few reach 1e-13 near the identity)
 IDENTITY = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0], np.float64)
+# the entries a diagonal transform trains (splat.exposure_matrix "diagonal"): A's diagonal, b
+TRAINED_DIAGONAL = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, 1], bool)
 
 
 def split(row):
@@ -72,16 +74,18 @@ def backward(rgb, grad_out, P, v, T=None, background=None, clip=False):
     return g @ A, np.concatenate([(g.T @ x).ravel(), (g * (1 - T)[:, None]).sum(axis=0)])
 
 
-def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t):
+def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t, diagonal=False):
     """Adam step t (1-based) of row v, with the pull 2 reg (P - I) added to ``grad_row``;
-    returns new (P, m, vm), float64 copies."""
+    diagonal: A's off-diagonal entries are left as they are. Returns new (P, m, vm), float64
+    copies."""
     P = np.array(P, np.float64).reshape(-1, ROW)
     m = np.array(m, np.float64).reshape(-1, ROW)
     vm = np.array(vm, np.float64).reshape(-1, ROW)
-    g = np.asarray(grad_row, np.float64) + 2.0 * reg * (P[v] - IDENTITY)
-    m[v] = b1 * m[v] + (1 - b1) * g
-    vm[v] = b2 * vm[v] + (1 - b2) * g * g
-    P[v] -= lr * (m[v] / (1 - b1 ** t)) / (np.sqrt(vm[v] / (1 - b2 ** t)) + eps)
+    k = TRAINED_DIAGONAL if diagonal else np.ones(ROW, bool)
+    g = (np.asarray(grad_row, np.float64) + 2.0 * reg * (P[v] - IDENTITY))[k]
+    m[v, k] = b1 * m[v, k] + (1 - b1) * g
+    vm[v, k] = b2 * vm[v, k] + (1 - b2) * g * g
+    P[v, k] -= lr * (m[v, k] / (1 - b1 ** t)) / (np.sqrt(vm[v, k] / (1 - b2 ** t)) + eps)
     return P, m, vm
 
 
@@ -148,14 +152,16 @@ def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=Tru
     return g
 
 
-def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, clip=False):
+def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, clip=False,
+            diagonal=False):
     """The row moved by ``eta`` toward the least-squares transform of a whole render (a
     Gauss-Newton step of the squared error, which is quadratic in the row): the render rgb
     [n, 3] and transmittance T [n] on ``render_bg``; masked: regress target - T bg on
     [c, 1 - T] (c = rgb - T render_bg), else target on [rgb, 1]; pulled toward the identity by
     reg n |M - I|^2 (the loss's pull, per pixel); clip: pixels with a clipped target channel
-    (0 or 1: the camera's clip hides what the transform gave there) are left out. Returns the
-    new 12-float row (float64)."""
+    (0 or 1: the camera's clip hides what the transform gave there) are left out; diagonal:
+    each channel fitted on its own colour and the offset (A's off-diagonal entries kept).
+    Returns the new 12-float row (float64)."""
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
     y = np.asarray(target, np.float64).reshape(-1, 3)
     if clip:
@@ -171,10 +177,18 @@ def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, c
         y = y - t * np.asarray(background, np.float64)[:3]
     else:
         F = np.concatenate([x, np.ones((n, 1))], axis=1)
+    row = np.asarray(row, np.float64)
+    if diagonal:
+        fitted = row.copy()
+        for i in range(3):       # channel i on [its colour, the offset's column]
+            Fi = F[:, [i, 3]]
+            gain, off = np.linalg.solve(Fi.T @ Fi + reg * n * np.eye(2),
+                                        Fi.T @ y[:, i] + reg * n * np.array([1.0, 0.0]))
+            fitted[4 * i], fitted[9 + i] = gain, off
+        return row + eta * (fitted - row)
     E = np.concatenate([np.eye(3), np.zeros((1, 3))])           # the identity, as M^T
     Mt = np.linalg.solve(F.T @ F + reg * n * np.eye(4), F.T @ y + reg * n * E)
     fitted = np.concatenate([Mt[:3].T.ravel(), Mt[3]])
-    row = np.asarray(row, np.float64)
     return row + eta * (fitted - row)
 
 

@@ -129,6 +129,9 @@ class SplatConfig:
     #                                 formed: a fit to an unformed render is noise)
     exposure_reg: float = 0.001     # pull of each transform toward the identity,
     #                                 reg (|A - I|^2 + |b|^2) added to the loss
+    exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
+    #                                 gain and an offset per channel (white balance and
+    #                                 exposure without mixing)
     exposure_clip: bool = False     # the transformed render clamped to [0, 1], as the camera
     #                                 clipped what it over- or under-exposed; clipped channels
     #                                 pass no gradient (cl/splat_exposure.cl)
@@ -236,6 +239,8 @@ class SplatConfig:
             (0 < self.lr_exposure_final <= self.lr_exposure, "splat.lr_exposure_final",
              "must be in (0, splat.lr_exposure]"),
             (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),
+            (self.exposure_matrix in EXPOSURE_MATRICES, "splat.exposure_matrix",
+             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
             (self.exposure_clip or not self.exposure_clip_inward, "splat.exposure_clip_inward",
              "needs splat.exposure_clip=true"),
             (0 <= self.exposure_fit <= 1, "splat.exposure_fit", "must be in [0, 1]"),
@@ -250,6 +255,7 @@ class SplatConfig:
 
 INIT_MODES = ("auto", "points", "random")
 STRATEGIES = ("default", "mcmc")   # clrf/splat/strategy.py
+EXPOSURE_MATRICES = ("full", "diagonal")   # splat.exposure_matrix (clrf/splat/exposure.py)
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).
 SPLAT_PRESETS = {

@@ -27,7 +27,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.cltypes  # noqa: F401  (cl.cltypes)
 
-from ..references.reference_exposure import IDENTITY, ROW, fit_row, recentre
+from ..references.reference_exposure import IDENTITY, ROW, TRAINED_DIAGONAL, fit_row, recentre
 from ..runtime.programs import download, launch, scratch, upload
 
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
@@ -44,7 +44,7 @@ class Exposure:
     """The transforms of ``n_images`` training images on ``device`` (module doc)."""
 
     def __init__(self, device, n_images: int, lr: float, reg: float, state: dict | None = None,
-                 masked: bool = False, clip: bool = False):
+                 masked: bool = False, clip: bool = False, diagonal: bool = False):
         if n_images < 1:
             raise ValueError(f"Exposure needs at least one image, got {n_images}")
         self.device, self.n_images = device, int(n_images)
@@ -52,6 +52,8 @@ class Exposure:
         # clamped to [0, 1] as a camera clips (exposure_clip): 0 no, 1 clipped channels pass
         # no gradient, 2 only one that points back inside (exposure_clip_inward)
         self.clip = int(clip)
+        # a gain and an offset per channel: A's off-diagonal entries stay 0 (exposure_matrix)
+        self.diagonal = bool(diagonal)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -127,7 +129,7 @@ class Exposure:
                (np.int32(items), partials.data, self.P.data, self.m.data, self.v.data,
                 np.int32(v), np.float32(self.lr), np.float32(self.reg), np.float32(b1),
                 np.float32(b2), np.float32(ADAM_EPS), np.float32(1 - b1 ** t),
-                np.float32(1 - b2 ** t)), local_size=ROW)
+                np.float32(1 - b2 ** t), np.int32(self.diagonal)), local_size=ROW)
 
     def fit(self, v: int, rgb, T, render_bg, background, target, eta: float):
         """Row v moved by ``eta`` toward the least-squares transform of this render (
@@ -136,7 +138,7 @@ class Exposure:
         Adam steps would not. The row's Adam step count goes on, its moments stay."""
         row = download(self.P[v:v + 1]).reshape(ROW)
         new = fit_row(download(rgb), download(T), render_bg, background, target, row,
-                      self.reg, eta, self.masked, self.clip)
+                      self.reg, eta, self.masked, self.clip, self.diagonal)
         if np.all(np.isfinite(new)):
             self.P[v:v + 1].set(np.ascontiguousarray(new.astype(np.float32)[None]))
         self.steps[v] += 1
@@ -147,7 +149,10 @@ class Exposure:
         the test views' identity means it); the model calls it after each pass over its
         views."""
         trained = np.flatnonzero(self.steps > 0)
-        P = recentre(self.rows(), trained)
+        rows = self.rows()
+        P = recentre(rows, trained)
+        if self.diagonal:   # diagonal rows have a diagonal mean: keep their zeros exact
+            P[:, ~TRAINED_DIAGONAL] = rows[:, ~TRAINED_DIAGONAL]
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:
