@@ -12,9 +12,11 @@ that render, ``A rgb + b``, is then exactly what the loss sees (cl/splat_exposur
 twin: clrf/references/reference_exposure.py). Rows start at the identity and are pulled toward it by
 ``reg (|A - I|^2 + |b|^2)``, which also fixes the scale the scene's colours and the transforms
 could otherwise trade; each row takes an Adam step (its own learning rate and step count)
-whenever its image is trained. Test views are rendered under the identity, as published;
-clrf's final evaluation also reports NeRF-W's protocol (a transform fitted on the left half of
-each test image, the right half scored: ``reference_exposure.half_fitted_psnr``).
+whenever its image is trained. With ``diagonal`` (``splat.exposure_matrix=diagonal``) only A's
+diagonal and b train: a gain and an offset per channel. Test views are rendered under the
+identity, as published; clrf's final evaluation also reports NeRF-W's protocol (a transform
+fitted on the left half of each test image, the right half scored:
+``reference_exposure.half_fitted_psnr``).
 
 >>> exp = Exposure(dev, n_images=100, lr=5e-3, reg=1e-3)
 >>> bg_v = exp.background(v, bg)                  # render view v on this
