@@ -223,10 +223,15 @@ def test_diagonal_adam_trains_gains_and_offsets_only(device):
     assert np.array_equal(got[:, off], P[:, off])
     assert not download(exp.m).reshape(3, 12)[:, off].any()
     assert np.abs(got[0, ref.TRAINED_DIAGONAL] - P[0, ref.TRAINED_DIAGONAL]).min() > 0
-    # the full model moves the same row's off-diagonal entries
-    full = ref.adam(P, np.zeros((3, 12)), np.zeros((3, 12)), 0, grad_p, 0.02, 0.5, 0.9, 0.999,
-                    1e-15, 1)[0]
+    # the full model moves the same row's off-diagonal entries; its gains and offsets take
+    # the diagonal model's step (Adam is per entry)
+    zeros = np.zeros((3, 12))
+    full = ref.adam(P, zeros, zeros, 0, grad_p, 0.02, 0.5, 0.9, 0.999, 1e-15, 1)[0]
     assert np.abs(full[0, off] - P[0, off]).min() > 0
+    diag = ref.adam(P, zeros, zeros, 0, grad_p, 0.02, 0.5, 0.9, 0.999, 1e-15, 1,
+                    diagonal=True)[0]
+    np.testing.assert_array_equal(diag[0, ref.TRAINED_DIAGONAL],
+                                  full[0, ref.TRAINED_DIAGONAL])
 
 
 def test_diagonal_rows_recentre_to_diagonal_rows(device):
