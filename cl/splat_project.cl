@@ -53,6 +53,8 @@
  * its opacity so that its integral is kept, and the screen-space dilation is compensated alike:
  *   se_k = sqrt(s_k^2 + f2)  (Sigma3 = Rot diag(se^2) Rot^T),  c3 = prod_k s_k / se_k,
  *   c2 = sqrt(max(0, det(Sigma2 - COV_DILATION I) / det(Sigma2))),  opacity = sigmoid(logit) c3 c2.
+ * Here the host sets COV_DILATION to the 2D filter, splat.aa_filter2d (Mip-Splatting's 0.1 px^2:
+ * with the 3D filter's 0.2 of a training pixel it makes up the plain projection's 0.3).
  * Backward: dL/dc = dL/dopacity sigmoid(logit); c2 adds to G_S2 through the two
  * determinants (d c2 = c2 / 2 (d det0 / det0 - d det1 / det1)); c3 adds
  * dL/dc3 c3 f2 / se_k^2 to dL/dlog_s_k, and the covariance's share of dL/dlog_s_k is

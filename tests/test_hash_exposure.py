@@ -62,6 +62,42 @@ def test_rays_and_their_gradient_match_the_twin(device, n, masked):
     assert np.all(got[1] == 0)      # a row without rays: neither data nor pull
 
 
+def test_diagonal_rows_train_gains_and_offsets_only(device):
+    """hash.exposure_matrix=diagonal: the kernel's gradient is the twin's with A's off-diagonal
+    entries 0 (the trained ones are the full model's), Adam leaves those entries at exactly 0,
+    and so does recentring."""
+    rng = np.random.default_rng(17)
+    pixels, V, n = 29, 4, 3 * LOCAL + 5
+    state, target, index, P = _batch(rng, n, V, pixels)
+    P[:, ~ref.TRAINED_DIAGONAL] = 0.0                # rows of gains and offsets
+    q = device.queue
+    exp = RayExposure(device, V, pixels, lr=1e-30, reg=0.3, masked=True, diagonal=True)
+    exp.P.set(np.ascontiguousarray(P))
+    st, idx = upload(q, state), upload(q, index)
+    exp.forward(st, BG, upload(q, target), idx)
+    r = ref.rays(state, BG, target, P, index, pixels)[0]
+    scale = 1.0 / (3 * n)
+    exp.backward_and_step(st, BG, idx, scale)
+    got = download(exp.grad).reshape(V, ref.ROW)
+    want = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.3, diagonal=True)
+    full = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.3)
+    np.testing.assert_allclose(got, want, rtol=tol.EXPOSURE_GRAD_RTOL,
+                               atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5 * scale)
+    assert np.all(got[:, ~ref.TRAINED_DIAGONAL] == 0)
+    np.testing.assert_array_equal(want[:, ref.TRAINED_DIAGONAL],
+                                  full[:, ref.TRAINED_DIAGONAL])
+    assert np.abs(full[[0, 2, 3]][:, ~ref.TRAINED_DIAGONAL]).min() > 0   # full would move them
+    exp.lr = 0.05
+    for _ in range(3):
+        exp.forward(st, BG, upload(q, target), idx)
+        exp.backward_and_step(st, BG, idx, scale)
+    rows = exp.rows()
+    assert np.all(rows[:, ~ref.TRAINED_DIAGONAL] == 0)
+    assert np.abs(rows[[0, 2, 3]] - P[[0, 2, 3]])[:, ref.TRAINED_DIAGONAL].min() > 0
+    exp.recentre()
+    assert np.all(exp.rows()[:, ~ref.TRAINED_DIAGONAL] == 0)
+
+
 def test_background_share_matches_the_twin(device):
     """exposure_rays_bg adds -2 s dt_j bgt_i to the live samples' dL/dsigma only."""
     from types import SimpleNamespace

@@ -65,9 +65,11 @@ def _scene(gains):
     return ds
 
 
-def test_training_learns_each_images_gain(device):
+@pytest.mark.parametrize("matrix", ["full", "diagonal"])
+def test_training_learns_each_images_gain(device, matrix):
     """Training images scaled by per-image gains: their transforms' diagonals order as the
-    gains do; the checkpoint keeps them."""
+    gains do (with hash.exposure_matrix=diagonal the other entries of A stay 0); the
+    checkpoint keeps them."""
     from clrf import registry
     from clrf.hash.model import HashModel
     from clrf.training.config import build_config
@@ -77,7 +79,7 @@ def test_training_learns_each_images_gain(device):
     cfg = build_config("procedural", overrides={
         "train": {"model": "hash"},
         "hash": {"exposure": True, "lr_exposure": 0.01, "batch_samples": 0,
-                 "batch_rays": 1024}})
+                 "batch_rays": 1024, "exposure_matrix": matrix}})
     m = registry.get("hash").create(device, cfg, ds, ds.background)
     assert m.ray_index and m.exposure.n_images == len(ds.split["train"])
     rays = training_rays(device, ds)
@@ -86,7 +88,13 @@ def test_training_learns_each_images_gain(device):
     rows = m.exposure.rows()
     diag = {k: rows[k][[0, 4, 8]].mean() for k in gains}
     assert min(diag[1], diag[3]) > max(diag[0], diag[2]), diag
+    assert m.exposure.diagonal == (matrix == "diagonal")
+    if matrix == "diagonal":
+        assert np.all(rows[:, ~ref.TRAINED_DIAGONAL] == 0)
+    else:
+        assert np.any(rows[:, ~ref.TRAINED_DIAGONAL] != 0)
     back = HashModel.from_state_dict(device, m.state_dict())
+    assert back.exposure.diagonal == m.exposure.diagonal
     assert np.array_equal(back.exposure.rows(), rows) and back.exposure.steps == 80
     assert back.exposure.pixels == m.exposure.pixels
 
@@ -106,7 +114,7 @@ def test_a_hash_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
 
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
-                                       ("exposure_reg", -0.1)])
+                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed")])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "hash", "--out", str(tmp_path / "run"),

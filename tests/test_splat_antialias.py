@@ -35,19 +35,43 @@ def test_constants_match_the_twin():
     assert d["ANTIALIASED"] == 1 and "ANTIALIASED" not in sr.project_defines(3)
     for name in ("FILTER3D_VAR", "FILTER3D_MARGIN"):
         assert float(np.float32(d[name])) == getattr(rs, name), name
+    # the 2D filter: Mip-Splatting's in the anti-aliased projection, 3DGS's dilation without
+    assert float(np.float32(d["COV_DILATION"])) == rs.AA_FILTER2D == np.float32(0.1)
+    assert float(np.float32(sr.project_defines(3)["COV_DILATION"])) == rs.COV_DILATION
+    assert sr.project_defines(3, antialiased=True, filter2d=0.3)["COV_DILATION"] == 0.3
+    assert sr.project_defines(3, filter2d=0.05)["COV_DILATION"] == sr.COV_DILATION
 
 
-def test_twin_gradient_vs_finite_differences():
+def test_the_2d_filter_setting():
+    """splat.aa_filter2d: Mip-Splatting's 0.1 px^2 by default, checked; an anti-aliased
+    checkpoint written before the setting keeps the 0.3 px^2 it was trained with."""
+    from clrf.splat.config import SplatConfig
+    assert SplatConfig().aa_filter2d == pytest.approx(0.1)
+    bad = SplatConfig(aa_filter2d=0.0)
+    assert [c for c in bad.checks() if not c[0]][0][1] == "splat.aa_filter2d"
+    old = {k: v for k, v in SplatConfig(antialiased=True).__dict__.items()
+           if k != "aa_filter2d"}
+    assert SplatConfig.from_dict(old).aa_filter2d == 0.3
+    assert SplatConfig.from_dict(dict(old, antialiased=False)).aa_filter2d == pytest.approx(0.1)
+    assert SplatConfig.from_dict(dict(old, aa_filter2d=0.2)).aa_filter2d == 0.2
+
+
+@pytest.mark.parametrize("filter2d", [0.1, 0.3])
+def test_twin_gradient_vs_finite_differences(filter2d):
     """The anti-aliased twin's analytic gradient of L = sum(w * rgb) against central differences
-    of its render, for Gaussians whose filters matter: opacity factors c2 down to 0.16 and c3
-    down to 0.65, one with x/z clamped."""
+    of its render, for Gaussians whose filters matter: opacity factors c2 below 0.3 and c3
+    below 0.7 (with either 2D filter: one Gaussian of a tenth of a pixel), one with x/z
+    clamped."""
     g = _f64(_gaussians(6, 2, seed=21, spread=0.4, log_scale=(-4.5, -2.5)))
     g["means"][0] = [2.6, 0.1, 0.2]
     g["log_scales"][0] = [-0.6, -1.0, -0.8]
+    g["log_scales"][1] = [-5.5, -5.0, -5.2]
     g["filter3d"] = np.random.default_rng(3).uniform(0, 3e-4, 6)
+    g["filter2d"] = np.array(filter2d)
     cam = {"viewmat": rs.look_at((0.3, -0.2, -3.0), (0, 0, 0)), "fx": 30.0, "fy": 32.0,
            "cx": 16.0, "cy": 15.0, "width": 32, "height": 32, "near": 0.1}
     I = rs._intermediates(g, cam)
+    assert I["dil"] == pytest.approx(filter2d)
     assert I["c2"].min() < 0.3 and I["c3"].min() < 0.7 and I["clamp_x"][0]
     w = np.random.default_rng(22).normal(size=(32, 32, 3))
     grads = rs.render_backward(g, cam, w, BG)
@@ -61,23 +85,32 @@ def test_without_the_filter_the_twin_is_the_plain_projection():
     g = _f64(_gaussians(20, 1, seed=2))
     _, cam = _camera()
     plain = rs.project(g, cam)
-    zero = rs.project(dict(g, filter3d=np.zeros(20)), cam)
-    c2 = rs._intermediates(dict(g, filter3d=np.zeros(20)), cam)["c2"]
-    # f2 = 0 leaves the 3D part out; the 2D compensation alone scales the opacity
+    same = dict(g, filter3d=np.zeros(20), filter2d=rs.COV_DILATION)
+    zero = rs.project(same, cam)
+    c2 = rs._intermediates(same, cam)["c2"]
+    # f2 = 0 leaves the 3D part out; with the plain dilation as the 2D filter, its
+    # compensation alone scales the opacity
     for k in ("xy", "conic", "radius", "color"):
         np.testing.assert_array_equal(zero[k], plain[k])
     np.testing.assert_allclose(zero["opacity"], plain["opacity"] * c2, rtol=1e-15)
     assert 0 < c2[plain["visible"]].min() and c2.max() < 1
+    # the default 2D filter adds 0.1 px^2 where the plain projection adds 0.3
+    Ip = rs._intermediates(g, cam)
+    Ia = rs._intermediates(dict(g, filter3d=np.zeros(20)), cam)
+    np.testing.assert_allclose(Ia["a"] + rs.COV_DILATION - rs.AA_FILTER2D, Ip["a"], rtol=1e-12)
+    np.testing.assert_allclose(Ia["c"] + rs.COV_DILATION - rs.AA_FILTER2D, Ip["c"], rtol=1e-12)
 
 
-@pytest.mark.parametrize("degree", [1, 3])
-def test_project_and_backward_match_the_twin(device, degree):
+@pytest.mark.parametrize("degree,filter2d", [(1, 0.1), (3, 0.1), (1, 0.3)])
+def test_project_and_backward_match_the_twin(device, degree, filter2d):
     """ANTIALIASED=1 forward and backward against the twin on ordinary and stiff Gaussians
-    (the stiff set has a point-sized Gaussian, whose 2D factor is ~0, and a huge one)."""
-    g = _with_filter(_stiff_gaussians(degree, seed=5), seed=7)
+    (the stiff set has a point-sized Gaussian, whose 2D factor is ~0, and a huge one), with
+    the default 2D filter and gsplat's 0.3 px^2."""
+    g = dict(_with_filter(_stiff_gaussians(degree, seed=5), seed=7), filter2d=filter2d)
     n = len(g["means"])
     cam, rcam = _camera()
-    r = SplatRasterizer(device, degree, antialiased=True)
+    r = SplatRasterizer(device, degree, antialiased=True, filter2d=filter2d)
+    assert r.filter2d == filter2d
     params = _upload(device, r, g)
     proj = r.project(params, cam)
     want = rs.project(_f64(g), rcam)

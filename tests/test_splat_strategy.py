@@ -304,6 +304,43 @@ def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
     assert isinstance(back.strategy, ss.MCMCStrategy)
 
 
+def test_mcmc_relocation_in_place_is_the_host_edit(device):
+    """At the cap, mcmc relocates on the device (refine_in_place: the opacities down, the drawn
+    rows gathered, the changed rows and their zeroed moments put back): the parameters and
+    moments equal the host edit's (strategy.refine on the downloaded arrays, the same draws);
+    while the count grows it declines and the host edit runs."""
+    from clrf.splat.model import SplatModel
+    m, _ = _model(device, strategy="mcmc", init_points=300, max_gaussians=300,
+                  densify_min_steps=1)
+    for it in range(3):
+        assert np.isfinite(m.train_step(it))
+    lo = m.get_rows("opacity_logits")
+    lo[::7] = -12.0                                        # 43 dead Gaussians
+    m.params["opacity_logits"].set(lo)
+    st = m.state_dict()
+    twin = SplatModel.from_state_dict(device, st)
+    h, mo = m.host_params(), m.host_moments()
+    mo.pop("stats")
+    want_h, want_m, want_msg = m.strategy.refine(h, mo, None, cap=300,
+                                                 rng=np.random.default_rng(4))
+    msg = twin.strategy.refine_in_place(twin, np.random.default_rng(4))
+    assert msg == want_msg and msg.startswith("relocated 43 of 300") and twin.n == 300
+    got_h, got_m = twin.host_params(), twin.host_moments()
+    for k in sp.NAMES:
+        np.testing.assert_array_equal(got_h[k], want_h[k].astype(np.float32), err_msg=k)
+        for mk in sp.moment_keys(k):
+            np.testing.assert_array_equal(got_m[mk], want_m[mk], err_msg=mk)
+    assert np.any(got_m["means_m"]) and not np.any(got_m["stats"][:, ::7])
+    # gathering rows is the download's rows
+    np.testing.assert_array_equal(twin.get_rows("sh", [5, 2, 5]), got_h["sh"][[5, 2, 5]])
+    with pytest.raises(IndexError, match="put_rows"):
+        twin.put_rows([300], {})
+    # under the cap the count grows: not in place
+    m2, _ = _model(device, strategy="mcmc", init_points=300, max_gaussians=400)
+    assert m2.strategy.refine_in_place(m2, np.random.default_rng(0)) is None
+    assert "added 15" in m2.refine() and m2.n == 315
+
+
 def test_default_model_resumes_an_old_checkpoint_state(device):
     from clrf.splat.model import SplatModel
     m, _ = _model(device, init_points=200)

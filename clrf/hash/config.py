@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass
 
 from ..nerf.config import MLP_ROWS
+from ..splat.config import EXPOSURE_MATRICES
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,8 @@ class HashConfig:
     #                                 rays in a batch steps: each step, on a full batch)
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
+    exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
+    #                                 gain and an offset per channel (as splat.exposure_matrix)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "HashConfig":
@@ -141,6 +144,8 @@ class HashConfig:
             (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
             (0 < self.lr_exposure <= 1, "hash.lr_exposure", "must be in (0, 1]"),
             (self.exposure_reg >= 0, "hash.exposure_reg", "must be >= 0"),
+            (self.exposure_matrix in EXPOSURE_MATRICES, "hash.exposure_matrix",
+             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
             (self.lr_schedule in ("budget", "steps"), "hash.lr_schedule",
              "must be 'budget' or 'steps'"),

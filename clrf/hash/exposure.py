@@ -29,7 +29,7 @@ import numpy as np
 import pyopencl.array as cla
 import pyopencl.cltypes as clt
 
-from ..references.reference_exposure import IDENTITY, ROW, recentre
+from ..references.reference_exposure import IDENTITY, ROW, TRAINED_DIAGONAL, recentre
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, launch, scratch, upload
 from ..splat.exposure import program
@@ -43,11 +43,12 @@ class RayExposure:
 
     def __init__(self, device, n_images: int, pixels: int, lr: float, reg: float,
                  beta=(0.9, 0.999), eps: float = 1e-15, state: dict | None = None,
-                 masked: bool = False):
+                 masked: bool = False, diagonal: bool = False):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
         self.device, self.n_images, self.pixels = device, int(n_images), int(pixels)
         self.masked = bool(masked)     # an RGBA capture: the background stays (module doc)
+        self.diagonal = bool(diagonal)   # a gain and an offset per channel (exposure_matrix)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -101,7 +102,8 @@ class RayExposure:
         launch(self.device, self._prg.kernel("exposure_rays_grad"), self.n_images * LOCAL,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
                 np.int32(self.masked), self._bg(background), self._resid.data, self.P.data,
-                np.float32(loss_scale), np.float32(self.reg), self.grad.data), local_size=LOCAL)
+                np.float32(loss_scale), np.float32(self.reg), np.int32(self.diagonal),
+                self.grad.data), local_size=LOCAL)
         self.steps += 1
         self.opt.step(None, self.lr, t=self.steps)
         self._resid = self._bgt = None
@@ -112,7 +114,10 @@ class RayExposure:
         """Takes the rows' geometric mean transform out of them
         (``reference_exposure.recentre``); ``backward_and_step`` calls it every
         RECENTRE_EVERY steps."""
-        P = recentre(self.rows(), np.arange(self.n_images))
+        rows = self.rows()
+        P = recentre(rows, np.arange(self.n_images))
+        if self.diagonal:   # diagonal rows have a diagonal mean: keep their zeros exact
+            P[:, ~TRAINED_DIAGONAL] = rows[:, ~TRAINED_DIAGONAL]
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:

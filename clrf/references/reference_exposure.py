@@ -134,10 +134,12 @@ def rays_bg(offsets, dt, sigma, bgt, scale, dsigma):
     return out
 
 
-def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=True):
+def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=True,
+              diagonal=False):
     """dL/dP [V, 12] of rays_loss from its residuals (dL/dA = 2 s sum r x^T, dL/db =
     2 s sum y r: x = c, y = a masked, else x = c + T bg, y = 1), plus each row's pull
-    2 reg (P_v - I) weighted by its share of the batch (its rays / n)."""
+    2 reg (P_v - I) weighted by its share of the batch (its rays / n); ``diagonal``: 0 for
+    A's off-diagonal entries (not trained)."""
     c, a, _, _, _ = _ray_terms(state, background, P, index, pixels, masked)
     r = np.asarray(resid, np.float64).reshape(-1, 3)
     P = np.asarray(P, np.float64).reshape(-1, ROW)
@@ -149,6 +151,8 @@ def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=Tru
         g[v, :9] = 2.0 * scale * (r[sel].T @ c[sel]).ravel()
         g[v, 9:] = 2.0 * scale * (a[sel] * r[sel]).sum(axis=0)
         g[v] += 2.0 * reg * (sel.sum() / max(n, 1)) * (P[v] - IDENTITY)
+    if diagonal:
+        g[:, ~TRAINED_DIAGONAL] = 0.0
     return g
 
 

@@ -23,6 +23,7 @@ ALPHA_MAX = float(np.float32(0.99))
 ALPHA_MIN = float(np.float32(1.0 / 255.0))
 T_MIN = float(np.float32(1e-4))
 COV_DILATION = float(np.float32(0.3))
+AA_FILTER2D = float(np.float32(0.1))   # the anti-aliased projection's 2D filter
 FRUSTUM_GUARD = float(np.float32(1.3))
 SIGMA_RADIUS = 3.0
 FILTER3D_VAR = float(np.float32(0.2))
@@ -75,7 +76,8 @@ def tile_rect(xy, radius, ntx, nty, tile=TILE) -> np.ndarray:
 def _intermediates(params, cam):
     """Everything the projection computes (as cl/splat_project.cl splat_project_one). With
     ``params["filter3d"]`` (f2 [n], the 3D filter's variance) the anti-aliased projection
-    (ANTIALIASED=1): scales widened to se = sqrt(s^2 + f2), opacity factors c3 and c2."""
+    (ANTIALIASED=1): scales widened to se = sqrt(s^2 + f2), opacity factors c3 and c2, and the
+    2D filter ``params.get("filter2d", AA_FILTER2D)`` px^2 in place of COV_DILATION."""
     m = np.asarray(params["means"], np.float64)
     ls = np.asarray(params["log_scales"], np.float64)
     q = np.asarray(params["quats"], np.float64)
@@ -91,6 +93,7 @@ def _intermediates(params, cam):
     qn = np.where(vis[:, None], q / np.where(qlen > 0, qlen, 1)[:, None], [1.0, 0, 0, 0])
     s = np.exp(ls)
     aa = params.get("filter3d") is not None
+    dil = float(np.float32(params.get("filter2d", AA_FILTER2D))) if aa else COV_DILATION
     f2 = np.asarray(params["filter3d"], np.float64) if aa else np.zeros(n)
     se = np.sqrt(s * s + f2[:, None]) if aa else s
     c3 = np.prod(s / se, 1) if aa else np.ones(n)
@@ -109,13 +112,13 @@ def _intermediates(params, cam):
     Vm = Tm @ S3
     with np.errstate(over="ignore", invalid="ignore"):
         S2 = Vm @ np.transpose(Tm, (0, 2, 1))
-        a = S2[:, 0, 0] + COV_DILATION
+        a = S2[:, 0, 0] + dil
         b = S2[:, 0, 1]
-        c = S2[:, 1, 1] + COV_DILATION
+        c = S2[:, 1, 1] + dil
         sc = np.maximum(a, c)
         an, bn, cn = a / sc, b / sc, c / sc
         detn = an * cn - bn * bn
-        dn = COV_DILATION / sc
+        dn = dil / sc
         det0n = (an - dn) * (cn - dn) - bn * bn
         c2 = (np.where((det0n > 0) & (detn > 0), np.sqrt(np.abs(det0n / detn)), 0.0) if aa
               else np.ones(n))
@@ -126,7 +129,8 @@ def _intermediates(params, cam):
         lam = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
         radius = np.where(vis, SIGMA_RADIUS * np.sqrt(np.where(vis, lam, 0.0)), 0.0)
     xy = np.stack([fx * tc[:, 0] / z + cam["cx"], fy * tc[:, 1] / z + cam["cy"]], 1)
-    I.update(aa=aa, f2=f2, se=se, c3=c3, c2=c2, sc=sc, a=a, b=b, c=c, detn=detn, det0n=det0n)
+    I.update(aa=aa, dil=dil, f2=f2, se=se, c3=c3, c2=c2, sc=sc, a=a, b=b, c=c, detn=detn,
+             det0n=det0n)
     I.update(tc=tc, vis=vis, qn=qn, qlen=qlen, s=s, Rq=Rq, S3=S3, z=z, rx=rx, ry=ry,
              clamp_x=clamp_x, clamp_y=clamp_y, Tm=Tm, Vm=Vm, conic=conic, xy=xy, radius=radius)
     return I
@@ -408,7 +412,7 @@ def _backward(params, cam, grads2d):
     if I["aa"]:   # c2 = sqrt(det0 / det1) through Sigma2's entries (b counts twice)
         with np.errstate(divide="ignore", invalid="ignore"):
             sc, detn, det0n = I["sc"], I["detn"], I["det0n"]
-            an, bn, cn, dn = I["a"] / sc, I["b"] / sc, I["c"] / sc, COV_DILATION / sc
+            an, bn, cn, dn = I["a"] / sc, I["b"] / sc, I["c"] / sc, I["dil"] / sc
             g2 = np.where(c2 > 0, g_c * c3 * 0.5 * c2 / sc, 0.0)
             live = c2 > 0
             GS[:, 0, 0] += np.where(live, g2 * ((cn - dn) / det0n - cn / detn), 0.0)

@@ -158,6 +158,10 @@ class SplatConfig:
     #                                 and the screen-space dilation with opacity compensation,
     #                                 so a render at another scale (zoom, clrf render --scale)
     #                                 neither fattens nor needles thin things
+    aa_filter2d: float = 0.1        # with antialiased, the 2D filter's variance (px^2):
+    #                                 Mip-Splatting's 0.1 (about a one-pixel box; the 3D
+    #                                 filter's 0.2 of a training pixel makes up the rest of
+    #                                 3DGS's 0.3 dilation). gsplat's antialiased mode: 0.3
 
     def first_opacity(self) -> float:
         """The first Gaussians' opacity (init_opacity, or the strategy's published value)."""
@@ -182,6 +186,8 @@ class SplatConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"SplatConfig: unknown fields {sorted(unknown)}")
+        if d.get("antialiased") and "aa_filter2d" not in d:
+            d = dict(d, aa_filter2d=0.3)   # anti-aliased checkpoints from before the field
         return SplatConfig(**d)
 
     def checks(self):
@@ -250,6 +256,7 @@ class SplatConfig:
             (0 < self.lr_pose_final <= self.lr_pose, "splat.lr_pose_final",
              "must be in (0, splat.lr_pose]"),
             (self.pose_reg >= 0, "splat.pose_reg", "must be >= 0"),
+            (0 < self.aa_filter2d <= 1, "splat.aa_filter2d", "must be in (0, 1] px^2"),
         ]
 
 

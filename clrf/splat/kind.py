@@ -58,8 +58,8 @@ def programs(device, cfg):
     from . import exposure, loss, raster
     degree, tile = cfg.splat.sh_degree, raster.default_tile(device)
     for aa in (False, True):    # splat.antialiased
-        raster.programs(device, degree, tile, aa)
-        raster.pose_program(device, degree, tile, aa)
+        raster.programs(device, degree, tile, aa, cfg.splat.aa_filter2d)
+        raster.pose_program(device, degree, tile, aa, cfg.splat.aa_filter2d)
     raster.raster_program(device, degree, tile, depth=True)
     raster.raster_program(device, degree, tile, absgrad=True)
     loss.program(device)

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import asdict
 
 import numpy as np
+import pyopencl.array as cla
 
 from ..interface import Budget, StateError, Unsupported
 from ..runtime.optim import AdamSet, Optimizer, expon_lr
@@ -77,7 +78,8 @@ class SplatModel:
         self.seed = int(seed)
         self.max_count = int(max_count if max_count is not None else config.max_gaussians)
         self.rast = SplatRasterizer(device, config.sh_degree, default_tile(device),
-                                    antialiased=config.antialiased)
+                                    antialiased=config.antialiased,
+                                    filter2d=config.aa_filter2d)
         self.n_basis = self.rast.n_basis
         self.step = 0                  # Adam updates so far
         # the step's loss stays on the device until read (GPU shapes; train_step)
@@ -323,17 +325,75 @@ class SplatModel:
         return "; ".join(self.strategy.on_iteration(self, it, f)) or None
 
     def refine(self) -> str:
-        """One refinement of the density strategy now (host side: the parameters and moments
-        down, the strategy's edit, up again); the count stays at or below the cap. Returns a
-        log line."""
+        """One refinement of the density strategy now; the count stays at or below the cap.
+        In place on the device where the strategy can (``refine_in_place``); else host side:
+        the parameters and moments down, the device's copies released (so that the edit's
+        peak holds two host copies, not those and two device copies), the strategy's edit, up
+        again. Returns a log line."""
+        rng = np.random.default_rng((self.seed, 7, self.step))
+        msg = self.strategy.refine_in_place(self, rng)
+        if msg is not None:
+            return msg
         mo = self.host_moments()
         stats = mo.pop("stats")
-        rng = np.random.default_rng((self.seed, 7, self.step))
+        host = self.host_params()
+        self._release()
         host, moments, msg = self.strategy.refine(
-            self.host_params(), mo, stats, extent=self.extent, cap=self.max_count,
+            host, mo, stats, extent=self.extent, cap=self.max_count,
             resets=self.refine_state.resets, rng=rng)
+        del mo
         self._set_host(host, moments)
         return msg
+
+    def _release(self):
+        """Drops the device's parameters, moments, optimisers and statistics (``_set_host``
+        makes new ones)."""
+        self.params = self.moments = self.opts = self._adam_groups = None
+        self.accum = self.count = self.max_radius = None
+        self.filter3d = None
+
+    def get_rows(self, name: str, idx=None) -> np.ndarray:
+        """Parameter ``name`` from the device as numpy: every row, or rows ``idx`` only
+        (gathered on the device, pyopencl's take)."""
+        a = self.params[name]
+        if idx is None:
+            return download(a)
+        idx = np.asarray(idx, np.int64)
+        w = int(np.prod(a.shape[1:], dtype=np.int64))
+        flat = (idx[:, None] * w + np.arange(w)).reshape(-1)
+        if flat.size == 0:
+            return np.zeros((0,) + a.shape[1:], np.float32)
+        got = cla.take(a.reshape(-1), cla.to_device(self.device.queue, flat))
+        return got.get().reshape((len(idx),) + a.shape[1:])
+
+    def put_rows(self, idx, rows: dict):
+        """In place on the device, as ``params.edit_rows(assign=(idx, rows))`` on the host:
+        rows ``idx`` of each named parameter set to ``rows[name]``, and the Adam moments (of
+        every parameter) and the densification statistics of those rows zeroed. A row listed
+        twice must be given the same values twice."""
+        idx = np.asarray(idx, np.int64)
+        if idx.size == 0:
+            return
+        if idx.min() < 0 or idx.max() >= self.n:
+            raise IndexError(f"put_rows: rows must be in 0..{self.n - 1}")
+        q = self.device.queue
+
+        def flat_of(a):
+            w = int(np.prod(a.shape[1:], dtype=np.int64))
+            return cla.to_device(q, (idx[:, None] * w + np.arange(w)).reshape(-1))
+        zero = cla.zeros(q, 1, np.float32)
+        for k in NAMES:
+            a = self.params[k]
+            flat = flat_of(a)
+            if k in rows:
+                v = np.ascontiguousarray(rows[k], np.float32).reshape(-1)
+                if v.size != flat.size:
+                    raise ValueError(f"put_rows: {k} needs {flat.size // len(idx)} floats a row")
+                cla.multi_put([cla.to_device(q, v)], flat, out=[a.reshape(-1)])
+            cla.multi_put([zero, zero], flat, out=[m.reshape(-1) for m in self.moments[k]])
+        rows1 = cla.to_device(q, idx)
+        cla.multi_put([zero, zero, zero], rows1, out=[self.accum, self.count, self.max_radius])
+        self.filter3d = None   # the Gaussians changed: the 3D filter is recomputed when needed
 
     def reset_opacity(self, value: float):
         """Opacities above ``value`` are lowered to it (their Adam moments zeroed)."""

@@ -18,7 +18,8 @@ pairs after the scan, to size the sort's buffers (``bin``):
 
 ``SplatRasterizer(dev, 3, antialiased=True)`` projects with Mip-Splatting's 3D and 2D filters
 (splat.antialiased; cl/splat_project.cl): its params carry "filter3d" [n], each Gaussian's 3D
-filter variance, from ``r.filter3d(params["means"], training_cameras)``.
+filter variance, from ``r.filter3d(params["means"], training_cameras)``; the 2D filter of
+``filter2d`` px^2 (default AA_FILTER2D, splat.aa_filter2d) replaces the 0.3 px^2 dilation.
 
 ``render(gaussians, camera)`` and ``render_backward(gaussians, camera, grad_rgb)`` do the same
 from and to numpy.
@@ -46,6 +47,7 @@ T_MIN = 1e-4              # a pixel stops before its transmittance would fall be
 COV_DILATION = 0.3        # low-pass filter added to the 2D covariance's diagonal (px^2)
 FRUSTUM_GUARD = 1.3       # x/z, y/z clamped to this times the half-frustum's tangent
 SIGMA_RADIUS = 3.0        # screen radius in standard deviations
+AA_FILTER2D = 0.1         # the anti-aliased projection's 2D filter instead (px^2)
 FILTER3D_VAR = 0.2        # the 3D filter's variance in the finest sampling interval squared
 FILTER3D_MARGIN = 0.15    # a training camera sees a mean within this share outside its image
 CAM_FLOATS = 20           # cl/splat.h camera buffer
@@ -71,20 +73,23 @@ def defines(sh_degree: int, tile: int = TILE) -> dict:
             "FRUSTUM_GUARD": FRUSTUM_GUARD, "SIGMA_RADIUS": SIGMA_RADIUS}
 
 
-def project_defines(sh_degree: int, tile: int = TILE, antialiased: bool = False) -> dict:
+def project_defines(sh_degree: int, tile: int = TILE, antialiased: bool = False,
+                    filter2d: float = AA_FILTER2D) -> dict:
     """cl/splat_project.cl's defines: the shared ones, the 3D filter's constants and, for the
-    anti-aliased projection, ANTIALIASED=1."""
+    anti-aliased projection, ANTIALIASED=1 with the 2D filter ``filter2d`` (px^2) as
+    COV_DILATION."""
     d = dict(defines(sh_degree, tile), FILTER3D_VAR=FILTER3D_VAR,
              FILTER3D_MARGIN=FILTER3D_MARGIN)
     if antialiased:
-        d["ANTIALIASED"] = 1
+        d.update(ANTIALIASED=1, COV_DILATION=float(filter2d))
     return d
 
 
-def pose_program(device, sh_degree: int, tile: int = TILE, antialiased: bool = False):
+def pose_program(device, sh_degree: int, tile: int = TILE, antialiased: bool = False,
+                 filter2d: float = AA_FILTER2D):
     """cl/splat_project.cl with POSE_GRAD=1: its backward also writes the camera's gradient."""
-    return device.program("splat_project.cl",
-                          dict(project_defines(sh_degree, tile, antialiased), POSE_GRAD=1))
+    return device.program("splat_project.cl", dict(
+        project_defines(sh_degree, tile, antialiased, filter2d), POSE_GRAD=1))
 
 
 def camera_gradient(d_cam) -> tuple:
@@ -99,10 +104,12 @@ def camera_gradient(d_cam) -> tuple:
     return g[:9].reshape(3, 3), g[9:]
 
 
-def programs(device, sh_degree: int, tile: int = TILE, antialiased: bool = False) -> tuple:
+def programs(device, sh_degree: int, tile: int = TILE, antialiased: bool = False,
+             filter2d: float = AA_FILTER2D) -> tuple:
     """(cl/splat_project.cl, cl/splat_raster.cl) for SH degree ``sh_degree`` and tiles of
     ``tile`` pixels on ``device`` (both shapes' kernels are in the second)."""
-    return (device.program("splat_project.cl", project_defines(sh_degree, tile, antialiased)),
+    return (device.program("splat_project.cl",
+                           project_defines(sh_degree, tile, antialiased, filter2d)),
             raster_program(device, sh_degree, tile))
 
 
@@ -276,7 +283,7 @@ class SplatRasterizer:
     the same images and gradients to float32 rounding."""
 
     def __init__(self, device, sh_degree: int = 3, tile: int = TILE, shape: str | None = None,
-                 antialiased: bool = False):
+                 antialiased: bool = False, filter2d: float = AA_FILTER2D):
         if int(sh_degree) not in (0, 1, 2, 3):
             raise ValueError(f"sh_degree: must be 0, 1, 2 or 3, got {sh_degree}")
         if int(tile) not in (4, 8, 16, 32):
@@ -295,8 +302,12 @@ class SplatRasterizer:
                              f"device's work-group limit {device.caps.max_work_group_size}; "
                              f"use a smaller tile")
         self.antialiased = bool(antialiased)
+        if not 0 < filter2d <= 1:
+            raise ValueError(f"filter2d: the 2D filter's variance must be in (0, 1] px^2, got "
+                             f"{filter2d}")
+        self.filter2d = float(filter2d) if self.antialiased else COV_DILATION   # px^2
         self.proj_program, self.raster_program = programs(device, self.sh_degree, self.tile,
-                                                          self.antialiased)
+                                                          self.antialiased, self.filter2d)
         # The kernels' own CL_KERNEL_WORK_GROUP_SIZE is not consulted: Mesa's rusticl reports
         # 32 for every kernel and then runs 16 x 16 groups correctly. A device that really
         # cannot fails the launch with CL_INVALID_WORK_GROUP_SIZE (_tiles_launch says why).
@@ -627,7 +638,7 @@ class SplatRasterizer:
             args += (p["filter3d"].data,)
         prg = self.proj_program
         if camera_grad:
-            prg = pose_program(dev, self.sh_degree, self.tile, self.antialiased)
+            prg = pose_program(dev, self.sh_degree, self.tile, self.antialiased, self.filter2d)
             out["camera"] = scratch(dev, (12, n))
             args += (out["camera"].data,)
         launch(dev, prg.kernel("splat_project_backward"), n, args,

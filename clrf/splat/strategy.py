@@ -20,7 +20,9 @@ state in a separate record (``RefineState``, saved with the checkpoint), and has
 the model calls around each step: ``after_backward`` (statistics, regularisers' gradients),
 ``after_step`` (noise) and ``on_iteration`` (the schedule: refinement, opacity resets). The
 decisions themselves (``refine``) work on numpy arrays, so each strategy is tested on arrays
-without a device or a dataset; every edit goes through ``params.edit_rows``.
+without a device or a dataset; every edit goes through ``params.edit_rows``. An edit that keeps
+the count may also run in place on the device (``refine_in_place``, mcmc's relocation at the
+cap: the same decisions, with no copy of every parameter; tested against ``refine``).
 """
 from __future__ import annotations
 
@@ -144,6 +146,10 @@ class DefaultStrategy:
                 model.reset_opacity(RESET_OPACITY)
                 msgs.append(f"opacities reset to {RESET_OPACITY}")
         return msgs
+
+    def refine_in_place(self, model, rng):
+        """None: cloning, splitting and pruning change the count (``refine``)."""
+        return None
 
     def refine(self, host: dict, moments: dict, stats, *, extent: float, cap: int, resets: int,
                rng) -> tuple:
@@ -275,25 +281,56 @@ class MCMCStrategy:
         return host, moments, (f"relocated {moved} of {n0} Gaussians, added {n1 - n0} "
                                f"(-> {n1}, cap {cap})")
 
-    def _copy_onto(self, host, moments, pool, k: int, rng, dst):
-        """Draw k Gaussians of ``pool`` in proportion to opacity (with replacement), give each
-        drawn one and its copies the relocated opacity and scale, and put the copies in rows
-        ``dst`` (None: appended). The moments of every changed row start at zero."""
-        o = sigmoid(host["opacity_logits"])[pool]
+    def _draw(self, opacity_logits, log_scales, pool, k: int, rng) -> tuple:
+        """(picked [k], opacity logits [k], log scales [k, 3]): k Gaussians of ``pool`` drawn in
+        proportion to opacity (with replacement), and the relocated opacity and scale that each
+        drawn one and its copies take."""
+        o = sigmoid(opacity_logits)[pool]
         p = o / o.sum() if o.sum() > 0 else None
         picked = pool[rng.choice(len(pool), size=k, replace=True, p=p)]
-        copies = np.bincount(picked, minlength=len(host["means"]))[picked] + 1
-        o_new, s_new = relocation(sigmoid(host["opacity_logits"][picked]),
-                                  np.exp(np.asarray(host["log_scales"], np.float64)[picked]),
-                                  copies)
+        copies = np.bincount(picked, minlength=len(opacity_logits))[picked] + 1
+        o_new, s_new = relocation(sigmoid(opacity_logits[picked]),
+                                  np.exp(np.asarray(log_scales, np.float64)[picked]), copies)
         o_new = np.clip(o_new, self.min_opacity, 1.0 - OPACITY_EPS)
+        return picked, logit(o_new), np.log(s_new)
+
+    def _copy_onto(self, host, moments, pool, k: int, rng, dst):
+        """Draw k Gaussians of ``pool`` (``_draw``), give each drawn one and its copies the
+        relocated opacity and scale, and put the copies in rows ``dst`` (None: appended). The
+        moments of every changed row start at zero."""
+        picked, lo, ls = self._draw(host["opacity_logits"], host["log_scales"], pool, k, rng)
         copied = {k_: np.asarray(host[k_])[picked] for k_ in host}
-        copied.update(opacity_logits=logit(o_new), log_scales=np.log(s_new))
+        copied.update(opacity_logits=lo, log_scales=ls)
         if dst is None:   # the drawn rows changed, their copies appended: one edit
             return edit_rows(host, moments, assign=(picked, copied), append=copied)
         both = np.concatenate([picked, dst])
         return edit_rows(host, moments,
                          assign=(both, {k_: np.concatenate([v, v]) for k_, v in copied.items()}))
+
+    def refine_in_place(self, model, rng):
+        """The refinement of ``refine`` on the model's device arrays, where the count stays
+        (at the cap, the most of a run): only the opacities come down, the drawn rows' other
+        parameters are gathered on the device and the changed rows written back there
+        (``model.put_rows``), so no copy of every parameter and moment is made. The same draws
+        and values as ``refine`` on the downloaded arrays. None where the count would grow
+        (``refine`` then)."""
+        n0 = model.n
+        if min(int(model.max_count), int(self.growth * n0) if self.growth > 1 else n0) > n0:
+            return None
+        lo_all = model.get_rows("opacity_logits")
+        o = sigmoid(lo_all)
+        dead = np.flatnonzero(o <= self.min_opacity)
+        alive = np.flatnonzero(o > self.min_opacity)
+        moved = 0
+        if len(dead) and len(alive):
+            ls_all = model.get_rows("log_scales")
+            picked, lo, ls = self._draw(lo_all, ls_all, alive, len(dead), rng)
+            rows = {k: model.get_rows(k, picked) for k in model.params}
+            rows.update(opacity_logits=lo, log_scales=ls)
+            model.put_rows(np.concatenate([picked, dead]),
+                           {k: np.concatenate([v, v]) for k, v in rows.items()})
+            moved = len(dead)
+        return f"relocated {moved} of {n0} Gaussians, added 0 (-> {n0}, cap {model.max_count})"
 
 
 def make_strategy(config):
