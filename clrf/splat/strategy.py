@@ -309,8 +309,8 @@ class MCMCStrategy:
 
     def refine_in_place(self, model, rng):
         """The refinement of ``refine`` on the model's device arrays, where the count stays
-        (at the cap, the most of a run): only the opacities come down, the drawn rows' other
-        parameters are gathered on the device and the changed rows written back there
+        (at the cap, the most of a run): only the opacities and scales come down, the drawn
+        rows' other parameters are gathered on the device and the changed rows written back there
         (``model.put_rows``), so no copy of every parameter and moment is made. The same draws
         and values as ``refine`` on the downloaded arrays. None where the count would grow
         (``refine`` then)."""
