@@ -70,6 +70,9 @@
 /* entry k of the identity row: A = I (k = 0, 4, 8), b = 0 */
 inline float identity_entry(int k) { return (k == 0 || k == 4 || k == 8) ? 1.0f : 0.0f; }
 
+/* whether entry k of a row trains: every one, or with diagonal A's diagonal and b */
+inline bool exposure_trained(int k, int diagonal) { return !diagonal || k >= 9 || k % 4 == 0; }
+
 /* A rgb + b of one pixel (row a) */
 inline float3 exposure_affine(__global const float *a, const float r, const float g,
                               const float b) {
@@ -138,7 +141,7 @@ __kernel void exposure_adam(const int items, __global const float *partials,
                             const float b2, const float eps, const float bc1,
                             const float bc2, const int diagonal) {
     const int k = get_global_id(0);
-    if (k >= EXPOSURE_ROW || (diagonal && k < 9 && k % 4 != 0)) return;
+    if (k >= EXPOSURE_ROW || !exposure_trained(k, diagonal)) return;
     const size_t i = (size_t)v * EXPOSURE_ROW + k;
     float gk = 0.0f;
     for (int it = 0; it < items; ++it) gk += partials[(size_t)it * EXPOSURE_ROW + k];
@@ -224,7 +227,7 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
     if (l < EXPOSURE_ROW) {
         const float share = part[EXPOSURE_ROW] / (float)max(n, 1);
         const size_t j = (size_t)v * EXPOSURE_ROW + l;
-        grad[j] = diagonal && l < 9 && l % 4 != 0 ? 0.0f
+        grad[j] = !exposure_trained(l, diagonal) ? 0.0f
                   : 2.0f * scale * part[l] + 2.0f * reg * share * (P[j] - identity_entry(l));
     }
 }

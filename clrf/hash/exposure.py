@@ -29,7 +29,7 @@ import numpy as np
 import pyopencl.array as cla
 import pyopencl.cltypes as clt
 
-from ..references.reference_exposure import IDENTITY, ROW, TRAINED_DIAGONAL, recentre
+from ..references.reference_exposure import IDENTITY, ROW, recentre
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, launch, scratch, upload
 from ..splat.exposure import program
@@ -114,10 +114,7 @@ class RayExposure:
         """Takes the rows' geometric mean transform out of them
         (``reference_exposure.recentre``); ``backward_and_step`` calls it every
         RECENTRE_EVERY steps."""
-        rows = self.rows()
-        P = recentre(rows, np.arange(self.n_images))
-        if self.diagonal:   # diagonal rows have a diagonal mean: keep their zeros exact
-            P[:, ~TRAINED_DIAGONAL] = rows[:, ~TRAINED_DIAGONAL]
+        P = recentre(self.rows(), np.arange(self.n_images), self.diagonal)
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:

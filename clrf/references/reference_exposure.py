@@ -204,7 +204,7 @@ def affine(row) -> np.ndarray:
     return M
 
 
-def recentre(P, rows):
+def recentre(P, rows, diagonal=False):
     """P [V, 12] (float64 copy) with the geometric mean G = expm(mean logm(M_v)) of the rows
     ``rows`` taken out of each of them, M_v <- M_v G^-1, so that their mean logarithm is zero
     (iterated: for matrices that do not commute one such step only nears it).
@@ -212,10 +212,19 @@ def recentre(P, rows):
     would otherwise drift with the scene's colours along that direction (a gauge: only their
     pull toward the identity holds it, weakly); fixed there, the scene has the images' mean
     exposure, in the geometric sense (gains 0.6 and 1.5 around 0.95, not 1.05). Returns P
-    unchanged when a logarithm is not real and finite (a transform far from the identity)."""
-    from scipy.linalg import expm, logm
+    unchanged when a logarithm is not real and finite (a transform far from the identity).
+    diagonal: the rows are diagonal transforms, whose mean is diagonal; A's off-diagonal
+    entries are kept exactly (at 0) instead of taking the logarithms' rounding."""
     P = np.array(P, np.float64).reshape(-1, ROW)
-    rows = np.asarray(rows, np.int64)
+    out = _recentre(P.copy(), np.asarray(rows, np.int64))
+    if diagonal:
+        out[:, ~TRAINED_DIAGONAL] = P[:, ~TRAINED_DIAGONAL]
+    return out
+
+
+def _recentre(P, rows):
+    """recentre on P (modified, returned) without the diagonal option."""
+    from scipy.linalg import expm, logm
     if len(rows) == 0:
         return P
     M = [affine(P[v]) for v in rows]

@@ -29,7 +29,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.cltypes  # noqa: F401  (cl.cltypes)
 
-from ..references.reference_exposure import IDENTITY, ROW, TRAINED_DIAGONAL, fit_row, recentre
+from ..references.reference_exposure import IDENTITY, ROW, fit_row, recentre
 from ..runtime.programs import download, launch, scratch, upload
 
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
@@ -151,10 +151,7 @@ class Exposure:
         the test views' identity means it); the model calls it after each pass over its
         views."""
         trained = np.flatnonzero(self.steps > 0)
-        rows = self.rows()
-        P = recentre(rows, trained)
-        if self.diagonal:   # diagonal rows have a diagonal mean: keep their zeros exact
-            P[:, ~TRAINED_DIAGONAL] = rows[:, ~TRAINED_DIAGONAL]
+        P = recentre(self.rows(), trained, self.diagonal)
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:

@@ -359,12 +359,15 @@ class SplatModel:
         if idx is None:
             return download(a)
         idx = np.asarray(idx, np.int64)
-        w = int(np.prod(a.shape[1:], dtype=np.int64))
-        flat = (idx[:, None] * w + np.arange(w)).reshape(-1)
-        if flat.size == 0:
+        if idx.size == 0:
             return np.zeros((0,) + a.shape[1:], np.float32)
-        got = cla.take(a.reshape(-1), cla.to_device(self.device.queue, flat))
+        got = cla.take(a.reshape(-1), self._flat_rows(a, idx))
         return got.get().reshape((len(idx),) + a.shape[1:])
+
+    def _flat_rows(self, a, idx):
+        """The flat indices (a device array) of rows ``idx`` of device array ``a``."""
+        w = int(np.prod(a.shape[1:], dtype=np.int64))
+        return cla.to_device(self.device.queue, (idx[:, None] * w + np.arange(w)).reshape(-1))
 
     def put_rows(self, idx, rows: dict):
         """In place on the device, as ``params.edit_rows(assign=(idx, rows))`` on the host:
@@ -377,14 +380,10 @@ class SplatModel:
         if idx.min() < 0 or idx.max() >= self.n:
             raise IndexError(f"put_rows: rows must be in 0..{self.n - 1}")
         q = self.device.queue
-
-        def flat_of(a):
-            w = int(np.prod(a.shape[1:], dtype=np.int64))
-            return cla.to_device(q, (idx[:, None] * w + np.arange(w)).reshape(-1))
         zero = cla.zeros(q, 1, np.float32)
         for k in NAMES:
             a = self.params[k]
-            flat = flat_of(a)
+            flat = self._flat_rows(a, idx)
             if k in rows:
                 v = np.ascontiguousarray(rows[k], np.float32).reshape(-1)
                 if v.size != flat.size:

@@ -274,12 +274,17 @@ class MCMCStrategy:
         if len(dead) and len(alive):
             host, moments = self._copy_onto(host, moments, alive, len(dead), rng, dead)
             moved = len(dead)
-        n_add = max(0, min(int(cap), int(self.growth * n0) if self.growth > 1 else n0) - n0)
+        n_add = max(0, self._grown(n0, cap) - n0)
         if n_add:
             host, moments = self._copy_onto(host, moments, np.arange(n0), n_add, rng, None)
         n1 = len(host["means"])
         return host, moments, (f"relocated {moved} of {n0} Gaussians, added {n1 - n0} "
                                f"(-> {n1}, cap {cap})")
+
+    def _grown(self, n0: int, cap: int) -> int:
+        """The count a refinement of n0 Gaussians grows toward: by ``growth``, at most
+        ``cap``."""
+        return min(int(cap), int(self.growth * n0) if self.growth > 1 else n0)
 
     def _draw(self, opacity_logits, log_scales, pool, k: int, rng) -> tuple:
         """(picked [k], opacity logits [k], log scales [k, 3]): k Gaussians of ``pool`` drawn in
@@ -315,7 +320,7 @@ class MCMCStrategy:
         and values as ``refine`` on the downloaded arrays. None where the count would grow
         (``refine`` then)."""
         n0 = model.n
-        if min(int(model.max_count), int(self.growth * n0) if self.growth > 1 else n0) > n0:
+        if self._grown(n0, model.max_count) > n0:
             return None
         lo_all = model.get_rows("opacity_logits")
         o = sigmoid(lo_all)
