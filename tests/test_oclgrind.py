@@ -10,8 +10,9 @@ prune, batch gather, fused loss), the optimisers, encode, sample, composite and 
 forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
 backward, the hash march (windows, alive rays, contraction), Adam over spans and over several
 buffers in one launch, the Gaussian splatting projection (forward, backward; anti-aliased;
-the camera's gradient), the MCMC strategy's regularisers and noise, binning
-(pyopencl's scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward),
+the camera's gradient), the MCMC strategy's regularisers and noise, the training images'
+widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's chunked sort) and
+tile rasteriser (forward, backward),
 and the hash model's bounded step (capped offsets, the encoding and the MLP on both tilings
 reading a device count, a bounded step with the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
@@ -102,6 +103,8 @@ CASES = [
     "tests/test_splat_strategy.py::test_mcmc_reg_matches_the_twin_and_central_differences"
     "[default]",
     "tests/test_splat_strategy.py::test_mcmc_noise_matches_the_twin[default]",
+    "tests/test_splat_targets.py::test_uint8_images_widen_bit_for_bit[default]",
+    "tests/test_splat_targets.py::test_other_images_widen_to_numpys_halves[default-averaged]",
     "tests/test_scan.py::test_capped_offsets_match_clipped_cumsum[100]",
     "tests/test_hash_bounded.py::test_hash_kernels_cover_the_device_count[atomics]",
     "tests/test_hash_bounded.py::test_mlp_passes_cover_the_device_count[softplus-c3-50-33-cpu]",

@@ -2,7 +2,8 @@
 two Adam moments, the projected splats and their gradients, the CPU backward's gradient copies,
 the (tile, Gaussian) pairs and the sort's copies of them; per pixel of a view the image, its
 gradient, the rasteriser's per-pixel state and the device loss's planes; per training pixel its
-target (the training images live on the device)."""
+target (the training images live on the device, as uint8 or float16: clrf/splat/targets.py).
+"""
 from __future__ import annotations
 
 from ..runtime.memory import StageEstimate
@@ -17,8 +18,9 @@ PAIR_BYTES = 8 + 4          # uint64 key + int32 id
 SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
 DENSIFY_FLOATS = 4          # accumulated gradient norm, view count, max screen radius, spare
 LOSS_PLANE_BYTES = 10 * 12  # clrf/splat/loss.py: 9 scratch planes and the gradient, float3
-PIXEL_BYTES = 4 * (3 + 3 + 1 + 1) + LOSS_PLANE_BYTES   # rgb, its gradient, T, n_contrib, loss
-TARGET_BYTES = 4 * 3        # a training pixel on the device
+PIXEL_BYTES = 4 * (3 + 3 + 1 + 1 + 3) + LOSS_PLANE_BYTES   # rgb, its gradient, T, n_contrib,
+#                                                           the step's target widened, loss
+TARGET_BYTES = 2 * 3        # a training pixel on the device: uint8 or float16 (targets.py)
 
 
 def bytes_per_gaussian(sh_degree: int, copies: int = 0) -> int:

@@ -8,8 +8,9 @@ quaternions, opacity logits: clrf/runtime/optim.py; SH coefficients: cl/splat_tr
 gives degree 0 and the higher bands their own rates and leaves the inactive bands alone).
 
 The loss and dL/drgb are computed on the device (clrf/splat/loss.py, cl/splat_loss.cl: an
-11 x 11 Gaussian window, sigma 1.5, zero padding); the training images are uploaded once, so a
-step moves no image between host and device and reads back the one pair count of the binning.
+11 x 11 Gaussian window, sigma 1.5, zero padding); the training images are uploaded once (as
+uint8 where that is exact, else float16: clrf/splat/targets.py), so a step moves no image
+between host and device and reads back the one pair count of the binning.
 The loss statistics are read when the trainer asks for the step's error.
 
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
@@ -35,6 +36,7 @@ from .loss import STATS, DeviceLoss
 from .params import NAMES, learning_rates, moment_keys
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
 from .strategy import RefineState, StepInfo, logit, make_strategy
+from .targets import DeviceImages
 
 assert NAMES == PARAM_NAMES, "clrf/splat/params.py TABLE and the rasteriser's PARAM_NAMES"
 
@@ -95,7 +97,7 @@ class SplatModel:
         self.pose = None               # PoseCorrection: one per training camera (splat.pose_opt)
         self.filter3d = None           # f2 [n] of the 3D filter (splat.antialiased; None: stale)
         self.filter_step = -1          # the step it was computed at
-        self._targets = None           # view -> its training image on the device
+        self._targets = None           # DeviceImages: the training images on the device
         self.train_views = None
         self.hw = None
         self._set_host(host)
@@ -301,12 +303,13 @@ class SplatModel:
         return self._loss_fn
 
     def _target(self, v: int):
-        """Training image v on the device (all of them uploaded at the first step)."""
+        """Training image v on the device as float32 (all of them uploaded at the first step,
+        stored as uint8 or float16: clrf/splat/targets.py)."""
         if self._targets is None:
-            ds, q = self._dataset(), self.device.queue
-            self._targets = {int(k): upload(q, np.ascontiguousarray(ds.images[k], np.float32))
-                             for k in self.train_views}
-        return self._targets[int(v)]
+            ds = self._dataset()
+            self._targets = DeviceImages(self.device, {int(k): ds.images[k]
+                                                       for k in self.train_views})
+        return self._targets.get(v)
 
     def on_iteration(self, it: int, budget: Budget):
         """Schedules from the budget fraction: the means', the pose corrections' and the colour
@@ -338,6 +341,9 @@ class SplatModel:
         stats = mo.pop("stats")
         host = self.host_params()
         self._release()
+        # the pool's per-step buffers are sized by the count, which this edit changes: return
+        # them, or every size the count has passed through stays held (clrf/runtime/device.py)
+        self.device.pool.free_held()
         host, moments, msg = self.strategy.refine(
             host, mo, stats, extent=self.extent, cap=self.max_count,
             resets=self.refine_state.resets, rng=rng)
