@@ -56,6 +56,19 @@ def test_the_2d_filter_setting():
     assert SplatConfig.from_dict(dict(old, aa_filter2d=0.2)).aa_filter2d == 0.2
 
 
+def test_on_by_default_except_tiny_and_old_checkpoints():
+    """splat.antialiased is on in the full preset, off in the tiny one; a checkpoint written
+    before the option (no field) loads as the plain 3DGS it was trained as."""
+    from clrf.splat.config import SplatConfig
+    assert SplatConfig().antialiased and SplatConfig.from_preset("full").antialiased
+    assert not SplatConfig.from_preset("tiny").antialiased
+    assert SplatConfig.from_preset("tiny", antialiased=True).antialiased
+    before = {k: v for k, v in SplatConfig().__dict__.items()
+              if k not in ("antialiased", "aa_filter2d")}
+    assert not SplatConfig.from_dict(before).antialiased
+    assert SplatConfig.from_dict(dict(before, antialiased=True)).aa_filter2d == 0.3
+
+
 @pytest.mark.parametrize("filter2d", [0.1, 0.3])
 def test_twin_gradient_vs_finite_differences(filter2d):
     """The anti-aliased twin's analytic gradient of L = sum(w * rgb) against central differences

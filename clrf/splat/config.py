@@ -153,11 +153,14 @@ class SplatConfig:
     #                                 constant 1e-3, with the same rotation error, and its
     #                                 test views refined at the same rate to 0.50 dB more)
     pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
-    antialiased: bool = False       # Mip-Splatting's filters: a 3D low-pass filter per
+    antialiased: bool = True        # Mip-Splatting's filters: a 3D low-pass filter per
     #                                 Gaussian bounded by the training views' sampling rate
     #                                 and the screen-space dilation with opacity compensation,
     #                                 so a render at another scale (zoom, clrf render --scale)
-    #                                 neither fattens nor needles thin things
+    #                                 neither fattens nor needles thin things. On by default
+    #                                 (docs/splat.md: higher PSNR at the training scale on
+    #                                 lego_400 and bonsai, fewer Gaussians); off in the tiny
+    #                                 preset; false: 3DGS's fixed 0.3 px^2 dilation
     aa_filter2d: float = 0.1        # with antialiased, the 2D filter's variance (px^2):
     #                                 Mip-Splatting's 0.1 (about a one-pixel box; the 3D
     #                                 filter's 0.2 of a training pixel makes up the rest of
@@ -186,6 +189,8 @@ class SplatConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"SplatConfig: unknown fields {sorted(unknown)}")
+        if "antialiased" not in d:
+            d = dict(d, antialiased=False)   # checkpoints from before the option: plain 3DGS
         if d.get("antialiased") and "aa_filter2d" not in d:
             d = dict(d, aa_filter2d=0.3)   # anti-aliased checkpoints from before the field
         return SplatConfig(**d)
@@ -272,5 +277,8 @@ SPLAT_PRESETS = {
     "tiny": {"init_points": 5000, "max_gaussians": 60000, "densify_from": 0.02,
              "densify_until": 0.7, "densify_every": 0.02, "densify_min_steps": 25,
              "opacity_reset_every": 0.3, "opacity_reset_min_steps": 300,
-             "sh_increase_every": 0.1},
+             "sh_increase_every": 0.1,
+             # with the opacity resets above, the anti-aliased filters recovered slower on
+             # tiny_lego (120 s: 30.30 dB against 33.04 without them)
+             "antialiased": False},
 }
