@@ -1,8 +1,9 @@
 """The training images on the device (clrf/splat/targets.py DeviceImages): 8-bit images stored
 as uint8 and widened to the dataset's float32 bit for bit; others (averaged down, composited on
 a background, 16-bit) stored as float16 and widened exactly to numpy's float16 -> float32, within
-half an ulp of float16 of the original; one float32 buffer reused; the argument checks; and a
-splat model training on the compact copy takes the same step as on float32 images."""
+half an ulp of float16 of the original; one float32 buffer reused; the argument checks; and
+the device loss and its gradient against the compact copy equal those against a float32
+upload of the same 8-bit image."""
 import numpy as np
 import pytest
 
@@ -99,8 +100,8 @@ def test_bad_arguments(device):
 
 
 def test_model_step_on_compact_targets_matches_float32(device):
-    """A splat model's first step against its DeviceImages equals the same step against the
-    images uploaded as float32 (8-bit images: the widened copy is bit for bit the same)."""
+    """The loss and dL/drgb of one render against DeviceImages equal those against the image
+    uploaded as float32 (8-bit images: the widened copy is bit for bit the same)."""
     from clrf.splat.config import SplatConfig
     from clrf.splat.loss import DeviceLoss
     from clrf.splat.raster import SplatCamera, SplatRasterizer

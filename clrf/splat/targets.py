@@ -41,18 +41,19 @@ def exact_8bit(images) -> bool:
 
 
 def encode(img, dtype) -> np.ndarray:
-    """One float32 image in ``dtype`` (uint8: its levels k; float16: the nearest halves)."""
+    """One float32 image as stored for ``dtype``: uint8 its levels k; float16 the nearest
+    halves, as their uint16 bits (what the device kernel reads)."""
     a = np.ascontiguousarray(img, np.float32)
     if dtype == np.uint8:
         return np.rint(a * 255.0).astype(np.uint8)
-    return a.astype(np.float16)
+    return a.astype(np.float16).view(np.uint16)
 
 
 def decode(stored) -> np.ndarray:
-    """What the device makes of a stored image, in numpy: float32 [H, W, 3]."""
+    """What the device makes of a stored image (``encode``'s output), in numpy: float32."""
     if stored.dtype == np.uint8:
         return LEVELS[stored]
-    return stored.astype(np.float32)
+    return stored.view(np.float16).astype(np.float32)
 
 
 def _widen(context, dtype):
@@ -83,9 +84,7 @@ class DeviceImages:
         self.shape = shapes.pop()
         self.dtype = np.dtype(np.uint8 if exact_8bit(images.values()) else np.float16)
         q = device.queue
-        self._stored = {int(k): upload(q, encode(a, self.dtype) if self.dtype == np.uint8
-                                       else encode(a, self.dtype).view(np.uint16))
-                        for k, a in images.items()}
+        self._stored = {int(k): upload(q, encode(a, self.dtype)) for k, a in images.items()}
         self._levels = upload(q, LEVELS) if self.dtype == np.uint8 else None
         self._kernel = _widen(device.context, self.dtype)
         self._out = None
@@ -113,8 +112,7 @@ class DeviceImages:
 
     def host_copy(self, v: int) -> np.ndarray:
         """The float32 image ``get(v)`` makes, computed in numpy from the stored copy."""
-        stored = self._stored[int(v)].get()
-        return decode(stored.view(np.float16) if self.dtype == np.float16 else stored)
+        return decode(self._stored[int(v)].get())
 
 
 __all__ = ["DeviceImages", "LEVELS", "exact_8bit", "encode", "decode"]
