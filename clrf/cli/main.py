@@ -97,6 +97,8 @@ def cmd_train(a):
     # a resumed run's model comes from its checkpoint: no points to triangulate for it
     wants = not a.resume and kind.wants_points is not None and bool(kind.wants_points(cfg))
     ds, points_note = points_for_run(ds, cfg.train.points, wants)
+    from ..runtime.hostmem import release_free_heap
+    release_free_heap()   # what decoding the images and triangulating freed
     comm = _mpi_world()
     factory = kind
     if comm is not None and a.view:

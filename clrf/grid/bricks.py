@@ -27,10 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch
+from ..runtime.programs import float4, int4, launch
 from .grid import SparseGrid
 from .ops import program as ops_program
 from .render import block_occupancy, grad_slots, grid_program, launch_backward
@@ -67,7 +66,7 @@ class Brick:
 
     def kernel_args(self):
         """(blo, bhi, lreso) int4 kernel arguments (BRICK_ARGS of cl/grid_render.cl)."""
-        mk = cl.cltypes.make_int4
+        mk = int4
         return (mk(*self.lo, 0), mk(*self.hi, 0), mk(*self.local_reso, 0))
 
 
@@ -184,9 +183,9 @@ class BrickGrid(SparseGrid):
         r = self.march_reso
         b0 = self.bbox[0]
         sc = np.array(r, np.float64) / (self.bbox[1] - self.bbox[0])
-        return (cl.cltypes.make_int4(r[0], r[1], r[2], 0),
-                cl.cltypes.make_float4(b0[0], b0[1], b0[2], 0.0),
-                cl.cltypes.make_float4(sc[0], sc[1], sc[2], 0.0))
+        return (int4(r[0], r[1], r[2], 0),
+                float4(b0[0], b0[1], b0[2], 0.0),
+                float4(sc[0], sc[1], sc[2], 0.0))
 
     def __repr__(self):
         return (f"BrickGrid(brick={self.brick.index}, lo={self.brick.lo}, hi={self.brick.hi}, "
@@ -209,7 +208,7 @@ def render_partial_device(bgrid: BrickGrid, origins_d, dirs_d, step):
            "key": cla.empty(q, max(n, 1), np.int32)}
     if n:
         occ, oreso = block_occupancy(bgrid)
-        bg = cl.cltypes.make_float4(0, 0, 0, 0)   # unused: a partial has no background
+        bg = float4(0, 0, 0, 0)   # unused: a partial has no background
         launch(dev, _program(bgrid, step).kernel("render_forward"), n,
                (np.int32(n), origins_d.data, dirs_d.data, bgrid.links.data,
                 bgrid.density.data, bgrid.sh.data, *bgrid.geometry_args(), np.float32(step),
@@ -288,7 +287,7 @@ def render_backward_partial_device(bgrid: BrickGrid, origins_d, dirs_d, ray_in4_
     slots = grad_slots(bgrid)
     record = slots > 0 and dev.tuning.sample_record
     prg = _program(bgrid, step, track_touched=touched is not None, slots=slots, record=record)
-    bg = cl.cltypes.make_float4(0, 0, 0, 0)   # unused: R_b carries the background
+    bg = float4(0, 0, 0, 0)   # unused: R_b carries the background
     args = [np.int32(n), origins_d.data, dirs_d.data, bgrid.links.data, bgrid.density.data,
             bgrid.sh.data, *bgrid.geometry_args(), np.float32(step), bg, ray_in4_d.data,
             grad_density.data, grad_sh.data]
@@ -322,7 +321,7 @@ def tv_grad_brick(bgrid: BrickGrid, param, grad, touched, start: int, n_cells: i
     n_cells = int(min(n_cells, total))
     own = tuple(h - l for l, h in zip(b.lo, b.hi))
     prg = ops_program(dev, bgrid.sh_degree, brick=True)
-    mk = cl.cltypes.make_int4
+    mk = int4
     r = bgrid.reso
     launch(dev, prg.kernel("tv_grad"), int(np.prod(own)),
            (np.int32(n_cells), np.int32(start % total), mk(r[0], r[1], r[2], 0),

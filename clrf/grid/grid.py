@@ -13,10 +13,9 @@ neighbouring voxels of a ray near each other in memory along z).
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 
 from ..runtime.validate import as_bbox, check_array
-from ..runtime.programs import upload
+from ..runtime.programs import float4, int4, upload
 
 SH_DIMS = {3 * (d + 1) ** 2: d for d in range(4)}
 
@@ -117,9 +116,9 @@ class SparseGrid:
         r = self.reso
         b0 = self.bbox[0]
         sc = np.array(r, np.float64) / (self.bbox[1] - self.bbox[0])
-        return (cl.cltypes.make_int4(r[0], r[1], r[2], 0),
-                cl.cltypes.make_float4(b0[0], b0[1], b0[2], 0.0),
-                cl.cltypes.make_float4(sc[0], sc[1], sc[2], 0.0))
+        return (int4(r[0], r[1], r[2], 0),
+                float4(b0[0], b0[1], b0[2], 0.0),
+                float4(sc[0], sc[1], sc[2], 0.0))
 
     # ---- host views ---------------------------------------------------------------------
     def to_dense(self):

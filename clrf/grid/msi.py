@@ -22,10 +22,9 @@ dL/d bg_rgb = T_fg * dL/d pixel. The equations and index formulas are in cl/back
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import download, launch, upload
+from ..runtime.programs import download, float4, launch, upload
 
 PER_RAY_LOCAL_SIZE = 16  # one ray per work-item with a loop over its L - 1 samples
 
@@ -37,7 +36,7 @@ def _f32(device, a, shape):
 
 def _float4(v):
     v = [float(x) for x in np.broadcast_to(np.asarray(v, np.float64), (3,))]
-    return cl.cltypes.make_float4(v[0], v[1], v[2], 0.0)
+    return float4(v[0], v[1], v[2], 0.0)
 
 
 def program(device, layers: int, height: int):

@@ -6,7 +6,7 @@ import pyopencl.array as cla
 from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
-from ..runtime.programs import launch, upload
+from ..runtime.programs import int4, launch, upload
 from .render import render_max_weight_device
 
 TV_EPS = 1e-9
@@ -120,8 +120,7 @@ def resample(grid, new_reso, keep=None) -> SparseGrid:
 
 
 def _reso4(r):
-    import pyopencl as cl
-    return cl.cltypes.make_int4(r[0], r[1], r[2], 0)
+    return int4(r[0], r[1], r[2], 0)
 
 
 def prune(grid, maxw, weight_thresh, density_thresh=np.inf, dilate=True) -> SparseGrid:

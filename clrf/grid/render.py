@@ -6,11 +6,10 @@ take and return pyopencl arrays and are what training uses (no host copies per b
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
 from ..runtime.device import DeviceError
-from ..runtime.programs import launch, upload
+from ..runtime.programs import float4, int4, launch, upload
 from ..runtime.tuning import slots_order_memory
 from ..runtime.validate import check_array, check_positive, check_rays
 
@@ -67,7 +66,7 @@ def _bg4(background):
     bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
     if not np.all(np.isfinite(bg)):
         raise ValueError("background: must be finite")
-    return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+    return float4(bg[0], bg[1], bg[2], 0.0)
 
 
 def _per_ray(background, n) -> bool:
@@ -146,13 +145,13 @@ def block_occupancy(grid):
     if cached is None or cached[0] != key:
         n_coarse = int(np.prod(ob))
         occ = cla.zeros(grid.device.queue, n_coarse + int(np.prod(of)), np.uint8)
-        oreso = cl.cltypes.make_int4(ob[0], ob[1], ob[2], n_coarse)
+        oreso = int4(ob[0], ob[1], ob[2], n_coarse)
         k = grid_program(grid).kernel("block_occupancy")
-        r4 = cl.cltypes.make_int4(r[0], r[1], r[2], 0)
+        r4 = int4(r[0], r[1], r[2], 0)
         for nb, shape, off in ((block, ob, 0), (fine, of, n_coarse)):
             if nb > 0:
                 launch(grid.device, k, int(np.prod(shape)),
-                       (r4, cl.cltypes.make_int4(*shape, 0), np.int32(nb), np.int32(off),
+                       (r4, int4(*shape, 0), np.int32(nb), np.int32(off),
                         grid.links.data, occ.data), 64)
         cached = (key, occ, oreso)
         grid.scratch["block_occupancy"] = cached

@@ -14,7 +14,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import count_arg, launch, scratch, upload
+from ..runtime.programs import count_arg, float4, launch, scratch, upload
 
 INIT_SCALE = 1e-4   # tables start uniform in +-INIT_SCALE (the published initialisation)
 SH_DIM = 16         # hash_sh_encode: degree 3 (4 bands), 16 coefficients
@@ -40,7 +40,7 @@ def box_args(box):
             or not np.all(np.isfinite(hi)) or not np.all(hi > lo):
         raise ValueError(f"hash box: need finite lo < hi per axis, got {box}")
     inv = 1.0 / (hi - lo)
-    f4 = cl.cltypes.make_float4
+    f4 = float4
     return f4(*lo, 0.0), f4(*inv, 0.0), lo.astype(np.float32), inv.astype(np.float32)
 
 

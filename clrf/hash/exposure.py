@@ -27,11 +27,10 @@ from __future__ import annotations
 
 import numpy as np
 import pyopencl.array as cla
-import pyopencl.cltypes as clt
 
 from ..references.reference_exposure import IDENTITY, ROW, recentre
 from ..runtime.optim import Optimizer
-from ..runtime.programs import download, launch, scratch, upload
+from ..runtime.programs import download, float4, launch, scratch, upload
 from ..splat.exposure import program
 
 LOCAL = 64       # cl/splat_exposure.cl EXPOSURE_LS
@@ -70,7 +69,7 @@ class RayExposure:
     @staticmethod
     def _bg(background):
         r, g, b = (float(c) for c in background)
-        return clt.make_float4(r, g, b, 0.0)
+        return float4(r, g, b, 0.0)
 
     def forward(self, state, background, target, index):
         """(eff, sq) device arrays of a batch of n rays: the target [n, 3] to give the marcher's

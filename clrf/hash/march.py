@@ -17,7 +17,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch, scratch
+from ..runtime.programs import float4, launch, scratch
 from ..runtime.scan import capped_offsets, row_offsets
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
@@ -57,8 +57,8 @@ class Contraction:
         self.half = (b[1] - b[0]) / 2
         if not np.all(self.half > 0):
             raise ValueError(f"contraction: the inner box {b.tolist()} needs positive extents")
-        self.centre4 = cl.cltypes.make_float4(*self.centre, 0.0)
-        self.inv_half4 = cl.cltypes.make_float4(*(1.0 / self.half), 0.0)
+        self.centre4 = float4(*self.centre, 0.0)
+        self.inv_half4 = float4(*(1.0 / self.half), 0.0)
 
 
 def program(device, contract: bool = False):
@@ -94,7 +94,7 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
     W = k1 - k0
     counts = scratch(dev, max(n, 1), np.int32)
     live = scratch(dev, max(n * W, 1), np.uint8)
-    zero4 = cl.cltypes.make_float4(0, 0, 0, 0)
+    zero4 = float4(0, 0, 0, 0)
     centre = contract.centre4 if contract else zero4
     inv_half = contract.inv_half4 if contract else zero4
     bins = (np.int32(n), np.int32(S), np.int32(k0), np.int32(k1), np.float32(near),
@@ -127,7 +127,7 @@ def march(device, occ, origins, dirs, S: int, near: float, far: float, jitter: b
 
 def _bg4(background):
     bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
-    return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+    return float4(bg[0], bg[1], bg[2], 0.0)
 
 
 def packed_forward(device, pk: Packed, sigma, rgb, state, alive=None):

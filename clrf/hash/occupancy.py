@@ -9,10 +9,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import download, launch, upload
+from ..runtime.programs import download, float4, launch, upload
 from .encoding import box_args
 
 POINTS_PER_LAUNCH = 1 << 18   # cells measured per density evaluation (bounds the MLP scratch)
@@ -41,7 +40,7 @@ class OccupancyGrid:
             raise ValueError(f"occupancy grid resolution: must be in 1..256, got {res}")
         self.lo4, self.inv4, lo, inv = box_args(box)
         ext = 1.0 / inv.astype(np.float64)
-        self.ext4 = cl.cltypes.make_float4(*ext, 0.0)
+        self.ext4 = float4(*ext, 0.0)
         self.prg = device.program("hash_occ.cl", {})
         n = self.res ** 3
         q = device.queue

@@ -9,10 +9,9 @@ array([[2.5, 3.5, 4.5, 5.5], [2.5, 3.5, 4.5, 5.5]], dtype=float32)
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import launch
+from ..runtime.programs import float4, launch
 
 # Work-group sizes come from device.tuning (clrf/runtime/tuning.py): elementwise_local_size,
 # per_ray_local_size, encode_local_size.
@@ -104,7 +103,7 @@ def ray_points(device, origins, dirs, t, xyz=None, vdir=None):
 
 def _bg4(background):
     bg = np.broadcast_to(np.asarray(background, np.float64), (3,))
-    return cl.cltypes.make_float4(bg[0], bg[1], bg[2], 0.0)
+    return float4(bg[0], bg[1], bg[2], 0.0)
 
 
 def _composite_prg(device, grad_mode: int):

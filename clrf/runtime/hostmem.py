@@ -182,3 +182,24 @@ def host_budget(root: str = "/") -> HostBudget:
         return HostBudget(-1, "unknown (no /proc/meminfo)", rss, peak)
     avail, src = min(cands)
     return HostBudget(int(avail), src, rss, peak)
+
+
+def release_free_heap() -> bool:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim(0)``); False
+    where there is no glibc (the call is then a no-op).
+
+    glibc serves a freed block of a few MB from its heap the next time rather than unmapping
+    it (after a large block is freed, its mmap threshold rises to up to 32 MB), so a phase that
+    allocated and freed many such blocks (decoding a capture's images, a host edit of every
+    Gaussian) leaves the resident set high for the rest of the run. 2 vCPUs, bonsai at 200x133:
+    385 MB resident after loading, 334 MB after this call."""
+    import ctypes
+    import ctypes.util
+    name = ctypes.util.find_library("c")
+    try:
+        trim = ctypes.CDLL(name).malloc_trim
+    except (OSError, AttributeError, TypeError):
+        return False
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    trim(0)
+    return True

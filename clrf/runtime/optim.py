@@ -4,10 +4,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
-from .programs import launch
+from .programs import float4, launch
 
 MODES = {"rmsprop": 0, "sgd": 1, "adam": 2}   # OPT_MODE of cl/optim.cl
 ADAM_LOCAL_SIZE = 64   # adam_step has no loop: PoCL vectorises across the group
@@ -102,7 +101,7 @@ class AdamSet:
             bufs += [None] * 4 if o is None else [o.param.data, o.grad.data, o.state.data,
                                                   o.state2.data]
         pad = lambda v: [float(x) for x in v] + [0.0] * (self.MAX - len(v))   # noqa: E731
-        f4 = cl.cltypes.make_float4
+        f4 = float4
         mask = sum(1 << b for b, c in enumerate(clear) if c)
         launch(self.device, first._kernel("adam_multi"), groups.shape[0] * ls,
                (groups.data, *bufs, f4(*pad(lrs)), f4(*pad([o.weight_decay for o in opts])),

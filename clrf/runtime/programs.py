@@ -193,6 +193,19 @@ def download(arr) -> np.ndarray:
     return out
 
 
+def float4(x, y, z, w) -> np.ndarray:
+    """A ``float4`` kernel argument. pyopencl's ``cltypes.make_float4`` builds it with
+    ``eval`` of a string, and CPython remembers a Ctrl-C that lands inside such an eval: a run
+    under ``python -m`` that then saved its checkpoint and exited 130 died of SIGINT instead
+    (one Adam step of the grid makes two of these calls)."""
+    return np.array((x, y, z, w), dtype=cl.cltypes.float4)
+
+
+def int4(x, y, z, w) -> np.ndarray:
+    """An ``int4`` kernel argument, without ``cltypes.make_int4``'s ``eval`` (``float4``)."""
+    return np.array((x, y, z, w), dtype=cl.cltypes.int4)
+
+
 def scratch(device, shape, dtype=np.float32):
     """An uninitialised per-step device array from the device's memory pool (Device.pool): its
     buffer goes back to the pool when the array is dropped, so arrays whose sizes change every

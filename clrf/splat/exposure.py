@@ -26,11 +26,9 @@ fitted on the left half of each test image, the right half scored:
 from __future__ import annotations
 
 import numpy as np
-import pyopencl as cl
-import pyopencl.cltypes  # noqa: F401  (cl.cltypes)
 
 from ..references.reference_exposure import IDENTITY, ROW, fit_row, recentre
-from ..runtime.programs import download, launch, scratch, upload
+from ..runtime.programs import download, float4, launch, scratch, upload
 
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
 ADAM_BETAS = (0.9, 0.999)
@@ -109,7 +107,7 @@ class Exposure:
         items = (n + CHUNK - 1) // CHUNK
         grad_rgb = scratch(self.device, rgb.shape)
         partials = scratch(self.device, (max(items, 1), ROW))
-        bg = cl.cltypes.make_float4(*(float(c) for c in background[:3]), 0.0)
+        bg = float4(*(float(c) for c in background[:3]), 0.0)
         launch(self.device, self._prg.kernel("exposure_backward"), items,
                (np.int32(n), np.int32(CHUNK), rgb.data, np.int32(self.masked), T.data, bg,
                 grad_out.data, self.P.data, np.int32(v), np.int32(self.clip), grad_rgb.data,

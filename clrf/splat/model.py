@@ -28,6 +28,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..interface import Budget, StateError, Unsupported
+from ..runtime.hostmem import release_free_heap
 from ..runtime.optim import AdamSet, Optimizer, expon_lr
 from ..runtime.pending import Pending
 from ..runtime.programs import download, launch, scratch, upload
@@ -349,6 +350,8 @@ class SplatModel:
             resets=self.refine_state.resets, rng=rng)
         del mo
         self._set_host(host, moments)
+        del host, moments
+        release_free_heap()   # the host copies' pages (hostmem.release_free_heap)
         return msg
 
     def _release(self):

@@ -32,10 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
-import pyopencl.cltypes  # noqa: F401  (cl.cltypes.make_float4)
 from pyopencl.algorithm import RadixSort
 
-from ..runtime.programs import launch, scratch, upload
+from ..runtime.programs import float4, launch, scratch, upload
 from ..runtime.scan import row_offsets
 from ..runtime import sort as keysort
 from ..runtime.validate import check_array
@@ -531,7 +530,7 @@ class SplatRasterizer:
         bg = check_array("background", background, ndim=1, dtype=np.float32)
         if bg.shape != (3,):
             raise ValueError(f"background: expected 3 values, got shape {bg.shape}")
-        return cl.cltypes.make_float4(*bg, 0.0)
+        return float4(*bg, 0.0)
 
     def rasterize(self, proj: Projected, bins: Binned, camera: SplatCamera,
                   background=(0.0, 0.0, 0.0), depth: bool = False) -> Raster:

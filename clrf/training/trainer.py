@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cla
 
 from .. import registry
@@ -48,7 +47,7 @@ from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from ..runtime.pending import Pending
-from ..runtime.programs import launch, upload
+from ..runtime.programs import float4, launch, upload
 from ..runtime.progress import TrainProgress
 
 EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
@@ -93,7 +92,7 @@ class RayStore:
             if self.alpha is None:
                 raise ValueError("RayStore.batch: a background needs the images' alpha (RGBA)")
             dr, dg, db = np.subtract(background, self.background)
-            delta = cl.cltypes.make_float4(dr, dg, db, 0.0)
+            delta = float4(dr, dg, db, 0.0)
             launch(self.device, prg.kernel("recomposite"), n,
                    (np.int32(n), bi.data, self.alpha.data, delta, bc.data))
         return bo, bd, bc, bi
