@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+import pyopencl.cltypes as cltypes
 
 from .buildlog import diagnostics
 from .tuning import implementation
@@ -198,12 +199,12 @@ def float4(x, y, z, w) -> np.ndarray:
     ``eval`` of a string, and CPython remembers a Ctrl-C that lands inside such an eval: a run
     under ``python -m`` that then saved its checkpoint and exited 130 died of SIGINT instead
     (one Adam step of the grid makes two of these calls)."""
-    return np.array((x, y, z, w), dtype=cl.cltypes.float4)
+    return np.array((x, y, z, w), dtype=cltypes.float4)
 
 
 def int4(x, y, z, w) -> np.ndarray:
     """An ``int4`` kernel argument, without ``cltypes.make_int4``'s ``eval`` (``float4``)."""
-    return np.array((x, y, z, w), dtype=cl.cltypes.int4)
+    return np.array((x, y, z, w), dtype=cltypes.int4)
 
 
 def scratch(device, shape, dtype=np.float32):
