@@ -14,6 +14,7 @@ files under ``root`` ("/" on a real system).
 """
 from __future__ import annotations
 
+import functools
 import resource
 from dataclasses import dataclass
 from pathlib import Path
@@ -193,13 +194,21 @@ def release_free_heap() -> bool:
     allocated and freed many such blocks (decoding a capture's images, a host edit of every
     Gaussian) leaves the resident set high for the rest of the run. 2 vCPUs, bonsai at 200x133:
     385 MB resident after loading, 334 MB after this call."""
-    import ctypes
-    import ctypes.util
-    name = ctypes.util.find_library("c")
-    try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError, TypeError):
+    trim = _malloc_trim()
+    if trim is None:
         return False
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     trim(0)
     return True
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim`` from the running process's symbols, or None (musl, macOS,
+    Windows)."""
+    import ctypes
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError, TypeError):
+        return None
+    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
+    return trim
