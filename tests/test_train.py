@@ -162,7 +162,11 @@ SMALL = {"grid": FAST,
          "splat": ["--set", "train.eval_every=1.0", "--set", "train.eval_views=2"],
          "hash": ["--set", "hash.batch_rays=256", "--set", "hash.samples=64",
                   "--set", "hash.occ_points=8192", "--set", "hash.occ_warmup=5",
-                  "--set", "train.eval_every=1.0", "--set", "train.eval_views=2"]}
+                  "--set", "train.eval_every=1.0", "--set", "train.eval_views=2"],
+         "nerf": ["--set", "nerf.width=16", "--set", "nerf.depth=2", "--set", "nerf.color_width=16",
+                  "--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8",
+                  "--set", "nerf.batch_rays=256", "--set", "train.eval_every=1.0",
+                  "--set", "train.eval_views=2"]}
 
 
 @pytest.mark.parametrize("model", sorted(SMALL))
@@ -172,7 +176,7 @@ def test_training_evaluates_no_source_strings(model, tmp_path, monkeypatch):
     its code exited 130: the Ctrl-C test above failed so, one run in many, when the signal
     landed in pyopencl's ``cltypes.make_float4`` (an ``eval`` per call, two per Adam step of
     the grid). A second run in one process (its imports and kernels already made) evaluates
-    no source string."""
+    no source string, for every model."""
     import builtins
     args = ["--quiet", "train", "--model", model, "--max-seconds", "120",
             "--set", "train.max_iters=30", *SMALL[model]]
