@@ -99,7 +99,7 @@ def test_bad_arguments(device):
                                  1: np.zeros((2, 3, 3), np.float32)})
 
 
-def test_model_step_on_compact_targets_matches_float32(device):
+def test_loss_on_compact_targets_matches_float32(device):
     """The loss and dL/drgb of one render against DeviceImages equal those against the image
     uploaded as float32 (8-bit images: the widened copy is bit for bit the same)."""
     from clrf.splat.config import SplatConfig

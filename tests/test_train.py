@@ -194,9 +194,7 @@ def test_training_evaluates_no_source_strings(model, tmp_path, monkeypatch):
 
 def test_nerf_through_the_cli(tmp_path, capsys):
     out = tmp_path / "n"
-    tiny = ["--set", "nerf.width=16", "--set", "nerf.depth=2", "--set", "nerf.color_width=16",
-            "--set", "nerf.n_coarse=8", "--set", "nerf.n_fine=8", "--set", "nerf.batch_rays=256",
-            "--set", "train.eval_every=1.0", "--set", "train.eval_views=2"]
+    tiny = SMALL["nerf"]
     assert run_cli("train", "--model", "nerf", "--out", out, "--max-seconds", 3, *tiny) == 0
     rows = read_csv(out / "metrics.csv")
     assert "NeRF 2x16" in rows[-1]["model"]
