@@ -3,7 +3,7 @@ as uint8 and widened to the dataset's float32 bit for bit; others (averaged down
 a background, 16-bit) stored as float16 and widened exactly to numpy's float16 -> float32, within
 half an ulp of float16 of the original; one float32 buffer reused; the argument checks; and
 the device loss and its gradient against the compact copy equal those against a float32
-upload of the same 8-bit image."""
+upload of the same 8-bit image; the dataset's 8-bit store uploads one view at a time."""
 import numpy as np
 import pytest
 
@@ -52,6 +52,30 @@ def test_uint8_images_widen_bit_for_bit(device):
         assert np.array_equal(got, images[v])
         assert np.array_equal(d.host_copy(v), images[v])
     assert 8 in d and 4 not in d
+
+
+@pytest.mark.parametrize("rgba", [False, True])
+def test_dataset_image_stack_uploads_one_view_at_a_time(device, rgba):
+    """The dataset's 8-bit store (clrf/data/images.py ImageStack) through ViewImages: only the
+    asked views, each read when needed; RGB levels go up as uint8, RGBA composited on the
+    background as float16, and both widen to what the stack reads."""
+    from clrf.data.images import ImageStack
+    rng = np.random.default_rng(4)
+    levels = rng.integers(0, 256, (6, 9, 11, 4 if rgba else 3), dtype=np.uint8)
+    stack = ImageStack(levels, (1.0, 0.5, 0.0) if rgba else None)
+    views = tg.ViewImages(stack, [5, 1, 2])
+    assert list(views) == [5, 1, 2] and len(views) == 3 and 0 not in views
+    with pytest.raises(KeyError):
+        views[0]
+    d = tg.DeviceImages(device, views)
+    assert d.dtype == (np.float16 if rgba else np.uint8)
+    for v in (1, 5, 2):
+        want = stack[v]
+        if rgba:
+            assert np.array_equal(d.get(v).get(), want.astype(np.float16).astype(np.float32))
+        else:
+            assert np.array_equal(d.get(v).get(), want)
+    assert 0 not in d and 3 not in d
 
 
 @pytest.mark.parametrize("kind", ["averaged", "composited", "sixteen_bit"])

@@ -17,10 +17,12 @@ class Dataset:
     Conventions: poses are camera-to-world 4x4 matrices in OpenGL/Blender axes (camera x right,
     y up, looking down -z); images are float32 RGB in [0, 1], already composited on
     ``background``; ``intrinsics`` = (fx, fy, cx, cy) in pixels, shared by all images.
+    The loaders store 8-bit images as their levels (clrf/data/images.py ``ImageStack``): they
+    index like the float32 array and read as it, bit for bit, in a quarter of the memory.
     """
 
     name: str
-    images: np.ndarray                 # float32 [N, H, W, 3]
+    images: np.ndarray                 # float32 [N, H, W, 3] (or an ImageStack reading as one)
     poses: np.ndarray                  # float32 [N, 4, 4]
     intrinsics: np.ndarray             # float64 [4]: fx, fy, cx, cy
     split: dict                        # "train" / "test" (/ "val") -> int index arrays into images

@@ -13,9 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from .base import Dataset, DataError
-from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 coverage, get_field, inside, load_images, parse_background, read_json,
-                 require_dir)
+from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, get_field,
+                 inside, load_images, parse_background, read_json, require_dir)
 
 SPLITS = ("train", "val", "test")
 
@@ -61,11 +60,10 @@ def load_blender(path, splits=SPLITS, background="white", downscale=None,
         split[s] = np.arange(start, len(files))
         check_splits({s: split[s]}, jpath, "add frames to it (or pass max_images >= 1)")
 
-    rgba, (H0, W0) = load_images(files, downscale=factor)
-    images = np.stack([composite(a, bg) for a in rgba]).astype(np.float32)
+    images, alpha, (H0, W0) = load_images(files, downscale=factor, background=bg)
     focal = 0.5 * W0 / np.tan(0.5 * angle) / factor
     return Dataset(name=root.name, images=images, poses=np.stack(poses).astype(np.float32),
                    intrinsics=np.array([focal, focal, W0 / 2.0 / factor, H0 / 2.0 / factor]),
                    split=split,
                    background=bg, bbox=np.array([[-1.5] * 3, [1.5] * 3]), near=2.0, far=6.0,
-                   ndc=False, preset="synthetic", alpha=coverage(rgba))
+                   ndc=False, preset="synthetic", alpha=alpha)

@@ -42,8 +42,9 @@ import numpy as np
 from .camera_models import MODELS, UNSUPPORTED, check_camera, from_colmap
 from .cameras import camera_dirs, distort
 from .base import Dataset, DataError
-from .io import (IMAGE_EXTS, check_downscale, check_splits, composite, downscale_image,
+from .io import (IMAGE_EXTS, check_downscale, check_splits, downscale_image,
                  holdout_split, inside, limit_split, parse_background, read_image, require_dir, warn)
+from .images import collect, composite
 from .llff import depth_bounds, normalize_capture, scene_extent
 
 # model id -> (name, number of parameters); the models clrf reads
@@ -377,27 +378,32 @@ def load_colmap(path, kind="auto", downscale=None, holdout=8, max_images=None,
 
     bg = parse_background(background)
     ref = cams[recs[keep[0]][1]]
-    imgs, hw = [], None
-    for i in keep:
-        name, cid = recs[i][:2]
-        a = downscale_image(read_image(_image_file(folder, name), "image"), extra)
-        cam = cams[cid]
-        s = a.shape[1] / cam["wh"][0]
-        if abs(a.shape[0] / cam["wh"][1] / s - 1.0) > 0.02:
-            raise DataError(f"{folder / name}: the image is {a.shape[1]}x{a.shape[0]} (WxH "
-                            f"after downscaling) but camera {cid} is {cam['wh'][0]}x"
-                            f"{cam['wh'][1]}; the aspect ratios differ, so this is not the "
-                            f"photo COLMAP posed; restore that photo or re-run COLMAP")
-        scaled = dict(cam, intr=cam["intr"] * s)
-        if hw is None:
-            hw, ref = a.shape[:2], scaled
-        same = (a.shape[:2] == hw and np.allclose(scaled["intr"], ref["intr"], rtol=PARAM_TOL)
-                and _same_lens(cam["dist"], ref["dist"]))
-        imgs.append(composite(a if same else _resample(a, scaled, ref, hw), bg))
+    hw = None
+
+    def each():      # one image at a time into collect (8-bit levels where exact)
+        nonlocal hw, ref
+        for i in keep:
+            name, cid = recs[i][:2]
+            a = downscale_image(read_image(_image_file(folder, name), "image"), extra)
+            cam = cams[cid]
+            s = a.shape[1] / cam["wh"][0]
+            if abs(a.shape[0] / cam["wh"][1] / s - 1.0) > 0.02:
+                raise DataError(f"{folder / name}: the image is {a.shape[1]}x{a.shape[0]} (WxH "
+                                f"after downscaling) but camera {cid} is {cam['wh'][0]}x"
+                                f"{cam['wh'][1]}; the aspect ratios differ, so this is not the "
+                                f"photo COLMAP posed; restore that photo or re-run COLMAP")
+            scaled = dict(cam, intr=cam["intr"] * s)
+            if hw is None:
+                hw, ref = a.shape[:2], scaled
+            same = (a.shape[:2] == hw and np.allclose(scaled["intr"], ref["intr"],
+                                                      rtol=PARAM_TOL)
+                    and _same_lens(cam["dist"], ref["dist"]))
+            yield composite(a if same else _resample(a, scaled, ref, hw), bg)
+
+    images, _ = collect(each(), len(keep))
     if any(cams[recs[i][1]]["id"] != ref["id"] for i in keep):
         warn(f"{ipath}: images use {len({recs[i][1] for i in keep})} cameras; those differing "
              f"from camera {ref['id']} were resampled onto it")
-    images = np.stack(imgs).astype(np.float32)
     dist = ref["dist"]
     poses = poses[keep].astype(np.float32)
     return Dataset(name=root.name, images=images, poses=poses, intrinsics=ref["intr"],

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .base import DataError
+from .images import collect
 
 ROTATION_TOL = 1e-3       # max |R^T R - I| entry for a pose to count as a rigid transform
 BOTTOM_ROW_TOL = 1e-6     # max |bottom row - [0, 0, 0, 1]| entry
@@ -208,23 +209,6 @@ def check_downscale(downscale) -> int:
     return int(downscale)
 
 
-def composite(rgba: np.ndarray, background) -> np.ndarray:
-    """RGB over ``background``: rgb * alpha + bg * (1 - alpha); RGB images pass through."""
-    if rgba.shape[-1] == 3:
-        return rgba
-    a = rgba[..., 3:4]
-    return rgba[..., :3] * a + np.asarray(background, np.float32) * (1.0 - a)
-
-
-def coverage(rgba_images) -> np.ndarray | None:
-    """float32 [N, H, W] alpha of RGBA images (what a model trained on random backgrounds
-    needs); None for RGB images, or RGBA ones that are opaque everywhere."""
-    if not len(rgba_images) or rgba_images[0].shape[-1] != 4:
-        return None
-    alpha = np.stack([a[..., 3] for a in rgba_images]).astype(np.float32)
-    return None if np.all(alpha >= 1.0) else alpha
-
-
 def parse_background(background) -> tuple:
     if isinstance(background, str):
         named = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -261,24 +245,32 @@ def check_splits(split: dict, path: Path, fix: str) -> None:
             raise DataError(f"{path}: split '{name}' is empty; {fix}")
 
 
-def load_images(paths, path_for_errors=None, downscale: int = 1, what: str = "image"):
-    """Read all files (float32 [H, W, C] each), check one shared size, downscale.
+def load_images(paths, downscale: int = 1, what: str = "image", background=(1.0, 1.0, 1.0)):
+    """Read every file, check one shared size and channel layout, downscale, and keep each as
+    it comes (clrf/data/images.py ``collect``: 8-bit levels where exact, else float32
+    composited on ``background``), so no float32 copy of every image is ever held twice.
 
-    Returns (list of arrays, (H, W) of the files before downscaling)."""
-    out, first = [], None
-    for p in paths:
-        a = read_image(p, what)
-        if first is None:
-            first = (a.shape, p)
-        else:
-            check_same_size(a.shape, first[0], p, first[1])
-            if a.shape[-1] != first[0][-1]:
-                kinds = {3: "RGB (or grey/palette without alpha)", 4: "RGBA"}
-                raise DataError(f"{p}: {what} is {kinds[a.shape[-1]]} but {first[1]} is "
-                                f"{kinds[first[0][-1]]}; all images of a scene must share one "
-                                f"channel layout (convert this one, e.g. to RGBA)")
-        out.append(downscale_image(a, downscale))
-    return out, (first[0][:2] if first else (0, 0))
+    Returns (images [N, H, W, 3], alpha [N, H, W] of RGBA files or None (``collect``), (H, W)
+    of the files before downscaling)."""
+    paths = list(paths)
+    first = []
+
+    def each():
+        for p in paths:
+            a = read_image(p, what)
+            if not first:
+                first.append((a.shape, p))
+            else:
+                check_same_size(a.shape, first[0][0], p, first[0][1])
+                if a.shape[-1] != first[0][0][-1]:
+                    kinds = {3: "RGB (or grey/palette without alpha)", 4: "RGBA"}
+                    raise DataError(f"{p}: {what} is {kinds[a.shape[-1]]} but {first[0][1]} is "
+                                    f"{kinds[first[0][0][-1]]}; all images of a scene must share "
+                                    f"one channel layout (convert this one, e.g. to RGBA)")
+            yield downscale_image(a, downscale)
+
+    images, alpha = collect(each(), len(paths), background)
+    return images, alpha, (first[0][0][:2] if first else (0, 0))
 
 
 def warn(msg: str) -> None:

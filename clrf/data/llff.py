@@ -35,7 +35,7 @@ import numpy as np
 
 from .cameras import average_pose, ndc_extent
 from .base import Dataset, DataError
-from .io import (IMAGE_EXTS, check_downscale, check_poses, check_splits, composite, holdout_split,
+from .io import (IMAGE_EXTS, check_downscale, check_poses, check_splits, holdout_split,
                  inside, limit_split, load_images, parse_background, require_dir, require_file,
                  warn)
 
@@ -204,8 +204,7 @@ def load_llff(path, kind="auto", downscale=None, holdout=8, max_images=None,
             raise DataError(f"only_split: expected one of {sorted(split)}, got {only_split!r}")
         keep, split = keep[split[only_split]], {only_split: np.arange(len(split[only_split]))}
     bg = parse_background(background)
-    imgs, (H0, W0) = load_images([files[i] for i in keep], downscale=extra)
-    images = np.stack([composite(a, bg) for a in imgs]).astype(np.float32)
+    images, _, (H0, W0) = load_images([files[i] for i in keep], downscale=extra, background=bg)
     if abs((H0 / W0) / (hwf[0] / hwf[1]) - 1.0) > ASPECT_TOL:
         raise DataError(f"{folder}: images are {W0}x{H0} (WxH) but {pb_path.name} says "
                         f"{hwf[1]:.0f}x{hwf[0]:.0f}; the aspect ratios differ, so these are not "

@@ -26,9 +26,9 @@ import numpy as np
 
 from .camera_models import FAMILIES, Distortion, as_distortion, check_camera
 from .base import Dataset, DataError
-from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, composite,
-                 coverage, get_field, holdout_split, inside, limit_split, load_images,
-                 parse_background, read_json, require_dir, warn)
+from .io import (as_matrix, as_number, check_downscale, check_poses, check_splits, get_field,
+                 holdout_split, inside, limit_split, load_images, parse_background, read_json,
+                 require_dir, warn)
 
 NGP_SCALE = 0.33          # instant-ngp's default world -> unit cube scale
 NGP_OFFSET = 0.5          # ... and offset (the unit cube's centre)
@@ -134,8 +134,8 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
                                f"{len(files)} usable frames)")
     keep, split = limit_split(split, max_images)
     check_splits(split, jpath, "pass max_images >= 1")
-    imgs, (H0, W0) = load_images([files[i] for i in keep], downscale=factor)
-    images = np.stack([composite(a, bg) for a in imgs]).astype(np.float32)
+    images, alpha, (H0, W0) = load_images([files[i] for i in keep], downscale=factor,
+                                          background=bg)
 
     w = _num(meta, "w", jpath, float(W0))
     h = _num(meta, "h", jpath, float(H0))
@@ -177,4 +177,4 @@ def load_ngp(path, downscale=None, holdout=8, max_images=None, background="white
     return Dataset(name=root.name, images=images, poses=np.stack(poses)[keep].astype(np.float32),
                    intrinsics=intr, split=split, background=bg, bbox=bbox, near=NEAR,
                    far=float(np.linalg.norm(bbox[1] - bbox[0])), ndc=False,
-                   distortion=dist, preset="real360_box", alpha=coverage(imgs))
+                   distortion=dist, preset="real360_box", alpha=alpha)

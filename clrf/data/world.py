@@ -69,8 +69,8 @@ def world_space(ds):
     train = np.asarray(ds.split.get("train", np.arange(len(ds.images))))
     background = ds.background
     if ds.alpha is None and len(train):   # RGBA captures keep what they were composited on
-        background = tuple(float(c) for c in
-                           np.asarray(ds.images[train], np.float64).mean(axis=(0, 1, 2)))
+        means = [np.asarray(ds.images[v], np.float64).mean(axis=(0, 1)) for v in train]
+        background = tuple(float(c) for c in np.mean(means, axis=0))   # one image at a time
     return dataclasses.replace(ds, ndc=False, near=float(b[:, 0].min()),
                                far=float(b[:, 1].max()),
                                bbox=frustum_box(ds.poses, ds.intrinsics, ds.hw, b),

@@ -37,7 +37,7 @@ from .loss import STATS, DeviceLoss
 from .params import NAMES, learning_rates, moment_keys
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
 from .strategy import RefineState, StepInfo, logit, make_strategy
-from .targets import DeviceImages
+from .targets import DeviceImages, ViewImages
 
 assert NAMES == PARAM_NAMES, "clrf/splat/params.py TABLE and the rasteriser's PARAM_NAMES"
 
@@ -308,8 +308,7 @@ class SplatModel:
         stored as uint8 or float16: clrf/splat/targets.py)."""
         if self._targets is None:
             ds = self._dataset()
-            self._targets = DeviceImages(self.device, {int(k): ds.images[k]
-                                                       for k in self.train_views})
+            self._targets = DeviceImages(self.device, ViewImages(ds.images, self.train_views))
         return self._targets.get(v)
 
     def on_iteration(self, it: int, budget: Budget):

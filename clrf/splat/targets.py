@@ -19,25 +19,21 @@ float64 twin is numpy's own conversion (``host_copy``).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 import pyopencl.array as cla
 from pyopencl.elementwise import ElementwiseKernel
 
+from ..runtime.levels import LEVELS, levels_of
 from ..runtime.programs import scratch, upload
-
-LEVELS = np.arange(256, dtype=np.float32) / np.float32(255.0)   # clrf/data/io.py's k / 255
 
 _KERNELS: dict = {}
 
 
 def exact_8bit(images) -> bool:
     """Whether every value of ``images`` (float32) is one of LEVELS."""
-    for img in images:
-        a = np.asarray(img, np.float32)
-        k = np.rint(a * 255.0)
-        if not (np.all((k >= 0) & (k <= 255)) and np.array_equal(LEVELS[k.astype(np.uint8)], a)):
-            return False
-    return True
+    return all(levels_of(np.asarray(img, np.float32)) is not None for img in images)
 
 
 def encode(img, dtype) -> np.ndarray:
@@ -70,9 +66,30 @@ def _widen(context, dtype):
     return _KERNELS[key]
 
 
+class ViewImages(Mapping):
+    """``{view: images[view]}`` for ``views`` of an image stack (an array, or the dataset's
+    ImageStack), each image read when asked for: DeviceImages reads them one at a time, so no
+    float32 copy of every training image is made."""
+
+    def __init__(self, images, views):
+        self.images, self.views = images, [int(v) for v in views]
+
+    def __getitem__(self, v) -> np.ndarray:
+        if int(v) not in self.views:
+            raise KeyError(v)
+        return np.asarray(self.images[int(v)], np.float32)
+
+    def __iter__(self):
+        return iter(self.views)
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+
 class DeviceImages:
     """Images ``{view: float32 [H, W, 3]}`` of one size on ``device``, stored as uint8 where
-    that is exact, else as float16 (module docstring)."""
+    that is exact, else as float16 (module docstring). ``images`` is any mapping; its images are
+    read one at a time (``ViewImages``)."""
 
     def __init__(self, device, images: dict):
         if not images:
@@ -115,4 +132,4 @@ class DeviceImages:
         return decode(self._stored[int(v)].get())
 
 
-__all__ = ["DeviceImages", "LEVELS", "exact_8bit", "encode", "decode"]
+__all__ = ["DeviceImages", "LEVELS", "ViewImages", "exact_8bit", "encode", "decode"]

@@ -42,9 +42,9 @@ per sample): 5 P per network (params, transposed copy, gradient, Adam m and v), 
 and their gradients 2 * 4 B s nslot, per-sample encodings and gradients, plus the ray store.
 
 On the host, beside those: what the process holds when the guard runs (the interpreter, the
-OpenCL runtime, the loaded images, 12 bytes a pixel), and RUNTIME_GROWTH for the kernels
-compiled later and the runtime's own buffers; the peak so far (VmHWM: loading the images) is a
-floor. docs/memory.md has the measured peaks this model was fitted to.
+OpenCL runtime, the loaded images: 3 bytes a pixel for 8-bit files at their own size, 4 for
+RGBA, 12 when averaged down, clrf/data/images.py), and RUNTIME_GROWTH for the kernels compiled
+later and the runtime's own buffers; the peak so far (VmHWM) is a floor. docs/memory.md has the measured peaks this model was fitted to.
 """
 from __future__ import annotations
 
