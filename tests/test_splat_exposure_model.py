@@ -48,7 +48,7 @@ def test_training_learns_each_images_gain(device):
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "run"),
-              "--set", "splat.exposure=true",
+              "--set", "splat.exposure=true", "--set", "splat.exposure_clip=false",
               "--set", f"splat.{key}={value}", "--max-seconds", "1"])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("clrf: error:") == 1 and f"splat.{key}" in err, err

@@ -132,9 +132,10 @@ class SplatConfig:
     exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
     #                                 gain and an offset per channel (white balance and
     #                                 exposure without mixing)
-    exposure_clip: bool = False     # the transformed render clamped to [0, 1], as the camera
+    exposure_clip: bool = True      # the transformed render clamped to [0, 1], as the camera
     #                                 clipped what it over- or under-exposed; clipped channels
-    #                                 pass no gradient (cl/splat_exposure.cl)
+    #                                 pass no gradient (cl/splat_exposure.cl); lego_400 with
+    #                                 changed exposures, 900 s: 29.26 dB, without 28.68
     exposure_clip_inward: bool = False   # with exposure_clip, a clipped channel still
     #                                 passes a gradient that would bring it back inside
     #                                 [0, 1] (a render past white where the capture was not
