@@ -259,6 +259,24 @@ def test_gather_batch_vs_reference(device):
     assert counts.min() > 19000  # uniform over the sources
 
 
+def test_strided_rays_read_back_from_the_device(device):
+    """RayStore.strided: rows 0, s, 2 s, ... of the origins and directions, read from the
+    device (the store keeps no host copy), equal to numpy's slicing of what was stored."""
+    from clrf.training.trainer import RayStore
+    rng = np.random.default_rng(2)
+    n_src = 1001
+    o = rng.normal(size=(n_src, 3)).astype(np.float32)
+    d = rng.normal(size=(n_src, 3)).astype(np.float32)
+    store = RayStore(device, o, d, np.zeros((n_src, 3), np.float32))
+    assert not hasattr(store, "host")
+    for n in (1, 7, 100, 1001, 5000):
+        so, sd = store.strided(n)
+        stride = max(1, n_src // n)
+        assert so.dtype == np.float32 and so.shape == o[::stride].shape
+        np.testing.assert_array_equal(so, o[::stride])
+        np.testing.assert_array_equal(sd, d[::stride])
+
+
 def test_batch_recomposited_on_another_background(device):
     """RGBA rays: a batch's colours moved from the background they were composited on to
     another one (random-background training) match the float64 reference; without alpha the

@@ -23,15 +23,15 @@ def test_sphere_rows_matches_the_initial_grid_mask():
 def test_grid_estimate_counts_every_term():
     # one dense 10^3 stage, SH degree 0 (C = 3, r = 16 bytes a row), no slots: links 4 V,
     # values + gradient + RMSProp state 3 r n, touched n, rays 36 N + 44 B on the device; on
-    # the host the ray store's o, d (24 N) and a checkpoint's copies (4 V + 2 r n); building
-    # the rays holds 72 N beside the grid and its optimiser
+    # the host a checkpoint's copies (4 V + 2 r n; the ray store keeps no host copy of its
+    # rays); building the rays holds 72 N beside the grid and its optimiser
     cfg = build_config(overrides={"grid": {"reso": [[10, 10, 10]], "upsample_at": [],
                                            "sh_degree": 0, "sphere_bound": False,
                                            "batch_size": 100}})
     build, st = grid_stages(cfg, n_rays=1000, slots=0, global_mem=GiB)
     V = 1000
     assert st.total == 4 * V + 3 * 16 * V + V + 36 * 1000 + 44 * 100
-    assert st.host == 24 * 1000 + 4 * V + 2 * 16 * V
+    assert st.host == 4 * V + 2 * 16 * V
     assert st.largest == max(4 * 3 * V, 4 * V)
     assert build.total == 4 * V + 3 * 16 * V + V and build.host == 72 * 1000
     assert build.name.startswith("building the training rays")

@@ -1,20 +1,20 @@
 """Every kernel family runs under the Oclgrind simulator's checks with no report.
 
-Oclgrind (Debian ``oclgrind``; ``bash tools/setup.sh impls``) simulates an OpenCL 1.2 device
-and reports out-of-bounds accesses, data races between work-items (``OCLGRIND_DATA_RACES``),
-barrier divergence and API misuse (``OCLGRIND_CHECK_API``): bugs that PoCL tolerates and a GPU
-may not. It is a device of its own here, through a vendors folder that names only its ICD, and
-runs a small test of each kernel family (CASES) in a child pytest: grid forward and backward
-in both loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample,
-prune, batch gather, fused loss), the optimisers, encode, sample, composite and the fused MLP
-forward and backward (CPU tiles, and the GPU tiling on a small network), the hash encoding's
-backward, the hash march (windows, alive rays, contraction), Adam over spans and over several
-buffers in one launch, the Gaussian splatting projection (forward, backward; anti-aliased;
-the camera's gradient), the MCMC strategy's regularisers and noise, the training images'
-widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's chunked sort) and
-tile rasteriser (forward, backward),
-and the hash model's bounded step (capped offsets, the encoding and the MLP on both tilings
-reading a device count, a bounded step with the GPU tiling).
+Oclgrind (Debian ``oclgrind``; ``bash tools/setup.sh impls``) simulates an OpenCL 1.2 device and
+reports out-of-bounds accesses, data races between work-items (``OCLGRIND_DATA_RACES``), barrier
+divergence and API misuse (``OCLGRIND_CHECK_API``): bugs that PoCL tolerates and a GPU may not.
+It is a device of its own here, through a vendors folder that names only its ICD, and runs a
+small test of each kernel family (CASES) in a child pytest: grid forward and backward in both
+loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample, prune, batch
+gather, the ray store's strided read-back, fused loss), the optimisers, encode, sample,
+composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
+network), the hash encoding's backward, the hash march (windows, alive rays, contraction), Adam
+over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
+backward; anti-aliased; the camera's gradient), the MCMC strategy's regularisers and noise, the
+training images' widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's
+chunked sort) and tile rasteriser (forward, backward), and the hash model's bounded step (capped
+offsets, the encoding and the MLP on both tilings reading a device count, a bounded step with
+the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -51,6 +51,7 @@ CASES = [
     "tests/test_grid_ops.py::test_resample_vs_reference",
     "tests/test_grid_ops.py::test_prune_vs_reference_and_to_nothing",
     "tests/test_grid_ops.py::test_gather_batch_vs_reference",
+    "tests/test_grid_ops.py::test_strided_rays_read_back_from_the_device",
     "tests/test_grid_ops.py::test_fused_mse_and_beta_prior_vs_reference",
     "tests/test_background.py::test_awkward_sizes",
     "tests/test_background.py::test_backward_matches_reference",

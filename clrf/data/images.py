@@ -1,12 +1,13 @@
 """A capture's images in host memory, stored as 8-bit levels where that is exact.
 
-Every loader hands the models float32 RGB in [0, 1], composited on the capture's background.
-An 8-bit file read at its own resolution holds only the 256 values k / 255 (clrf/data/io.py
-divides by 255 in float32), so such images are kept as their levels k (uint8, a quarter of the
-bytes) and widened on access through a table of those 256 float32 values
-(clrf/runtime/levels.py); an RGBA capture keeps its four channels and is composited on access
-by the loader's own function. Readers get the values the loader used to store, bit for bit. Images averaged down by a downscale factor (or
-resampled, or read from 16-bit or float files) hold other values and stay a float32 array.
+Every loader hands the models float32 RGB in [0, 1], composited on the capture's background. An
+8-bit file read at its own resolution holds only the 256 values k / 255 (clrf/data/io.py divides
+by 255 in float32), so such images are kept as their levels k (uint8, a quarter of the bytes)
+and widened on access through a table of those 256 float32 values (clrf/runtime/levels.py); an
+RGBA capture keeps its four channels and is composited on access by the loader's own function.
+Readers get the values the loader used to store, bit for bit. Images averaged down by a
+downscale factor (or resampled, or read from 16-bit or float files) hold other values and stay a
+float32 array.
 
 ``collect`` builds the store one image at a time, so a loader never holds a float32 copy of
 every image at once: bonsai_800's 292 photos at 800 x 533 take 0.37 GB instead of 1.5 GB, and

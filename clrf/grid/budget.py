@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..runtime.memory import (RAY_BUILD_BYTES, RAY_HOST_BYTES, StageEstimate,
+from ..runtime.memory import (RAY_BUILD_BYTES, StageEstimate,
                               ray_store_bytes)
 
 
@@ -35,7 +35,6 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int, rows=None) -> lis
     row = 4 * (1 + C)
     bg, bg_color = background_bytes(g)
     rays = ray_store_bytes(n_rays, g.batch_size) + bg
-    rays_host = RAY_HOST_BYTES * int(n_rays)
     out, prev, prev_n, prev_drop, frac = [], 0, 0, 0, 1.0
     for k, reso in enumerate(g.reso):
         V = int(np.prod([int(r) for r in reso]))
@@ -65,11 +64,10 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int, rows=None) -> lis
             # resample: the old stage whole + max weights, keep masks + flags, links, rows;
             # then the new optimiser once the old links and scratch copies are gone
             up = prev + 6 * prev_n + 4 * V + row * n + max(4 * V, 2 * row * n + n - prev_drop)
-            out.append(StageEstimate(f"the upsample to {what}", up + rays, big, big_what,
-                                     rays_host))
+            out.append(StageEstimate(f"the upsample to {what}", up + rays, big, big_what, 0))
         ckpt = 4 * V + 2 * row * n + (32 * (bg - 32 * g.batch_size) // 49 if bg else 0)
         out.append(StageEstimate(what, grid + opt + scratch + rays, big, big_what,
-                                 rays_host + ckpt))
+                                 ckpt))
         prev, prev_n, prev_drop = grid + opt + scratch, n, 4 * V + scratch
     return out
 

@@ -17,7 +17,6 @@ MiB = float(1 << 20)
 # -2 .. +8 % (docs/memory.md).
 RUNTIME_GROWTH = 200 * (1 << 20)
 
-RAY_HOST_BYTES = 24          # host o, d float32 kept by the ray store for pruning
 RAY_DEVICE_BYTES = 36        # device o, d, rgb float32
 RAY_BUILD_BYTES = 72         # host, while building: float64 o, d + their float32 copies
 
@@ -108,8 +107,7 @@ def ray_store_bytes(n_rays: int, batch: int) -> int:
 
 def training_stages(st: StageEstimate, n_rays: int) -> list:
     """A one-phase run's stages: building its ``n_rays`` training rays on the host, then the
-    phase ``st`` with the host copy of the rays beside it (the MLP models)."""
+    phase ``st`` (the MLP models; the ray store keeps no host copy of its rays)."""
     return [StageEstimate(f"building the training rays ({st.name})", 0, 0, "",
                           RAY_BUILD_BYTES * int(n_rays)),
-            StageEstimate(st.name, st.total, st.largest, st.largest_what,
-                          RAY_HOST_BYTES * int(n_rays))]
+            StageEstimate(st.name, st.total, st.largest, st.largest_what, 0)]

@@ -25,9 +25,9 @@ pruning that keeps every row):
     scratch    S n_k (r + 1)                        scratch gradient copies (Tuning.scratch_copies:
                                                     CPU with block locks S = 1; dropped when
                                                     they exceed global_mem_size / 4)
-    rays       36 N + 44 B (device) + 24 N (host)   ray store (o, d, rgb) + batch buffers; the
-                                                    host keeps o, d for pruning (+ 4 N: alpha,
-                                                    for random backgrounds, hash model)
+    rays       36 N + 44 B (device)                 ray store (o, d, rgb) + batch buffers (+ 4 N:
+                                                    alpha, for random backgrounds, hash model);
+                                                    pruning reads a strided subset back
     checkpoint 4 V_k + 2 r n_k (host)               state_dict's copies while a checkpoint is
                                                     written (every stage may write one)
     upsample   stage k-1's grid, optimiser and scratch, its max weights and keep masks
