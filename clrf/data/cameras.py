@@ -67,11 +67,16 @@ def pixel_rays(poses, intrinsics, H: int, W: int, distortion=None, normalize: bo
     Example: pose = identity, intrinsics (1, 1, 0.5, 0.5), H = W = 1 -> dirs [[0, 0, -1]].
     """
     p = _as_poses(poses)
-    d_cam = camera_dirs(intrinsics, H, W, distortion).reshape(-1, 3)          # [H*W, 3]
+    return _posed(p, camera_dirs(intrinsics, H, W, distortion).reshape(-1, 3), normalize)
+
+
+def _posed(p, d_cam, normalize: bool = False):
+    """(origins, dirs) float32 of camera-space directions d_cam [P, 3] under poses p [N, 3|4,
+    4] (float64)."""
     dirs = np.einsum("nij,pj->npi", p[:, :3, :3], d_cam).reshape(-1, 3)      # R @ d per camera
     if normalize:
         dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
-    origins = np.repeat(p[:, :3, 3], H * W, axis=0)
+    origins = np.repeat(p[:, :3, 3], len(d_cam), axis=0)
     return origins.astype(np.float32), dirs.astype(np.float32)
 
 
@@ -235,10 +240,19 @@ def view_rays(ds, poses, downscale=1):
     """Rays of whole views: numpy origins, dirs [len(poses)*h*w, 3] (NDC when the scene uses it).
 
     downscale f: the views at (H // f, W // f) with intrinsics / f, i.e. one ray per f x f block
-    of pixels (the pixels ``downscale_image`` averages)."""
+    of pixels (the pixels ``downscale_image`` averages). Built one view at a time into the
+    float32 arrays, so the float64 intermediates are one view's (not 48 bytes a ray of every
+    view); the values are those of one call over all views."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     intr = np.asarray(ds.intrinsics, np.float64) / downscale
-    o, d = pixel_rays(poses, intr, H, W, ds.distortion)
-    if ds.ndc:
-        o, d = to_ndc(o, d, intr, H, W)
-    return o.astype(np.float32), d.astype(np.float32)
+    p = _as_poses(poses)
+    d_cam = camera_dirs(intr, H, W, ds.distortion).reshape(-1, 3)
+    per = H * W
+    o_all = np.empty((len(p) * per, 3), np.float32)
+    d_all = np.empty((len(p) * per, 3), np.float32)
+    for i in range(len(p)):
+        o, d = _posed(p[i:i + 1], d_cam)
+        if ds.ndc:
+            o, d = to_ndc(o, d, intr, H, W)
+        o_all[i * per:(i + 1) * per], d_all[i * per:(i + 1) * per] = o, d
+    return o_all, d_all

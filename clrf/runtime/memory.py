@@ -18,7 +18,7 @@ MiB = float(1 << 20)
 RUNTIME_GROWTH = 200 * (1 << 20)
 
 RAY_DEVICE_BYTES = 36        # device o, d, rgb float32
-RAY_BUILD_BYTES = 72         # host, while building: float64 o, d + their float32 copies
+RAY_BUILD_BYTES = 72         # while building: host o, d, rgb float32 + their device copies
 
 
 class MemoryPlanError(ValueError):
