@@ -277,6 +277,34 @@ def test_strided_rays_read_back_from_the_device(device):
         np.testing.assert_array_equal(sd, d[::stride])
 
 
+@pytest.mark.parametrize("alpha", [False, True])
+def test_training_rays_filled_part_by_part(device, monkeypatch, alpha):
+    """training_rays fills the device store a few views at a time (RAY_PART rays): the store
+    holds what one build of every view gives (view_rays, the images, their alpha), in order."""
+    import dataclasses
+    from clrf.data.synthetic import load_procedural
+    from clrf.data.cameras import view_rays
+    from clrf.training import trainer
+    ds = load_procedural(n_train=5, n_test=1, size=16)
+    if alpha:
+        cover = np.random.default_rng(3).uniform(size=ds.images.shape[:3]).astype(np.float32)
+        ds = dataclasses.replace(ds, alpha=cover)
+    monkeypatch.setattr(trainer, "RAY_PART", 2 * 16 * 16 + 7)      # two views a part
+    store = trainer.training_rays(device, ds, alpha=True)
+    idx = ds.split["train"]
+    o, d = view_rays(ds, ds.poses[idx])
+    assert store.n == len(o) == 5 * 256
+    np.testing.assert_array_equal(store.o.get(), o)
+    np.testing.assert_array_equal(store.d.get(), d)
+    np.testing.assert_array_equal(store.c.get(), ds.images[idx].reshape(-1, 3))
+    if alpha:
+        np.testing.assert_array_equal(store.alpha.get(), ds.alpha[idx].reshape(-1))
+    else:
+        assert store.alpha is None
+    with pytest.raises(ValueError, match="RayStore.put"):
+        store.put(store.n - 1, o[:2], d[:2], o[:2])
+
+
 def test_batch_recomposited_on_another_background(device):
     """RGBA rays: a batch's colours moved from the background they were composited on to
     another one (random-background training) match the float64 reference; without alpha the

@@ -8,6 +8,7 @@ import pytest
 from clrf.cli.main import main as cli
 from clrf.training.config import build_config
 from clrf.grid.budget import grid_stages, sphere_rows
+from clrf.runtime.memory import RAY_PART, ray_build_host
 from clrf.training.budget import MemoryBudgetError, check_training_fits
 
 GiB = 1 << 30
@@ -24,7 +25,8 @@ def test_grid_estimate_counts_every_term():
     # one dense 10^3 stage, SH degree 0 (C = 3, r = 16 bytes a row), no slots: links 4 V,
     # values + gradient + RMSProp state 3 r n, touched n, rays 36 N + 44 B on the device; on
     # the host a checkpoint's copies (4 V + 2 r n; the ray store keeps no host copy of its
-    # rays); building the rays holds 72 N beside the grid and its optimiser
+    # rays); building the rays holds the device store (36 N) and one part of the rays on the
+    # host (36 bytes a ray, at most RAY_PART of them) beside the grid and its optimiser
     cfg = build_config(overrides={"grid": {"reso": [[10, 10, 10]], "upsample_at": [],
                                            "sh_degree": 0, "sphere_bound": False,
                                            "batch_size": 100}})
@@ -33,7 +35,8 @@ def test_grid_estimate_counts_every_term():
     assert st.total == 4 * V + 3 * 16 * V + V + 36 * 1000 + 44 * 100
     assert st.host == 4 * V + 2 * 16 * V
     assert st.largest == max(4 * 3 * V, 4 * V)
-    assert build.total == 4 * V + 3 * 16 * V + V and build.host == 72 * 1000
+    assert build.total == 4 * V + 3 * 16 * V + V + 36 * 1000 and build.host == 36 * 1000
+    assert ray_build_host(10 * RAY_PART) == 36 * RAY_PART
     assert build.name.startswith("building the training rays")
 
 

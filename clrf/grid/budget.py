@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..runtime.memory import (RAY_BUILD_BYTES, StageEstimate,
+from ..runtime.memory import (RAY_DEVICE_BYTES, StageEstimate, ray_build_host,
                               ray_store_bytes)
 
 
@@ -58,8 +58,9 @@ def grid_stages(cfg, n_rays: int, slots: int, global_mem: int, rows=None) -> lis
                    (bg_color, "MSI background colour")]
         big, big_what = max(buffers)
         if k == 0:
-            out.append(StageEstimate(f"building the training rays ({what})", grid + opt,
-                                     big, big_what, RAY_BUILD_BYTES * int(n_rays)))
+            out.append(StageEstimate(f"building the training rays ({what})",
+                                     grid + opt + RAY_DEVICE_BYTES * int(n_rays), big, big_what,
+                                     ray_build_host(n_rays)))
         else:
             # resample: the old stage whole + max weights, keep masks + flags, links, rows;
             # then the new optimiser once the old links and scratch copies are gone

@@ -18,7 +18,8 @@ MiB = float(1 << 20)
 RUNTIME_GROWTH = 200 * (1 << 20)
 
 RAY_DEVICE_BYTES = 36        # device o, d, rgb float32
-RAY_BUILD_BYTES = 72         # while building: host o, d, rgb float32 + their device copies
+RAY_BUILD_BYTES = 36         # while building, per ray of one part: host o, d, rgb float32
+RAY_PART = 1 << 22           # rays built and uploaded at a time (clrf/training/trainer.py)
 
 
 class MemoryPlanError(ValueError):
@@ -100,14 +101,20 @@ def check_plan(plan: MemoryPlan, caps, is_cpu: bool, fix: str, error=MemoryPlanE
     return plan
 
 
+def ray_build_host(n_rays: int) -> int:
+    """Host bytes while the training rays are built: one part of them."""
+    return RAY_BUILD_BYTES * min(int(n_rays), RAY_PART)
+
+
 def ray_store_bytes(n_rays: int, batch: int) -> int:
     """Device bytes of the ray store and its batch buffers."""
     return RAY_DEVICE_BYTES * int(n_rays) + 44 * int(batch)
 
 
 def training_stages(st: StageEstimate, n_rays: int) -> list:
-    """A one-phase run's stages: building its ``n_rays`` training rays on the host, then the
-    phase ``st`` (the MLP models; the ray store keeps no host copy of its rays)."""
-    return [StageEstimate(f"building the training rays ({st.name})", 0, 0, "",
-                          RAY_BUILD_BYTES * int(n_rays)),
+    """A one-phase run's stages: building its ``n_rays`` training rays (the device store, and
+    one part of them at a time on the host), then the phase ``st`` (the MLP models; the ray
+    store keeps no host copy of its rays)."""
+    return [StageEstimate(f"building the training rays ({st.name})",
+                          RAY_DEVICE_BYTES * int(n_rays), 0, "", ray_build_host(n_rays)),
             StageEstimate(st.name, st.total, st.largest, st.largest_what, 0)]

@@ -32,8 +32,9 @@ pruning that keeps every row):
                                                     written (every stage may write one)
     upsample   stage k-1's grid, optimiser and scratch, its max weights and keep masks
                (6 n_{k-1}), the new links and resample flags (8 V_k) and rows (r n_k)
-    building   72 N (host)                          pixel rays in float64, their float32 copies
-    rays                                            and the colours, beside stage 0's grid
+    building   36 N (device) + 36 min(N, RAY_PART)  the device store, filled a part at a time
+    rays       (host)                               from the host (o, d, rgb float32 of about
+                                                    4 M rays), beside stage 0's grid
     background 49 T + 32 B, T = 2 L H^2 MSI texels (grid.background_layers L > 0, H =
                background_height): density + colour with gradients and RMSProp states, flags
 

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
 from .. import registry
@@ -47,7 +48,8 @@ from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from ..runtime.pending import Pending
-from ..runtime.programs import download, float4, launch, upload
+from ..runtime.memory import RAY_PART
+from ..runtime.programs import download, float4, launch
 from ..runtime.progress import TrainProgress
 
 EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
@@ -59,21 +61,45 @@ class RayStore:
     """All training rays and colours on the device; random batches drawn on the device.
 
     alpha [n] (RGBA captures, else None) and background (what the colours were composited on)
-    let a batch's colours be recomposited on another background (``batch(..., background)``)."""
+    let a batch's colours be recomposited on another background (``batch(..., background)``).
+    ``RayStore.empty`` and ``put`` fill a store part by part (``training_rays``: a few views at
+    a time, so the host never holds every ray beside the device's copy)."""
 
     def __init__(self, device, origins, dirs, colors, alpha=None, background=(1.0, 1.0, 1.0)):
+        self._allocate(device, int(origins.shape[0]), alpha is not None, background)
+        if self.alpha is not None and np.size(alpha) != self.n:
+            raise ValueError(f"RayStore: alpha has {np.size(alpha)} values for {self.n} rays")
+        self.put(0, origins, dirs, colors, alpha)
+
+    @classmethod
+    def empty(cls, device, n: int, alpha: bool = False, background=(1.0, 1.0, 1.0)):
+        """A store of n rays (and their alpha) to be filled with ``put``."""
+        store = cls.__new__(cls)
+        store._allocate(device, int(n), alpha, background)
+        return store
+
+    def _allocate(self, device, n: int, alpha: bool, background):
         q = device.queue
-        self.device = device
-        self.n = int(origins.shape[0])
-        self.o = upload(q, np.ascontiguousarray(origins, np.float32))
-        self.d = upload(q, np.ascontiguousarray(dirs, np.float32))
-        self.c = upload(q, np.ascontiguousarray(colors, np.float32))
-        self.alpha = None if alpha is None else upload(
-            q, np.ascontiguousarray(np.reshape(alpha, -1), np.float32))
-        if self.alpha is not None and int(self.alpha.shape[0]) != self.n:
-            raise ValueError(f"RayStore: alpha has {self.alpha.shape[0]} values for {self.n} rays")
+        self.device, self.n = device, n
+        self.o, self.d, self.c = (cla.empty(q, (n, 3), np.float32) for _ in range(3))
+        self.alpha = cla.empty(q, n, np.float32) if alpha else None
         self.background = tuple(float(b) for b in background)
         self._bufs = {}
+
+    def put(self, start: int, origins, dirs, colors, alpha=None):
+        """Write rays start, start + 1, ... (float32 [k, 3] each; alpha [k] where the store
+        has alpha) to the device, waiting until the host arrays may be freed."""
+        k = int(np.shape(origins)[0])
+        if start < 0 or start + k > self.n:
+            raise ValueError(f"RayStore.put: rays {start}..{start + k} of {self.n}")
+        q = self.device.queue
+        parts = [(self.o, origins, 3), (self.d, dirs, 3), (self.c, colors, 3)]
+        if self.alpha is not None:
+            parts.append((self.alpha, alpha, 1))
+        for dst, src, w in parts:
+            a = np.ascontiguousarray(np.reshape(src, (k, w) if w > 1 else k), np.float32)
+            cl.enqueue_copy(q, dst.data, a, dst_offset=4 * w * start)
+        q.finish()
 
     def batch(self, seed: int, n: int, background=None):
         """(origins, dirs, colours, indices) of n rays drawn with replacement; deterministic in
@@ -125,13 +151,19 @@ def _strided_rows(device, a, stride: int, m: int) -> np.ndarray:
 def training_rays(device, ds, max_images=0, alpha=False):
     """The RayStore of ds's training views (the first max_images); alpha: keep the images'
     alpha on the device too (where they have one), for training on random backgrounds."""
-    idx = ds.split["train"]
+    idx = np.asarray(ds.split["train"])
     if max_images:
         idx = idx[:max_images]
-    o, d = view_rays(ds, ds.poses[idx])
-    c = ds.images[idx].reshape(-1, 3)
-    a = ds.alpha[idx].reshape(-1) if alpha and ds.alpha is not None else None
-    return RayStore(device, o, d, c, a, ds.background)
+    alpha = alpha and ds.alpha is not None
+    per = int(np.prod(ds.hw))
+    store = RayStore.empty(device, len(idx) * per, alpha, ds.background)
+    step = max(1, RAY_PART // max(per, 1))            # about 4 M rays (150 MB on the host) a part
+    for k in range(0, len(idx), step):
+        views = idx[k:k + step]
+        o, d = view_rays(ds, ds.poses[views])
+        store.put(k * per, o, d, ds.images[views].reshape(-1, 3),
+                  ds.alpha[views].reshape(-1) if alpha else None)
+    return store
 
 
 def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
