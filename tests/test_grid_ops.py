@@ -275,6 +275,8 @@ def test_strided_rays_read_back_from_the_device(device):
         assert so.dtype == np.float32 and so.shape == o[::stride].shape
         np.testing.assert_array_equal(so, o[::stride])
         np.testing.assert_array_equal(sd, d[::stride])
+    empty = RayStore(device, o[:0], d[:0], o[:0])
+    assert [a.shape for a in empty.strided(10)] == [(0, 3), (0, 3)]
 
 
 @pytest.mark.parametrize("alpha", [False, True])

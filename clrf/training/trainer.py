@@ -92,6 +92,8 @@ class RayStore:
         k = int(np.shape(origins)[0])
         if start < 0 or start + k > self.n:
             raise ValueError(f"RayStore.put: rays {start}..{start + k} of {self.n}")
+        if k == 0:
+            return
         q = self.device.queue
         parts = [(self.o, origins, 3), (self.d, dirs, 3), (self.c, colors, 3)]
         if self.alpha is not None:
@@ -143,6 +145,8 @@ def _strided_rows(device, a, stride: int, m: int) -> np.ndarray:
         _STRIDED[key] = ElementwiseKernel(
             device.context, "float *out, const float *src, const long stride",
             "out[i] = src[((long)i / 3) * stride * 3 + (long)i % 3]", "ray_rows_strided")
+    if m == 0:
+        return np.zeros((0, 3), np.float32)
     out = cla.empty(device.queue, (m, 3), np.float32)
     _STRIDED[key](out, a, np.int64(stride), queue=device.queue)
     return download(out)
