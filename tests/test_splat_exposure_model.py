@@ -41,6 +41,17 @@ def test_training_learns_each_images_gain(device):
     assert np.array_equal(back.exposure.steps, m.exposure.steps)
 
 
+def test_exposure_clip_on_by_default_but_not_for_older_checkpoints():
+    """splat.exposure_clip is on by default; a checkpoint written before the setting existed
+    resumes unclipped, as it was trained; one that records it keeps what it records."""
+    from clrf.splat.config import SplatConfig
+    assert SplatConfig().exposure_clip is True
+    old = {k: v for k, v in SplatConfig(exposure=True).__dict__.items()
+           if k not in ("exposure_clip", "exposure_clip_inward")}
+    assert SplatConfig.from_dict(old).exposure_clip is False
+    assert SplatConfig.from_dict(dict(old, exposure_clip=True)).exposure_clip is True
+
+
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
                                        ("exposure_reg", -0.1),
                                        ("exposure_matrix", "mixed"),

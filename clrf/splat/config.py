@@ -194,6 +194,8 @@ class SplatConfig:
             d = dict(d, antialiased=False)   # checkpoints from before the option: plain 3DGS
         if d.get("antialiased") and "aa_filter2d" not in d:
             d = dict(d, aa_filter2d=0.3)   # anti-aliased checkpoints from before the field
+        if "exposure_clip" not in d:
+            d = dict(d, exposure_clip=False)   # checkpoints from before the clip: unclipped
         return SplatConfig(**d)
 
     def checks(self):
