@@ -66,8 +66,7 @@ class Brick:
 
     def kernel_args(self):
         """(blo, bhi, lreso) int4 kernel arguments (BRICK_ARGS of cl/grid_render.cl)."""
-        mk = int4
-        return (mk(*self.lo, 0), mk(*self.hi, 0), mk(*self.local_reso, 0))
+        return (int4(*self.lo, 0), int4(*self.hi, 0), int4(*self.local_reso, 0))
 
 
 def split(reso, n: int, weight=None, block: int = 1) -> list:
@@ -321,10 +320,9 @@ def tv_grad_brick(bgrid: BrickGrid, param, grad, touched, start: int, n_cells: i
     n_cells = int(min(n_cells, total))
     own = tuple(h - l for l, h in zip(b.lo, b.hi))
     prg = ops_program(dev, bgrid.sh_degree, brick=True)
-    mk = int4
     r = bgrid.reso
     launch(dev, prg.kernel("tv_grad"), int(np.prod(own)),
-           (np.int32(n_cells), np.int32(start % total), mk(r[0], r[1], r[2], 0),
+           (np.int32(n_cells), np.int32(start % total), int4(r[0], r[1], r[2], 0),
             bgrid.links.data, param.data, np.int32(D), grad.data, touched.data,
             np.float32(scale), np.int32(bool(empty_is_zero)), np.float32(lambda_sparsity),
-            mk(*b.reso, 0), mk(*b.lo, 0), mk(*own, 0)))
+            int4(*b.reso, 0), int4(*b.lo, 0), int4(*own, 0)))

@@ -39,6 +39,8 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
+from pyopencl.elementwise import ElementwiseKernel
+from pyopencl.tools import context_dependent_memoize
 
 from .. import registry
 from ..interface import Budget, StateError, render_view
@@ -88,7 +90,7 @@ class RayStore:
 
     def put(self, start: int, origins, dirs, colors, alpha=None):
         """Write rays start, start + 1, ... (float32 [k, 3] each; alpha [k] where the store
-        has alpha) to the device, waiting until the host arrays may be freed."""
+        has alpha) to the device; the copies block, so the host arrays may be freed at once."""
         k = int(np.shape(origins)[0])
         if start < 0 or start + k > self.n:
             raise ValueError(f"RayStore.put: rays {start}..{start + k} of {self.n}")
@@ -100,8 +102,7 @@ class RayStore:
             parts.append((self.alpha, alpha, 1))
         for dst, src, w in parts:
             a = np.ascontiguousarray(np.reshape(src, (k, w) if w > 1 else k), np.float32)
-            cl.enqueue_copy(q, dst.data, a, dst_offset=4 * w * start)
-        q.finish()
+            cl.enqueue_copy(q, dst.data, a, dst_offset=4 * w * start, is_blocking=True)
 
     def batch(self, seed: int, n: int, background=None):
         """(origins, dirs, colours, indices) of n rays drawn with replacement; deterministic in
@@ -133,22 +134,20 @@ class RayStore:
         return tuple(_strided_rows(self.device, a, stride, m) for a in (self.o, self.d))
 
 
-_STRIDED: dict = {}
+@context_dependent_memoize
+def _strided_kernel(context):
+    return ElementwiseKernel(context, "float *out, const float *src, const long stride",
+                             "out[i] = src[((long)i / 3) * stride * 3 + (long)i % 3]",
+                             "ray_rows_strided")
 
 
 def _strided_rows(device, a, stride: int, m: int) -> np.ndarray:
     """Rows 0, stride, ..., (m - 1) stride of the device array ``a`` [n, 3] float32, on the
     host (a pyopencl elementwise gather, then one download)."""
-    from pyopencl.elementwise import ElementwiseKernel
-    key = device.context.int_ptr
-    if key not in _STRIDED:
-        _STRIDED[key] = ElementwiseKernel(
-            device.context, "float *out, const float *src, const long stride",
-            "out[i] = src[((long)i / 3) * stride * 3 + (long)i % 3]", "ray_rows_strided")
     if m == 0:
         return np.zeros((0, 3), np.float32)
     out = cla.empty(device.queue, (m, 3), np.float32)
-    _STRIDED[key](out, a, np.int64(stride), queue=device.queue)
+    _strided_kernel(device.context)(out, a, np.int64(stride), queue=device.queue)
     return download(out)
 
 
