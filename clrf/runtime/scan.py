@@ -13,36 +13,32 @@ import warnings
 import numpy as np
 import pyopencl as cl
 from pyopencl.scan import GenericScanKernel
+from pyopencl.tools import context_dependent_memoize
 
 from .programs import scratch
 
-_SCANS: dict = {}
-
-
+@context_dependent_memoize
 def _offsets_scan(context, capped: bool = False):
     """The int32 counts -> int32 [n + 1] offsets scan of ``context`` (built once): offsets[0] is
     0 and offsets[i + 1] the inclusive sum to i; the total also in a one-item int64 array
     (summed in 64 bits, so that a total past 2^31 is seen, not wrapped). ``capped``: every
     offset at most ``cap`` (two more arguments), and the capped total also in a one-item int32
     array ``count`` (the live rows of a bounded buffer of cap rows)."""
-    key = (context.int_ptr, capped)
-    if key not in _SCANS:
-        arguments = ("__global const int *counts, __global int *offsets, __global long *total, "
-                     "const int n")
-        item, last = "item", "total[0] = item;"
-        if capped:
-            arguments += ", __global int *count, const int cap"
-            item = "min(item, (long)cap)"
-            last = "total[0] = item; count[0] = (int)min(item, (long)cap);"
-        with warnings.catch_warnings():
-            # pyopencl warns on any non-empty build log, chatter included (programs.build)
-            warnings.simplefilter("ignore", cl.CompilerWarning)
-            _SCANS[key] = GenericScanKernel(
-                context, np.int64, arguments=arguments,
-                input_expr="counts[i]", scan_expr="a+b", neutral="0",
-                output_statement=f"offsets[i + 1] = (int){item}; if (i == 0) offsets[0] = 0; "
-                                 f"if (i + 1 == n) {{ {last} }}")
-    return _SCANS[key]
+    arguments = ("__global const int *counts, __global int *offsets, __global long *total, "
+                 "const int n")
+    item, last = "item", "total[0] = item;"
+    if capped:
+        arguments += ", __global int *count, const int cap"
+        item = "min(item, (long)cap)"
+        last = "total[0] = item; count[0] = (int)min(item, (long)cap);"
+    with warnings.catch_warnings():
+        # pyopencl warns on any non-empty build log, chatter included (programs.build)
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        return GenericScanKernel(
+            context, np.int64, arguments=arguments,
+            input_expr="counts[i]", scan_expr="a+b", neutral="0",
+            output_statement=f"offsets[i + 1] = (int){item}; if (i == 0) offsets[0] = 0; "
+                             f"if (i + 1 == n) {{ {last} }}")
 
 
 def capped_offsets(device, counts, n: int, cap: int):

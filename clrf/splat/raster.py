@@ -33,6 +33,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 from pyopencl.algorithm import RadixSort
+from pyopencl.elementwise import ElementwiseKernel
+from pyopencl.tools import context_dependent_memoize
 
 from ..runtime.programs import float4, launch, scratch, upload
 from ..runtime.scan import row_offsets
@@ -218,35 +220,21 @@ def _check_device_array(name: str, a, shape: tuple, dtype=np.float32):
         raise ValueError(f"{name}: must be C-contiguous")
 
 
-_SORTERS: dict = {}
-
-
+@context_dependent_memoize
 def _fill_unseen(context):
     """f2[i] < 0 (no training camera sees Gaussian i) -> the largest f2, max(0, top[0])."""
-    from pyopencl.elementwise import ElementwiseKernel
-    key = context.int_ptr
-    if key not in _FILLERS:
-        _FILLERS[key] = ElementwiseKernel(context, "float *f2, __global const float *top",
-                                          "if (f2[i] < 0.0f) f2[i] = fmax(top[0], 0.0f)",
-                                          "splat_fill_unseen")
-    return _FILLERS[key]
+    return ElementwiseKernel(context, "float *f2, __global const float *top",
+                             "if (f2[i] < 0.0f) f2[i] = fmax(top[0], 0.0f)", "splat_fill_unseen")
 
 
-_FILLERS: dict = {}
-
-
+@context_dependent_memoize
 def _pair_sort(context):
     """pyopencl's radix sort of the pairs' (uint64 keys, ids) for ``context``, built once."""
-    key = context.int_ptr
-    if key in _SORTERS:
-        return _SORTERS[key]
     with warnings.catch_warnings():
         # pyopencl warns on any non-empty build log, chatter included (programs.build)
         warnings.simplefilter("ignore", cl.CompilerWarning)
-        sort = RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
+        return RadixSort(context, "__global ulong *keys, __global int *ids", key_expr="keys[i]",
                          sort_arg_names=["keys", "ids"], key_dtype=np.uint64)
-    _SORTERS[key] = sort
-    return _SORTERS[key]
 
 
 SHAPES = ("rows", "group")

@@ -24,11 +24,10 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl.array as cla
 from pyopencl.elementwise import ElementwiseKernel
+from pyopencl.tools import context_dependent_memoize
 
 from ..runtime.levels import LEVELS, levels_of
 from ..runtime.programs import scratch, upload
-
-_KERNELS: dict = {}
 
 
 def exact_8bit(images) -> bool:
@@ -52,18 +51,17 @@ def decode(stored) -> np.ndarray:
     return stored.view(np.float16).astype(np.float32)
 
 
+@context_dependent_memoize
 def _widen(context, dtype):
-    key = (context.int_ptr, np.dtype(dtype).str)
-    if key not in _KERNELS:
-        if dtype == np.uint8:
-            _KERNELS[key] = ElementwiseKernel(
-                context, "float *y, const uchar *x, const float *levels", "y[i] = levels[x[i]]",
-                "splat_target_from_u8")
-        else:   # the half type may only be pointed to without cl_khr_fp16: vload_half reads it
-            _KERNELS[key] = ElementwiseKernel(
-                context, "float *y, const ushort *x",
-                "y[i] = vload_half(i, (__global const half *)x)", "splat_target_from_f16")
-    return _KERNELS[key]
+    """The kernel that widens a stored image (``dtype``: uint8 levels or float16 bits) to
+    float32, built once a context and type."""
+    if np.dtype(dtype) == np.uint8:
+        return ElementwiseKernel(context, "float *y, const uchar *x, const float *levels",
+                                 "y[i] = levels[x[i]]", "splat_target_from_u8")
+    # the half type may only be pointed to without cl_khr_fp16: vload_half reads it
+    return ElementwiseKernel(context, "float *y, const ushort *x",
+                             "y[i] = vload_half(i, (__global const half *)x)",
+                             "splat_target_from_f16")
 
 
 class ViewImages(Mapping):
