@@ -168,7 +168,7 @@ def test_mcmc_relocation_keeps_the_count_and_growth_holds_the_cap():
     host["opacity_logits"][:10] = -12.0                      # dead
     mo = _moments(host)
     rng = np.random.default_rng(0)
-    st = _mcmc(mcmc_growth=1.0)
+    st = _mcmc(mcmc_growth=1.0, mcmc_spread=0.0)   # copies in place, as published
     h, m, msg = st.refine(host, mo, None, cap=n, rng=rng)
     assert len(h["means"]) == n and msg.startswith("relocated 10 of 50")
     o = rst.sigmoid(h["opacity_logits"])
@@ -192,6 +192,43 @@ def test_mcmc_relocation_keeps_the_count_and_growth_holds_the_cap():
     h2, m2, _ = st.refine(h, m, None, cap=1000, rng=rng)
     assert len(h2["means"]) == int(1.05 * (n + 2))
     assert _rows_of(m2)[n + 2:].max() == 0
+
+
+@pytest.mark.parametrize("grow", [False, True])
+def test_mcmc_spread_starts_each_copy_off_its_original(grow):
+    """splat.mcmc_spread: a copy starts at its original's mean plus ``spread`` times a draw
+    from the original's relocated covariance (whitened, the offsets are standard normal
+    times spread); the drawn Gaussian stays where it was, and every other value is the one
+    the published (spread 0) edit gives."""
+    n, dead = 400, 300
+    host = _host(n)
+    host["log_scales"][:] = np.log([0.02, 0.05, 0.1]).astype(np.float32)
+    host["opacity_logits"][:dead] = -12.0
+    cap = int(1.05 * n) if grow else n
+    runs = {sp: _mcmc(mcmc_growth=1.05 if grow else 1.0, mcmc_spread=sp).refine(
+        host, _moments(host), None, cap=cap, rng=np.random.default_rng(3)) for sp in (0.0, 1.5)}
+    (h0, m0, _), (h1, m1, _) = runs[0.0], runs[1.5]
+    for k in h0:
+        if k != "means":
+            np.testing.assert_array_equal(h1[k], h0[k])
+    for k in m0:
+        np.testing.assert_array_equal(m1[k], m0[k])
+    moved = np.flatnonzero(np.any(h1["means"] != h0["means"], 1))
+    copies = np.r_[np.arange(dead), np.arange(n, len(h0["means"]))] if grow else np.arange(dead)
+    assert set(moved) == set(copies)          # only the copies moved; the drawn ones stay
+    R = rst.quat_rot(h1["quats"][moved].astype(np.float64))
+    off = np.einsum("nji,nj->ni", R, (h1["means"] - h0["means"])[moved].astype(np.float64))
+    white = off / np.exp(h1["log_scales"][moved].astype(np.float64)) / 1.5
+    assert abs(white.mean()) < 0.15 and abs(white.std() - 1) < 0.1
+
+
+def test_mcmc_spread_on_by_default_but_not_for_older_checkpoints():
+    """splat.mcmc_spread is 1 by default; a checkpoint written before the setting existed
+    resumes with its copies in place (0), as it was trained; one that records it keeps it."""
+    assert SplatConfig().mcmc_spread == 1.0
+    old = {k: v for k, v in SplatConfig(strategy="mcmc").__dict__.items() if k != "mcmc_spread"}
+    assert SplatConfig.from_dict(old).mcmc_spread == 0.0
+    assert SplatConfig.from_dict(dict(old, mcmc_spread=0.5)).mcmc_spread == 0.5
 
 
 def test_mcmc_with_no_live_gaussian_adds_nothing_dead():
@@ -304,14 +341,15 @@ def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
     assert isinstance(back.strategy, ss.MCMCStrategy)
 
 
-def test_mcmc_relocation_in_place_is_the_host_edit(device):
+@pytest.mark.parametrize("spread", [0.0, 1.0])
+def test_mcmc_relocation_in_place_is_the_host_edit(device, spread):
     """At the cap, mcmc relocates on the device (refine_in_place: the opacities down, the drawn
     rows gathered, the changed rows and their zeroed moments put back): the parameters and
-    moments equal the host edit's (strategy.refine on the downloaded arrays, the same draws);
-    while the count grows it declines and the host edit runs."""
+    moments equal the host edit's (strategy.refine on the downloaded arrays, the same draws,
+    the copies' offsets included); while the count grows it declines and the host edit runs."""
     from clrf.splat.model import SplatModel
     m, _ = _model(device, strategy="mcmc", init_points=300, max_gaussians=300,
-                  densify_min_steps=1)
+                  densify_min_steps=1, mcmc_spread=spread)
     for it in range(3):
         assert np.isfinite(m.train_step(it))
     lo = m.get_rows("opacity_logits")
@@ -356,7 +394,8 @@ def test_default_model_resumes_an_old_checkpoint_state(device):
 @pytest.mark.parametrize("field,value", [("strategy", "adc"), ("mcmc_growth", 0.5),
                                          ("mcmc_noise_lr", -1.0), ("mcmc_until", 1.5),
                                          ("init_opacity", 1.0), ("init_scale", -1.0),
-                                         ("densify_absgrad_threshold", 0.0)])
+                                         ("densify_absgrad_threshold", 0.0),
+                                         ("mcmc_spread", -0.5)])
 def test_bad_strategy_settings_are_refused(field, value):
     from clrf.training.config import build_config
     with pytest.raises(ValueError, match=f"splat.{field}"):

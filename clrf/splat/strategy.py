@@ -11,9 +11,12 @@ strategy, chosen with ``splat.strategy``.
   dead ones (opacity <= ``prune_opacity``) are moved onto live ones drawn in proportion to
   opacity, and the count grows by ``mcmc_growth`` up to the cap, with the opacity and scale of
   every sampled Gaussian and its copies chosen so that together they render as it did
-  (``relocation``); after each Adam step the means take noise shaped by their covariance, large
-  for transparent Gaussians and vanishing for opaque ones; L1 regularisers on opacity and scale
-  keep unused Gaussians transparent and small. No opacity resets, no gradient statistics.
+  (``relocation``), each copy starting ``mcmc_spread`` times a draw from that covariance away
+  from it (published: in place, where a copy and its original take the same gradients until
+  the noise parts them); after each Adam step the means take noise shaped by their
+  covariance, large for transparent Gaussians and vanishing for opaque ones; L1 regularisers
+  on opacity and scale keep unused Gaussians transparent and small. No opacity resets, no
+  gradient statistics.
 
 A strategy has its settings (a frozen dataclass built from the SplatConfig), keeps its running
 state in a separate record (``RefineState``, saved with the checkpoint), and has hooks that
@@ -221,6 +224,7 @@ class MCMCStrategy:
     noise_lr: float
     opacity_reg: float
     scale_reg: float
+    spread: float = 0.0
     name = "mcmc"
     absgrad = False
 
@@ -228,7 +232,7 @@ class MCMCStrategy:
     def of(cls, c) -> "MCMCStrategy":
         return cls(Schedule(c.densify_from, c.mcmc_until, c.densify_every, c.densify_min_steps),
                    c.prune_opacity, c.mcmc_growth, c.mcmc_noise_lr, c.mcmc_opacity_reg,
-                   c.mcmc_scale_reg)
+                   c.mcmc_scale_reg, c.mcmc_spread)
 
     def after_backward(self, model, info, grads):
         """The regularisers' gradients added to the step's (splat_mcmc_reg)."""
@@ -306,11 +310,27 @@ class MCMCStrategy:
         picked, lo, ls = self._draw(host["opacity_logits"], host["log_scales"], pool, k, rng)
         copied = {k_: np.asarray(host[k_])[picked] for k_ in host}
         copied.update(opacity_logits=lo, log_scales=ls)
+        copies = dict(copied, means=self._spread(copied, rng))
         if dst is None:   # the drawn rows changed, their copies appended: one edit
-            return edit_rows(host, moments, assign=(picked, copied), append=copied)
+            return edit_rows(host, moments, assign=(picked, copied), append=copies)
         both = np.concatenate([picked, dst])
         return edit_rows(host, moments,
-                         assign=(both, {k_: np.concatenate([v, v]) for k_, v in copied.items()}))
+                         assign=(both, {k_: np.concatenate([v, copies[k_]])
+                                        for k_, v in copied.items()}))
+
+    def _spread(self, rows: dict, rng) -> np.ndarray:
+        """The means of the copies of ``rows``: the drawn Gaussians' own (``spread`` 0, as
+        published), or each moved by ``spread`` times a draw from its relocated covariance, so
+        that a Gaussian and its copies do not start alike and take alike gradients. The draws
+        come from a stream jumped off ``rng``'s, which they leave as it was: every other
+        decision is the one spread 0 makes."""
+        means = np.asarray(rows["means"], np.float32)
+        if self.spread <= 0 or len(means) == 0:
+            return means
+        z = np.random.Generator(rng.bit_generator.jumped()).standard_normal(means.shape)
+        z *= np.exp(np.asarray(rows["log_scales"], np.float64))
+        off = np.einsum("nij,nj->ni", quat_rot(np.asarray(rows["quats"], np.float64)), z)
+        return (means + self.spread * off).astype(np.float32)
 
     def refine_in_place(self, model, rng):
         """The refinement of ``refine`` on the model's device arrays, where the count stays
@@ -332,8 +352,9 @@ class MCMCStrategy:
             picked, lo, ls = self._draw(lo_all, ls_all, alive, len(dead), rng)
             rows = {k: model.get_rows(k, picked) for k in model.params}
             rows.update(opacity_logits=lo, log_scales=ls)
+            copies = dict(rows, means=self._spread(rows, rng))
             model.put_rows(np.concatenate([picked, dead]),
-                           {k: np.concatenate([v, v]) for k, v in rows.items()})
+                           {k: np.concatenate([v, copies[k]]) for k, v in rows.items()})
             moved = len(dead)
         return f"relocated {moved} of {n0} Gaussians, added 0 (-> {n0}, cap {model.max_count})"
 
