@@ -322,12 +322,13 @@ class MCMCStrategy:
         """The means of the copies of ``rows``: the drawn Gaussians' own (``spread`` 0, as
         published), or each moved by ``spread`` times a draw from its relocated covariance, so
         that a Gaussian and its copies do not start alike and take alike gradients. The draws
-        come from a stream jumped off ``rng``'s, which they leave as it was: every other
-        decision is the one spread 0 makes."""
+        come from a child stream spawned off ``rng`` (independent of it and of the other
+        children), which leaves ``rng``'s own draws as they were: every other decision is the
+        one spread 0 makes."""
         means = np.asarray(rows["means"], np.float32)
         if self.spread <= 0 or len(means) == 0:
             return means
-        z = np.random.Generator(rng.bit_generator.jumped()).standard_normal(means.shape)
+        z = rng.spawn(1)[0].standard_normal(means.shape)
         z *= np.exp(np.asarray(rows["log_scales"], np.float64))
         off = np.einsum("nij,nj->ni", quat_rot(np.asarray(rows["quats"], np.float64)), z)
         return (means + self.spread * off).astype(np.float32)
