@@ -193,14 +193,9 @@ class SplatConfig:
         unknown = set(d) - names
         if unknown:
             raise ValueError(f"SplatConfig: unknown fields {sorted(unknown)}")
-        if "antialiased" not in d:
-            d = dict(d, antialiased=False)   # checkpoints from before the option: plain 3DGS
-        if d.get("antialiased") and "aa_filter2d" not in d:
+        d = {**BEFORE_FIELD, **d}   # a field the checkpoint predates: what it trained with
+        if d["antialiased"] and "aa_filter2d" not in d:
             d = dict(d, aa_filter2d=0.3)   # anti-aliased checkpoints from before the field
-        if "exposure_clip" not in d:
-            d = dict(d, exposure_clip=False)   # checkpoints from before the clip: unclipped
-        if "mcmc_spread" not in d:
-            d = dict(d, mcmc_spread=0.0)   # checkpoints from before the spread: in place
         return SplatConfig(**d)
 
     def checks(self):
@@ -276,6 +271,13 @@ class SplatConfig:
 
 INIT_MODES = ("auto", "points", "random")
 STRATEGIES = ("default", "mcmc")   # clrf/splat/strategy.py
+# The value of a setting whose default changed, for a checkpoint written before the setting
+# existed: how that run was trained (SplatConfig.from_dict).
+BEFORE_FIELD = {
+    "antialiased": False,     # plain 3DGS
+    "exposure_clip": False,   # unclipped
+    "mcmc_spread": 0.0,       # copies in place
+}
 EXPOSURE_MATRICES = ("full", "diagonal")   # splat.exposure_matrix (clrf/splat/exposure.py)
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).

@@ -224,7 +224,7 @@ class MCMCStrategy:
     noise_lr: float
     opacity_reg: float
     scale_reg: float
-    spread: float = 0.0
+    spread: float
     name = "mcmc"
     absgrad = False
 
