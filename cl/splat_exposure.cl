@@ -35,9 +35,10 @@
  *                    (deterministic), plus the pull toward the identity, d/dP of
  *                    reg (|A - I|^2 + |b|^2) = 2 reg (P - I); then Adam (cl/optim.cl's update,
  *                    bias-corrected with the row's own step count through bc1, bc2); a
- *                    non-finite gradient leaves P, m, v unchanged. diagonal = 1: the
- *                    off-diagonal entries of A are not trained (they keep their value, 0: a
- *                    gain and an offset per channel).
+ *                    non-finite gradient leaves P, m, v unchanged. matrix (exposure_trained)
+ *                    1 or 2: the entries it does not train keep their value (A's
+ *                    off-diagonal entries, with 2 b too, at 0: a gain and an offset per
+ *                    channel, or a gain only).
  *
  * Ray batches (the hash model: a batch holds rays of many images; ray i belongs to row
  * index[i] / pixels, index being its place in the concatenated training images). Each ray's
@@ -56,8 +57,8 @@
  *                    rays of row v; x = c + T bg, y = 1, or masked x = c, y = a), plus the pull
  *                    2 reg (P_v - I) weighted by the row's share of the batch (its rays / n), so
  *                    that a row's pull against its data is that of the splat model's
- *                    whole-image step; grad [V, 12]. diagonal = 1 (hash.exposure_matrix):
- *                    the off-diagonal entries of A get 0, so that Adam leaves them at 0.
+ *                    whole-image step; grad [V, 12]. matrix 1 or 2 (hash.exposure_matrix):
+ *                    the entries it does not train get 0, so that Adam leaves them at 0.
  *
  * Defines read: none.
  */
@@ -70,8 +71,11 @@
 /* entry k of the identity row: A = I (k = 0, 4, 8), b = 0 */
 inline float identity_entry(int k) { return (k == 0 || k == 4 || k == 8) ? 1.0f : 0.0f; }
 
-/* whether entry k of a row trains: every one, or with diagonal A's diagonal and b */
-inline bool exposure_trained(int k, int diagonal) { return !diagonal || k >= 9 || k % 4 == 0; }
+/* whether entry k of a row trains, by matrix (splat.exposure_matrix): 0 "full" every one,
+ * 1 "diagonal" A's diagonal and b, 2 "gain" A's diagonal only */
+inline bool exposure_trained(int k, int matrix) {
+    return matrix == 0 || (k < 9 ? k % 4 == 0 : matrix == 1);
+}
 
 /* A rgb + b of one pixel (row a) */
 inline float3 exposure_affine(__global const float *a, const float r, const float g,
@@ -139,9 +143,9 @@ __kernel void exposure_adam(const int items, __global const float *partials,
                             __global float *P, __global float *m, __global float *vm,
                             const int v, const float lr, const float reg, const float b1,
                             const float b2, const float eps, const float bc1,
-                            const float bc2, const int diagonal) {
+                            const float bc2, const int matrix) {
     const int k = get_global_id(0);
-    if (k >= EXPOSURE_ROW || !exposure_trained(k, diagonal)) return;
+    if (k >= EXPOSURE_ROW || !exposure_trained(k, matrix)) return;
     const size_t i = (size_t)v * EXPOSURE_ROW + k;
     float gk = 0.0f;
     for (int it = 0; it < items; ++it) gk += partials[(size_t)it * EXPOSURE_ROW + k];
@@ -199,7 +203,7 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
                         __global const float *state, const int masked, const float4 bg,
                         __global const float *resid,
                         __global const float *P, const float scale, const float reg,
-                        const int diagonal, __global float *grad) {
+                        const int matrix, __global float *grad) {
     __local float part[EXPOSURE_LS * (EXPOSURE_ROW + 1)];
     const int v = get_group_id(0), l = get_local_id(0);
     float s[EXPOSURE_ROW + 1];
@@ -227,7 +231,7 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
     if (l < EXPOSURE_ROW) {
         const float share = part[EXPOSURE_ROW] / (float)max(n, 1);
         const size_t j = (size_t)v * EXPOSURE_ROW + l;
-        grad[j] = !exposure_trained(l, diagonal) ? 0.0f
+        grad[j] = !exposure_trained(l, matrix) ? 0.0f
                   : 2.0f * scale * part[l] + 2.0f * reg * share * (P[j] - identity_entry(l));
     }
 }

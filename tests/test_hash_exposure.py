@@ -62,16 +62,19 @@ def test_rays_and_their_gradient_match_the_twin(device, n, masked):
     assert np.all(got[1] == 0)      # a row without rays: neither data nor pull
 
 
-def test_diagonal_rows_train_gains_and_offsets_only(device):
-    """hash.exposure_matrix=diagonal: the kernel's gradient is the twin's with A's off-diagonal
-    entries 0 (the trained ones are the full model's), Adam leaves those entries at exactly 0,
-    and so does recentring."""
+@pytest.mark.parametrize("matrix", ["diagonal", "gain"])
+def test_diagonal_rows_train_gains_and_offsets_only(device, matrix):
+    """hash.exposure_matrix=diagonal (gain): the kernel's gradient is the twin's with the
+    entries it does not train 0 (A's off-diagonal ones; with gain b too; the trained ones are
+    the full model's), Adam leaves those entries at exactly 0, and so does recentring."""
     rng = np.random.default_rng(17)
     pixels, V, n = 29, 4, 3 * LOCAL + 5
     state, target, index, P = _batch(rng, n, V, pixels)
-    P[:, ~ref.TRAINED_DIAGONAL] = 0.0                # rows of gains and offsets
+    k = ref.MATRICES.index(matrix)
+    on, off = ref.TRAINED[k], ~ref.TRAINED[k]
+    P[:, off] = 0.0                                  # rows of gains (and offsets)
     q = device.queue
-    exp = RayExposure(device, V, pixels, lr=1e-30, reg=0.3, masked=True, diagonal=True)
+    exp = RayExposure(device, V, pixels, lr=1e-30, reg=0.3, masked=True, matrix=matrix)
     exp.P.set(np.ascontiguousarray(P))
     st, idx = upload(q, state), upload(q, index)
     exp.forward(st, BG, upload(q, target), idx)
@@ -79,23 +82,23 @@ def test_diagonal_rows_train_gains_and_offsets_only(device):
     scale = 1.0 / (3 * n)
     exp.backward_and_step(st, BG, idx, scale)
     got = download(exp.grad).reshape(V, ref.ROW)
-    want = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.3, diagonal=True)
+    want = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.3, matrix=k)
     full = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.3)
     np.testing.assert_allclose(got, want, rtol=tol.EXPOSURE_GRAD_RTOL,
                                atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5 * scale)
-    assert np.all(got[:, ~ref.TRAINED_DIAGONAL] == 0)
-    np.testing.assert_array_equal(want[:, ref.TRAINED_DIAGONAL],
-                                  full[:, ref.TRAINED_DIAGONAL])
-    assert np.abs(full[[0, 2, 3]][:, ~ref.TRAINED_DIAGONAL]).min() > 0   # full would move them
+    assert np.all(got[:, off] == 0)
+    np.testing.assert_array_equal(want[:, on],
+                                  full[:, on])
+    assert np.abs(full[[0, 2, 3]][:, off]).min() > 0   # full would move them
     exp.lr = 0.05
     for _ in range(3):
         exp.forward(st, BG, upload(q, target), idx)
         exp.backward_and_step(st, BG, idx, scale)
     rows = exp.rows()
-    assert np.all(rows[:, ~ref.TRAINED_DIAGONAL] == 0)
-    assert np.abs(rows[[0, 2, 3]] - P[[0, 2, 3]])[:, ref.TRAINED_DIAGONAL].min() > 0
+    assert np.all(rows[:, off] == 0)
+    assert np.abs(rows[[0, 2, 3]] - P[[0, 2, 3]])[:, on].min() > 0
     exp.recentre()
-    assert np.all(exp.rows()[:, ~ref.TRAINED_DIAGONAL] == 0)
+    assert np.all(exp.rows()[:, off] == 0)
 
 
 def test_background_share_matches_the_twin(device):

@@ -92,12 +92,15 @@ CASES = [
     "tests/test_splat_loss.py::test_device_work_splits_and_accumulators",
     "tests/test_splat_exposure.py::test_backward_matches_the_twin[default-257-masked]",
     "tests/test_splat_exposure.py::test_adam_step_matches_the_twin_and_pulls_toward_identity[default]",
-    "tests/test_splat_exposure.py::test_diagonal_adam_trains_gains_and_offsets_only[default]",
+    "tests/test_splat_exposure.py::"
+    "test_diagonal_adam_trains_gains_and_offsets_only[default-diagonal]",
+    "tests/test_splat_exposure.py::"
+    "test_diagonal_adam_trains_gains_and_offsets_only[default-gain]",
     "tests/test_splat_exposure.py::"
     "test_clipped_apply_and_backward_match_the_twin[default-7-inward]",
     "tests/test_hash_exposure.py::test_rays_and_their_gradient_match_the_twin[default-71-masked]",
     "tests/test_hash_exposure.py::test_background_share_matches_the_twin[default]",
-    "tests/test_hash_exposure.py::test_diagonal_rows_train_gains_and_offsets_only[default]",
+    "tests/test_hash_exposure.py::test_diagonal_rows_train_gains_and_offsets_only[default-gain]",
     "tests/test_splat_pose.py::test_camera_gradient_on_the_device_matches_the_twin[default-3]",
     "tests/test_splat_antialias.py::test_project_and_backward_match_the_twin[default-3-0.1]",
     "tests/test_splat_antialias.py::test_filter3d_matches_the_twin[default]",

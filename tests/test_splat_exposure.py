@@ -195,10 +195,12 @@ def test_device_rows_recentre_as_the_twin(device):
     np.testing.assert_allclose(exp.rows(), ref.recentre(P, [0, 1, 3]), atol=1e-6)
 
 
-def test_diagonal_adam_trains_gains_and_offsets_only(device):
-    """splat.exposure_matrix=diagonal: the kernel's step matches the twin's, A's off-diagonal
-    entries keep their values bit for bit (0 from the identity, or whatever a row held), their
-    moments stay zero, and the gains and offsets move as the full model's would."""
+@pytest.mark.parametrize("matrix", ["diagonal", "gain"])
+def test_diagonal_adam_trains_gains_and_offsets_only(device, matrix):
+    """splat.exposure_matrix=diagonal (gain): the kernel's step matches the twin's, the
+    entries it does not train (A's off-diagonal ones; with gain b too) keep their values bit
+    for bit (0 from the identity, or whatever a row held), their moments stay zero, and the
+    trained ones move as the full model's would."""
     rng = np.random.default_rng(17)
     P = np.tile(ref.IDENTITY, (3, 1)).astype(np.float32)
     P[1] += rng.normal(0, 0.2, ref.ROW).astype(np.float32)    # a row with off-diagonals
@@ -206,48 +208,51 @@ def test_diagonal_adam_trains_gains_and_offsets_only(device):
     rgb = rng.uniform(0, 1, (n, 3)).astype(np.float32)
     g = rng.normal(0, 1e-3, (n, 3)).astype(np.float32)
     T = rng.uniform(0, 1, n).astype(np.float32)
-    exp = Exposure(device, 3, lr=0.02, reg=0.5, masked=True, diagonal=True)
+    exp = Exposure(device, 3, lr=0.02, reg=0.5, masked=True, matrix=matrix)
     exp.P = upload(device.queue, np.ascontiguousarray(P))
     want_P, want_m, want_v = P.astype(np.float64), np.zeros((3, 12)), np.zeros((3, 12))
     q = device.queue
-    off = ~ref.TRAINED_DIAGONAL
+    k = ref.MATRICES.index(matrix)
+    on, off = ref.TRAINED[k], ~ref.TRAINED[k]
     for v in (0, 1, 0):
         rows = download(exp.P)
         _, grad_p = ref.backward(rgb, g, rows, v, T, BG)
         assert np.abs(grad_p[off]).max() > 0                  # the data would move them
         exp.backward_and_step(upload(q, rgb), upload(q, T), BG, upload(q, g), v)
         want_P, want_m, want_v = ref.adam(want_P, want_m, want_v, v, grad_p, 0.02, 0.5, 0.9,
-                                          0.999, 1e-15, int(exp.steps[v]), diagonal=True)
+                                          0.999, 1e-15, int(exp.steps[v]), matrix=k)
     got = exp.rows()
     np.testing.assert_allclose(got, want_P, rtol=0, atol=tol.EXPOSURE_ADAM_ATOL)
     assert np.array_equal(got[:, off], P[:, off])
     assert not download(exp.m).reshape(3, 12)[:, off].any()
-    assert np.abs(got[0, ref.TRAINED_DIAGONAL] - P[0, ref.TRAINED_DIAGONAL]).min() > 0
-    # the full model moves the same row's off-diagonal entries; its gains and offsets take
-    # the diagonal model's step (Adam is per entry)
+    assert np.abs(got[0, on] - P[0, on]).min() > 0
+    # the full model moves the same row's other entries; the trained ones take this model's
+    # step (Adam is per entry)
     zeros = np.zeros((3, 12))
     full = ref.adam(P, zeros, zeros, 0, grad_p, 0.02, 0.5, 0.9, 0.999, 1e-15, 1)[0]
     assert np.abs(full[0, off] - P[0, off]).min() > 0
-    diag = ref.adam(P, zeros, zeros, 0, grad_p, 0.02, 0.5, 0.9, 0.999, 1e-15, 1,
-                    diagonal=True)[0]
-    np.testing.assert_array_equal(diag[0, ref.TRAINED_DIAGONAL],
-                                  full[0, ref.TRAINED_DIAGONAL])
+    mine = ref.adam(P, zeros, zeros, 0, grad_p, 0.02, 0.5, 0.9, 0.999, 1e-15, 1, matrix=k)[0]
+    np.testing.assert_array_equal(mine[0, on], full[0, on])
 
 
-def test_diagonal_rows_recentre_to_diagonal_rows(device):
-    """A diagonal model's rows stay diagonal through recentre, their zeros exact; their gains
-    centre on the geometric mean (0.6 and 1.5 around sqrt(0.9))."""
+@pytest.mark.parametrize("matrix", ["diagonal", "gain"])
+def test_diagonal_rows_recentre_to_diagonal_rows(device, matrix):
+    """A diagonal (gain) model's rows stay diagonal through recentre, the entries it does not
+    train exact (a gain model's offset stays what it was); their gains centre on the geometric
+    mean (0.6 and 1.5 around sqrt(0.9))."""
     P = np.tile(ref.IDENTITY, (3, 1)).astype(np.float32)
-    P[0, [0, 4, 8]], P[1, [0, 4, 8]], P[0, 9:] = 0.6, 1.5, 0.02
-    exp = Exposure(device, 3, lr=0.01, reg=0.0, masked=True, diagonal=True)
+    P[0, [0, 4, 8]], P[1, [0, 4, 8]] = 0.6, 1.5
+    if matrix == "diagonal":
+        P[0, 9:] = 0.02
+    exp = Exposure(device, 3, lr=0.01, reg=0.0, masked=True, matrix=matrix)
     exp.P = upload(device.queue, np.ascontiguousarray(P))
     exp.steps[[0, 1]] = 1
     exp.recentre()
     got = exp.rows()
-    assert not got[:, ~ref.TRAINED_DIAGONAL].any()
+    on = ref.TRAINED[ref.MATRICES.index(matrix)]
+    assert not got[:, ~on].any()
     np.testing.assert_allclose(got[1, [0, 4, 8]], 1.5 / np.sqrt(0.9), rtol=1e-6)
-    np.testing.assert_allclose(got[:, ref.TRAINED_DIAGONAL],
-                               ref.recentre(P, [0, 1])[:, ref.TRAINED_DIAGONAL], atol=1e-6)
+    np.testing.assert_allclose(got[:, on], ref.recentre(P, [0, 1])[:, on], atol=1e-6)
 
 
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
@@ -266,9 +271,9 @@ def test_diagonal_fit_recovers_gains_and_offsets(device, masked):
     target = ref.shown(c, T, BG, P, 1, masked)
     bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
     rgb = c + T[:, None] * bg_r
-    got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, diagonal=True)
+    got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
     np.testing.assert_allclose(got, true, atol=1e-9)
-    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, diagonal=True)
+    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, matrix="diagonal")
     q = device.queue
     exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
             target, 1.0)
@@ -276,10 +281,46 @@ def test_diagonal_fit_recovers_gains_and_offsets(device, masked):
     mixed = true.copy()
     mixed[1] = 0.2
     target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, mixed]), 1, masked)
-    diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, diagonal=True)
+    diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
     assert diag[1] == 0.0
     full = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked)
     np.testing.assert_allclose(full, mixed, atol=1e-9)
+
+
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_gain_fit_recovers_gains_and_keeps_the_offset(device, masked):
+    """splat.exposure_matrix=gain: a target made by a gain per channel is recovered by the fit
+    with eta 1 and no pull, the device path as the twin; the row's offset and off-diagonal
+    entries stay as they were (0), where the diagonal fit of a target with an offset as well
+    takes it and the gain fit cannot (its error stays)."""
+    rng = np.random.default_rng(29)
+    n = 400
+    c = rng.uniform(0, 0.8, (n, 3))
+    T = rng.uniform(0, 1, n)
+    T[:80] = 1.0
+    true = ref.IDENTITY.copy()
+    true[[0, 4, 8]] = (0.7, 1.2, 0.95)
+    P = np.stack([ref.IDENTITY, true])
+    target = ref.shown(c, T, BG, P, 1, masked)
+    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
+    rgb = c + T[:, None] * bg_r
+    gain = ref.MATRICES.index("gain")
+    got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=gain)
+    np.testing.assert_allclose(got, true, atol=1e-9)
+    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, matrix="gain")
+    q = device.queue
+    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
+            target, 1.0)
+    np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
+    offset = true.copy()
+    offset[9:] = (0.05, -0.03, 0.02)
+    target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, offset]), 1, masked)
+    only = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=gain)
+    assert np.all(only[9:] == 0.0) and np.all(only[~ref.TRAINED[gain]] == ref.IDENTITY[
+        ~ref.TRAINED[gain]])
+    assert np.abs(only - offset).max() > 0.01
+    diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
+    np.testing.assert_allclose(diag, offset, atol=1e-9)
 
 
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])

@@ -17,10 +17,13 @@ def _model(device, **splat):
     return registry.get("splat").create(device, cfg, ds, ds.background), ds
 
 
-def test_training_learns_each_images_gain(device):
+@pytest.mark.parametrize("matrix", ["full", "gain"])
+def test_training_learns_each_images_gain(device, matrix):
     """Training images scaled by per-image gains: the transforms of those images move toward
-    their gain (A's diagonal), and stay near the identity for the untouched ones."""
-    m, ds = _model(device, init_points=2000, exposure=True, lr_exposure=0.05)
+    their gain (A's diagonal), and stay near the identity for the untouched ones; with
+    splat.exposure_matrix=gain the other entries stay exactly as the identity has them."""
+    m, ds = _model(device, init_points=2000, exposure=True, lr_exposure=0.05,
+                   exposure_matrix=matrix)
     gains = {int(v): g for v, g in zip(ds.split["train"][:6], (0.6, 1.4, 0.7, 1.3, 0.8, 1.2))}
     ds.images = ds.images.copy()
     for v, g in gains.items():
@@ -33,12 +36,16 @@ def test_training_learns_each_images_gain(device):
     brighter = [v for v, g in gains.items() if g > 1]
     darker = [v for v, g in gains.items() if g < 1]
     assert min(diag[v] for v in brighter) > max(diag[v] for v in darker), diag
+    from clrf.references.reference_exposure import IDENTITY, TRAINED
+    fixed = ~TRAINED[2]
+    assert np.all(rows[:, fixed] == IDENTITY[fixed]) == (matrix == "gain")
     # the checkpoint keeps them
     state = m.state_dict()
     from clrf.splat.model import SplatModel
     back = SplatModel.from_state_dict(device, state)
     assert np.array_equal(back.exposure.rows(), rows)
     assert np.array_equal(back.exposure.steps, m.exposure.steps)
+    assert back.exposure.matrix == m.exposure.matrix
 
 
 def test_exposure_clip_on_by_default_but_not_for_older_checkpoints():
@@ -50,6 +57,19 @@ def test_exposure_clip_on_by_default_but_not_for_older_checkpoints():
            if k not in ("exposure_clip", "exposure_clip_inward")}
     assert SplatConfig.from_dict(old).exposure_clip is False
     assert SplatConfig.from_dict(dict(old, exposure_clip=True)).exposure_clip is True
+
+
+def test_exposure_gain_by_default_but_not_for_older_checkpoints():
+    """splat.exposure_matrix is "gain" by default; a checkpoint written before the setting
+    existed resumes with the full matrix it trained; one that records it keeps what it
+    records."""
+    from clrf.splat.config import SplatConfig
+    assert SplatConfig().exposure_matrix == "gain"
+    old = {k: v for k, v in SplatConfig(exposure=True).__dict__.items()
+           if k != "exposure_matrix"}
+    assert SplatConfig.from_dict(old).exposure_matrix == "full"
+    assert SplatConfig.from_dict(dict(old, exposure_matrix="diagonal")).exposure_matrix == \
+        "diagonal"
 
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),

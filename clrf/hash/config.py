@@ -87,7 +87,8 @@ class HashConfig:
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
-    #                                 gain and an offset per channel (as splat.exposure_matrix)
+    #                                 gain and an offset per channel; "gain": a gain per
+    #                                 channel only (as splat.exposure_matrix)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "HashConfig":

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from ..references.reference_exposure import IDENTITY, ROW, recentre
+from ..references.reference_exposure import IDENTITY, MATRICES, ROW, recentre
 from ..runtime.optim import Optimizer
 from ..runtime.programs import download, float4, launch, scratch, upload
 from ..splat.exposure import program
@@ -42,12 +42,13 @@ class RayExposure:
 
     def __init__(self, device, n_images: int, pixels: int, lr: float, reg: float,
                  beta=(0.9, 0.999), eps: float = 1e-15, state: dict | None = None,
-                 masked: bool = False, diagonal: bool = False):
+                 masked: bool = False, matrix: str = "full"):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
         self.device, self.n_images, self.pixels = device, int(n_images), int(pixels)
         self.masked = bool(masked)     # an RGBA capture: the background stays (module doc)
-        self.diagonal = bool(diagonal)   # a gain and an offset per channel (exposure_matrix)
+        # the entries that train (exposure_matrix): an index of MATRICES, the kernel's argument
+        self.matrix = MATRICES.index(matrix)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -101,7 +102,7 @@ class RayExposure:
         launch(self.device, self._prg.kernel("exposure_rays_grad"), self.n_images * LOCAL,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
                 np.int32(self.masked), self._bg(background), self._resid.data, self.P.data,
-                np.float32(loss_scale), np.float32(self.reg), np.int32(self.diagonal),
+                np.float32(loss_scale), np.float32(self.reg), np.int32(self.matrix),
                 self.grad.data), local_size=LOCAL)
         self.steps += 1
         self.opt.step(None, self.lr, t=self.steps)
@@ -113,7 +114,7 @@ class RayExposure:
         """Takes the rows' geometric mean transform out of them
         (``reference_exposure.recentre``); ``backward_and_step`` calls it every
         RECENTRE_EVERY steps."""
-        P = recentre(self.rows(), np.arange(self.n_images), self.diagonal)
+        P = recentre(self.rows(), np.arange(self.n_images), self.matrix)
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:

@@ -202,7 +202,7 @@ class HashModel:
         c = self.config
         self.exposure = RayExposure(self.device, n_images, pixels, c.lr_exposure,
                                     c.exposure_reg, (c.beta1, c.beta2), state=state,
-                                    masked=masked, diagonal=c.exposure_matrix == "diagonal")
+                                    masked=masked, matrix=c.exposure_matrix)
 
     @property
     def ray_index(self) -> bool:

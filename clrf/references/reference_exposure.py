@@ -12,8 +12,14 @@ import numpy as np
 ROW = 12
 MEAN_ITERATIONS = 20   # recentre's fixed-point iterations (a few reach 1e-13 near the identity)
 IDENTITY = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0], np.float64)
-# the entries a diagonal transform trains (splat.exposure_matrix "diagonal"): A's diagonal, b
-TRAINED_DIAGONAL = np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, 1], bool)
+# splat.exposure_matrix / hash.exposure_matrix, in the order of their kernel argument
+# ``matrix``: "full" trains every entry; "diagonal" A's diagonal and b (a gain and an offset
+# per channel); "gain" A's diagonal only (a gain per channel: exposure and white balance)
+MATRICES = ("full", "diagonal", "gain")
+TRAINED = (np.ones(ROW, bool),
+           np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 1, 1, 1], bool),
+           np.array([1, 0, 0, 0, 1, 0, 0, 0, 1, 0, 0, 0], bool))
+TRAINED_DIAGONAL = TRAINED[1]
 
 
 def split(row):
@@ -74,14 +80,14 @@ def backward(rgb, grad_out, P, v, T=None, background=None, clip=False):
     return g @ A, np.concatenate([(g.T @ x).ravel(), (g * (1 - T)[:, None]).sum(axis=0)])
 
 
-def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t, diagonal=False):
+def adam(P, m, vm, v, grad_row, lr, reg, b1, b2, eps, t, matrix=0):
     """Adam step t (1-based) of row v, with the pull 2 reg (P - I) added to ``grad_row``;
-    diagonal: A's off-diagonal entries are left as they are. Returns new (P, m, vm), float64
-    copies."""
+    matrix (an index of MATRICES): the entries it does not train are left as they are.
+    Returns new (P, m, vm), float64 copies."""
     P = np.array(P, np.float64).reshape(-1, ROW)
     m = np.array(m, np.float64).reshape(-1, ROW)
     vm = np.array(vm, np.float64).reshape(-1, ROW)
-    k = TRAINED_DIAGONAL if diagonal else np.ones(ROW, bool)
+    k = TRAINED[int(matrix)]
     g = (np.asarray(grad_row, np.float64) + 2.0 * reg * (P[v] - IDENTITY))[k]
     m[v, k] = b1 * m[v, k] + (1 - b1) * g
     vm[v, k] = b2 * vm[v, k] + (1 - b2) * g * g
@@ -135,11 +141,11 @@ def rays_bg(offsets, dt, sigma, bgt, scale, dsigma):
 
 
 def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=True,
-              diagonal=False):
+              matrix=0):
     """dL/dP [V, 12] of rays_loss from its residuals (dL/dA = 2 s sum r x^T, dL/db =
     2 s sum y r: x = c, y = a masked, else x = c + T bg, y = 1), plus each row's pull
-    2 reg (P_v - I) weighted by its share of the batch (its rays / n); ``diagonal``: 0 for
-    A's off-diagonal entries (not trained)."""
+    2 reg (P_v - I) weighted by its share of the batch (its rays / n); ``matrix`` (an index
+    of MATRICES): 0 for the entries it does not train."""
     c, a, _, _, _ = _ray_terms(state, background, P, index, pixels, masked)
     r = np.asarray(resid, np.float64).reshape(-1, 3)
     P = np.asarray(P, np.float64).reshape(-1, ROW)
@@ -151,20 +157,20 @@ def rays_grad(state, background, resid, P, index, pixels, scale, reg, masked=Tru
         g[v, :9] = 2.0 * scale * (r[sel].T @ c[sel]).ravel()
         g[v, 9:] = 2.0 * scale * (a[sel] * r[sel]).sum(axis=0)
         g[v] += 2.0 * reg * (sel.sum() / max(n, 1)) * (P[v] - IDENTITY)
-    if diagonal:
-        g[:, ~TRAINED_DIAGONAL] = 0.0
+    g[:, ~TRAINED[int(matrix)]] = 0.0
     return g
 
 
 def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, clip=False,
-            diagonal=False):
+            matrix=0):
     """The row moved by ``eta`` toward the least-squares transform of a whole render (a
     Gauss-Newton step of the squared error, which is quadratic in the row): the render rgb
     [n, 3] and transmittance T [n] on ``render_bg``; masked: regress target - T bg on
     [c, 1 - T] (c = rgb - T render_bg), else target on [rgb, 1]; pulled toward the identity by
     reg n |M - I|^2 (the loss's pull, per pixel); clip: pixels with a clipped target channel
-    (0 or 1: the camera's clip hides what the transform gave there) are left out; diagonal:
-    each channel fitted on its own colour and the offset (A's off-diagonal entries kept).
+    (0 or 1: the camera's clip hides what the transform gave there) are left out; matrix (an
+    index of MATRICES): "diagonal" fits each channel on its own colour and the offset, "gain"
+    on its own colour only (the entries they do not train kept as they were).
     Returns the new 12-float row (float64)."""
     x = np.asarray(rgb, np.float64).reshape(-1, 3)
     y = np.asarray(target, np.float64).reshape(-1, 3)
@@ -182,13 +188,17 @@ def fit_row(rgb, T, render_bg, background, target, row, reg, eta, masked=True, c
     else:
         F = np.concatenate([x, np.ones((n, 1))], axis=1)
     row = np.asarray(row, np.float64)
-    if diagonal:
+    if int(matrix):
         fitted = row.copy()
-        for i in range(3):       # channel i on [its colour, the offset's column]
-            Fi = F[:, [i, 3]]
-            gain, off = np.linalg.solve(Fi.T @ Fi + reg * n * np.eye(2),
-                                        Fi.T @ y[:, i] + reg * n * np.array([1.0, 0.0]))
-            fitted[4 * i], fitted[9 + i] = gain, off
+        cols = [3] if int(matrix) == 1 else []    # the offset's column, where it trains
+        for i in range(3):       # channel i on its colour (and the offset's column)
+            Fi = F[:, [i] + cols]
+            pull = np.array([1.0, 0.0])[:Fi.shape[1]]
+            sol = np.linalg.solve(Fi.T @ Fi + reg * n * np.eye(len(pull)),
+                                  Fi.T @ y[:, i] + reg * n * pull)
+            fitted[4 * i] = sol[0]
+            if cols:
+                fitted[9 + i] = sol[1]
         return row + eta * (fitted - row)
     E = np.concatenate([np.eye(3), np.zeros((1, 3))])           # the identity, as M^T
     Mt = np.linalg.solve(F.T @ F + reg * n * np.eye(4), F.T @ y + reg * n * E)
@@ -204,7 +214,7 @@ def affine(row) -> np.ndarray:
     return M
 
 
-def recentre(P, rows, diagonal=False):
+def recentre(P, rows, matrix=0):
     """P [V, 12] (float64 copy) with the geometric mean G = expm(mean logm(M_v)) of the rows
     ``rows`` taken out of each of them, M_v <- M_v G^-1, so that their mean logarithm is zero
     (iterated: for matrices that do not commute one such step only nears it).
@@ -213,17 +223,18 @@ def recentre(P, rows, diagonal=False):
     pull toward the identity holds it, weakly); fixed there, the scene has the images' mean
     exposure, in the geometric sense (gains 0.6 and 1.5 around 0.95, not 1.05). Returns P
     unchanged when a logarithm is not real and finite (a transform far from the identity).
-    diagonal: the rows are diagonal transforms, whose mean is diagonal; A's off-diagonal
-    entries are kept exactly (at 0) instead of taking the logarithms' rounding."""
+    matrix (an index of MATRICES): the rows of "diagonal" and "gain" are diagonal transforms,
+    whose mean is diagonal (without an offset for "gain"); the entries they do not train are
+    kept exactly (at 0) instead of taking the logarithms' rounding."""
     P = np.array(P, np.float64).reshape(-1, ROW)
     out = _recentre(P.copy(), np.asarray(rows, np.int64))
-    if diagonal:
-        out[:, ~TRAINED_DIAGONAL] = P[:, ~TRAINED_DIAGONAL]
+    kept = ~TRAINED[int(matrix)]
+    out[:, kept] = P[:, kept]
     return out
 
 
 def _recentre(P, rows):
-    """recentre on P (modified, returned) without the diagonal option."""
+    """recentre on P (modified, returned), every entry taken as it comes out."""
     from scipy.linalg import expm, logm
     if len(rows) == 0:
         return P

@@ -12,8 +12,9 @@ that render, ``A rgb + b``, is then exactly what the loss sees (cl/splat_exposur
 twin: clrf/references/reference_exposure.py). Rows start at the identity and are pulled toward it by
 ``reg (|A - I|^2 + |b|^2)``, which also fixes the scale the scene's colours and the transforms
 could otherwise trade; each row takes an Adam step (its own learning rate and step count)
-whenever its image is trained. With ``diagonal`` (``splat.exposure_matrix=diagonal``) only A's
-diagonal and b train: a gain and an offset per channel. Test views are rendered under the
+whenever its image is trained. ``matrix`` (``splat.exposure_matrix``) says which entries train:
+"full" every one, "diagonal" A's diagonal and b (a gain and an offset per channel), "gain" A's
+diagonal only (a gain per channel: exposure and white balance). Test views are rendered under the
 identity, as published; clrf's final evaluation also reports NeRF-W's protocol (a transform
 fitted on the left half of each test image, the right half scored:
 ``reference_exposure.half_fitted_psnr``).
@@ -27,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..references.reference_exposure import IDENTITY, ROW, fit_row, recentre
+from ..references.reference_exposure import IDENTITY, MATRICES, ROW, fit_row, recentre
 from ..runtime.programs import download, float4, launch, scratch, upload
 
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
@@ -44,7 +45,7 @@ class Exposure:
     """The transforms of ``n_images`` training images on ``device`` (module doc)."""
 
     def __init__(self, device, n_images: int, lr: float, reg: float, state: dict | None = None,
-                 masked: bool = False, clip: bool = False, diagonal: bool = False):
+                 masked: bool = False, clip: bool = False, matrix: str = "full"):
         if n_images < 1:
             raise ValueError(f"Exposure needs at least one image, got {n_images}")
         self.device, self.n_images = device, int(n_images)
@@ -52,8 +53,8 @@ class Exposure:
         # clamped to [0, 1] as a camera clips (exposure_clip): 0 no, 1 clipped channels pass
         # no gradient, 2 only one that points back inside (exposure_clip_inward)
         self.clip = int(clip)
-        # a gain and an offset per channel: A's off-diagonal entries stay 0 (exposure_matrix)
-        self.diagonal = bool(diagonal)
+        # the entries that train (exposure_matrix): an index of MATRICES, the kernels' argument
+        self.matrix = MATRICES.index(matrix)
         self.lr, self.reg = float(lr), float(reg)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -129,7 +130,7 @@ class Exposure:
                (np.int32(items), partials.data, self.P.data, self.m.data, self.v.data,
                 np.int32(v), np.float32(self.lr), np.float32(self.reg), np.float32(b1),
                 np.float32(b2), np.float32(ADAM_EPS), np.float32(1 - b1 ** t),
-                np.float32(1 - b2 ** t), np.int32(self.diagonal)), local_size=ROW)
+                np.float32(1 - b2 ** t), np.int32(self.matrix)), local_size=ROW)
 
     def fit(self, v: int, rgb, T, render_bg, background, target, eta: float):
         """Row v moved by ``eta`` toward the least-squares transform of this render (
@@ -138,7 +139,7 @@ class Exposure:
         Adam steps would not. The row's Adam step count goes on, its moments stay."""
         row = download(self.P[v:v + 1]).reshape(ROW)
         new = fit_row(download(rgb), download(T), render_bg, background, target, row,
-                      self.reg, eta, self.masked, self.clip, self.diagonal)
+                      self.reg, eta, self.masked, self.clip, self.matrix)
         if np.all(np.isfinite(new)):
             self.P[v:v + 1].set(np.ascontiguousarray(new.astype(np.float32)[None]))
         self.steps[v] += 1
@@ -149,7 +150,7 @@ class Exposure:
         the test views' identity means it); the model calls it after each pass over its
         views."""
         trained = np.flatnonzero(self.steps > 0)
-        P = recentre(self.rows(), trained, self.diagonal)
+        P = recentre(self.rows(), trained, self.matrix)
         self.P.set(np.ascontiguousarray(P.astype(np.float32)))
 
     def rows(self) -> np.ndarray:

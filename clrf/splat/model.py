@@ -186,7 +186,7 @@ class SplatModel:
             from .exposure import Exposure
             self.exposure = Exposure(self.device, n_images, self.config.lr_exposure,
                                      self.config.exposure_reg,
-                                     diagonal=self.config.exposure_matrix == "diagonal")
+                                     matrix=self.config.exposure_matrix)
         if self.exposure is not None:   # an RGBA capture: its background stays (exposure.py)
             self.exposure.masked = ds.alpha is not None
             self.exposure.clip = clip_mode(self.config)
@@ -525,7 +525,7 @@ class SplatModel:
                 m.exposure = Exposure(device, len(state["exposure"]), config.lr_exposure,
                                       config.exposure_reg, state=state,
                                       clip=clip_mode(config),
-                                      diagonal=config.exposure_matrix == "diagonal")
+                                      matrix=config.exposure_matrix)
             except (KeyError, ValueError, TypeError) as e:
                 raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
                                  ) from None
