@@ -255,31 +255,43 @@ def test_diagonal_rows_recentre_to_diagonal_rows(device, matrix):
     np.testing.assert_allclose(got[:, on], ref.recentre(P, [0, 1])[:, on], atol=1e-6)
 
 
+def _fit_case(rng, row, masked, n=400):
+    """(rgb, T, bg_r, target) of n pixels of premultiplied colour c and transmittance T (a
+    fifth of them background only) rendered under the identity, the target shown through
+    ``row``."""
+    c = rng.uniform(0, 0.8, (n, 3))
+    T = rng.uniform(0, 1, n)
+    T[:n // 5] = 1.0
+    target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, row]), 1, masked)
+    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
+    return c + T[:, None] * bg_r, T, bg_r, target
+
+
+def _device_fit(device, rgb, T, bg_r, target, masked, matrix):
+    """Row 1 after one device fit (eta 1, no pull) of a model of ``matrix``."""
+    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, matrix=matrix)
+    q = device.queue
+    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
+            target, 1.0)
+    return exp.rows()[1]
+
+
 @pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
 def test_diagonal_fit_recovers_gains_and_offsets(device, masked):
     """A target made by a gain and an offset per channel: the diagonal fit recovers them with
     eta 1 and no pull, leaves A's off-diagonal entries as they were, and a target made with
     mixing channels is fitted by the full model only (the diagonal's error stays)."""
     rng = np.random.default_rng(23)
-    n = 400
-    c = rng.uniform(0, 0.8, (n, 3))
-    T = rng.uniform(0, 1, n)
-    T[:80] = 1.0
     true = ref.IDENTITY.copy()
     true[[0, 4, 8]], true[9:] = (0.7, 1.2, 0.95), (0.03, -0.02, 0.01)
-    P = np.stack([ref.IDENTITY, true])
-    target = ref.shown(c, T, BG, P, 1, masked)
-    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
-    rgb = c + T[:, None] * bg_r
+    rgb, T, bg_r, target = _fit_case(rng, true, masked)
     got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
     np.testing.assert_allclose(got, true, atol=1e-9)
-    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, matrix="diagonal")
-    q = device.queue
-    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
-            target, 1.0)
-    np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
+    np.testing.assert_allclose(_device_fit(device, rgb, T, bg_r, target, masked, "diagonal"),
+                               true, atol=2e-5)
     mixed = true.copy()
     mixed[1] = 0.2
+    c = rgb - T[:, None] * bg_r
     target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, mixed]), 1, masked)
     diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
     assert diag[1] == 0.0
@@ -294,30 +306,21 @@ def test_gain_fit_recovers_gains_and_keeps_the_offset(device, masked):
     entries stay as they were (0), where the diagonal fit of a target with an offset as well
     takes it and the gain fit cannot (its error stays)."""
     rng = np.random.default_rng(29)
-    n = 400
-    c = rng.uniform(0, 0.8, (n, 3))
-    T = rng.uniform(0, 1, n)
-    T[:80] = 1.0
     true = ref.IDENTITY.copy()
     true[[0, 4, 8]] = (0.7, 1.2, 0.95)
-    P = np.stack([ref.IDENTITY, true])
-    target = ref.shown(c, T, BG, P, 1, masked)
-    bg_r = ref.render_background(ref.IDENTITY[None], 0, BG, masked)
-    rgb = c + T[:, None] * bg_r
+    rgb, T, bg_r, target = _fit_case(rng, true, masked)
     gain = ref.MATRICES.index("gain")
     got = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=gain)
     np.testing.assert_allclose(got, true, atol=1e-9)
-    exp = Exposure(device, 2, lr=0.01, reg=0.0, masked=masked, matrix="gain")
-    q = device.queue
-    exp.fit(1, upload(q, rgb.astype(np.float32)), upload(q, T.astype(np.float32)), bg_r, BG,
-            target, 1.0)
-    np.testing.assert_allclose(exp.rows()[1], true, atol=2e-5)
+    np.testing.assert_allclose(_device_fit(device, rgb, T, bg_r, target, masked, "gain"),
+                               true, atol=2e-5)
     offset = true.copy()
     offset[9:] = (0.05, -0.03, 0.02)
+    c = rgb - T[:, None] * bg_r
     target = ref.shown(c, T, BG, np.stack([ref.IDENTITY, offset]), 1, masked)
     only = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=gain)
-    assert np.all(only[9:] == 0.0) and np.all(only[~ref.TRAINED[gain]] == ref.IDENTITY[
-        ~ref.TRAINED[gain]])
+    fixed = ~ref.TRAINED[gain]            # A's off-diagonal entries and b: as the identity's
+    assert np.all(only[fixed] == ref.IDENTITY[fixed])
     assert np.abs(only - offset).max() > 0.01
     diag = ref.fit_row(rgb, T, bg_r, BG, target, ref.IDENTITY, 0.0, 1.0, masked, matrix=1)
     np.testing.assert_allclose(diag, offset, atol=1e-9)
