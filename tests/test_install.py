@@ -258,6 +258,36 @@ def test_a_broken_install_is_an_install_error_and_a_reinstall_trains(wheel, tmp_
                                                                             clean_status)
 
 
+# sitecustomize.py for processes that run as if clrf/references/ were missing from the install:
+# every import of it fails the way a missing package does (in the self-check's child too).
+_WITHOUT_REFERENCES = """
+import sys
+class Missing:
+    def find_spec(self, name, path=None, target=None):
+        if name == "clrf.references" or name.startswith("clrf.references."):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+sys.meta_path.insert(0, Missing())
+"""
+
+
+def test_the_command_line_reaches_the_self_check_without_the_references(tmp_path):
+    """The fast guard of the broken-install test above (which builds a wheel, so runs only
+    with the slow tests): nothing `clrf train` imports before the device's self-check may
+    import the float64 references, or a broken install is a traceback instead of the
+    installation error. 28891e0 broke it: the splat config imported the twin's names."""
+    (tmp_path / "site").mkdir()
+    (tmp_path / "site" / "sitecustomize.py").write_text(_WITHOUT_REFERENCES)
+    path = os.pathsep.join(filter(None, [str(tmp_path / "site"), os.environ.get("PYTHONPATH")]))
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"), PYTHONPATH=path)
+    env.pop("CLRF_DEVICE", None)     # the self-check runs where clrf picks the device
+    p = subprocess.run([sys.executable, "-m", "clrf.cli", "--quiet", "train", "--out",
+                        str(tmp_path / "run"), *SHORT_RUN], capture_output=True, text=True,
+                       cwd=tmp_path, env=env, timeout=600)
+    assert p.returncode == 2, p.stderr[-3000:]
+    assert "installed incompletely" in p.stderr and "clrf.references" in p.stderr, p.stderr
+    assert not (tmp_path / "run" / "ckpt.npz").exists()
+
+
 def _pip_pocl_specs() -> list:
     """``P:D`` of every device of pip's PoCL (pocl-binary-distribution, PoCL 3.0) here."""
     from clrf.runtime.device import list_devices
@@ -275,6 +305,7 @@ def test_pips_pocl_trains_or_is_refused_never_a_crash(tmp_path):
         pytest.skip("pip's PoCL (pocl-binary-distribution) is not installed here "
                     "(`bash tools/setup.sh` installs it)")
     env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    env.pop("CLRF_DEVICE", None)     # the self-check runs where clrf picks the device
     p = subprocess.run([sys.executable, "-m", "clrf.cli", "--quiet", "--device", specs[0],
                         "train", "--out", str(tmp_path / "run"), *SHORT_RUN],
                        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=900)

@@ -25,6 +25,13 @@ def _exposure(device, P, masked=False):
     return exp
 
 
+def test_the_configs_name_the_kernels_modes_in_the_twins_order():
+    """splat.exposure_matrix and hash.exposure_matrix are indexes of the kernels' ``matrix``
+    argument; the configs keep their own copy of the names (they may not import the twin)."""
+    from clrf.splat.config import EXPOSURE_MATRICES
+    assert EXPOSURE_MATRICES == ref.MATRICES
+
+
 @pytest.mark.parametrize("n", SIZES)
 def test_apply_matches_the_twin(device, n):
     rng = np.random.default_rng(n)

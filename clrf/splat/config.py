@@ -12,8 +12,6 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..references.reference_exposure import MATRICES
-
 
 @dataclass(frozen=True)
 class SplatConfig:
@@ -284,8 +282,11 @@ BEFORE_FIELD = {
     "mcmc_spread": 0.0,       # copies in place
     "exposure_matrix": "full",   # a 3 x 3 matrix and an offset
 }
-# splat.exposure_matrix (clrf/splat/exposure.py): "full", "diagonal", "gain"
-EXPOSURE_MATRICES = MATRICES
+# splat.exposure_matrix and hash.exposure_matrix (clrf/splat/exposure.py), in the order of the
+# kernels' argument ``matrix`` (the float64 twin's MATRICES, tests/test_splat_exposure.py). Not
+# imported from the twin: the command line reaches the self-check, which reports a missing
+# clrf.references as an installation error, only if nothing before it imports the references.
+EXPOSURE_MATRICES = ("full", "diagonal", "gain")
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).
 SPLAT_PRESETS = {
