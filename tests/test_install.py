@@ -322,7 +322,6 @@ def test_pips_pocl_trains_or_is_refused_never_a_crash(tmp_path):
         pytest.skip("pip's PoCL (pocl-binary-distribution) is not installed here "
                     "(`bash tools/setup.sh` installs it)")
     env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "cache"))
-    env.pop("CLRF_DEVICE", None)     # the self-check runs where clrf picks the device
     p = subprocess.run([sys.executable, "-m", "clrf.cli", "--quiet", "--device", specs[0],
                         "train", "--out", str(tmp_path / "run"), *SHORT_RUN],
                        capture_output=True, text=True, cwd=tmp_path, env=env, timeout=900)
