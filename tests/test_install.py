@@ -287,8 +287,8 @@ def _cache_without_verdicts(new: Path) -> Path:
 
 
 def test_the_command_line_reaches_the_self_check_without_the_references(tmp_path):
-    """The fast guard of the broken-install test above (which builds a wheel, so runs only
-    with the slow tests): nothing `clrf train` imports before the device's self-check may
+    """The fast guard of the broken-install test above (which builds a wheel and a venv:
+    minutes, and marked slow): nothing `clrf train` imports before the device's self-check may
     import the float64 references, or a broken install is a traceback instead of the
     installation error. 28891e0 broke it: the splat config imported the twin's names."""
     (tmp_path / "site").mkdir()
