@@ -166,6 +166,41 @@ def test_half_fitted_protocol_recovers_a_colour_change():
     assert fitted > 100 and plain < 30
 
 
+@pytest.mark.parametrize("masked", [False, True], ids=["rgb", "masked"])
+def test_shared_gain_score_is_the_least_squares_gain_of_all_views(masked):
+    """shared_gain_psnr from the views' gain_sums equals the brute-force figure: the one
+    per-channel gain minimising the squared error of every view's light together (a finer
+    gain either way does worse), then each view's PSNR under it; views whose exposure all
+    differ from the render by one gain score without error."""
+    rng = np.random.default_rng(11)
+    bg = np.array([1.0, 1.0, 1.0])
+    views = []
+    for n in (30, 50, 40):
+        r = rng.uniform(0, 0.8, (n, 3))
+        acc = rng.uniform(0.2, 1, n)
+        views.append((r, acc, np.clip(r * 1.1 + rng.normal(0, 0.05, (n, 3)), 0, 1)))
+
+    def light(x, acc):
+        return x - (1 - acc)[:, None] * bg if masked else x
+
+    def per_view(g):
+        return np.array([-10 * np.log10(np.mean((light(r, a) * g - light(t, a)) ** 2))
+                         for r, a, t in views])
+    gain, psnr = ref.shared_gain_psnr([ref.gain_sums(r, a, t, bg, masked) for r, a, t in views])
+    x = np.concatenate([light(r, a) for r, a, _ in views])
+    y = np.concatenate([light(t, a) for _, a, t in views])
+    np.testing.assert_allclose(gain, (x * y).sum(0) / (x * x).sum(0), rtol=1e-12)
+    np.testing.assert_allclose(psnr, per_view(gain), rtol=1e-10)
+    total = lambda g: np.sum((x * g - y) ** 2)   # noqa: E731
+    for d in (1e-3, -1e-3):
+        assert total(gain * (1 + d)) > total(gain)
+    exact = [(r, a, (light(r, a) * [1.2, 0.9, 1.05] + ((1 - a)[:, None] * bg if masked else 0)))
+             for r, a, _ in views]
+    gain, psnr = ref.shared_gain_psnr([ref.gain_sums(r, a, t, bg, masked) for r, a, t in exact])
+    np.testing.assert_allclose(gain, [1.2, 0.9, 1.05], rtol=1e-12)
+    assert np.all(psnr > 100)
+
+
 def test_recentre_takes_the_geometric_mean_out():
     """After recentre the rows' matrix logarithms average to zero, each row is the old one times
     one common inverse (the scene can follow with one transform), untrained rows stay, and a

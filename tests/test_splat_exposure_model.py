@@ -107,7 +107,18 @@ def test_a_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
     # the run resumes with its transforms and evaluates again
     assert cli(["--quiet", "eval", "--ckpt", str(out), "--max-views", "2", "--lpips", "none",
                 "--out", str(tmp_path / "e.json")]) == 0
-    assert "psnr_half_fitted" in json.loads((tmp_path / "e.json").read_text())
+    e = json.loads((tmp_path / "e.json").read_text())
+    assert "psnr_half_fitted" in e
+    assert np.isfinite(ev["psnr_shared_gain"]) and len(ev["shared_gain"]) == 3
+    # `clrf eval` renders a view a call; its one gain pools them as one call over both does
+    from clrf.runtime.device import Device
+    from clrf.training.models import checkpoint_dataset, load_model
+    from clrf.training.trainer import evaluate
+    model, state, _ = load_model(Device(None), str(out / "ckpt.npz"))
+    ds = checkpoint_dataset(state, None)
+    both = evaluate(model, ds, [v["view"] for v in e["views"]], half_fitted=True)
+    np.testing.assert_allclose(e["shared_gain"], both["shared_gain"], rtol=1e-6)
+    np.testing.assert_allclose(e["psnr_shared_gain"], both["psnr_shared_gain"], rtol=1e-6)
 
 
 @pytest.mark.parametrize("no_clip", [False, True], ids=["clipped", "no-clip"])
@@ -160,3 +171,140 @@ def test_perturb_capture_changes_exposure_as_recorded(tmp_path, no_clip):
     p = subprocess.run([sys.executable, str(tool), str(src), str(tmp_path / "x"), "--no-clip"],
                        capture_output=True, text=True)
     assert p.returncode == 2 and "--no-clip goes with --exposure" in p.stderr
+
+
+def test_seeded_rows_hold_until_their_budget_fraction_then_learn(device):
+    """Exposure.seed puts rows in place of the identity; while the model's budget fraction is
+    below the hold, training leaves them (and their step counts) as seeded, and the scene
+    still trains; from the hold on they learn; the checkpoint keeps the hold."""
+    from clrf.references.reference_exposure import IDENTITY
+    m, ds = _model(device, init_points=1000, exposure=True)
+    m.attach(ds)
+    seeded = np.tile(IDENTITY, (len(ds.images), 1))
+    seeded[:, [0, 4, 8]] = np.random.default_rng(2).uniform(0.8, 1.2, (len(ds.images), 3))
+    m.exposure.seed(seeded, hold_until=0.5)
+    m.progress = 0.2
+    before = {k: np.array(v) for k, v in m.host_params().items()}
+    n = len(ds.split["train"])
+    for it in range(n + 3):    # a whole pass: recentring leaves held rows alone
+        assert np.isfinite(m.train_step(it))
+    np.testing.assert_array_equal(m.exposure.rows(), seeded.astype(np.float32))
+    assert not m.exposure.steps.any()
+    after = m.host_params()
+    assert any(not np.array_equal(after[k], before[k]) for k in before)   # the scene trained
+    from clrf.splat.model import SplatModel
+    assert SplatModel.from_state_dict(device, m.state_dict()).exposure.hold_until == 0.5
+    m.progress = 0.5
+    for it in range(n + 3, n + 9):
+        m.train_step(it)
+    assert m.exposure.steps.sum() == 6
+    assert not np.array_equal(m.exposure.rows(), seeded.astype(np.float32))
+    with pytest.raises(ValueError, match="finite rows"):
+        m.exposure.seed(seeded[:-1])
+
+
+@pytest.mark.parametrize("key,value", [("exposure_calibrate", 0.6),
+                                       ("exposure_calibrate", -0.1),
+                                       ("exposure_calibrate_downscale", 0),
+                                       ("exposure_calibrate_hold", 1.5)])
+def test_bad_calibration_settings_are_one_clear_error(key, value, capsys, tmp_path):
+    from clrf.cli.main import main as cli
+    rc = cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "run"),
+              "--set", "splat.exposure=true", "--set", f"splat.{key}={value}",
+              "--max-seconds", "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("clrf: error:") == 1 and f"splat.{key}" in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_calibration_by_default_only_with_the_transforms(tmp_path):
+    """splat.exposure_calibrate is on by default and acts only with splat.exposure: a run
+    without the transforms neither calibrates nor shortens its budget; a checkpoint from
+    before the setting resumes without one; the calibration's resolution keeps 32 pixels a
+    side."""
+    from clrf.cli.main import main as cli
+    from clrf.splat.config import SplatConfig
+    from clrf.training.calibrate import calibration_factor
+    from clrf.training.config import build_config
+    assert SplatConfig().exposure_calibrate > 0
+    old = {k: v for k, v in SplatConfig().__dict__.items() if k != "exposure_calibrate"}
+    assert SplatConfig.from_dict(old).exposure_calibrate == 0
+    cfg = build_config("procedural", overrides={"train": {"model": "splat"}})
+    assert [calibration_factor(cfg, hw) for hw in ((400, 600), (64, 64), (31, 500))] == [8, 2, 1]
+    out = tmp_path / "run"
+    assert cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "2",
+                "--set", "splat.init_points=500", "--set", "train.final_eval=false"]) == 0
+    assert not (out / "calibration").exists()
+    assert json.loads((out / "config.json").read_text())["train"]["max_seconds"] == 2
+
+
+def test_downscaled_dataset_scales_images_coverage_and_intrinsics():
+    from clrf.data import load_dataset
+    from clrf.training.calibrate import downscaled
+    ds = load_dataset(None)
+    ds.alpha = np.random.default_rng(0).uniform(0, 1, ds.images.shape[:3]).astype(np.float32)
+    small = downscaled(ds, 4)
+    H, W = ds.hw
+    assert small.hw == (H // 4, W // 4) and small.alpha.shape == (len(ds.images), H // 4, W // 4)
+    np.testing.assert_allclose(small.intrinsics, np.asarray(ds.intrinsics) / 4)
+    np.testing.assert_allclose(small.images[3, 1, 2],
+                               np.asarray(ds.images[3])[4:8, 8:12].mean((0, 1)), rtol=1e-6)
+    np.testing.assert_allclose(small.alpha[5, 2, 0], ds.alpha[5, 8:12, 0:4].mean(), rtol=1e-6)
+    assert small.poses is ds.poses and downscaled(ds, 1) is ds
+
+
+def test_a_calibrated_run_starts_from_the_calibrations_rows(tmp_path, monkeypatch):
+    """splat.exposure_calibrate: the calibration runs first at a fraction of the resolution
+    with the transforms' rate held, its share taken from the budget; the run starts from its
+    rows, held for splat.exposure_calibrate_hold; eval.json says what it did and reports the
+    shared-gain score; the calibration's metrics stay, its checkpoint does not."""
+    from clrf.cli.main import main as cli
+    from clrf.splat import exposure as E
+    from clrf.training import calibrate
+    seen = {}
+    real_calibrate, real_seed = calibrate.calibrate_exposure, E.Exposure.seed
+
+    def calibrate_spy(device, ds, cfg, out, *a, **k):
+        small = calibrate.calibration_config(cfg)
+        seen["cfg"] = (small.train.max_seconds, small.splat.lr_exposure_final,
+                       small.splat.exposure_calibrate, small.train.final_eval)
+        rows, info = real_calibrate(device, ds, cfg, out, *a, **k)
+        seen["rows"] = rows
+        return rows, info
+
+    def seed_spy(self, rows, hold_until=0.0):
+        seen["seed"] = (np.array(rows), hold_until)
+        return real_seed(self, rows, hold_until)
+    monkeypatch.setattr(calibrate, "calibrate_exposure", calibrate_spy)
+    monkeypatch.setattr(E.Exposure, "seed", seed_spy)
+    out = tmp_path / "run"
+    assert cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "6",
+                "--set", "splat.exposure=true", "--set", "splat.exposure_calibrate=0.25",
+                "--set", "splat.init_points=1000", "--set", "train.eval_every=100"]) == 0
+    assert seen["cfg"] == (1.5, 0.05, 0.0, False)
+    np.testing.assert_array_equal(seen["seed"][0], seen["rows"])
+    assert seen["seed"][1] == 0.1
+    assert (seen["rows"][:, [0, 4, 8]] != 1).any()     # the calibration trained its rows
+    ev = json.loads((out / "eval.json").read_text())
+    cal = ev["exposure_calibration"]
+    # the procedural scene's 64 pixels keep 32 a side: a half, not an eighth
+    assert cal["seconds_budget"] == 1.5 and cal["iterations"] >= 1 and cal["downscale"] == 2
+    assert json.loads((out / "config.json").read_text())["train"]["max_seconds"] == 4.5
+    assert (out / "calibration" / "metrics.csv").exists()
+    assert not (out / "calibration" / "ckpt.npz").exists()
+    assert np.isfinite(ev["psnr_shared_gain"]) and len(ev["shared_gain"]) == 3
+
+
+def test_an_interrupted_calibration_leaves_nothing_trained(tmp_path, monkeypatch, capsys):
+    from clrf.cli.main import main as cli
+    from clrf.training import trainer as T
+
+    def interrupted(self):
+        return {"iteration": 0, "seconds": 0.0, "interrupted": True}
+    monkeypatch.setattr(T.Trainer, "run", interrupted)
+    out = tmp_path / "run"
+    rc = cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "4",
+              "--set", "splat.exposure=true", "--set", "splat.exposure_calibrate=0.25",
+              "--set", "splat.init_points=1000"])
+    assert rc == 130 and "exposure calibration" in capsys.readouterr().err
+    assert not (out / "ckpt.npz").exists() and not (out / "calibration" / "ckpt.npz").exists()

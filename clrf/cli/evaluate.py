@@ -82,12 +82,13 @@ def cmd_eval(a):
     if pd is not None and pd.background is not None:
         model.background = tuple(pd.background)      # the protocol's background, not the run's
     t = time.perf_counter()
-    per_view = []
+    per_view, gain_sums = [], []
     with bar(len(views), f"eval {a.protocol or 'test'}", "view") as b:
         for v in views:
             ev = evaluate(model, ds, [v], keep_images=lp_why is None, downscale=a.downscale,
                           half_fitted=getattr(model, "exposure", None) is not None)
             m = ev["views"][0]
+            gain_sums += ev.get("gain_sums", [])
             if lp_why is None:
                 m["lpips"] = lpips(ev["images"][0], downscale_image(ds.images[v], a.downscale),
                                    net, a.lpips_backbone)
@@ -107,6 +108,11 @@ def cmd_eval(a):
     if "psnr_half_fitted" in per_view[0]:   # a model with a colour transform per image
         for k in ("psnr_half_fitted", "psnr_right_half"):
             res[k] = float(np.mean([m[k] for m in per_view]))
+        from ..references.reference_exposure import shared_gain_psnr
+        gain, shared = shared_gain_psnr(gain_sums)   # one gain for all the views
+        for m, p in zip(per_view, shared):
+            m["psnr_shared_gain"] = float(p)
+        res["psnr_shared_gain"], res["shared_gain"] = float(np.mean(shared)), gain.tolist()
     pose = getattr(model, "pose", None)
     if pose is not None:   # splat.pose_opt: how far the training poses were corrected
         res["pose_correction"] = pose.summary()
@@ -134,6 +140,12 @@ def cmd_eval(a):
           f"SSIM {res['ssim']:.4f}{lp}  (render {secs:.1f} s)")
     if lp_why is not None:
         print(lp_why)
+    if "psnr_shared_gain" in res:
+        print(f"a colour transform per training image: NeRF-W protocol (fitted on each view's "
+              f"left half) right halves PSNR {res['psnr_half_fitted']:.3f} (as rendered "
+              f"{res['psnr_right_half']:.3f}); under one gain per channel for all views PSNR "
+              f"{res['psnr_shared_gain']:.3f} (gain "
+              f"{' '.join(f'{g:.3f}' for g in res['shared_gain'])})")
     if pose is not None:
         pc = res["pose_correction"]
         print(f"training poses corrected by {pc['rotation_deg']:.3f} deg and "

@@ -150,8 +150,23 @@ def cmd_train(a):
               f"{len(ds.split.get('test', []))} test views, {ds.hw[1]}x{ds.hw[0]}), preset "
               f"'{cfg.train.preset}', model {cfg.train.model}, budget {cfg.train.max_seconds:.0f} s, "
               f"output {out}", file=sys.stderr)
+    calibrated = None
+    if not a.resume and cfg.train.model == "splat" and cfg.splat.exposure \
+            and cfg.splat.exposure_calibrate > 0:
+        from ..training.calibrate import CALIBRATION_DIR, calibrate_exposure
+        try:   # the transforms' start, from a short run at a fraction of the resolution
+            calibrated = calibrate_exposure(dev, ds, cfg, out / CALIBRATION_DIR, factory,
+                                            log=lambda m: print(f"clrf: {m}", file=sys.stderr))
+        except KeyboardInterrupt:
+            print("clrf: interrupted during the exposure calibration: nothing trained yet",
+                  file=sys.stderr)
+            return 130
+        cfg.train.max_seconds -= calibrated[1]["seconds_budget"]   # the run's own share
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
+    if calibrated is not None:
+        trainer.model.exposure.seed(calibrated[0], cfg.splat.exposure_calibrate_hold)
+        trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog
         trainer.metric_sinks = (TensorBoardLog(out),)

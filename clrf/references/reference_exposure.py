@@ -281,3 +281,33 @@ def half_fitted_psnr(render, target):
         mse = float(np.mean((np.clip(a, 0, 1) - b) ** 2))
         return float(-10 * np.log10(max(mse, 1e-12)))
     return psnr(right, target[:, w:]), psnr(render[:, w:], target[:, w:])
+
+
+def gain_sums(render, acc, target, background, masked=True):
+    """One test view's share of the shared-gain figure (``shared_gain_psnr``): [4, 3] per
+    channel, the sums of x^2, x y and y^2 over its pixels and (row 3) the pixel count, where x
+    is the render's light that an exposure scales and y the target's: the scene's light
+    c = render - T bg and target - T bg (T = 1 - acc) for a masked capture, whose background
+    the exposure leaves alone; the whole pixel without alpha."""
+    r = np.asarray(render, np.float64).reshape(-1, 3)
+    y = np.asarray(target, np.float64)[..., :3].reshape(-1, 3)
+    if masked:
+        Tbg = (1.0 - np.asarray(acc, np.float64).reshape(-1, 1)) * \
+            np.asarray(background, np.float64)[:3]
+        r, y = r - Tbg, y - Tbg
+    return np.stack([(r * r).sum(0), (r * y).sum(0), (y * y).sum(0),
+                     np.full(3, float(len(r)))])
+
+
+def shared_gain_psnr(sums):
+    """The gauge-free score of a run with a transform per training image: one gain per
+    channel for ALL test views together (least squares over their pixels; the scene's overall
+    brightness is not fixed by training images that each have their own exposure), then each
+    view's PSNR under it, unclipped. ``sums``: the views' ``gain_sums``. Returns (gain [3],
+    PSNR per view [n])."""
+    S = np.asarray(sums, np.float64).reshape(-1, 4, 3)
+    xx, xy = S[:, 0].sum(0), S[:, 1].sum(0)
+    gain = np.where(xx > 0, xy / np.where(xx > 0, xx, 1.0), 1.0)
+    se = (gain ** 2 * S[:, 0] - 2 * gain * S[:, 1] + S[:, 2]).sum(1)   # [n]
+    mse = np.maximum(se / S[:, 3].sum(1), 1e-12)
+    return gain, -10.0 * np.log10(mse)

@@ -138,6 +138,18 @@ class SplatConfig:
     #                                 and b (channels mix). lego_400 with changed exposures,
     #                                 900 s: gain 30.82 dB, full 30.14 (the offsets and the
     #                                 mixing wander: docs/splat.md)
+    exposure_calibrate: float = 0.08   # with splat.exposure: this fraction of
+    #                                 train.max_seconds goes first to a run at
+    #                                 1/exposure_calibrate_downscale of the resolution whose
+    #                                 transforms keep their first rate (lr_exposure); its
+    #                                 transforms start the run, its scene is dropped (a scene
+    #                                 formed under wrong exposures keeps what it took); 0: none.
+    #                                 lego_400 with changed exposures, 900 s in all: 31.18 dB
+    #                                 (0.08 at 1/8), 30.99 (0.15 at 1/4), none 30.44
+    exposure_calibrate_downscale: int = 8   # the calibration's resolution divisor (no
+    #                                 smaller than 32 pixels a side: clrf/training/calibrate.py)
+    exposure_calibrate_hold: float = 0.1   # budget fraction the calibrated transforms stay
+    #                                 as they are while the scene forms under them
     exposure_clip: bool = True      # the transformed render clamped to [0, 1], as the camera
     #                                 clipped what it over- or under-exposed; clipped channels
     #                                 pass no gradient (cl/splat_exposure.cl); lego_400 with
@@ -264,6 +276,13 @@ class SplatConfig:
             (0 <= self.exposure_fit <= 1, "splat.exposure_fit", "must be in [0, 1]"),
             (0 <= self.exposure_fit_after <= 1, "splat.exposure_fit_after",
              "must be in [0, 1]"),
+            (0 <= self.exposure_calibrate <= 0.5, "splat.exposure_calibrate",
+             "must be a budget fraction in [0, 0.5] (0: no calibration)"),
+            (isinstance(self.exposure_calibrate_downscale, int)
+             and self.exposure_calibrate_downscale >= 1, "splat.exposure_calibrate_downscale",
+             "must be an integer >= 1"),
+            (0 <= self.exposure_calibrate_hold <= 1, "splat.exposure_calibrate_hold",
+             "must be a budget fraction in [0, 1]"),
             (0 < self.lr_pose <= 0.1, "splat.lr_pose", "must be in (0, 0.1] (radians a step)"),
             (0 < self.lr_pose_final <= self.lr_pose, "splat.lr_pose_final",
              "must be in (0, splat.lr_pose]"),
@@ -281,6 +300,7 @@ BEFORE_FIELD = {
     "exposure_clip": False,   # unclipped
     "mcmc_spread": 0.0,       # copies in place
     "exposure_matrix": "full",   # a 3 x 3 matrix and an offset
+    "exposure_calibrate": 0.0,   # no calibration (a resumed run never calibrates)
 }
 # splat.exposure_matrix and hash.exposure_matrix (clrf/splat/exposure.py), in the order of the
 # kernels' argument ``matrix`` (the float64 twin's MATRICES, tests/test_splat_exposure.py). Not

@@ -72,6 +72,9 @@ class Exposure:
         self.m = upload(q, np.ascontiguousarray(zeros))
         self.v = upload(q, np.ascontiguousarray(second))
         self.steps = steps.copy()       # Adam steps of each row (host: no read-back)
+        # the budget fraction before which no row steps (calibrated rows held while the scene
+        # forms under them: ``seed``)
+        self.hold_until = float(state.get("exposure_hold_until", 0.0)) if state else 0.0
         self._prg = program(device)
 
     def apply(self, rgb, v: int):
@@ -144,6 +147,17 @@ class Exposure:
             self.P[v:v + 1].set(np.ascontiguousarray(new.astype(np.float32)[None]))
         self.steps[v] += 1
 
+    def seed(self, rows, hold_until: float = 0.0):
+        """Rows P [V, 12] from elsewhere (an exposure calibration: clrf/training/calibrate.py)
+        in place of the identity, held (no step, and so left out of ``recentre``) until the
+        budget fraction ``hold_until``."""
+        rows = np.asarray(rows, np.float64).reshape(-1, ROW)
+        if len(rows) != self.n_images or not np.all(np.isfinite(rows)):
+            raise ValueError(f"Exposure.seed: {self.n_images} finite rows of {ROW} expected, got "
+                             f"{rows.shape}")
+        self.P.set(np.ascontiguousarray(rows.astype(np.float32)))
+        self.hold_until = float(hold_until)
+
     def recentre(self):
         """Takes the trained rows' geometric mean transform out of them
         (``reference_exposure.recentre``: the scene then takes the images' mean exposure, and
@@ -160,7 +174,7 @@ class Exposure:
     def state_dict(self) -> dict:
         return {"exposure": self.rows(), "exposure_m": download(self.m),
                 "exposure_v": download(self.v), "exposure_steps": self.steps.copy(),
-                "exposure_masked": self.masked}
+                "exposure_masked": self.masked, "exposure_hold_until": self.hold_until}
 
     def describe(self) -> str:
         """'exposure |A - I| 0.031' (mean over trained rows) for progress lines."""

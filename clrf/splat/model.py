@@ -249,7 +249,9 @@ class SplatModel:
             shown = self.exposure.apply(ras.rgb, v)
             grad, stats = self._loss().loss_and_grad(shown, self._target(v))
             c = self.config
-            if c.exposure_fit > 0 and self.progress >= c.exposure_fit_after:
+            if self.progress < self.exposure.hold_until:   # calibrated rows, held (seed)
+                grad, _ = self.exposure.backward(ras.rgb, ras.T, bg, grad, v)
+            elif c.exposure_fit > 0 and self.progress >= c.exposure_fit_after:
                 grad, _ = self.exposure.backward(ras.rgb, ras.T, bg, grad, v)
                 self.exposure.fit(v, ras.rgb, ras.T, bg, self.background, ds.images[v],
                                   c.exposure_fit)

@@ -194,12 +194,14 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     half_fitted: also NeRF-W's protocol for models with a colour transform per training image
     (the splat model's splat.exposure): each view's right half scored after a colour
     transform fitted on its left half (``psnr_half_fitted``), beside the right half as
-    rendered (``psnr_right_half``).
+    rendered (``psnr_right_half``); and the gauge-free score, every view under one gain per
+    channel fitted to all of them (``psnr_shared_gain``, the gain ``shared_gain``:
+    reference_exposure.shared_gain_psnr).
     seconds: a further view is started only where, at the mean time of those before it, it
     would end within this many seconds of wall time (the first always is; ``res["views"]``
     lists those rendered)."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
-    per_view, images = [], []
+    per_view, images, sums = [], [], []
     keep = len(views) if keep_images is True else int(keep_images)
     t0 = time.perf_counter()
     for i, v in enumerate(views):
@@ -207,16 +209,20 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
             spent = time.perf_counter() - t0
             if spent + spent / i > seconds:
                 break
-        rgb = render_view(model, np.asarray(ds.poses[v], np.float64),
+        out = render_view(model, np.asarray(ds.poses[v], np.float64),
                           np.asarray(ds.intrinsics, np.float64) / downscale, (H, W),
                           lambda: view_rays(ds, ds.poses[v:v + 1], downscale),
-                          depth=False)["rgb"]
+                          depth=False)
+        rgb = out["rgb"]
         gt = downscale_image(ds.images[v], downscale)
         m = image_metrics(rgb, gt)
         m["view"] = int(v)
         if half_fitted:
-            from ..references.reference_exposure import half_fitted_psnr
+            from ..references.reference_exposure import gain_sums, half_fitted_psnr
             m["psnr_half_fitted"], m["psnr_right_half"] = half_fitted_psnr(rgb, gt)
+            masked = ds.alpha is not None and "acc" in out
+            sums.append(gain_sums(rgb, out.get("acc", 0.0), gt,
+                                  getattr(model, "background", ds.background), masked))
         per_view.append(m)
         if i < keep:
             images.append(np.clip(rgb, 0, 1))
@@ -227,6 +233,12 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     if half_fitted:
         for k in ("psnr_half_fitted", "psnr_right_half"):
             res[k] = float(np.mean([m[k] for m in per_view]))
+        from ..references.reference_exposure import shared_gain_psnr
+        gain, shared = shared_gain_psnr(sums)
+        for m, p in zip(per_view, shared):
+            m["psnr_shared_gain"] = float(p)
+        res["psnr_shared_gain"], res["shared_gain"] = float(np.mean(shared)), gain.tolist()
+        res["gain_sums"] = sums   # to pool views evaluated one call each (cli/evaluate.py)
     if keep:
         res["images"] = images
     return res
@@ -556,6 +568,8 @@ class Trainer:
         t = self.cfg.train
         result = {"iteration": self.iteration, "seconds": self.seconds,
                   "interrupted": interrupted}
+        if self.calibration is not None:
+            result["exposure_calibration"] = self.calibration
         if t.final_eval and not interrupted:
             fitted = getattr(self.model, "exposure", None) is not None
             ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS,
@@ -566,8 +580,8 @@ class Trainer:
             result.update(psnr=ev["psnr"], ssim=ev["ssim"], ssim_window=SSIM_NAME,
                           views=ev["views"], n_views=len(self.test_views))
             if fitted:
-                result.update(psnr_half_fitted=ev["psnr_half_fitted"],
-                              psnr_right_half=ev["psnr_right_half"])
+                result.update({k: ev[k] for k in ("psnr_half_fitted", "psnr_right_half",
+                                                  "psnr_shared_gain", "shared_gain")})
             pose = getattr(self.model, "pose", None)
             if pose is not None:   # splat.pose_opt: the mean correction of the training poses
                 result["pose_correction"] = pose.summary()
@@ -586,7 +600,10 @@ class Trainer:
                 loop.prog.message(
                     f"final, NeRF-W protocol (colour fitted on each view's left half): right "
                     f"halves PSNR {ev['psnr_half_fitted']:.2f} (as rendered "
-                    f"{ev['psnr_right_half']:.2f}); {self.model.exposure.describe()}")
+                    f"{ev['psnr_right_half']:.2f}); under one gain per channel for all "
+                    f"views {ev['psnr_shared_gain']:.2f} (gain "
+                    f"{' '.join(f'{g:.3f}' for g in ev['shared_gain'])}); "
+                    f"{self.model.exposure.describe()}")
             if pose is not None:
                 loop.prog.message(f"final: training {pose.describe()} (mean over "
                                   f"{result['pose_correction']['images']} images)")
@@ -597,6 +614,7 @@ class Trainer:
 
     _rate = 0.0
     viewer = None       # clrf.viewer.live.LiveViewer of `clrf train --view`
+    calibration = None  # what an exposure calibration before the run did (calibrate.py)
     metric_sinks = ()   # extra receivers of every metrics.csv row (outputs/tblog.py TensorBoardLog)
 
 

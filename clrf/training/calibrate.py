@@ -1,0 +1,91 @@
+"""Exposure calibration (``splat.exposure_calibrate``): a short run at a fraction of the
+resolution whose colour transforms start the real run.
+
+A transform per training image (clrf/splat/exposure.py) learns from the scene's render, and
+the scene from the transformed images: early on, while the scene is still forming, the rows
+are wrong and the scene keeps what it took under them. A run at an eighth of the resolution
+takes several times the steps a second, and with the rows' first rate held throughout (not
+decayed) its rows get close to the images' true exposures in a small part of the budget. The
+real run starts from those rows, holds them while its own scene forms
+(``splat.exposure_calibrate_hold``) and learns on from there; the calibration's scene is
+dropped. Its metrics stay in ``OUT/calibration/`` (its checkpoint does not).
+
+>>> rows, info = calibrate_exposure(dev, ds, cfg, out / "calibration", log=print)
+>>> cfg.train.max_seconds -= info["seconds_budget"]   # the run's own share
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+
+from ..data.io import downscale_image
+from ..outputs import checkpoint
+
+CALIBRATION_DIR = "calibration"
+MIN_SIDE = 32   # pixels: the calibration's images are no smaller a side (the loss's SSIM
+#                 window is 11)
+
+
+def calibration_factor(cfg, hw) -> int:
+    """splat.exposure_calibrate_downscale, lowered where the images would get smaller than
+    MIN_SIDE pixels a side."""
+    return max(1, min(int(cfg.splat.exposure_calibrate_downscale), min(hw) // MIN_SIDE))
+
+
+def downscaled(ds, factor: int):
+    """``ds`` at 1/factor of its resolution (box-averaged images and coverage, the
+    intrinsics scaled; poses, splits and points as they are)."""
+    if factor == 1:
+        return ds
+    images = np.stack([downscale_image(np.asarray(ds.images[i], np.float32), factor)
+                       for i in range(len(ds.images))])
+    alpha = None
+    if ds.alpha is not None:
+        alpha = np.stack([downscale_image(np.asarray(ds.alpha[i], np.float32)[..., None],
+                                          factor)[..., 0] for i in range(len(ds.alpha))])
+    return dataclasses.replace(ds, images=images, alpha=alpha,
+                               intrinsics=np.asarray(ds.intrinsics, np.float64) / factor)
+
+
+def calibration_config(cfg):
+    """The calibration run's configuration: ``cfg`` with the budget's calibration share, the
+    transforms' rate held at its start, no calibration of its own, no final evaluation and
+    no periodic one after the first."""
+    small = copy.deepcopy(cfg)
+    t, s = small.train, small.splat
+    t.max_seconds = float(cfg.train.max_seconds) * s.exposure_calibrate
+    t.final_eval = False
+    t.eval_every = t.checkpoint_every = 2.0 * t.max_seconds + 1.0
+    small.set_section("splat", dataclasses.replace(
+        s, exposure_calibrate=0.0, lr_exposure_final=s.lr_exposure))
+    return small
+
+
+def calibrate_exposure(device, ds, cfg, out, model_factory=None, log=print):
+    """Runs the calibration (module doc) into folder ``out``; returns (the rows P [V, 12] its
+    transforms reached, a summary dict: seconds_budget, seconds, iterations, downscale,
+    folder). Raises KeyboardInterrupt when it was interrupted (nothing of it is kept)."""
+    from .trainer import Trainer
+    factor = calibration_factor(cfg, ds.hw)
+    small_cfg = calibration_config(cfg)
+    budget = small_cfg.train.max_seconds
+    log(f"exposure calibration: {budget:.0f} s at 1/{factor} resolution, the transforms' "
+        f"rate held at {cfg.splat.lr_exposure:g}; then {cfg.train.max_seconds - budget:.0f} s "
+        f"from its transforms")
+    trainer = Trainer(device, downscaled(ds, factor), small_cfg, out,
+                      model_factory=model_factory, log=log)
+    result = trainer.run()
+    (trainer.out / checkpoint.CKPT_NAME).unlink(missing_ok=True)   # its scene is dropped
+    if result["interrupted"]:
+        raise KeyboardInterrupt
+    exposure = trainer.model.exposure
+    rows = exposure.rows().astype(np.float64)
+    info = {"seconds_budget": budget, "seconds": float(result["seconds"]),
+            "iterations": int(result["iteration"]), "downscale": factor,
+            "images_trained": int(np.count_nonzero(exposure.steps)),
+            "folder": str(trainer.out)}
+    log(f"exposure calibration: {info['iterations']} steps in {info['seconds']:.1f} s; "
+        f"{exposure.describe()}")
+    return rows, info
