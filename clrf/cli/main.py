@@ -151,9 +151,8 @@ def cmd_train(a):
               f"'{cfg.train.preset}', model {cfg.train.model}, budget {cfg.train.max_seconds:.0f} s, "
               f"output {out}", file=sys.stderr)
     calibrated = None
-    if not a.resume and cfg.train.model == "splat" and cfg.splat.exposure \
-            and cfg.splat.exposure_calibrate > 0:
-        from ..training.calibrate import CALIBRATION_DIR, calibrate_exposure
+    from ..training.calibrate import CALIBRATION_DIR, calibrate_exposure, wants_calibration
+    if not a.resume and wants_calibration(cfg):
         try:   # the transforms' start, from a short run at a fraction of the resolution
             calibrated = calibrate_exposure(dev, ds, cfg, out / CALIBRATION_DIR, factory,
                                             log=lambda m: print(f"clrf: {m}", file=sys.stderr))
@@ -165,7 +164,8 @@ def cmd_train(a):
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if calibrated is not None:
-        trainer.model.exposure.seed(calibrated[0], cfg.splat.exposure_calibrate_hold)
+        hold = cfg.section(kind.name).exposure_calibrate_hold
+        trainer.model.exposure.seed(calibrated[0], hold)
         trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog

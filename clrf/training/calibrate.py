@@ -28,10 +28,19 @@ MIN_SIDE = 32   # pixels: the calibration's images are no smaller a side (the lo
 #                 window is 11)
 
 
+def wants_calibration(cfg) -> bool:
+    """Whether the run's model section asks for a calibration (its ``exposure`` on and
+    ``exposure_calibrate`` > 0; a kind without them never does)."""
+    sect = cfg.section(cfg.train.model)
+    return bool(getattr(sect, "exposure", False)) and \
+        getattr(sect, "exposure_calibrate", 0.0) > 0
+
+
 def calibration_factor(cfg, hw) -> int:
-    """splat.exposure_calibrate_downscale, lowered where the images would get smaller than
-    MIN_SIDE pixels a side."""
-    return max(1, min(int(cfg.splat.exposure_calibrate_downscale), min(hw) // MIN_SIDE))
+    """The model section's exposure_calibrate_downscale, lowered where the images would get
+    smaller than MIN_SIDE pixels a side."""
+    factor = int(cfg.section(cfg.train.model).exposure_calibrate_downscale)
+    return max(1, min(factor, min(hw) // MIN_SIDE))
 
 
 def downscaled(ds, factor: int):
@@ -54,11 +63,12 @@ def calibration_config(cfg):
     transforms' rate held at its start, no calibration of its own, no final evaluation and
     no periodic one after the first."""
     small = copy.deepcopy(cfg)
-    t, s = small.train, small.splat
+    name = cfg.train.model   # the model's section
+    t, s = small.train, small.section(name)
     t.max_seconds = float(cfg.train.max_seconds) * s.exposure_calibrate
     t.final_eval = False
     t.eval_every = t.checkpoint_every = 2.0 * t.max_seconds + 1.0
-    small.set_section("splat", dataclasses.replace(
+    small.set_section(name, dataclasses.replace(
         s, exposure_calibrate=0.0, lr_exposure_final=s.lr_exposure))
     return small
 
@@ -71,8 +81,9 @@ def calibrate_exposure(device, ds, cfg, out, model_factory=None, log=print):
     factor = calibration_factor(cfg, ds.hw)
     small_cfg = calibration_config(cfg)
     budget = small_cfg.train.max_seconds
+    rate = cfg.section(cfg.train.model).lr_exposure
     log(f"exposure calibration: {budget:.0f} s at 1/{factor} resolution, the transforms' "
-        f"rate held at {cfg.splat.lr_exposure:g}; then {cfg.train.max_seconds - budget:.0f} s "
+        f"rate held at {rate:g}; then {cfg.train.max_seconds - budget:.0f} s "
         f"from its transforms")
     trainer = Trainer(device, downscaled(ds, factor), small_cfg, out,
                       model_factory=model_factory, log=log)
