@@ -56,6 +56,13 @@
  * Vectorisation: SH rows are loaded and accumulated as float16/float8/float4/float3 vectors
  * (shv_t in march.h); consecutive samples in the same cell reuse the 8 corner rows' links.
  *
+ * GPU shape (SH_PER_CORNER 1, the host sets it from tuning.gpu_kernels): a GPU gives every
+ * float of a work-item a register of its own, and the vectors above (an interpolated row, the
+ * 4 rows of per-ray SH factors, 8 gradient rows per cell) do not fit. Interpolation and the SH
+ * sum are both linear, so c_k = sum_c w_c (sum_b sh_c,b Y_b) + 0.5 (color_pre_corners: 3 sums),
+ * and corner c's merged gradient is Y_b times sum_k w_c dL/dpre_k,ch (cgrad_t: 3 floats),
+ * multiplied out only as it is added. The same values up to the order of float additions.
+ *
  * Per-ray background (BG_PER_RAY 1, unbounded scenes with a background model such as
  * background.cl's MSI): the constant `bg` argument is replaced by bg_rays float [n_rays, 3],
  * and everything above holds with bg -> bg_rays[i] per ray (pixel = C_fg + T_end bg_i, and
@@ -91,7 +98,8 @@
  *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, SAMPLE_RECORD,
  * TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE, COMPENSATED_SUMS,
- * CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h),
+ * SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64
+ * (ray.h),
  * CLRF_INLINE (common.h). Arguments that a define leaves unused are not in the signature:
  * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
  * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
@@ -210,35 +218,77 @@ __kernel void render_forward(const int n_rays, __global const float *origins,
     out_acc[i] = f.acc;
 }
 
+/* A corner's merged colour gradient over the samples of one cell: the gradient of its SH row
+ * (shv_t), or with SH_PER_CORNER the 3 sums sum_k w_c dL/dpre_k, whose product with the ray's
+ * SH factors Y_b is that row (the factors are the same for every sample of a ray). */
+#if SH_PER_CORNER
+typedef float3 cgrad_t;
+#define CGRAD_ZERO() ((float3)(0.0f))
+#else
+typedef shv_t cgrad_t;
+#define CGRAD_ZERO() shv_zero()
+#endif
+
+/* The SH row gradient of corner gradient g (Y: the ray's SH factors, unused without
+ * SH_PER_CORNER). */
+CLRF_INLINE shv_t cgrad_row(cgrad_t g, const float *Y) {
+#if SH_PER_CORNER
+    float v[SH_DIM];
+    const float gc[3] = {g.x, g.y, g.z};
+#pragma unroll
+    for (int ch = 0; ch < 3; ++ch)
+#pragma unroll
+        for (int b = 0; b < SH_BASIS; ++b) v[ch * SH_BASIS + b] = gc[ch] * Y[b];
+    return shv_load_private(v);
+#else
+    return g;
+#endif
+}
+
 /* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
  * one float atomic add per non-zero value; mark[k] = 1 if do_mark. */
-CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const shv_t *gsh,
-                                   __global float *gdens, __global float *gsh_rows,
-                                   __global uchar *mark, const int do_mark) {
+CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const cgrad_t *gsh,
+                                   const float *Y, __global float *gdens,
+                                   __global float *gsh_rows, __global uchar *mark,
+                                   const int do_mark) {
+#pragma unroll
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
         if (gsig[c] != 0.0f) atomic_add_f(gdens + k, gsig[c]);
+        __global float *row = gsh_rows + (size_t)k * SH_DIM;
+#if SH_PER_CORNER
+        /* each value as it is added, no row of SH_DIM floats held, and no test for zeros
+         * (a channel's sum is 0 only where its colour was clamped at every sample): on a
+         * device without float atomics each add is a compare-and-swap loop, and with a
+         * branch around each one Intel's compiler spilled half as much again (tgllp) */
+        const float gc[3] = {gsh[c].x, gsh[c].y, gsh[c].z};
+#pragma unroll
+        for (int ch = 0; ch < 3; ++ch)
+#pragma unroll
+            for (int b = 0; b < SH_BASIS; ++b) atomic_add_f(row + ch * SH_BASIS + b, gc[ch] * Y[b]);
+#else
         float v[SH_DIM];
         shv_store_private(gsh[c], v);
-        __global float *row = gsh_rows + (size_t)k * SH_DIM;
         for (int j = 0; j < SH_DIM; ++j)
             if (v[j] != 0.0f) atomic_add_f(row + j, v[j]);
+#endif
         if (do_mark) mark[k] = 1;
     }
 }
 
 /* Scatter into a gradient copy that this work-item holds alone (GRAD_SLOTS): plain vector
  * read-modify-write; mark[k] = 1 if do_mark. */
-CLRF_INLINE void flush_cell_private(const int *idx, const float *gsig, const shv_t *gsh,
-                                    __global float *gdens, __global float *gsh_rows,
-                                    __global uchar *mark, const int do_mark) {
+CLRF_INLINE void flush_cell_private(const int *idx, const float *gsig, const cgrad_t *gsh,
+                                    const float *Y, __global float *gdens,
+                                    __global float *gsh_rows, __global uchar *mark,
+                                    const int do_mark) {
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;
         gdens[k] += gsig[c];
         __global float *row = gsh_rows + (size_t)k * SH_DIM;
-        shv_store(shv_add(shv_load(row), gsh[c]), row);
+        shv_store(shv_add(shv_load(row), cgrad_row(gsh[c], Y)), row);
         if (do_mark) mark[k] = 1;
     }
 }
@@ -259,8 +309,8 @@ CLRF_INLINE int lock_of(int x, int y, int z, int4 reso) {
  * scratch copy (sdens, ssh, smark: no plain stores ever touch it), which grad_slots_reduce adds
  * in afterwards. Either way each value is added exactly once. */
 CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *locks,
-                                   const int *idx, const float *gsig, const shv_t *gsh,
-                                   __global float *gdens, __global float *gsh_rows,
+                                   const int *idx, const float *gsig, const cgrad_t *gsh,
+                                   const float *Y, __global float *gdens, __global float *gsh_rows,
                                    __global uchar *mark, const int do_mark, __global float *sdens,
                                    __global float *ssh, __global uchar *smark) {
     const int3 a = lo >> GRAD_LOCKS, b = (lo + 1) >> GRAD_LOCKS;
@@ -273,9 +323,9 @@ CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *lo
                 if (!lock_try(locks + id)) { ok = 0; break; }
                 held[n++] = id;
             }
-    if (ok) flush_cell_private(idx, gsig, gsh, gdens, gsh_rows, mark, do_mark);
+    if (ok) flush_cell_private(idx, gsig, gsh, Y, gdens, gsh_rows, mark, do_mark);
     for (int j = n - 1; j >= 0; --j) lock_release(locks + held[j]);
-    if (!ok) flush_cell_atomic(idx, gsig, gsh, sdens, ssh, smark, 1);
+    if (!ok) flush_cell_atomic(idx, gsig, gsh, Y, sdens, ssh, smark, 1);
 }
 #endif
 
@@ -411,27 +461,32 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
+#if SH_PER_CORNER
+    const int S = 0;   /* (SAMPLE_PRE takes no vectors) */
+#else
     shy_t S;
     shy_setup(Y, &S);
+#endif
 
     float gsig[8];
-    shv_t gsh[8];
-    for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
+    cgrad_t gsh[8];
+    for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = CGRAD_ZERO(); }
 #if COMPENSATED_SUMS
     float gsig_c[8];   /* Kahan carries of the per-cell registers (long rays only) */
-    shv_t gsh_c[8];
-    for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = shv_zero(); }
+    cgrad_t gsh_c[8];
+    for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = CGRAD_ZERO(); }
 #endif
     int cur_idx[8];
     int cur_cell = -1;
     int3 cur_lo = (int3)(0);
 #if GRAD_LOCKS
-#define FLUSH_CELL() flush_cell_locked(cur_lo, reso, grad_locks, cur_idx, gsig, gsh, dst_d, \
-                                       dst_s, mark, do_mark, slot_density, slot_sh, slot_touched)
+#define FLUSH_CELL() flush_cell_locked(cur_lo, reso, grad_locks, cur_idx, gsig, gsh, Y, \
+                                       dst_d, dst_s, mark, do_mark, slot_density, slot_sh, \
+                                       slot_touched)
 #else
 #define FLUSH_CELL() do { \
-        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark); \
-        else flush_cell_atomic(cur_idx, gsig, gsh, dst_d, dst_s, mark, do_mark); \
+        if (slot >= 0) flush_cell_private(cur_idx, gsig, gsh, Y, dst_d, dst_s, mark, do_mark); \
+        else flush_cell_atomic(cur_idx, gsig, gsh, Y, dst_d, dst_s, mark, do_mark); \
     } while (0)
 #endif
     lerp_t L;
@@ -473,9 +528,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         if (L.cell != cur_cell) {
             if (cur_cell >= 0) {
                 FLUSH_CELL();
-                for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = shv_zero(); }
+                for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = CGRAD_ZERO(); }
 #if COMPENSATED_SUMS
-                for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = shv_zero(); }
+                for (int c = 0; c < 8; ++c) { gsig_c[c] = 0.0f; gsh_c[c] = CGRAD_ZERO(); }
 #endif
             }
             cur_cell = L.cell;
@@ -491,11 +546,27 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             pre = (float3)(r.s3, r.s4, r.s5);
         } else {
             w = vr_step(&logT, T, sigma * delta, &Tnext);
-            pre = color_pre(lerp_sh(&L, sh), &S);
+            pre = SAMPLE_PRE(&L, sh, &S, Y);
         }
         const float3 c = fmax(pre, 0.0f);
         const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+#if SH_PER_CORNER   /* corner c's row gradient is Y_b times the sum of w_c dpre (cgrad_t) */
+#pragma unroll
+        for (int cc = 0; cc < 8; ++cc) {
+            const float wc = L.w[cc];
+#if COMPENSATED_SUMS
+            csum_add(&gsig[cc], &gsig_c[cc], wc * dsig);
+            const float3 y = wc * dpre - gsh_c[cc];
+            const float3 t = gsh[cc] + y;
+            gsh_c[cc] = (t - gsh[cc]) - y;
+            gsh[cc] = t;
+#else
+            gsig[cc] += wc * dsig;
+            gsh[cc] += wc * dpre;
+#endif
+        }
+#else
         /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
         shv_t dco = shv_scale(S.ych[0], dpre.x);
         shv_axpy(&dco, dpre.y, S.ych[1]);
@@ -514,6 +585,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             shv_axpy(&gsh[cc], wc, dco);
 #endif
         }
+#endif
         T = Tnext;
         if (Tnext < T_STOP) break;
     }

@@ -12,7 +12,7 @@
  * march_setup narrows the loop to the segments [k0, nsteps) around the brick (with a slack,
  * the ownership test being the exact one).
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, BRICK, CLRF_HAS_FP64 (ray.h).
+ * Defines read: SH_DEGREE (sh.h), T_STOP, BRICK, SH_PER_CORNER, CLRF_HAS_FP64 (ray.h).
  */
 #ifndef CLRF_MARCH_H
 #define CLRF_MARCH_H
@@ -37,6 +37,10 @@
 #endif
 #ifndef BRICK
 #define BRICK 0      /* 1: march one brick of a distributed grid (see above) */
+#endif
+#ifndef SH_PER_CORNER
+#define SH_PER_CORNER 0  /* 1 (GPU shape): colours per corner, colour gradients merged as 3 floats
+                            per corner (color_pre_corners; grid_render.cl render_backward) */
 #endif
 /* SPIR targets (Mesa rusticl, Intel's CPU runtime, Oclgrind define __SPIR__ or __SPIR64__)
    get no software prefetch: SPIR-V has no counterpart of llvm.prefetch, and rusticl 22.3's SPIR-V
@@ -382,6 +386,37 @@ CLRF_INLINE float3 color_pre(shv_t co, const shy_t *S) {
     return (float3)(pre[0], pre[1], pre[2]);
 }
 
+/* SH_PER_CORNER (the GPU shape, tuning.gpu_kernels): the sample's pre-activation colour as
+ * the weighted sum of its corners' SH values, sum_c w_c sum_b sh_c Y_b + offset. Both sums are
+ * linear, so this is the colour of the interpolated coefficients (color_pre of lerp_sh) up to
+ * the order of the float additions, but a work-item holds 3 sums and the SH_BASIS factors
+ * instead of an interpolated row and the 4 rows of shy_t: on a GPU, where every float of a
+ * work-item is a register of its own, that is what keeps the march out of spill memory. */
+CLRF_INLINE float3 color_pre_corners(const lerp_t *L, __global const float *sh, const float *Y) {
+    float acc[3] = {0.0f, 0.0f, 0.0f};
+#pragma unroll
+    for (int c = 0; c < 8; ++c) {
+        if (L->idx[c] < 0) continue;
+        __global const float *row = sh + (size_t)L->idx[c] * SH_DIM;
+#pragma unroll
+        for (int ch = 0; ch < 3; ++ch) {
+            float v = 0.0f;
+#pragma unroll
+            for (int b = 0; b < SH_BASIS; ++b) v += row[ch * SH_BASIS + b] * Y[b];
+            acc[ch] += L->w[c] * v;
+        }
+    }
+    return (float3)(acc[0], acc[1], acc[2]) + COLOR_OFFSET;
+}
+
+/* The sample's pre-activation colour in the build's shape (S: shy_setup of Y, unused with
+ * SH_PER_CORNER). */
+#if SH_PER_CORNER
+#define SAMPLE_PRE(L, sh, S, Y) color_pre_corners((L), (sh), (Y))
+#else
+#define SAMPLE_PRE(L, sh, S, Y) color_pre(lerp_sh((L), (sh)), (S))
+#endif
+
 /* lerp_setup that reuses the previous sample's corner rows when it lies in the same cell
  * (about every other sample at step 0.5): the 8 link loads are skipped, the weights are new. */
 CLRF_INLINE int lerp_setup_cached_q(const march_t *m, const cellpos_t *qp, int4 reso,
@@ -547,8 +582,12 @@ CLRF_INLINE void march_forward_rec(const march_t *m, int4 reso, __global const i
                                    const float *Y, __global float *rec, const int rec_max,
                                    int *n_rec, int *kfirst, fwd_t *out) {
     int j = 0;
+#if SH_PER_CORNER
+    const int S = 0;   /* (SAMPLE_PRE takes no vectors) */
+#else
     shy_t S;
     shy_setup(Y, &S);
+#endif
     ksum_t logT = {0.0f, 0.0f};
     float T = 1.0f;
     float rgb[3] = {0.0f, 0.0f, 0.0f}, crgb[3] = {0.0f, 0.0f, 0.0f};
@@ -574,7 +613,7 @@ CLRF_INLINE void march_forward_rec(const march_t *m, int4 reso, __global const i
         float tau = sigma * delta;
         float Tnext;
         float w = vr_step(&logT, T, tau, &Tnext);
-        float3 pre = color_pre(lerp_sh(&L, sh), &S);
+        float3 pre = SAMPLE_PRE(&L, sh, &S, Y);
         float3 c = fmax(pre, 0.0f);
         csum_add(&rgb[0], &crgb[0], w * c.x);
         csum_add(&rgb[1], &crgb[1], w * c.y);

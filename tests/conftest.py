@@ -68,6 +68,7 @@ SLOW_IMPL_TESTS = {
     "test_forward_vs_reference", "test_backward_vs_finite_differences",
     "test_homogeneous_slab_closed_form", "test_geometry_cases", "test_empty_grid",
     "test_forward_matches_reference", "test_backward_matches_reference",
+    "test_forward_gpu_shape_vs_reference",
     "test_encode_matches_reference", "test_encode_backward_matches_reference",
     "test_stratified_matches_reference", "test_importance_matches_reference",
     "test_mse_mode_loss_and_gradient", "test_both_gradient_paths_pass",
@@ -113,9 +114,10 @@ def device(request):
 
 @pytest.fixture(scope="session")
 def device_gpu_path(device):
-    """The session device running the GPU code path of the grid backward on any device: float
-    atomics into the gradient buffers (grad_slots 0), no per-sample record."""
-    return device.with_tuning(grad_slots=0, sample_record=False)
+    """The session device running the GPU code path of the grid renderer on any device: float
+    atomics into the gradient buffers (grad_slots 0), no per-sample record, and the GPU shape
+    (gpu_kernels: colours per corner, SH_PER_CORNER in cl/march.h)."""
+    return device.with_tuning(grad_slots=0, sample_record=False, gpu_kernels=True)
 
 
 @pytest.fixture(scope="session", params=["default_path", "gpu_path"])

@@ -190,7 +190,9 @@ def test_train_step_matches_float64_composition(render_device):
     capture_grads(model.bg_model.opt_density, grads, "bg_density")
     capture_grads(model.bg_model.opt_color, grads, "bg_color")
     q = render_device.queue
-    mse = model.train_step(0, cla.to_device(q, o), cla.to_device(q, d), cla.to_device(q, target))
+    # float(): the GPU shape's step returns its loss as a Pending (read back when asked)
+    mse = float(model.train_step(0, cla.to_device(q, o), cla.to_device(q, d),
+                                 cla.to_device(q, target)))
 
     center, r_inner = msi_geometry(CUBE)
     t_start = ref.ray_exit(o, d, dens.shape, CUBE, cfg.step)

@@ -34,6 +34,10 @@ def _grid_render():
             (0, 1), ((0, 0, 0), (2, 1, 0), (2, 1, 4))):   # GridModel + MSI
         yield {**base, "BG_PER_RAY": 1, "GRAD_MODE": mode, "GRAD_SLOTS": slots,
                "SAMPLE_RECORD": rec, "GRAD_LOCKS": locks, "TRACK_TOUCHED": 1}
+    # the GPU shape (per-corner colours), with and without compensated sums and slots
+    for deg, comp, slots in itertools.product((0, 2, 3), (0, 1), (0, 2)):
+        yield {**base, "SH_PER_CORNER": 1, "SH_DEGREE": deg, "COMPENSATED_SUMS": comp,
+               "GRAD_SLOTS": slots, "GRAD_MODE": 1, "TRACK_TOUCHED": 1}
     # the distributed bricks (clrf/grid/bricks.py): no early termination
     for (slots, rec, locks), touched, pf in itertools.product(
             ((0, 0, 0), (2, 1, 0), (2, 1, 4)), (0, 1), (0, 1)):

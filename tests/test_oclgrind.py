@@ -43,6 +43,7 @@ ICD = Path("/usr/lib/oclgrind/liboclgrind-rt-icd.so")
 
 CASES = [
     "tests/test_render.py::test_forward_vs_reference",
+    "tests/test_render.py::test_forward_gpu_shape_vs_reference",
     "tests/test_render.py::test_backward_vs_finite_differences",
     "tests/test_render.py::test_empty_grid",
     "tests/test_render.py::test_max_weight_vs_reference",

@@ -54,6 +54,20 @@ def test_forward_vs_reference(device, degree, shape):
     assert np.any(out["acc"] > 0.1), "test rays should see the grid"
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_forward_gpu_shape_vs_reference(device_gpu_path, degree):
+    """The GPU shape's forward (colours per corner, SH_PER_CORNER) against the reference, on a
+    grid with empty voxels (corners without a row)."""
+    rng = np.random.default_rng(40 + degree)
+    dens, sh = random_grid(rng, (6, 5, 4), degree, empty_frac=0.25)
+    grid = clrf.SparseGrid.from_dense(device_gpu_path, dens, sh, BBOX)
+    o, d = random_rays(rng, 200)
+    bg = (0.2, 0.5, 0.9)
+    out = clrf.render_rays(grid, o, d, step=0.37, background=bg)
+    assert_forward_matches(out, ref.render_forward(dens, sh, BBOX, o, d, 0.37, bg))
+    assert np.any(out["acc"] > 0.1), "test rays should see the grid"
+
+
 @pytest.mark.parametrize("n", [0, 1, 7, LOCAL_SIZE - 1, LOCAL_SIZE, LOCAL_SIZE + 1, 10000])
 def test_forward_ray_counts(device, n):
     rng = np.random.default_rng(n)
@@ -118,6 +132,24 @@ def test_backward_vs_reference_medium(render_device, degree):
     np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     assert np.all(kern["density"][dens == 0] == 0), "empty voxels get no gradient"
+
+
+@pytest.mark.parametrize("degree", [0, 2])
+def test_backward_gpu_shape_on_the_cpu_path(device, degree):
+    """CLRF_FORCE_GPU_KERNELS=1 on a CPU device: the GPU shape's per-corner colour gradients
+    (SH_PER_CORNER) with the device's own gradient slots, block locks and sample record."""
+    dev = device.with_tuning(gpu_kernels=True)
+    if dev.tuning.grad_slots == 0:
+        pytest.skip(f"{device}: no gradient slots (the atomic path is render_device's gpu_path)")
+    rng = np.random.default_rng(30 + degree)
+    dens, sh = random_grid(rng, (9, 8, 10), degree, empty_frac=0.3, dens_hi=1.5)
+    grid = clrf.SparseGrid.from_dense(dev, dens, sh, BBOX)
+    o, d = random_rays(rng, 300)
+    g = rng.normal(size=(300, 3)).astype(np.float32)
+    kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=(1, 1, 1))
+    ana = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, (1, 1, 1))
+    np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
 
 
 def homogeneous(device, sigma, shape=(4, 4, 4), rgb=(0.2, 0.4, 0.6)):

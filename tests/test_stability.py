@@ -47,6 +47,21 @@ def test_stability_case(device, case):
     assert sum(r.nonfinite for r in rows) == 0
 
 
+# The grid renderer's cases that the GPU shape (per-corner colours and colour gradients,
+# SH_PER_CORNER, with and without compensated sums) could get wrong in its own way.
+GPU_SHAPE_CASES = ("long ray fwd+bwd", "very long ray acc/rgb/grads", "SH coefficients 1e20",
+                   "SH degree 3 at the poles", "stiff sigma*delta=1e+08", "fully pruned grid")
+
+
+_GPU_SHAPE_PARAMS = [c for c in _params() if c.values[0].name in GPU_SHAPE_CASES]
+assert len(_GPU_SHAPE_PARAMS) == len(GPU_SHAPE_CASES), "a GPU_SHAPE_CASES name is not a case"
+
+
+@pytest.mark.parametrize("case", _GPU_SHAPE_PARAMS)
+def test_stability_case_gpu_shape(device_gpu_path, case):
+    test_stability_case(device_gpu_path, case)
+
+
 def test_case_names_unique():
     names = [c.name for c in stab.CASES]
     assert len(names) == len(set(names))

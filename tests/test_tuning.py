@@ -36,7 +36,7 @@ def test_implementation_entries():
     assert implementation("Intel(R) OpenCL HD Graphics") == "intel-gpu"
     assert implementation("Intel(R) OpenCL Graphics") == "intel-gpu"
     gpu = Tuning.for_device(caps("gpu", platform="OpenCL 3.0 NEO", name="Intel(R) OpenCL"))
-    assert (gpu.grid_local_size, gpu.prefetch) == (32, False)
+    assert (gpu.grid_local_size, gpu.prefetch) == (64, False)   # GPU_GROUPS, not the entry's 8
     for name, impl in (("Portable Computing Language", "pocl"), ("Intel(R) OpenCL", "intel"),
                        ("rusticl", "rusticl"), ("Oclgrind", "oclgrind"), ("Clover", "clover"),
                        ("NVIDIA CUDA", "nvidia"), ("", "unknown")):
@@ -46,19 +46,21 @@ def test_implementation_entries():
         Tuning().replace(**entry)
 
 
-def test_amd_wave64_gpus_get_groups_of_a_wave():
-    """AMD's GCN / CDNA GPUs (gfx6xx-gfx9xx under ROCm) run 64-wide waves: the small groups
-    become 64 (tuning.WAVE64_GPU); RDNA and other GPUs keep theirs."""
+def test_gpus_get_groups_of_64():
+    """Every GPU gets groups of 64 for the small-group kernels (tuning.GPU_GROUPS: a wave64,
+    two warps or wave32s); CPU devices keep the defaults, whatever their name."""
     def amd(name, kind="gpu"):
         c = caps(kind, platform="OpenCL 2.1 AMD-APP", name="AMD Accelerated Parallel Processing")
         c.name = name
         return Tuning.for_device(c)
-    for name in ("gfx90a:sramecc+:xnack-", "gfx942", "gfx908", "gfx906", "gfx803"):
-        t = amd(name)
+    gpus = [amd(n) for n in ("gfx90a:sramecc+:xnack-", "gfx942", "gfx908", "gfx1100", "gfx1030")]
+    gpus += [Tuning.for_device(caps("gpu", name=n))
+             for n in ("NVIDIA CUDA", "Intel(R) OpenCL Graphics", "rusticl")]
+    for t in gpus:
         assert (t.grid_local_size, t.per_ray_local_size, t.encode_local_size) == (64, 64, 64)
         assert t.gpu_kernels and t.grad_slots == 0
     base = Tuning()
-    for t in (amd("gfx1100"), amd("gfx1030"), amd("gfx90a", kind="cpu")):
+    for t in (amd("gfx90a", kind="cpu"), Tuning.for_device(caps("cpu"))):
         assert (t.grid_local_size, t.per_ray_local_size, t.encode_local_size) == (
             base.grid_local_size, base.per_ray_local_size, base.encode_local_size)
 

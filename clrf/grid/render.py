@@ -59,7 +59,9 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
         "CLRF_PREFETCH": int(t.prefetch), "PREFETCH_AHEAD": t.prefetch_ahead,
         "PREFETCH_LINKS_AHEAD": t.prefetch_links_ahead, "BLOCK": t.block,
         "BLOCK_FINE": t.block_fine if t.block > 0 else 0,
-        "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS})
+        "BRICK": int(bool(brick)), "BETA_EPS": BETA_EPS,
+        # the GPU shape: colours per corner, 3 floats of colour gradient per corner (march.h)
+        "SH_PER_CORNER": int(bool(getattr(t, "gpu_kernels", False)))})
 
 
 def _bg4(background):

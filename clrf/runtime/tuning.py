@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import re
 from dataclasses import dataclass
 
 # CPU devices sort batches of at least this many rays (the keys kernel, the host round trip
@@ -75,20 +74,16 @@ IMPLEMENTATIONS = {   # CPU devices only
     "intel": {"grid_local_size": 8, "prefetch": True, "mlp_prefetch": False},
 }
 
-# GPUs that run 64 work-items in lockstep: AMD's GCN and CDNA (ROCm names them gfx6xx to
-# gfx9xx; Instinct MI100 to MI300 are gfx908, gfx90a, gfx942). tools/gpu_builds.py builds every
-# kernel for gfx90a and gfx942 as wave64 (clang has no wave32 there), so the CPU-sized groups
-# would fill a wave by half (the grid renderer's 32 rays), a quarter (16 rays of the per-ray
-# kernels) or an eighth (8 items of the encoding). Groups of 64 fill one wave; RDNA (gfx10+,
-# wave32 by default) keeps the defaults. Not measured on such a GPU.
-WAVE64_GPU = {"grid_local_size": 64, "per_ray_local_size": 64, "encode_local_size": 64}
-
-
-def amd_wave64(caps) -> bool:
-    """Whether ``caps`` is an AMD GPU of 64-wide waves (WAVE64_GPU) under AMD's OpenCL."""
-    return (caps.type == "gpu" and implementation(getattr(caps, "platform", "")) == "amd"
-            and re.match(r"gfx[6-9][0-9a-f]", getattr(caps, "name", "").strip().lower())
-            is not None)
+# Work-group sizes of GPUs (none measured on one yet), chosen from the hardware's limits: the
+# CPU sizes (the grid renderer's 32 rays, the per-ray kernels' 16, the encoding's 8) fill a
+# half, a quarter or an eighth of a 64-wide wave on AMD's GCN and CDNA (ROCm's gfx6xx to gfx9xx:
+# Instinct MI100 to MI300 are gfx908, gfx90a, gfx942; tools/gpu_builds.py builds them wave64),
+# 16 and 8 fill half or a quarter of a 32-wide warp (NVIDIA), wave32 (RDNA) or SIMD32 thread
+# (the width Intel's compiler picks for the per-ray kernels), and NVIDIA keeps at most 32 groups
+# resident per SM (sm_70, sm_80, sm_90; 16 on sm_75 and sm_86), so groups of 32 would cap a
+# Hopper SM at 1,024 of its 2,048 threads. Groups of 64 are one wave64, two warps or wave32s,
+# two to four Intel hardware threads, and let an sm_90 fill (sm_86: 1,024 of 1,536).
+GPU_GROUPS = {"grid_local_size": 64, "per_ray_local_size": 64, "encode_local_size": 64}
 
 
 ENV = {
@@ -164,8 +159,8 @@ class Tuning:
     def for_device(cls, caps) -> "Tuning":
         """Defaults from capabilities: CPU devices get one slot (with its per-sample record)
         per compute unit, block-locked gradient adds (GRAD_LOCKS_LOG2) and sorted rays from
-        RAY_ORDER_MIN_RAYS on, GPU devices the fused MLP's GPU tiling; then each
-        implementation's entry (IMPLEMENTATIONS), or for AMD's wave64 GPUs WAVE64_GPU."""
+        RAY_ORDER_MIN_RAYS on, GPU devices the fused MLP's GPU tiling and groups of 64
+        (GPU_GROUPS); then, for CPU devices, each implementation's entry (IMPLEMENTATIONS)."""
         cpu = caps.type == "cpu"
         # the slots and block locks need locks that order plain memory between work-groups,
         # which OpenCL 1.2 atomics do not promise: without acquire/release atomics a CPU
@@ -175,8 +170,8 @@ class Tuning:
                 grad_locks=GRAD_LOCKS_LOG2 if slots else 0,
                 ray_order=RAY_ORDER_MIN_RAYS if cpu else 0, gpu_kernels=caps.type == "gpu")
         impl = implementation(getattr(caps, "platform", ""))
-        if amd_wave64(caps):
-            return t.replace(**WAVE64_GPU)
+        if not cpu and caps.type == "gpu":
+            return t.replace(**GPU_GROUPS)
         return t.replace(**(IMPLEMENTATIONS.get(impl, {}) if cpu else {}))
 
     @classmethod
