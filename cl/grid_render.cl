@@ -246,12 +246,17 @@ CLRF_INLINE shv_t cgrad_row(cgrad_t g, const float *Y) {
 }
 
 /* Scatter the merged corner gradients of one cell into buffers shared with other work-items:
- * one float atomic add per non-zero value; mark[k] = 1 if do_mark. */
+ * one float atomic add per non-zero value (with SH_PER_CORNER: per non-zero density value and
+ * per SH value, zero or not); mark[k] = 1 if do_mark. */
 CLRF_INLINE void flush_cell_atomic(const int *idx, const float *gsig, const cgrad_t *gsh,
                                    const float *Y, __global float *gdens,
                                    __global float *gsh_rows, __global uchar *mark,
                                    const int do_mark) {
+    /* SH_PER_CORNER: unrolled, so the corners' sums stay in registers (a GPU keeps private
+     * arrays indexed in a loop in memory) */
+#if SH_PER_CORNER
 #pragma unroll
+#endif
     for (int c = 0; c < 8; ++c) {
         const int k = idx[c];
         if (k < 0) continue;

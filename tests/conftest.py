@@ -68,7 +68,6 @@ SLOW_IMPL_TESTS = {
     "test_forward_vs_reference", "test_backward_vs_finite_differences",
     "test_homogeneous_slab_closed_form", "test_geometry_cases", "test_empty_grid",
     "test_forward_matches_reference", "test_backward_matches_reference",
-    "test_forward_gpu_shape_vs_reference",
     "test_encode_matches_reference", "test_encode_backward_matches_reference",
     "test_stratified_matches_reference", "test_importance_matches_reference",
     "test_mse_mode_loss_and_gradient", "test_both_gradient_paths_pass",

@@ -13,8 +13,8 @@ each kernel file, each define the kernels read) need no compiler.
 
 The builds run once per module (two compiler processes at a time; PLAN): on gfx1100 every
 program of the three shapes (the GPU's own tuning, the same GPU with CLRF_FORCE_GPU_KERNELS=0,
-a CPU device's tuning), as OpenCL C 3.0 and 1.2; on tgllp and sm_90 every program of the GPU
-shape; on gfx1103, gfx90a, gfx942 and dg2 the first GPU-shape program of each kernel file.
+a CPU device's tuning), as OpenCL C 3.0 and 1.2; on tgllp every program of the GPU shape;
+on gfx1103, gfx90a, gfx942, dg2 and sm_90 the first GPU-shape program of each kernel file.
 Nothing is cached; about 4 minutes on 2 cores. ``python tools/gpu_builds.py`` builds every
 program everywhere.
 """
@@ -33,8 +33,8 @@ CL = ROOT / "cl"
 # (targets, shapes, programs per kernel file): every program of every shape on gfx1100 (clang:
 # quick), every GPU-shape program on the no-spill targets and NVIDIA, and on the other targets
 # the first GPU-shape program of each kernel file (every kernel builds there)
-PLAN = ((("gfx1100",), gb.SHAPES, None), (("tgllp", "sm_90"), ("gpu",), None),
-        (("gfx1103", "gfx90a", "gfx942", "dg2"), ("gpu",), 1))
+PLAN = ((("gfx1100",), gb.SHAPES, None), (("tgllp",), ("gpu",), None),
+        (("gfx1103", "gfx90a", "gfx942", "dg2", "sm_90"), ("gpu",), 1))
 CL12_TARGETS = ("gfx1100",)
 # GPU-shape kernels that still spill on a no-spill target, with the figures (ocloc of compute
 # runtime 22.43) and why no tiling define fixes them. Each is an expected failure of

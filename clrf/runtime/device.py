@@ -239,10 +239,10 @@ def _choose_ranked(devs, pool, what, listing, refresh, requested=False) -> Choic
         reason = (f"requested as {what}" + (f"; {choice_reason(ranked)}" if len(ranked) > 1
                                              else "")) if requested else choice_reason(ranked)
         faster = [c for c in ranked[1:] if c.probe.gflops > best.probe.gflops * (1 + TIE)]
-        if not requested and faster:
-            why = slow_reasons(faster[0], list(cands), cpu_flags())[0]
+        whys = slow_reasons(faster[0], list(cands), cpu_flags()) if faster else []
+        if not requested and whys:   # (a faster device ranked lower for another reason: none)
             reason = (f"{faster[0].spec} measures {faster[0].probe.gflops:.1f} GFLOP/s but "
-                      f"{why}")
+                      f"{whys[0]}")
         if requested:
             known = [_candidate(*o, p) for o in devs if (o[0], o[1]) not in entries
                      for p in [probe(o[2], measure_missing=False)] if p is not None]
