@@ -119,18 +119,24 @@ def test_backward_vs_finite_differences(render_device, degree):
     assert np.abs(ana["density"]).max() > 1e-3  # the rays do touch the grid
 
 
-@pytest.mark.parametrize("degree", [1, 2])
-def test_backward_vs_reference_medium(render_device, degree):
-    rng = np.random.default_rng(20 + degree)
-    shape = (9, 8, 10)
-    dens, sh = random_grid(rng, shape, degree, empty_frac=0.3, dens_hi=1.5)
-    grid = clrf.SparseGrid.from_dense(render_device, dens, sh, BBOX)
+def assert_medium_backward_matches(device, degree, seed):
+    """A 9 x 8 x 10 grid with empty voxels, 300 rays: the kernel's gradients equal the
+    reference's; returns (kernel gradients, density)."""
+    rng = np.random.default_rng(seed)
+    dens, sh = random_grid(rng, (9, 8, 10), degree, empty_frac=0.3, dens_hi=1.5)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
     o, d = random_rays(rng, 300)
     g = rng.normal(size=(300, 3)).astype(np.float32)
     kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=(1, 1, 1))
     ana = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, (1, 1, 1))
     np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
     np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    return kern, dens
+
+
+@pytest.mark.parametrize("degree", [1, 2])
+def test_backward_vs_reference_medium(render_device, degree):
+    kern, dens = assert_medium_backward_matches(render_device, degree, 20 + degree)
     assert np.all(kern["density"][dens == 0] == 0), "empty voxels get no gradient"
 
 
@@ -141,15 +147,7 @@ def test_backward_gpu_shape_on_the_cpu_path(device, degree):
     dev = device.with_tuning(gpu_kernels=True)
     if dev.tuning.grad_slots == 0:
         pytest.skip(f"{device}: no gradient slots (the atomic path is render_device's gpu_path)")
-    rng = np.random.default_rng(30 + degree)
-    dens, sh = random_grid(rng, (9, 8, 10), degree, empty_frac=0.3, dens_hi=1.5)
-    grid = clrf.SparseGrid.from_dense(dev, dens, sh, BBOX)
-    o, d = random_rays(rng, 300)
-    g = rng.normal(size=(300, 3)).astype(np.float32)
-    kern = clrf.render_rays_backward(grid, o, d, g, step=0.5, background=(1, 1, 1))
-    ana = ref.render_backward(dens, sh, BBOX, o, d, g, 0.5, (1, 1, 1))
-    np.testing.assert_allclose(kern["density"], ana["density"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
-    np.testing.assert_allclose(kern["sh"], ana["sh"], atol=GRAD_ATOL, rtol=GRAD_RTOL)
+    assert_medium_backward_matches(dev, degree, 30 + degree)
 
 
 def homogeneous(device, sigma, shape=(4, 4, 4), rgb=(0.2, 0.4, 0.6)):

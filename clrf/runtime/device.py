@@ -239,8 +239,9 @@ def _choose_ranked(devs, pool, what, listing, refresh, requested=False) -> Choic
         reason = (f"requested as {what}" + (f"; {choice_reason(ranked)}" if len(ranked) > 1
                                              else "")) if requested else choice_reason(ranked)
         faster = [c for c in ranked[1:] if c.probe.gflops > best.probe.gflops * (1 + TIE)]
-        whys = slow_reasons(faster[0], list(cands), cpu_flags()) if faster else []
-        if not requested and whys:   # (a faster device ranked lower for another reason: none)
+        whys = slow_reasons(faster[0], list(cands), cpu_flags()) \
+            if faster and not requested else []
+        if whys:   # (a faster device ranked lower for another reason has none)
             reason = (f"{faster[0].spec} measures {faster[0].probe.gflops:.1f} GFLOP/s but "
                       f"{whys[0]}")
         if requested:
