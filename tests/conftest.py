@@ -49,6 +49,23 @@ def pytest_configure(config):
         os.environ["PYTHONPATH"] = os.pathsep.join(
             [str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
 
+# `pytest -n auto` (pytest-xdist, in the test extra): a worker per core, at most 4 (each worker's
+# OpenCL runtime threads over every core, and the real-scene tests hold gigabytes), and a test
+# file's tests on one worker (--dist loadfile) so that a module's fixtures, such as the offline
+# GPU builds, are made once. The kernel builds are single-threaded: two workers keep 2 cores busy
+MAX_WORKERS = 4
+
+
+def pytest_xdist_auto_num_workers(config):
+    return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_cmdline_main(config):
+    if getattr(config.option, "numprocesses", None) and getattr(config.option, "dist", None) == "no":
+        config.option.dist = "loadfile"
+
+
 # Mesa's rusticl shows its software device only when asked; set before any platform listing
 os.environ.setdefault("RUSTICL_ENABLE", "llvmpipe")
 
