@@ -97,7 +97,9 @@ class Target:
     ROCm's OpenCL for AMD (OpenCL 2.x devices: no acquire/release atomics, no
     cl_ext_float_atomics; 256 work-items per group, 64 KiB LDS, fp64), Intel's compute runtime
     (OpenCL 3.0 with acquire/release; no fp64 on Gen12LP or Xe-HPG; cl_ext_float_atomics on
-    Xe-HPG only; 64 KiB SLM), NVIDIA's driver (no float atomics: inline PTX; 48 KiB of static
+    both, as ocloc's __opencl_c_ext_fp32_global_atomic_add for tgllp shows: on Xe-LP, which
+    has no float atomic add, IGC emulates it with an atomic read and a compare-and-swap loop;
+    64 KiB SLM), NVIDIA's driver (no float atomics: inline PTX; 48 KiB of static
     shared memory per block, fp64)."""
     name: str
     vendor: str
@@ -117,7 +119,7 @@ TARGETS = {t.name: t for t in (
     Target("gfx942", "amd", "gfx942", "AMD CDNA3 (Instinct MI300)",
            _caps("gfx942", AMD, "OpenCL 2.1 AMD-APP", 304, 256, 65536, True, False, False)),
     Target("tgllp", "intel", "tgllp", "Intel Xe-LP (Tiger Lake Iris Xe)",
-           _caps("tgllp", INTEL, "OpenCL 3.0 NEO", 96, 512, 65536, False, False, True)),
+           _caps("tgllp", INTEL, "OpenCL 3.0 NEO", 96, 512, 65536, False, True, True)),
     Target("dg2", "intel", "dg2", "Intel Xe-HPG (Arc A770)",
            _caps("dg2", INTEL, "OpenCL 3.0 NEO", 512, 1024, 65536, False, True, True)),
     Target("sm_90", "nvidia", "sm_90", "NVIDIA Hopper (H100)",
