@@ -7,6 +7,7 @@ from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
 from ..runtime.programs import int4, launch, upload
+from ..runtime.scan import run_scan
 from .render import render_max_weight_device
 
 TV_EPS = 1e-9
@@ -87,7 +88,7 @@ def _links_from_flags(dev, flags):
                              "if (i == n - 1) count[0] = item;")
     links = cla.empty_like(flags)
     count = cla.zeros(dev.queue, 1, np.int32)
-    _scan_cache[key](flags, links, count, np.int32(flags.size))
+    run_scan(dev.queue, _scan_cache[key], flags, links, count, np.int32(flags.size))
     return links, int(count.get()[0])
 
 

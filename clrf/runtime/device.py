@@ -23,7 +23,6 @@ from __future__ import annotations
 import copy
 import os
 import sys
-import time
 from dataclasses import dataclass, field
 
 import pyopencl as cl
@@ -332,18 +331,23 @@ class Device:
     def program(self, source: str, defines: dict | None = None):
         """The program for ``cl/<source>`` with ``defines`` (programs.build), built once per
         (source, defines, fast_math) and kept for the device's lifetime."""
-        from .programs import build
+        from .programs import build, one_off
         key = (source, tuple(sorted((defines or {}).items())), self.tuning.fast_math)
         prg = self._programs.get(key)
         if prg is None:
-            t0 = time.perf_counter()
-            prg = self._programs[key] = build(self, source, defines or {}, self.tuning.fast_math,
-                                              self.tuning.verbose_build)
-            self.build_seconds += time.perf_counter() - t0
+            with one_off():
+                prg = self._programs[key] = build(self, source, defines or {},
+                                                  self.tuning.fast_math,
+                                                  self.tuning.verbose_build)
         return prg
 
-    build_seconds = 0.0   # wall seconds this device has spent building programs (one-off costs
-    #                       that a caller timing its work can leave out: Trainer's evaluations)
+    @property
+    def build_seconds(self) -> float:
+        """Wall seconds this process has spent on one-off work (program builds, first kernel
+        launches: programs.one_off_seconds) that a caller timing its work leaves out
+        (Trainer's steps and evaluations)."""
+        from .programs import one_off_seconds
+        return one_off_seconds()
 
     def finish(self):
         self.queue.finish()

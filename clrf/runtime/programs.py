@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
+import time
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +31,59 @@ from .tuning import implementation
 
 class BuildError(RuntimeError):
     pass
+
+
+# ---- one-off costs: program builds and first launches ----------------------------------------
+# Seconds this process has spent on one-off work that a caller timing its own work leaves out
+# (Trainer's steps and evaluations: a cold first run would otherwise spend seconds of a short
+# budget on it and shift its PSNR-against-time curve): every pyopencl program build, clrf's
+# and those pyopencl makes for its own kernels (the reductions behind cla.sum, the scans of
+# grid pruning: seconds each on PoCL), and the first launch of each kernel at each work-group
+# size, where PoCL compiles the kernel for that size (with that launch's own work).
+_one_off = {"seconds": 0.0}
+_one_off_lock = threading.Lock()
+_one_off_depth = threading.local()   # per thread: blocks nest (a build inside a build)
+
+
+def one_off_seconds() -> float:
+    """Wall seconds of one-off work so far in this process (see above)."""
+    return _one_off["seconds"]
+
+
+@contextmanager
+def one_off(queue=None):
+    """Counts the block's wall time as one-off work (``queue``: finished before and after, so
+    that the device's work of the block is in it and earlier work is not); blocks nest."""
+    if queue is not None:
+        queue.finish()
+    t0 = time.perf_counter()
+    depth = getattr(_one_off_depth, "n", 0)
+    _one_off_depth.n = depth + 1
+    try:
+        yield
+        if queue is not None:
+            queue.finish()
+    finally:
+        _one_off_depth.n = depth
+        if depth == 0:
+            with _one_off_lock:
+                _one_off["seconds"] += time.perf_counter() - t0
+
+
+def _install_build_timer():
+    """Every pyopencl Program.build in this process counts as one-off work (installed once)."""
+    build = cl.Program.build
+    if getattr(build, "_clrf_timed", False):
+        return
+
+    def timed_build(self, *args, **kwargs):
+        with one_off():
+            return build(self, *args, **kwargs)
+    timed_build._clrf_timed = True
+    cl.Program.build = timed_build
+
+
+_install_build_timer()
 
 
 def cl_dir() -> Path:
@@ -233,5 +289,25 @@ def launch(device, kernel, n: int, args, local_size: int | None = None, wait_for
     local_size = max(1, min(int(local_size), device.caps.max_work_group_size))
     gsize = ((n + local_size - 1) // local_size) * local_size
     kernel.set_args(*args)
-    return cl.enqueue_nd_range_kernel(device.queue, kernel, (gsize,), (local_size,),
-                                      wait_for=wait_for)
+    if not _first_launch(device, kernel, local_size):
+        return cl.enqueue_nd_range_kernel(device.queue, kernel, (gsize,), (local_size,),
+                                          wait_for=wait_for)
+    with one_off(device.queue):
+        return cl.enqueue_nd_range_kernel(device.queue, kernel, (gsize,), (local_size,),
+                                          wait_for=wait_for)
+
+
+def _first_launch(device, kernel, local_size) -> bool:
+    """Whether this is the first time ``kernel`` runs at ``local_size`` on ``device`` (PoCL
+    compiles a kernel for its work-group size at that launch: one-off work)."""
+    seen = getattr(device, "first_launches", None)
+    if seen is None:
+        try:
+            seen = device.first_launches = set()
+        except AttributeError:   # a stand-in device without attributes: no accounting
+            return False
+    key = (kernel.int_ptr, local_size)
+    if key in seen:
+        return False
+    seen.add(key)
+    return True

@@ -15,7 +15,20 @@ import pyopencl as cl
 from pyopencl.scan import GenericScanKernel
 from pyopencl.tools import context_dependent_memoize
 
-from .programs import scratch
+from .programs import one_off, scratch
+
+_scans_run = set()   # id() of the (memoized, kept) scan kernels that have run once
+
+
+def run_scan(queue, scan, *args, **kwargs):
+    """``scan(*args, queue=queue, **kwargs)``; its first run counts as one-off work
+    (programs.one_off: PoCL compiles the scan's kernels for their work-group sizes there)."""
+    if id(scan) in _scans_run:
+        return scan(*args, queue=queue, **kwargs)
+    _scans_run.add(id(scan))
+    with one_off(queue):
+        return scan(*args, queue=queue, **kwargs)
+
 
 @context_dependent_memoize
 def _offsets_scan(context, capped: bool = False):
@@ -57,8 +70,8 @@ def capped_offsets(device, counts, n: int, cap: int):
         count.fill(0)
         total.fill(0)
         return offsets, count, total
-    _offsets_scan(device.context, True)(counts, offsets, total, np.int32(n), count,
-                                        np.int32(cap), queue=device.queue, size=n)
+    run_scan(device.queue, _offsets_scan(device.context, True), counts, offsets, total,
+             np.int32(n), count, np.int32(cap), size=n)
     return offsets, count, total
 
 
@@ -72,8 +85,8 @@ def row_offsets(device, counts, n: int | None = None, what: str = "rows"):
         offsets.fill(0)
         return offsets, 0
     total = scratch(device, (1,), np.int64)
-    _offsets_scan(device.context)(counts, offsets, total, np.int32(n), queue=device.queue,
-                                  size=n)
+    run_scan(device.queue, _offsets_scan(device.context), counts, offsets, total, np.int32(n),
+             size=n)
     m = int(total.get()[0])
     if m >= 1 << 31:
         raise ValueError(f"{m} {what} exceed the int32 offsets")
