@@ -50,36 +50,35 @@ def test_capped_offsets_match_clipped_cumsum(device, cap):
 def test_one_off_work_is_left_out_of_timed_work(device):
     """Program builds (pyopencl's own kernels too), a kernel's first launch at a work-group
     size and a scan's first run count as one-off work (programs.one_off_seconds, which the
-    trainer's clock leaves out); the same launch or scan again does not."""
-    import pyopencl as cl
-    from pyopencl.elementwise import ElementwiseKernel
-    from clrf.runtime import programs as P
-    q = device.queue
-    a = cla.zeros(q, 64, np.float32)
-    t0 = device.build_seconds
-    double = ElementwiseKernel(device.context, "float *x", "x[i] = 2.0f * x[i] + 1.0f",
-                               name="clrf_test_one_off")
-    double(a)                        # pyopencl builds it at its first call
-    t1 = device.build_seconds
+    trainer's clock leaves out); the same launch, reduction or scan again does not."""
+    from clrf.runtime.device import Device
+    from clrf.runtime.programs import launch
+    # a new context of the same device: nothing built or run in it yet
+    dev = Device(f"{device.platform_index}:{device.device_index}")
+    q = dev.queue
+    t0 = dev.build_seconds
+    k = dev.program("probe.cl").kernel("clrf_probe")            # a[i] += 1
+    t1 = dev.build_seconds
     assert t1 > t0
-    prg = cl.Program(device.context, "__kernel void k(int n, __global float *x) {"
-                     " int i = get_global_id(0); if (i < n) x[i] += 1.0f; }").build()
-    t2 = device.build_seconds
-    assert t2 > t1
-    k = prg.k
-    P.launch(device, k, 64, (np.int32(64), a.data), 16)
-    t3 = device.build_seconds
-    assert t3 > t2                   # first launch at 16
-    P.launch(device, k, 64, (np.int32(64), a.data), 16)
-    assert device.build_seconds == t3
-    P.launch(device, k, 64, (np.int32(64), a.data), 32)
-    t4 = device.build_seconds
-    assert t4 > t3                   # another work-group size
-    np.testing.assert_array_equal(a.get(), np.full(64, 4.0, np.float32))   # 2*0+1, then +3
+    a = cla.zeros(q, 64, np.float32)
+    launch(dev, k, 64, (a.data,), 16)
+    t2 = dev.build_seconds
+    assert t2 > t1                   # first launch at 16
+    launch(dev, k, 64, (a.data,), 16)
+    assert dev.build_seconds == t2
+    launch(dev, k, 64, (a.data,), 32)
+    t3 = dev.build_seconds
+    assert t3 > t2                   # another work-group size
+    np.testing.assert_array_equal(a.get(), np.full(64, 3.0, np.float32))
+    assert float(cla.sum(a, queue=q).get()) == 192.0   # pyopencl builds its reduction here
+    t4 = dev.build_seconds
+    assert t4 > t3
+    assert float(cla.sum(a, queue=q).get()) == 192.0
+    assert dev.build_seconds == t4
     counts = cla.to_device(q, np.arange(10, dtype=np.int32))
-    row_offsets(device, counts)      # the scan's first run (its build, if new, too)
-    t5 = device.build_seconds
-    assert t5 >= t4
-    offsets, total = row_offsets(device, counts)
-    assert device.build_seconds == t5 and total == 45
+    row_offsets(dev, counts)         # the scan's build and first run
+    t5 = dev.build_seconds
+    assert t5 > t4
+    offsets, total = row_offsets(dev, counts)
+    assert dev.build_seconds == t5 and total == 45
     np.testing.assert_array_equal(offsets.get(), np.r_[0, np.cumsum(np.arange(10))])

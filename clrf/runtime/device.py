@@ -309,6 +309,7 @@ class Device:
                 raise DeviceError(str(e)) from None
         self.tuning = tuning   # how kernels run here (clrf/runtime/tuning.py); CLRF_* overrides applied
         self._programs = {}
+        self.first_launches = set()   # (kernel, work-group size) launched once (programs.launch)
         quiet_library_builds()
         if verbose:
             print(f"clrf: device {self}", file=sys.stderr)

@@ -301,13 +301,8 @@ def _first_launch(device, kernel, local_size) -> bool:
     """Whether this is the first time ``kernel`` runs at ``local_size`` on ``device`` (PoCL
     compiles a kernel for its work-group size at that launch: one-off work)."""
     seen = getattr(device, "first_launches", None)
-    if seen is None:
-        try:
-            seen = device.first_launches = set()
-        except AttributeError:   # a stand-in device without attributes: no accounting
-            return False
     key = (kernel.int_ptr, local_size)
-    if key in seen:
+    if seen is None or key in seen:   # (a stand-in device without the set: no accounting)
         return False
     seen.add(key)
     return True
