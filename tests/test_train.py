@@ -56,6 +56,13 @@ def test_train_writes_every_output(trained):
     ev = json.loads((trained / "eval.json").read_text())
     assert ev["n_views"] == 8 and np.isfinite(ev["psnr"])
     assert any("32x32x32" in r["model"] for r in rows), "the upsample must have happened"
+    # training's device memory (clrf/runtime/devmem.py) holds at least the grid, its links and
+    # its optimiser's state, which the checkpoint has
+    dm = ev["device_memory"]
+    st = checkpoint.load(trained)
+    grid = sum(st[k].nbytes for k in ("links", "density", "sh", "opt_density", "opt_sh"))
+    assert dm["peak_held_bytes"] >= dm["peak_in_use_bytes"] >= grid
+    assert dm["peak_in_use_bytes"] >= dm["in_use_bytes"] > 0
 
 
 def test_checkpoint_round_trip(device, trained):

@@ -4,8 +4,10 @@ Runs ``python -m clrf.cli train ARGS`` as a child, samples its resident set (/pr
 VmRSS) every 0.2 s, and on exit takes the kernel's own peak (the child's ru_maxrss from
 wait4). The child's stderr holds the guard's line ``clrf: memory: predicted peak ...``; the
 record keeps that prediction, the measured peak and their ratio, and the RSS samples with the
-training log lines (to see which phase the peak falls in). A child that grows past ``--cap``
-GiB is killed (the machine is shared), and the record says so.
+training log lines (to see which phase the peak falls in), and the run's own count of its
+device buffers and memory pool at their peak (its ``device memory:`` line: on a GPU the card's
+memory it needed; on a CPU the part of the resident set that grows with the model). A child
+that grows past ``--cap`` GiB is killed (the machine is shared), and the record says so.
 
     python tools/memory_peak.py --name tiny_lego --cap 8 -- \\
         --data $CLRF_DATA/tiny_lego --max-seconds 30 --out /tmp/m/tiny
@@ -28,6 +30,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PRED = re.compile(r"memory: predicted peak ([0-9.]+) GiB")
+# the run's own count of its device buffers and pool (clrf/runtime/devmem.py), at training's end
+DEVICE = re.compile(r"device memory: peak ([0-9.]+) GiB held .*\(([0-9.]+) GiB in use\)")
 
 
 def rss_kib(pid: int) -> int:
@@ -79,6 +83,10 @@ def measure(train_args, cap_gib: float, period: float = 0.2) -> dict:
            "predicted_peak_bytes": int(float(m[-1]) * (1 << 30)) if m else None,
            "wall_s": round(time.time() - t0, 1),
            "rss_samples_kib": samples[::max(1, len(samples) // 400)], "log": lines}
+    dm = DEVICE.findall(text)
+    if dm:
+        rec["device_peak_held_bytes"] = int(float(dm[-1][0]) * (1 << 30))
+        rec["device_peak_in_use_bytes"] = int(float(dm[-1][1]) * (1 << 30))
     if rec["predicted_peak_bytes"]:
         rec["ratio_predicted_over_measured"] = round(rec["predicted_peak_bytes"] / measured, 3)
     return rec
@@ -120,7 +128,10 @@ def main(argv=None):
     print(f"{a.name}: measured peak {rec['measured_peak_bytes'] / g:.3f} GiB, predicted "
           f"{pred / g if pred else float('nan'):.3f} GiB, ratio "
           f"{rec.get('ratio_predicted_over_measured')}, rc {rec['rc']}"
-          f"{', killed at the cap' if rec['killed_at_cap_gib'] else ''}")
+          f"{', killed at the cap' if rec['killed_at_cap_gib'] else ''}"
+          + (f"; device memory peak {rec['device_peak_held_bytes'] / g:.3f} GiB held "
+             f"({rec['device_peak_in_use_bytes'] / g:.3f} GiB in use)"
+             if "device_peak_held_bytes" in rec else ""))
     return 0 if rec["rc"] == 0 else 1
 
 

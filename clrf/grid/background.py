@@ -24,12 +24,11 @@ without a separate touched pass in the background kernel. The flags are never cl
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cla
 
 from .msi import MSIBackground
 from ..runtime.optim import Optimizer, expon_lr
 from .render import ray_exit_device
-from ..runtime.programs import download, upload
+from ..runtime.programs import device_empty, download, upload
 
 
 def msi_geometry(bbox):
@@ -52,7 +51,7 @@ class GridBackground:
         self.opt_color = Optimizer(device, msi.color.reshape(-1, 3), cfg.optimizer, cfg.rms_beta,
                                    state=st.get("color"))
         n = int(np.prod(msi.shape))
-        self.all_rows = cla.empty(device.queue, n, np.uint8).fill(np.uint8(1))
+        self.all_rows = device_empty(device.queue, n, np.uint8).fill(np.uint8(1))
         self._buf = None   # per-batch (t_start, bg_rgb, bg_T, grad_bg), reused while B is fixed
 
     @classmethod
@@ -67,8 +66,8 @@ class GridBackground:
     def _buffers(self, n):
         if self._buf is None or self._buf[1].shape[0] != n:
             q = self.device.queue
-            self._buf = (cla.empty(q, max(n, 1), np.float32), cla.empty(q, (n, 3), np.float32),
-                         cla.empty(q, max(n, 1), np.float32), cla.empty(q, (n, 3), np.float32))
+            self._buf = tuple(device_empty(q, shape, np.float32)
+                              for shape in (max(n, 1), (n, 3), max(n, 1), (n, 3)))
         return self._buf
 
     def forward(self, grid, origins, dirs, step, reuse=True):

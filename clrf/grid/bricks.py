@@ -27,9 +27,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pyopencl.array as cla
 
-from ..runtime.programs import float4, int4, launch
+from ..runtime.programs import device_empty, float4, int4, launch
 from .grid import SparseGrid
 from .ops import program as ops_program
 from .render import block_occupancy, grad_slots, grid_program, launch_backward
@@ -202,9 +201,10 @@ def render_partial_device(bgrid: BrickGrid, origins_d, dirs_d, step):
     dev = bgrid.device
     q = dev.queue
     n = origins_d.shape[0]
-    out = {"rgb": cla.empty(q, (max(n, 1), 3), np.float32), "logT": cla.empty(q, max(n, 1), np.float32),
-           "depth": cla.empty(q, max(n, 1), np.float32), "acc": cla.empty(q, max(n, 1), np.float32),
-           "key": cla.empty(q, max(n, 1), np.int32)}
+    m = max(n, 1)
+    out = {"rgb": device_empty(q, (m, 3)), "logT": device_empty(q, m),
+           "depth": device_empty(q, m), "acc": device_empty(q, m),
+           "key": device_empty(q, m, np.int32)}
     if n:
         occ, oreso = block_occupancy(bgrid)
         bg = float4(0, 0, 0, 0)   # unused: a partial has no background

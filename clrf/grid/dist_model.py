@@ -23,11 +23,10 @@ split again at the new resolution, balanced by the rows the pruned grid will hav
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cla
 
 from ..interface import StateError
 from ..runtime.optim import Optimizer
-from ..runtime.programs import download, upload
+from ..runtime.programs import device_zeros, download, upload
 from . import bricks as B
 from .distributed import DistGrid
 from .grid import sh_dim
@@ -131,7 +130,7 @@ class DistGridModel(GridModel):
                                      self.cfg.rms_beta, state=st.get("density"))
         self.opt_sh = Optimizer(self.device, bgrid.sh, self.cfg.optimizer, self.cfg.rms_beta,
                                 state=st.get("sh"))
-        self.touched = cla.zeros(self.device.queue, bgrid.density.shape[0], np.uint8)
+        self.touched = device_zeros(self.device.queue, bgrid.density.shape[0], np.uint8)
 
     # ---- training ----------------------------------------------------------------------
     def train_step(self, it, origins, dirs, target) -> float:

@@ -22,12 +22,11 @@ copies of its own old box during the change (density, SH, flags).
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cla
 
 from . import bricks as B
 from .ops import prune_keep
 from .grid import SparseGrid
-from ..runtime.programs import upload
+from ..runtime.programs import device_zeros, upload
 
 
 def _inter(alo, ahi, blo, bhi):
@@ -80,7 +79,7 @@ def max_weight(model, origins, dirs, chunk=1 << 16):
     g = model.grid
     q = model.device.queue
     dist = model.dist
-    maxw = cla.zeros(q, g.density.shape[0], np.float32)
+    maxw = device_zeros(q, g.density.shape[0], np.float32)
     for s in range(0, origins.shape[0], chunk):
         e = min(origins.shape[0], s + chunk)
         od = upload(q, np.ascontiguousarray(origins[s:e], np.float32))

@@ -20,7 +20,7 @@ from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr
 from .render import render_backward_device, render_forward_device
 from ..runtime.pending import Pending
-from ..runtime.programs import download, launch, upload
+from ..runtime.programs import device_empty, device_zeros, download, launch, upload
 
 
 def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
@@ -72,7 +72,7 @@ class GridModel:
                                         self.cfg.rms_beta, state=st.get("density"))
         self.opt_sh = Optimizer(self.device, grid.sh, self.cfg.optimizer, self.cfg.rms_beta,
                                    state=st.get("sh"))
-        self.touched = cla.zeros(q, grid.density.shape[0], np.uint8)
+        self.touched = device_zeros(q, grid.density.shape[0], np.uint8)
         self._sqerr = None
 
     # ---- training ----------------------------------------------------------------------
@@ -91,7 +91,7 @@ class GridModel:
         B = origins.shape[0]
         q = self.device.queue
         if self._sqerr is None or self._sqerr.shape[0] != B:
-            self._sqerr = cla.empty(q, B, np.float32)
+            self._sqerr = device_empty(q, B, np.float32)
         bgm = self.bg_model
         if bgm is None:
             render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
@@ -211,7 +211,7 @@ class GridModel:
         and the view-independent colour rgb [n, 3] at device points [n, 3] (cl/export.cl)."""
         n = int(points.shape[0])
         q = self.device.queue
-        sigma, rgb = cla.empty(q, n, np.float32), cla.empty(q, (n, 3), np.float32)
+        sigma, rgb = device_empty(q, n, np.float32), device_empty(q, (n, 3), np.float32)
         g = self.grid
         prg = export_program(self.device, g.sh_degree)
         launch(self.device, prg.kernel("sample_fields"), n,

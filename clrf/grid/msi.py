@@ -22,9 +22,8 @@ dL/d bg_rgb = T_fg * dL/d pixel. The equations and index formulas are in cl/back
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cla
 
-from ..runtime.programs import download, float4, launch, upload
+from ..runtime.programs import device_empty, device_zeros, download, float4, launch, upload
 
 PER_RAY_LOCAL_SIZE = 16  # one ray per work-item with a loop over its L - 1 samples
 
@@ -71,8 +70,8 @@ class MSIBackground:
         self.center = np.asarray(center, np.float32).astype(np.float64).reshape(3)
         self.background = np.asarray(background, np.float64).reshape(3)
         shape = self.shape
-        self.density = cla.empty(device.queue, shape, np.float32).fill(np.float32(init_density))
-        self.color = cla.empty(device.queue, shape + (3,), np.float32).fill(
+        self.density = device_empty(device.queue, shape, np.float32).fill(np.float32(init_density))
+        self.color = device_empty(device.queue, shape + (3,), np.float32).fill(
             np.float32(init_color))
 
     @property
@@ -95,8 +94,8 @@ class MSIBackground:
         if out is not None:
             rgb, T = out
         else:
-            rgb = cla.empty(self.device.queue, (n, 3), np.float32)
-            T = cla.empty(self.device.queue, (n,), np.float32)
+            rgb = device_empty(self.device.queue, (n, 3), np.float32)
+            T = device_empty(self.device.queue, (n,), np.float32)
         launch(self.device, self._program().kernel("bg_forward"), n,
                (np.int32(n),) + self._common_args(origins_d, dirs_d, t_start_d)
                + (rgb.data, T.data), PER_RAY_LOCAL_SIZE)
@@ -127,8 +126,8 @@ class MSIBackground:
     def backward(self, origins, dirs, grad_bg_rgb, t_start=None):
         """numpy (dL/d density [L, H, W], dL/d color [L, H, W, 3])."""
         o, d, t = self._rays(origins, dirs, t_start)
-        gd = cla.zeros(self.device.queue, self.shape, np.float32)
-        gc = cla.zeros(self.device.queue, self.shape + (3,), np.float32)
+        gd = device_zeros(self.device.queue, self.shape, np.float32)
+        gc = device_zeros(self.device.queue, self.shape + (3,), np.float32)
         self.backward_device(o, d, t, _f32(self.device, grad_bg_rgb, (o.shape[0], 3)), gd, gc)
         return gd.get(), gc.get()
 

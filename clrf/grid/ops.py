@@ -6,7 +6,7 @@ import pyopencl.array as cla
 from pyopencl.scan import GenericScanKernel
 
 from .grid import SparseGrid
-from ..runtime.programs import int4, launch, upload
+from ..runtime.programs import device_empty, device_zeros, int4, launch, upload
 from ..runtime.scan import run_scan
 from .render import render_max_weight_device
 
@@ -41,7 +41,7 @@ def tv_grad(grid, param, grad, touched, start: int, n_cells: int, scale: float,
 def max_weight(grid, origins, dirs, step, chunk=1 << 18):
     """Per-row max rendering weight over the given rays (numpy [n, 3], uploaded in chunks)."""
     q = grid.device.queue
-    mw = cla.zeros(q, grid.density.shape[0], np.float32)
+    mw = device_zeros(q, grid.density.shape[0], np.float32)
     n = origins.shape[0]
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
@@ -58,7 +58,7 @@ def prune_keep(grid, maxw, weight_thresh: float, density_thresh: float = np.inf,
     dev = grid.device
     prg = _prg(grid)
     n = grid.density.shape[0]
-    keep = cla.zeros(dev.queue, n, np.uint8)
+    keep = device_zeros(dev.queue, n, np.uint8)
     launch(dev, prg.kernel("threshold_keep"), n,
            (np.int32(n), maxw.data, grid.density.data, np.float32(weight_thresh),
             np.float32(min(density_thresh, 3e38)), keep.data))
@@ -66,7 +66,7 @@ def prune_keep(grid, maxw, weight_thresh: float, density_thresh: float = np.inf,
         keep[grid.n_rows:] = 0
     if not dilate:
         return keep
-    out = cla.zeros(dev.queue, n, np.uint8)
+    out = device_zeros(dev.queue, n, np.uint8)
     total = int(np.prod(grid.reso))
     launch(dev, prg.kernel("dilate_keep"), total,
            (grid.geometry_args()[0], grid.links.data, keep.data, out.data))
@@ -87,7 +87,7 @@ def _links_from_flags(dev, flags):
             output_statement="links[i] = flags[i] ? prev_item : -1; "
                              "if (i == n - 1) count[0] = item;")
     links = cla.empty_like(flags)
-    count = cla.zeros(dev.queue, 1, np.int32)
+    count = device_zeros(dev.queue, 1, np.int32)
     run_scan(dev.queue, _scan_cache[key], flags, links, count, np.int32(flags.size))
     return links, int(count.get()[0])
 
@@ -101,19 +101,19 @@ def resample(grid, new_reso, keep=None) -> SparseGrid:
         raise ValueError(f"resample: resolution must be >= 1 per axis, got {new_reso}")
     prg = _prg(grid)
     if keep is None:
-        keep = cla.empty(q, grid.density.shape[0], np.uint8)
+        keep = device_empty(q, grid.density.shape[0], np.uint8)
         keep.fill(1)
     total = int(np.prod(new_reso))
     nr = _reso4(new_reso)
     orr = grid.geometry_args()[0]
-    flags = cla.empty(q, new_reso, np.int32)
+    flags = device_empty(q, new_reso, np.int32)
     launch(dev, prg.kernel("resample_flags"), total,
            (nr, orr, grid.links.data, keep.data, flags.data))
     links, n = _links_from_flags(dev, flags.reshape(-1))
     links = links.reshape(new_reso)
     D = grid.sh_dim
-    nd = cla.zeros(q, max(n, 1), np.float32)
-    ns = cla.zeros(q, (max(n, 1), D), np.float32)
+    nd = device_zeros(q, max(n, 1), np.float32)
+    ns = device_zeros(q, (max(n, 1), D), np.float32)
     launch(dev, prg.kernel("resample_fill"), total,
            (nr, orr, grid.links.data, keep.data, links.data, np.int32(D), grid.density.data,
             grid.sh.data, nd.data, ns.data))

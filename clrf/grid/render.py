@@ -9,7 +9,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from ..runtime.device import DeviceError
-from ..runtime.programs import float4, int4, launch, upload
+from ..runtime.programs import device_empty, device_zeros, float4, int4, launch, upload
 from ..runtime.tuning import slots_order_memory
 from ..runtime.validate import check_array, check_positive, check_rays
 
@@ -125,10 +125,10 @@ def _slot_buffers(grid, slots):
         cache.clear()
         q = grid.device.queue
         reso = getattr(grid, "march_reso", grid.reso)   # a brick locks in the whole grid
-        cache[key] = (cla.zeros(q, e * n, np.float32),
-                      cla.zeros(q, e * n * grid.sh_dim, np.float32),
-                      cla.zeros(q, e * n, np.uint8), cla.zeros(q, slots, np.int32),
-                      cla.zeros(q, _lock_count(reso, locks), np.int32) if locks > 0 else None)
+        cache[key] = (device_zeros(q, e * n, np.float32),
+                      device_zeros(q, e * n * grid.sh_dim, np.float32),
+                      device_zeros(q, e * n, np.uint8), device_zeros(q, slots, np.int32),
+                      device_zeros(q, _lock_count(reso, locks), np.int32) if locks > 0 else None)
     return cache[key]
 
 
@@ -146,7 +146,7 @@ def block_occupancy(grid):
     cached = grid.scratch.get("block_occupancy")
     if cached is None or cached[0] != key:
         n_coarse = int(np.prod(ob))
-        occ = cla.zeros(grid.device.queue, n_coarse + int(np.prod(of)), np.uint8)
+        occ = device_zeros(grid.device.queue, n_coarse + int(np.prod(of)), np.uint8)
         oreso = int4(ob[0], ob[1], ob[2], n_coarse)
         k = grid_program(grid).kernel("block_occupancy")
         r4 = int4(r[0], r[1], r[2], 0)
@@ -171,7 +171,7 @@ def _record_buffer(grid, slots, rec_max):
     cache = grid.scratch.setdefault("grad_record_buffers", {})
     if key not in cache:
         cache.clear()
-        cache[key] = cla.empty(grid.device.queue, slots * rec_max * 8, np.float32)
+        cache[key] = device_empty(grid.device.queue, slots * rec_max * 8, np.float32)
     return cache[key]
 
 
@@ -195,7 +195,7 @@ def ray_order(grid, origins_d, dirs_d, step):
         return None
     if grid.n_rows < RAY_ORDER_MIN_OCCUPANCY * float(np.prod(grid.reso)):
         return None
-    keys = cla.empty(dev.queue, n, np.uint32)
+    keys = device_empty(dev.queue, n, np.uint32)
     shift = max(0, int(np.ceil(np.log2(max(grid.reso)))) - 5)
     launch(dev, grid_program(grid, step=step).kernel("ray_order_keys"), n,
            (np.int32(n), origins_d.data, dirs_d.data, *grid.geometry_args(), np.float32(step),
@@ -212,8 +212,8 @@ def render_forward_device(grid, origins_d, dirs_d, step, background, out=None, t
     n = origins_d.shape[0]
     q = dev.queue
     if out is None:
-        out = {"rgb": cla.empty(q, (n, 3), np.float32), "depth": cla.empty(q, n, np.float32),
-               "acc": cla.empty(q, n, np.float32)}
+        out = {"rgb": device_empty(q, (n, 3), np.float32), "depth": device_empty(q, n, np.float32),
+               "acc": device_empty(q, n, np.float32)}
     order = ray_order(grid, origins_d, dirs_d, step)
     k = grid_program(grid, step=step, t_stop=t_stop, bg_per_ray=_per_ray(background, n),
                      ray_order=order is not None).kernel("render_forward")
@@ -234,7 +234,7 @@ def ray_exit_device(grid, origins_d, dirs_d, step, out=None):
     dev = grid.device
     n = origins_d.shape[0]
     if out is None:
-        out = cla.empty(dev.queue, max(n, 1), np.float32)
+        out = device_empty(dev.queue, max(n, 1), np.float32)
     k = grid_program(grid, step=step, bg_per_ray=True).kernel("ray_exit")
     launch(dev, k, n, (np.int32(n), origins_d.data, dirs_d.data, *grid.geometry_args(),
                        np.float32(step), out.data), dev.tuning.grid_local_size)
@@ -273,12 +273,12 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         # the per-ray loss: never aliased onto ray_in (the targets), which other work-items
         # may still be reading
         if ray_out is None:
-            ray_out = cla.empty(dev.queue, max(n, 1), np.float32)
+            ray_out = device_empty(dev.queue, max(n, 1), np.float32)
         args += [ray_out.data, np.float32(loss_scale), np.float32(beta_scale)]
     args += [grad_density.data, grad_sh.data]
     if per_ray:
         if grad_bg is None:
-            grad_bg = cla.empty(dev.queue, (n, 3), np.float32)
+            grad_bg = device_empty(dev.queue, (n, 3), np.float32)
         args.append(grad_bg.data)
     launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
                     grid.reso, step, () if order is None else (order.data,))
@@ -362,8 +362,8 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
     q = grid.device.queue
     n = o.shape[0]
     bg = _host_background(background, n, q)
-    gd = cla.zeros(q, grid.density.shape[0], np.float32)
-    gs = cla.zeros(q, grid.sh.shape, np.float32)
+    gd = device_zeros(q, grid.density.shape[0], np.float32)
+    gs = device_zeros(q, grid.sh.shape, np.float32)
     gbg = None
     if n:
         gbg = render_backward_device(grid, upload(q, o), upload(q, d),

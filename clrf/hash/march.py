@@ -17,7 +17,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..runtime.programs import float4, launch, scratch
+from ..runtime.programs import device_zeros, float4, launch, scratch
 from ..runtime.scan import capped_offsets, row_offsets
 
 STATE = 8   # floats of per-ray state of packed_forward (cl/hash_march.cl ST)
@@ -185,7 +185,7 @@ def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: 
     elif pk.m:
         offsets, m = row_offsets(dev, keep, n)
     else:                        # no sample: packed_keep did not run
-        offsets, m = cla.zeros(q, n + 1, np.int32), 0
+        offsets, m = device_zeros(q, n + 1, np.int32), 0
     if count is None and m > max_fraction * pk.m:
         return None
     out = []

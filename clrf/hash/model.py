@@ -48,7 +48,7 @@ from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
-from ..runtime.programs import download, launch, upload
+from ..runtime.programs import device_empty, device_zeros, download, launch, upload
 from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
@@ -267,7 +267,7 @@ class HashModel:
         """sigma [m] (device) at the encoding's points xyz [m, 3] (device)."""
         m = int(xyz.shape[0])
         if m == 0:
-            return cla.zeros(self.device.queue, 0, np.float32)
+            return device_zeros(self.device.queue, 0, np.float32)
         return self.net.density(self.enc.forward(xyz))
 
     def lr_at(self, it: int) -> float:
@@ -385,10 +385,10 @@ class HashModel:
             sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir, count=pk.count),
                                           count=pk.count)
         else:
-            sigma, rgb = cla.zeros(q, 1, np.float32), cla.zeros(q, (1, 3), np.float32)
+            sigma, rgb = device_zeros(q, 1, np.float32), device_zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
         if self.exposure is not None:   # the backward sees the target whose gradient is the
-            state = cla.zeros(q, (B, STATE), np.float32)   # one through the transform
+            state = device_zeros(q, (B, STATE), np.float32)   # one through the transform
             if pk.m:
                 packed_forward(dev, pk, sigma, rgb, state)
             eff, sq_rays = self.exposure.forward(state, bg, target, index)
@@ -484,8 +484,8 @@ class HashModel:
         kernel's HASH_T_STOP (early ray termination)."""
         dev, q = self.device, self.device.queue
         n = int(od.shape[0])
-        state = cla.zeros(q, (n, STATE), np.float32)
-        alive = cla.empty(q, n, np.uint8)
+        state = device_zeros(q, (n, STATE), np.float32)
+        alive = device_empty(q, n, np.uint8)
         alive.fill(np.uint8(1))
         S = self.render_samples
         for k0 in range(0, S, RENDER_WINDOW):

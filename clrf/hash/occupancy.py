@@ -9,9 +9,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pyopencl.array as cla
 
-from ..runtime.programs import download, float4, launch, upload
+from ..runtime.programs import device_empty, download, float4, launch, upload
 from .encoding import box_args
 
 POINTS_PER_LAUNCH = 1 << 18   # cells measured per density evaluation (bounds the MLP scratch)
@@ -50,7 +49,7 @@ class OccupancyGrid:
         if ema.shape != (n,):
             raise ValueError(f"occupancy ema: expected shape ({n},), got {ema.shape}")
         self.ema = upload(q, ema)
-        self.occ = cla.empty(q, n, np.uint8)
+        self.occ = device_empty(q, n, np.uint8)
         self.stride = sweep_stride(n)
         self.threshold = 0.0
         self._threshold(0.0)
@@ -87,8 +86,8 @@ class OccupancyGrid:
                (np.int32(self.n_cells), np.float32(decay), self.ema.data), ls)
         for j0 in range(0, int(n_points), POINTS_PER_LAUNCH):
             m = min(POINTS_PER_LAUNCH, int(n_points) - j0)
-            cells = cla.empty(q, m, np.int32)
-            xyz = cla.empty(q, (m, 3), np.float32)
+            cells = device_empty(q, m, np.int32)
+            xyz = device_empty(q, (m, 3), np.float32)
             # launch j0's jitter key: the first launch's own key, later ones shifted past it
             launch(dev, self._k("occ_points"), m,
                    (np.int32(m), np.uint32((key + j0 * 4) & 0xFFFFFFFF),

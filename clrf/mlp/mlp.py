@@ -23,7 +23,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from .tiling import GPU_GROUPS_PER_CU, GPU_MIN_CHUNK, MLPTiling, mlp_tiling_for
-from ..runtime.programs import count_arg, launch, scratch, upload
+from ..runtime.programs import count_arg, device_empty, device_zeros, launch, scratch, upload
 
 MAX_RENDER_SCRATCH = 256 << 20  # bytes of MLP activations per render chunk (rows x NSLOT x 4)
 
@@ -139,7 +139,7 @@ LAYOUT_HEAD = 24   # ints before the per-layer records in mlp_layout's output
 
 
 def read_layout(device, program) -> Layout:
-    buf = cla.zeros(device.queue, LAYOUT_HEAD + 6 * 64, np.int32)
+    buf = device_zeros(device.queue, LAYOUT_HEAD + 6 * 64, np.int32)
     program.kernel("mlp_layout")(device.queue, (1,), (1,), buf.data)
     a = buf.get()
     nl = int(a[0])
@@ -245,16 +245,16 @@ class MLP:
         rows = max(self.n_rows(n), self.layout.rows)
         q = self.device.queue
         if rows > self._scratch_rows:
-            self.A = cla.zeros(q, rows * self.layout.nslot, np.float32)
+            self.A = device_zeros(q, rows * self.layout.nslot, np.float32)
             self._scratch_rows = rows
             self.G = self.partial = None
         if backward and self.G is None:
-            self.G = cla.zeros(q, self._scratch_rows * self.layout.nslot, np.float32)
+            self.G = device_zeros(q, self._scratch_rows * self.layout.nslot, np.float32)
             if self.gpu:       # grown per batch (_gpu_chunks)
-                self.partial = cla.empty(q, self.layout.n_params, np.float32)
+                self.partial = device_empty(q, self.layout.n_params, np.float32)
             else:
                 chunks = (self._scratch_rows + self.layout.dw_chunk - 1) // self.layout.dw_chunk
-                self.partial = cla.empty(q, chunks * self.layout.n_params, np.float32)
+                self.partial = device_empty(q, chunks * self.layout.n_params, np.float32)
 
     def sync_params(self):
         """Refresh the transposed copy the forward reads; call after every update of params."""
@@ -378,7 +378,7 @@ class MLP:
         if self.gpu:
             chunk, n_chunks = self._gpu_chunks(rows)
             if n_chunks * self.layout.n_params > self.partial.size:
-                self.partial = cla.empty(self.device.queue, n_chunks * self.layout.n_params,
+                self.partial = device_empty(self.device.queue, n_chunks * self.layout.n_params,
                                          np.float32)
             if n_chunks:
                 wg = self.layout.gpu["wg"]

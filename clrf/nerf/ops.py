@@ -9,9 +9,8 @@ array([[2.5, 3.5, 4.5, 5.5], [2.5, 3.5, 4.5, 5.5]], dtype=float32)
 from __future__ import annotations
 
 import numpy as np
-import pyopencl.array as cla
 
-from ..runtime.programs import float4, launch
+from ..runtime.programs import device_empty, float4, launch
 
 # Work-group sizes come from device.tuning (clrf/runtime/tuning.py): elementwise_local_size,
 # per_ray_local_size, encode_local_size.
@@ -22,7 +21,7 @@ def enc_dim(n_freqs: int, include_input: bool = True) -> int:
 
 
 def _empty(device, shape):
-    return cla.empty(device.queue, shape, np.float32)
+    return device_empty(device.queue, shape, np.float32)
 
 
 def _encode_prg(device, n_freqs, include_input):

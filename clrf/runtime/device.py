@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import pyopencl as cl
 import pyopencl.tools as cl_tools
 
+from .devmem import DeviceMemory, register as register_ledger
 from .device_probe import (INSTALL_HINT, TIE, Candidate, Probe, cache_path, choice_reason,
                            cpu_flags, probe, rank, slow_reasons, slow_warning, warn_once)
 from .selfcheck import known_wrong
@@ -299,8 +300,12 @@ class Device:
         # where buffers of ever-different sizes fragment it and resident memory creeps. Bins
         # are powers of two and their halfway points (leading_bits_in_bin_id=1), so few sizes
         # are held; free_held() returns what is held (HashModel.render does after a render).
-        self.pool = cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue),
-                                        leading_bits_in_bin_id=1)
+        # The pool allocates through the device's memory ledger (clrf/runtime/devmem.py), which
+        # also counts the long-lived arrays of programs.upload: ``self.memory`` is both
+        self.memory = self.pool = DeviceMemory(
+            self.context, cl_tools.MemoryPool(cl_tools.ImmediateAllocator(self.queue),
+                                              leading_bits_in_bin_id=1))
+        register_ledger(self.queue, self.memory, self)
         self.caps = probe_capabilities(self.cl_device)
         if tuning is None:
             try:

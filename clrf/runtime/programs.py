@@ -26,6 +26,7 @@ import pyopencl.array as cla
 import pyopencl.cltypes as cltypes
 
 from .buildlog import diagnostics
+from .devmem import counted, ledger
 from .tuning import implementation
 
 
@@ -233,8 +234,10 @@ def upload(queue, ary):
     """``cla.to_device`` without keeping the host array alive. pyopencl's to_device leaves an
     event that holds ``ary`` in the new array's event list until that array's own finish(),
     which kernels launched on its ``.data`` never call: every uploaded grid, ray store and
-    optimiser state kept a second copy in host memory for its whole life."""
-    arr = cla.to_device(queue, ary)
+    optimiser state kept a second copy in host memory for its whole life. The array is counted
+    in its device's memory ledger (clrf/runtime/devmem.py) while it lives."""
+    memory = ledger(queue)
+    arr = cla.to_device(queue, ary, allocator=memory.buffer if memory is not None else None)
     arr.finish()
     return arr
 
@@ -261,6 +264,17 @@ def float4(x, y, z, w) -> np.ndarray:
 def int4(x, y, z, w) -> np.ndarray:
     """An ``int4`` kernel argument, without ``cltypes.make_int4``'s ``eval`` (``float4``)."""
     return np.array((x, y, z, w), dtype=cltypes.int4)
+
+
+def device_empty(queue, shape, dtype=np.float32):
+    """``cla.empty`` counted in the device's memory ledger (clrf/runtime/devmem.py) while it
+    lives: an array that clrf makes outside the pool (``scratch``) and ``upload``."""
+    return cla.empty(queue, shape, dtype, allocator=counted(queue))
+
+
+def device_zeros(queue, shape, dtype=np.float32):
+    """``cla.zeros`` counted as ``device_empty`` is."""
+    return cla.zeros(queue, shape, dtype, allocator=counted(queue))
 
 
 def scratch(device, shape, dtype=np.float32):

@@ -31,11 +31,10 @@ import warnings
 
 import numpy as np
 import pyopencl as cl
-import pyopencl.array as cla
 import pyopencl.cltypes  # noqa: F401  (cl.cltypes.float8, double4)
 from pyopencl.reduction import ReductionKernel
 
-from ..runtime.programs import cl_dir, download, launch, scratch
+from ..runtime.programs import cl_dir, device_empty, download, launch, scratch
 from .raster import _check_device_array
 
 SSIM_SIGMA = 1.5
@@ -160,7 +159,7 @@ class DeviceLoss:
             self._s = scratch(device, (1,))        # a valid argument, never read
         self.grad = scratch(device, self.shape)
         self.stats = scratch(device, (len(STATS),))
-        self._sums = cla.empty(device.queue, (),
+        self._sums = device_empty(device.queue, (),
                                cl.cltypes.double4 if self.fp64 else cl.cltypes.float8)
 
     def loss_and_grad(self, rgb_d, target_d, out=None):

@@ -31,7 +31,7 @@ from ..interface import Budget, StateError, Unsupported
 from ..runtime.hostmem import release_free_heap
 from ..runtime.optim import AdamSet, Optimizer, expon_lr
 from ..runtime.pending import Pending
-from ..runtime.programs import download, launch, scratch, upload
+from ..runtime.programs import device_zeros, download, launch, scratch, upload
 from .config import SplatConfig
 from .loss import STATS, DeviceLoss
 from .params import NAMES, learning_rates, moment_keys
@@ -390,7 +390,7 @@ class SplatModel:
         if idx.min() < 0 or idx.max() >= self.n:
             raise IndexError(f"put_rows: rows must be in 0..{self.n - 1}")
         q = self.device.queue
-        zero = cla.zeros(q, 1, np.float32)
+        zero = device_zeros(q, 1, np.float32)
         for k in NAMES:
             a = self.params[k]
             flat = self._flat_rows(a, idx)

@@ -36,7 +36,7 @@ from pyopencl.algorithm import RadixSort
 from pyopencl.elementwise import ElementwiseKernel
 from pyopencl.tools import context_dependent_memoize
 
-from ..runtime.programs import float4, launch, scratch, upload
+from ..runtime.programs import device_empty, device_zeros, float4, launch, scratch, upload
 from ..runtime.scan import row_offsets
 from ..runtime import sort as keysort
 from ..runtime.validate import check_array
@@ -402,8 +402,8 @@ class SplatRasterizer:
         self.check_projected(proj)
         dev, q, n = self.device, self.device.queue, int(proj.n)
         ntx, nty = camera.tiles(self.tile)
-        empty_keys = cla.empty(q, 0, np.uint64)
-        empty_ids = cla.empty(q, 0, np.int32)
+        empty_keys = device_empty(q, 0, np.uint64)
+        empty_ids = device_empty(q, 0, np.int32)
         if self.shape == "rows":
             return self._bin_rows(proj, n, ntx, nty, empty_keys, empty_ids)
         ranges = cla.zeros(q, (ntx * nty, 2), np.int32, allocator=dev.pool)
@@ -558,7 +558,7 @@ class SplatRasterizer:
         _check_device_array("n_contrib", raster.n_contrib, (H, W), np.int32)
         q, n = self.device.queue, int(proj.n)
         # _backward_rows writes every row; elsewhere the atomics add into zeros
-        alloc = cla.empty if self.shape == "rows" and bins.n_pairs else cla.zeros
+        alloc = device_empty if self.shape == "rows" and bins.n_pairs else device_zeros
         g = {k: alloc(q, shape, np.float32)
              for k, shape in (("xy", (n, 2)), ("conic", (n, 3)), ("opacity", (n,)),
                               ("color", (n, 3)))}

@@ -21,6 +21,9 @@ metrics.csv is pure training time. Outputs in the run directory:
 - ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
 - ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation (``ssim_window``:
                         "gaussian11", the standard SSIM; files without it hold the old 7x7 one)
+                        and ``device_memory``: training's peak of clrf's device buffers and
+                        memory pool (clrf/runtime/devmem.py; on a GPU, the card's memory the
+                        run needed)
 
 Under MPI (a factory with ``comm``: a kind's ``distributed``) every rank runs this loop in step:
 the step times are the slowest rank's (allreduce), so evaluations, checkpoints and the stop
@@ -38,7 +41,6 @@ from pathlib import Path
 
 import numpy as np
 import pyopencl as cl
-import pyopencl.array as cla
 from pyopencl.elementwise import ElementwiseKernel
 from pyopencl.tools import context_dependent_memoize
 
@@ -51,7 +53,7 @@ from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from ..runtime.pending import Pending
 from ..runtime.memory import RAY_PART
-from ..runtime.programs import download, float4, launch
+from ..runtime.programs import device_empty, download, float4, launch
 from ..runtime.progress import TrainProgress
 
 EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
@@ -83,8 +85,8 @@ class RayStore:
     def _allocate(self, device, n: int, alpha: bool, background):
         q = device.queue
         self.device, self.n = device, n
-        self.o, self.d, self.c = (cla.empty(q, (n, 3), np.float32) for _ in range(3))
-        self.alpha = cla.empty(q, n, np.float32) if alpha else None
+        self.o, self.d, self.c = (device_empty(q, (n, 3), np.float32) for _ in range(3))
+        self.alpha = device_empty(q, n, np.float32) if alpha else None
         self.background = tuple(float(b) for b in background)
         self._bufs = {}
 
@@ -109,8 +111,8 @@ class RayStore:
         seed. background: the colours recomposited on this RGB instead (needs alpha)."""
         q = self.device.queue
         if n not in self._bufs:
-            self._bufs[n] = tuple(cla.empty(q, (n, 3), np.float32) for _ in range(3)) + (
-                cla.empty(q, n, np.int32),)
+            self._bufs[n] = tuple(device_empty(q, (n, 3), np.float32) for _ in range(3)) + (
+                device_empty(q, n, np.int32),)
         bo, bd, bc, bi = self._bufs[n]
         prg = self.device.program("batch.cl")
         launch(self.device, prg.kernel("gather_batch"), n,
@@ -146,7 +148,7 @@ def _strided_rows(device, a, stride: int, m: int) -> np.ndarray:
     host (a pyopencl elementwise gather, then one download)."""
     if m == 0:
         return np.zeros((0, 3), np.float32)
-    out = cla.empty(device.queue, (m, 3), np.float32)
+    out = device_empty(device.queue, (m, 3), np.float32)
     _strided_kernel(device.context)(out, a, np.int64(stride), queue=device.queue)
     return download(out)
 
@@ -394,6 +396,9 @@ class Trainer:
         """Train until the time or iteration budget is spent (or Ctrl-C), evaluating and
         checkpointing on the way; then save, evaluate every test view and return the result."""
         loop = self._setup()
+        memory = getattr(self.device, "memory", None)   # clrf/runtime/devmem.py
+        if memory is not None:
+            memory.reset_peaks()   # the run's own peak (what an earlier run freed left out)
         interrupted = False
         old = signal.getsignal(signal.SIGINT)
         try:
@@ -410,6 +415,9 @@ class Trainer:
             signal.signal(signal.SIGINT, old)
             loop.prog.close()
         self._take_losses(loop)
+        if memory is not None:   # training's peak, before the final evaluation renders
+            self.device_memory = memory.summary()
+            loop.prog.message(memory.describe())
         self.save()
         return self._finish(loop, interrupted)
 
@@ -570,6 +578,8 @@ class Trainer:
                   "interrupted": interrupted}
         if self.calibration is not None:
             result["exposure_calibration"] = self.calibration
+        if self.device_memory is not None:
+            result["device_memory"] = self.device_memory
         if t.final_eval and not interrupted:
             fitted = getattr(self.model, "exposure", None) is not None
             ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS,
@@ -615,6 +625,7 @@ class Trainer:
     _rate = 0.0
     viewer = None       # clrf.viewer.live.LiveViewer of `clrf train --view`
     calibration = None  # what an exposure calibration before the run did (calibrate.py)
+    device_memory = None   # training's device memory (DeviceMemory.summary), once it ends
     metric_sinks = ()   # extra receivers of every metrics.csv row (outputs/tblog.py TensorBoardLog)
 
 
