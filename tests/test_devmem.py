@@ -130,3 +130,24 @@ def test_a_splat_models_device_memory_grows_with_its_gaussians(device):
         assert peaks[n] > held                                 # a step's arrays
         del m
     assert peaks[3000] - peaks[300] >= 3 * 59 * 4 * (3000 - 300)
+
+
+def test_the_memory_guards_splat_estimate_matches_what_a_run_holds(device):
+    """The memory guard's device terms for a splat run (clrf/splat/budget.py, per Gaussian and
+    per pixel) against the ledger's peak over a few training steps: on the safe side, and not
+    so far above it that the guard would refuse runs that fit (the guard adds the runtime's own
+    growth on top)."""
+    from clrf.data import load_dataset
+    from clrf.splat.budget import copies_on, splat_stage
+    ds = load_dataset(None)
+    H, W = ds.hw
+    for n in (3000, 20000):
+        dev = Device(f"{device.platform_index}:{device.device_index}")
+        m = _splat_model(dev, n)
+        for it in range(3):
+            assert np.isfinite(m.train_step(it))
+        est = splat_stage(m.config, m.n, H * W, len(ds.split["train"]) * H * W,
+                          copies_on(dev.caps)).total
+        ratio = est / dev.memory.peak_held
+        assert 1.0 <= ratio <= 1.6, (n, est, dev.memory.peak_held)
+        del m

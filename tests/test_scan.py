@@ -82,3 +82,29 @@ def test_one_off_work_is_left_out_of_timed_work(device):
     offsets, total = row_offsets(dev, counts)
     assert dev.build_seconds == t5 and total == 45
     np.testing.assert_array_equal(offsets.get(), np.r_[0, np.cumsum(np.arange(10))])
+
+
+def test_a_library_kernels_first_run_is_one_off(device):
+    """``first_run``: the first run of one of pyopencl's kernels that clrf calls every step (the
+    splat model's image widening, an ElementwiseKernel; cla.sum in the hash model) counts as
+    one-off work on its device, later runs do not; the work is done either way."""
+    from clrf.runtime.device import Device
+    from clrf.runtime.programs import first_run
+    from clrf.splat.targets import DeviceImages
+    dev = Device(f"{device.platform_index}:{device.device_index}")
+    img = (np.arange(4 * 5 * 3).reshape(4, 5, 3) % 256 / 255.0).astype(np.float32)
+    images = DeviceImages(dev, {0: img, 1: img[::-1].copy()})
+    t0 = dev.build_seconds
+    np.testing.assert_array_equal(images.get(1).get(), img[::-1])
+    t1 = dev.build_seconds
+    assert t1 > t0                   # the kernel's build and first launch
+    np.testing.assert_array_equal(images.get(0).get(), img)
+    assert dev.build_seconds == t1
+    ran = []
+    with first_run(dev, "a key"):
+        ran.append(1)
+    t2 = dev.build_seconds
+    assert t2 > t1
+    with first_run(dev, "a key"):
+        ran.append(2)
+    assert dev.build_seconds == t2 and ran == [1, 2]

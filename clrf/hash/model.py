@@ -48,7 +48,8 @@ from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
-from ..runtime.programs import device_empty, device_zeros, download, launch, upload
+from ..runtime.programs import (device_empty, device_zeros, download, first_run, launch,
+                                upload)
 from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
@@ -394,12 +395,14 @@ class HashModel:
             eff, sq_rays = self.exposure.forward(state, bg, target, index)
             g = packed_backward(dev, pk, sigma, rgb, (0.0, 0.0, 0.0), eff, scale)
             self.exposure.add_background(pk, sigma, scale, g["sigma"])
-            sq = cla.sum(sq_rays, queue=q)
+            with first_run(dev, ("cla.sum", sq_rays.dtype)):
+                sq = cla.sum(sq_rays, queue=q)
             self.exposure.backward_and_step(state, bg, index, scale)
         else:
             g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
             # summed on the device (pyopencl's reduction): one number comes back, not B
-            sq = cla.sum(g["sq_err"][:B], queue=q)
+            with first_run(dev, ("cla.sum", g["sq_err"].dtype)):
+                sq = cla.sum(g["sq_err"][:B], queue=q)
         if self.bounded:
             loss = Pending(q, sq, scale)
         else:

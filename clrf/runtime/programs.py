@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +40,8 @@ class BuildError(RuntimeError):
 # budget on it and shift its PSNR-against-time curve): every pyopencl program build, clrf's
 # and those pyopencl makes for its own kernels (the reductions behind cla.sum, the scans of
 # grid pruning: seconds each on PoCL), and the first launch of each kernel at each work-group
-# size, where PoCL compiles the kernel for that size (with that launch's own work).
+# size, where PoCL compiles the kernel for that size (with that launch's own work), and the first
+# run of each of pyopencl's own kernels that clrf calls (``first_run``).
 _one_off = {"seconds": 0.0}
 _one_off_lock = threading.Lock()
 _one_off_depth = threading.local()   # per thread: blocks nest (a build inside a build)
@@ -309,6 +310,22 @@ def launch(device, kernel, n: int, args, local_size: int | None = None, wait_for
     with one_off(device.queue):
         return cl.enqueue_nd_range_kernel(device.queue, kernel, (gsize,), (local_size,),
                                           wait_for=wait_for)
+
+
+def first_run(device, key):
+    """A context in which a pyopencl library kernel runs (an ElementwiseKernel, a
+    ReductionKernel, ``cla.sum``), counted as one-off work the first time ``key`` runs on
+    ``device`` (PoCL compiles it at its first launch, as it does clrf's kernels in ``launch``),
+    and a no-op after that.
+
+    >>> with first_run(dev, ("cla.sum", np.float32)):
+    ...     total = cla.sum(a, queue=dev.queue)
+    """
+    seen = getattr(device, "first_launches", None)
+    if seen is None or key in seen:
+        return nullcontext()
+    seen.add(key)
+    return one_off(device.queue)
 
 
 def _first_launch(device, kernel, local_size) -> bool:

@@ -27,7 +27,7 @@ from pyopencl.elementwise import ElementwiseKernel
 from pyopencl.tools import context_dependent_memoize
 
 from ..runtime.levels import LEVELS, levels_of
-from ..runtime.programs import scratch, upload
+from ..runtime.programs import first_run, scratch, upload
 
 
 def exact_8bit(images) -> bool:
@@ -119,10 +119,11 @@ class DeviceImages:
         if self._out is None:
             self._out = scratch(self.device, self.shape)
         q = self.device.queue
-        if self.dtype == np.uint8:
-            self._kernel(self._out, stored, self._levels, queue=q)
-        else:
-            self._kernel(self._out, stored, queue=q)
+        with first_run(self.device, ("widen", self.dtype)):
+            if self.dtype == np.uint8:
+                self._kernel(self._out, stored, self._levels, queue=q)
+            else:
+                self._kernel(self._out, stored, queue=q)
         return self._out
 
     def host_copy(self, v: int) -> np.ndarray:

@@ -53,7 +53,7 @@ from ..data.io import downscale_image
 from .metrics import SSIM_NAME, SSIM_WINDOW, image_metrics, psnr_from_mse
 from ..runtime.pending import Pending
 from ..runtime.memory import RAY_PART
-from ..runtime.programs import device_empty, download, float4, launch
+from ..runtime.programs import device_empty, download, first_run, float4, launch
 from ..runtime.progress import TrainProgress
 
 EVAL_MIN_SIDE = SSIM_WINDOW   # smallest evaluated image side (the SSIM window)
@@ -149,7 +149,8 @@ def _strided_rows(device, a, stride: int, m: int) -> np.ndarray:
     if m == 0:
         return np.zeros((0, 3), np.float32)
     out = device_empty(device.queue, (m, 3), np.float32)
-    _strided_kernel(device.context)(out, a, np.int64(stride), queue=device.queue)
+    with first_run(device, "ray_rows_strided"):
+        _strided_kernel(device.context)(out, a, np.int64(stride), queue=device.queue)
     return download(out)
 
 
