@@ -1,5 +1,5 @@
-"""What a run holds in device memory: clrf's long-lived buffers and its memory pool, with
-their peaks.
+"""What a run holds in device memory: clrf's buffers and its memory pool, with their
+peaks.
 
 On a GPU this is the card's memory that the run takes (the figure gsplat's benchmarks report
 as "Mem", torch's peak of allocated memory), and what decides whether a Gaussian budget or a
@@ -8,16 +8,20 @@ grows with the model; the rest (the interpreter, the OpenCL runtime and its comp
 the host's copy of the dataset) is the resident peak that ``tools/memory_peak.py`` reads.
 
 Two kinds of allocation are counted, on the device's context:
-- **buffers**: arrays that live across steps (parameters, optimiser moments, training
-  images), made by ``programs.upload`` through ``DeviceMemory.buffer``; each is counted from
-  its creation until pyopencl releases it (the last array or view on it dropped);
+- **buffers**: arrays of their own buffer (parameters, optimiser moments, training images,
+  the ray store, a grid's arrays), made by ``programs.upload``, ``device_empty`` and
+  ``device_zeros`` through ``DeviceMemory.buffer`` (``counted``), and the arrays pyopencl
+  derives from them (arithmetic, ``zeros_like``: they take the operand's allocator); each is
+  counted from its creation until pyopencl releases it (the last array or view on it dropped);
 - **the pool**: per-step arrays (``programs.scratch`` and every ``allocator=device.pool``)
   come from a pyopencl MemoryPool, which keeps freed blocks for reuse. ``held`` counts what
   the pool holds (its blocks in use and those kept for reuse: memory the runtime has given
   it), ``in_use`` only the blocks in use.
 
-A peak can only be reached at an allocation, so both are updated there. Arrays that pyopencl
-or clrf make without an allocator (a few small index arrays) are not counted.
+A peak can only be reached at an allocation, so both are updated there. Arrays made without
+an allocator are not counted: the splat model's index arrays for editing rows, the device
+probes' and benchmarks' buffers, and what pyopencl allocates for itself where it is given no
+allocator.
 
 >>> mem = dev.memory
 >>> mem.reset_peaks(); ...; mem.summary()
@@ -119,7 +123,7 @@ class DeviceMemory:
                 f"buffers and pool ({s['peak_in_use_bytes'] / GiB:.3f} GiB in use)")
 
 
-_LEDGERS: dict = {}   # queue.int_ptr -> DeviceMemory, for programs.upload (a queue in hand)
+_LEDGERS: dict = {}   # queue.int_ptr -> DeviceMemory: the allocators take a queue, not a Device
 
 
 def register(queue, memory: DeviceMemory, owner) -> None:
@@ -127,11 +131,6 @@ def register(queue, memory: DeviceMemory, owner) -> None:
     key = queue.int_ptr
     _LEDGERS[key] = memory
     weakref.finalize(owner, _LEDGERS.pop, key, None)
-
-
-def ledger(queue) -> DeviceMemory | None:
-    """The ledger of ``queue`` (None for a queue that no Device made)."""
-    return _LEDGERS.get(queue.int_ptr)
 
 
 def counted(queue):

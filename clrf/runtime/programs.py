@@ -26,7 +26,7 @@ import pyopencl.array as cla
 import pyopencl.cltypes as cltypes
 
 from .buildlog import diagnostics
-from .devmem import counted, ledger
+from .devmem import counted
 from .tuning import implementation
 
 
@@ -237,8 +237,7 @@ def upload(queue, ary):
     which kernels launched on its ``.data`` never call: every uploaded grid, ray store and
     optimiser state kept a second copy in host memory for its whole life. The array is counted
     in its device's memory ledger (clrf/runtime/devmem.py) while it lives."""
-    memory = ledger(queue)
-    arr = cla.to_device(queue, ary, allocator=memory.buffer if memory is not None else None)
+    arr = cla.to_device(queue, ary, allocator=counted(queue))
     arr.finish()
     return arr
 
