@@ -71,8 +71,6 @@ class DeviceMemory:
             self._note()
         return block
 
-    allocate = __call__
-
     def _released(self, n: int):
         with self._lock:
             self.buffer_bytes -= n
