@@ -103,14 +103,15 @@ def test_a_queue_that_no_device_made_is_not_counted(device):
     np.testing.assert_array_equal(a.get(), np.zeros(16, np.float32))
 
 
-def _splat_model(dev, n):
+def _splat_model(dev, n, images_on_device="auto"):
     from clrf import registry
     from clrf.data import load_dataset
     from clrf.training.config import build_config
     ds = load_dataset(None)
     cfg = build_config("procedural", overrides={"train": {"model": "splat"},
                                                 "splat": {"preset": "tiny", "init_points": n,
-                                                          "max_gaussians": n}})
+                                                          "max_gaussians": n,
+                                                          "images_on_device": images_on_device}})
     return registry.get("splat").create(dev, cfg, ds, ds.background)
 
 
@@ -132,22 +133,24 @@ def test_a_splat_models_device_memory_grows_with_its_gaussians(device):
     assert peaks[3000] - peaks[300] >= 3 * 59 * 4 * (3000 - 300)
 
 
-def test_the_memory_guards_splat_estimate_matches_what_a_run_holds(device):
+@pytest.mark.parametrize("images_on_device", ["true", "false"])
+def test_the_memory_guards_splat_estimate_matches_what_a_run_holds(device, images_on_device):
     """The memory guard's device terms for a splat run (clrf/splat/budget.py, per Gaussian and
-    per pixel) against the ledger's peak over a few training steps: on the safe side, and not
-    so far above it that the guard would refuse runs that fit (the guard adds the runtime's own
-    growth on top)."""
+    per pixel, and the training images resident or streamed) against the ledger's peak over a
+    few training steps: on the safe side, and not so far above it that the guard would refuse
+    runs that fit (the guard adds the runtime's own growth on top)."""
     from clrf.data import load_dataset
-    from clrf.splat.budget import copies_on, splat_stage
+    from clrf.splat.budget import copies_on, splat_stage, target_pixels
     ds = load_dataset(None)
     H, W = ds.hw
     for n in (3000, 20000):
         dev = Device(f"{device.platform_index}:{device.device_index}")
-        m = _splat_model(dev, n)
+        m = _splat_model(dev, n, images_on_device)
         for it in range(3):
             assert np.isfinite(m.train_step(it))
-        est = splat_stage(m.config, m.n, H * W, len(ds.split["train"]) * H * W,
-                          copies_on(dev.caps)).total
+        assert m._targets.resident is (images_on_device == "true")
+        train = target_pixels(m.config, dev.caps, H * W, len(ds.split["train"]) * H * W)
+        est = splat_stage(m.config, m.n, H * W, train, copies_on(dev.caps)).total
         ratio = est / dev.memory.peak_held
         assert 1.0 <= ratio <= 1.6, (n, est, dev.memory.peak_held)
         del m

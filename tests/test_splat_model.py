@@ -284,6 +284,22 @@ def test_memory_estimate_names_the_cap(device):
     assert budget.copies_on(device.caps) == want
 
 
+def test_memory_estimate_counts_the_images_the_device_holds():
+    """splat.images_on_device: every training pixel's target where the images are resident
+    (and where the device is not known, for "auto"), one view's where they are streamed."""
+    import dataclasses
+    from clrf.splat import budget
+    from clrf.training.config import Config
+    cfg = Config()
+    view, train = 1 << 22, 1 << 25        # a view's pixels are bounded at 2048 x 2048
+    totals = {}
+    for setting in ("auto", "true", "false"):
+        cfg.set_section("splat", dataclasses.replace(cfg.splat, images_on_device=setting))
+        totals[setting] = budget.memory(cfg, train, None)[0][0].total
+    assert totals["auto"] == totals["true"]
+    assert totals["true"] - totals["false"] == budget.TARGET_BYTES * (train - view)
+
+
 # ---- through the command line -----------------------------------------------------------------
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):

@@ -3,7 +3,12 @@ as uint8 and widened to the dataset's float32 bit for bit; others (averaged down
 a background, 16-bit) stored as float16 and widened exactly to numpy's float16 -> float32, within
 half an ulp of float16 of the original; one float32 buffer reused; the argument checks; and
 the device loss and its gradient against the compact copy equal those against a float32
-upload of the same 8-bit image; the dataset's 8-bit store uploads one view at a time."""
+upload of the same 8-bit image; the dataset's 8-bit store uploads one view at a time. Streamed
+(splat.images_on_device): each view copied from the host, its uint8 levels or its float32
+values, to the dataset's float32 image bit for bit, in order with what reads the buffer, in
+less device memory; which mode "auto" picks; the setting's check."""
+import gc
+
 import numpy as np
 import pytest
 
@@ -149,3 +154,121 @@ def test_loss_on_compact_targets_matches_float32(device):
     g2, s2 = loss.loss_and_grad(ras.rgb, upload(device.queue, img))
     assert np.array_equal(g1, g2.get()) and np.array_equal(s1, s2.get())
     assert s1[0] > 0
+
+
+def _stack(rng, n=6, h=9, w=11):
+    from clrf.data.images import ImageStack
+    return ImageStack(rng.integers(0, 256, (n, h, w, 3), dtype=np.uint8))
+
+
+def test_streamed_8bit_stack_is_the_datasets_image(device):
+    """An RGB ImageStack streams its uint8 levels through the one-view staging buffer and
+    widens them to what the stack reads, bit for bit, in one reused buffer."""
+    stack = _stack(np.random.default_rng(5))
+    d = tg.DeviceImages(device, tg.ViewImages(stack, [5, 1, 2]), resident=False)
+    assert not d.resident and d.dtype == np.uint8
+    assert d.nbytes == 9 * 11 * 3                   # the staging buffer alone
+    ptr = d.get(1).data.int_ptr
+    for v in (1, 5, 2, 5):
+        got = d.get(v)
+        assert got.data.int_ptr == ptr
+        got = got.get()
+        assert got.dtype == np.float32 and got.shape == (9, 11, 3)
+        assert np.array_equal(got, stack[v])
+        assert np.array_equal(d.host_copy(v), stack[v])
+    assert 2 in d and 0 not in d
+    with pytest.raises(KeyError):
+        d.get(0)
+
+
+@pytest.mark.parametrize("kind", ["averaged", "dict", "composited"])
+def test_streamed_float_images_are_copied_exactly(device, kind):
+    """Images that are not 8-bit levels (averaged down, any mapping of float32 arrays, an RGBA
+    stack composited on its background) stream as their float32 values: exact, where the
+    resident store rounds them to float16."""
+    from clrf.data.images import ImageStack
+    rng = np.random.default_rng(6)
+    if kind == "composited":
+        levels = rng.integers(0, 256, (4, 7, 5, 4), dtype=np.uint8)
+        stack = ImageStack(levels, (1.0, 0.5, 0.0))
+    else:
+        full = _eight_bit(rng, (4, 28, 20, 3))
+        stack = full.reshape(4, 7, 4, 5, 4, 3).mean((2, 4), dtype=np.float32)
+    views = [3, 0]
+    images = {v: stack[v] for v in views} if kind == "dict" else tg.ViewImages(stack, views)
+    d = tg.DeviceImages(device, images, resident=False)
+    assert d.dtype == np.float32 and d.nbytes == 0
+    for v in (0, 3, 0):
+        want = np.asarray(stack[v], np.float32)
+        assert np.array_equal(d.get(v).get(), want)
+        assert np.array_equal(d.host_copy(v), want)
+        assert not np.array_equal(want.astype(np.float16).astype(np.float32), want)
+
+
+@pytest.mark.parametrize("floats", [False, True])
+def test_a_streamed_copy_waits_for_what_reads_the_buffer(device, floats):
+    """The next view's copy is queued after a kernel that reads the previous one (the loss of
+    a step): that kernel sees the previous view."""
+    rng = np.random.default_rng(7)
+    stack = _stack(rng, 3, 64, 48)
+    if floats:
+        stack = np.asarray(stack) * np.float32(0.5)
+    d = tg.DeviceImages(device, tg.ViewImages(stack, [0, 1, 2]), resident=False)
+    assert d.dtype == (np.float32 if floats else np.uint8)
+    first = d.get(0)
+    doubled = first * 2          # queued before the next copy
+    d.get(1)
+    assert np.array_equal(doubled.get(), np.asarray(stack[0]) * 2)
+    assert np.array_equal(d.get(2).get(), np.asarray(stack[2]))
+
+
+def test_resident_and_streamed_device_memory(device):
+    """In the device's memory ledger (clrf/runtime/devmem.py), resident images hold a copy of
+    every view and streamed ones only the staging buffer (both: the 256 levels' table), and the
+    two make the same float32 images."""
+    stack = _stack(np.random.default_rng(8), 8, 40, 30)
+    views = tg.ViewImages(stack, range(8))
+    mem = device.memory
+    held = {}
+    for res in (True, False):
+        gc.collect()
+        before = mem.buffer_bytes
+        d = tg.DeviceImages(device, views, resident=res)
+        assert d.resident is res and d.dtype == np.uint8
+        held[res] = mem.buffer_bytes - before
+        assert held[res] == d.nbytes + tg.LEVELS.nbytes
+        for v in (3, 7):
+            assert np.array_equal(d.get(v).get(), stack[v])
+        del d
+    assert held[True] == 8 * 40 * 30 * 3 + tg.LEVELS.nbytes
+    assert held[False] == 40 * 30 * 3 + tg.LEVELS.nbytes < held[True]
+
+
+def test_auto_streams_where_the_devices_memory_is_the_hosts(device, monkeypatch):
+    """splat.images_on_device "auto": streamed on a device that reports host-unified memory
+    (the CPU runtimes the tests run on), resident where it does not (and where the device is
+    not known); the memory guard's image term follows the same decision."""
+    from clrf.splat.budget import target_pixels
+    from clrf.splat.config import SplatConfig
+    caps = device.caps
+    assert tg.resident("true", caps) and not tg.resident("false", caps)
+    assert tg.resident("auto", caps) is not caps.host_unified_memory
+    if device.is_cpu:
+        assert caps.host_unified_memory and not tg.resident("auto", caps)
+    assert tg.resident("auto", None)
+    sc = SplatConfig()
+    assert sc.images_on_device == "auto"
+    assert target_pixels(sc, caps, 100, 5000) == (5000 if tg.resident("auto", caps) else 100)
+    monkeypatch.setattr(tg, "host_unified", lambda caps: False)
+    assert tg.resident("auto", caps)
+    assert target_pixels(sc, caps, 100, 5000) == 5000
+
+
+def test_the_setting_is_checked():
+    from clrf.training.config import ConfigError, build_config
+    for value, want in (("true", "true"), (False, "false"), (True, "true")):
+        cfg = build_config("procedural", overrides={"splat": {"images_on_device": value}})
+        assert cfg.splat.images_on_device == want
+    with pytest.raises(ConfigError, match=r"splat\.images_on_device = 'yes': must be one of "
+                                          r"\['auto', 'true', 'false'\]"):
+        build_config("procedural", overrides={"splat": {"images_on_device": "yes"}})

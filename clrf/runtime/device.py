@@ -62,6 +62,8 @@ class Capabilities:
     acq_rel: bool = False      # OpenCL C 3.0 with __opencl_c_atomic_order_acq_rel and
     #                            __opencl_c_atomic_scope_device: locks that order plain memory
     #                            between work-groups (cl/common.h lock_try, CLRF_ACQ_REL)
+    host_unified_memory: bool = False  # CL_DEVICE_HOST_UNIFIED_MEMORY: the device's memory is
+    #                            the host's (CPU runtimes, integrated GPUs)
 
     @property
     def vector_width(self) -> int:
@@ -119,7 +121,17 @@ def probe_capabilities(dev: "cl.Device") -> Capabilities:
         acq_rel=has_acq_rel(dev),
         cr_divide_sqrt=bool(getattr(dev, "single_fp_config", 0)
                             & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT),
+        host_unified_memory=_host_unified(dev),
     )
+
+
+def _host_unified(dev: "cl.Device") -> bool:
+    """CL_DEVICE_HOST_UNIFIED_MEMORY, False where the runtime does not answer it (the query is
+    deprecated since OpenCL 2.0)."""
+    try:
+        return bool(dev.host_unified_memory)
+    except (cl.Error, AttributeError):
+        return False
 
 
 def list_devices():

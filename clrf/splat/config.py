@@ -184,6 +184,15 @@ class SplatConfig:
     #                                 Mip-Splatting's 0.1 (about a one-pixel box; the 3D
     #                                 filter's 0.2 of a training pixel makes up the rest of
     #                                 3DGS's 0.3 dilation). gsplat's antialiased mode: 0.3
+    images_on_device: str = "auto"  # "true": the training images are uploaded once (uint8
+    #                                 where exact, else float16) and one is widened a step;
+    #                                 "false": streamed, each step's image copied from the
+    #                                 host's dataset (its float32 values exactly; an 8-bit
+    #                                 capture's as its uint8 levels), so the device holds no
+    #                                 second copy; "auto":
+    #                                 streamed where the device's memory is the host's
+    #                                 (HOST_UNIFIED_MEMORY: CPU runtimes, integrated GPUs),
+    #                                 else uploaded (clrf/splat/targets.py)
 
     def first_opacity(self) -> float:
         """The first Gaussians' opacity (init_opacity, or the strategy's published value)."""
@@ -288,11 +297,14 @@ class SplatConfig:
              "must be in (0, splat.lr_pose]"),
             (self.pose_reg >= 0, "splat.pose_reg", "must be >= 0"),
             (0 < self.aa_filter2d <= 1, "splat.aa_filter2d", "must be in (0, 1] px^2"),
+            (self.images_on_device in IMAGES_ON_DEVICE, "splat.images_on_device",
+             f"must be one of {list(IMAGES_ON_DEVICE)}"),
         ]
 
 
 INIT_MODES = ("auto", "points", "random")
 STRATEGIES = ("default", "mcmc")   # clrf/splat/strategy.py
+IMAGES_ON_DEVICE = ("auto", "true", "false")   # clrf/splat/targets.py resident
 # The value of a setting whose default changed, for a checkpoint written before the setting
 # existed: how that run was trained (SplatConfig.from_dict).
 BEFORE_FIELD = {

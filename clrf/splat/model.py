@@ -10,7 +10,9 @@ gives degree 0 and the higher bands their own rates and leaves the inactive band
 The loss and dL/drgb are computed on the device (clrf/splat/loss.py, cl/splat_loss.cl: an
 11 x 11 Gaussian window, sigma 1.5, zero padding); the training images are uploaded once (as
 uint8 where that is exact, else float16: clrf/splat/targets.py), so a step moves no image
-between host and device and reads back the one pair count of the binning.
+between host and device and reads back the one pair count of the binning; where the device's
+memory is the host's they are streamed instead, a step copying its one image
+(splat.images_on_device).
 The loss statistics are read when the trainer asks for the step's error.
 
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
@@ -37,7 +39,7 @@ from .loss import STATS, DeviceLoss
 from .params import NAMES, learning_rates, moment_keys
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
 from .strategy import RefineState, StepInfo, logit, make_strategy
-from .targets import DeviceImages, ViewImages
+from .targets import DeviceImages, ViewImages, resident
 
 assert NAMES == PARAM_NAMES, "clrf/splat/params.py TABLE and the rasteriser's PARAM_NAMES"
 
@@ -307,10 +309,13 @@ class SplatModel:
 
     def _target(self, v: int):
         """Training image v on the device as float32 (all of them uploaded at the first step,
-        stored as uint8 or float16: clrf/splat/targets.py)."""
+        stored as uint8 or float16, or streamed from the host a step at a time:
+        splat.images_on_device, clrf/splat/targets.py)."""
         if self._targets is None:
             ds = self._dataset()
-            self._targets = DeviceImages(self.device, ViewImages(ds.images, self.train_views))
+            self._targets = DeviceImages(
+                self.device, ViewImages(ds.images, self.train_views),
+                resident(self.config.images_on_device, self.device.caps))
         return self._targets.get(v)
 
     def on_iteration(self, it: int, budget: Budget):

@@ -170,7 +170,8 @@ def _merge(cfg: Config, d: dict, source: str):
 
 def _typed(obj, sect: str, vals: dict, source: str) -> dict:
     """``vals`` checked against the fields of dataclass ``obj``: known names, and each value of
-    its field's type (an integral float is taken as an int; ``int | None`` fields take null)."""
+    its field's type (an integral float is taken as an int; ``int | None`` fields take null; a
+    string field takes true and false as those words)."""
     names = {f.name: f for f in dataclasses.fields(obj)}
     out = {}
     for k, v in vals.items():
@@ -198,6 +199,8 @@ def _typed(obj, sect: str, vals: dict, source: str) -> dict:
         elif isinstance(cur, list):
             if not isinstance(v, list):
                 raise ConfigError(f"{source}: {sect}.{k} must be a list, got {v!r}")
+        elif isinstance(cur, str) and isinstance(v, bool):
+            v = "true" if v else "false"   # JSON's true / false (--set, a config file)
         elif isinstance(cur, str) and not isinstance(v, str):
             raise ConfigError(f"{source}: {sect}.{k} must be a string, got {v!r}")
         out[k] = v
