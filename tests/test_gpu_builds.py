@@ -42,9 +42,9 @@ CL12_TARGETS = ("gfx1100",)
 KNOWN_SPILLS = {
     ("tgllp", "grid_render.cl", "render_backward"):
         "SIMD8, 1.0-1.8 KB spilled per thread at every SH degree, no private arrays: the "
-        "compare-and-swap loops that stand for float atomic adds on Xe-LP, IGC's own (the "
-        "driver's cl_ext_float_atomics) or clrf's alike (with plain adds in their place it "
-        "spills 0.3 KB; dg2, which has float atomics in hardware, spills nothing)",
+        "march loop's live state (corner rows, weights, 32 gradient sums, SH factors) across "
+        "the per-cell flush; a flush of one plain store a cell, no atomic at all, spills "
+        "1.7 KB too (dg2, which has float atomics in hardware, spills nothing)",
 }
 NO_FP64_TARGETS = ("tgllp", "dg2")
 
