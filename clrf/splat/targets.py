@@ -35,7 +35,6 @@ import pyopencl.array as cla
 from pyopencl.elementwise import ElementwiseKernel
 from pyopencl.tools import context_dependent_memoize
 
-from ..data.images import ImageStack
 from ..runtime.levels import LEVELS, levels_of
 from ..runtime.programs import device_empty, first_run, scratch, upload
 
@@ -116,9 +115,12 @@ class ViewImages(Mapping):
     def levels(self):
         """The stack's uint8 levels [N, H, W, 3] where its images read as their LEVELS (an RGB
         ImageStack), else None (a float32 array, or RGBA levels composited on reading)."""
+        # an ImageStack is recognised by its attributes: a representation imports no clrf.data
         s = self.images
-        if isinstance(s, ImageStack) and s.background is None and s.levels.ndim == 4:
-            return s.levels
+        levels = getattr(s, "levels", None)
+        if (isinstance(levels, np.ndarray) and levels.dtype == np.uint8 and levels.ndim == 4
+                and levels.shape[-1] == 3 and getattr(s, "background", None) is None):
+            return levels
         return None
 
 
