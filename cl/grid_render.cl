@@ -34,7 +34,9 @@
  * (the same values bit for bit); otherwise it recomputes them. Corner gradients of
  * consecutive samples in the same cell are merged in registers and scattered when the march
  * leaves the cell: one atomic add per corner value, or plain vector adds into a private copy
- * or, under the block locks, into the caller's buffers (GRAD_SLOTS, GRAD_LOCKS).
+ * or, under the block locks, into the caller's buffers (GRAD_SLOTS, GRAD_LOCKS). GRAD_MERGE 0
+ * (atomics only) adds each sample's corner gradients as it is evaluated: no sums are held
+ * across the march (Intel's Xe-LP compiler spilled them), at about twice the atomics.
  *
  * Empty space: when all 8 corners of the current cell are empty the march jumps to the last
  * sample before the cell's exit; with BLOCK > 0 (the host uses 8) it first checks a table of
@@ -96,11 +98,10 @@
  * its ray's own index, so the results are those of the given order (gradients up to the
  * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
  *
- * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, SAMPLE_RECORD,
- * TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE, COMPENSATED_SUMS,
- * SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64
- * (ray.h),
- * CLRF_INLINE (common.h). Arguments that a define leaves unused are not in the signature:
+ * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, GRAD_MERGE,
+ * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE,
+ * COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
+ * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves unused are not in the signature:
  * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
  * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
  * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
@@ -129,6 +130,16 @@
 #endif
 #if GRAD_LOCKS && GRAD_SLOTS == 0
 #error "GRAD_LOCKS needs GRAD_SLOTS > 0 (the CPU path)"
+#endif
+#ifndef GRAD_MERGE
+#define GRAD_MERGE 1     /* 1: a cell's corner gradients are summed over its samples in registers
+                            and scattered once, when the march leaves the cell; 0 (needs
+                            GRAD_SLOTS 0): each sample's are added with atomics as it is
+                            evaluated (the host's choice on Intel GPUs, clrf/runtime/tuning.py:
+                            the sums held across the march spill there) */
+#endif
+#if !GRAD_MERGE && GRAD_SLOTS > 0
+#error "GRAD_MERGE 0 is the float-atomic path: build it with GRAD_SLOTS 0"
 #endif
 #ifndef TRACK_TOUCHED
 #define TRACK_TOUCHED 0  /* 1: set touched[k] = 1 for every row that receives a gradient */
@@ -530,7 +541,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
             sigma = lerp_density(&L, density);
         }
         if (!(sigma > 0.0f)) continue;
-        if (L.cell != cur_cell) {
+        if (GRAD_MERGE && L.cell != cur_cell) {
             if (cur_cell >= 0) {
                 FLUSH_CELL();
                 for (int c = 0; c < 8; ++c) { gsig[c] = 0.0f; gsh[c] = CGRAD_ZERO(); }
@@ -556,7 +567,27 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         const float3 c = fmax(pre, 0.0f);
         const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
-#if SH_PER_CORNER   /* corner c's row gradient is Y_b times the sum of w_c dpre (cgrad_t) */
+#if !GRAD_MERGE   /* this sample's corner gradients, added now (flush_cell_atomic of one sample) */
+        {
+            float gs[8];
+            cgrad_t gc[8];
+#if !SH_PER_CORNER
+            shv_t dco = shv_scale(S.ych[0], dpre.x);
+            shv_axpy(&dco, dpre.y, S.ych[1]);
+            shv_axpy(&dco, dpre.z, S.ych[2]);
+#endif
+#pragma unroll
+            for (int cc = 0; cc < 8; ++cc) {
+                gs[cc] = L.w[cc] * dsig;
+#if SH_PER_CORNER
+                gc[cc] = L.w[cc] * dpre;
+#else
+                gc[cc] = shv_scale(dco, L.w[cc]);
+#endif
+            }
+            flush_cell_atomic(L.idx, gs, gc, Y, dst_d, dst_s, mark, do_mark);
+        }
+#elif SH_PER_CORNER   /* corner c's row gradient is Y_b times the sum of w_c dpre (cgrad_t) */
 #pragma unroll
         for (int cc = 0; cc < 8; ++cc) {
             const float wc = L.w[cc];
@@ -594,7 +625,7 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         T = Tnext;
         if (Tnext < T_STOP) break;
     }
-    if (cur_cell >= 0) FLUSH_CELL();
+    if (GRAD_MERGE && cur_cell >= 0) FLUSH_CELL();
 #undef FLUSH_CELL
 #if GRAD_SLOTS > 0
     if (slot >= 0) lock_release(slot_lock + slot);

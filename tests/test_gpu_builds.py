@@ -1,8 +1,7 @@
 """Every kernel builds offline for AMD, Intel and NVIDIA GPUs (tools/gpu_builds.py), with the
 defines clrf uses there: no build fails on any target, no GPU-shape kernel (the fused MLP's GPU
 tiling, the hash encoding, the grid render forward / backward, the splat rasteriser forward /
-backward) spills registers on gfx1100 (RDNA3) or tgllp (Xe-LP) but the grid renderer's backward
-on tgllp (KNOWN_SPILLS, a strict expected failure until fixed), nothing needs fp64 (Intel's
+backward) spills registers on gfx1100 (RDNA3) or tgllp (Xe-LP), nothing needs fp64 (Intel's
 Xe-LP and Xe-HPG have none: their compiler rejects any double), every file builds as OpenCL C
 1.2 too, and local memory fits every target's.
 
@@ -36,16 +35,6 @@ CL = ROOT / "cl"
 PLAN = ((("gfx1100",), gb.SHAPES, None), (("tgllp",), ("gpu",), None),
         (("gfx1103", "gfx90a", "gfx942", "dg2", "sm_90"), ("gpu",), 1))
 CL12_TARGETS = ("gfx1100",)
-# GPU-shape kernels that still spill on a no-spill target, with the figures (ocloc of compute
-# runtime 22.43) and why no tiling define fixes them. Each is an expected failure of
-# test_known_spills (strict: once one stops spilling, it must leave this list).
-KNOWN_SPILLS = {
-    ("tgllp", "grid_render.cl", "render_backward"):
-        "SIMD8, 1.0-1.8 KB spilled per thread at every SH degree, no private arrays: the "
-        "march loop's live state (corner rows, weights, 32 gradient sums, SH factors) across "
-        "the per-cell flush; a flush of one plain store a cell, no atomic at all, spills "
-        "1.7 KB too (dg2, which has float atomics in hardware, spills nothing)",
-}
 NO_FP64_TARGETS = ("tgllp", "dg2")
 
 # Knobs (defines read with a default) that no program of the library sets, and why.
@@ -132,7 +121,8 @@ def test_catalog_sets_every_define_the_kernels_read():
 
 
 def test_catalog_follows_the_device():
-    """GPU targets get the GPU shapes and their own capabilities; no fp64 on Intel."""
+    """GPU targets get the GPU shapes and their own capabilities; no fp64 on Intel, and the
+    grid backward without its per-cell merge there."""
     for name, e, flags in catalog(shapes=("gpu",)):
         d = e.defines_dict()
         if e.source == "mlp.cl":
@@ -142,6 +132,8 @@ def test_catalog_follows_the_device():
             assert d["HASH_GRAD_OWNED"] == 0
         if e.source == "grid_render.cl":
             assert d["GRAD_SLOTS"] == 0
+            # Intel GPUs add each sample's gradients (Tuning.grad_merge off); the rest merge
+            assert d.get("GRAD_MERGE", 1) == (0 if gb.TARGETS[name].vendor == "intel" else 1)
         if not e.raw:
             fp64 = "-DCLRF_HAS_FP64=1" in flags
             assert fp64 == (name not in NO_FP64_TARGETS), (name, e.source)
@@ -184,16 +176,8 @@ def test_no_gpu_shape_kernel_spills(builds, target):
     rows = [r for r in gb.gpu_shape_rows(builds) if r[0] == target]
     assert {(s, k) for _, s, k in rows} == {(s, k) for s, ks in gb.GPU_SHAPE_KERNELS.items()
                                             for k in ks}
-    found = [x for x in gb.spills(builds, (target,)) if (target, x[2], x[3]) not in KNOWN_SPILLS]
+    found = gb.spills(builds, (target,))
     assert not found, "\n".join(f"{s} {k}: {f} ({d})" for _, _, s, k, f, d in found)
-
-
-@pytest.mark.parametrize("target,source,kernel", [
-    pytest.param(*key, marks=pytest.mark.xfail(strict=True, reason=why))
-    for key, why in KNOWN_SPILLS.items()])
-def test_known_spills(builds, target, source, kernel):
-    found = [x for x in gb.spills(builds, (target,)) if (x[2], x[3]) == (source, kernel)]
-    assert not found, "\n".join(f"{s} {k}: {f}" for _, _, s, k, f, _ in found)
 
 
 def test_nothing_needs_fp64(builds):

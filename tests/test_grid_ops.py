@@ -334,11 +334,17 @@ def test_batch_recomposited_on_another_background(device):
         RayStore(device, o, o, c).batch(seed=5, n=8, background=new)
 
 
+@pytest.mark.parametrize("path", ["device", "per_sample"])
 @pytest.mark.parametrize("lambda_beta", [0.0, 0.05])
-def test_fused_mse_and_beta_prior_vs_reference(device, lambda_beta):
+def test_fused_mse_and_beta_prior_vs_reference(device, lambda_beta, path):
     """Training's fused backward (GRAD_MODE 1): MSE against targets plus the beta prior on each
-    ray's transmittance, against the float64 reference (analytic) and finite differences."""
+    ray's transmittance, against the float64 reference (analytic) and finite differences; on
+    the device's own path and on the GPU shape adding each sample's gradients (GRAD_MERGE 0,
+    Intel GPUs' default)."""
     from clrf.grid.render import render_backward_device
+    if path == "per_sample":
+        device = device.with_tuning(grad_slots=0, sample_record=False, grad_locks=0,
+                                    gpu_kernels=True, grad_merge=False)
     rng = np.random.default_rng(11)
     grid, dens, sh, alloc = sparse_grid(device, rng, (4, 5, 3), degree=1, empty_frac=0.2)
     n = 64

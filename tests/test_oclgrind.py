@@ -45,6 +45,7 @@ CASES = [
     "tests/test_render.py::test_forward_vs_reference",
     "tests/test_render.py::test_forward_gpu_shape_vs_reference",
     "tests/test_render.py::test_backward_vs_finite_differences",
+    "tests/test_render.py::test_backward_per_sample_atomics",
     "tests/test_render.py::test_empty_grid",
     "tests/test_render.py::test_max_weight_vs_reference",
     "tests/test_grid_ops.py::test_update_rows_vs_reference",

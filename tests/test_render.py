@@ -99,10 +99,16 @@ def test_forward_128_cubed(device):
 def test_backward_vs_finite_differences(render_device, degree):
     """Tiny grid: kernel gradient == reference analytic gradient == central differences, on
     both backward code paths (render_device)."""
-    rng = np.random.default_rng(10 + degree)
+    assert_tiny_backward_matches(render_device, degree, 10 + degree)
+
+
+def assert_tiny_backward_matches(device, degree, seed):
+    """A 2 x 3 x 2 grid, 24 rays: the kernel's gradients equal the reference's, and the
+    reference's equal central differences at 6 entries of each."""
+    rng = np.random.default_rng(seed)
     shape = (2, 3, 2)
     dens, sh = random_grid(rng, shape, degree, dens_hi=2.0)
-    grid = clrf.SparseGrid.from_dense(render_device, dens, sh, BBOX)
+    grid = clrf.SparseGrid.from_dense(device, dens, sh, BBOX)
     o, d = random_rays(rng, 24, spread=2.0)
     g = rng.normal(size=(24, 3)).astype(np.float32)
     bg = (0.3, 0.6, 0.1)
@@ -148,6 +154,23 @@ def test_backward_gpu_shape_on_the_cpu_path(device, degree):
     if dev.tuning.grad_slots == 0:
         pytest.skip(f"{device}: no gradient slots (the atomic path is render_device's gpu_path)")
     assert_medium_backward_matches(dev, degree, 30 + degree)
+
+
+@pytest.mark.parametrize("gpu_kernels", [True, False], ids=["gpu_shape", "cpu_shape"])
+@pytest.mark.parametrize("degree", [0, 2])
+def test_backward_per_sample_atomics(device, degree, gpu_kernels):
+    """grad_merge off (GRAD_MERGE 0, Intel GPUs' default): every sample adds its corner
+    gradients with atomics as it is met, instead of a cell's sums when the march leaves it.
+    The same gradients, in both shapes, against the reference and finite differences; the
+    program is built with the define."""
+    dev = device.with_tuning(grad_slots=0, sample_record=False, grad_locks=0,
+                             gpu_kernels=gpu_kernels, grad_merge=False)
+    dev._programs = {}   # this copy's own program cache (with_tuning shares the device's)
+    assert_tiny_backward_matches(dev, degree, 50 + degree)
+    kern, dens = assert_medium_backward_matches(dev, degree, 60 + degree)
+    assert np.all(kern["density"][dens == 0] == 0), "empty voxels get no gradient"
+    built = [dict(d) for (src, d, _) in dev._programs if src == "grid_render.cl"]
+    assert built and all(d.get("GRAD_MERGE") == 0 for d in built), built
 
 
 def homogeneous(device, sigma, shape=(4, 4, 4), rgb=(0.2, 0.4, 0.6)):

@@ -65,6 +65,21 @@ def test_gpus_get_groups_of_64():
             base.grid_local_size, base.per_ray_local_size, base.encode_local_size)
 
 
+def test_intel_gpus_add_each_samples_gradients():
+    """Intel GPUs build the grid backward without the per-cell merge (INTEL_GPU: the merged sums
+    spill on Xe-LP); every other device keeps it, and CLRF_GRAD_MERGE switches it."""
+    intel = Tuning.for_device(caps("gpu", platform="OpenCL 3.0 NEO",
+                                   name="Intel(R) OpenCL Graphics"))
+    assert intel.grad_merge is False and intel.grad_slots == 0
+    for t in (Tuning.for_device(caps("gpu", name="NVIDIA CUDA")),
+              Tuning.for_device(caps("gpu", name="AMD Accelerated Parallel Processing")),
+              Tuning.for_device(caps("cpu", name="Intel(R) OpenCL")), Tuning.for_device(caps("cpu"))):
+        assert t.grad_merge is True
+    assert Tuning.from_env(caps("cpu"), {"CLRF_GRAD_MERGE": "0"}).grad_merge is False
+    assert Tuning.from_env(caps("gpu", name="Intel(R) OpenCL Graphics"),
+                           {"CLRF_GRAD_MERGE": "1"}).grad_merge is True
+
+
 def test_environment_overrides():
     env = {"CLRF_GRAD_SLOTS": "0", "CLRF_SAMPLE_RECORD": "0", "CLRF_PREFETCH": "0",
            "CLRF_MLP_PREFETCH": "0",

@@ -43,8 +43,7 @@ The targets' capabilities are assumptions (no device is queried): see TARGETS.
 Exit status 1 when a build fails (each failing file, defines and target is listed), else 0.
 --check adds the checks of tests/test_gpu_builds.py: no GPU-shape kernel (GPU_SHAPE_KERNELS)
 spills on the --no-spill targets (default gfx1100, tgllp), and no kernel's local memory
-exceeds its target's (LOCAL_LIMIT). The grid renderer spills on tgllp today (docs/performance.md;
-the test lists it as a known failure), so --check fails there.
+exceeds its target's (LOCAL_LIMIT).
 """
 from __future__ import annotations
 

@@ -48,6 +48,8 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
     extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
     if ray_order:
         extra["RAY_ORDER"] = 1
+    if not t.grad_merge and slots <= 0:
+        extra["GRAD_MERGE"] = 0   # each sample's gradients added as it is met (Intel GPUs)
     reso = getattr(grid, "march_reso", grid.reso)
     return grid.device.program("grid_render.cl", {
         **extra,

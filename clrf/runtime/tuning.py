@@ -8,6 +8,7 @@ in one place, ``Tuning.from_env`` (called by the Device), and only these variabl
   CLRF_GRAD_SLOTS            grad_slots (0 = float atomics, the GPU path)
   CLRF_SAMPLE_RECORD         sample_record (0 / 1)
   CLRF_GRAD_LOCKS            grad_locks (0 = private gradient copies per slot)
+  CLRF_GRAD_MERGE            grad_merge (0 = each sample's grid gradients added as it is met)
   CLRF_PREFETCH              prefetch (0 / 1)
   CLRF_MLP_PREFETCH          mlp_prefetch (0 / 1)
   CLRF_PREFETCH_AHEAD        prefetch_ahead
@@ -86,10 +87,19 @@ IMPLEMENTATIONS = {   # CPU devices only
 GPU_GROUPS = {"grid_local_size": 64, "per_ray_local_size": 64, "encode_local_size": 64}
 
 
+# Intel GPUs: the grid backward adds each sample's gradients as it meets them (grad_merge off).
+# No Intel GPU has been measured; the choice is from the offline builds (tools/gpu_builds.py,
+# ocloc of compute runtime 22.43): with the per-cell sums held across the march,
+# render_backward spilled 1.0-1.8 KB per hardware thread on Xe-LP (tgllp, every program of the
+# GPU shape), and 0 B with the sums gone, at every SH degree and mode. Xe-HPG (dg2) did not
+# spill either way; it takes the same path, one Intel build.
+INTEL_GPU = {"grad_merge": False}
+
 ENV = {
     "CLRF_GRAD_SLOTS": ("grad_slots", int),
     "CLRF_SAMPLE_RECORD": ("sample_record", lambda v: v != "0"),
     "CLRF_GRAD_LOCKS": ("grad_locks", int),
+    "CLRF_GRAD_MERGE": ("grad_merge", lambda v: v != "0"),
     "CLRF_PREFETCH": ("prefetch", lambda v: v != "0"),
     "CLRF_MLP_PREFETCH": ("mlp_prefetch", lambda v: v != "0"),
     "CLRF_PREFETCH_AHEAD": ("prefetch_ahead", int),
@@ -125,6 +135,11 @@ class Tuning:
     #                                caller's gradient buffers under try-locks of 2^n-voxel
     #                                blocks (one scratch copy takes what finds a lock taken);
     #                                0: a private copy per slot, all reduced afterwards
+    grad_merge: bool = True        # with grad_slots 0: render_backward sums a cell's corner
+    #                                gradients over its samples and adds them with atomics when
+    #                                the march leaves the cell (GRAD_MERGE 1); False: each
+    #                                sample's as it is met (more atomics, fewer live registers;
+    #                                Intel GPUs, INTEL_GPU)
     sample_record: bool = False    # backward reads the forward march's per-sample record
     #                                (needs grad_slots > 0: the record lives in the slot)
     prefetch: bool = False         # software prefetch in the grid march (__builtin_prefetch
@@ -171,7 +186,7 @@ class Tuning:
                 ray_order=RAY_ORDER_MIN_RAYS if cpu else 0, gpu_kernels=caps.type == "gpu")
         impl = implementation(getattr(caps, "platform", ""))
         if not cpu and caps.type == "gpu":
-            return t.replace(**GPU_GROUPS)
+            return t.replace(**GPU_GROUPS, **(INTEL_GPU if impl == "intel-gpu" else {}))
         return t.replace(**(IMPLEMENTATIONS.get(impl, {}) if cpu else {}))
 
     @classmethod
