@@ -48,6 +48,10 @@ def pytest_configure(config):
               file=sys.stderr)
         os.environ["PYTHONPATH"] = os.pathsep.join(
             [str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+    if not hasattr(config, "workerinput"):   # the controller (or the only process) of the run:
+        # choose the devices once, for every xdist worker to collect the same tests
+        impls.pin(with_others=os.environ.get("CLRF_TEST_IMPLS", "all").strip().lower()
+                  != "default")
 
 # `pytest -n auto` (pytest-xdist, in the test extra): a worker per core, at most 4 (each worker's
 # OpenCL runtime threads over every core, and the real-scene tests hold gigabytes), and a test
