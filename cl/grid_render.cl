@@ -101,8 +101,8 @@
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, GRAD_MERGE,
  * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE,
  * COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
- * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves unused are not in the signature:
- * ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
+ * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves
+ * unused are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
  * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
  * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
  * render_forward and render_backward end with ray_order.
@@ -567,15 +567,16 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         const float3 c = fmax(pre, 0.0f);
         const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+#if !SH_PER_CORNER
+        /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
+        shv_t dco = shv_scale(S.ych[0], dpre.x);
+        shv_axpy(&dco, dpre.y, S.ych[1]);
+        shv_axpy(&dco, dpre.z, S.ych[2]);
+#endif
 #if !GRAD_MERGE   /* this sample's corner gradients, added now (flush_cell_atomic of one sample) */
         {
             float gs[8];
             cgrad_t gc[8];
-#if !SH_PER_CORNER
-            shv_t dco = shv_scale(S.ych[0], dpre.x);
-            shv_axpy(&dco, dpre.y, S.ych[1]);
-            shv_axpy(&dco, dpre.z, S.ych[2]);
-#endif
 #pragma unroll
             for (int cc = 0; cc < 8; ++cc) {
                 gs[cc] = L.w[cc] * dsig;
@@ -603,10 +604,6 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
         }
 #else
-        /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
-        shv_t dco = shv_scale(S.ych[0], dpre.x);
-        shv_axpy(&dco, dpre.y, S.ych[1]);
-        shv_axpy(&dco, dpre.z, S.ych[2]);
 #pragma unroll
         for (int cc = 0; cc < 8; ++cc) {
             const float wc = L.w[cc];

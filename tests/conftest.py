@@ -10,6 +10,7 @@ narrows it: ``default`` (the session device only) or a comma list of
 implementation names (``pocl,intel``). Oclgrind is not among them: the simulator runs every
 kernel once, small, under its race and API checks (tests/test_oclgrind.py).
 """
+import json
 import os
 import sys
 from pathlib import Path
@@ -48,10 +49,25 @@ def pytest_configure(config):
               file=sys.stderr)
         os.environ["PYTHONPATH"] = os.pathsep.join(
             [str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
-    if not hasattr(config, "workerinput"):   # the controller (or the only process) of the run:
-        # choose the devices once, for every xdist worker to collect the same tests
-        impls.pin(with_others=os.environ.get("CLRF_TEST_IMPLS", "all").strip().lower()
-                  != "default")
+    # The run's devices are chosen once, by the controller (or the only process), and handed
+    # to every pytest-xdist worker (pytest_configure_node), so that all collect the same tests.
+    # Workers choosing for themselves measured the devices' workloads while the other worker
+    # ran on the same cores; where two implementations are within a few per cent (PoCL and
+    # Intel's CPU runtime on a Xeon) they chose differently and xdist stopped ("Different tests
+    # were collected").
+    worker = getattr(config, "workerinput", None)
+    if worker is not None and "clrf_devices" in worker:
+        impls.fix(json.loads(worker["clrf_devices"]))
+        config.clrf_devices = json.loads(worker["clrf_devices"])
+    else:
+        config.clrf_devices = impls.choose(
+            with_others=os.environ.get("CLRF_TEST_IMPLS", "all").strip().lower() != "default")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    """pytest-xdist, in the controller: the run's devices for this worker (pytest_configure)."""
+    node.workerinput["clrf_devices"] = json.dumps(node.config.clrf_devices)
 
 # `pytest -n auto` (pytest-xdist, in the test extra): a worker per core, at most 4 (each worker's
 # OpenCL runtime threads over every core, and the real-scene tests hold gigabytes), and a test

@@ -8,47 +8,41 @@ left out of ``present()``: it simulates every work-item and is run by its own te
 from __future__ import annotations
 
 import functools
-import json
-import os
 
 from ..runtime.device import Device, list_devices
 from ..runtime.device_probe import probe
 from ..runtime.tuning import implementation
 
 SIMULATORS = ("oclgrind",)
-# What pin() resolved, as JSON: {"default": "P:D", "present": {name: "P:D"}, "slow": {name: bool}}
-PINNED_VAR = "CLRF_TEST_DEVICES"
+_fixed: dict = {}   # fix(): {"default": "P:D", "present": {name: "P:D"}, "slow": {name: bool}}
 
 
-def _pinned() -> dict:
-    v = os.environ.get(PINNED_VAR, "").strip()
-    return json.loads(v) if v else {}
+def choose(with_others: bool = True) -> dict:
+    """This process's choice, to hand to others (fix): {"default": "P:D"} and, with
+    ``with_others``, "present" (present()) and "slow" (is_slow of each)."""
+    d = default_device()
+    c = {"default": f"{d.platform_index}:{d.device_index}"}
+    if with_others:
+        c["present"] = present()
+        c["slow"] = {n: is_slow(n) for n in c["present"]}
+    return c
 
 
-def pin(with_others: bool = True) -> dict:
-    """Resolve the session's devices once and put them in the environment (PINNED_VAR), so that
-    every process of a test run collects the same tests: pytest-xdist's workers inherit it from
-    the controller. Each worker choosing for itself chose by workloads it measured while the
-    other worker ran on the same cores, and where two implementations are within a few per cent
-    (PoCL and Intel's CPU runtime on a Xeon) they chose differently, and xdist stopped ("Different
-    tests were collected"). ``with_others``: also the other implementations and which are slow
-    (not needed when only the session device is tested). Returns what is pinned."""
-    p = _pinned()
-    if "default" not in p:
-        d = default_device()
-        p["default"] = f"{d.platform_index}:{d.device_index}"
-    if with_others and "present" not in p:
-        p["present"] = present()
-        p["slow"] = {n: is_slow(n) for n in p["present"]}
-    os.environ[PINNED_VAR] = json.dumps(p)
-    return p
+def fix(choice: dict) -> None:
+    """Take the devices from ``choice`` (choose() of another process) instead of measuring:
+    a test harness whose processes must agree on them (pytest-xdist's workers). Call it before
+    anything of this module is asked."""
+    _fixed.clear()
+    _fixed.update(choice)
+    for f in (present, is_slow, default_device, default_implementation):
+        f.cache_clear()
 
 
 @functools.lru_cache(maxsize=None)
 def present() -> dict:
     """{implementation: "P:D"} for every working implementation here, simulators excepted."""
-    if "present" in _pinned():
-        return dict(_pinned()["present"])
+    if "present" in _fixed:
+        return dict(_fixed["present"])
     best = {}
     for pi, di, d in list_devices():
         name = implementation(d.platform.name)
@@ -67,8 +61,8 @@ def is_slow(name: str) -> bool:
     """Whether implementation ``name`` is a slow driver for this machine (clrf.runtime.device_probe
     slow_reasons: under a twelfth of the CPU's estimated peak, a generic target, or a sibling
     driver three times faster), e.g. rusticl's llvmpipe software device."""
-    if name in _pinned().get("slow", {}):
-        return bool(_pinned()["slow"][name])
+    if name in _fixed.get("slow", {}):
+        return bool(_fixed["slow"][name])
     from ..runtime.device_probe import cpu_flags, slow_reasons
     from ..runtime.device import _candidate
     devs = {f"{pi}:{di}": (pi, di, d) for pi, di, d in list_devices()}
@@ -81,10 +75,10 @@ def is_slow(name: str) -> bool:
 @functools.lru_cache(maxsize=None)
 def default_device() -> Device:
     """The session's device: what ``clrf train`` picks for the grid (CLRF_DEVICE honoured;
-    among equal probe figures the faster grid workload, clrf/runtime/workload.py; the pinned
-    one when pin() has run in this process or the one that started it)."""
-    if "default" in _pinned():
-        return Device(_pinned()["default"])
+    among equal probe figures the faster grid workload, clrf/runtime/workload.py; or the one
+    fix() was given)."""
+    if "default" in _fixed:
+        return Device(_fixed["default"])
     from ..grid.workload import WORKLOAD
     from ..runtime.workload import device_for
     return device_for(WORKLOAD)
