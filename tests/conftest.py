@@ -62,6 +62,21 @@ def pytest_configure(config):
     else:
         config.clrf_devices = impls.choose(
             with_others=os.environ.get("CLRF_TEST_IMPLS", "all").strip().lower() != "default")
+        # the run's cache folder, inherited by the workers (started after this hook); a
+        # developer's CLRF_TEST_RUN_CACHE=DIR keeps one between runs (compiled kernels, probe
+        # figures and verdicts then carry over: not for CI, which measures a cold run)
+        if not os.environ.get(RUN_CACHE_VAR):
+            import tempfile
+            config.clrf_run_cache = tempfile.mkdtemp(prefix="clrf-test-cache-")
+            os.environ[RUN_CACHE_VAR] = config.clrf_run_cache
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "clrf_run_cache", None)
+    if folder:
+        import shutil
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(RUN_CACHE_VAR, None)
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -76,6 +91,7 @@ def pytest_configure_node(node):
 MAX_WORKERS = 4
 
 
+@pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
     return max(1, min(os.cpu_count() or 1, MAX_WORKERS))
 
@@ -126,11 +142,45 @@ def pytest_generate_tests(metafunc):
     metafunc.parametrize("device", names, indirect=True, scope="session")
 
 
+# ---- the quick tier: `pytest -m quick -n auto` --------------------------------------------------
+# The default run keeps every test. The quick selection, for the inner loop, touches every test
+# module in a few minutes: in each module, the first case of every test function (its first
+# parametrisation, on the session device), leaving out tests marked slow, plus any test marked
+# quick by hand (how a module whose tests are all slow is touched). QUICK_LEAVE_OUT names the
+# functions whose first case alone costs too much for the tier, with the reason; the full run
+# keeps them. tests/test_suite_tiers.py checks that every module is touched.
+QUICK_LEAVE_OUT = {}
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    seen = set()
+    for item in items:
+        if item.get_closest_marker("quick"):
+            continue
+        fn = getattr(item, "originalname", item.name)
+        key = (item.nodeid.split("::", 1)[0], item.cls.__name__ if item.cls else "", fn)
+        callspec = getattr(item, "callspec", None)
+        on_default = callspec is None or callspec.params.get("device", "default") == "default"
+        if (key in seen or not on_default or item.get_closest_marker("slow")
+                or fn in QUICK_LEAVE_OUT):
+            continue
+        seen.add(key)
+        item.add_marker(pytest.mark.quick)
+
+
+RUN_CACHE_VAR = "CLRF_TEST_RUN_CACHE"   # the run's cache folder, made by the controller
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _own_tuning_cache(tmp_path_factory):
-    """Tests never read the user's tuned tiles (clrf/mlp/autotune.py): an empty cache folder."""
+    """Tests never read the user's tuned tiles (clrf/mlp/autotune.py) or cached verdicts: one
+    empty cache folder for the whole run, made in the controller and shared by its workers
+    (pytest_configure), so that each kernel is compiled once per run (PoCL's and pyopencl's
+    binary caches are safe for concurrent use) and each device probed and checked once."""
     old = os.environ.get("XDG_CACHE_HOME")
-    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg_cache"))
+    os.environ["XDG_CACHE_HOME"] = os.environ.get(RUN_CACHE_VAR) or str(
+        tmp_path_factory.mktemp("xdg_cache"))
     yield
     if old is None:
         del os.environ["XDG_CACHE_HOME"]
@@ -182,3 +232,121 @@ def scene(data_dir):
             pytest.skip(f"no {name} in {data_dir} (see ../shared/data/README.md)")
         return path
     return get
+
+
+# ---- the suite's cost (tools/suite_times.py) -------------------------------------------------
+# `pytest --clrf-times FILE.json`: every test's setup / call / teardown wall and CPU seconds
+# (this process and the children it waited for: the OpenCL runtime's threads count, and so do
+# the compilers and clrf commands a test starts) and every fixture's own set-up, written by the
+# controller at the end. tools/suite_times.py runs the suite with it and tabulates by file.
+def pytest_addoption(parser):
+    parser.addoption("--clrf-times", metavar="FILE.json", default=None,
+                     help="write each test's and fixture's wall and CPU seconds there "
+                          "(tools/suite_times.py makes the table)")
+
+
+def _cpu_seconds() -> float:
+    import resource
+    s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+
+_TIMED = pytest.StashKey[dict]()
+
+
+def _timing_on(config) -> bool:
+    return bool(config.getoption("--clrf-times", default=None))
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_fixture_setup(fixturedef, request):
+    if not _timing_on(request.config):
+        yield
+        return
+    import time
+    t0, c0 = time.perf_counter(), _cpu_seconds()
+    yield
+    item = getattr(request, "_pyfuncitem", None)
+    if item is not None and fixturedef.argname not in ("request",):
+        item.stash.setdefault(_TIMED, {}).setdefault("fixtures", []).append(
+            (fixturedef.argname, fixturedef.scope, time.perf_counter() - t0,
+             _cpu_seconds() - c0))
+
+
+def _timed_phase(item, when):
+    import time
+    t0, c0 = time.perf_counter(), _cpu_seconds()
+    yield
+    item.stash.setdefault(_TIMED, {})[when] = (time.perf_counter() - t0, _cpu_seconds() - c0)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    if _timing_on(item.config):
+        yield from _timed_phase(item, "setup")
+    else:
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    if _timing_on(item.config):
+        yield from _timed_phase(item, "call")
+    else:
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item):
+    if _timing_on(item.config):
+        yield from _timed_phase(item, "teardown")
+    else:
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    if not _timing_on(item.config):
+        return
+    timed = item.stash.get(_TIMED, {})
+    report = outcome.get_result()
+    if call.when in timed:
+        report.user_properties.append(("clrf_cpu", timed[call.when][1]))
+    if call.when == "setup" and timed.get("fixtures"):
+        report.user_properties.append(("clrf_fixtures", [list(f) for f in timed["fixtures"]]))
+        timed["fixtures"] = []
+
+
+class _SuiteTimes:
+    """The controller's (or the only process's) collector for --clrf-times."""
+
+    def __init__(self, path):
+        import time
+        self.path, self.rows, self.t0 = Path(path), [], time.time()
+
+    def pytest_runtest_logreport(self, report):
+        props = dict(report.user_properties)
+        self.rows.append({"nodeid": report.nodeid, "when": report.when,
+                          "outcome": report.outcome, "wall": report.duration,
+                          "cpu": props.get("clrf_cpu"),
+                          "worker": getattr(getattr(getattr(report, "node", None),
+                                                    "gateway", None), "id", None),
+                          "fixtures": props.get("clrf_fixtures", [])})
+
+    def pytest_sessionfinish(self, session):
+        import platform
+        import time
+        from clrf.runtime.jsonfile import write_dict as write_atomic
+        write_atomic(self.path, {"elapsed": time.time() - self.t0, "started": self.t0,
+                                 "host": platform.node(), "cpus": os.cpu_count(),
+                                 "workers": getattr(session.config.option, "numprocesses",
+                                                    None),
+                                 "rows": self.rows})
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionstart(session):
+    path = session.config.getoption("--clrf-times", default=None)
+    if path and getattr(session.config, "workerinput", None) is None:
+        session.config.pluginmanager.register(_SuiteTimes(path), "clrf_suite_times")

@@ -117,6 +117,7 @@ def test_choice_order_spec_then_cache_then_default(cache):
     assert at.mlp_tiling_for(dev, replace(SPEC, rows=8, dw_chunk=40)).dw_chunk == 40
 
 
+@pytest.mark.slow
 def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
     best, res = tuner.tune(device, SPEC, n=64, rounds=1)
     assert [t for t, _ in res] == at.candidates(device.caps, SPEC)
@@ -126,6 +127,7 @@ def test_tuner_times_candidates_and_the_mlp_uses_its_choice(device, cache):
     assert MLP(device.with_tuning(gpu_kernels=False), SPEC).tiling == best
 
 
+@pytest.mark.slow
 def test_tuner_cli(device, cache, capsys):
     assert tuner_cli.main(["--samples", "0"]) == 2
     assert "clrf: error: --samples" in capsys.readouterr().err
@@ -195,6 +197,7 @@ def test_gpu_cache_round_trip_and_choice(cache):
     assert at.cached_gpu_tiling(c, SPEC) is None
 
 
+@pytest.mark.slow
 def test_gpu_tuner_times_what_builds_and_the_mlp_uses_its_choice(device, cache, monkeypatch):
     """The GPU tiling's tuner on the session device (forced): tilings that do not build are
     left out, the fastest is cached, and an MLP built there afterwards runs it. One of the
@@ -230,6 +233,7 @@ def test_hash_tuner_cli(device, cache, capsys, monkeypatch):
     assert at.cached_gpu_tiling(device.caps, spec) is not None
 
 
+@pytest.mark.slow
 def test_nerf_bench_runs_and_reports_tilings(device, cache, tmp_path, capsys):
     out = tmp_path / "b.json"
     nerf_bench.main(["--samples", "16", "--repeats", "1", "--configs", "small-4x64",

@@ -293,6 +293,7 @@ def test_background_off_builds_and_launches_nothing_new(device, monkeypatch):
     assert_forward_matches(out, want)
 
 
+@pytest.mark.slow
 def test_bonsai_smoke_with_background(scene, tmp_path):
     """`clrf train` on the real 360 scene (real360 preset: background on) for 30 iterations
     (a count, not a time, so a busy host logs the same) writes every output and lowers the loss; `clrf eval` and `clrf render` read its

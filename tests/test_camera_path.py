@@ -129,6 +129,7 @@ def ckpt(tmp_path_factory):
     return train_tiny(tmp_path_factory.mktemp("cp") / "run")
 
 
+@pytest.mark.slow
 def test_render_camera_path(ckpt, tmp_path, device, capsys):
     f = tmp_path / "camera_path.json"
     f.write_text(json.dumps(NERFSTUDIO_FILE))

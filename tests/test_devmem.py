@@ -134,6 +134,7 @@ def test_a_splat_models_device_memory_grows_with_its_gaussians(device):
 
 
 @pytest.mark.parametrize("images_on_device", ["true", "false"])
+@pytest.mark.slow
 def test_the_memory_guards_splat_estimate_matches_what_a_run_holds(device, images_on_device):
     """The memory guard's device terms for a splat run (clrf/splat/budget.py, per Gaussian and
     per pixel, and the training images resident or streamed) against the ledger's peak over a

@@ -165,6 +165,7 @@ def trained(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_cli_export_trained_scene(trained, tmp_path):
     assert run_cli("export", "--ckpt", trained, "--mesh", tmp_path / "m.ply",
                    "--points", tmp_path / "p.ply", "--n", 20000) == 0
@@ -247,6 +248,7 @@ def test_log_progress_lines(monkeypatch, capsys):
     assert capsys.readouterr().err == "eval line\n"     # messages are the log: always printed
 
 
+@pytest.mark.slow
 def test_train_tensorboard_events(tmp_path, capsys):
     pytest.importorskip("tensorboardX", reason="the tensorboard extra is not installed")
     out = tmp_path / "tb"

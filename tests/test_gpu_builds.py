@@ -10,12 +10,17 @@ The compilers come with ``bash tools/setup.sh gpucc`` (clang-19, libclc-19's bit
 build tests skip, saying so. The catalog tests (clrf/training/catalog.py lists every program:
 each kernel file, each define the kernels read) need no compiler.
 
-The builds run once per module (two compiler processes at a time; PLAN): on gfx1100 every
-program of the three shapes (the GPU's own tuning, the same GPU with CLRF_FORCE_GPU_KERNELS=0,
-a CPU device's tuning), as OpenCL C 3.0 and 1.2; on tgllp every program of the GPU shape;
-on gfx1103, gfx90a, gfx942, dg2 and sm_90 the first GPU-shape program of each kernel file.
-Nothing is cached; about 4 minutes on 2 cores. ``python tools/gpu_builds.py`` builds every
-program everywhere.
+The builds (gb.TEST_PLAN): on gfx1100 every program of the three shapes (the GPU's own tuning,
+the same GPU with CLRF_FORCE_GPU_KERNELS=0, a CPU device's tuning), as OpenCL C 3.0 and 1.2;
+on tgllp every program of the GPU shape; on gfx1103, gfx90a, gfx942, dg2 and sm_90 the first
+GPU-shape program of each kernel file. Each is paid once: their results are committed in
+tools/gpu_builds_table.json, keyed by the kernel file with its headers, the flags, the target
+and the OpenCL C version, and stored with the compiler that made them. The module takes an entry
+whose key and compiler match as built and builds the rest (two compiler processes at a time):
+nothing where the table is current, about 5 minutes on 2 cores from nothing. A test fails when
+the table misses a build's key (a kernel changed): ``python tools/gpu_builds.py --update-table``
+rebuilds what changed and rewrites it. ``python tools/gpu_builds.py --check`` builds every
+program everywhere, with no table.
 """
 import re
 import sys
@@ -29,12 +34,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 import gpu_builds as gb  # noqa: E402
 
 CL = ROOT / "cl"
-# (targets, shapes, programs per kernel file): every program of every shape on gfx1100 (clang:
-# quick), every GPU-shape program on the no-spill targets and NVIDIA, and on the other targets
-# the first GPU-shape program of each kernel file (every kernel builds there)
-PLAN = ((("gfx1100",), gb.SHAPES, None), (("tgllp",), ("gpu",), None),
-        (("gfx1103", "gfx90a", "gfx942", "dg2", "sm_90"), ("gpu",), 1))
-CL12_TARGETS = ("gfx1100",)
+CL12_TARGETS = gb.TEST_CL12
 NO_FP64_TARGETS = ("tgllp", "dg2")
 
 # Knobs (defines read with a default) that no program of the library sets, and why.
@@ -150,12 +150,48 @@ def builds():
         pytest.skip("offline GPU compilers missing ("
                     + "; ".join(f"{v}: {g}" for v, g in gone.items() if g)
                     + "): run `bash tools/setup.sh gpucc`")
-    jobs, todo = [], {}
-    for targets, shapes, per_source in PLAN:
-        jobs += gb.plan(targets, shapes, set(CL12_TARGETS), per_source=per_source,
-                        builds=todo)[0]
-    gb.run_all(list(todo.values()), tools, jobs_n=2)
+    jobs, todo = gb.test_plan()
+    found = gb.apply_table(todo, gb.load_table(), tools)
+    built = [b for b in todo if not b.cached]
+    gb.run_all(built, tools, jobs_n=2)
+    print(f"gpu builds: {found['reused']} of {len(todo)} from {gb.TABLE.name}, {len(built)} "
+          f"built ({len(found['other_compiler'])} by another compiler there)")
     return jobs
+
+
+def test_the_resource_table_is_current():
+    """Every build of the plan has an entry in the committed table (needs no compiler): a
+    kernel, header or define changed without the table being rebuilt fails here, with the
+    command that rebuilds what changed."""
+    _, todo = gb.test_plan()
+    table = gb.load_table()
+    assert table, f"{gb.TABLE} is missing or unreadable"
+    stale = sorted({(b.source, b.target, b.std) for b in todo
+                    if gb.source_key(b) not in table})
+    assert not stale, (f"{len(stale)} builds are not in {gb.TABLE.name} (first: {stale[:5]}): "
+                       f"run `python tools/gpu_builds.py --update-table` and commit it")
+    assert len(table) == len({gb.source_key(b) for b in todo}), \
+        "the table holds builds the plan no longer has: --update-table rewrites it"
+
+
+def test_a_table_entry_is_taken_only_for_the_same_inputs_and_compiler():
+    _, todo = gb.test_plan()
+    b = todo[0]
+    tools = gb.Tools("clang-19", None, "ocloc", None, {"clang": "clang A", "ocloc": "ocloc A"})
+    entry = {"ok": True, "log": "", "kernels": {"k": {"spill": 0}}, "seconds": 1.0,
+             "compiler": gb.compiler_of(b.target, tools)}
+    twin = gb.Build(b.source, b.flags, b.target, b.std, b.raw)
+    found = gb.apply_table([twin], {gb.source_key(b): entry}, tools)
+    assert found["reused"] == 1 and twin.cached and twin.kernels == {"k": {"spill": 0}}
+    # another define, another OpenCL C version, another compiler: built again
+    other = gb.Build(b.source, b.flags + ("-DEXTRA=1",), b.target, b.std, b.raw)
+    assert gb.source_key(other) != gb.source_key(b)
+    assert gb.source_key(gb.Build(b.source, b.flags, b.target, "CL1.2", b.raw)) != \
+        gb.source_key(b)
+    newer = gb.Tools("clang-19", None, "ocloc", None, {"clang": "clang B", "ocloc": "ocloc B"})
+    again = gb.Build(b.source, b.flags, b.target, b.std, b.raw)
+    found = gb.apply_table([again], {gb.source_key(b): entry}, newer)
+    assert not again.cached and found["other_compiler"] == [again]
 
 
 @pytest.mark.parametrize("target", gb.DEFAULT_TARGETS)

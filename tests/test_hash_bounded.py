@@ -194,6 +194,7 @@ def test_bounded_steps_equal_host_sized_steps(device):
     np.testing.assert_array_equal(p0, p1)
 
 
+@pytest.mark.slow
 def test_trainer_reads_pending_losses(device, tmp_path):
     """Through the trainer: a bounded hash model's losses arrive late, fill metrics.csv, and a
     NaN among them stops the run with the last checkpoint kept."""

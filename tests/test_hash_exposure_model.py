@@ -66,6 +66,7 @@ def _scene(gains):
 
 
 @pytest.mark.parametrize("matrix", ["full", "diagonal"])
+@pytest.mark.slow
 def test_training_learns_each_images_gain(device, matrix):
     """Training images scaled by per-image gains: their transforms' diagonals order as the
     gains do (with hash.exposure_matrix=diagonal the other entries of A stay 0); the
@@ -99,6 +100,7 @@ def test_training_learns_each_images_gain(device, matrix):
     assert back.exposure.pixels == m.exposure.pixels
 
 
+@pytest.mark.slow
 def test_a_hash_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
     from clrf.cli.main import main as cli
     out = tmp_path / "run"

@@ -337,6 +337,7 @@ def test_checkpoint_round_trip_renders_the_same(device):
         HashModel.from_state_dict(device, bad)
 
 
+@pytest.mark.slow
 def test_short_training_improves_on_procedural_scene(device):
     """60 steps on the built-in scene: the loss falls and the test PSNR rises by a real margin
     (iteration-based, not tied to machine speed)."""
@@ -360,6 +361,7 @@ def test_short_training_improves_on_procedural_scene(device):
     assert model.occ.occupied_fraction() < 1.0     # the occupancy grid did prune
 
 
+@pytest.mark.slow
 def test_hash_through_the_cli(tmp_path, capsys):
     """clrf train --model hash, resume, eval, render and export on the built-in scene, with an
     iteration budget (not a time budget)."""
@@ -499,6 +501,7 @@ def test_memory_guard_names_the_hash_stage(device):
         check_training_fits(small, False, big, 1000)
 
 
+@pytest.mark.slow
 def test_bonsai_contracted_through_the_cli(scene, tmp_path):
     """`clrf train --model hash` on the real 360 scene contracts it (hash.contract auto), the
     loss falls over 40 steps, and eval and a checkpoint round trip work."""

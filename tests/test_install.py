@@ -24,6 +24,7 @@ import sys
 import sysconfig
 import zipfile
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -167,12 +168,28 @@ print("IMPORTED", clrf.__file__)
 """
 
 
-@pytest.mark.slow
-def test_the_wheel_in_a_fresh_venv_imports_and_runs_every_command(wheel, tmp_path):
-    py = _fresh_venv(tmp_path, wheel)
-    env = _clean_env(XDG_CACHE_HOME=str(tmp_path / "cache"))
-    work = tmp_path / "work"     # outside the checkout
+@pytest.fixture(scope="module")
+def venv(wheel, tmp_path_factory):
+    """One fresh virtual environment with the wheel, shared by the tests below, and the first
+    `clrf train` in it from an empty cache folder (``cache``: the probe figures, verdicts and
+    compiled kernels a clean install makes). ``py``, ``cache``, ``work`` (outside the
+    checkout), ``env`` and ``first`` (that run's CompletedProcess)."""
+    tmp = tmp_path_factory.mktemp("venv")
+    py = _fresh_venv(tmp, wheel)
+    cache = tmp / "cache"
+    env = _clean_env(XDG_CACHE_HOME=str(cache))
+    env.pop("CLRF_DEVICE", None)     # the device a clean cache picks
+    work = tmp / "work"
     work.mkdir()
+    first = subprocess.run([str(py.parent / "clrf"), "--quiet", "train", "--out", "run",
+                            *SHORT_RUN], capture_output=True, text=True, cwd=work, env=env,
+                           timeout=600)
+    return SimpleNamespace(py=py, cache=cache, work=work, env=env, first=first)
+
+
+@pytest.mark.slow
+def test_the_wheel_in_a_fresh_venv_imports_and_runs_every_command(venv):
+    py, env, work = venv.py, venv.env, venv.work
     r = subprocess.run([str(py), "-c", IMPORT_ALL], capture_output=True, text=True, cwd=work,
                        env=env, timeout=600)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
@@ -184,13 +201,13 @@ def test_the_wheel_in_a_fresh_venv_imports_and_runs_every_command(wheel, tmp_pat
         assert p.returncode == 0, f"clrf {' '.join(args)}: {p.stderr[-3000:]}"
         return p
 
+    assert venv.first.returncode == 0, f"clrf train: {venv.first.stderr[-3000:]}"
     v = run("--version")
     assert v.stdout.startswith(f"clrf {clrf.__version__}")
     if (ROOT / ".git").exists():     # the wheel was built from a checkout: it names the commit
         head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True).stdout.strip()
         assert f"(commit {head}" in v.stdout, v.stdout
-    run("train", "--out", "run", *SHORT_RUN)
     assert (work / "run" / "ckpt.npz").is_file() and (work / "run" / "metrics.csv").is_file()
     run("render", "--ckpt", "run", "--out", "frames", "--views", "orbit", "--frames", "2")
     assert list((work / "frames").glob("*.png"))
@@ -201,18 +218,20 @@ def test_the_wheel_in_a_fresh_venv_imports_and_runs_every_command(wheel, tmp_pat
 
 
 @pytest.mark.slow
-def test_a_broken_install_is_an_install_error_and_a_reinstall_trains(wheel, tmp_path):
+def test_a_broken_install_is_an_install_error_and_a_reinstall_trains(venv, wheel, tmp_path):
     """012b9a6's failure: the self-check's `import clrf.references` failed in the install, the
     exception became a cached verdict on the driver, and clrf refused every device until the
     user found the cache. Now: an installation error naming the module and the fix, nothing
     cached, and the reinstalled clrf trains with the same cache on the device a clean cache
-    picks."""
-    py = _fresh_venv(tmp_path, wheel)
+    picks (the shared venv's first run, from an empty cache, is that clean cache). The venv
+    is whole again at the end."""
+    py = venv.py
     site = Path(subprocess.run([str(py), "-c", "import clrf, os; print(os.path.dirname("
                                 "clrf.__file__))"], capture_output=True, text=True,
                                env=_clean_env(), check=True).stdout.strip())
     shutil.rmtree(site / "references")
-    cache = tmp_path / "cache"
+    # the clean run's probe figures and compiled kernels, without its verdicts
+    cache = _cache_without_verdicts(tmp_path / "cache", venv.cache)
     env = _clean_env(XDG_CACHE_HOME=str(cache))
     env.pop("CLRF_DEVICE", None)
     work = tmp_path / "work"
@@ -240,13 +259,12 @@ def test_a_broken_install_is_an_install_error_and_a_reinstall_trains(wheel, tmp_
                        capture_output=True, text=True, cwd=work, env=env, timeout=600)
     assert p.returncode == 0, p.stderr[-3000:]
     trained_on = _device_of(p.stderr)
-    # a clean cache trains too, and accepts and refuses the same devices as the old one: the
-    # broken install left no verdict behind (which of two devices within 10% of each other
-    # wins the timed race may differ between runs; the verdicts may not)
-    clean = dict(env, XDG_CACHE_HOME=str(tmp_path / "clean"))
-    c = subprocess.run([clrf_bin, "--quiet", "train", "--out", "clean", *SHORT_RUN],
-                       capture_output=True, text=True, cwd=work, env=clean, timeout=600)
-    assert c.returncode == 0, c.stderr[-3000:]
+    # a clean cache trained too (the shared venv's first run), and accepts and refuses the
+    # same devices as this one: the broken install left no verdict behind (which of two
+    # devices within 10% of each other wins the timed race may differ between runs; the
+    # verdicts may not)
+    assert venv.first.returncode == 0, venv.first.stderr[-3000:]
+    clean = dict(env, XDG_CACHE_HOME=str(venv.cache))
 
     def status(e):
         out = subprocess.run([clrf_bin, "devices"], capture_output=True, text=True, cwd=work,
@@ -270,12 +288,12 @@ sys.meta_path.insert(0, Missing())
 """
 
 
-def _cache_without_verdicts(new: Path) -> Path:
-    """A cache folder with this session's device probe and compiled kernels (a cold probe
-    and build cost about 30 s on 2 vCPUs) but no self-check verdict, so that the check
-    runs."""
+def _cache_without_verdicts(new: Path, old: Path | None = None) -> Path:
+    """A cache folder with the device probe and compiled kernels of cache folder ``old``
+    (default: this session's; a cold probe and build cost about 30 s on 2 vCPUs) but no
+    self-check verdict, so that the check runs."""
     new.mkdir()
-    old = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    old = old or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     (new / "clrf").mkdir()
     for name in ("devices.json", "workloads.json"):
         if (old / "clrf" / name).is_file():
@@ -286,6 +304,7 @@ def _cache_without_verdicts(new: Path) -> Path:
     return new
 
 
+@pytest.mark.slow
 def test_the_command_line_reaches_the_self_check_without_the_references(tmp_path):
     """The fast guard of the broken-install test above (which builds a wheel and a venv:
     minutes, and marked slow): nothing `clrf train` imports before the device's self-check may

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from clrf.outputs import checkpoint
 from clrf.cli.main import main as cli
@@ -76,6 +77,7 @@ def _ckpt_iteration(out):
         return -1
 
 
+@pytest.mark.slow
 def test_sigkill_at_random_moments_keeps_a_resumable_run(tmp_path, capsys):
     out = tmp_path / "run"
     data = _scene(tmp_path / "scene.npz")
@@ -136,6 +138,7 @@ SPLAT = ["--model", "splat", "--set", "splat.preset=tiny", "--set", "splat.init_
          "--set", "train.checkpoint_every=0.2"]
 
 
+@pytest.mark.slow
 def test_sigkill_inside_a_splat_checkpoint_write_keeps_the_last_one(tmp_path, capsys):
     """The splat model's checkpoint (Gaussians, Adam moments, densification statistics) under
     SIGKILL inside its write: the previous checkpoint loads, evaluates, and resumes to the end

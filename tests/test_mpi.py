@@ -60,6 +60,7 @@ def single(device):
 
 
 @pytest.mark.parametrize("ranks", [2, 3])
+@pytest.mark.slow
 def test_render_and_gradients_equal_single_device(single, tmp_path, ranks):
     out = tmp_path / "r.npz"
     mpirun(ranks, "tests/mpi_script.py", "render", str(out))
@@ -99,6 +100,7 @@ def _csv(path):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_training_matches_single_process(tmp_path):
     """`mpirun -n 2 clrf train` on the same batches as one process, with a prune + upsample
     at iteration 8: the same loss and PSNR and the same pruned grid, rank 0 alone writes the
@@ -164,6 +166,7 @@ def _children(pid):
     return out
 
 
+@pytest.mark.slow
 def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
     """SIGKILL one rank while a checkpoint is being written: mpirun ends the job with an error
     naming the rank and the signal, the manifest still names a complete set of brick files,
@@ -242,6 +245,7 @@ def test_prune_and_upsample_across_bricks(tmp_path, ranks):
     np.testing.assert_allclose(r["sh"], S, atol=RENDER_ATOL, rtol=RENDER_RTOL)
 
 
+@pytest.mark.slow
 def test_distributed_run_refuses_a_background_model(tmp_path):
     """The bricks carry no MSI background: `mpirun -n 2 clrf train` with one configured exits 2
     naming the option, before writing anything."""

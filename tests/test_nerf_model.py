@@ -144,6 +144,7 @@ def test_short_training_on_tiny_lego(device, scene):
     assert losses[-10:].mean() < 0.7 * losses[:10].mean()
 
 
+@pytest.mark.slow
 def test_gpu_shape_defers_the_loss_and_steps_both_networks_in_one_launch(device):
     """With the GPU-shaped kernels the step's loss stays on the device (a Pending, summed
     there) and the coarse and fine networks take one Adam launch: the same networks as a

@@ -39,6 +39,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+from test_nerf_mlp import SPECS as MLP_SPECS  # noqa: E402
 ICD = Path("/usr/lib/oclgrind/liboclgrind-rt-icd.so")
 
 CASES = [
@@ -58,15 +60,20 @@ CASES = [
     "tests/test_background.py::test_awkward_sizes",
     "tests/test_background.py::test_backward_matches_reference",
     "tests/test_bricks.py::test_partial_kernel_vs_reference",
-    "tests/test_nerf_encode.py::test_encode_matches_reference",
+    # one size (65: past a work-group's worth) of each encoding variant
+    *[f"tests/test_nerf_encode.py::test_encode_matches_reference[default-{v}-65]"
+      for v in ("10-True", "4-False", "0-True")],
     "tests/test_nerf_encode.py::test_encode_backward_matches_reference",
     "tests/test_nerf_sample.py::test_stratified_matches_reference",
     "tests/test_nerf_sample.py::test_importance_matches_reference",
     "tests/test_nerf_composite.py::test_forward_matches_reference",
     "tests/test_nerf_composite.py::test_backward_matches_reference",
     "tests/test_nerf_composite.py::test_mse_mode_loss_and_gradient",
-    "tests/test_nerf_mlp.py::test_forward_matches_reference",
-    "tests/test_nerf_mlp.py::test_backward_matches_reference",
+    # every network of SPECS at 37 rows (a partial tile), and an empty launch; the sizes
+    # between change no code path the simulator's checks see
+    *[f"tests/test_nerf_mlp.py::test_{pass_}_matches_reference[default-37-{name}]"
+      for pass_ in ("forward", "backward") for name in MLP_SPECS],
+    f"tests/test_nerf_mlp.py::test_forward_matches_reference[default-0-{next(iter(MLP_SPECS))}]",
     "tests/test_mlp_gpu.py::test_small_network_under_every_pass",
     "tests/test_hash_encode.py::test_backward_matches_reference",
     "tests/test_hash_kernels.py::test_march_matches_reference",
@@ -91,7 +98,9 @@ CASES = [
     "tests/test_splat_kernels.py::test_splat_opacity_near_one_toy",
     "tests/test_splat_kernels.py::test_splat_no_gaussians",
     "tests/test_splat_loss.py::test_device_loss_matches_twin[default-0.2-37-23-noisy]",
-    "tests/test_splat_loss.py::test_device_work_splits_and_accumulators",
+    # the loss's work split: one group, several, and none given, with and without the mask
+    *[f"tests/test_splat_loss.py::test_device_work_splits_and_accumulators[default-{m}-{k}]"
+      for m in ("False", "True") for k in ("None", "7")],
     "tests/test_splat_exposure.py::test_backward_matches_the_twin[default-257-masked]",
     "tests/test_splat_exposure.py::test_adam_step_matches_the_twin_and_pulls_toward_identity[default]",
     "tests/test_splat_exposure.py::"
@@ -124,8 +133,22 @@ REPORT = re.compile(r"^(Oclgrind - .*|.*(Invalid (read|write)|data race|Data rac
                     r"divergence|Uninitialized|OCLGRIND FATAL).*)$", re.MULTILINE)
 
 
+# the quick tier's share (tests/conftest.py): the grid renderer's forward, both shapes; the
+# slow test runs the other cases, so together they run every case once
+QUICK_CASES = CASES[:2]
+
+
+@pytest.mark.quick
+def test_the_grid_renderer_is_clean_under_oclgrind(tmp_path):
+    _clean_under_oclgrind(tmp_path, QUICK_CASES)
+
+
 @pytest.mark.slow
 def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
+    _clean_under_oclgrind(tmp_path, [c for c in CASES if c not in QUICK_CASES])
+
+
+def _clean_under_oclgrind(tmp_path, cases):
     if not ICD.exists() or shutil.which("oclgrind") is None:
         pytest.skip("Oclgrind is not installed (`bash tools/setup.sh impls` or "
                     "`apt-get install oclgrind`)")
@@ -141,7 +164,7 @@ def test_every_kernel_family_is_clean_under_oclgrind(tmp_path):
     env["CLRF_FORCE_GPU_KERNELS"] = "0"
     # -k default: the session device (Oclgrind) only, not the other implementations
     cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-s", "-p", "no:cacheprovider",
-           "-k", "default", *CASES]
+           "-k", "default", *cases]
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
     text = out.stdout + out.stderr
     assert out.returncode == 0, text[-4000:]

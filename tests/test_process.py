@@ -165,6 +165,7 @@ def test_detect_preset():
     assert detect_preset(np.stack([np.cos(a), np.sin(a), 0 * a], 1)) == "real360"
 
 
+@pytest.mark.slow
 def test_process_recovers_known_poses(capture, tmp_path):
     root, truth, _ = capture
     out = tmp_path / "scene"
@@ -282,6 +283,7 @@ def test_process_refuses_existing_out(capture, tmp_path):
     assert (out / "keep.txt").read_text() == "mine"
 
 
+@pytest.mark.slow
 def test_process_video(capture, tmp_path):
     pytest.importorskip("imageio_ffmpeg", reason="video input needs imageio-ffmpeg")
     root, _, tables = capture

@@ -29,6 +29,7 @@ def _atomics(device):
     return device.with_tuning(grad_slots=0, sample_record=False, grad_locks=0)
 
 
+@pytest.mark.slow
 def test_grid_check_in_a_child_passes_and_is_cached(device, cache, monkeypatch):
     res = selfcheck.gradient_check(device, grid_check.CHECK)
     assert res.ok, res.detail
@@ -50,6 +51,7 @@ def test_a_crash_in_the_check_is_a_verdict_and_this_process_goes_on(device, cach
     assert selfcheck.gradient_check(dev, faults.CRASH) == res
 
 
+@pytest.mark.slow
 def test_a_device_that_crashes_is_not_the_default_and_says_why(device, cache, monkeypatch):
     selfcheck.gradient_check(_atomics(device), faults.CRASH)
     monkeypatch.setattr(selfcheck, "_CHECKS", [faults.CRASH])
@@ -99,6 +101,7 @@ def test_a_missing_clrf_module_is_an_install_error(device, cache, monkeypatch, i
     assert selfcheck.known_wrong(device.cl_device, [faults.MISSING]) is None
 
 
+@pytest.mark.slow
 def test_a_verdict_of_an_older_clrf_is_not_read(device, cache, monkeypatch):
     """012b9a6 cached 'ModuleNotFoundError' as a failing verdict under a key without clrf's
     version: this clrf neither reads it nor lets it bar the device."""

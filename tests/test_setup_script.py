@@ -15,8 +15,13 @@ ROOT = Path(__file__).resolve().parent.parent
 TOOLS = ("env", "rm", "dirname", "mkdir", "cp", "cat", "touch", "true", "mktemp")
 
 FAKE_PYTHON = """#!/bin/bash
+case "$1" in
+  -c)   # the source stamp (FAKE_STAMP; none: the stamp fails) or an import check (fails)
+    if [[ "$2" == *hashlib* ]] && [ -n "$FAKE_STAMP" ]; then echo "$FAKE_STAMP"; exit 0; fi
+    exit 1 ;;
+esac
 case "$1 $2" in
-  "-m venv") mkdir -p "$3/bin" && cp "$0" "$3/bin/python" ;;
+  "-m venv") mkdir -p "$3/bin" && cp "$0" "$3/bin/python" && echo "$3" >> "$FAKE_STATE/venv" ;;
   "-m pip") echo "${*:3}" >> "$FAKE_STATE/pip" ;;
   "-m clrf.cli")
     echo "$*" >> "$FAKE_STATE/checks"
@@ -54,13 +59,17 @@ def _script(path: Path, text: str):
 
 
 def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail=False,
-              extras="test", mpi_tools=False, browser=False, intel=None, gpucc_tools=False):
+              extras="test", mpi_tools=False, browser=False, intel=None, gpucc_tools=False,
+              stamp=None, args=()):
+    """Run setup.sh in the sandbox under ``tmp_path`` (again in the same one when it is there:
+    its repo, with the venv the last run left, and its logs)."""
     repo, stubs, state = tmp_path / "repo", tmp_path / "bin", tmp_path / "state"
     for p in (repo / "tools", stubs, state):
-        p.mkdir(parents=True)
+        p.mkdir(parents=True, exist_ok=True)
     shutil.copy(ROOT / "tools" / "setup.sh", repo / "tools" / "setup.sh")
     for tool in TOOLS:
-        os.symlink(shutil.which(tool), stubs / tool)
+        if not (stubs / tool).exists():
+            os.symlink(shutil.which(tool), stubs / tool)
     _script(stubs / "python", FAKE_PYTHON)
     _script(stubs / "id", FAKE_ID)
     _script(stubs / "sudo", FAKE_SUDO)
@@ -82,7 +91,9 @@ def run_setup(tmp_path, before, after=0, uid=0, apt=True, sudo_ok=True, apt_fail
            "CLRF_DEVICE": "1:0"}
     if intel is not None:             # what the check answers once Intel's runtime is in
         env["FAKE_INTEL"] = str(intel)
-    r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), extras],
+    if stamp is not None:             # the source stamp the standard-library hash gives
+        env["FAKE_STAMP"] = stamp
+    r = subprocess.run([shutil.which("bash"), str(repo / "tools" / "setup.sh"), *args, extras],
                        env=env, capture_output=True, text=True, timeout=60)
     apt_log = (state / "apt").read_text() if (state / "apt").exists() else ""
     checks = (state / "checks").read_text().splitlines() if (state / "checks").exists() else []
@@ -196,3 +207,38 @@ def test_setup_gpucc_installs_the_offline_compilers_once(tmp_path):
     r, apt_log, _ = run_setup(tmp_path / "b", 0, extras="gpucc", gpucc_tools=True)
     assert r.returncode == 0, r.stderr
     assert apt_log == ""
+
+
+def test_setup_adds_extras_to_the_venv_and_installs_nothing_twice(tmp_path):
+    """Extras add up in one venv; the same call again (same extras, same source stamp) runs
+    no pip; --fresh makes a new venv with exactly the extras asked for."""
+    def pip_lines():
+        f = tmp_path / "state" / "pip"
+        return f.read_text().splitlines() if f.exists() else []
+
+    def venvs():
+        return (tmp_path / "state" / "venv").read_text().count("\n")
+
+    record = tmp_path / "repo" / ".venv" / "clrf-setup.txt"
+    r, _, _ = run_setup(tmp_path, 0, extras="test", stamp="s1")
+    assert r.returncode == 0, r.stderr
+    assert pip_lines()[-1] == "install -q .[pocl,test]" and venvs() == 1
+    assert record.read_text() == "test\ns1\n"
+    r, _, _ = run_setup(tmp_path, 0, extras="view", stamp="s2")
+    assert r.returncode == 0, r.stderr
+    assert pip_lines()[-1] == "install -q .[pocl,test,view]", pip_lines()   # both extras
+    assert venvs() == 1 and record.read_text() == "test,view\ns2\n"
+    n = len(pip_lines())
+    r, _, checks = run_setup(tmp_path, 0, extras="view", stamp="s2")
+    assert r.returncode == 0, r.stderr
+    assert len(pip_lines()) == n and "nothing to install" in r.stderr     # nothing installed
+    assert checks[-1] == "-m clrf.cli devices --check"                     # still checked
+    r, _, _ = run_setup(tmp_path, 0, extras="view", stamp="s3")            # the source changed
+    assert len(pip_lines()) == n + 1 and pip_lines()[-1] == "install -q .[pocl,test,view]"
+    r, _, _ = run_setup(tmp_path, 0, extras="view", stamp="s4", args=("--fresh",))
+    assert r.returncode == 0, r.stderr
+    assert venvs() == 2 and pip_lines()[-1] == "install -q .[pocl,view]"
+    assert record.read_text() == "view\ns4\n"
+    # no stamp (the hash failed): always installs, records nothing
+    r, _, _ = run_setup(tmp_path, 0, extras="view", stamp="")
+    assert pip_lines()[-1] == "install -q .[pocl,view]" and not record.exists()

@@ -241,6 +241,7 @@ def test_zooming_out_keeps_small_gaussians_from_swelling(device):
 
 
 # ---- through the model and the command line -----------------------------------------------------
+@pytest.mark.slow
 def test_an_anti_aliased_run_trains_saves_renders_and_exports(tmp_path):
     """`--set splat.antialiased=true`: the run trains, its checkpoint holds each Gaussian's 3D
     filter (f2 > 0, recomputed as the Gaussians change), the loaded model renders the same

@@ -18,6 +18,7 @@ def _model(device, **splat):
 
 
 @pytest.mark.parametrize("matrix", ["full", "gain"])
+@pytest.mark.slow
 def test_training_learns_each_images_gain(device, matrix):
     """Training images scaled by per-image gains: the transforms of those images move toward
     their gain (A's diagonal), and stay near the identity for the untouched ones; with
@@ -95,6 +96,7 @@ def test_exposure_on_a_model_without_it_is_one_clear_error(model, capsys, tmp_pa
     assert rc == 2 and err.count("clrf: error:") == 1 and f"{model}.exposure" in err, err
 
 
+@pytest.mark.slow
 def test_a_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
     from clrf.cli.main import main as cli
     out = tmp_path / "run"
@@ -217,6 +219,7 @@ def test_bad_calibration_settings_are_one_clear_error(key, value, capsys, tmp_pa
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_calibration_by_default_only_with_the_transforms(tmp_path):
     """splat.exposure_calibrate is on by default and acts only with splat.exposure: a run
     without the transforms neither calibrates nor shortens its budget; a checkpoint from
@@ -253,6 +256,7 @@ def test_downscaled_dataset_scales_images_coverage_and_intrinsics():
     assert small.poses is ds.poses and downscaled(ds, 1) is ds
 
 
+@pytest.mark.slow
 def test_a_calibrated_run_starts_from_the_calibrations_rows(tmp_path, monkeypatch):
     """splat.exposure_calibrate: the calibration runs first at a fraction of the resolution
     with the transforms' rate held, its share taken from the budget; the run starts from its

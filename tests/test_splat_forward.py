@@ -242,6 +242,7 @@ def trained(capture, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_a_forward_facing_capture_trains_as_a_splat(trained):
     from clrf.outputs import checkpoint
     state = checkpoint.load(trained)
@@ -293,6 +294,7 @@ def _no_pycolmap(monkeypatch):
     assert not tri.have_pycolmap()
 
 
+@pytest.mark.slow
 def test_without_pycolmap_the_run_says_once_how_to_get_points(capture, tmp_path, monkeypatch,
                                                              capsys):
     _no_pycolmap(monkeypatch)

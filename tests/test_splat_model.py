@@ -111,6 +111,7 @@ def test_views_cycle_and_inactive_sh_bands_stay_put(device):
     assert np.any(m.host_params()["sh"][:, 1:])
 
 
+@pytest.mark.slow
 def test_gpu_shape_steps_every_group_in_one_adam_launch(device):
     """With the GPU-shaped kernels the four parameter groups take one Adam launch (AdamSet,
     kept through a densification); from the same state and gradients it gives the parameters
@@ -311,6 +312,7 @@ def trained(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_training_lowers_the_error(trained):
     rows = [r for r in csv.DictReader(open(trained / "metrics.csv")) if r["eval_psnr"]]
     first, last = float(rows[0]["eval_psnr"]), float(rows[-1]["eval_psnr"])
@@ -364,6 +366,7 @@ def test_export_splats_and_refuse_mesh(trained, tmp_path, capsys):
     assert "--model splat" in err and "grid" in err and not (tmp_path / "g.ply").exists()
 
 
+@pytest.mark.slow
 def test_resume_continues_a_splat_run(trained, tmp_path):
     """--resume: the checkpoint's Gaussians and Adam state, the dataset attached again, the
     iteration count going on."""

@@ -289,6 +289,7 @@ def test_refine_view_pose_brings_a_test_camera_back(device):
 
 
 # ---- through the trainer and the command line ----------------------------------------------------
+@pytest.mark.slow
 def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
     from clrf.cli.main import main as cli
     from clrf.outputs import checkpoint

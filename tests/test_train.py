@@ -40,6 +40,7 @@ def read_csv(p):
     return list(csv.DictReader(open(p)))
 
 
+@pytest.mark.slow
 def test_train_writes_every_output(trained):
     for name in ("config.json", "metrics.csv", "error_vs_time.png", "ckpt.npz", "eval.json"):
         assert (trained / name).is_file(), name
@@ -79,6 +80,7 @@ def test_checkpoint_round_trip(device, trained):
     np.testing.assert_array_equal(m2.render(o, d)["rgb"], r1["rgb"])
 
 
+@pytest.mark.slow
 def test_resume_continues(tmp_path):
     out = tmp_path / "r"
     assert run_cli("train", "--out", out, "--max-seconds", 1.5, *FAST) == 0
@@ -96,6 +98,7 @@ def test_resume_continues(tmp_path):
     assert run_cli("train", "--out", out, "--max-seconds", 1) == 2
 
 
+@pytest.mark.slow
 def test_render_and_eval(trained, tmp_path, capsys):
     out = tmp_path / "frames"
     assert run_cli("render", "--ckpt", trained, "--views", "orbit", "--frames", 3, "--out", out) == 0
@@ -112,6 +115,7 @@ def test_render_and_eval(trained, tmp_path, capsys):
     assert "mean over 8 views" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_train_on_tiny_lego(scene, tmp_path):
     out = tmp_path / "tl"
     rc = run_cli("train", "--data", scene("tiny_lego"), "--out", out, "--max-seconds", 6,
@@ -133,6 +137,7 @@ def test_config_precedence(tmp_path):
         build_config(overrides={"grid": {"batch_size": "many"}})
 
 
+@pytest.mark.slow
 def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     out = tmp_path / "r"
     env = dict(os.environ)   # the installed clrf (tests/conftest.py)
@@ -177,6 +182,7 @@ SMALL = {"grid": FAST,
 
 
 @pytest.mark.parametrize("model", sorted(SMALL))
+@pytest.mark.slow
 def test_training_evaluates_no_source_strings(model, tmp_path, monkeypatch):
     """CPython remembers a KeyboardInterrupt that ends the eval or exec of a source string,
     even one caught later, and a process started with `python -m` then dies of SIGINT after
@@ -199,6 +205,7 @@ def test_training_evaluates_no_source_strings(model, tmp_path, monkeypatch):
     assert not seen, seen[:5]
 
 
+@pytest.mark.slow
 def test_nerf_through_the_cli(tmp_path, capsys):
     out = tmp_path / "n"
     tiny = SMALL["nerf"]
@@ -218,6 +225,7 @@ def test_nerf_through_the_cli(tmp_path, capsys):
     assert rc == 2 and "widht" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_run_ends_naming_the_report_renders_and_next_commands(tmp_path, capsys):
     """The last lines of `clrf train` name the report, the renders and the next commands;
     every file path they name exists, and the renders hold render | ground truth."""
@@ -292,6 +300,7 @@ def _slow_views(monkeypatch, per_view):
     return calls
 
 
+@pytest.mark.slow
 def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     """Each view made 0.6 s slower, against training's 0.2 s interval: each evaluation is put
     off until the evaluations so far and one more view (its cost predicted from the last
@@ -328,6 +337,7 @@ def test_slow_evaluations_are_spaced_out(tmp_path, monkeypatch):
     assert secs[3] >= 13.0, secs
 
 
+@pytest.mark.slow
 def test_an_evaluation_renders_the_views_its_share_allows(tmp_path, monkeypatch):
     """Views 0.35 s slower, four an evaluation (1.4 s: spaced out): an evaluation starts a
     view only where it would end within its share, or EVAL_STRETCH_MIN_S, of the wall time:
@@ -346,6 +356,7 @@ def test_an_evaluation_renders_the_views_its_share_allows(tmp_path, monkeypatch)
     assert 3.0 <= secs[1] <= 5.0 and secs[2] >= 6.5, secs
 
 
+@pytest.mark.slow
 def test_the_untrained_point_is_one_downscaled_view(tmp_path, monkeypatch):
     """The untrained model's point is one view, downscaled where a view has more than
     ANCHOR_PIXELS; the quick periodic evaluations that follow render every periodic view at
@@ -362,6 +373,7 @@ def test_the_untrained_point_is_one_downscaled_view(tmp_path, monkeypatch):
     assert rows[-2]["seconds"] == rows[-1]["seconds"]     # before stopping, then the final
 
 
+@pytest.mark.slow
 def test_program_builds_are_not_training_time(tmp_path, monkeypatch):
     """A first run builds its programs (seconds each, cold): the training clock leaves them out,
     as the evaluations' timing does, so a short budget still trains. Each build made 1 s

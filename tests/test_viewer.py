@@ -121,6 +121,7 @@ def test_request_scaled_to_the_cap_with_the_same_field_of_view():
 
 
 # ---- one frame in flight per client, render-time share ---------------------------------------
+@pytest.mark.slow
 def test_stale_requests_are_dropped(loaded):
     model, state = loaded
     core = ViewerCore(model, state["dataset"])
@@ -318,6 +319,7 @@ def test_viewer_speed_tool_runs(ckpt, tmp_path):
     assert (res["moving_size"], res["rest_size"]) == (24, 40)
 
 
+@pytest.mark.slow
 def test_nerf_checkpoint_in_the_viewer(device, tmp_path):
     """The viewer renders a NeRF checkpoint through the same path (and swaps its background)."""
     from clrf.cli.main import main as cli

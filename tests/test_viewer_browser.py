@@ -160,6 +160,7 @@ fetch("http://127.0.0.1:%(port)d/").then(r => r.text()).then(
 </script></body></html>"""
 
 
+@pytest.mark.quick        # the quick tier's test of this module (tests/conftest.py)
 def test_another_page_cannot_reach_the_viewer(tmp_path):
     """A page served from another local port opens the viewer's WebSocket in headless
     Chromium and gets no hello and no frame (the Origin check), and cannot read the page

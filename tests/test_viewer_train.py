@@ -64,6 +64,7 @@ def start_training(out, seconds):
 
 
 @pytest.mark.slow
+@pytest.mark.quick        # the quick tier's test of this module (tests/conftest.py)
 def test_train_with_the_viewer(tmp_path):
     p, url = start_training(tmp_path / "run", 10)
     out = tmp_path / "run"

@@ -5,6 +5,7 @@ gives. No GPU is needed.
     python tools/gpu_builds.py                         # every target, every shape; a summary
     python tools/gpu_builds.py --targets gfx1100,tgllp --shapes gpu --markdown
     python tools/gpu_builds.py --json gpu-builds.json  # everything, per kernel
+    python tools/gpu_builds.py --update-table          # the tests' builds: tools/gpu_builds_table.json
 
 Compilers (``bash tools/setup.sh gpucc`` installs them on Debian/Ubuntu):
   AMD     clang-19 for amdgcn-mesa-mesa3d with libclc-19's bitcode, which reports per kernel
@@ -48,6 +49,7 @@ exceeds its target's (LOCAL_LIMIT).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import re
@@ -65,6 +67,7 @@ ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from clrf.runtime.atomicfile import write_text  # noqa: E402
 from clrf.training.catalog import library_programs  # noqa: E402
 from clrf.runtime.device import Capabilities  # noqa: E402
 from clrf.runtime.programs import caps_build_flags, capability_defines, cl_dir  # noqa: E402
@@ -214,6 +217,7 @@ class Build:
     log: str = ""
     seconds: float = 0.0
     kernels: dict = field(default_factory=dict)   # name -> figures
+    cached: bool = False                          # filled from the resource table (TABLE)
 
     def key(self):
         return (self.source, self.flags, self.target, self.std)
@@ -552,6 +556,117 @@ def run_all(builds, tools: Tools, jobs_n: int = 2, progress=None) -> None:
                 progress(i + 1, len(order), b)
 
 
+# ---- the resource table: builds paid once -----------------------------------------------------
+# tests/test_gpu_builds.py builds TEST_PLAN. Its results are committed in TABLE, keyed by each
+# build's inputs (the kernel file and every header it includes, the flags, the target and the
+# OpenCL C version: ``source_key``) and stored with the compiler that built it
+# (``compiler_of``). The tests take an entry whose key and compiler both match as built, and
+# build the rest: on the machine that wrote the table nothing; after a kernel change the
+# programs of the files it touched. ``--update-table`` rebuilds what is stale and rewrites
+# the table; without ``--table`` this tool builds everything.
+TABLE = ROOT / "tools" / "gpu_builds_table.json"
+TABLE_FORMAT = 1
+# (targets, shapes, programs per kernel file): every program of every shape on gfx1100 (clang:
+# quick), every GPU-shape program on the no-spill targets and NVIDIA, and on the other targets
+# the first GPU-shape program of each kernel file (every kernel builds there)
+TEST_PLAN = ((("gfx1100",), SHAPES, None), (("tgllp",), ("gpu",), None),
+             (("gfx1103", "gfx90a", "gfx942", "dg2", "sm_90"), ("gpu",), 1))
+TEST_CL12 = ("gfx1100",)
+LOG_CHARS = 4000            # a build log kept in the table is cut to this
+
+
+def test_plan() -> tuple:
+    """(jobs, builds) of TEST_PLAN."""
+    jobs, todo = [], {}
+    for targets, shapes, per_source in TEST_PLAN:
+        jobs += plan(targets, shapes, set(TEST_CL12), per_source=per_source, builds=todo)[0]
+    return jobs, list(todo.values())
+
+
+def _source_text(source: str, seen=None) -> bytes:
+    """cl/<source> and every header it includes (recursively, each once, in include order)."""
+    seen = set() if seen is None else seen
+    path = cl_dir() / source
+    if source in seen or not path.is_file():
+        return b""
+    seen.add(source)
+    text = path.read_bytes()
+    out = [source.encode(), b"\0", text]
+    for inc in re.findall(rb'^\s*#\s*include\s+"([^"]+)"', text, re.M):
+        out.append(_source_text(inc.decode(), seen))
+    return b"".join(out)
+
+
+def _portable(text: str) -> str:
+    """``text`` with the kernel folder's path (which differs between a checkout and an
+    install) written as ``<cl>``."""
+    return text.replace(str(cl_dir()), "<cl>")
+
+
+def source_key(b: Build) -> str:
+    """What a build's result depends on besides the compiler: the kernel file with its
+    headers, the flags, the target and the OpenCL C version."""
+    h = hashlib.sha256(_source_text(b.source))
+    h.update(json.dumps([[_portable(f) for f in b.flags], b.target, b.std, b.raw]).encode())
+    return h.hexdigest()[:24]
+
+
+def compiler_of(target: str, tools: Tools) -> str:
+    """The compiler (and its bitcode library) that builds for ``target`` here, in words."""
+    t = TARGETS.get(target) or EXTRA_TARGETS[target]
+    if t.vendor == "intel":
+        return tools.versions.get("ocloc", "no ocloc")
+    parts = [tools.versions.get("clang", "no clang")]
+    if tools.libclc:
+        bc = tools.libclc / (f"{t.device}-amdgcn-mesa-mesa3d.bc" if t.vendor == "amd"
+                             else "nvptx64--nvidiacl.bc")
+        parts.append(f"libclc {bc.name} {bc.stat().st_size if bc.is_file() else 0} B")
+    if t.vendor == "nvidia":
+        parts.append(tools.versions.get("ptxas", "no ptxas"))
+    return "; ".join(parts)
+
+
+def load_table(path: Path = TABLE) -> dict:
+    """{source_key: entry} of the committed table ({} when there is none)."""
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return {}
+    return d.get("builds", {}) if d.get("format") == TABLE_FORMAT else {}
+
+
+def apply_table(builds, table: dict, tools: Tools) -> dict:
+    """Fill every build whose inputs and compiler match a table entry (``cached``); returns
+    {"reused": n, "stale": [builds whose inputs are not in the table], "other_compiler":
+    [builds whose entry was made by another compiler]}."""
+    out = {"reused": 0, "stale": [], "other_compiler": []}
+    for b in builds:
+        e = table.get(source_key(b))
+        if e is None:
+            out["stale"].append(b)
+        elif e["compiler"] != compiler_of(b.target, tools):
+            out["other_compiler"].append(b)
+        else:
+            b.ok, b.log, b.kernels, b.seconds = e["ok"], e["log"], e["kernels"], e["seconds"]
+            b.cached = True
+            out["reused"] += 1
+    return out
+
+
+def write_table(builds, tools: Tools, path: Path = TABLE) -> None:
+    entries = {}
+    for b in builds:
+        entries[source_key(b)] = {
+            "source": b.source, "target": b.target, "std": b.std, "ok": b.ok,
+            "compiler": compiler_of(b.target, tools), "seconds": round(b.seconds, 2),
+            "log": _portable(b.log)[:LOG_CHARS], "kernels": b.kernels,
+            "defines": [f for f in b.flags if f.startswith("-D")]}
+    text = json.dumps({"format": TABLE_FORMAT, "made_by": "python tools/gpu_builds.py "
+                       "--update-table", "compilers": tools.versions,
+                       "builds": dict(sorted(entries.items()))}, indent=1, sort_keys=True)
+    write_text(path, text + "\n")
+
+
 # ---- reports ---------------------------------------------------------------------------------
 def failures(jobs) -> list:
     """(source, defines, target, shape, log) of every job whose build failed."""
@@ -715,6 +830,28 @@ def to_json(jobs, tools: Tools) -> dict:
                         "kernels": j.build.kernels} for j in jobs]}
 
 
+def update_table(jobs_n: int = 2, quiet: bool = False) -> int:
+    """--update-table: TEST_PLAN built (what is current taken from the table), the table
+    rewritten with exactly its builds. Exit status 2 when a vendor's compiler is missing."""
+    tools = find_tools()
+    gone = {v: tools.missing(v) for v in ("amd", "intel", "nvidia")}
+    if any(gone.values()):
+        print(f"gpu_builds: cannot update the table: {gone} missing; run `{FIX}`",
+              file=sys.stderr)
+        return 2
+    _, builds = test_plan()
+    found = apply_table(builds, load_table(), tools)
+    todo = [b for b in builds if not b.cached]
+    t0 = time.perf_counter()
+    run_all(todo, tools, jobs_n, None if quiet else lambda i, n, b: print(
+        f"[{i}/{n}] {b.target} {b.std} {b.source} {'ok' if b.ok else 'FAILED'} "
+        f"{b.seconds:.1f}s", file=sys.stderr, flush=True))
+    write_table(builds, tools)
+    print(f"gpu_builds: {TABLE.relative_to(ROOT)}: {len(builds)} builds, {found['reused']} "
+          f"kept, {len(todo)} built in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -740,7 +877,16 @@ def main(argv=None) -> int:
     ap.add_argument("--no-spill", default=",".join(NO_SPILL_TARGETS),
                     help="targets where --check allows no GPU-shape spill (default: %(default)s)")
     ap.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    ap.add_argument("--table", action="store_true",
+                    help=f"take the builds whose inputs and compiler match an entry of "
+                         f"{TABLE.relative_to(ROOT)} from it instead of building them")
+    ap.add_argument("--update-table", action="store_true",
+                    help="build what the tests build (TEST_PLAN; the target, shape and source "
+                         "options are ignored), taking what is current from the table, and "
+                         "rewrite the table")
     a = ap.parse_args(argv)
+    if a.update_table:
+        return update_table(a.jobs, a.quiet)
     targets = [t for t in a.targets.split(",") if t]
     unknown = [t for t in targets if t not in TARGETS and t not in EXTRA_TARGETS]
     shapes = [s for s in a.shapes.split(",") if s]
@@ -766,7 +912,12 @@ def main(argv=None) -> int:
             print(f"[{i}/{n}] {b.target} {b.std} {b.source} {'ok' if b.ok else 'FAILED'} "
                   f"{b.seconds:.1f}s", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    run_all(builds, tools, a.jobs, progress)
+    if a.table:
+        found = apply_table(builds, load_table(), tools)
+        if not a.quiet:
+            print(f"gpu_builds: {found['reused']} of {len(builds)} builds from the table",
+                  file=sys.stderr)
+    run_all([b for b in builds if not b.cached], tools, a.jobs, progress)
     if not a.quiet:
         print(f"gpu_builds: {len(builds)} compiles in {time.perf_counter() - t0:.0f} s",
               file=sys.stderr)

@@ -1,6 +1,9 @@
 #!/usr/bin/env bash
-# Set up clrf in ./.venv: a fresh virtual environment, `pip install ".[pocl,EXTRAS]"`, and the
-# fastest OpenCL device this machine can have. clrf probes every device once and picks the one
+# Set up clrf in ./.venv: `pip install ".[pocl,EXTRAS]"` into the virtual environment (made
+# when there is none, or anew with --fresh), and the fastest OpenCL device this machine can
+# have. Extras add up: `setup.sh test` then `setup.sh view` leaves both installed (the venv
+# records what it holds in .venv/clrf-setup.txt), and a call that would install nothing new
+# (the same extras, the same clrf source) installs nothing. clrf probes every device once and picks the one
 # that measures fastest (`clrf devices`). pip's PoCL (3.0, LLVM 14) either cannot compile for
 # CPUs newer than its LLVM (AMD Zen 5: "unknown target CPU") or, on some CPUs, compiles for a
 # generic x86-64 target that runs about ten times slower than the distribution's PoCL. In both
@@ -34,10 +37,29 @@
 #   bash tools/setup.sh process  # plus pycolmap and imageio-ffmpeg for `clrf process` (pose a
 #                                # video or a folder of photos); PyPI wheels, no system package
 #   bash tools/setup.sh test,peers # plus taichi for the Taichi peers of tools/bench.py
+#   bash tools/setup.sh --fresh test # a new .venv with exactly these extras
 # Non-interactive. Exit status 0 when a working device exists (possibly a slow one, with the
 # advice printed), 1 when none works.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+fresh=0
+if [ "${1:-}" = "--fresh" ]; then fresh=1; shift; fi
+if [ "${2:-}" = "--fresh" ]; then fresh=1; set -- "$1"; fi
+py=${PYTHON:-python3}
+# what an existing venv already holds (its extras, and the stamp of the source it was
+# installed from); --fresh or no usable venv: nothing
+record=.venv/clrf-setup.txt
+had_extras="" had_stamp=""
+if [ "$fresh" -eq 0 ] && [ -x .venv/bin/python ] && [ -f "$record" ]; then
+    { read -r had_extras; read -r had_stamp; } < "$record" || true
+fi
+# the extras asked for now plus those installed before, each once
+all_extras=""
+IFS=, read -ra asked <<< "${had_extras:+$had_extras,}${1:-}"
+for e in "${asked[@]}"; do
+    case ",$all_extras," in *",$e,"*) ;; *) [ -n "$e" ] && all_extras="${all_extras:+$all_extras,}$e" ;; esac
+done
+set -- "$all_extras"
 extras="pocl${1:+,$1}"
 # extra "eval" is installed on its own after the others (see below), not through pip's extras
 want_eval=0
@@ -46,7 +68,6 @@ extras=",${extras},"
 extras=${extras//,eval,/,}
 extras=${extras#,}
 extras=${extras%,}
-py=${PYTHON:-python3}
 
 sudo=""
 if [ "$(id -u)" -ne 0 ]; then sudo="sudo -n"; fi
@@ -140,14 +161,37 @@ case ",${1:-}," in
         esac ;;
 esac
 
-rm -rf .venv
-"$py" -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q ".[${extras}]"
-case ",${1:-}," in
-    *,intel,*) .venv/bin/python -m clrf.runtime.icd register ;;
-esac
-if [ "$want_eval" -eq 1 ]; then
+# a stamp of what pip would install: the extras, the
+# Python and every file of the package's source. The same stamp as the venv's record: nothing
+# to install. (Standard library only; an empty stamp always installs.)
+stamp=$("$py" -c '
+import hashlib, pathlib, sys
+h = hashlib.sha256(("|".join(sorted(set(filter(None, sys.argv[1].split(","))))) + sys.version).encode())
+for top in ("setup.cfg", "setup.py", "pyproject.toml", "README.md", "clrf", "cl"):
+    p = pathlib.Path(top)
+    for f in sorted([p] if p.is_file() else p.rglob("*")):
+        if f.is_file() and "__pycache__" not in f.parts and f.name != "_build_commit.py":
+            h.update(str(f).encode() + b"\0" + f.read_bytes())
+print(h.hexdigest())' "$all_extras" 2>/dev/null) || stamp=""
+new_venv=0
+if [ "$fresh" -eq 1 ] || [ ! -x .venv/bin/python ]; then
+    rm -rf .venv
+    "$py" -m venv .venv
+    new_venv=1
+fi
+if [ "$new_venv" -eq 1 ] || [ -z "$stamp" ] || [ "$stamp" != "$had_stamp" ]; then
+    if [ "$new_venv" -eq 1 ]; then
+        .venv/bin/python -m pip install -q --upgrade pip
+    fi
+    .venv/bin/python -m pip install -q ".[${extras}]"
+    case ",${1:-}," in
+        *,intel,*) .venv/bin/python -m clrf.runtime.icd register ;;
+    esac
+    rm -f "$record"          # written again once everything asked for is in
+else
+    echo "clrf: .venv already holds clrf with extras '${all_extras:-none}'; nothing to install" >&2
+fi
+if [ "$want_eval" -eq 1 ] && ! .venv/bin/python -c "import torch, lpips" >/dev/null 2>&1; then
     # LPIPS: clrf builds AlexNet / VGG-16 itself with torch, so torch (a CPU build is enough)
     # and the lpips package's linear-layer weights are all it needs. torch==2.13.0 is the CPU
     # wheel (191 MB, about 830 MB installed) that this project's machines keep on disk; from
@@ -195,4 +239,7 @@ case ",${1:-}," in
 esac
 if [ "$status" -ne 0 ] && [ "$status" -ne 3 ]; then
     exit 1
+fi
+if [ -n "$stamp" ]; then
+    printf '%s\n%s\n' "$all_extras" "$stamp" > "$record"
 fi

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..runtime.atomicfile import write_text
+
 
 def _lpips_setup(a):
     """(net, None) when LPIPS will be computed, else (net or None, the stated reason)."""
@@ -167,9 +169,7 @@ def cmd_eval(a):
     out.parent.mkdir(parents=True, exist_ok=True)
     res.update(views=per_view, device=repr(dev),
                data=str(a.data or state["run_config"]["train"].get("data", "")))
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=2))
-    tmp.replace(out)
+    write_text(out, json.dumps(res, indent=2))
     print(f"saved {out}")
     sys.stdout.flush()
     return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..runtime.atomicfile import atomic_path
 from ..runtime.progress import bar
 
 MAX_RESO = 2048          # marching-cubes cells per side (the host volume is reso^3 floats)
@@ -166,17 +167,15 @@ def depth_outputs(out, name, depth, acc):
 
     valid = acc >= DEPTH_MIN_OPACITY
     z = np.where(valid, depth / np.maximum(acc, 1e-12), np.nan).astype(np.float32)
-    tmp = out / f".{name}.tmp.npy"
-    np.save(tmp, z)
-    tmp.replace(out / f"{name}.npy")
+    with atomic_path(out / f"{name}.npy") as tmp:
+        np.save(tmp, z)
     img = np.ones(z.shape + (3,))
     if np.any(valid):
         lo, hi = np.percentile(z[valid], [1, 99])
         t = np.clip((z[valid] - lo) / max(hi - lo, 1e-12), 0, 1)
         img[valid] = colormaps["turbo"](t)[:, :3]
-    tmp = out / f".{name}.tmp.png"
-    iio.imwrite(tmp, (img * 255 + 0.5).astype(np.uint8), extension=".png")
-    tmp.replace(out / f"{name}.png")
+    with atomic_path(out / f"{name}.png") as tmp:
+        iio.imwrite(tmp, (img * 255 + 0.5).astype(np.uint8), extension=".png")
 
 
 def write_video(path, frames, fps):
@@ -188,15 +187,9 @@ def write_video(path, frames, fps):
     ph, pw = frames.shape[1] % 2, frames.shape[2] % 2
     if ph or pw:
         frames = np.pad(frames, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp.mp4")
-    try:
+    with atomic_path(path, suffix=".mp4") as tmp:   # ffmpeg picks the container by the name
         w = iio2.get_writer(tmp, format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
                             pixelformat="yuv420p", macro_block_size=1, quality=8)
         with w:
             for f in frames:
                 w.append_data(f)
-        tmp.replace(path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()

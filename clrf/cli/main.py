@@ -234,6 +234,7 @@ def cmd_render(a):
 
     from ..data.cameras import camera_orbit_poses, orbit_poses, spiral_poses
     from .export import check_render_args, depth_outputs, write_video
+    from ..runtime.atomicfile import atomic_path
     from ..runtime.device import Device
     from ..outputs.frames import render_pose, spec_from_fov, spec_from_meta, to_uint8
     from ..training.models import load_model
@@ -286,9 +287,8 @@ def cmd_render(a):
             r = render_pose(model, spec, p, depth=bool(a.depth))
             frame = to_uint8(r["rgb"])
             frames.append(frame)
-            tmp = out / f".{a.views}_{i:03d}.png"
-            iio.imwrite(tmp, frame, extension=".png")
-            tmp.replace(out / f"{a.views}_{i:03d}.png")
+            with atomic_path(out / f"{a.views}_{i:03d}.png") as tmp:
+                iio.imwrite(tmp, frame, extension=".png")
             if a.depth:
                 depth_outputs(out, f"{a.views}_{i:03d}_depth", r["depth"], r["acc"])
             b.update(1)
@@ -297,9 +297,8 @@ def cmd_render(a):
     print(f"rendered {len(frames)} {a.views} views at {W}x{H} in {secs:.1f} s to {out}")
     if a.views == "orbit" and frames:
         vid = out / "orbit.gif"
-        tmp = out / ".orbit.tmp.gif"
-        iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000 / 24, loop=0)
-        tmp.replace(vid)
+        with atomic_path(vid) as tmp:
+            iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000 / 24, loop=0)
         print(f"saved {vid}")
     if a.video and frames:
         vid = out / f"{a.views}.mp4"

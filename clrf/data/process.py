@@ -25,8 +25,10 @@ Preset: with v_i the unit viewing direction of camera i, the capture is forward-
 rule the COLMAP loader applies on its own (clrf/data/llff.py), so ``clrf train --data OUT``
 picks the same preset without a flag.
 
-Nothing half-finished is left at ``--out``: everything is built in a temporary folder beside it
-and renamed to ``--out`` only after the last stage; on failure the temporary folder is removed.
+Nothing half-finished is left at ``--out``: the work happens in a scratch folder beside it, the
+scene is built in a temporary folder beside it that is renamed to ``--out`` only after the last
+stage (clrf.runtime.atomicfile.atomic_dir: with --force, the old ``--out`` is deleted only once
+the new one is in place); on failure both temporary folders are removed.
 """
 from __future__ import annotations
 
@@ -42,6 +44,7 @@ import numpy as np
 from .base import DataError
 from .io import IMAGE_EXTS
 from .llff import FACING_THRESHOLD
+from ..runtime.atomicfile import atomic_dir
 from ..runtime.progress import bar, message
 
 VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
@@ -286,27 +289,26 @@ def process(source, out, opt: ProcessOptions = None) -> dict:
                            f"replace it")
     pc = _pycolmap()
     out.parent.mkdir(parents=True, exist_ok=True)
+    # the scratch folder (frames, COLMAP's database and models) is deleted; the scene is built
+    # beside ``out`` and takes its place (replacing it with --force) once complete
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.clrf-process-", dir=out.parent))
     try:
-        raw = tmp / "frames"
-        raw.mkdir()
-        names = (extract_video(src, raw, opt.frames) if is_video else copy_images(src, raw))
-        sequential = (opt.matcher == "sequential" or (opt.matcher == "auto" and
-                                                       (is_video or len(names) > EXHAUSTIVE_MAX)))
-        rec, missing = run_colmap(raw, tmp, names, sequential, opt)
-        final = tmp / "scene"
-        rec = _write_layout(pc, rec, raw, tmp, final)
-        views = np.array([rec.image(i).viewing_direction() for i in rec.reg_image_ids()])
-        preset = detect_preset(views)
-        summary = dict(source=str(src), preset=preset, frames=len(names),
-                       registered=len(names) - len(missing), not_registered=missing,
-                       points=rec.num_points3D(), matcher="sequential" if sequential
-                       else "exhaustive", pycolmap=getattr(pc, "__version__", "?"),
-                       reprojection_error_px=float(rec.compute_mean_reprojection_error()))
-        (final / "clrf_process.json").write_text(json.dumps(summary, indent=1) + "\n")
-        if out.exists():
-            shutil.rmtree(out) if out.is_dir() else out.unlink()
-        final.rename(out)
+        with atomic_dir(out) as final:
+            raw = tmp / "frames"
+            raw.mkdir()
+            names = (extract_video(src, raw, opt.frames) if is_video else copy_images(src, raw))
+            sequential = (opt.matcher == "sequential" or (
+                opt.matcher == "auto" and (is_video or len(names) > EXHAUSTIVE_MAX)))
+            rec, missing = run_colmap(raw, tmp, names, sequential, opt)
+            rec = _write_layout(pc, rec, raw, tmp, final)
+            views = np.array([rec.image(i).viewing_direction() for i in rec.reg_image_ids()])
+            preset = detect_preset(views)
+            summary = dict(source=str(src), preset=preset, frames=len(names),
+                           registered=len(names) - len(missing), not_registered=missing,
+                           points=rec.num_points3D(), matcher="sequential" if sequential
+                           else "exhaustive", pycolmap=getattr(pc, "__version__", "?"),
+                           reprojection_error_px=float(rec.compute_mean_reprojection_error()))
+            (final / "clrf_process.json").write_text(json.dumps(summary, indent=1) + "\n")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     message(f"process: {summary['registered']} of {summary['frames']} frames posed, "

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..runtime.atomicfile import atomic_path
 from ..runtime.progress import message
 from .base import DataError
 
@@ -183,9 +184,8 @@ def triangulate(ds, max_views: int = MAX_VIEWS, threads: int = -1) -> np.ndarray
     message(f"points: {len(pts)} points from {pairs} view pairs in "
             f"{time.perf_counter() - t0:.1f} s")
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_name(cache.name + f".tmp{os.getpid()}.npy")
-    np.save(tmp, pts)
-    os.replace(tmp, cache)
+    with atomic_path(cache, suffix=".npy", sync=False) as tmp:   # a cache: computed again
+        np.save(tmp, pts)
     return pts
 
 

@@ -67,9 +67,10 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
+
+from ..runtime.atomicfile import write_text
 
 TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
 CHUNK_TILES = 64            # default dw_chunk = CHUNK_TILES * rows
@@ -284,14 +285,8 @@ def store_tiling(caps, spec, tiling: MLPTiling, info: dict, path: Path | None = 
         key, fields_ = shape_key(spec), tile_fields(tiling)
     entries.setdefault(device_key(caps), {})[key] = {**fields_, **info}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump({"version": CACHE_VERSION, "entries": entries}, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    write_text(path, json.dumps({"version": CACHE_VERSION, "entries": entries}, indent=1,
+                                sort_keys=True), sync=False)       # a cache: tuned again
 
 
 def mlp_tiling_for(device, spec, path: Path | None = None) -> MLPTiling:

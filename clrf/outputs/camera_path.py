@@ -25,6 +25,7 @@ from typing import List
 
 import numpy as np
 
+from ..runtime.atomicfile import write_text
 from .frames import MAX_SIDE, check_pose
 
 
@@ -117,10 +118,7 @@ def to_dict(path: CameraPath) -> dict:
 
 
 def save(file, path: CameraPath):
-    file = Path(file)
-    tmp = file.with_name(file.name + ".tmp")
-    tmp.write_text(json.dumps(to_dict(path), indent=1))
-    tmp.replace(file)
+    write_text(file, json.dumps(to_dict(path), indent=1))
 
 
 def _need(d, key, where, kinds):

@@ -9,11 +9,12 @@ saved it)."""
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 
 import numpy as np
+
+from ..runtime.atomicfile import atomic_path
 
 CKPT_NAME = "ckpt.npz"
 BRICK_GLOB = "ckpt.it*.rank*of*.npz"
@@ -39,18 +40,11 @@ def save(path, state: dict):
         else:
             meta[k] = v
     arrays["__meta__"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        if WRITE_DELAY > 0:
+        if WRITE_DELAY > 0:     # the temporary file is written, not yet fsynced nor renamed
             time.sleep(WRITE_DELAY)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def brick_file_name(iteration: int, rank: int, ranks: int) -> str:

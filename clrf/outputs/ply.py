@@ -9,10 +9,11 @@ with a uchar count and int32 indices (the common layout of mesh tools).
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
+
+from ..runtime.atomicfile import atomic_path
 
 VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
@@ -42,17 +43,11 @@ def write_ply(path, verts, colors, faces=None):
         header += [f"element face {len(f)}", "property list uchar int vertex_indices"]
     header.append("end_header")
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(v.tobytes())
-            if f is not None:
-                fh.write(f.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(v.tobytes())
+        if f is not None:
+            fh.write(f.tobytes())
 
 
 def read_ply(path) -> dict:

@@ -1,8 +1,8 @@
 """Keeping a run directory consistent across crashes (SIGKILL, power loss) and resumes.
 
-Every file of a run is replaced atomically (written to a temporary name, then renamed), so a
-process killed at any moment leaves the previous complete file plus, at worst, a stale
-temporary file. On the next start of a run in the directory:
+Every file of a run is replaced atomically (clrf.runtime.atomicfile: written to a temporary
+name, then renamed), so a process killed at any moment leaves the previous complete file plus,
+at worst, a stale temporary file. On the next start of a run in the directory:
 
 - ``remove_stale_temps`` deletes those temporary files;
 - ``trim_metrics`` cuts metrics.csv back to the checkpoint being resumed: rows logged after
@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 from pathlib import Path
 
-# temporary names of the run's files (checkpoint.save, plot_error_vs_time, the JSON outputs;
-# the per-rank brick checkpoints of a distributed run)
-TEMP_PATTERNS = ("ckpt.npz.tmp*", "ckpt.it*.npz.tmp*", "*.tmp", ".*.tmp", "*.tmp.png")
+from ..runtime.atomicfile import write_text
+
+# temporary names of the run's files, in the run folder and its renders/ (every one written by
+# clrf.runtime.atomicfile: NAME.tmp<pid>-<hex><ext>), then those of earlier versions of clrf
+# (ckpt.npz.tmp<pid>, .config.json.tmp, eval.json.tmp, error_vs_time.png.tmp.png,
+# renders/.test_000.tmp.png). pathlib's glob matches hidden names with "*".
+TEMP_PATTERNS = ("*.tmp[0-9]*", "renders/*.tmp[0-9]*", "*.tmp", "*.tmp.png", "renders/*.tmp.png")
 
 
 def remove_stale_temps(out: Path) -> list:
@@ -31,17 +34,6 @@ def remove_stale_temps(out: Path) -> list:
                 p.unlink()
                 gone.append(p)
     return gone
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Replace ``path`` by ``text`` with a temporary file and a rename (never half-written)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def trim_metrics(path: Path, fields: list, iteration: int) -> int:
@@ -70,5 +62,5 @@ def trim_metrics(path: Path, fields: list, iteration: int) -> int:
     csv.writer(header).writerow(fields)
     new = header.getvalue() + "".join(kept)
     if new != text or not path.is_file():
-        write_atomic(path, new)
+        write_text(path, new)
     return dropped

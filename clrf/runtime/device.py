@@ -196,7 +196,7 @@ def choose_device(spec: str | None = None, refresh: bool = False) -> Choice:
             if d[0] == pi and d[1] == di:
                 c = _candidate(*d, probe(d[2], refresh))
                 if not c.probe.ok:
-                    raise DeviceError(f"device {pi}:{di} cannot build kernels ({c.probe.error}). "
+                    raise DeviceError(f"device {pi}:{di} is unusable ({c.probe.error}). "
                                       f"Choose another:\n{listing}")
                 known = [_candidate(*o, p) for o in devs if o is not d
                          for p in [probe(o[2], measure_missing=False)] if p is not None]

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 
-from .jsonfile import write_atomic
+from .jsonfile import write_dict
 
 PROBE_METHOD = 3            # bump when the measurement changes meaning (invalidates the cache)
 PROBE_CHAINS = 8            # independent FMA chains per work-item (cl/probe.cl)
@@ -333,7 +333,7 @@ def _store(path: Path, version: str, key: str, probe: Probe) -> None:
     entry.pop("cached")
     entry["probe"] = version
     entries[key] = entry
-    write_atomic(path, {"devices": entries})
+    write_dict(path, {"devices": entries})
 
 
 def _from_entry(e: dict) -> Probe | None:
@@ -356,8 +356,12 @@ def probe(dev: "cl.Device", refresh: bool = False, measure_missing: bool = True)
     """The device's probe: from this process, else the cache file, else measured and stored.
 
     ``refresh`` measures again whatever is cached; ``measure_missing=False`` returns None
-    instead of measuring a device that has no figure yet.
+    instead of measuring a device that has no figure yet. A driver known to crash on this
+    CPU (``known_crash``) is unusable without being run at all.
     """
+    crash = known_crash(dev.platform.version, dev.name, cpu_id())
+    if crash:
+        return Probe(error=crash)
     key = device_key(dev)
     if not refresh and key in _memo:
         return _memo[key]
@@ -428,6 +432,61 @@ def _model(c: Candidate) -> str:
 def is_generic_target(c: Candidate) -> bool:
     return (c.type == "cpu" and "portable computing language" in c.platform.lower()
             and pocl_cpu_target(c.name) in GENERIC_TARGETS)
+
+
+@functools.lru_cache(maxsize=None)
+def cpu_id() -> tuple:
+    """(vendor_id, family, model) of the host CPU from /proc/cpuinfo (``("AuthenticAMD", 25,
+    17)``); ``("", -1, -1)`` where there is none."""
+    got = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                k, _, v = line.partition(":")
+                k = k.strip()
+                if k in ("vendor_id", "cpu family", "model") and k not in got:
+                    got[k] = v.strip()
+                if not line.strip() and got:
+                    break
+    except OSError:
+        pass
+
+    def num(v):
+        return int(v) if v and v.isdigit() else -1
+    return got.get("vendor_id", ""), num(got.get("cpu family")), num(got.get("model"))
+
+
+# AMD family 25 (0x19) models of the Zen 4 cores (Genoa 0x10-0x1f, Raphael 0x60-0x6f, Phoenix
+# 0x70-0x7f, Bergamo / Siena 0xa0-0xaf); the rest of family 25 is Zen 3
+ZEN4_MODELS = (range(0x10, 0x20), range(0x60, 0x80), range(0xa0, 0xb0))
+
+
+def is_zen4(cpu: tuple) -> bool:
+    vendor, family, model = cpu
+    return vendor == "AuthenticAMD" and family == 25 and any(model in r for r in ZEN4_MODELS)
+
+
+# Drivers that crash the process on some CPU, each refused there with its reason: a crash
+# inside a kernel is a signal, which no check in the same process survives, and a self-check in a
+# child process covers only the kernels it runs. (driver test, CPU test, reason)
+KNOWN_CRASHES = (
+    (lambda version, name: "pocl 3.0" in version.lower() and pocl_cpu_target(name) in
+     GENERIC_TARGETS,
+     is_zen4,
+     "pip's PoCL 3.0 (pocl-binary-distribution, LLVM 14) compiles for a generic x86-64 target on "
+     "AMD Zen 4 and crashed clrf with SIGSEGV in the grid renderer there (CPU family 25 model "
+     "{model}), after passing its gradient self-check; " + INSTALL_HINT + " or Intel's CPU "
+     "runtime (`bash tools/setup.sh intel`)"),
+)
+
+
+def known_crash(platform_version: str, name: str, cpu: tuple) -> str | None:
+    """Why the driver ``platform_version`` (device ``name``) is refused on ``cpu`` (``cpu_id``)
+    without being run, or None."""
+    for driver, on_cpu, reason in KNOWN_CRASHES:
+        if driver(platform_version, name) and on_cpu(cpu):
+            return "known to crash here: " + reason.format(model=cpu[2])
+    return None
 
 
 @functools.lru_cache(maxsize=None)

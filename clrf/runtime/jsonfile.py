@@ -1,12 +1,13 @@
 """The runtime's small JSON caches (device probes, workloads, self-check verdicts): read one as
-a dict, write one atomically. A cache is an optimisation: an unreadable file reads as empty,
-and one that cannot be written is skipped (the figure is measured again next time)."""
+a dict (read_dict), write one atomically (write_dict). A cache is an optimisation: an unreadable
+file reads as empty, and one that cannot be written is skipped (the figure is measured again
+next time)."""
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
+
+from .atomicfile import write_text
 
 
 def read_dict(path: Path) -> dict:
@@ -18,20 +19,13 @@ def read_dict(path: Path) -> dict:
     return d if isinstance(d, dict) else {}
 
 
-def write_atomic(path: Path, obj) -> bool:
-    """Write ``obj`` as JSON to ``path`` through a temporary file and a rename, so a reader
-    never sees half a file; False (and nothing left behind) when it cannot be written."""
+def write_dict(path: Path, obj) -> bool:
+    """Write ``obj`` as JSON to ``path`` atomically (atomicfile.py; not fsynced: a cache), so a
+    reader never sees half a file; False (and nothing left behind) when it cannot be written."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
+        write_text(path, json.dumps(obj, indent=1, sort_keys=True), sync=False)
     except OSError:
         return False
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=True)
-        os.replace(tmp, path)
-        return True
-    except OSError:
-        Path(tmp).unlink(missing_ok=True)
-        return False
+    return True

@@ -33,7 +33,7 @@ from typing import Callable
 import pyopencl as cl
 
 from .device_probe import cache_path, device_key
-from .jsonfile import read_dict, write_atomic
+from .jsonfile import read_dict, write_dict
 from .programs import BuildError, cl_dir
 
 CHECK_TIMEOUT_S = 900     # a self-check child that runs longer is taken as hung
@@ -160,7 +160,7 @@ def _load() -> dict:
 def _store(key: str, res: CheckResult) -> None:
     d = _load()
     d[key] = {"ok": res.ok, "detail": res.detail, "path": res.path}
-    write_atomic(_cache_file(), d)
+    write_dict(_cache_file(), d)
 
 
 def run_check(device, check: GradientCheck) -> CheckResult:

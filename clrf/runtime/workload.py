@@ -30,7 +30,7 @@ from typing import Callable
 
 from . import measure
 from .device_probe import TIE, cache_path, device_key
-from .jsonfile import read_dict, write_atomic
+from .jsonfile import read_dict, write_dict
 from .programs import cl_dir
 
 WORKLOAD_VERSION = 2   # 2: the grid's fused training step (2026-11-25)
@@ -60,7 +60,7 @@ def _load() -> dict:
 def _store(key: str, value: float) -> None:
     d = _load()
     d[key] = value
-    write_atomic(_file(), d)
+    write_dict(_file(), d)
 
 
 def best_time(step) -> float:

@@ -12,12 +12,12 @@ only, so the splats have their own writer (numpy structured arrays, one ``tobyte
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from ..interface import InputFileError
+from ..runtime.atomicfile import atomic_path
 
 
 def property_names(n_basis: int) -> list:
@@ -57,15 +57,9 @@ def write_splat_ply(path, means, log_scales, quats, opacity_logits, sh):
     header += [f"property float {k}" for k in names]
     header.append("end_header")
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(v.tobytes())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        fh.write(v.tobytes())
     return n
 
 

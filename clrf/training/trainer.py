@@ -47,6 +47,7 @@ from pyopencl.tools import context_dependent_memoize
 from .. import registry
 from ..interface import Budget, StateError, render_view
 from ..outputs import checkpoint, rundir
+from ..runtime.atomicfile import atomic_path, write_text
 from ..runtime.trust import ensure_trusted
 from ..data.cameras import as_distortion, view_rays
 from ..data.io import downscale_image
@@ -264,9 +265,8 @@ def save_renders(out_dir, ds, views, images) -> list:
         k = max(1, 256 // max(img.shape[:2]))
         pair = pair.repeat(k, axis=0).repeat(k, axis=1)
         p = folder / f"test_{int(v):03d}.png"
-        tmp = folder / f".test_{int(v):03d}.tmp.png"
-        iio.imwrite(tmp, (pair * 255 + 0.5).astype(np.uint8))
-        tmp.replace(p)
+        with atomic_path(p) as tmp:
+            iio.imwrite(tmp, (pair * 255 + 0.5).astype(np.uint8))
         paths.append(p)
     return paths
 
@@ -304,13 +304,11 @@ def plot_error_vs_time(csv_path, png_path, title="", eval_downscale=1):
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = Path(str(png_path) + ".tmp.png")
     try:
-        fig.savefig(tmp)
-        tmp.replace(png_path)
-    finally:   # Ctrl-C during the save leaves no half-written file behind
+        with atomic_path(png_path) as tmp:   # Ctrl-C during the save leaves no partial file
+            fig.savefig(tmp)
+    finally:
         plt.close(fig)
-        tmp.unlink(missing_ok=True)
 
 
 class Trainer:
@@ -360,7 +358,7 @@ class Trainer:
         if views:   # the model draws its own training views
             self.model.attach(ds, t.max_train_images)
         if self.primary:
-            rundir.write_atomic(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
+            write_text(self.out / "config.json", json.dumps(cfg.to_dict(), indent=2))
         # a model that draws its own views (Kind.batches "views") needs no ray store
         self.rays = None if views else training_rays(
             device, ds, t.max_train_images, alpha=getattr(self.model, "random_background", False))
@@ -601,9 +599,7 @@ class Trainer:
                       eval_views=len(self.test_views), model=self.model.describe())
             self._plot(loop.title, t.eval_downscale)
             if self.primary:
-                tmp = self.out / "eval.json.tmp"
-                tmp.write_text(json.dumps(result, indent=2))
-                tmp.replace(self.out / "eval.json")
+                write_text(self.out / "eval.json", json.dumps(result, indent=2))
             loop.prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
                               f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
                               f"({self.iteration} iterations)")
