@@ -12,7 +12,10 @@ kernel once, small, under its race and API checks (tests/test_oclgrind.py).
 """
 import json
 import os
+import shutil
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -23,6 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # the working folder first, which the tests avoid by not starting children there)
 os.environ["PYTHONSAFEPATH"] = "1"
 SOURCE_TREE_VAR = "CLRF_TEST_SOURCE_TREE"   # =1: a developer's explicit run on the checkout
+RUN_CACHE_VAR = "CLRF_TEST_RUN_CACHE"       # the run's cache folder, made by the controller
 
 import clrf  # noqa: E402
 from clrf.testing import impls  # noqa: E402
@@ -66,7 +70,6 @@ def pytest_configure(config):
         # developer's CLRF_TEST_RUN_CACHE=DIR keeps one between runs (compiled kernels, probe
         # figures and verdicts then carry over: not for CI, which measures a cold run)
         if not os.environ.get(RUN_CACHE_VAR):
-            import tempfile
             config.clrf_run_cache = tempfile.mkdtemp(prefix="clrf-test-cache-")
             os.environ[RUN_CACHE_VAR] = config.clrf_run_cache
 
@@ -74,7 +77,6 @@ def pytest_configure(config):
 def pytest_unconfigure(config):
     folder = getattr(config, "clrf_run_cache", None)
     if folder:
-        import shutil
         shutil.rmtree(folder, ignore_errors=True)
         os.environ.pop(RUN_CACHE_VAR, None)
 
@@ -145,11 +147,10 @@ def pytest_generate_tests(metafunc):
 # ---- the quick tier: `pytest -m quick -n auto` --------------------------------------------------
 # The default run keeps every test. The quick selection, for the inner loop, touches every test
 # module in a few minutes: in each module, the first case of every test function (its first
-# parametrisation, on the session device), leaving out tests marked slow, plus any test marked
-# quick by hand (how a module whose tests are all slow is touched). QUICK_LEAVE_OUT names the
-# functions whose first case alone costs too much for the tier, with the reason; the full run
-# keeps them. tests/test_suite_tiers.py checks that every module is touched.
-QUICK_LEAVE_OUT = {}
+# parametrisation, on the session device), leaving out tests marked slow (training runs, the
+# command line end to end, subprocesses: over about 4 s each on 2 vCPUs), plus any test marked
+# quick by hand (how a module whose tests are all slow is touched). tests/test_suite_tiers.py
+# checks that every module is touched.
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -162,14 +163,11 @@ def pytest_collection_modifyitems(config, items):
         key = (item.nodeid.split("::", 1)[0], item.cls.__name__ if item.cls else "", fn)
         callspec = getattr(item, "callspec", None)
         on_default = callspec is None or callspec.params.get("device", "default") == "default"
-        if (key in seen or not on_default or item.get_closest_marker("slow")
-                or fn in QUICK_LEAVE_OUT):
+        if key in seen or not on_default or item.get_closest_marker("slow"):
             continue
         seen.add(key)
         item.add_marker(pytest.mark.quick)
 
-
-RUN_CACHE_VAR = "CLRF_TEST_RUN_CACHE"   # the run's cache folder, made by the controller
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -263,7 +261,6 @@ def pytest_fixture_setup(fixturedef, request):
     if not _timing_on(request.config):
         yield
         return
-    import time
     t0, c0 = time.perf_counter(), _cpu_seconds()
     yield
     item = getattr(request, "_pyfuncitem", None)
@@ -274,7 +271,6 @@ def pytest_fixture_setup(fixturedef, request):
 
 
 def _timed_phase(item, when):
-    import time
     t0, c0 = time.perf_counter(), _cpu_seconds()
     yield
     item.stash.setdefault(_TIMED, {})[when] = (time.perf_counter() - t0, _cpu_seconds() - c0)
@@ -322,7 +318,6 @@ class _SuiteTimes:
     """The controller's (or the only process's) collector for --clrf-times."""
 
     def __init__(self, path):
-        import time
         self.path, self.rows, self.t0 = Path(path), [], time.time()
 
     def pytest_runtest_logreport(self, report):
@@ -336,13 +331,11 @@ class _SuiteTimes:
 
     def pytest_sessionfinish(self, session):
         import platform
-        import time
-        from clrf.runtime.jsonfile import write_dict as write_atomic
-        write_atomic(self.path, {"elapsed": time.time() - self.t0, "started": self.t0,
-                                 "host": platform.node(), "cpus": os.cpu_count(),
-                                 "workers": getattr(session.config.option, "numprocesses",
-                                                    None),
-                                 "rows": self.rows})
+        from clrf.runtime.jsonfile import write_dict
+        write_dict(self.path, {"elapsed": time.time() - self.t0, "started": self.t0,
+                               "host": platform.node(), "cpus": os.cpu_count(),
+                               "workers": getattr(session.config.option, "numprocesses", None),
+                               "rows": self.rows})
 
 
 @pytest.hookimpl(trylast=True)

@@ -2,7 +2,7 @@
 seconds recorded (tests/conftest.py, ``--clrf-times``), and tabulate them.
 
     python tools/suite_times.py run OUT.json [-- PYTEST ARGS]    # default args: -q -n auto
-    python tools/suite_times.py table OUT.json [--top 10]        # Markdown, to stdout
+    python tools/suite_times.py table OUT.json[.gz] [--top 10]   # Markdown, to stdout
 
 ``run`` uses the venv's pytest (.venv/bin/pytest, else the one on PATH) with CLRF_DATA as set,
 and writes OUT.json (the raw rows) and OUT.md (the table) beside it.
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -42,6 +41,15 @@ def _pytest() -> list:
     if not found:
         raise SystemExit("suite_times: no pytest (bash tools/setup.sh test)")
     return [found]
+
+
+def read(path: Path) -> dict:
+    """A recorded run (``.json``, or ``.json.gz`` as kept in tools/results)."""
+    if path.suffix == ".gz":
+        import gzip
+        with gzip.open(path, "rt") as f:
+            return json.load(f)
+    return json.loads(path.read_text())
 
 
 def summarise(data: dict) -> dict:
@@ -124,7 +132,7 @@ def main(argv=None) -> int:
         if not out.is_file():
             print(f"suite_times: pytest wrote no {out}", file=sys.stderr)
             return rc or 1
-    data = json.loads(out.read_text())
+    data = read(out)
     md = table(data, a.top)
     if a.cmd == "run":
         out.with_suffix(".md").write_text(md)

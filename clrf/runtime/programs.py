@@ -186,10 +186,13 @@ def caps_build_flags(caps, capability: dict, defines: dict, fast_math: bool = Fa
     return opts
 
 
-def build(device, source: str, defines: dict, fast_math: bool = False, verbose: bool = False):
+def build(device, source: str, defines: dict, fast_math: bool = False, verbose: bool = False,
+          binary_cache: bool = True):
     """The program for ``cl/<source>`` built for ``device`` with ``defines`` (the capability
     defines of build_options added), not cached: callers use ``Device.program``. The compiler's
-    diagnostics go to stderr; verbose: the whole log instead, when non-empty."""
+    diagnostics go to stderr; verbose: the whole log instead, when non-empty.
+    ``binary_cache=False`` compiles the source even where pyopencl's binary cache holds the
+    program (whose log is then the loader's, not the compiler's)."""
     path = cl_dir() / source
     try:
         src = path.read_text()
@@ -201,7 +204,8 @@ def build(device, source: str, defines: dict, fast_math: bool = False, verbose: 
             # pyopencl warns on any non-empty log, chatter included; what matters is shown
             # below.
             warnings.simplefilter("ignore", cl.CompilerWarning)
-            prg = cl.Program(device.context, src).build(options=opts)
+            prg = cl.Program(device.context, src).build(
+                options=opts, cache_dir=None if binary_cache else False)
     except cl.RuntimeError as e:
         raise BuildError(f"building {path} with {' '.join(opts)} failed:\n{e}") from e
     log = build_log(prg, device)
