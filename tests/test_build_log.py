@@ -79,10 +79,10 @@ def _kernels_dir(monkeypatch):
 
 def test_clean_build_prints_nothing(device, capsys):
     """Chatter (Intel writes it into every log) is not shown; the log is there, verbose."""
-    prg = build(device, "probe.cl", {})
+    prg = build(device, "probe.cl", {}, binary_cache=False)
     assert capsys.readouterr().err == ""
     log = build_log(prg.cl_program, device)
-    build(device, "probe.cl", {}, verbose=True)
+    build(device, "probe.cl", {}, verbose=True, binary_cache=False)
     err = capsys.readouterr().err
     assert (log in err and "probe.cl" in err) if log else err == ""
 
@@ -91,7 +91,7 @@ def test_warnings_are_printed_with_location(device, capsys, monkeypatch):
     """A kernel with three warnings: on stderr with file:line:col, no chatter. Mesa rusticl
     22.3 drops warnings from the log of a successful build: then nothing is shown."""
     _kernels_dir(monkeypatch)
-    prg = build(device, "warning.cl", {})
+    prg = build(device, "warning.cl", {}, binary_cache=False)
     log = build_log(prg.cl_program, device)
     err = capsys.readouterr().err
     if "warning" not in log.lower():
@@ -105,9 +105,9 @@ def test_warnings_are_printed_with_location(device, capsys, monkeypatch):
 
 def test_verbose_shows_raw_log(device, capsys, monkeypatch):
     monkeypatch.setattr("clrf.runtime.programs.build_log", lambda prg, dev: "Compilation started\nDone.")
-    build(device, "probe.cl", {})
+    build(device, "probe.cl", {}, binary_cache=False)
     assert capsys.readouterr().err == ""
-    build(device, "probe.cl", {}, verbose=True)
+    build(device, "probe.cl", {}, verbose=True, binary_cache=False)
     err = capsys.readouterr().err
     assert "probe.cl" in err and "Compilation started\nDone." in err
 
