@@ -317,6 +317,16 @@ def test_splat_edges(tmp_path):
     assert not np.any(back["quats"][np.flatnonzero(order == 1)])
 
 
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_no_gaussians(tmp_path, suffix):
+    path = tmp_path / f"empty{suffix}"
+    assert write_splat_file(path, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)),
+                            np.zeros(0), np.zeros((0, 4, 3))) == 0
+    back = read_splat_file(path)
+    assert back["means"].shape == (0, 3)
+    assert back["sh"].shape == (0, 1 if suffix == ".splat" else 4, 3)
+
+
 # ---- bad files --------------------------------------------------------------------------------
 def _payload(**header):
     """A valid SPZ payload of 4 Gaussians, SH degree 1, with header fields replaced."""

@@ -43,7 +43,7 @@ def write_splat_ply(path, means, log_scales, quats, opacity_logits, sh):
     for c in range(3):
         v[f"f_dc_{c}"] = sh[:, 0, c]
     # channel-major: f_rest_{c * (B - 1) + (b - 1)} is basis b of channel c
-    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (sh.shape[1] - 1))
     for i in range(rest.shape[1]):
         v[f"f_rest_{i}"] = rest[:, i]
     v["opacity"] = np.asarray(opacity_logits, np.float32).reshape(n)

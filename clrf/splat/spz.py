@@ -37,7 +37,8 @@ clrf's world frame as its PLY export writes it, is RDF (x right, y down, z forwa
 writer turns the scene 180 degrees about x (y and z negated, the quaternion (w, x, -y, -z),
 each SH coefficient times the sign its polynomial takes under y, z -> -y, -z), as Niantic's
 library packs from RDF, and the reader turns it back: clrf's .spz of a scene is what Niantic's
-converter makes of clrf's .ply of it.
+library makes of clrf's .ply of it loaded as RDF and saved as RUB, the conversion its Python
+README shows (its ply_to_spz tool, given no coordinate systems, copies the axes as they are).
 
 Lost on the way: the quantisation above (positions within half a step, opacities within 1/510,
 ...), values beyond each range (clipped), opacities 0 and 1 (read back as 1/510 and 1 - 1/510,
@@ -65,7 +66,7 @@ HEADER = struct.Struct("<IIIBBBB")             # versions 1-3, inside the gzip s
 HEADER_V4 = struct.Struct("<IIIBBBBI12x")      # version 4, in the clear
 TOC_ENTRY = struct.Struct("<QQ")
 WRITE_VERSION = 3                  # the newest gzip version (see the module docstring)
-READ_VERSIONS = (2, 3, 4)
+GZIP_VERSIONS, ZSTD_VERSIONS = (2, 3), (4,)      # the versions read
 FRACTIONAL_BITS = 12               # Niantic's choice; fewer only where positions need it
 COLOR_SCALE = 0.15                 # colour byte = 255 (COLOR_SCALE dc + 0.5)
 SH1_BITS, SH_REST_BITS = 5, 4      # bits kept of the SH bytes, degree 1 and degrees 2+
@@ -104,12 +105,15 @@ def _sigmoid(x):
     return 0.5 * (1.0 + np.tanh(0.5 * x))
 
 
-def _bytes(x, lo=0, hi=255):
-    """float64 array -> uint8, rounded to nearest and clipped."""
-    return np.clip(np.round(x), lo, hi).astype(np.uint8)
+def _bytes(x):
+    """float64 array -> uint8, rounded to nearest and clipped to 0..255."""
+    return np.clip(np.round(x), 0, 255).astype(np.uint8)
 
 
 # ---- rotations (x y z w order inside SPZ) ---------------------------------------------------
+_OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])   # [largest] -> 3
+
+
 def pack_smallest_three(q_xyzw) -> np.ndarray:
     """Unit quaternions [n, 4] (x, y, z, w) -> [n, 4] uint8: the version 3 encoding."""
     q = np.asarray(q_xyzw, np.float64)
@@ -123,9 +127,6 @@ def pack_smallest_three(q_xyzw) -> np.ndarray:
         mag = np.minimum(np.floor(511.0 * np.abs(c) / SQRT1_2 + 0.5), 511).astype(np.uint32)
         comp |= (((c < 0).astype(np.uint32) << 9) | mag) << (10 * (2 - j))
     return comp.astype("<u4").view(np.uint8).reshape(n, 4)
-
-
-_OTHERS = np.array([[j for j in range(4) if j != i] for i in range(4)])
 
 
 def unpack_smallest_three(r) -> np.ndarray:
@@ -170,7 +171,7 @@ def pack_sh(rest) -> np.ndarray:
     """SH coefficients above degree 0 [n, B - 1, 3] -> [n, (B - 1) * 3] uint8 on the grid."""
     bucket = sh_buckets(rest.shape[1])[None, :, None]
     q = np.round(rest * 128.0 / bucket) * bucket + 128
-    return np.clip(q, 0, 256 - bucket).astype(np.uint8).reshape(len(rest), -1)
+    return np.clip(q, 0, 256 - bucket).astype(np.uint8).reshape(len(rest), 3 * rest.shape[1])
 
 
 # ---- writing --------------------------------------------------------------------------------
@@ -256,7 +257,7 @@ def _check_header(path, magic, version, degree, bits, gzip_stream: bool):
     if magic != MAGIC:
         raise SplatFileError(f"{path}: wrong magic 0x{magic:08x} (an SPZ file starts with "
                              f"0x{MAGIC:08x}, 'NGSP'); {FIX}")
-    known = (2, 3) if gzip_stream else (4,)
+    known = GZIP_VERSIONS if gzip_stream else ZSTD_VERSIONS
     if version not in known:
         raise SplatFileError(f"{path}: SPZ version {version} in a "
                              f"{'gzip' if gzip_stream else 'zstd'} file is not one clrf reads "
