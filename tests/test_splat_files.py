@@ -66,7 +66,7 @@ def _splats(n, degree, seed=0, dc=(-3.0, 3.0), w_min=None):
         axis /= np.linalg.norm(axis, axis=1, keepdims=True)
         quats = np.concatenate([np.cos(angle / 2)[:, None], np.sin(angle / 2)[:, None] * axis], 1)
         quats *= rng.choice([-1.0, 1.0], (n, 1)) * rng.uniform(0.5, 2.0, (n, 1))
-    sh = rng.uniform(-1.0, 0.85, (n, (degree + 1) ** 2, 3))
+    sh = rng.uniform(-1.02, 1.02, (n, (degree + 1) ** 2, 3))      # a little past both ends
     sh[:, 0] = rng.uniform(*dc, (n, 3))
     g = {"means": rng.normal(0, 3, (n, 3)), "log_scales": rng.uniform(-9.5, 5.5, (n, 3)),
          "quats": quats, "opacity_logits": rng.normal(0, 3, n), "sh": sh}
@@ -88,13 +88,14 @@ def check_spz(back, g, version=3):
     tol = SPZ_QUAT_V3_TOL if version >= 3 else SPZ_QUAT_V2_TOL
     err = np.linalg.norm(back["quats"] - q, axis=1)
     assert np.all(err <= tol), (float(err.max()), tol)
-    # the SH bytes hold -1 .. 1 - bucket / 128 in SPZ's axes, where a coefficient may have the
-    # other sign (spz.sh_signs, checked against the basis below)
+    # the SH bytes hold -1 .. 127/128 in SPZ's axes (the grid's 1.0, byte 256, is stored as
+    # 255: within half a step still), where a coefficient may have the other sign
+    # (spz.sh_signs, checked against the basis below)
     signs = np.concatenate([[1.0], spz.sh_signs(spz.FLIP, B - 1)])[None, :, None]
     for lo, hi, bucket in ((1, 4, SPZ_SH1_BUCKET), (4, 16, SPZ_SH_REST_BUCKET)):
         if B > lo:
             s = signs[:, lo:hi]
-            want = np.clip(g["sh"][:, lo:hi] * s, -1.0, (128 - bucket) / 128) * s
+            want = np.clip(g["sh"][:, lo:hi] * s, -1.0, 127 / 128) * s
             _within(back["sh"][:, lo:hi], want, bucket / 256, f"sh {lo}..{min(hi, B) - 1}")
 
 

@@ -18,7 +18,7 @@ the attributes), then each attribute for every Gaussian in turn:
              round(127.5 (q + 1)) of x, y, z with w >= 0 recovered from the unit norm
   sh         the coefficients above degree 0, coefficient-major then R G B: uint8 128 + 128 c
              on a grid of 8 (5 bits, degree 1: steps of 1/16) or 16 (4 bits, degrees 2-4:
-             steps of 1/8), range -1..0.94 and -1..0.88
+             steps of 1/8), range -1..127/128 (the grid's 1.0 is stored as 255)
 
 Version 4 (written by default by Niantic's library since its release 3.0.0): a 32-byte header
 (the fields above, then numStreams: uint8, tocByteOffset: uint32, 12 reserved bytes), a table of
@@ -168,10 +168,11 @@ def sh_buckets(n_rest: int) -> np.ndarray:
 
 
 def pack_sh(rest) -> np.ndarray:
-    """SH coefficients above degree 0 [n, B - 1, 3] -> [n, (B - 1) * 3] uint8 on the grid."""
+    """SH coefficients above degree 0 [n, B - 1, 3] -> [n, (B - 1) * 3] uint8: the nearest
+    point of the coefficient's grid, the grid's 256 (1.0) clipped to 255 (127/128)."""
     bucket = sh_buckets(rest.shape[1])[None, :, None]
     q = np.round(rest * 128.0 / bucket) * bucket + 128
-    return np.clip(q, 0, 256 - bucket).astype(np.uint8).reshape(len(rest), 3 * rest.shape[1])
+    return np.clip(q, 0, 255).astype(np.uint8).reshape(len(rest), 3 * rest.shape[1])
 
 
 # ---- writing --------------------------------------------------------------------------------
