@@ -107,11 +107,22 @@ class Model(Protocol):
 @dataclass(frozen=True)
 class Export:
     """A file only this kind can write: ``clrf export --NAME FILE``. ``write(model, path)``
-    writes it (atomically) and returns a one-line summary; ``suffix`` is the file ending it
-    requires (e.g. ".ply")."""
+    writes it (atomically, in the format its ending names) and returns a one-line summary;
+    ``suffix`` is the file ending it requires (e.g. ".ply"), or a tuple of the endings it
+    accepts, the usual one first (e.g. (".ply", ".spz", ".splat"))."""
     help: str
-    suffix: str
+    suffix: str | tuple
     write: Callable
+
+    @property
+    def suffixes(self) -> tuple:
+        """The endings accepted, lower case, the usual one first."""
+        return (self.suffix,) if isinstance(self.suffix, str) else tuple(self.suffix)
+
+    def suffix_list(self) -> str:
+        """'.ply', or '.ply, .spz or .splat', for messages."""
+        s = self.suffixes
+        return s[0] if len(s) == 1 else ", ".join(s[:-1]) + " or " + s[-1]
 
 
 @dataclass(frozen=True)

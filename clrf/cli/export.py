@@ -39,9 +39,9 @@ def kind_exports(a) -> dict:
         v = getattr(a, name.replace("-", "_"), None)
         if v:
             p = Path(v)
-            if p.suffix.lower() != exp.suffix or p.is_dir():
-                raise _error(f"--{name} {v}: the output must be a {exp.suffix} file, e.g. "
-                             f"--{name} scene{exp.suffix}")
+            if p.suffix.lower() not in exp.suffixes or p.is_dir():
+                raise _error(f"--{name} {v}: the output must be a {exp.suffix_list()} file, "
+                             f"e.g. --{name} scene{exp.suffixes[0]}")
             out[name] = p
     return out
 

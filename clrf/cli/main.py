@@ -438,7 +438,7 @@ def build_parser():
     x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
     x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
     for name, (exp, owners) in registry.exports().items():   # a kind's own files
-        x.add_argument(f"--{name}", default=None, metavar=f"FILE{exp.suffix}",
+        x.add_argument(f"--{name}", default=None, metavar=f"FILE{'|'.join(exp.suffixes)}",
                        help=f"{exp.help} (--model {', '.join(owners)} checkpoints)")
     x.set_defaults(func=cmd_export)
 

@@ -1,8 +1,9 @@
 """Gaussian splatting as the registry lists it (clrf/registry.py): its configuration section,
 presets and settings per scene preset, factories, memory estimate and its own export (the
-Gaussians as a 3DGS PLY). It trains on whole views (Kind.batches "views"), needs world-space
-cameras (Kind.world_cameras: a forward-facing capture comes without NDC) and starts from the
-scene's sparse points (Kind.wants_points) unless splat.init says otherwise."""
+Gaussians as a 3DGS PLY, an SPZ or a .splat file). It trains on whole views (Kind.batches
+"views"), needs world-space cameras (Kind.world_cameras: a forward-facing capture comes without
+NDC) and starts from the scene's sparse points (Kind.wants_points) unless splat.init says
+otherwise."""
 from __future__ import annotations
 
 from ..interface import Export, Kind
@@ -22,7 +23,8 @@ SCENE_PRESETS = {
 
 
 def wants_points(cfg) -> bool:
-    """A run starts from the scene's sparse points unless splat.init is "random" or a PLY."""
+    """A run starts from the scene's sparse points unless splat.init is "random" or a splat
+    file (splat.init_ply)."""
     return cfg.splat.init != "random" and not cfg.splat.init_ply
 
 
@@ -69,9 +71,11 @@ def programs(device, cfg):
     exposure.program(device)
 
 
-SPLATS = Export(help="3D Gaussian splats in the standard 3DGS PLY layout (x, y, z, nx, ny, nz, "
-                     "f_dc_0..2, f_rest_*, opacity, scale_0..2, rot_0..3)",
-                suffix=".ply", write=write_splats)
+SPLATS = Export(help="3D Gaussian splats, the format by the ending: .ply (the standard 3DGS "
+                     "PLY layout, x, y, z, nx, ny, nz, f_dc_0..2, f_rest_*, opacity, "
+                     "scale_0..2, rot_0..3), .spz (Niantic's compressed SPZ) or .splat "
+                     "(antimatter15's, SH degree 0)",
+                suffix=(".ply", ".spz", ".splat"), write=write_splats)
 
 KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole views)",
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,

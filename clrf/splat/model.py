@@ -650,10 +650,12 @@ def gaussians_from_points(config: SplatConfig, points, n: int, seed: int) -> dic
 
 
 def gaussians_from_ply(sc: SplatConfig, path, cap: int) -> tuple[dict, str]:
-    """(the Gaussians of splat PLY ``path`` at sh_degree, where they came from); more than
-    ``cap`` of them is refused (SplatFileError, a bad input) with the fix."""
-    from .ply import SplatFileError, read_splat_ply
-    g = read_splat_ply(path)
+    """(the Gaussians of splat file ``path`` (.ply, .spz or .splat, files.py) at sh_degree,
+    where they came from); more than ``cap`` of them is refused (SplatFileError, a bad input)
+    with the fix."""
+    from .files import read_splat_file
+    from .ply import SplatFileError
+    g = read_splat_file(path)
     n = len(g["means"])
     if n == 0:
         raise SplatFileError(f"{path}: holds no Gaussians; pass a splat file with some, or "
@@ -788,8 +790,9 @@ def model_from_state(device, state, cfg) -> SplatModel:
 
 
 def write_splats(model: SplatModel, path) -> str:
-    """``clrf export --splats FILE.ply``: the Gaussians in the 3DGS PLY layout."""
-    from .ply import write_splat_ply
+    """``clrf export --splats FILE``: the Gaussians as a 3DGS PLY, an SPZ or a .splat file by
+    the ending (files.py); an anti-aliased model's SPZ carries the format's flag."""
+    from .files import format_of, write_splat_file
     p = model.host_params()
     note = ""
     if model.rast.antialiased:
@@ -803,9 +806,13 @@ def write_splats(model: SplatModel, path) -> str:
         p["log_scales"] = np.log(se).astype(np.float32)
         p["opacity_logits"] = np.log(o / (1 - o)).astype(np.float32)
         note = " (the 3D anti-aliasing filter baked into scales and opacities)"
-    n = write_splat_ply(path, p["means"], p["log_scales"], p["quats"], p["opacity_logits"],
-                        p["sh"])
-    return f"saved {path}: {n} Gaussians, SH degree {model.config.sh_degree}{note}"
+    n = write_splat_file(path, p["means"], p["log_scales"], p["quats"], p["opacity_logits"],
+                         p["sh"], antialiased=model.rast.antialiased)
+    fmt = format_of(path)
+    degree = min(model.config.sh_degree, fmt.max_degree)
+    if degree < model.config.sh_degree:
+        note += f" (the format keeps SH degree {fmt.max_degree} only)"
+    return f"saved {path} ({fmt.title}): {n} Gaussians, SH degree {degree}{note}"
 
 
 __all__ = ["SplatModel", "create_model", "model_from_state", "write_splats"]

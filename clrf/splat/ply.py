@@ -43,7 +43,7 @@ def write_splat_ply(path, means, log_scales, quats, opacity_logits, sh):
     for c in range(3):
         v[f"f_dc_{c}"] = sh[:, 0, c]
     # channel-major: f_rest_{c * (B - 1) + (b - 1)} is basis b of channel c
-    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (sh.shape[1] - 1))
     for i in range(rest.shape[1]):
         v[f"f_rest_{i}"] = rest[:, i]
     v["opacity"] = np.asarray(opacity_logits, np.float32).reshape(n)
@@ -70,7 +70,40 @@ PLY_FIX = ("re-export it with `clrf export --splats FILE.ply`, or use the point_
 
 
 class SplatFileError(InputFileError):
-    """A splat PLY that cannot be read: the message names the file, what is wrong and the fix."""
+    """A splat file (.ply, .spz, .splat) that cannot be read: the message names the file, what
+    is wrong and the fix."""
+
+
+def file_bytes(path, what: str) -> bytes:
+    """The bytes of ``path``; an unreadable file raises SplatFileError naming it (``what``: the
+    kind of file expected, for the fix)."""
+    try:
+        return Path(path).read_bytes()
+    except OSError as e:
+        raise SplatFileError(f"{path}: cannot read the splat file ({e.strerror or e}); pass "
+                             f"the path of {what}") from None
+
+
+def splat_arrays(means, log_scales, quats, opacity_logits, sh) -> dict:
+    """The five arrays of n splats checked and as float64, for the quantising writers (SPZ,
+    .splat): means [n, 3], log_scales [n, 3], quats [n, 4] (w, x, y, z), opacity_logits [n],
+    sh [n, B, 3]. A wrong shape or a non-finite value raises ValueError naming the array."""
+    means = np.asarray(means, np.float64).reshape(-1, 3)
+    n = len(means)
+    sh = np.asarray(sh, np.float64)
+    if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
+        raise ValueError(f"sh: expected [{n}, 1|4|9|16, 3], got {sh.shape}")
+    out = {"means": means, "sh": sh}
+    for k, v, shape in (("log_scales", log_scales, (n, 3)), ("quats", quats, (n, 4)),
+                        ("opacity_logits", opacity_logits, (n,))):
+        v = np.asarray(v, np.float64)
+        if v.size != int(np.prod(shape)):
+            raise ValueError(f"{k}: expected {list(shape)} values, got shape {v.shape}")
+        out[k] = v.reshape(shape)
+    for k, v in out.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{k}: {int(np.sum(~np.isfinite(v)))} values are not finite")
+    return out
 
 
 def read_splat_ply(path) -> dict:
@@ -81,11 +114,7 @@ def read_splat_ply(path) -> dict:
     truncated file, a non-square number of SH coefficients or a non-finite value raise
     SplatFileError naming the file and the property."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise SplatFileError(f"{path}: cannot read the splat file ({e.strerror or e}); pass "
-                             f"the path of a splat PLY") from None
+    data = file_bytes(path, "a splat PLY")
     if not data.startswith(b"ply\n") or b"end_header\n" not in data[:1 << 16]:
         raise SplatFileError(f"{path}: not a PLY file (no 'ply' ... 'end_header' header); "
                              f"{PLY_FIX}")
