@@ -270,34 +270,23 @@ def pytest_fixture_setup(fixturedef, request):
              _cpu_seconds() - c0))
 
 
-def _timed_phase(item, when):
-    t0, c0 = time.perf_counter(), _cpu_seconds()
-    yield
-    item.stash.setdefault(_TIMED, {})[when] = (time.perf_counter() - t0, _cpu_seconds() - c0)
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_setup(item):
-    if _timing_on(item.config):
-        yield from _timed_phase(item, "setup")
-    else:
+def _timed_phase(when):
+    """The hook wrapper that times phase ``when`` (setup, call, teardown) of each test."""
+    @pytest.hookimpl(hookwrapper=True)
+    def wrapper(item):
+        if not _timing_on(item.config):
+            yield
+            return
+        t0, c0 = time.perf_counter(), _cpu_seconds()
         yield
+        item.stash.setdefault(_TIMED, {})[when] = (time.perf_counter() - t0,
+                                                   _cpu_seconds() - c0)
+    return wrapper
 
 
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_call(item):
-    if _timing_on(item.config):
-        yield from _timed_phase(item, "call")
-    else:
-        yield
-
-
-@pytest.hookimpl(hookwrapper=True)
-def pytest_runtest_teardown(item):
-    if _timing_on(item.config):
-        yield from _timed_phase(item, "teardown")
-    else:
-        yield
+pytest_runtest_setup = _timed_phase("setup")
+pytest_runtest_call = _timed_phase("call")
+pytest_runtest_teardown = _timed_phase("teardown")
 
 
 @pytest.hookimpl(hookwrapper=True)

@@ -32,7 +32,7 @@ def test_the_quick_selection_touches_every_module_with_fewer_tests():
     assert len(quick) < len(every) / 3, (len(quick), len(every))
 
 
-def test_the_table_adds_up_by_file(tmp_path):
+def test_the_table_adds_up_by_file():
     rows = [
         {"nodeid": "tests/test_a.py::t1", "when": "setup", "outcome": "passed", "wall": 2.0,
          "cpu": 3.0, "fixtures": [["built", "module", 1.5, 2.5]]},
