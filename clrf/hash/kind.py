@@ -67,6 +67,41 @@ def from_state(device, state, cfg):
     return HashModel.from_state_dict(device, state, bounded=_bounded(device))
 
 
+class Distributed:
+    """The hash grid over MPI ranks, data-parallel (clrf/runtime/dataparallel.py): every rank
+    holds the whole model and trains its share of each batch; the gradients are summed over
+    the ranks before every Adam step, so the models stay identical and rank 0 writes the one
+    checkpoint."""
+
+    brick = None        # one checkpoint, read whole on every rank (checkpoint.load)
+
+    def __init__(self, comm):
+        self.comm = comm
+
+    def check(self, cfg):
+        """ValueError naming the setting when ``cfg`` cannot run on these ranks."""
+        if cfg.hash.exposure:
+            raise ValueError(f"hash.exposure: the colour transforms per image are not summed "
+                             f"over MPI ranks yet ({self.comm.Get_size()} ranks); pass --set "
+                             f"hash.exposure=false or run as one process")
+
+    def rank_config(self, cfg):
+        """Every rank holds the whole model: the configuration as it is."""
+        return cfg
+
+    def _join(self, model):
+        from ..runtime.dataparallel import DataParallel
+        model.ranks = DataParallel(self.comm)
+        return model
+
+    def create(self, device, cfg, ds, background):
+        return self._join(create(device, cfg, ds, background))
+
+    def from_state(self, device, state, cfg):
+        return self._join(from_state(device, state, cfg))
+
+
 KIND = Kind(name="hash", title="multiresolution hash encoding + tiny MLPs",
             config=HashConfig, presets=HASH_PRESETS, scene_presets=SCENE_PRESETS,
-            create=create, from_state=from_state, memory=budget.memory, programs=programs)
+            create=create, from_state=from_state, memory=budget.memory, programs=programs,
+            distributed=Distributed)

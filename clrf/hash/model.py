@@ -193,6 +193,8 @@ class HashModel:
         self._adam_all = (AdamSet(device, [self._adam_table, self._adam_net])
                           if getattr(device.tuning, "gpu_kernels", False) else None)
         self.exposure = None           # RayExposure (hash.exposure): attach_exposure
+        # one rank of a data-parallel run over MPI (clrf/runtime/dataparallel.py), or None
+        self.ranks = None
 
     def attach_exposure(self, n_images: int, pixels: int, masked: bool,
                         state: dict | None = None):
@@ -324,8 +326,11 @@ class HashModel:
         if self.exposure is not None and (index is None or int(index.shape[0]) != B):
             raise ValueError("train_step: hash.exposure needs each ray's image index [B]")
         self.maybe_update_occupancy(it)
-        loss, live = self.loss_and_grad(it, origins, dirs, target, background=background,
-                                        index=index)
+        if self.ranks is None:
+            loss, live = self.loss_and_grad(it, origins, dirs, target, background=background,
+                                            index=index)
+        else:   # this rank's share of the batch; the gradients summed over the ranks
+            loss, live = self._rank_loss_and_grad(it, origins, dirs, target, background)
         if live:
             lr = self.lr_at(it)
             if self._adam_all is not None:
@@ -339,9 +344,31 @@ class HashModel:
         if self._marched is not None:
             rays, marched = self._marched
             self._marched = None
-            self._adapt_batch(rays, int(marched))
+            if self.ranks is None:
+                self._adapt_batch(rays, int(marched))
+            else:   # the whole batch's rays and live samples, the same on every rank
+                self._adapt_batch(B, self.ranks.total(int(marched)))
         self.step += 1
         return loss
+
+    def _rank_loss_and_grad(self, it: int, origins, dirs, target, background):
+        """(loss, live samples) of the whole batch when this model is one rank of a
+        data-parallel run (``ranks``, clrf/runtime/dataparallel.py): this rank marches its
+        share of the rays, scaled by the whole batch's size, and every rank then holds the
+        gradients summed over the ranks; the loss and the live samples are the sums too."""
+        dp, B = self.ranks, int(origins.shape[0])
+        lo, hi = dp.share(B)
+        mine = [a[lo:hi].copy() for a in (origins, dirs, target)]
+        if hi > lo:
+            loss, live = self.loss_and_grad(it, *mine, background=background, rays_total=B)
+        else:   # fewer rays than ranks: nothing of this batch here
+            loss, live, self._marched = 0.0, 0, (0, 0)
+        if live == 0:       # loss_and_grad left the network's gradient as it was
+            self.net.grad.fill(0)
+        loss, total = dp.total(float(loss)), dp.total(int(live))
+        if total:
+            dp.sum_gradients([(self.net.grad, None), (self.enc.grad, self._table_spans)])
+        return loss, total
 
     def sample_capacity(self, rays: int) -> int:
         """Rows of a bounded step's sample buffers for a batch of ``rays``: every bin of every
@@ -352,7 +379,7 @@ class HashModel:
         return full if target <= 0 else min(full, BOUND_FACTOR * int(target))
 
     def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None,
-                      index=None):
+                      index=None, rays_total: int | None = None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
@@ -363,10 +390,12 @@ class HashModel:
         in the training images), and the transforms take their Adam step here."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
-        scale = 1.0 / (3.0 * B)
+        scale = 1.0 / (3.0 * (B if rays_total is None else int(rays_total)))
         jitter = c.perturb if jitter is None else bool(jitter)
+        # each rank of a data-parallel run jitters its rays with its own stream
+        stream = 0 if self.ranks is None or self.ranks.rank == 0 else 100 + self.ranks.rank
         pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, jitter,
-                   step_key(self.seed, it, 0), contract=self.contraction,
+                   step_key(self.seed, it, stream), contract=self.contraction,
                    cap=self.sample_capacity(B) if self.bounded else None)
         q = dev.queue
         marched = pk.m
@@ -407,7 +436,10 @@ class HashModel:
             loss = Pending(q, sq, scale)
         else:
             loss = float(sq.get()) * scale
-            self._adapt_batch(B, marched)
+            if rays_total is None:
+                self._adapt_batch(B, marched)
+            else:   # train_step adapts to the whole batch's live samples
+                self._marched = (B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
             return loss, 0
         dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)

@@ -257,6 +257,18 @@ BRICK_REF_ATOL = 1e-12
 # bounds are 10x / 4x that and still 20x below what the 20 steps change (loss -70%, PSNR +13).
 DIST_TRAIN_RTOL = 1e-3   # mean training loss, relative
 DIST_TRAIN_ATOL = 0.02   # eval PSNR (dB) and SSIM, absolute
+# Data-parallel hash grid (clrf/runtime/dataparallel.py) vs one process on the same device and
+# batch: each rank sums its share's terms, then the shares are added; only the order of the
+# float32 sums differs. Seen on the test's scene: 1.2e-7 of the largest network gradient, 7e-8
+# of the largest table gradient, 4e-8 relative on the loss. A rank's share missing or counted
+# twice moves the gradients by O(1) of their size and the loss by O(1e-1).
+DATA_PARALLEL_GRAD_REL_TO_MAX = 1e-5
+DATA_PARALLEL_LOSS_RTOL = 1e-6
+# A few training steps: the losses, each of a batch through parameters Adam moved from the
+# same gradients up to that rounding (Adam's first steps are about lr * sign(gradient), so a
+# table entry whose gradient rounds to the other sign moves 2 lr apart: the parameters are
+# not compared). Seen: 1.5e-7 relative over 6 steps.
+DATA_PARALLEL_STEPS_LOSS_RTOL = 1e-5
 # ---- viewer (clrf/viewer, tests/test_viewer_browser.py) ------------------------------------------
 # The browser shows the viewer's frame and `clrf render --camera-path` writes one for the same
 # camera: both come from identical rays (the page's float64 matrix travels as shortest round-trip

@@ -378,6 +378,10 @@ class Trainer:
             sink.row(kw)
 
     def save(self):
+        whole = self.comm is not None and not hasattr(self.model, "checkpoint_layout")
+        if whole and not self.primary:   # every rank holds the whole model: rank 0 writes it
+            self.comm.Barrier()
+            return
         state = self.model.state_dict()
         state.update(iteration=self.iteration, seconds=self.seconds,
                      run_config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
@@ -385,7 +389,11 @@ class Trainer:
             reso, bricks = self.model.checkpoint_layout()
             checkpoint.save_distributed(self.ckpt_path, state, self.comm, reso, bricks)
         else:
-            checkpoint.save(self.ckpt_path, state)
+            try:
+                checkpoint.save(self.ckpt_path, state)
+            finally:
+                if whole:
+                    self.comm.Barrier()
 
     def _plot(self, title, downscale):
         if self.primary:
