@@ -188,7 +188,7 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
 
 
 def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False,
-             seconds=None):
+             seconds=None, comm=None):
     """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
 
     downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
@@ -203,10 +203,45 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     reference_exposure.shared_gain_psnr).
     seconds: a further view is started only where, at the mean time of those before it, it
     would end within this many seconds of wall time (the first always is; ``res["views"]``
-    lists those rendered)."""
+    lists those rendered).
+    comm: the ranks of a data-parallel run (every rank holds the whole model): the views are
+    dealt out round-robin, each rank renders its own, and every rank returns the result of
+    all of them, in their order (``seconds`` is then not used)."""
+    keep = len(views) if keep_images is True else int(keep_images)
+    if comm is None:
+        per_view, images, sums = _render_views(model, ds, views, keep, downscale, half_fitted,
+                                               seconds)
+    else:
+        P, r = comm.Get_size(), comm.Get_rank()
+        parts = comm.allgather(_render_views(model, ds, list(views)[r::P],
+                                             max(0, -(-(keep - r) // P)), downscale,
+                                             half_fitted, None))
+        order = [(g % P, g // P) for g in range(len(views))]   # view g: rank g % P's
+        per_view = [parts[p][0][i] for p, i in order]
+        sums = [parts[p][2][i] for p, i in order] if half_fitted else []
+        images = [parts[p][1][i] for p, i in order[:keep]]
+    mse = float(np.mean([m["mse"] for m in per_view]))
+    res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
+           "ssim": float(np.mean([m["ssim"] for m in per_view])),
+           "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
+    if half_fitted:
+        for k in ("psnr_half_fitted", "psnr_right_half"):
+            res[k] = float(np.mean([m[k] for m in per_view]))
+        from ..references.reference_exposure import shared_gain_psnr
+        gain, shared = shared_gain_psnr(sums)
+        for m, p in zip(per_view, shared):
+            m["psnr_shared_gain"] = float(p)
+        res["psnr_shared_gain"], res["shared_gain"] = float(np.mean(shared)), gain.tolist()
+        res["gain_sums"] = sums   # to pool views evaluated one call each (cli/evaluate.py)
+    if keep:
+        res["images"] = images
+    return res
+
+
+def _render_views(model, ds, views, keep: int, downscale: int, half_fitted: bool, seconds):
+    """evaluate()'s renders: (per-view metrics, the first ``keep`` renders, the gain sums)."""
     H, W = ds.hw[0] // downscale, ds.hw[1] // downscale
     per_view, images, sums = [], [], []
-    keep = len(views) if keep_images is True else int(keep_images)
     t0 = time.perf_counter()
     for i, v in enumerate(views):
         if i and seconds is not None:
@@ -230,22 +265,7 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
         per_view.append(m)
         if i < keep:
             images.append(np.clip(rgb, 0, 1))
-    mse = float(np.mean([m["mse"] for m in per_view]))
-    res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
-           "ssim": float(np.mean([m["ssim"] for m in per_view])),
-           "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
-    if half_fitted:
-        for k in ("psnr_half_fitted", "psnr_right_half"):
-            res[k] = float(np.mean([m[k] for m in per_view]))
-        from ..references.reference_exposure import shared_gain_psnr
-        gain, shared = shared_gain_psnr(sums)
-        for m, p in zip(per_view, shared):
-            m["psnr_shared_gain"] = float(p)
-        res["psnr_shared_gain"], res["shared_gain"] = float(np.mean(shared)), gain.tolist()
-        res["gain_sums"] = sums   # to pool views evaluated one call each (cli/evaluate.py)
-    if keep:
-        res["images"] = images
-    return res
+    return per_view, images, sums
 
 
 RENDER_DIR = "renders"   # the final evaluation's first test views, render | ground truth
@@ -369,6 +389,12 @@ class Trainer:
         # periodic evaluations: downscaled, but no smaller than the 11x11 SSIM window
         self.eval_downscale = max(1, min(t.eval_downscale, min(ds.hw) // EVAL_MIN_SIDE))
 
+    @property
+    def _eval_comm(self):
+        """The ranks that share out an evaluation's views: those of a data-parallel run, whose
+        every rank holds the whole model (its ``ranks``), else None."""
+        return self.comm if getattr(self.model, "ranks", None) is not None else None
+
     def _row(self, **kw):
         if not self.primary:
             return
@@ -478,10 +504,11 @@ class Trainer:
         # one; a quick evaluation all of them)
         allowance = EVAL_SHARE / (1.0 - EVAL_SHARE) * self.seconds - loop.eval_spent
         t0, built = time.perf_counter(), getattr(self.device, "build_seconds", 0.0)
-        # (under MPI every rank renders them all: a rank's render may be collective)
+        # (under MPI every rank renders them all, a rank's render may be collective, or
+        # where every rank holds the whole model, each renders its share)
         ev = evaluate(self.model, self.ds, views, downscale=scale,
                       seconds=None if self.comm is not None else
-                      max(allowance, EVAL_STRETCH_MIN_S))
+                      max(allowance, EVAL_STRETCH_MIN_S), comm=self._eval_comm)
         views = views[:len(ev["views"])]
         # its cost without one-off program builds (the first evaluation builds the renderer)
         loop.eval_wall = max(0.0, time.perf_counter() - t0
@@ -590,7 +617,7 @@ class Trainer:
         if t.final_eval and not interrupted:
             fitted = getattr(self.model, "exposure", None) is not None
             ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS,
-                          half_fitted=fitted)
+                          half_fitted=fitted, comm=self._eval_comm)
             if self.primary:
                 result["renders"] = [str(p) for p in save_renders(
                     self.out, self.ds, self.test_views, ev.pop("images"))]
