@@ -72,7 +72,7 @@ def main(out, n=400, k=None):
     q = dev.queue
     shard = rast.upload({name: a[lo:hi] for name, a in host.items()})
     cams = cameras(k)
-    proj, seen, counts = D.gather_records(comm, rast, shard, cams)
+    proj, seen, counts, _ = D.gather_records(comm, rast, shard, cams)
     res = {}
     g2d = None
     if proj is not None:
@@ -111,5 +111,120 @@ def main(out, n=400, k=None):
         np.savez(out, **res)
 
 
-if __name__ == "__main__":
+
+def train(out, steps=6):
+    """`train`: DistSplatModel on the procedural scene for a few steps against one process
+    doing the same batches (each step the mean gradient of P views, rates times sqrt(P))."""
+    import clrf
+    from clrf.data.synthetic import load_procedural
+    from clrf.runtime.mpi import world
+    from clrf.runtime.programs import upload
+    from clrf.splat.distributed import DistSplatModel
+    from clrf.splat.model import SplatModel, camera_of
+    from clrf.splat.strategy import StepInfo
+    from clrf.training.config import build_config
+
+    comm = world()
+    P, r = comm.Get_size(), comm.Get_rank()
+    dev = clrf.Device()
+    ds = load_procedural(n_train=16, n_test=2, size=40)
+    cfg = build_config("procedural", overrides={
+        "train": {"model": "splat"}, "splat": {"init": "random", "init_points": 300}})
+    from clrf.splat.model import create_model
+    dist = create_model(dev, cfg, ds, (0.0, 0.0, 0.0), cls=DistSplatModel)
+    dist._join_ranks(comm, dist.max_count).take_shard()
+    losses = [dist.train_step(it) for it in range(int(steps))]
+    shards = comm.gather((dist.host_params(), dist.host_moments()), root=0)
+    if r:
+        return
+    one = create_model(dev, cfg, ds, (0.0, 0.0, 0.0))
+    one.lr_scale = float(np.sqrt(P))
+    losses1 = []
+    for it in range(int(steps)):
+        total, mse = None, 0.0
+        for k in range(P):
+            v = one.view_of(it * P + k)
+            cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
+            params = one._rparams()
+            proj, bins, ras = one.rast.forward(params, cam, one.background)
+            grad, stats = one._loss().loss_and_grad(ras.rgb, one._target(v))
+            mse += one._loss_fn.read(stats)["mse"] / P
+            absgrad = one.strategy.absgrad
+            g2d = one.rast.rasterize_backward(proj, bins, ras, cam, grad, one.background,
+                                              absgrad=absgrad)
+            grads = one.rast.project_backward(params, cam, g2d)
+            one.strategy.after_backward(one, StepInfo(proj.radius,
+                                                      g2d["xy_abs" if absgrad else "xy"],
+                                                      cam.width, cam.height), grads)
+            if total is None:
+                total = grads
+            else:
+                for name in total:
+                    total[name] += grads[name]
+        for name in total:
+            total[name] *= np.float32(1.0 / P)
+        one.step += 1
+        one._adam(total, one.step)
+        losses1.append(mse)
+    res = {"losses": np.array(losses), "losses1": np.array(losses1)}
+    for name, v in one.host_params().items():
+        res[f"p1_{name}"] = v
+        res[f"p_{name}"] = np.concatenate([s[0][name] for s in shards])
+    res["stats1"] = one.host_moments()["stats"]
+    res["stats"] = np.concatenate([s[1]["stats"] for s in shards], axis=1)
+    np.savez(out, **res)
+
+
+if __name__ == "__main__" and sys.argv[1] == "train":
+    train(*sys.argv[2:])
+    sys.exit(0)
+
+
+
+
+def rebalance(out):
+    """`rebalance`: shards of 70 % and 30 % (2 ranks; 3 ranks: 60, 30, 10 %) evened out;
+    rank 0 writes the joined table before and after and the counts after."""
+    import clrf
+    from clrf.data.synthetic import load_procedural
+    from clrf.runtime.mpi import world
+    from clrf.splat.distributed import DistSplatModel
+    from clrf.splat.model import create_model
+    from clrf.training.config import build_config
+
+    comm = world()
+    P, r = comm.Get_size(), comm.Get_rank()
+    dev = clrf.Device()
+    ds = load_procedural(n_train=4, n_test=1, size=24)
+    cfg = build_config("procedural", overrides={
+        "train": {"model": "splat"}, "splat": {"init": "random", "init_points": 1000}})
+    m = create_model(dev, cfg, ds, (0.0, 0.0, 0.0), cls=DistSplatModel)
+    m._join_ranks(comm, m.max_count)
+    whole = m.host_params()
+    m.accum.set(np.arange(m.n, dtype=np.float32))   # the statistics move with their rows
+    mom = m.host_moments()
+    cuts = np.round(np.cumsum([0] + ([0.7, 0.3] if P == 2 else [0.6, 0.3, 0.1])) * m.n)
+    lo, hi = int(cuts[r]), int(cuts[r + 1])
+    m._release()
+    m._set_host({k: v[lo:hi] for k, v in whole.items()},
+                {k: (v[:, lo:hi] if k == "stats" else v[lo:hi]) for k, v in mom.items()})
+    counts = comm.allgather(m.n)
+    m.rebalance(counts)
+    after = comm.gather((m.host_params(), m.host_moments()["stats"]), root=0)
+    if r == 0:
+        res = {"counts": np.array([a[0]["means"].shape[0] for a in after]),
+               "stats": np.concatenate([a[1] for a in after], axis=1),
+               "stats0": mom["stats"]}
+        for k, v in whole.items():
+            res[f"before_{k}"] = v
+            res[f"after_{k}"] = np.concatenate([a[0][k] for a in after])
+        np.savez(out, **res)
+
+
+if __name__ == "__main__" and sys.argv[1] == "rebalance":
+    rebalance(*sys.argv[2:])
+    sys.exit(0)
+
+
+if __name__ == "__main__" and sys.argv[1] not in ("train", "rebalance"):
     main(*sys.argv[1:])

@@ -202,8 +202,8 @@ class DistGridModel(GridModel):
                       "hi": list(b.hi), "reso": list(b.reso)},
         }
 
-    def checkpoint_layout(self):
-        """(the whole grid's resolution, the bricks' [lo, hi] boxes) for the checkpoint's
+    def checkpoint_layout(self) -> dict:
+        """The whole grid's resolution and the bricks' [lo, hi] boxes for the checkpoint's
         manifest (clrf/outputs/checkpoint.py save_distributed, which names the files)."""
-        return (list(self.grid.march_reso),
-                [[list(b.lo), list(b.hi)] for b in self.bricks])
+        return {"reso": list(self.grid.march_reso),
+                "bricks": [[list(b.lo), list(b.hi)] for b in self.bricks]}

@@ -51,10 +51,13 @@ def brick_file_name(iteration: int, rank: int, ranks: int) -> str:
     return f"ckpt.it{int(iteration):09d}.rank{int(rank)}of{int(ranks)}.npz"
 
 
-def save_distributed(path, state: dict, comm, reso, bricks):
-    """Collective: every rank of ``comm`` writes its brick's ``state`` to its own brick file
-    beside ``path``, then rank 0 writes the manifest ``path`` naming them, with the whole grid's
-    ``reso`` and the bricks' ``[lo, hi]`` boxes, and removes older brick files."""
+def save_distributed(path, state: dict, comm, reso=None, bricks=None, rows=None):
+    """Collective: every rank of ``comm`` writes its part's ``state`` to its own file beside
+    ``path``, then rank 0 writes the manifest ``path`` naming them, and removes older part
+    files. The layout of the parts: a grid's bricks (the whole grid's ``reso`` and the bricks'
+    ``[lo, hi]`` boxes; each state's own box under "brick"), or shards of a table's rows
+    (``rows``: {state key: the axis its rows run along}; each state's own place under
+    "shard"), which ``load`` joins in rank order."""
     path = Path(path)
     it = int(state["iteration"])
     r, P = comm.Get_rank(), comm.Get_size()
@@ -63,9 +66,14 @@ def save_distributed(path, state: dict, comm, reso, bricks):
     names = comm.gather(mine, root=0)
     if r == 0:
         meta = {k: v for k, v in state.items() if not isinstance(v, np.ndarray)}
-        meta.pop("brick")
-        meta.update(distributed={"ranks": P, "files": names, "reso": list(reso)},
-                    bricks=bricks)
+        meta.pop("brick", None)
+        meta.pop("shard", None)
+        if rows is not None:
+            meta.update(distributed={"ranks": P, "files": names, "layout": "shards",
+                                     "rows": dict(rows)})
+        else:
+            meta.update(distributed={"ranks": P, "files": names, "reso": list(reso)},
+                        bricks=bricks)
         save(path, meta)
         remove_unreferenced_bricks(path.parent)
     comm.Barrier()
@@ -102,18 +110,43 @@ def _read(path) -> dict:
     return state
 
 
-def merge_bricks(path, manifest) -> dict:
-    """The whole-grid state of a distributed checkpoint: the owned voxels of every brick file,
-    rows in C order of the voxels (as SparseGrid builds them)."""
-    d = manifest["distributed"]
-    reso = tuple(int(r) for r in d["reso"])
+def _parts(path, manifest) -> list:
+    """The states of a manifest's part files, in rank order."""
     parts = []
-    for name in d["files"]:
+    for name in manifest["distributed"]["files"]:
         f = Path(path).parent / name
         if not f.is_file():
             raise CheckpointError(f"checkpoint {path} names brick file {name}, which is missing: "
                                   f"copy the whole run directory")
         parts.append(_read(f))
+    return parts
+
+
+def merge_shards(path, manifest) -> dict:
+    """The whole state of a checkpoint whose ranks each held a shard of a table's rows: every
+    per-row array of the parts joined in rank order along its axis (the manifest's "rows"),
+    everything else the manifest's."""
+    rows = manifest["distributed"]["rows"]
+    parts = _parts(path, manifest)
+    state = {k: v for k, v in manifest.items() if k != "distributed"}
+    for key, axis in rows.items():
+        have = [st[key] for st in parts if key in st]
+        if not have:
+            continue
+        if len(have) != len(parts):
+            raise CheckpointError(f"checkpoint {path}: '{key}' is in {len(have)} of its "
+                                  f"{len(parts)} shard files; it may be from an interrupted "
+                                  f"copy: use a complete run directory")
+        state[key] = np.concatenate(have, axis=int(axis))
+    return state
+
+
+def merge_bricks(path, manifest) -> dict:
+    """The whole-grid state of a distributed checkpoint: the owned voxels of every brick file,
+    rows in C order of the voxels (as SparseGrid builds them)."""
+    d = manifest["distributed"]
+    reso = tuple(int(r) for r in d["reso"])
+    parts = _parts(path, manifest)
     keys = ("density", "sh", "opt_density", "opt_sh")
     chunks = {k: [] for k in keys}
     gidx = []
@@ -160,5 +193,5 @@ def load(path, brick=None) -> dict:
             own = _read(f)
             own.update({k: v for k, v in state.items() if k != "distributed"})
             return own
-        state = merge_bricks(path, state)
+        state = (merge_shards if d.get("layout") == "shards" else merge_bricks)(path, state)
     return state

@@ -35,6 +35,8 @@ import numpy as np
 
 from .raster import Projected
 from ..runtime.programs import download, upload
+from .model import FILTER3D_EVERY, SplatModel, camera_of
+from .strategy import StepInfo
 
 # the columns of a projected record: xy 2, conic 3, radius, depth, colour 3, opacity, rect 4
 # (int32 bits in float32 columns)
@@ -92,12 +94,15 @@ def gather_records(comm, rast, params: dict, cams: list):
     owned by rank k; fewer cameras than ranks: the ranks past them own none), each camera's
     records sent to its owner. Returns (this rank's camera's Projected of every rank's
     records in rank order, or None where it owns none; seen: for each camera the rows of this
-    shard it sees; counts: for this rank's camera the number of records from each rank)."""
+    shard it sees; counts: for this rank's camera the number of records from each rank;
+    radii: for each camera this shard's screen radii [n] on the device, 0 where unseen)."""
     P, r = comm.Get_size(), comm.Get_rank()
-    seen, parts = [], []
+    seen, parts, radii = [], [], []
     for k in range(P):
         if k < len(cams):
-            rows, rec = _records(rast.project(params, cams[k]))
+            shard = rast.project(params, cams[k])
+            rows, rec = _records(shard)
+            radii.append(shard.radius)
         else:
             rows, rec = np.zeros(0, np.int64), np.zeros((0, RECORD), np.float32)
         seen.append(rows)
@@ -105,7 +110,7 @@ def gather_records(comm, rast, params: dict, cams: list):
     got = _alltoallv(comm, parts)
     counts = [len(g) for g in got]
     proj = projected_of(rast.device, np.concatenate(got)) if r < len(cams) else None
-    return proj, seen, counts
+    return proj, seen, counts, radii
 
 
 def return_grads(comm, g2d: dict | None, counts: list, seen: list, n: int, absgrad: bool):
@@ -149,3 +154,202 @@ def allgather_records(comm, rast, params: dict, cam) -> Projected:
     out = np.empty(int(counts.sum()), np.float32)
     comm.Allgatherv(np.ascontiguousarray(rec.reshape(-1)), [out, (counts, displ), MPI.FLOAT])
     return projected_of(rast.device, out.reshape(-1, RECORD))
+
+
+# ---- the model ------------------------------------------------------------------------------
+REBALANCE_AT = 0.10   # shards are evened out when the largest exceeds the smallest by this share
+# the per-Gaussian arrays of a state (clrf/splat/model.py state_dict) and the axis their rows
+# run along: what a checkpoint's shards join (clrf/outputs/checkpoint.py merge_shards)
+ROW_KEYS = {**{f"param_{k}": 0 for k in ("means", "log_scales", "quats", "opacity_logits",
+                                          "sh")},
+            **{f"adam_{k}_{m}": 0 for k in ("means", "log_scales", "quats", "opacity_logits",
+                                            "sh") for m in ("m", "v")},
+            "adam_stats": 1, "filter3d": 0}
+
+
+def shard_bounds(n: int, ranks: int) -> list:
+    """[lo, hi) of each rank's rows of n (the first n % ranks one more)."""
+    base, extra = divmod(int(n), int(ranks))
+    out, lo = [], 0
+    for r in range(int(ranks)):
+        hi = lo + base + (1 if r < extra else 0)
+        out.append((lo, hi))
+        lo = hi
+    return out
+
+
+def _split_cap(cap: int, ranks: int, rank: int) -> int:
+    lo, hi = shard_bounds(cap, ranks)[rank]
+    return max(1, hi - lo)
+
+
+def _rows(d: dict, a: int, b: int) -> dict:
+    """Rows [a, b) of every per-row array of ``d`` (the statistics [3, n] by column)."""
+    return {k: (v[:, a:b] if k == "stats" else v[a:b]) for k, v in d.items()}
+
+
+def _join(parts: list) -> dict:
+    return {k: np.concatenate([p[k] for p in parts], axis=1 if k == "stats" else 0)
+            for k in parts[0]}
+
+
+class DistSplatModel(SplatModel):
+    """One rank's shard of the Gaussians and its view of the batch (module doc). Its renders
+    are collective: every rank must call them together."""
+
+    comm = None
+
+    def _join_ranks(self, comm, cap: int):
+        """Become rank comm.Get_rank()'s shard of this (whole or own) model; ``cap`` the
+        whole run's cap on the Gaussians."""
+        self.comm = comm
+        self.P, self.rank = comm.Get_size(), comm.Get_rank()
+        self.cap_total = int(cap)
+        self.max_count = _split_cap(cap, self.P, self.rank)
+        self.lr_scale = float(np.sqrt(self.P))    # BATCH_LR
+        self.n_total = self._total(self.n)        # (take_shard counts again)
+        return self
+
+    def _total(self, x: int) -> int:
+        from mpi4py import MPI
+        return int(self.comm.allreduce(int(x), op=MPI.SUM))
+
+    def take_shard(self):
+        """Keep this rank's rows of a model every rank holds whole (the same Gaussians
+        everywhere: a new run, or a checkpoint joined from another rank count)."""
+        lo, hi = shard_bounds(self.n, self.P)[self.rank]
+        host, mom = self.host_params(), self.host_moments()
+        f2 = download(self.filter3d) if self.filter3d is not None else None
+        self._release()
+        self._set_host(_rows(host, lo, hi), _rows(mom, lo, hi))
+        if f2 is not None:
+            self.filter3d = upload(self.device.queue, np.ascontiguousarray(f2[lo:hi]))
+        self.n_total = self._total(self.n)
+        return self
+
+    # ---- training ----------------------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        """Pixels of a step: one training view per rank."""
+        return self.P * super().batch_size
+
+    def train_step(self, it, origins=None, dirs=None, target=None, background=None):
+        """One Adam step of this shard on the P views of step ``it`` (views it P ..
+        it P + P - 1 of the one-process order), view k rendered by rank k; returns the
+        batch's mean squared error (the mean over its views, the same on every rank)."""
+        from mpi4py import MPI
+        ds = self._dataset()
+        views = [self.view_of(it * self.P + k) for k in range(self.P)]
+        cams = [camera_of(ds.poses[v], ds.intrinsics, ds.hw) for v in views]
+        bg = self.background
+        if self.rast.antialiased and self.step - self.filter_step >= FILTER3D_EVERY:
+            self.filter3d = None
+        params = self._rparams()
+        proj, seen, counts, radii = gather_records(self.comm, self.rast, params, cams)
+        cam, v = cams[self.rank], views[self.rank]
+        bins = self.rast.bin(proj, cam)
+        ras = self.rast.rasterize(proj, bins, cam, bg)
+        grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
+        absgrad = self.strategy.absgrad
+        g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg, absgrad=absgrad)
+        mse = self._loss_fn.read(stats)["mse"]
+        back = return_grads(self.comm, g2d, counts, seen, self.n, absgrad)
+        q = self.device.queue
+        total = None
+        for k, g in enumerate(back):
+            g = {name: upload(q, np.ascontiguousarray(a)) for name, a in g.items()}
+            grads = self.rast.project_backward(params, cams[k], g)
+            self.strategy.after_backward(
+                self, StepInfo(radii[k], g["xy_abs" if absgrad else "xy"],
+                               int(cams[k].width), int(cams[k].height)), grads)
+            if total is None:
+                total = grads
+            else:
+                for name in total:
+                    total[name] += grads[name]
+        for name in total:          # the batch's mean gradient
+            total[name] *= np.float32(1.0 / self.P)
+        self.step += 1
+        self._adam(total, self.step)
+        self.strategy.after_step(self)
+        return float(self.comm.allreduce(float(mse), op=MPI.SUM)) / self.P
+
+    def on_iteration(self, it, budget):
+        """The one-process schedules on this shard; after density control the counts of
+        every rank, and the shards evened out where they differ by more than
+        REBALANCE_AT."""
+        msg = super().on_iteration(it, budget)   # the schedule is the same on every rank
+        if not msg:
+            return msg
+        counts = self.comm.allgather(int(self.n))
+        before, self.n_total = self.n_total, int(sum(counts))
+        msg = (f"{msg} (rank {self.rank}'s shard); {before} -> {self.n_total} Gaussians over "
+               f"{self.P} ranks")
+        if max(counts) > (1 + REBALANCE_AT) * max(min(counts), 1):
+            self.rebalance(counts)
+            msg += f", shards evened out (they held {' + '.join(map(str, counts))})"
+        return msg
+
+    def rebalance(self, counts):
+        """Rows move to the ranks whose even share of the table they fall in: the table's
+        order is kept, so each rank sends only the rows that change owner (pickled by
+        mpi4py's alltoall)."""
+        old = np.concatenate([[0], np.cumsum(counts)])
+        new = shard_bounds(int(old[-1]), self.P)
+        lo, hi = int(old[self.rank]), int(old[self.rank + 1])
+        host, mom = self.host_params(), self.host_moments()
+        send = []
+        for a, b in new:
+            s, e = max(lo, a), min(hi, b)
+            send.append((_rows(host, s - lo, e - lo), _rows(mom, s - lo, e - lo))
+                        if e > s else None)
+        got = [g for g in self.comm.alltoall(send) if g is not None]
+        self._release()
+        self.device.pool.free_held()
+        self._set_host(_join([g[0] for g in got]), _join([g[1] for g in got]))
+
+    # ---- renders (collective) ------------------------------------------------------
+    def render_image(self, c2w, intrinsics, hw, depth: bool = True) -> dict:
+        """The one-process render_image, every rank's splats composited on every
+        rank (collective)."""
+        cam = camera_of(c2w, intrinsics, hw)
+        proj = allgather_records(self.comm, self.rast, self._rparams(), cam)
+        bins = self.rast.bin(proj, cam)
+        ras = self.rast.rasterize(proj, bins, cam, self.background, depth=depth)
+        out = {"rgb": download(ras.rgb), "acc": (1.0 - download(ras.T)).astype(np.float32)}
+        if depth:
+            zs, acc = download(ras.depth), out["acc"]
+            out["depth"] = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(
+                np.float32)
+        return out
+
+    def describe(self) -> str:
+        return super().describe().replace(f"{self.n} Gaussians",
+                                          f"{self.n_total} Gaussians over {self.P} ranks",
+                                          1)
+
+    # ---- checkpoints -----------------------------------------------------------------
+    def state_dict(self) -> dict:
+        st = super().state_dict()
+        st["max_count"] = self.cap_total          # the whole run's (a joined checkpoint)
+        st["shard"] = {"rank": self.rank, "ranks": self.P}
+        return st
+
+    def checkpoint_layout(self) -> dict:
+        """The per-Gaussian arrays the checkpoint's shards join (save_distributed)."""
+        return {"rows": ROW_KEYS}
+
+
+
+def check_settings(cfg, ranks: int):
+    """ValueError naming the setting that splats over ``ranks`` MPI ranks do not take."""
+    c = cfg.splat
+    for key, on, why in (
+            ("splat.exposure", c.exposure, "the colour transforms per image"),
+            ("splat.pose_opt", c.pose_opt, "the pose corrections"),
+            ("splat.strategy", c.strategy == "mcmc",
+             "MCMC's regularisers and relocation (weighted by the whole count)")):
+        if on:
+            raise ValueError(f"{key}: {why} are not split over MPI ranks yet ({ranks} ranks); "
+                             f"turn it off (--set {key}={'default' if key.endswith('strategy') else 'false'}) "
+                             f"or run as one process")

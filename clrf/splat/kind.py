@@ -71,6 +71,40 @@ def programs(device, cfg):
     exposure.program(device)
 
 
+class Distributed:
+    """Splats over MPI ranks (clrf/splat/distributed.py): the Gaussians split into a shard per
+    rank, a batch of one view per rank; the checks of a run's settings and the factories."""
+
+    def __init__(self, comm):
+        self.comm = comm
+        self.brick = (comm.Get_rank(), comm.Get_size())   # checkpoint.load(brick=...)
+
+    def check(self, cfg):
+        """ValueError naming the setting when ``cfg`` cannot run on these ranks."""
+        from .distributed import check_settings
+        check_settings(cfg, self.comm.Get_size())
+
+    def rank_config(self, cfg):
+        """The configuration the memory guard checks against each rank: the whole run's (a
+        rank holds its shard, and the whole table once while the first Gaussians are cut)."""
+        return cfg
+
+    def create(self, device, cfg, ds, background):
+        from .distributed import DistSplatModel
+        from .model import create_model
+        m = create_model(device, cfg, ds, background, cls=DistSplatModel)
+        return m._join_ranks(self.comm, m.max_count).take_shard()
+
+    def from_state(self, device, state, cfg):
+        from .distributed import DistSplatModel
+        m = DistSplatModel.from_state_dict(device, state)
+        own = state.get("shard") or {}
+        m._join_ranks(self.comm, int(state["max_count"]))
+        if int(own.get("ranks", 0)) != self.comm.Get_size():   # a joined checkpoint: cut it
+            m.take_shard()
+        return m
+
+
 SPLATS = Export(help="3D Gaussian splats, the format by the ending: .ply (the standard 3DGS "
                      "PLY layout, x, y, z, nx, ny, nz, f_dc_0..2, f_rest_*, opacity, "
                      "scale_0..2, rot_0..3), .spz (Niantic's compressed SPZ) or .splat "
@@ -81,4 +115,4 @@ KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole v
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
             exports={"splats": SPLATS}, batches="views", check=check, world_cameras=True,
-            wants_points=wants_points, programs=programs)
+            wants_points=wants_points, programs=programs, distributed=Distributed)

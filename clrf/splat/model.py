@@ -282,6 +282,9 @@ class SplatModel:
         c = self.config
         prg = self.device.program("splat_train.cl")
         lrs = learning_rates(c, self.lr_means)
+        if self.lr_scale != 1.0:   # a batch of views (clrf/splat/distributed.py)
+            lrs = {k: (tuple(self.lr_scale * x for x in v) if isinstance(v, tuple)
+                       else self.lr_scale * v) for k, v in lrs.items()}
         for k in GROUPS:
             self.opts[k].grad = grads[k]
         if self._adam_groups is not None:
@@ -473,6 +476,7 @@ class SplatModel:
                             "apply; export the Gaussians with --splats FILE.ply")
 
     initialised_from = ""   # create_model: where the first Gaussians came from
+    lr_scale = 1.0          # the learning rates' factor (a batch of views: distributed.py)
 
     def describe(self) -> str:
         start = f" (from {self.initialised_from})" if self.step == 0 and \
@@ -771,14 +775,15 @@ def check_inputs(cfg, ds, caps, read_ply: bool = True):
         gaussians_from_ply(sc, sc.init_ply, gaussian_cap(cfg, ds, caps))
 
 
-def create_model(device, cfg, ds, background) -> SplatModel:
-    """A new model for dataset ``ds`` (world-space cameras only)."""
+def create_model(device, cfg, ds, background, cls=None) -> SplatModel:
+    """A new model for dataset ``ds`` (world-space cameras only); ``cls``: a subclass of
+    SplatModel to make instead (clrf/splat/distributed.py)."""
     check_inputs(cfg, ds, device.caps, read_ply=False)   # initial_host reads and checks it
     sc = cfg.splat
     cap = gaussian_cap(cfg, ds, device.caps)
     seed = int(cfg.train.seed) + int(sc.seed)
     host, m_from = initial_host(sc, ds, cap, seed)
-    m = SplatModel(device, sc, host, background, scene_extent(ds), ds.bbox, seed, cap)
+    m = (cls or SplatModel)(device, sc, host, background, scene_extent(ds), ds.bbox, seed, cap)
     m.initialised_from = m_from
     m.attach(ds, cfg.train.max_train_images)
     return m

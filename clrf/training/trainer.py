@@ -411,12 +411,14 @@ class Trainer:
         state = self.model.state_dict()
         state.update(iteration=self.iteration, seconds=self.seconds,
                      run_config=self.cfg.to_dict(), dataset=dataset_meta(self.ds))
-        if hasattr(self.model, "checkpoint_layout"):   # collective: every rank its brick
-            reso, bricks = self.model.checkpoint_layout()
-            checkpoint.save_distributed(self.ckpt_path, state, self.comm, reso, bricks)
+        if hasattr(self.model, "checkpoint_layout"):   # collective: every rank its part
+            checkpoint.save_distributed(self.ckpt_path, state, self.comm,
+                                        **self.model.checkpoint_layout())
         else:
             try:
                 checkpoint.save(self.ckpt_path, state)
+                # a distributed checkpoint's part files, resumed by one process, are stale
+                checkpoint.remove_unreferenced_bricks(self.out)
             finally:
                 if whole:
                     self.comm.Barrier()
