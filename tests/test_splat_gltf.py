@@ -462,6 +462,10 @@ BAD_GLTF = {
     "a mirroring node": (_edit(lambda d: d["nodes"][0].update(scale=[1, 1, -1])),
                          "mirrors, collapses"),
     "a node cycle": (_edit(lambda d: d["nodes"][0].update(children=[0])), "cycle"),
+    "a node matrix of 3 numbers": (_edit(lambda d: d["nodes"][0].update(matrix=[1, 0, 0])),
+                                   "nodes\\[0\\]: matrix .*is malformed"),
+    "an extension that is no object": (_edit(lambda d: _prim(d)["extensions"].update(
+        {EXT: "ellipse"})), "extensions.KHR_gaussian_splatting is not an object"),
 }
 
 

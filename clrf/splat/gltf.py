@@ -354,16 +354,21 @@ def _buffer_index(path, doc, view, i) -> int:
 
 
 # ---- reading: the scene ---------------------------------------------------------------------
-def node_matrix(node: dict) -> np.ndarray:
-    """A node's local 4x4 transform: its column-major ``matrix``, or T R S."""
-    if "matrix" in node:
-        return np.asarray(node["matrix"], np.float64).reshape(4, 4).T
-    m = np.eye(4)
-    x, y, z, w = node.get("rotation", [0.0, 0.0, 0.0, 1.0])
-    m[:3, :3] = quat_matrix(np.array([[w, x, y, z]]))[0] * np.asarray(node.get("scale",
-                                                                               [1, 1, 1]))
-    m[:3, 3] = node.get("translation", [0.0, 0.0, 0.0])
-    return m
+def node_matrix(path, node: dict, i: int) -> np.ndarray:
+    """Node ``i``'s local 4x4 transform: its column-major ``matrix``, or T R S; SplatFileError
+    where a field is not numbers of the right count."""
+    try:
+        if "matrix" in node:
+            return np.asarray(node["matrix"], np.float64).reshape(4, 4).T
+        m = np.eye(4)
+        x, y, z, w = np.asarray(node.get("rotation", [0.0, 0.0, 0.0, 1.0]), np.float64)
+        m[:3, :3] = quat_matrix(np.array([[w, x, y, z]]))[0] * np.asarray(
+            node.get("scale", [1.0, 1.0, 1.0]), np.float64).reshape(3)
+        m[:3, 3] = np.asarray(node.get("translation", [0.0, 0.0, 0.0]), np.float64).reshape(3)
+        return m
+    except (TypeError, ValueError):
+        raise _fail(path, f"nodes[{i}]: matrix (16 numbers), translation (3), rotation (4) "
+                          f"or scale (3) is malformed") from None
 
 
 def quat_matrix(q) -> np.ndarray:
@@ -447,12 +452,15 @@ def splat_primitives(path, doc) -> list:
         node = _item(path, doc, "nodes", i, "a scene")
         if depth > len(nodes):
             raise _fail(path, f"nodes[{i}]: the node hierarchy has a cycle")
-        m = parent @ node_matrix(node)
+        m = parent @ node_matrix(path, node, i)
         if "mesh" in node:
             mesh = _item(path, doc, "meshes", node["mesh"], f"nodes[{i}]")
             for j, p in enumerate(mesh.get("primitives", [])):
-                if EXTENSION in p.get("extensions", {}):
-                    found.append((p, m, f"meshes[{node['mesh']}].primitives[{j}]"))
+                if isinstance(p, dict) and EXTENSION in p.get("extensions", {}):
+                    where = f"meshes[{node['mesh']}].primitives[{j}]"
+                    if not isinstance(p["extensions"][EXTENSION], dict):
+                        raise _fail(path, f"{where}: extensions.{EXTENSION} is not an object")
+                    found.append((p, m, where))
         stack += [(c, m, depth + 1) for c in node.get("children", [])]
     return found
 
@@ -529,7 +537,8 @@ def read_gltf(path) -> dict:
         raise _fail(path, f"extensionsRequired names {', '.join(required)}, which clrf does not "
                           f"decode: write the file without compression")
     prims = splat_primitives(path, doc)
-    if not prims and any(m.get("primitives") for m in _list(path, doc, "meshes")):
+    if not prims and any(isinstance(m, dict) and m.get("primitives")
+                         for m in _list(path, doc, "meshes")):
         raise _fail(path, f"no mesh primitive has the {EXTENSION} extension: a mesh, not "
                           f"Gaussian splats")
     buffers = load_buffers(path, doc, glb_bin) if prims else []
