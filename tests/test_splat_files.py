@@ -464,6 +464,21 @@ def test_init_ply_takes_each_format(tmp_path, suffix):
         np.testing.assert_array_equal(host[k], g[k])
 
 
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_a_cut_file_stops_the_run(tmp_path, capsys, suffix):
+    """splat.init_ply=FILE cut short, in every format: exit 2 before the run starts, one line
+    naming the file."""
+    from clrf.cli.main import main as cli
+    path = tmp_path / f"cut{suffix}"
+    write_splat_file(path, **_splats(300, 1, seed=3))
+    path.write_bytes(path.read_bytes()[:-21])
+    assert cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "no"),
+                "--max-seconds", "2", "--set", f"splat.init_ply={path}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("clrf: error:") == 1 and str(path) in err
+    assert not (tmp_path / "no" / "ckpt.npz").exists()
+
+
 def test_export_names_every_ending(trained, tmp_path, capsys):
     from clrf.cli.main import main as cli
     assert cli(["export", "--ckpt", str(trained), "--splats", str(tmp_path / "s.obj")]) == 2
