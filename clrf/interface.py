@@ -120,7 +120,7 @@ class Export:
         return (self.suffix,) if isinstance(self.suffix, str) else tuple(self.suffix)
 
     def suffix_list(self) -> str:
-        """'.ply', or '.ply, .spz or .splat', for messages."""
+        """'.ply', or '.ply, .spz or .splat' (every ending), for messages."""
         s = self.suffixes
         return s[0] if len(s) == 1 else ", ".join(s[:-1]) + " or " + s[-1]
 

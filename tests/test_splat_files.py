@@ -2,7 +2,8 @@
 antimatter15's .splat both ways, against float64 expectations of each format's quantisation;
 SPZ's axes (RUB) against the PLY's (RDF) on a hand-made asymmetric Gaussian; every malformed
 file refused with one message naming it; and through the command line, a trained model
-exported as .ply, .spz and .splat that read back alike, and a run started from an .spz."""
+exported in every format (glTF and the compressed PLY have their own test modules too) that
+read back alike, a run started from an .spz, and splat.init_ply taking every ending."""
 import gzip
 import struct
 
@@ -325,7 +326,9 @@ def test_no_gaussians(tmp_path, suffix):
                             np.zeros(0), np.zeros((0, 4, 3))) == 0
     back = read_splat_file(path)
     assert back["means"].shape == (0, 3)
-    assert back["sh"].shape == (0, 1 if suffix == ".splat" else 4, 3)
+    # .splat keeps degree 0; glTF writes no mesh (accessors hold at least one element), so no
+    # SH attributes to tell the degree by
+    assert back["sh"].shape == (0, 1 if suffix in (".splat", ".glb", ".gltf") else 4, 3)
 
 
 # ---- bad files --------------------------------------------------------------------------------
@@ -399,14 +402,15 @@ def test_missing_file_and_unknown_endings(tmp_path, name):
         assert all(s in str(e.value) for s in SUFFIXES)
 
 
-@pytest.mark.parametrize("suffix", [".spz", ".splat"])
+@pytest.mark.parametrize("suffix", [".spz", ".splat", ".glb", ".gltf", ".compressed.ply"])
 def test_writers_refuse_non_finite_values(tmp_path, suffix):
     g = _splats(3, 1)
     g["log_scales"][1, 2] = np.nan
     with pytest.raises(ValueError, match="log_scales: 1 values are not finite"):
         write_splat_file(tmp_path / f"x{suffix}", **g)
     assert not list(tmp_path.iterdir())
-    with pytest.raises(ValueError, match=r"\.ply, \.spz or \.splat"):
+    with pytest.raises(ValueError, match=r"\.ply, \.spz, \.glb, \.gltf, \.compressed\.ply or "
+                                         r"\.splat"):
         write_splat_file(tmp_path / "x.obj", **_splats(3, 1))
 
 
@@ -431,13 +435,56 @@ def test_export_each_format_reads_back_like_the_ply(trained, tmp_path, capsys):
     check_spz(read_splat_file(paths[".spz"]), ply)
     check_splat(read_splat_file(paths[".splat"]), ply)
     assert paths[".spz"].stat().st_size < paths[".ply"].stat().st_size / 5
+    from test_splat_compressed import check_compressed
+    assert "(glTF binary, KHR_gaussian_splatting)" in out
+    assert "(SuperSplat compressed PLY)" in out
+    for s in (".glb", ".gltf"):     # float32 kept: the same positions and colours
+        g = read_splat_file(paths[s])
+        np.testing.assert_array_equal(g["means"], ply["means"])
+        np.testing.assert_array_equal(g["sh"], ply["sh"])
+        _within(_sigmoid(g["opacity_logits"]), _sigmoid(ply["opacity_logits"]), 0, s)
+    check_compressed(read_splat_file(paths[".compressed.ply"]), ply)
+    assert paths[".compressed.ply"].stat().st_size < paths[".ply"].stat().st_size / 3
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_init_ply_takes_each_format(tmp_path, suffix):
+    """splat.init_ply=FILE of every ending: the first Gaussians are what the file reads as."""
+    import dataclasses
+    from clrf.data import load_dataset
+    from clrf.splat import model as sm
+    from clrf.splat.config import SplatConfig
+    path = tmp_path / f"start{suffix}"
+    write_splat_file(path, **_splats(300, 3, seed=2))
+    g = read_splat_file(path)
+    sc = dataclasses.replace(SplatConfig.from_preset("tiny"), init_ply=str(path))
+    host, where = sm.initial_host(sc, load_dataset(None), cap=10 ** 6, seed=0)
+    assert where.startswith(f"300 Gaussians of {path}")
+    for k in ("means", "log_scales", "quats", "opacity_logits"):
+        np.testing.assert_array_equal(host[k], g[k])
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_a_cut_file_stops_the_run(tmp_path, capsys, suffix):
+    """splat.init_ply=FILE cut short, in every format: exit 2 before the run starts, one line
+    naming the file."""
+    from clrf.cli.main import main as cli
+    path = tmp_path / f"cut{suffix}"
+    write_splat_file(path, **_splats(300, 1, seed=3))
+    path.write_bytes(path.read_bytes()[:-21])
+    assert cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "no"),
+                "--max-seconds", "2", "--set", f"splat.init_ply={path}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("clrf: error:") == 1 and str(path) in err
+    assert not (tmp_path / "no" / "ckpt.npz").exists()
 
 
 def test_export_names_every_ending(trained, tmp_path, capsys):
     from clrf.cli.main import main as cli
     assert cli(["export", "--ckpt", str(trained), "--splats", str(tmp_path / "s.obj")]) == 2
     err = capsys.readouterr().err
-    assert err.count("clrf: error:") == 1 and ".ply, .spz or .splat" in err
+    assert err.count("clrf: error:") == 1
+    assert ".ply, .spz, .glb, .gltf, .compressed.ply or .splat" in err
 
 
 def test_a_run_starts_from_an_spz(trained, tmp_path, capsys):

@@ -200,6 +200,12 @@ if [ "$want_eval" -eq 1 ] && ! .venv/bin/python -c "import torch, lpips" >/dev/n
     .venv/bin/python -m pip install -q "${CLRF_TORCH:-torch==2.13.0}"
     .venv/bin/python -m pip install -q --no-deps "lpips==0.1.4"
 fi
+if [ "$want_eval" -eq 1 ] && ! .venv/bin/python -c "import gsplat.exporter" >/dev/null 2>&1; then
+    # gsplat's exporter writes the compressed PLY and .splat that tests/test_splat_compressed.py
+    # reads (files clrf did not write); it needs torch and numpy only, no CUDA or compiler, so
+    # gsplat goes in without its other dependencies (jaxtyping, rich, ninja: its CUDA build's)
+    .venv/bin/python -m pip install -q --no-deps "gsplat==1.5.3"
+fi
 
 # `clrf devices --check` prints the default device and its probe figure; exit 0: fine,
 # 3: the best device is a slow driver, anything else: no working device. Run outside the

@@ -39,7 +39,7 @@ def kind_exports(a) -> dict:
         v = getattr(a, name.replace("-", "_"), None)
         if v:
             p = Path(v)
-            if p.suffix.lower() not in exp.suffixes or p.is_dir():
+            if not p.name.lower().endswith(exp.suffixes) or p.is_dir():
                 raise _error(f"--{name} {v}: the output must be a {exp.suffix_list()} file, "
                              f"e.g. --{name} scene{exp.suffixes[0]}")
             out[name] = p

@@ -27,12 +27,13 @@ class SplatConfig:
     #                                 colours), "random" (init_points uniform in the scene's
     #                                 box, and for unbounded scenes as many again beyond it),
     #                                 "auto" (points when the dataset has them, else random)
-    init_ply: str = ""              # a splat file to start from: .ply, .spz or .splat
-    #                                 by its ending, instead of init (clrf export --splats,
-    #                                 the 3DGS tools' point_cloud.ply, Scaniverse's .spz, in
-    #                                 the dataset's world frame): its SH bands beyond
-    #                                 sh_degree are dropped, missing ones start at zero;
-    #                                 "" : use init
+    init_ply: str = ""              # a splat file to start from, any export --splats ending
+    #                                 (.ply .spz .glb .gltf .compressed.ply .splat), read by
+    #                                 its ending instead of init (clrf export --splats, the
+    #                                 3DGS tools' point_cloud.ply, Scaniverse's .spz,
+    #                                 SuperSplat's and gsplat's compressed PLY, in the
+    #                                 dataset's world frame): its SH bands beyond sh_degree
+    #                                 are dropped, missing ones start at zero; "" : use init
     init_points: int = 100000       # random Gaussians at the start (init "random"); with
     #                                 "points" the sparse points are subsampled to this many;
     #                                 capped by max_gaussians and by what fits the device

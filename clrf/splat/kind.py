@@ -107,9 +107,11 @@ class Distributed:
 
 SPLATS = Export(help="3D Gaussian splats, the format by the ending: .ply (the standard 3DGS "
                      "PLY layout, x, y, z, nx, ny, nz, f_dc_0..2, f_rest_*, opacity, "
-                     "scale_0..2, rot_0..3), .spz (Niantic's compressed SPZ) or .splat "
+                     "scale_0..2, rot_0..3), .spz (Niantic's compressed SPZ), .glb / .gltf (glTF "
+                     "2.0, KHR_gaussian_splatting), .compressed.ply (SuperSplat's) or .splat "
                      "(antimatter15's, SH degree 0)",
-                suffix=(".ply", ".spz", ".splat"), write=write_splats)
+                suffix=(".ply", ".spz", ".glb", ".gltf", ".compressed.ply", ".splat"),
+                write=write_splats)
 
 KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole views)",
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,

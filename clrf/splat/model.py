@@ -654,7 +654,7 @@ def gaussians_from_points(config: SplatConfig, points, n: int, seed: int) -> dic
 
 
 def gaussians_from_ply(sc: SplatConfig, path, cap: int) -> tuple[dict, str]:
-    """(the Gaussians of splat file ``path`` (.ply, .spz or .splat, files.py) at sh_degree,
+    """(the Gaussians of splat file ``path`` (any ending files.py reads) at sh_degree,
     where they came from); more than ``cap`` of them is refused (SplatFileError, a bad input)
     with the fix."""
     from .files import read_splat_file
@@ -795,8 +795,9 @@ def model_from_state(device, state, cfg) -> SplatModel:
 
 
 def write_splats(model: SplatModel, path) -> str:
-    """``clrf export --splats FILE``: the Gaussians as a 3DGS PLY, an SPZ or a .splat file by
-    the ending (files.py); an anti-aliased model's SPZ carries the format's flag."""
+    """``clrf export --splats FILE``: the Gaussians in the format the ending names (files.py:
+    3DGS PLY, SPZ, glTF, compressed PLY, .splat); an anti-aliased model's SPZ carries the
+    format's flag."""
     from .files import format_of, write_splat_file
     p = model.host_params()
     note = ""

@@ -70,8 +70,8 @@ PLY_FIX = ("re-export it with `clrf export --splats FILE.ply`, or use the point_
 
 
 class SplatFileError(InputFileError):
-    """A splat file (.ply, .spz, .splat) that cannot be read: the message names the file, what
-    is wrong and the fix."""
+    """A splat file (any format files.py reads) that cannot be read: the message names the
+    file, what is wrong and the fix."""
 
 
 def file_bytes(path, what: str) -> bytes:
