@@ -167,6 +167,10 @@ class Kind:
                    the same functions the model calls; on a recording stand-in
                    (clrf/training/catalog.py) this lists them for offline builds
                    (tools/gpu_builds.py). None: none listed
+    scene_file     (path) -> a checkpoint's state, or None: a file of this kind's own that
+                   commands taking a trained scene (``--ckpt``) read as one, such as a splat
+                   file another tool wrote; a file it cannot read raises ValueError naming it.
+                   None: checkpoints only
     """
     name: str
     title: str
@@ -185,6 +189,7 @@ class Kind:
     world_cameras: bool = False
     wants_points: Optional[Callable] = None
     programs: Optional[Callable] = None
+    scene_file: Optional[Callable] = None
 
 
 def render_view(model, c2w, intrinsics, hw, rays, depth: bool = True):

@@ -71,6 +71,12 @@ def programs(device, cfg):
     exposure.program(device)
 
 
+def scene_file(path):
+    """The checkpoint state of a splat file (scenefile.py), or None where ``path`` is not one."""
+    from .scenefile import is_scene_file, state_from_file
+    return state_from_file(path) if is_scene_file(path) else None
+
+
 class Distributed:
     """Splats over MPI ranks (clrf/splat/distributed.py): the Gaussians split into a shard per
     rank, a batch of one view per rank; the checks of a run's settings and the factories."""
@@ -117,4 +123,5 @@ KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole v
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
             exports={"splats": SPLATS}, batches="views", check=check, world_cameras=True,
-            wants_points=wants_points, programs=programs, distributed=Distributed)
+            wants_points=wants_points, programs=programs, distributed=Distributed,
+            scene_file=scene_file)

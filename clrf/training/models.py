@@ -15,8 +15,19 @@ def config_from_state(state) -> Config:
 
 
 def load_model(device, ckpt):
-    """(model, state, config) from a run directory or checkpoint file."""
-    state = checkpoint.load(ckpt)
+    """(model, state, config) from a run directory or checkpoint file, or a file a model kind
+    reads as a trained scene (Kind.scene_file: a splat file)."""
+    state = None
+    for k in registry.kinds():
+        if k.scene_file is not None:
+            try:
+                state = k.scene_file(ckpt)
+            except ValueError as e:
+                raise checkpoint.CheckpointError(str(e)) from None
+            if state is not None:
+                break
+    if state is None:
+        state = checkpoint.load(ckpt)
     kind = str(state.get("kind", registry.DEFAULT))
     if kind not in registry.names():
         raise checkpoint.CheckpointError(f"checkpoint {ckpt}: unknown model kind '{kind}'; "

@@ -1,0 +1,121 @@
+"""A splat file as a trained scene (clrf/splat/scenefile.py, Kind.scene_file): `clrf render`,
+`eval`, `export` and `view` take `--ckpt FILE` for every splat format clrf reads, and a
+malformed file is one clear error naming it, exit 2."""
+import gzip
+import struct
+
+import numpy as np
+import pytest
+
+from clrf.splat.files import SUFFIXES, write_splat_file
+
+DEGREE = 3
+
+
+def _splats(n=300, degree=DEGREE, seed=2):
+    """n random Gaussians about the origin (clrf's axes), as a file's arrays."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return {"means": rng.normal(0, 0.5, (n, 3)).astype(np.float32),
+            "log_scales": rng.uniform(-3.5, -2.0, (n, 3)).astype(np.float32),
+            "quats": (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+            "opacity_logits": rng.uniform(-1.0, 3.0, n).astype(np.float32),
+            "sh": rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)).astype(np.float32)}
+
+
+def _write(path, g):
+    write_splat_file(path, g["means"], g["log_scales"], g["quats"], g["opacity_logits"], g["sh"])
+    return path
+
+
+def test_ply_scene_renders_as_the_model_of_its_splats(device, tmp_path):
+    """The model load_model makes of a .ply holds the file's splats: its render equals a
+    SplatModel's of the same arrays; the state names the file and orbits the splats' box."""
+    from clrf.splat.model import SplatModel
+    from clrf.splat.config import SplatConfig
+    from clrf.training.models import load_model
+    g = _splats()
+    f = _write(tmp_path / "scene.ply", g)
+    model, state, cfg = load_model(device, f)
+    assert model.n == 300 and model.config.sh_degree == DEGREE and cfg.train.model == "splat"
+    assert state["dataset"]["name"] == "scene.ply"
+    lo, hi = np.asarray(state["dataset"]["bbox"])
+    assert np.all(lo < 0) and np.all(hi > 0) and np.all(hi - lo < 3.0)
+    direct = SplatModel(device, SplatConfig(sh_degree=DEGREE), g, (0.0, 0.0, 0.0), 1.0,
+                        [lo, hi], 0, 300)
+    direct.active_degree = DEGREE
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.0, 0.0, 3.0]              # OpenGL camera on +z looking down -z
+    K = state["dataset"]["intrinsics"]
+    a = model.render_image(c2w, K, (64, 64), depth=False)["rgb"]
+    b = direct.render_image(c2w, K, (64, 64), depth=False)["rgb"]
+    assert a.std() > 0.01
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("suffix", SUFFIXES)
+def test_render_eval_export_take_every_format(tmp_path, suffix):
+    """`clrf render --ckpt FILE` (an orbit), `clrf eval --ckpt FILE` (the built-in scene's
+    test views) and `clrf export --ckpt FILE --splats OUT.ply` for a file of each ending."""
+    from clrf.cli.main import main as cli
+    from clrf.splat.files import read_splat_file
+    degree = 0 if suffix == ".splat" else DEGREE
+    f = _write(tmp_path / f"scene{suffix}", _splats(degree=degree))
+    out = tmp_path / "frames"
+    assert cli(["--quiet", "render", "--ckpt", str(f), "--frames", "2", "--scale", "0.125",
+                "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.glob("*.png")) == ["orbit_000.png", "orbit_001.png"]
+    assert cli(["--quiet", "eval", "--ckpt", str(f), "--max-views", "1",
+                "--out", str(tmp_path / "eval.json")]) == 0
+    assert cli(["--quiet", "export", "--ckpt", str(f), "--splats",
+                str(tmp_path / "back.ply")]) == 0
+    assert read_splat_file(tmp_path / "back.ply")["means"].shape == (300, 3)
+
+
+def _malformed(tmp_path) -> dict:
+    """Ten broken splat files: {name: path}."""
+    g = _splats(50)
+    out = {}
+    good = {s: _write(tmp_path / f"good{s}", _splats(50, degree=0 if s == ".splat" else 3))
+            for s in (".ply", ".spz", ".glb", ".compressed.ply", ".splat")}
+    for s, p in good.items():                 # each cut short
+        b = p.read_bytes()
+        cut = tmp_path / f"cut{s}"
+        cut.write_bytes(b[:len(b) // 2] if s != ".spz" else gzip.compress(
+            gzip.decompress(b)[:40]))
+        out[f"cut{s}"] = cut
+    nan = dict(g)
+    nan["means"] = g["means"].copy()
+    nan["means"][3, 1] = np.nan
+    out["nan.ply"] = _write(tmp_path / "nan.ply", nan)
+    empty = tmp_path / "empty.glb"
+    empty.write_bytes(b"")
+    out["empty.glb"] = empty
+    txt = tmp_path / "json.gltf"
+    txt.write_text("{not json")
+    out["json.gltf"] = txt
+    ply = (tmp_path / "good.ply").read_bytes()
+    head, body = ply.split(b"end_header\n", 1)
+    more = head.replace(b"element vertex 50", b"element vertex 60") + b"end_header\n" + body
+    (tmp_path / "count.ply").write_bytes(more)
+    out["count.ply"] = tmp_path / "count.ply"
+    gone = head.replace(b"property float opacity\n", b"") + b"end_header\n" + body
+    (tmp_path / "noopacity.ply").write_bytes(gone)
+    out["noopacity.ply"] = tmp_path / "noopacity.ply"
+    assert struct.calcsize("<I") == 4
+    return out
+
+
+def test_malformed_files_are_one_clear_error(tmp_path, capsys):
+    """Each broken file: exit 2 from `clrf render --ckpt`, one message naming the file, no
+    traceback."""
+    from clrf.cli.main import main as cli
+    bad = _malformed(tmp_path)
+    assert len(bad) == 10
+    for name, path in bad.items():
+        code = cli(["render", "--ckpt", str(path), "--frames", "1", "--out",
+                    str(tmp_path / f"o_{name}")])
+        err = capsys.readouterr().err
+        assert code == 2, (name, err)
+        assert path.name in err and "Traceback" not in err, (name, err)
+        assert not (tmp_path / f"o_{name}").exists(), name
