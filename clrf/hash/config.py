@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..nerf.config import MLP_ROWS
+from ..mlp.tiling import MLP_ROWS
 from ..splat.config import EXPOSURE_MATRICES
 
 
