@@ -307,7 +307,7 @@ class HashModel:
         the step (the device then still has the step's network passes queued).
 
         index: each ray's place in the concatenated training images (int32 device [B]),
-        needed with a correction per image (``ray_index``)."""
+        needed with hash.exposure (``ray_index``)."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -356,10 +356,9 @@ class HashModel:
         both untouched when no sample is live. L = sum over rays
         and channels of (rgb - target)^2 / (3 B). jitter: None for config.perturb. background:
         the RGB behind the rays (None: the model's own). With ``bounded`` (see train_step) the
-        loss is a Pending and the live samples the buffers' capacity. With a colour correction
-        (clrf/corrections) the loss compares each ray's colour as the correction shows it
-        (index: the rays' places in the training images), and the correction takes its step
-        here."""
+        loss is a Pending and the live samples the buffers' capacity. With hash.exposure the
+        loss compares each ray's colour under its image's transform (index: the rays' places
+        in the training images), and the transforms take their Adam step here."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * B)
@@ -388,8 +387,8 @@ class HashModel:
             sigma, rgb = device_zeros(q, 1, np.float32), device_zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
         colour = self.corrections.colour
-        if colour is not None:   # the backward sees the target whose gradient is the one
-            state = device_zeros(q, (B, STATE), np.float32)   # through the correction
+        if colour is not None:   # the backward sees the target whose gradient is the
+            state = device_zeros(q, (B, STATE), np.float32)   # one through the transform
             if pk.m:
                 packed_forward(dev, pk, sigma, rgb, state)
             eff, sq_rays = colour.forward(state, bg, target, index)

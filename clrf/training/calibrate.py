@@ -1,8 +1,8 @@
 """Exposure calibration (``splat.exposure_calibrate``): a short run at a fraction of the
 resolution whose colour transforms start the real run.
 
-A transform per training image (clrf/corrections/exposure.py) learns from the scene's render, and
-the scene from the transformed images: early on, while the scene is still forming, the rows
+A transform per training image (clrf/corrections/exposure.py) learns from the scene's render,
+and the scene from the transformed images: early on, while the scene is still forming, the rows
 are wrong and the scene keeps what it took under them. A run at an eighth of the resolution
 takes several times the steps a second, and with the rows' first rate held throughout (not
 decayed) its rows get close to the images' true exposures in a small part of the budget. The
