@@ -27,7 +27,8 @@ def _exposure(device, P, masked=False):
 
 def test_the_configs_name_the_kernels_modes_in_the_twins_order():
     """splat.exposure_matrix and hash.exposure_matrix are indexes of the kernels' ``matrix``
-    argument; the configs keep their own copy of the names (they may not import the twin)."""
+    argument; the corrections' settings, which the configs import, keep their own copy of the
+    names (they may not import the twin)."""
     from clrf.corrections import EXPOSURE_MATRICES
     assert EXPOSURE_MATRICES == ref.MATRICES
 
