@@ -98,6 +98,9 @@ class Model(Protocol):
     # Evaluation, `clrf render` and the viewer use it where a model has it (render_view).
     #   attach(ds, max_images): the training views of dataset ds (the first max_images; 0:
     #   all); the trainer calls it after create and after from_state (a resumed run).
+    # Optional, for models with per-view corrections (a colour transform per image, a pose
+    # correction per camera: clrf/corrections): ``corrections``, the list it holds and calls;
+    # the trainer and `clrf eval` report them (clrf.corrections.of(model)).
     # What a kind cannot do raises Unsupported.
 
     def describe(self) -> str:

@@ -1,12 +1,12 @@
 """hash.exposure: the colour transform per training image for ray batches (cl/splat_exposure.cl
-exposure_rays, exposure_rays_bg, exposure_rays_grad; clrf/hash/exposure.py) against its float64
+exposure_rays, exposure_rays_bg, exposure_rays_grad; clrf/corrections/exposure.py) against its float64
 twin (clrf/references/reference_exposure.py) on every OpenCL implementation, and the twin
 against central differences, masked (RGBA) captures and plain ones. The model's use of it:
 tests/test_hash_exposure_model.py."""
 import numpy as np
 import pytest
 
-from clrf.hash.exposure import LOCAL, RayExposure
+from clrf.corrections.exposure import LOCAL, RayExposure
 from clrf.references import reference_exposure as ref
 from clrf.runtime.programs import download, upload
 from clrf.testing import tolerances as tol

@@ -3,6 +3,7 @@ background's share is the gradient through the transform (host-sized and bounded
 learns each image's gain and keeps the transforms in its checkpoint, reports NeRF-W's
 half-fitted protocol and resumes, and bad settings are one clear error (the kernels:
 tests/test_hash_exposure.py)."""
+import dataclasses
 import json
 
 import numpy as np
@@ -34,9 +35,10 @@ def test_model_gradient_through_the_transform(device, masked, bounded):
     idx = upload(q, (np.arange(B) % 4 * 10 + np.arange(B) % 10).astype(np.int32))
     plain = seeded_model(device, SMALL, bounded=bounded)
     want = _grads(plain, _up(device, o), _up(device, d), _up(device, t))
-    m = seeded_model(device, SMALL, bounded=bounded)
-    m.attach_exposure(4, 10, masked=masked)
-    m.exposure.lr = 1e-30
+    m = seeded_model(device, dataclasses.replace(SMALL, exposure=True), bounded=bounded)
+    m.attach_corrections(4, 10, masked=masked)
+    exp = m.corrections.get("exposure")
+    exp.lr = 1e-30
     got = _grads(m, _up(device, o), _up(device, d), _up(device, t), idx)
     assert got[0] == pytest.approx(want[0], rel=1e-5)
     for g, w in zip(got[1:], want[1:]):
@@ -46,7 +48,7 @@ def test_model_gradient_through_the_transform(device, masked, bounded):
     gain = 1.3
     P = np.tile(ref.IDENTITY, (4, 1)).astype(np.float32)
     P[:, [0, 4, 8]] = gain
-    m.exposure.P.set(P)
+    exp.P.set(P)
     got = _grads(m, _up(device, o), _up(device, d), _up(device, t), idx)
     ref_g = _grads(plain, _up(device, o), _up(device, d), _up(device, t / gain))
     assert got[0] == pytest.approx(gain ** 2 * ref_g[0], rel=1e-5)
@@ -82,22 +84,23 @@ def test_training_learns_each_images_gain(device, matrix):
         "hash": {"exposure": True, "lr_exposure": 0.01, "batch_samples": 0,
                  "batch_rays": 1024, "exposure_matrix": matrix}})
     m = registry.get("hash").create(device, cfg, ds, ds.background)
-    assert m.ray_index and m.exposure.n_images == len(ds.split["train"])
+    exp = m.corrections.get("exposure")
+    assert m.ray_index and exp.n_images == len(ds.split["train"])
     rays = training_rays(device, ds)
     for it in range(80):
         assert np.isfinite(train_on_batch(m, rays, 0, it, m.batch_size))
-    rows = m.exposure.rows()
+    rows = exp.rows()
     diag = {k: rows[k][[0, 4, 8]].mean() for k in gains}
     assert min(diag[1], diag[3]) > max(diag[0], diag[2]), diag
-    assert m.exposure.matrix == ref.MATRICES.index(matrix)
+    assert exp.matrix == ref.MATRICES.index(matrix)
     if matrix == "diagonal":
         assert np.all(rows[:, ~ref.TRAINED_DIAGONAL] == 0)
     else:
         assert np.any(rows[:, ~ref.TRAINED_DIAGONAL] != 0)
-    back = HashModel.from_state_dict(device, m.state_dict())
-    assert back.exposure.matrix == m.exposure.matrix
-    assert np.array_equal(back.exposure.rows(), rows) and back.exposure.steps == 80
-    assert back.exposure.pixels == m.exposure.pixels
+    back = HashModel.from_state_dict(device, m.state_dict()).corrections.get("exposure")
+    assert back.matrix == exp.matrix
+    assert np.array_equal(back.rows(), rows) and back.steps == 80
+    assert back.pixels == exp.pixels
 
 
 @pytest.mark.slow

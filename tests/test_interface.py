@@ -23,7 +23,8 @@ from clrf import registry
 from clrf.interface import Budget, Kind, Model, Unsupported
 from test_layout import PKG, import_graph, layer
 
-PRODUCT = ("runtime", "interface", "data", "outputs", "training", "viewer", "cli")
+PRODUCT = ("runtime", "interface", "corrections", "data", "outputs", "training", "viewer",
+           "cli")
 KEY = re.compile(r"\b([a-z]+)\.[a-z_]+\b")   # a configuration key: SECTION.field
 
 

@@ -14,6 +14,8 @@ Layers, bottom to top (a module may import its own layer and the ones below):
                             the grid's gradient self-check compares with one)
     interface               clrf/interface.py: the Model protocol and the Kind record
     mlp                     the fused MLP that nerf and hash share (its tiles, its tuner)
+    corrections             per-view corrections (colour, camera) that models hold and the
+                            trainer reports; no representation owns one
     grid, nerf, hash, splat the representations
     data                    datasets, cameras, protocols
     registry                clrf/registry.py: the representations by name (imported by name)
@@ -34,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "clrf"
 
 REPRESENTATIONS = ("grid", "nerf", "hash", "splat")
-RANK = {"runtime": 0, "references": 0.5, "interface": 0.75, "mlp": 0.9, "grid": 1, "nerf": 1,
-        "hash": 1,
+RANK = {"runtime": 0, "references": 0.5, "interface": 0.75, "mlp": 0.9, "corrections": 0.95,
+        "grid": 1, "nerf": 1, "hash": 1,
         "splat": 1, "data": 1, "registry": 1.5, "outputs": 2, "training": 3, "viewer": 4,
         "testing": 4, "cli": 5}
 

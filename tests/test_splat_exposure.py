@@ -1,5 +1,5 @@
 """The splat model's colour transform per training image (cl/splat_exposure.cl,
-clrf/splat/exposure.py) against its float64 twin (clrf/references/reference_exposure.py), on
+clrf/corrections/exposure.py) against its float64 twin (clrf/references/reference_exposure.py), on
 every OpenCL implementation: apply, the backward pass (dL/drgb and dL/dP, also against finite
 differences of the twin), the Adam step with its pull toward the identity, stiff inputs, and
 NeRF-W's half-fitted protocol. The model's use of it: tests/test_splat_exposure_model.py."""
@@ -8,7 +8,7 @@ import pytest
 
 from clrf.references import reference_exposure as ref
 from clrf.runtime.programs import download, upload
-from clrf.splat.exposure import CHUNK, Exposure
+from clrf.corrections.exposure import CHUNK, Exposure
 from clrf.testing import tolerances as tol
 
 SIZES = [1, 7, CHUNK - 1, CHUNK, CHUNK + 1, 3 * CHUNK + 5]
@@ -27,8 +27,9 @@ def _exposure(device, P, masked=False):
 
 def test_the_configs_name_the_kernels_modes_in_the_twins_order():
     """splat.exposure_matrix and hash.exposure_matrix are indexes of the kernels' ``matrix``
-    argument; the configs keep their own copy of the names (they may not import the twin)."""
-    from clrf.splat.config import EXPOSURE_MATRICES
+    argument; the corrections' settings, which the configs import, keep their own copy of the
+    names (they may not import the twin)."""
+    from clrf.corrections import EXPOSURE_MATRICES
     assert EXPOSURE_MATRICES == ref.MATRICES
 
 

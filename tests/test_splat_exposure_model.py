@@ -32,7 +32,8 @@ def test_training_learns_each_images_gain(device, matrix):
     m.attach(ds)
     for it in range(6 * len(ds.split["train"])):
         assert np.isfinite(m.train_step(it))
-    rows = m.exposure.rows()
+    exp = m.corrections.get("exposure")
+    rows = exp.rows()
     diag = {v: rows[v][[0, 4, 8]].mean() for v in gains}
     brighter = [v for v, g in gains.items() if g > 1]
     darker = [v for v, g in gains.items() if g < 1]
@@ -43,10 +44,10 @@ def test_training_learns_each_images_gain(device, matrix):
     # the checkpoint keeps them
     state = m.state_dict()
     from clrf.splat.model import SplatModel
-    back = SplatModel.from_state_dict(device, state)
-    assert np.array_equal(back.exposure.rows(), rows)
-    assert np.array_equal(back.exposure.steps, m.exposure.steps)
-    assert back.exposure.matrix == m.exposure.matrix
+    back = SplatModel.from_state_dict(device, state).corrections.get("exposure")
+    assert np.array_equal(back.rows(), rows)
+    assert np.array_equal(back.steps, exp.steps)
+    assert back.matrix == exp.matrix
 
 
 def test_exposure_clip_on_by_default_but_not_for_older_checkpoints():
@@ -184,25 +185,27 @@ def test_seeded_rows_hold_until_their_budget_fraction_then_learn(device):
     m.attach(ds)
     seeded = np.tile(IDENTITY, (len(ds.images), 1))
     seeded[:, [0, 4, 8]] = np.random.default_rng(2).uniform(0.8, 1.2, (len(ds.images), 3))
-    m.exposure.seed(seeded, hold_until=0.5)
+    exp = m.corrections.get("exposure")
+    exp.seed(seeded, hold_until=0.5)
     m.progress = 0.2
     before = {k: np.array(v) for k, v in m.host_params().items()}
     n = len(ds.split["train"])
     for it in range(n + 3):    # a whole pass: recentring leaves held rows alone
         assert np.isfinite(m.train_step(it))
-    np.testing.assert_array_equal(m.exposure.rows(), seeded.astype(np.float32))
-    assert not m.exposure.steps.any()
+    np.testing.assert_array_equal(exp.rows(), seeded.astype(np.float32))
+    assert not exp.steps.any()
     after = m.host_params()
     assert any(not np.array_equal(after[k], before[k]) for k in before)   # the scene trained
     from clrf.splat.model import SplatModel
-    assert SplatModel.from_state_dict(device, m.state_dict()).exposure.hold_until == 0.5
+    back = SplatModel.from_state_dict(device, m.state_dict())
+    assert back.corrections.get("exposure").hold_until == 0.5
     m.progress = 0.5
     for it in range(n + 3, n + 9):
         m.train_step(it)
-    assert m.exposure.steps.sum() == 6
-    assert not np.array_equal(m.exposure.rows(), seeded.astype(np.float32))
+    assert exp.steps.sum() == 6
+    assert not np.array_equal(exp.rows(), seeded.astype(np.float32))
     with pytest.raises(ValueError, match="finite rows"):
-        m.exposure.seed(seeded[:-1])
+        exp.seed(seeded[:-1])
 
 
 @pytest.mark.parametrize("key,value", [("exposure_calibrate", 0.6),
@@ -263,7 +266,7 @@ def test_a_calibrated_run_starts_from_the_calibrations_rows(tmp_path, monkeypatc
     rows, held for splat.exposure_calibrate_hold; eval.json says what it did and reports the
     shared-gain score; the calibration's metrics stay, its checkpoint does not."""
     from clrf.cli.main import main as cli
-    from clrf.splat import exposure as E
+    from clrf.corrections import exposure as E
     from clrf.training import calibrate
     seen = {}
     real_calibrate, real_seed = calibrate.calibrate_exposure, E.Exposure.seed

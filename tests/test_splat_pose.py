@@ -1,7 +1,7 @@
 """Pose refinement (splat.pose_opt): the camera's gradient out of the projection's backward
 (cl/splat_project.cl with POSE_GRAD=1) against its float64 twin
 (clrf/references/reference_splat.py camera_backward) and the twin against central differences,
-stiff Gaussians included; the host's chain to the per-camera correction (clrf/splat/pose.py)
+stiff Gaussians included; the host's chain to the per-camera correction (clrf/corrections/pose.py)
 against central differences; a perturbed camera recovered on a fixed scene; and a run that
 refines, saves, reports and resumes its poses."""
 import json
@@ -12,7 +12,7 @@ import pytest
 
 from clrf.references import reference_splat as rs
 from clrf.splat import SplatRasterizer
-from clrf.splat import pose as sp
+from clrf.corrections import pose as sp
 from clrf.splat.raster import camera_gradient
 from clrf.testing import tolerances as tol
 

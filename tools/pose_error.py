@@ -30,7 +30,7 @@ sys.path.append(str(Path(__file__).resolve().parents[1]))   # an installed clrf 
 from clrf.data import load_dataset  # noqa: E402
 from clrf.outputs import checkpoint  # noqa: E402
 from clrf.splat.model import viewmat_of  # noqa: E402
-from clrf.splat.pose import PoseCorrection, rotation_angle  # noqa: E402
+from clrf.corrections.pose import PoseCorrection, rotation_angle  # noqa: E402
 
 
 def errors(views, true) -> dict:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import corrections
 from ..runtime.atomicfile import write_text
 
 
@@ -85,10 +86,11 @@ def cmd_eval(a):
         model.background = tuple(pd.background)      # the protocol's background, not the run's
     t = time.perf_counter()
     per_view, gain_sums = [], []
+    corr = corrections.of(model)
     with bar(len(views), f"eval {a.protocol or 'test'}", "view") as b:
         for v in views:
             ev = evaluate(model, ds, [v], keep_images=lp_why is None, downscale=a.downscale,
-                          half_fitted=getattr(model, "exposure", None) is not None)
+                          half_fitted=corr.colour is not None)
             m = ev["views"][0]
             gain_sums += ev.get("gain_sums", [])
             if lp_why is None:
@@ -115,9 +117,8 @@ def cmd_eval(a):
         for m, p in zip(per_view, shared):
             m["psnr_shared_gain"] = float(p)
         res["psnr_shared_gain"], res["shared_gain"] = float(np.mean(shared)), gain.tolist()
-    pose = getattr(model, "pose", None)
-    if pose is not None:   # splat.pose_opt: how far the training poses were corrected
-        res["pose_correction"] = pose.summary()
+    summaries = corr.summaries()   # e.g. how far the training poses were corrected
+    res.update(summaries)
     if a.refine_poses:   # the same views, each after a correction of its own (BARF's protocol)
         for k in ("psnr", "ssim"):
             res[f"{k}_poses_refined"] = float(np.mean([m[f"{k}_poses_refined"]
@@ -148,11 +149,10 @@ def cmd_eval(a):
               f"{res['psnr_right_half']:.3f}); under one gain per channel for all views PSNR "
               f"{res['psnr_shared_gain']:.3f} (gain "
               f"{' '.join(f'{g:.3f}' for g in res['shared_gain'])})")
-    if pose is not None:
-        pc = res["pose_correction"]
-        print(f"training poses corrected by {pc['rotation_deg']:.3f} deg and "
-              f"{pc['translation']:.4g} ({100 * pc['translation_rel']:.2f} % of the scene's "
-              f"extent) on average over {pc['images']} images (the test views keep theirs)")
+    for c in corr:
+        s = summaries.get(f"{c.name}_correction")
+        if s:
+            print(c.report(s))
     if a.refine_poses:
         pr = res["poses_refined"]
         print(f"with each test view's pose refined ({a.refine_poses} steps against its own "

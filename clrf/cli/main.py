@@ -165,7 +165,8 @@ def cmd_train(a):
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if calibrated is not None:
         hold = cfg.section(kind.name).exposure_calibrate_hold
-        trainer.model.exposure.seed(calibrated[0], hold)
+        from .. import corrections
+        corrections.of(trainer.model).get("exposure").seed(calibrated[0], hold)
         trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog

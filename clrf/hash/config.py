@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..nerf.config import MLP_ROWS
-from ..splat.config import EXPOSURE_MATRICES
+from ..corrections.settings import EXPOSURE_MATRICES
+from ..mlp.tiling import MLP_ROWS
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class HashConfig:
     exposure: bool = False          # learn a colour transform (3 x 3 matrix and offset) per
     #                                 training image, for captures whose exposure or white
     #                                 balance changes (phones); test views are scored under
-    #                                 the identity (clrf/hash/exposure.py)
+    #                                 the identity (clrf/corrections/exposure.py)
     lr_exposure: float = 1e-3       # Adam learning rate of the transforms (every image with
     #                                 rays in a batch steps: each step, on a full batch)
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg

@@ -35,8 +35,8 @@ def programs(device, cfg):
         march.program(device, contract)
     device.program("hash_occ.cl", {})                      # occupancy.py
     if c.exposure:
-        from ..splat.exposure import program as exposure_program
-        exposure_program(device)                           # exposure.py
+        from ..corrections import exposure
+        exposure.program(device)                           # clrf/corrections/exposure.py
     mlp.program(device, mlp_spec(c))
     optim.program(device, "adam")
 
@@ -53,12 +53,12 @@ def create(device, cfg, ds, background):
     near, far = ray_range(ds, hc.contract == "on", ds.unit_far() if ds.ndc else None)
     model = HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed,
                       bounded=_bounded(device))
-    if hc.exposure:   # a row per training image, in the trainer's ray store's order
-        views = ds.split["train"]
-        if cfg.train.max_train_images:
-            views = views[:cfg.train.max_train_images]
-        model.attach_exposure(len(views), int(ds.hw[0]) * int(ds.hw[1]),
-                              masked=ds.alpha is not None)
+    # the per-view corrections: a row per training image, in the trainer's ray store's order
+    views = ds.split["train"]
+    if cfg.train.max_train_images:
+        views = views[:cfg.train.max_train_images]
+    model.attach_corrections(len(views), int(ds.hw[0]) * int(ds.hw[1]),
+                             masked=ds.alpha is not None)
     return model
 
 

@@ -45,6 +45,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from .config import PUBLISHED_MAX_RES, PUBLISHED_WIDTH, HashConfig
+from ..corrections import RAYS, Corrections, Views, build, from_state
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
@@ -192,26 +193,22 @@ class HashModel:
         # and one for the network (faster on PoCL: cl/optim.cl)
         self._adam_all = (AdamSet(device, [self._adam_table, self._adam_net])
                           if getattr(device.tuning, "gpu_kernels", False) else None)
-        self.exposure = None           # RayExposure (hash.exposure): attach_exposure
+        self.corrections = Corrections()   # per-view corrections (clrf/corrections)
         # one rank of a data-parallel run over MPI (clrf/runtime/dataparallel.py), or None
         self.ranks = None
 
-    def attach_exposure(self, n_images: int, pixels: int, masked: bool,
-                        state: dict | None = None):
-        """hash.exposure: a colour transform per training image of ``pixels`` pixels (masked:
-        an RGBA capture, whose background the transforms leave alone); training steps then
-        need each ray's index in the concatenated training images."""
-        from .exposure import RayExposure
-        c = self.config
-        self.exposure = RayExposure(self.device, n_images, pixels, c.lr_exposure,
-                                    c.exposure_reg, (c.beta1, c.beta2), state=state,
-                                    masked=masked, matrix=c.exposure_matrix)
+    def attach_corrections(self, n_images: int, pixels: int, masked: bool):
+        """The per-view corrections the config turns on, a row per training image of
+        ``pixels`` pixels (masked: an RGBA capture); training steps then may need each ray's
+        index in the concatenated training images (``ray_index``)."""
+        self.corrections = build(self.device, self.config, Views(n_images, masked, pixels),
+                                 RAYS)
 
     @property
     def ray_index(self) -> bool:
         """Whether train_step needs each ray's index in the training images (the trainer
         passes it)."""
-        return self.exposure is not None
+        return self.corrections.ray_index
 
     # ---- evaluation of the fields at points ---------------------------------------------
     @property
@@ -323,8 +320,9 @@ class HashModel:
         if dirs.shape[0] != B or target.shape[0] != B or B == 0:
             raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
                              f"{origins.shape}, {dirs.shape}, {target.shape}")
-        if self.exposure is not None and (index is None or int(index.shape[0]) != B):
-            raise ValueError("train_step: hash.exposure needs each ray's image index [B]")
+        if self.ray_index and (index is None or int(index.shape[0]) != B):
+            raise ValueError("train_step: the per-image corrections need each ray's image "
+                             "index [B]")
         self.maybe_update_occupancy(it)
         if self.ranks is None:
             loss, live = self.loss_and_grad(it, origins, dirs, target, background=background,
@@ -417,16 +415,17 @@ class HashModel:
         else:
             sigma, rgb = device_zeros(q, 1, np.float32), device_zeros(q, (1, 3), np.float32)
         bg = self.background if background is None else background
-        if self.exposure is not None:   # the backward sees the target whose gradient is the
+        colour = self.corrections.colour
+        if colour is not None:   # the backward sees the target whose gradient is the
             state = device_zeros(q, (B, STATE), np.float32)   # one through the transform
             if pk.m:
                 packed_forward(dev, pk, sigma, rgb, state)
-            eff, sq_rays = self.exposure.forward(state, bg, target, index)
+            eff, sq_rays = colour.forward(state, bg, target, index)
             g = packed_backward(dev, pk, sigma, rgb, (0.0, 0.0, 0.0), eff, scale)
-            self.exposure.add_background(pk, sigma, scale, g["sigma"])
+            colour.add_background(pk, sigma, scale, g["sigma"])
             with first_run(dev, ("cla.sum", sq_rays.dtype)):
                 sq = cla.sum(sq_rays, queue=q)
-            self.exposure.backward_and_step(state, bg, index, scale)
+            colour.backward_and_step(state, bg, index, scale)
         else:
             g = packed_backward(dev, pk, sigma, rgb, bg, target, scale)
             # summed on the device (pyopencl's reduction): one number comes back, not B
@@ -551,7 +550,7 @@ class HashModel:
                 f"MLP {c.width}+{c.geo_features} / {c.color_depth}x{c.color_width}, "
                 f"{c.samples} samples{' (contracted scene)' if self.contraction else ''}, "
                 f"occupied {100 * self.occ.occupied_fraction():.1f}%"
-                + (f", {self.exposure.describe()}" if self.exposure is not None else ""))
+                + (f", {self.corrections.describe()}" if self.corrections else ""))
 
     # ---- checkpoints --------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -566,7 +565,7 @@ class HashModel:
                 "mlp_adam_m": download(self._adam_net.state),
                 "mlp_adam_v": download(self._adam_net.state2), "occ_ema": download(self.occ.ema),
                 "occ_threshold": self.occ.threshold,
-                **(self.exposure.state_dict() if self.exposure is not None else {})}
+                **self.corrections.state_dict()}
 
     @classmethod
     def from_state_dict(cls, device, state: dict, bounded: bool = False) -> "HashModel":
@@ -588,12 +587,5 @@ class HashModel:
             arr.set(np.ascontiguousarray(v))
         model.net.sync_params()
         model.occ._threshold(float(state["occ_threshold"]))
-        if "exposure" in state:
-            try:
-                rows = np.asarray(state["exposure"])
-                model.attach_exposure(len(rows), int(state["exposure_pixels"]),
-                                      bool(state["exposure_masked"]), state=state)
-            except (KeyError, ValueError) as e:
-                raise ValueError(f"state_dict: the exposure transforms are unreadable ({e})") \
-                    from e
+        model.corrections = from_state(device, model.config, state, Views(), RAYS)
         return model

@@ -73,6 +73,8 @@ from pathlib import Path
 from ..runtime.atomicfile import write_text
 
 TILE_FIELDS = ("rows", "cols", "dw_rows", "dw_cols", "dw_chunk")
+MLP_ROWS = (1, 2, 3, 4, 5, 6, 8, 12, 16)   # the register-tile heights cl/mlp.cl accepts (the
+#                                            nerf and hash sections' mlp_rows)
 CHUNK_TILES = 64            # default dw_chunk = CHUNK_TILES * rows
 CACHE_VERSION = 3   # bumped when cl/mlp.cl's kernels change (work split, v2; software prefetch,
                     # v3): older timings do not carry over

@@ -6,6 +6,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from ..mlp.tiling import MLP_ROWS
+
 
 @dataclass(frozen=True)
 class NerfConfig:
@@ -114,4 +116,3 @@ NERF_PRESETS = {
                  "dir_freqs": 4, "sigma_act": "relu", "n_coarse": 64, "n_fine": 128,
                  "lr": 5e-4, "lr_decay_steps": 500_000},
 }
-MLP_ROWS = (1, 2, 3, 4, 5, 6, 8, 12, 16)   # the register-tile heights cl/mlp.cl accepts

@@ -1,4 +1,5 @@
-"""The optimisers (RMSProp, SGD, Adam; cl/optim.cl) and learning-rate schedules."""
+"""The optimisers (RMSProp, SGD, Adam; cl/optim.cl), Adam's constants and its host step for
+small float64 parameter sets (``adam_host_step``), and learning-rate schedules."""
 from __future__ import annotations
 
 import math
@@ -10,6 +11,30 @@ from .programs import float4, launch
 
 MODES = {"rmsprop": 0, "sgd": 1, "adam": 2}   # OPT_MODE of cl/optim.cl
 ADAM_LOCAL_SIZE = 64   # adam_step has no loop: PoCL vectorises across the group
+ADAM_BETAS = (0.9, 0.999)   # PyTorch's defaults (the published splat code and gsplat's)
+ADAM_EPS = 1e-15            # parameters with tiny gradients still move (the hash tables', the
+#                             per-view corrections')
+
+
+def adam_host_step(param, m, v, grad, t: int, lr, betas=ADAM_BETAS, eps: float = ADAM_EPS):
+    """Adam step t (1-based) of a small parameter set on the host, in place: numpy arrays
+    ``param``, ``m`` (first moment), ``v`` (second moment) of one shape, ``grad`` its gradient,
+    ``lr`` a rate or an array of rates of that shape.
+
+        m <- b1 m + (1 - b1) g,   v <- b2 v + (1 - b2) g^2,
+        param <- param - lr (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)
+
+    >>> p, m, v = np.zeros(2), np.zeros(2), np.zeros(2)
+    >>> adam_host_step(p, m, v, np.array([1.0, -4.0]), 1, 0.1)
+    >>> p            # the first step moves every entry by lr against its gradient's sign
+    array([-0.1,  0.1])
+    """
+    b1, b2 = betas
+    m[...] = b1 * m + (1 - b1) * grad
+    v[...] = b2 * v + (1 - b2) * grad * grad
+    mh = m / (1 - b1 ** t)
+    vh = v / (1 - b2 ** t)
+    param -= lr * mh / (np.sqrt(vh) + eps)
 
 
 def expon_lr(step, lr_init, lr_final, max_steps, delay_steps=0, delay_mult=1.0):

@@ -12,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from ..corrections.settings import EXPOSURE_MATRICES
+
 
 @dataclass(frozen=True)
 class SplatConfig:
@@ -120,7 +122,7 @@ class SplatConfig:
     exposure: bool = False          # learn a colour transform (3 x 3 matrix and offset) per
     #                                 training image, for captures whose exposure or white
     #                                 balance changes (phones); test views are scored under
-    #                                 the identity (clrf/splat/exposure.py)
+    #                                 the identity (clrf/corrections/exposure.py)
     lr_exposure: float = 0.05       # Adam learning rate of the transforms at the start (each
     #                                 row steps only when its image is trained: a few dozen
     #                                 times a CPU run, so they must move fast)
@@ -164,7 +166,7 @@ class SplatConfig:
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation of its frame), for poses from structure
     #                                 from motion that are a little off; test views keep
-    #                                 their given poses (clrf/splat/pose.py)
+    #                                 their given poses (clrf/corrections/pose.py)
     lr_pose: float = 0.003          # Adam learning rate of the corrections at the start:
     #                                 radians per step, translations this times the scene's
     #                                 extent (each camera steps only when its image is
@@ -317,11 +319,6 @@ BEFORE_FIELD = {
     "exposure_matrix": "full",   # a 3 x 3 matrix and an offset
     "exposure_calibrate": 0.0,   # no calibration (a resumed run never calibrates)
 }
-# splat.exposure_matrix and hash.exposure_matrix (clrf/splat/exposure.py), in the order of the
-# kernels' argument ``matrix`` (the float64 twin's MATRICES, tests/test_splat_exposure.py). Not
-# imported from the twin: the command line reaches the self-check, which reports a missing
-# clrf.references as an installation error, only if nothing before it imports the references.
-EXPOSURE_MATRICES = ("full", "diagonal", "gain")
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).
 SPLAT_PRESETS = {

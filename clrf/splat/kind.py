@@ -56,8 +56,9 @@ def programs(device, cfg):
     (splat.antialiased), the rasteriser with depth (renders that ask for it) and with absolute
     screen gradients (splat.absgrad); the options' programs listed whatever cfg says: the
     offline builds cover every program a run may build)."""
+    from ..corrections import exposure
     from ..runtime import optim, sort
-    from . import exposure, loss, raster
+    from . import loss, raster
     degree, tile = cfg.splat.sh_degree, raster.default_tile(device)
     for aa in (False, True):    # splat.antialiased
         raster.programs(device, degree, tile, aa, cfg.splat.aa_filter2d)
@@ -68,7 +69,7 @@ def programs(device, cfg):
     device.program("splat_train.cl")                       # model.py
     sort.program(device)
     optim.program(device, "adam")
-    exposure.program(device)
+    exposure.program(device)                               # clrf/corrections/exposure.py
 
 
 def scene_file(path):

@@ -15,6 +15,12 @@ memory is the host's they are streamed instead, a step copying its one image
 (splat.images_on_device).
 The loss statistics are read when the trainer asks for the step's error.
 
+The model holds the per-view corrections its section turns on (``corrections``: a colour
+transform per image, a pose correction per camera; clrf/corrections/) and calls their list's
+hooks: the corrected camera and the background of a view, what the loss sees of its render,
+the colour's backward and step, the camera's step from the projection's camera gradient, the
+schedules and the recentring after each pass over the views.
+
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
 SH degree's increase and the density strategy (splat.strategy, clrf/splat/strategy.py: the
 published clone / split / prune with opacity resets, or MCMC's relocation under a fixed cap).
@@ -29,9 +35,10 @@ from dataclasses import asdict
 import numpy as np
 import pyopencl.array as cla
 
+from ..corrections import VIEWS, Corrections, Views, build, from_state
 from ..interface import Budget, StateError, Unsupported
 from ..runtime.hostmem import release_free_heap
-from ..runtime.optim import AdamSet, Optimizer, expon_lr
+from ..runtime.optim import ADAM_BETAS, AdamSet, Optimizer, expon_lr
 from ..runtime.pending import Pending
 from ..runtime.programs import device_zeros, download, launch, scratch, upload
 from .config import SplatConfig
@@ -47,7 +54,6 @@ SH_C0 = 0.28209479177387814     # degree-0 SH basis value (colour = 0.5 + SH_C0 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 CAMERA_NEAR = 0.01
 FILTER3D_EVERY = 100            # steps between recomputations of the 3D filter (Mip-Splatting)
-ADAM_BETAS = (0.9, 0.999)       # PyTorch's defaults, as the published code uses
 
 
 class NotExportable(Unsupported, NotImplementedError):
@@ -96,8 +102,7 @@ class SplatModel:
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
         self._loss_fn = None           # DeviceLoss for the views' size
-        self.exposure = None           # Exposure: a colour transform per image (splat.exposure)
-        self.pose = None               # PoseCorrection: one per training camera (splat.pose_opt)
+        self.corrections = Corrections()   # per-view corrections (clrf/corrections; attach)
         self.filter3d = None           # f2 [n] of the 3D filter (splat.antialiased; None: stale)
         self.filter_step = -1          # the step it was computed at
         self._targets = None           # DeviceImages: the training images on the device
@@ -136,13 +141,10 @@ class SplatModel:
 
     # ---- anti-aliasing ----------------------------------------------------------------------
     def training_cameras(self) -> list:
-        """The SplatCameras of the training views (with their pose corrections)."""
+        """The SplatCameras of the training views (as the corrections render them)."""
         ds = self._dataset()
-        cams = []
-        for v in self.train_views:
-            cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
-            cams.append(self.pose.camera(cam, v) if self.pose is not None else cam)
-        return cams
+        return [self.corrections.camera(camera_of(ds.poses[v], ds.intrinsics, ds.hw), v)
+                for v in self.train_views]
 
     def update_filter(self):
         """Recompute each Gaussian's 3D filter from the training cameras (splat.antialiased:
@@ -182,25 +184,14 @@ class SplatModel:
             raise ValueError(f"dataset {ds.name}: no training views")
         self._ds, self.train_views, self.hw = ds, views, tuple(int(v) for v in ds.hw)
         self._loss_fn = self._targets = None
-        n_images = len(ds.images)
-        if self.config.exposure and (self.exposure is None
-                                     or self.exposure.n_images != n_images):
-            from .exposure import Exposure
-            self.exposure = Exposure(self.device, n_images, self.config.lr_exposure,
-                                     self.config.exposure_reg,
-                                     matrix=self.config.exposure_matrix)
-        if self.exposure is not None:   # an RGBA capture: its background stays (exposure.py)
-            self.exposure.masked = ds.alpha is not None
-            self.exposure.clip = clip_mode(self.config)
-        if self.config.pose_opt and (self.pose is None or self.pose.n_images != n_images):
-            from .pose import PoseCorrection
-            self.pose = PoseCorrection(n_images, self.config.lr_pose, self.config.pose_reg,
-                                       self.extent, pivots=[self.pivot_depth(c2w)
-                                                            for c2w in ds.poses])
+        # a row per image of the dataset (a checkpoint's corrections kept where they fit)
+        views = Views(len(ds.images), ds.alpha is not None, scale=self.extent,
+                      pivots=lambda: [self.pivot_depth(c2w) for c2w in ds.poses])
+        self.corrections = build(self.device, self.config, views, VIEWS, self.corrections)
 
     def pivot_depth(self, c2w) -> float:
         """The depth of the scene box's centre in camera ``c2w`` (0 where it lies behind): the
-        point a pose correction turns the camera about (clrf/splat/pose.py)."""
+        point a camera correction turns the camera about (clrf/corrections/pose.py)."""
         centre = np.append(self.bbox.mean(0), 1.0)
         return max(float((viewmat_of(c2w) @ centre)[2]), 0.0)
 
@@ -235,43 +226,31 @@ class SplatModel:
         ``defer_loss`` (the GPU shapes) a Pending the trainer reads when it reports."""
         ds = self._dataset()
         v = self.view_of(it)
-        cam = camera_of(ds.poses[v], ds.intrinsics, ds.hw)
-        if self.pose is not None:
-            cam = self.pose.camera(cam, v)
-        bg = self.background
-        if self.exposure is not None:   # the background the transform takes to bg (exposure.py)
-            bg = self.exposure.background(v, bg)
+        corr = self.corrections
+        cam = corr.camera(camera_of(ds.poses[v], ds.intrinsics, ds.hw), v)
+        bg = corr.background(v, self.background)   # what a colour correction takes to it
         if self.rast.antialiased and self.step - self.filter_step >= FILTER3D_EVERY:
             self.filter3d = None
         params = self._rparams()
         proj, bins, ras = self.rast.forward(params, cam, bg)
-        if self.exposure is None:
-            grad, stats = self._loss().loss_and_grad(ras.rgb, self._target(v))
-        else:   # the loss sees the render under image v's colour transform
-            shown = self.exposure.apply(ras.rgb, v)
-            grad, stats = self._loss().loss_and_grad(shown, self._target(v))
-            c = self.config
-            if self.progress < self.exposure.hold_until:   # calibrated rows, held (seed)
-                grad, _ = self.exposure.backward(ras.rgb, ras.T, bg, grad, v)
-            elif c.exposure_fit > 0 and self.progress >= c.exposure_fit_after:
-                grad, _ = self.exposure.backward(ras.rgb, ras.T, bg, grad, v)
-                self.exposure.fit(v, ras.rgb, ras.T, bg, self.background, ds.images[v],
-                                  c.exposure_fit)
-            else:
-                grad = self.exposure.backward_and_step(ras.rgb, ras.T, bg, grad, v)
+        # the loss sees the render as the colour correction shows it (the render without one)
+        grad, stats = self._loss().loss_and_grad(corr.apply(ras.rgb, v), self._target(v))
+        grad = corr.colour_backward(v, ras.rgb, ras.T, bg, grad, self.progress, ds.images,
+                                    self.background)
         absgrad = self.strategy.absgrad
         g2d = self.rast.rasterize_backward(proj, bins, ras, cam, grad, bg, absgrad=absgrad)
-        grads = self.rast.project_backward(params, cam, g2d, camera_grad=self.pose is not None)
-        if self.pose is not None:   # reads twelve numbers: the camera's gradient
-            self.pose.step(v, cam.viewmat, *camera_gradient(grads["camera"]))
+        moved = corr.moves_cameras
+        grads = self.rast.project_backward(params, cam, g2d, camera_grad=moved)
+        if moved:   # reads twelve numbers: the camera's gradient
+            corr.camera_step(v, cam.viewmat, *camera_gradient(grads["camera"]))
         self.strategy.after_backward(
             self, StepInfo(proj.radius, g2d["xy_abs" if absgrad else "xy"], int(cam.width),
                            int(cam.height)), grads)
         self.step += 1
         self._adam(grads, self.step)
         self.strategy.after_step(self)
-        if self.exposure is not None and self.step % len(self.train_views) == 0:
-            self.exposure.recentre()    # after each pass over the views (exposure.py)
+        if self.step % len(self.train_views) == 0:
+            corr.after_pass()           # after each pass over the views
         if self.defer_loss:
             return Pending(self.device.queue, stats[STATS.index("mse"):][:1])
         return self._loss_fn.read(stats)["mse"]
@@ -322,19 +301,16 @@ class SplatModel:
         return self._targets.get(v)
 
     def on_iteration(self, it: int, budget: Budget):
-        """Schedules from the budget fraction: the means', the pose corrections' and the colour
-        transforms' rates, the SH degree and the density strategy's (refinement, opacity
-        resets). Returns a log line when the Gaussians changed."""
+        """Schedules from the budget fraction: the means' and the corrections' rates, the SH
+        degree and the density strategy's (refinement, opacity resets). Returns a log line when
+        the Gaussians changed."""
         c = self.config
         f = float(budget.fraction)
         self.progress = f
         self.lr_means = expon_lr(f, c.lr_position * self.extent,
                                  c.lr_position_final * self.extent, 1.0)
         self.active_degree = min(c.sh_degree, int(f / c.sh_increase_every))
-        if self.pose is not None:
-            self.pose.lr = expon_lr(f, c.lr_pose, c.lr_pose_final, 1.0)
-        if self.exposure is not None:
-            self.exposure.lr = expon_lr(f, c.lr_exposure, c.lr_exposure_final, 1.0)
+        self.corrections.schedule(f)
         return "; ".join(self.strategy.on_iteration(self, it, f)) or None
 
     def refine(self) -> str:
@@ -443,11 +419,11 @@ class SplatModel:
 
     def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float):
         """Test-time pose refinement (BARF's protocol for runs that refine their poses): ``steps``
-        Adam steps of a correction of this one camera (clrf/splat/pose.py, turned about the
+        Adam steps of a correction of this one camera (clrf/corrections/pose.py, turned about the
         scene's centre, no pull toward the given pose) against ``image`` [H, W, 3] under the
         training loss, the Gaussians held still, the rate falling log-linearly from ``lr`` to a
         tenth of it. Returns (the corrected camera-to-world pose, the correction's summary)."""
-        from .pose import PoseCorrection
+        from ..corrections.pose import PoseCorrection
         if steps < 1 or not lr > 0:
             raise ValueError(f"refine_view_pose: steps >= 1 and lr > 0, got {steps}, {lr}")
         H, W = (int(x) for x in hw)
@@ -481,8 +457,8 @@ class SplatModel:
     def describe(self) -> str:
         start = f" (from {self.initialised_from})" if self.step == 0 and \
             self.initialised_from else ""
-        pose = f", {self.pose.describe()}" if self.pose is not None and self.step else ""
-        return f"{self.n} Gaussians, SH degree {self.active_degree}{start}{pose}"
+        corr = f", {self.corrections.describe()}" if self.corrections and self.step else ""
+        return f"{self.n} Gaussians, SH degree {self.active_degree}{start}{corr}"
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -496,10 +472,7 @@ class SplatModel:
             st[f"param_{k}"] = v
         for k, v in self.host_moments().items():
             st[f"adam_{k}"] = v
-        if self.exposure is not None:
-            st.update(self.exposure.state_dict())
-        if self.pose is not None:
-            st.update(self.pose.state_dict())
+        st.update(self.corrections.state_dict())
         if self.rast.antialiased:
             st["filter3d"] = download(self._rparams()["filter3d"])
         return st
@@ -530,38 +503,13 @@ class SplatModel:
             if f2.shape != (n,):
                 raise StateError(f"state_dict['filter3d']: shape {f2.shape}, expected ({n},)")
             m.filter3d = upload(device.queue, f2)
-        if "exposure" in state:
-            from .exposure import Exposure
-            try:
-                m.exposure = Exposure(device, len(state["exposure"]), config.lr_exposure,
-                                      config.exposure_reg, state=state,
-                                      clip=clip_mode(config),
-                                      matrix=config.exposure_matrix)
-            except (KeyError, ValueError, TypeError) as e:
-                raise StateError(f"state_dict: the exposure transforms are unreadable ({e})"
-                                 ) from None
-        if "pose" in state:
-            from .pose import PoseCorrection
-            try:
-                m.pose = PoseCorrection(len(state["pose"]), config.lr_pose, config.pose_reg,
-                                        m.extent, state=state)
-            except (KeyError, ValueError, TypeError) as e:
-                raise StateError(f"state_dict: the pose corrections are unreadable ({e})"
-                                 ) from None
+        m.corrections = from_state(device, config, state, Views(scale=m.extent), VIEWS)
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])
         m.refine_state = RefineState.from_state(state)
         m.progress = float(state["progress"])
         m.lr_means = float(state["lr_means"])
         return m
-
-
-def clip_mode(config: SplatConfig) -> int:
-    """The exposure transform's clip (clrf/splat/exposure.py): 0 none, 1 clipped channels pass
-    no gradient, 2 only one pointing back inside [0, 1]."""
-    if not config.exposure_clip:
-        return 0
-    return 2 if config.exposure_clip_inward else 1
 
 
 def scene_extent(ds) -> float:

@@ -36,7 +36,6 @@ def is_scene_file(path) -> bool:
 def state_from_file(path) -> dict:
     """A splat run's checkpoint state of the splats in file ``path`` (module doc); a file
     clrf cannot read raises SplatFileError naming it."""
-    from ..training.config import Config
     from .config import SplatConfig
     from .params import NAMES, moment_keys
     from .strategy import RefineState
@@ -54,15 +53,13 @@ def state_from_file(path) -> dict:
     hi = np.maximum(hi, lo + 1e-6)
     extent = float(np.linalg.norm(hi - lo)) / 2
     f = 0.5 * DEFAULT_SIDE / math.tan(math.radians(DEFAULT_FOV_DEG) / 2)
-    run = Config()
-    run.train.model = "splat"
-    run.train.data = ""
-    run.set_section("splat", config)
     state = {"kind": "splat", "config": asdict(config), "background": [0.0, 0.0, 0.0],
              "extent": extent, "bbox": [lo.tolist(), hi.tolist()], "seed": 0, "max_count": max(n, 1),
              "step": 0, "active_degree": degree, "progress": 1.0,
              "lr_means": config.lr_position_final * extent,
-             "iteration": 0, "seconds": 0.0, "run_config": run.to_dict(),
+             "iteration": 0, "seconds": 0.0,
+             # what a run's configuration would say (the rest: the defaults)
+             "run_config": {"train": {"model": "splat", "data": ""}, "splat": asdict(config)},
              "dataset": {"name": Path(path).name, "H": DEFAULT_SIDE, "W": DEFAULT_SIDE,
                          "intrinsics": [f, f, DEFAULT_SIDE / 2, DEFAULT_SIDE / 2],
                          "background": [0.0, 0.0, 0.0], "ndc": False,

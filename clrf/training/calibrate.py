@@ -1,8 +1,8 @@
 """Exposure calibration (``splat.exposure_calibrate``): a short run at a fraction of the
 resolution whose colour transforms start the real run.
 
-A transform per training image (clrf/splat/exposure.py) learns from the scene's render, and
-the scene from the transformed images: early on, while the scene is still forming, the rows
+A transform per training image (clrf/corrections/exposure.py) learns from the scene's render,
+and the scene from the transformed images: early on, while the scene is still forming, the rows
 are wrong and the scene keeps what it took under them. A run at an eighth of the resolution
 takes several times the steps a second, and with the rows' first rate held throughout (not
 decayed) its rows get close to the images' true exposures in a small part of the budget. The
@@ -20,6 +20,7 @@ import dataclasses
 
 import numpy as np
 
+from .. import corrections
 from ..data.io import downscale_image
 from ..outputs import checkpoint
 
@@ -91,7 +92,7 @@ def calibrate_exposure(device, ds, cfg, out, model_factory=None, log=print):
     (trainer.out / checkpoint.CKPT_NAME).unlink(missing_ok=True)   # its scene is dropped
     if result["interrupted"]:
         raise KeyboardInterrupt
-    exposure = trainer.model.exposure
+    exposure = corrections.of(trainer.model).get("exposure")
     rows = exposure.rows().astype(np.float64)
     info = {"seconds_budget": budget, "seconds": float(result["seconds"]),
             "iterations": int(result["iteration"]), "downscale": factor,

@@ -4,8 +4,8 @@ compilers (tools/gpu_builds.py).
 
 Each model kind's ``Kind.programs(device, cfg)`` asks its device for the programs a run of
 ``cfg`` builds, through the same functions the model calls (``grid_program``,
-``clrf.mlp.mlp.program``, ``clrf.hash.encoding.program`` ...), so the defines are the host's
-own. ``library_programs`` hands them a ``Recorder`` in place of a Device, runs them over every
+``clrf.mlp.mlp.program``, ``clrf.hash.encoding.program``, the corrections'
+``clrf.corrections.exposure.program`` ...), so the defines are the host's own. ``library_programs`` hands them a ``Recorder`` in place of a Device, runs them over every
 scene preset and every preset of the kind's own section (clrf/training/config.py
 ``build_config``), and adds the programs outside the kinds (the trainer's batch gather, the
 device probes, the benchmark kernel of tools/nerf_bench.py).

@@ -44,7 +44,7 @@ import pyopencl as cl
 from pyopencl.elementwise import ElementwiseKernel
 from pyopencl.tools import context_dependent_memoize
 
-from .. import registry
+from .. import corrections, registry
 from ..interface import Budget, StateError, render_view
 from ..outputs import checkpoint, rundir
 from ..runtime.atomicfile import atomic_path, write_text
@@ -182,7 +182,7 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
     bg = model.step_background(it) if rays.alpha is not None else None
     bo, bd, bc, bi = rays.batch(seed * 1000003 + it, n, bg)
     kw = {} if bg is None else {"background": bg}
-    if getattr(model, "ray_index", False):   # a colour transform per image (hash.exposure)
+    if getattr(model, "ray_index", False):   # a correction per image of ray batches
         kw["index"] = bi
     return model.train_step(it, bo, bd, bc, **kw)
 
@@ -617,7 +617,8 @@ class Trainer:
         if self.device_memory is not None:
             result["device_memory"] = self.device_memory
         if t.final_eval and not interrupted:
-            fitted = getattr(self.model, "exposure", None) is not None
+            corr = corrections.of(self.model)
+            fitted = corr.colour is not None   # a colour transform per training image
             ev = evaluate(self.model, self.ds, self.test_views, keep_images=RENDER_VIEWS,
                           half_fitted=fitted, comm=self._eval_comm)
             if self.primary:
@@ -628,9 +629,8 @@ class Trainer:
             if fitted:
                 result.update({k: ev[k] for k in ("psnr_half_fitted", "psnr_right_half",
                                                   "psnr_shared_gain", "shared_gain")})
-            pose = getattr(self.model, "pose", None)
-            if pose is not None:   # splat.pose_opt: the mean correction of the training poses
-                result["pose_correction"] = pose.summary()
+            summaries = corr.summaries()   # e.g. the mean correction of the training poses
+            result.update(summaries)
             self._row(iteration=self.iteration, seconds=f"{self.seconds:.3f}",
                       eval_psnr=f"{ev['psnr']:.3f}", eval_ssim=f"{ev['ssim']:.4f}",
                       eval_views=len(self.test_views), model=self.model.describe())
@@ -647,10 +647,12 @@ class Trainer:
                     f"{ev['psnr_right_half']:.2f}); under one gain per channel for all "
                     f"views {ev['psnr_shared_gain']:.2f} (gain "
                     f"{' '.join(f'{g:.3f}' for g in ev['shared_gain'])}); "
-                    f"{self.model.exposure.describe()}")
-            if pose is not None:
-                loop.prog.message(f"final: training {pose.describe()} (mean over "
-                                  f"{result['pose_correction']['images']} images)")
+                    f"{corr.colour.describe()}")
+            for c in corr:
+                s = summaries.get(f"{c.name}_correction")
+                if s:
+                    loop.prog.message(f"final: training {c.describe()} (mean over "
+                                      f"{s['images']} images)")
         elif loop.last_eval is not None:
             result.update(psnr=loop.last_eval["psnr"], ssim=loop.last_eval["ssim"],
                           ssim_window=SSIM_NAME)

@@ -1,5 +1,6 @@
-"""A pose correction per training camera (``splat.pose_opt``): poses from structure from motion,
-more so from a video, are a little off, and a splat fitted to slightly wrong cameras blurs.
+"""A pose correction per training camera (``splat.pose_opt``), a camera correction of the protocol
+in clrf/corrections/base.py: poses from structure from motion, more so from a video, are a
+little off, and a scene fitted to slightly wrong cameras blurs.
 
 Training camera v owns a rotation vector w_v and a translation tau_v (float64, on the host: six
 numbers an image) that correct its world-to-camera transform [R0 t0] about a pivot p_v = (0, 0,
@@ -13,10 +14,11 @@ those two coordinates the loss has a long narrow valley, which a per-coordinate 
 Adam walks slowly; about a pivot in the scene, w moves the image only by parallax around the
 pivot and tau slides it, two nearly independent effects (d_v = 0 is the camera's centre).
 
-The projection's backward with POSE_GRAD=1 gives dL/dR and dL/dt of the corrected camera
-(cl/splat_project.cl; ``raster.camera_gradient`` sums the Gaussians' shares on the device and
-reads twelve numbers). A rotation phi of the frame about the pivot moves R to Exp(phi) R and
-t - tau - p to Exp(phi) (t - tau - p), so with M = dL/dR R^T + dL/dt (t - tau - p)^T:
+The model's renderer gives dL/dR and dL/dt of the corrected camera (the splat model: the
+projection's backward with POSE_GRAD=1, cl/splat_project.cl; clrf/splat/raster.py
+``camera_gradient`` sums the Gaussians' shares on the device and reads twelve numbers). A
+rotation phi of the frame about the pivot moves R to Exp(phi) R and t - tau - p to Exp(phi) (t -
+tau - p), so with M = dL/dR R^T + dL/dt (t - tau - p)^T:
 
     dL/dphi = (M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]),
     dL/dw = J_l(w)^T dL/dphi,    dL/dtau = dL/dt,
@@ -24,10 +26,12 @@ t - tau - p to Exp(phi) (t - tau - p), so with M = dL/dR R^T + dL/dt (t - tau - 
 J_l the left Jacobian of SO(3) (Exp(w + d) = Exp(J_l(w) d) Exp(w) to first order). A pull
 ``reg (|w|^2 + |tau / scale|^2)`` toward the identity keeps the corrections small (scale: the
 scene's extent, so that the pull does not depend on the capture's units), and each image takes
-an Adam step (its own step count) when it is trained: rotations at ``lr`` radians, translations
-at ``lr * scale``. Test views keep their given poses, as published protocols evaluate them;
-``clrf eval --refine-poses N`` also scores them after N steps of a correction of their own
-against their own image, the scene held still (``refine_view_pose`` in clrf/splat/model.py).
+an Adam step (its own step count; clrf/runtime/optim.py ``adam_host_step``) when it is trained:
+rotations at ``lr`` radians, translations at ``lr * scale``, the rate falling log-linearly to
+``lr_final`` over the budget where one is given (``schedule``). Test views keep their given
+poses, as published protocols evaluate them; ``clrf eval --refine-poses N`` also scores them
+after N steps of a correction of their own against their own image, the scene held still
+(``refine_view_pose`` in clrf/splat/model.py).
 
 >>> pose = PoseCorrection(n_images=100, lr=1e-3, reg=1e-4, scale=4.0, pivots=depths)
 >>> cam = pose.camera(cam0, v)                  # SplatCamera with view v's corrected viewmat
@@ -40,8 +44,8 @@ import dataclasses
 
 import numpy as np
 
-ADAM_BETAS = (0.9, 0.999)
-ADAM_EPS = 1e-15
+from ..runtime.optim import adam_host_step, expon_lr
+from .base import CAMERA, VIEWS
 
 
 def hat(w) -> np.ndarray:
@@ -113,9 +117,12 @@ def pose_gradient(viewmat, w, tau, dR, dt, pivot: float = 0.0) -> tuple:
 
 class PoseCorrection:
     """The corrections of ``n_images`` training cameras (module doc)."""
+    name = "pose"
+    changes = CAMERA
+    batches = VIEWS
 
     def __init__(self, n_images: int, lr: float, reg: float, scale: float,
-                 state: dict | None = None, pivots=None):
+                 state: dict | None = None, pivots=None, lr_final: float | None = None):
         if n_images < 1:
             raise ValueError(f"PoseCorrection needs at least one image, got {n_images}")
         if not (lr > 0 and reg >= 0 and scale > 0):
@@ -123,6 +130,8 @@ class PoseCorrection:
                              f"{reg}, {scale}")
         self.n_images = int(n_images)
         self.lr, self.reg, self.scale = float(lr), float(reg), float(scale)
+        self.lr_start = self.lr
+        self.lr_final = None if lr_final is None else float(lr_final)
         self.params = np.zeros((self.n_images, 6))     # (w, tau) of each image
         self.m = np.zeros((self.n_images, 6))
         self.v = np.zeros((self.n_images, 6))
@@ -168,15 +177,18 @@ class PoseCorrection:
         g = self.gradient(v, viewmat, dR, dt)
         if not np.all(np.isfinite(g)):
             return   # a non-finite gradient leaves the pose as it was (the loss reports it)
-        b1, b2 = ADAM_BETAS
         self.steps[v] += 1
-        k = int(self.steps[v])
-        self.m[v] = b1 * self.m[v] + (1 - b1) * g
-        self.v[v] = b2 * self.v[v] + (1 - b2) * g * g
-        mh = self.m[v] / (1 - b1 ** k)
-        vh = self.v[v] / (1 - b2 ** k)
         lr = np.array([self.lr] * 3 + [self.lr * self.scale] * 3)
-        self.params[v] -= lr * mh / (np.sqrt(vh) + ADAM_EPS)
+        adam_host_step(self.params[v], self.m[v], self.v[v], g, int(self.steps[v]), lr)
+
+    def schedule(self, progress: float) -> None:
+        """The rate at the budget fraction ``progress``: log-linear from its first rate to
+        ``lr_final`` (unchanged without one)."""
+        if self.lr_final is not None:
+            self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
+
+    def after_pass(self) -> None:
+        """Nothing: each correction stays as trained."""
 
     def state_dict(self) -> dict:
         return {"pose": self.params.copy(), "pose_m": self.m.copy(), "pose_v": self.v.copy(),
@@ -202,6 +214,13 @@ class PoseCorrection:
         return {"images": int(len(idx)), "rotation_deg": float(np.mean(rot)),
                 "translation": float(np.mean(tr)),
                 "translation_rel": float(np.mean(tr) / self.scale)}
+
+    def report(self, summary: dict) -> str:
+        """The sentence ``clrf eval`` prints of ``summary``."""
+        return (f"training poses corrected by {summary['rotation_deg']:.3f} deg and "
+                f"{summary['translation']:.4g} ({100 * summary['translation_rel']:.2f} % of "
+                f"the scene's extent) on average over {summary['images']} images (the test "
+                f"views keep theirs)")
 
     def describe(self) -> str:
         """'poses corrected by 0.42 deg, 0.3 % of the scene' for progress lines."""

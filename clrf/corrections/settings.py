@@ -1,0 +1,133 @@
+"""The one place that reads the corrections' settings from a model's configuration section and
+makes them: ``build`` for a new run or a model given its training views, ``from_state`` for a
+checkpoint's.
+
+The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposure`` (with
+``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
+``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
+``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
+``pose_reg``). A section without one of the optional keys takes what the correction does
+without it (a constant rate, no fit, no clip; the Adam betas of clrf/runtime/optim.py where it
+has no ``beta1`` / ``beta2`` of its own). This module imports no correction until one is made
+(the configurations import EXPOSURE_MATRICES from here, before the self-check that reports a
+missing clrf.references).
+
+>>> corr = build(dev, cfg.splat, Views(len(ds.images), ds.alpha is not None, scale=extent,
+...                                    pivots=lambda: depths), VIEWS)
+>>> corr = from_state(dev, config, state, Views(scale=extent), VIEWS)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+from ..interface import StateError
+from .base import RAYS, VIEWS, Corrections
+
+# <model>.exposure_matrix, in the order of the kernels' argument ``matrix`` (the float64 twin's
+# MATRICES, tests/test_splat_exposure.py). Not imported from the twin: the command line reaches
+# the self-check, which reports a missing clrf.references as an installation error, only if
+# nothing before it imports the references.
+EXPOSURE_MATRICES = ("full", "diagonal", "gain")
+
+ORDER = ("exposure", "pose")                           # the list's order (its checkpoint's)
+SWITCH = {"exposure": "exposure", "pose": "pose_opt"}  # the section's key that turns one on
+WHAT = {"exposure": "the exposure transforms", "pose": "the pose corrections"}
+
+
+@dataclass(frozen=True)
+class Views:
+    """What a correction needs to know of a model's training images.
+
+    n_images  rows: one per image (the splat model: every image of the dataset, indexed as
+              the dataset does; the hash model: its training views, in the ray store's order)
+    masked    an RGBA capture (colour corrections leave its background alone)
+    pixels    pixels of an image (ray batches: a ray's image is its index // pixels)
+    scale     the scene's extent (pose translations and their pull are relative to it)
+    pivots    a function giving each image's pivot depth (called when a pose correction is
+              made)
+    """
+    n_images: int = 0
+    masked: bool = False
+    pixels: int = 0
+    scale: float = 1.0
+    pivots: Optional[Callable] = None
+
+
+def clip_mode(section) -> int:
+    """The colour transform's clip (``exposure_clip``, ``exposure_clip_inward``): 0 none, 1
+    clipped channels pass no gradient, 2 only one pointing back inside [0, 1]."""
+    if not getattr(section, "exposure_clip", False):
+        return 0
+    return 2 if getattr(section, "exposure_clip_inward", False) else 1
+
+
+def _exposure(device, s, views: Views, batches: str, state=None):
+    from .exposure import Exposure, RayExposure
+    if batches == VIEWS:
+        n = views.n_images if state is None else len(state["exposure"])
+        return Exposure(device, n, s.lr_exposure, s.exposure_reg, state=state,
+                        masked=views.masked, clip=clip_mode(s), matrix=s.exposure_matrix,
+                        lr_final=getattr(s, "lr_exposure_final", None),
+                        fit=getattr(s, "exposure_fit", 0.0),
+                        fit_after=getattr(s, "exposure_fit_after", 0.0))
+    from ..runtime.optim import ADAM_BETAS
+    betas = (getattr(s, "beta1", ADAM_BETAS[0]), getattr(s, "beta2", ADAM_BETAS[1]))
+    if state is None:
+        n, pixels, masked = views.n_images, views.pixels, views.masked
+    else:
+        n, pixels = len(state["exposure"]), int(state["exposure_pixels"])
+        masked = bool(state["exposure_masked"])
+    return RayExposure(device, n, pixels, s.lr_exposure, s.exposure_reg, betas, state=state,
+                       masked=masked, matrix=s.exposure_matrix)
+
+
+def _pose(device, s, views: Views, batches: str, state=None):
+    from .pose import PoseCorrection
+    if batches != VIEWS:
+        raise ValueError("a pose correction needs a model that trains on whole views")
+    if state is not None:
+        return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
+                              state=state, lr_final=s.lr_pose_final)
+    return PoseCorrection(views.n_images, s.lr_pose, s.pose_reg, views.scale,
+                          pivots=views.pivots() if views.pivots else None,
+                          lr_final=s.lr_pose_final)
+
+
+MAKE = {"exposure": _exposure, "pose": _pose}
+
+
+def build(device, section, views: Views, batches: str, current=None) -> Corrections:
+    """The corrections ``section`` (a model's configuration) turns on over ``views``, for a
+    model of ``batches`` (VIEWS or RAYS). Those of ``current`` (a checkpoint's) are kept where
+    they have a row per image; a view-colour correction takes the capture's masking and the
+    section's clip."""
+    if batches not in (VIEWS, RAYS):
+        raise ValueError(f"batches {batches!r}: {VIEWS!r} or {RAYS!r}")
+    have = {c.name: c for c in (current or ())}
+    for name in ORDER:
+        if not getattr(section, SWITCH[name], False):
+            continue
+        c = have.get(name)
+        if c is None or c.n_images != views.n_images:
+            have[name] = MAKE[name](device, section, views, batches)
+    ex = have.get("exposure")
+    if ex is not None and ex.batches == VIEWS:   # an RGBA capture: its background stays
+        ex.masked = views.masked
+        ex.clip = clip_mode(section)
+    return Corrections(have[n] for n in ORDER if n in have)
+
+
+def from_state(device, section, state: dict, views: Views, batches: str) -> Corrections:
+    """The corrections a checkpoint's ``state`` holds (its keys: ``exposure``, ``exposure_m``,
+    ..., ``pose``, ``pose_m``, ...), with ``section``'s settings; StateError where one is
+    unreadable."""
+    out = []
+    for name in ORDER:
+        if name not in state:
+            continue
+        try:
+            out.append(MAKE[name](device, section, views, batches, state=state))
+        except (KeyError, ValueError, TypeError) as e:
+            raise StateError(f"state_dict: {WHAT[name]} are unreadable ({e})") from None
+    return Corrections(out)
