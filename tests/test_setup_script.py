@@ -182,10 +182,12 @@ def test_setup_installs_the_eval_extra_without_torchvision(tmp_path):
     assert r.returncode == 0, r.stderr
     pip = (tmp_path / "state" / "pip").read_text().splitlines()
     assert "install -q .[pocl,test]" in pip, pip             # eval is not a pip extra here
-    assert pip[-2:] == ["install -q torch==2.13.0", "install -q --no-deps lpips==0.1.4"], pip
+    # gsplat's exporter (the splat files' tests) without its CUDA build's dependencies
+    assert pip[-3:] == ["install -q torch==2.13.0", "install -q --no-deps lpips==0.1.4",
+                        "install -q --no-deps gsplat==1.5.3"], pip
     r, _, _ = run_setup(tmp_path / "b", 0, extras="test")
-    assert not any("lpips" in line for line in (tmp_path / "b" / "state" / "pip").read_text()
-                   .splitlines())
+    assert not any("lpips" in line or "gsplat" in line
+                   for line in (tmp_path / "b" / "state" / "pip").read_text().splitlines())
 
 
 def test_setup_gpucc_installs_the_offline_compilers_once(tmp_path):
