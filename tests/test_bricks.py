@@ -236,3 +236,22 @@ def test_world_is_none_without_a_launcher(monkeypatch):
     monkeypatch.setitem(sys.modules, "mpi4py", None)     # import fails as if not installed
     with pytest.raises(RuntimeError, match="mpi4py is not installed"):
         distributed.world()
+
+
+def test_pin_threads_tells_pocl_the_ranks_cpus(monkeypatch):
+    """Under MPI a rank bound to fewer CPUs than are online tells PoCL that many threads,
+    unless the environment already says; a process with every CPU is left alone."""
+    import os
+    from clrf.runtime import mpi
+    monkeypatch.setattr(os, "cpu_count", lambda: 8)
+    monkeypatch.delenv("POCL_MAX_PTHREAD_COUNT", raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3})
+    mpi.pin_threads()
+    assert os.environ["POCL_MAX_PTHREAD_COUNT"] == "1"
+    monkeypatch.setenv("POCL_MAX_PTHREAD_COUNT", "4")
+    mpi.pin_threads()
+    assert os.environ["POCL_MAX_PTHREAD_COUNT"] == "4"
+    monkeypatch.delenv("POCL_MAX_PTHREAD_COUNT")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)))
+    mpi.pin_threads()
+    assert "POCL_MAX_PTHREAD_COUNT" not in os.environ
