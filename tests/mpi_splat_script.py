@@ -111,16 +111,14 @@ def main(out, n=400, k=None):
         np.savez(out, **res)
 
 
-
 def train(out, steps=6):
     """`train`: DistSplatModel on the procedural scene for a few steps against one process
     doing the same batches (each step the mean gradient of P views, rates times sqrt(P))."""
     import clrf
     from clrf.data.synthetic import load_procedural
     from clrf.runtime.mpi import world
-    from clrf.runtime.programs import upload
     from clrf.splat.distributed import DistSplatModel
-    from clrf.splat.model import SplatModel, camera_of
+    from clrf.splat.model import camera_of
     from clrf.splat.strategy import StepInfo
     from clrf.training.config import build_config
 
@@ -178,8 +176,6 @@ def train(out, steps=6):
 if __name__ == "__main__" and sys.argv[1] == "train":
     train(*sys.argv[2:])
     sys.exit(0)
-
-
 
 
 def rebalance(out):

@@ -166,31 +166,23 @@ def _children(pid):
     return out
 
 
-@pytest.mark.slow
-def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
-    """SIGKILL one rank while a checkpoint is being written: mpirun ends the job with an error
-    naming the rank and the signal, the manifest still names a complete set of brick files,
-    a single process evaluates it and `mpirun clrf train --resume` continues from it."""
+# `clrf train` with checkpoint writes held open for 0.5 s (as tests/test_kill.py): run it as
+# [MPIRUN, ..., sys.executable, "-c", DELAYED_CLI, "0.5", "train", ...]
+DELAYED_CLI = ("import sys; from clrf.outputs import checkpoint; "
+               "checkpoint.WRITE_DELAY = float(sys.argv.pop(1)); "
+               "from clrf.cli import main; sys.exit(main())")
+
+
+def kill_a_rank_mid_write(cmd, out):
+    """Run the 2-rank ``cmd`` (training into ``out`` with DELAYED_CLI), wait for a complete
+    checkpoint and then a rank inside its next part write, SIGKILL that rank: mpirun must end
+    the job with an error naming the signal."""
     import signal
     import time
-    from clrf.outputs import checkpoint
-    from clrf.cli.main import main as cli
-    data = _scene(tmp_path / "scene.npz")
-    out = tmp_path / "run"
-    # `clrf train` with checkpoint writes held open for 0.5 s (as tests/test_kill.py)
-    delayed_cli = ("import sys; from clrf.outputs import checkpoint; "
-                   "checkpoint.WRITE_DELAY = float(sys.argv.pop(1)); "
-                   "from clrf.cli import main; sys.exit(main())")
-    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-c",
-           delayed_cli, "0.5", "train", "--out", str(out), "--data", str(data), "--max-seconds", "600",
-           *TRAIN, "--set", "train.max_iters=100000", "--set", "train.checkpoint_every=0.2",
-           "--set", "train.eval_every=1e6"]
-    env = dict(os.environ)
-    p = subprocess.Popen(cmd, cwd=HERE.parent, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd, cwd=HERE.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
     try:
         t0 = time.time()
-        # a complete checkpoint first, then a rank caught inside its next brick write
         while not (out / "ckpt.npz").exists() or not list(out.glob("ckpt.it*.tmp*")):
             assert p.poll() is None, p.communicate()
             assert time.time() - t0 < MPI_TIMEOUT, "no checkpoint write seen"
@@ -204,6 +196,23 @@ def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
             p.kill()
     assert p.returncode != 0
     assert "signal 9" in err, err
+
+
+@pytest.mark.slow
+def test_killed_rank_ends_the_job_and_keeps_the_checkpoint(tmp_path):
+    """SIGKILL one rank while a checkpoint is being written: mpirun ends the job with an error
+    naming the rank and the signal, the manifest still names a complete set of brick files,
+    a single process evaluates it and `mpirun clrf train --resume` continues from it."""
+    from clrf.outputs import checkpoint
+    from clrf.cli.main import main as cli
+    data = _scene(tmp_path / "scene.npz")
+    out = tmp_path / "run"
+    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-c",
+           DELAYED_CLI, "0.5", "train", "--out", str(out), "--data", str(data),
+           "--max-seconds", "600",
+           *TRAIN, "--set", "train.max_iters=100000", "--set", "train.checkpoint_every=0.2",
+           "--set", "train.eval_every=1e6"]
+    kill_a_rank_mid_write(cmd, out)
     st = checkpoint.load(out)          # the manifest's set is complete
     assert st["iteration"] > 0
     assert cli(["eval", "--ckpt", str(out)]) == 0

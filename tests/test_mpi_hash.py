@@ -11,7 +11,7 @@ from clrf.testing.tolerances import (DATA_PARALLEL_GRAD_REL_TO_MAX, DATA_PARALLE
                                      DATA_PARALLEL_STEPS_LOSS_RTOL, DIST_TRAIN_ATOL,
                                      DIST_TRAIN_RTOL)
 
-from test_mpi import mpirun, pytestmark  # noqa: F401 - the same skip
+from test_mpi import _csv, mpirun, pytestmark  # noqa: F401 - the same skip
 
 SCRIPT = "tests/mpi_hash_script.py"
 
@@ -52,12 +52,6 @@ TRAIN = ["--model", "hash", "--max-seconds", "600", "--set", "train.eval_every=1
          "--set", "train.eval_views=2", "--set", "hash.perturb=false"]
 
 
-def _losses(run):
-    import csv
-    with open(run / "metrics.csv", newline="") as f:
-        return [r for r in csv.DictReader(f)]
-
-
 @pytest.mark.slow
 def test_clrf_train_hash_over_ranks(tmp_path):
     """`mpirun -n 2 clrf train --model hash` (no jitter, so both draw the same samples) against
@@ -70,7 +64,7 @@ def test_clrf_train_hash_over_ranks(tmp_path):
     p = mpirun(2, "-m", "clrf.cli", "train", "--out", str(dist), *args)
     assert p.stdout.count('"iteration": 12') == 1      # one result line: rank 0's
     assert cli(["train", "--out", str(single), *args]) == 0
-    rd, rs = _losses(dist), _losses(single)
+    rd, rs = _csv(dist / "metrics.csv"), _csv(single / "metrics.csv")
     assert [r["iteration"] for r in rd] == [r["iteration"] for r in rs] == ["0", "12", "12"]
     for a, b in zip(rd, rs):
         if b["train_loss"]:

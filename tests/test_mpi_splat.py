@@ -126,38 +126,15 @@ def test_splat_corrections_over_ranks_are_refused(tmp_path):
 def test_killed_splat_rank_keeps_the_checkpoint(tmp_path):
     """SIGKILL one rank while it writes its shard: mpirun ends the job naming the signal, the
     manifest still names a complete set of shard files, and one process evaluates it."""
-    import os
-    import signal
-    import subprocess
     import sys
-    import time
     from clrf.cli.main import main as cli
     from clrf.outputs import checkpoint
-    from test_mpi import HERE, MPI_TIMEOUT, MPIRUN, _children
+    from test_mpi import DELAYED_CLI, MPIRUN, kill_a_rank_mid_write
     out = tmp_path / "run"
-    delayed_cli = ("import sys; from clrf.outputs import checkpoint; "
-                   "checkpoint.WRITE_DELAY = float(sys.argv.pop(1)); "
-                   "from clrf.cli import main; sys.exit(main())")
-    cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2", sys.executable, "-c",
-           delayed_cli, "0.5", "train", "--out", str(out), *TRAIN,
-           "--set", "train.max_iters=100000", "--set", "train.checkpoint_every=0.2"]
-    p = subprocess.Popen(cmd, cwd=HERE.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
-    try:
-        t0 = time.time()
-        while not (out / "ckpt.npz").exists() or not list(out.glob("ckpt.it*.tmp*")):
-            assert p.poll() is None, p.communicate()
-            assert time.time() - t0 < MPI_TIMEOUT, "no checkpoint write seen"
-            time.sleep(0.02)
-        ranks = _children(p.pid)
-        assert len(ranks) == 2, ranks
-        os.kill(max(ranks), signal.SIGKILL)
-        _, err = p.communicate(timeout=MPI_TIMEOUT)
-    finally:
-        if p.poll() is None:
-            p.kill()
-    assert p.returncode != 0
-    assert "signal 9" in err, err
+    kill_a_rank_mid_write([MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", "2",
+                           sys.executable, "-c", DELAYED_CLI, "0.5", "train", "--out", str(out),
+                           *TRAIN, "--set", "train.max_iters=100000",
+                           "--set", "train.checkpoint_every=0.2"], out)
     st = checkpoint.load(out)          # the manifest's shards, joined
     assert st["iteration"] > 0 and st["param_means"].shape[0] == st["adam_stats"].shape[1]
     assert cli(["eval", "--ckpt", str(out), "--max-views", "1"]) == 0

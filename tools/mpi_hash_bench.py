@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.append(str(Path(__file__).resolve().parent.parent))   # the checkout's clrf only where none is installed
+# the checkout's clrf only where none is installed
+sys.path.append(str(Path(__file__).resolve().parent.parent))
 
 import pyopencl.array as cla  # noqa: E402
 

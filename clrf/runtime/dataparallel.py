@@ -22,6 +22,18 @@ import numpy as np
 import pyopencl as cl
 
 
+def shard_bounds(n: int, ranks: int) -> list:
+    """[lo, hi) of each of ``ranks`` ranks' rows of n, in rank order (the first n % ranks
+    one more)."""
+    base, extra = divmod(int(n), int(ranks))
+    out, lo = [], 0
+    for r in range(int(ranks)):
+        hi = lo + base + (1 if r < extra else 0)
+        out.append((lo, hi))
+        lo = hi
+    return out
+
+
 class DataParallel:
     """The collective operations of one rank of a data-parallel run on ``comm`` (module
     doc)."""
@@ -34,10 +46,8 @@ class DataParallel:
         self._host = None            # the host buffer of sum_gradients, reused
 
     def share(self, n: int) -> tuple[int, int]:
-        """This rank's rows [lo, hi) of a batch of n rows (the first n % P ranks one more)."""
-        base, extra = divmod(int(n), self.size)
-        lo = self.rank * base + min(self.rank, extra)
-        return lo, lo + base + (1 if self.rank < extra else 0)
+        """This rank's rows [lo, hi) of a batch of n rows (``shard_bounds``)."""
+        return shard_bounds(n, self.size)[self.rank]
 
     def total(self, x):
         """The sum of ``x`` (a number) over the ranks, the same on every rank."""

@@ -52,4 +52,3 @@ def pin_threads():
         return
     if 0 < mine < (os.cpu_count() or mine):
         os.environ.setdefault("POCL_MAX_PTHREAD_COUNT", str(mine))
-

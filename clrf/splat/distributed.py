@@ -19,7 +19,7 @@ ranks. A step trains P views, view k owned by rank k:
 3. each rank scatters the gradients into its shard's rows, runs the projection backward for
    each camera, adds the density statistics of each view, and takes one Adam step of its rows
    on the mean of the batch's gradients. With batches of P views the learning rates are
-   sqrt(P) times the one-view rates (Grendel's scaling; ``BATCH_LR``).
+   sqrt(P) times the one-view rates (Grendel's scaling; ``lr_scale``).
 
 Renders outside training (evaluations, clrf view) are collective: every rank sends every
 rank the records it sees (``Allgatherv``) and composites the whole image. Checkpoints are one
@@ -34,8 +34,10 @@ from __future__ import annotations
 import numpy as np
 
 from .raster import Projected
+from ..runtime.dataparallel import shard_bounds
 from ..runtime.programs import download, upload
 from .model import FILTER3D_EVERY, SplatModel, camera_of
+from .params import NAMES, moment_keys
 from .strategy import StepInfo
 
 # the columns of a projected record: xy 2, conic 3, radius, depth, colour 3, opacity, rect 4
@@ -44,7 +46,6 @@ RECORD = 15
 COLUMNS = (("xy", 2), ("conic", 3), ("radius", 1), ("depth", 1), ("color", 3),
            ("opacity", 1), ("rect", 4))
 GRAD_COLUMNS = (("xy", 2), ("conic", 3), ("opacity", 1), ("color", 3))
-BATCH_LR = "sqrt"   # the learning rates of a batch of P views: sqrt(P) times the one-view rate
 
 
 def _records(proj: Projected) -> tuple[np.ndarray, np.ndarray]:
@@ -160,22 +161,9 @@ def allgather_records(comm, rast, params: dict, cam) -> Projected:
 REBALANCE_AT = 0.10   # shards are evened out when the largest exceeds the smallest by this share
 # the per-Gaussian arrays of a state (clrf/splat/model.py state_dict) and the axis their rows
 # run along: what a checkpoint's shards join (clrf/outputs/checkpoint.py merge_shards)
-ROW_KEYS = {**{f"param_{k}": 0 for k in ("means", "log_scales", "quats", "opacity_logits",
-                                          "sh")},
-            **{f"adam_{k}_{m}": 0 for k in ("means", "log_scales", "quats", "opacity_logits",
-                                            "sh") for m in ("m", "v")},
+ROW_KEYS = {**{f"param_{k}": 0 for k in NAMES},
+            **{f"adam_{mk}": 0 for k in NAMES for mk in moment_keys(k)},
             "adam_stats": 1, "filter3d": 0}
-
-
-def shard_bounds(n: int, ranks: int) -> list:
-    """[lo, hi) of each rank's rows of n (the first n % ranks one more)."""
-    base, extra = divmod(int(n), int(ranks))
-    out, lo = [], 0
-    for r in range(int(ranks)):
-        hi = lo + base + (1 if r < extra else 0)
-        out.append((lo, hi))
-        lo = hi
-    return out
 
 
 def _split_cap(cap: int, ranks: int, rank: int) -> int:
@@ -206,7 +194,7 @@ class DistSplatModel(SplatModel):
         self.P, self.rank = comm.Get_size(), comm.Get_rank()
         self.cap_total = int(cap)
         self.max_count = _split_cap(cap, self.P, self.rank)
-        self.lr_scale = float(np.sqrt(self.P))    # BATCH_LR
+        self.lr_scale = float(np.sqrt(self.P))    # a batch of P views (module doc)
         self.n_total = self._total(self.n)        # (take_shard counts again)
         return self
 
@@ -309,19 +297,12 @@ class DistSplatModel(SplatModel):
         self._set_host(_join([g[0] for g in got]), _join([g[1] for g in got]))
 
     # ---- renders (collective) ------------------------------------------------------
-    def render_image(self, c2w, intrinsics, hw, depth: bool = True) -> dict:
-        """The one-process render_image, every rank's splats composited on every
-        rank (collective)."""
-        cam = camera_of(c2w, intrinsics, hw)
+    def _render_raster(self, cam, depth: bool):
+        """render_image's Raster: every rank's splats composited on every rank
+        (collective)."""
         proj = allgather_records(self.comm, self.rast, self._rparams(), cam)
         bins = self.rast.bin(proj, cam)
-        ras = self.rast.rasterize(proj, bins, cam, self.background, depth=depth)
-        out = {"rgb": download(ras.rgb), "acc": (1.0 - download(ras.T)).astype(np.float32)}
-        if depth:
-            zs, acc = download(ras.depth), out["acc"]
-            out["depth"] = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(
-                np.float32)
-        return out
+        return self.rast.rasterize(proj, bins, cam, self.background, depth=depth)
 
     def describe(self) -> str:
         return super().describe().replace(f"{self.n} Gaussians",
@@ -340,7 +321,6 @@ class DistSplatModel(SplatModel):
         return {"rows": ROW_KEYS}
 
 
-
 def check_settings(cfg, ranks: int):
     """ValueError naming the setting that splats over ``ranks`` MPI ranks do not take."""
     c = cfg.splat
@@ -350,6 +330,6 @@ def check_settings(cfg, ranks: int):
             ("splat.strategy", c.strategy == "mcmc",
              "MCMC's regularisers and relocation (weighted by the whole count)")):
         if on:
+            off = "default" if key.endswith("strategy") else "false"
             raise ValueError(f"{key}: {why} are not split over MPI ranks yet ({ranks} ranks); "
-                             f"turn it off (--set {key}={'default' if key.endswith('strategy') else 'false'}) "
-                             f"or run as one process")
+                             f"turn it off (--set {key}={off}) or run as one process")

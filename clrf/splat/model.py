@@ -404,14 +404,17 @@ class SplatModel:
         """rgb [H, W, 3], acc [H, W] (1 - the final transmittance) and, with ``depth``, depth
         [H, W] (the opacity-weighted mean camera depth of the splats, 0 where nothing is
         seen; composited in the same raster pass, RENDER_DEPTH) of one camera."""
-        cam = camera_of(c2w, intrinsics, hw)
-        _, _, ras = self.rast.forward(self._rparams(), cam, self.background, depth=depth)
+        ras = self._render_raster(camera_of(c2w, intrinsics, hw), depth)
         out = {"rgb": download(ras.rgb), "acc": (1.0 - download(ras.T)).astype(np.float32)}
         if depth:
             zs, acc = download(ras.depth), out["acc"]
             out["depth"] = np.where(acc > 1e-6, zs / np.maximum(acc, 1e-6), 0.0).astype(
                 np.float32)
         return out
+
+    def _render_raster(self, cam, depth: bool):
+        """The Raster of camera ``cam`` over the model's background (render_image's)."""
+        return self.rast.forward(self._rparams(), cam, self.background, depth=depth)[2]
 
     def export_fields(self, points, dirs):
         raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "

@@ -54,7 +54,8 @@ def state_from_file(path) -> dict:
     extent = float(np.linalg.norm(hi - lo)) / 2
     f = 0.5 * DEFAULT_SIDE / math.tan(math.radians(DEFAULT_FOV_DEG) / 2)
     state = {"kind": "splat", "config": asdict(config), "background": [0.0, 0.0, 0.0],
-             "extent": extent, "bbox": [lo.tolist(), hi.tolist()], "seed": 0, "max_count": max(n, 1),
+             "extent": extent, "bbox": [lo.tolist(), hi.tolist()], "seed": 0,
+             "max_count": max(n, 1),
              "step": 0, "active_degree": degree, "progress": 1.0,
              "lr_means": config.lr_position_final * extent,
              "iteration": 0, "seconds": 0.0,
