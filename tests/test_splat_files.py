@@ -23,7 +23,7 @@ SPZ_DC_TOL = 0.5 / (255 * spz.COLOR_SCALE)          # uint8 of 255 (0.15 dc + 0.
 SPZ_DC_RANGE = (-0.5 / spz.COLOR_SCALE, 0.5 / spz.COLOR_SCALE)
 SPZ_LOG_SCALE_TOL = 0.5 / 16                        # uint8 of 16 (log scale + 10)
 SPZ_LOG_SCALE_RANGE = (-10.0, 255 / 16 - 10.0)
-SPZ_SH1_BUCKET, SPZ_SH_REST_BUCKET = 1 << (8 - 5), 1 << (8 - 4)    # 5 and 4 bits of 8
+SPZ_SH1_BUCKET, SPZ_SH_REST_BUCKET = 1 << (8 - 6), 1 << (8 - 5)    # 6 and 5 bits of 8
 # rotations: each of three components within half a step e, so those three within sqrt(3) e;
 # the fourth, recovered from the unit norm and at least 1/2 (the largest of four, version 3;
 # w >= 1/2 in the version 2 tests), moves at most sqrt(3) times that: 2 sqrt(3) e in all,

@@ -64,7 +64,7 @@ def _views_and_data(a, state):
 def cmd_eval(a):
     from ..runtime.device import Device
     from ..training.metrics import SSIM_NAME
-    from ..training.models import load_model
+    from ..training.models import adopt_capture, load_model
     from ..training.perceptual import lpips
     from ..data.io import downscale_image
     from ..runtime.progress import bar
@@ -78,6 +78,7 @@ def cmd_eval(a):
     if a.refine_poses:
         _check_refine(a, model)
     ds, views, pd = _views_and_data(a, state)
+    adopt_capture(model, state, ds)
     full = len(views)
     if a.max_views:
         views = views[:a.max_views]

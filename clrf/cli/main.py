@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import registry
-from ..training.models import checkpoint_dataset, load_data
+from ..training.models import adopt_capture, checkpoint_dataset, load_data
 from .common import EXIT_BUG, EXIT_USAGE, CliError, out_dir as _out_dir, user_errors as _user_errors
 
 
@@ -263,6 +263,7 @@ def cmd_render(a):
     elif a.views == "test":
         ds = checkpoint_dataset(state, a.data)
         poses = ds.poses[np.asarray(ds.split.get("test", ds.split.get("val")))]
+        spec = spec_from_meta(adopt_capture(model, state, ds), a.scale)
     elif a.views == "spiral" or meta["ndc"] or meta.get("preset") == "forward_facing":
         ds = checkpoint_dataset(state, a.data)
         poses = spiral_poses(ds.poses[ds.split["train"]], n=a.frames)

@@ -28,7 +28,21 @@ J_l the left Jacobian of SO(3) (Exp(w + d) = Exp(J_l(w) d) Exp(w) to first order
 scene's extent, so that the pull does not depend on the capture's units), and each image takes
 an Adam step (its own step count; clrf/runtime/optim.py ``adam_host_step``) when it is trained:
 rotations at ``lr`` radians, translations at ``lr * scale``, the rate falling log-linearly to
-``lr_final`` over the budget where one is given (``schedule``). Test views keep their given
+``lr_final`` over the budget where one is given (``schedule``).
+
+The frame stays put (``hold_frame``, on by default). Images alone cannot tell a scene and all
+its cameras from the same scene and cameras moved together by one rigid motion G of the world,
+so the corrections' common part is free: left alone it drifts, the scene follows it, and the
+test views, which keep their given poses, no longer fit the scene. After each pass over the
+views (``after_pass``) the common motion of the trained images' corrections is taken out, as
+the exposure rows' common gain is: to first order a world twist (omega, nu) moves camera v's
+world-to-camera [R_v t_v] by the camera-frame rotation R_v omega and shift R_v nu + t_v x (R_v
+omega), so (omega, nu) is the least-squares fit of those to the corrections (rotation vector
+w_v, shift of the corrected transform c_v; shifts over the scene's extent), and each trained
+image's corrected transform C_v V_v becomes C_v V_v G^-1 exactly (``common_motion``,
+``remove_common_motion``). The scene, which followed the drift by no more than a pass's steps,
+stays in the given poses' frame. Each image's given transform V_v is the one it was last
+rendered from (``camera``). Test views keep their given
 poses, as published protocols evaluate them; ``clrf eval --refine-poses N`` also scores them
 after N steps of a correction of their own against their own image, the scene held still
 (``refine_view_pose`` in clrf/splat/model.py).
@@ -46,6 +60,10 @@ import numpy as np
 
 from ..runtime.optim import adam_host_step, expon_lr
 from .base import CAMERA, VIEWS
+
+
+FRAME_ITERATIONS = 3   # fits of the common motion a removal takes (each removes the last's
+#                        second-order rest: 0.5 degrees leave 1e-5 of it, then 1e-10)
 
 
 def hat(w) -> np.ndarray:
@@ -88,6 +106,47 @@ def rotation_angle(R) -> float:
     return float(np.arctan2(s, c))
 
 
+def so3_log(R) -> np.ndarray:
+    """w with Exp(w) = R (|w| <= pi), the inverse of ``so3_exp``."""
+    R = np.asarray(R, np.float64)
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    th = rotation_angle(R)
+    s = np.sin(th)
+    if th < 1e-6:
+        return v * (1.0 + th * th / 6.0)
+    if np.pi - th > 1e-4:
+        return v * (th / s)
+    # near a half turn: the axis from the symmetric part, R + R^T = 2 (cos th I + (1 - cos th)
+    # a a^T), its sign from v
+    B = 0.5 * (R + R.T) - np.cos(th) * np.eye(3)
+    a = B[np.argmax(np.diag(B))]
+    a = a / np.linalg.norm(a)
+    return th * (a if a @ v >= 0 else -a)
+
+
+def common_motion(viewmats, corrected, scale: float) -> tuple:
+    """(omega, nu): the world twist whose camera-frame motions best fit the corrections of
+    given world-to-camera ``viewmats`` [n, 4, 4] to ``corrected`` [n, 4, 4] (module doc;
+    shifts weighed over ``scale``), by linear least squares."""
+    rows, rhs = [], []
+    for V, Vc in zip(np.asarray(viewmats, np.float64), np.asarray(corrected, np.float64)):
+        R, t = V[:3, :3], V[:3, 3]
+        C = Vc @ np.linalg.inv(V)                # the correction, in the camera's frame
+        rows.append(np.hstack([R, np.zeros((3, 3))]))
+        rhs.append(so3_log(C[:3, :3]))
+        rows.append(np.hstack([hat(t) @ R, R]) / scale)
+        rhs.append(C[:3, 3] / scale)
+    x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
+    return x[:3], x[3:]
+
+
+def twist_matrix(omega, nu) -> np.ndarray:
+    """G = [Exp(omega) nu; 0 1], the rigid motion of the world a twist (omega, nu) stands for."""
+    G = np.eye(4)
+    G[:3, :3], G[:3, 3] = so3_exp(omega), np.asarray(nu, np.float64)
+    return G
+
+
 def pivot_point(pivot: float) -> np.ndarray:
     """p = (0, 0, pivot): the point on the optical axis a correction turns the camera about."""
     return np.array([0.0, 0.0, float(pivot)])
@@ -115,6 +174,15 @@ def pose_gradient(viewmat, w, tau, dR, dt, pivot: float = 0.0) -> tuple:
     return left_jacobian(w).T @ g_phi, np.asarray(dt, np.float64).copy()
 
 
+def _frame_report(summary: dict) -> str:
+    """'; a common motion of 0.41 deg and 0.2 % of the extent taken out (the frame held)'."""
+    if not summary.get("frame_held"):
+        return ""
+    return (f"; a common motion of {summary['frame_rotation_deg']:.3f} deg and "
+            f"{100 * summary['frame_translation_rel']:.2f} % of the extent taken out (the "
+            f"frame held)")
+
+
 class PoseCorrection:
     """The corrections of ``n_images`` training cameras (module doc)."""
     name = "pose"
@@ -122,7 +190,8 @@ class PoseCorrection:
     batches = VIEWS
 
     def __init__(self, n_images: int, lr: float, reg: float, scale: float,
-                 state: dict | None = None, pivots=None, lr_final: float | None = None):
+                 state: dict | None = None, pivots=None, lr_final: float | None = None,
+                 hold_frame: bool = True):
         if n_images < 1:
             raise ValueError(f"PoseCorrection needs at least one image, got {n_images}")
         if not (lr > 0 and reg >= 0 and scale > 0):
@@ -136,6 +205,9 @@ class PoseCorrection:
         self.m = np.zeros((self.n_images, 6))
         self.v = np.zeros((self.n_images, 6))
         self.steps = np.zeros(self.n_images, np.int64)
+        self.hold_frame = bool(hold_frame)
+        self.given = {}                     # image -> its given world-to-camera (``camera``)
+        self.frame = np.zeros(6)            # the common motion taken out so far (omega, nu)
         # each image's pivot depth d_v (module doc); a checkpoint's own wins over ``pivots``,
         # and one written before pivots existed turned its cameras about their centres (0)
         self.pivots = np.zeros(self.n_images)
@@ -151,6 +223,8 @@ class PoseCorrection:
             self.steps = np.asarray(state["pose_steps"], np.int64).reshape(self.n_images).copy()
             self.pivots = (np.asarray(state["pose_pivot"], np.float64).reshape(self.n_images)
                            .copy() if "pose_pivot" in state else np.zeros(self.n_images))
+            if "pose_frame" in state:
+                self.frame = np.asarray(state["pose_frame"], np.float64).reshape(6).copy()
 
     def viewmat(self, viewmat, v: int) -> np.ndarray:
         """Image v's corrected world-to-camera [4, 4]."""
@@ -159,7 +233,36 @@ class PoseCorrection:
 
     def camera(self, cam, v: int):
         """``cam`` (a SplatCamera with image v's given pose) with the corrected pose."""
+        self.given[int(v)] = np.asarray(cam.viewmat, np.float64)
         return dataclasses.replace(cam, viewmat=self.viewmat(cam.viewmat, v))
+
+    def set_viewmat(self, v: int, viewmat, corrected) -> None:
+        """Image v's correction set to the one that takes its given ``viewmat`` to
+        ``corrected`` (both world-to-camera [4, 4]): w = Log(C_R), tau = C_t + C_R p - p for
+        C = corrected viewmat^-1."""
+        C = np.asarray(corrected, np.float64) @ np.linalg.inv(np.asarray(viewmat, np.float64))
+        p = pivot_point(self.pivots[int(v)])
+        self.params[int(v)] = np.concatenate([so3_log(C[:3, :3]),
+                                              C[:3, 3] + C[:3, :3] @ p - p])
+
+    def remove_common_motion(self) -> np.ndarray:
+        """Takes the trained images' common motion out of their corrections (module doc);
+        returns it (omega, nu)."""
+        idx = [v for v in sorted(self.given) if self.steps[v] > 0]
+        if not idx:
+            return np.zeros(6)
+        given = [self.given[v] for v in idx]
+        total = np.eye(4)
+        for _ in range(FRAME_ITERATIONS):    # the fit is linear: a second pass is exact to
+            corrected = [self.viewmat(V, v) for V, v in zip(given, idx)]   # float64 rounding
+            G = twist_matrix(*common_motion(given, corrected, self.scale))
+            G_inv = np.linalg.inv(G)
+            for V, Vc, v in zip(given, corrected, idx):
+                self.set_viewmat(v, V, Vc @ G_inv)
+            total = G @ total
+        out = np.concatenate([so3_log(total[:3, :3]), total[:3, 3]])
+        self.frame += out
+        return out
 
     def gradient(self, v: int, viewmat, dR, dt) -> np.ndarray:
         """dL/d(w, tau) of image v, the pull toward the identity included, from dL/dR, dL/dt of
@@ -188,11 +291,14 @@ class PoseCorrection:
             self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 
     def after_pass(self) -> None:
-        """Nothing: each correction stays as trained."""
+        """With ``hold_frame``: the common motion taken out (``remove_common_motion``)."""
+        if self.hold_frame:
+            self.remove_common_motion()
 
     def state_dict(self) -> dict:
         return {"pose": self.params.copy(), "pose_m": self.m.copy(), "pose_v": self.v.copy(),
-                "pose_steps": self.steps.copy(), "pose_pivot": self.pivots.copy()}
+                "pose_steps": self.steps.copy(), "pose_pivot": self.pivots.copy(),
+                "pose_frame": self.frame.copy()}
 
     def centre_shift(self, v: int) -> float:
         """How far image v's correction moved its camera's centre: in the given camera's frame
@@ -213,14 +319,17 @@ class PoseCorrection:
         tr = [self.centre_shift(i) for i in idx]
         return {"images": int(len(idx)), "rotation_deg": float(np.mean(rot)),
                 "translation": float(np.mean(tr)),
-                "translation_rel": float(np.mean(tr) / self.scale)}
+                "translation_rel": float(np.mean(tr) / self.scale),
+                "frame_held": self.hold_frame,
+                "frame_rotation_deg": float(np.degrees(np.linalg.norm(self.frame[:3]))),
+                "frame_translation_rel": float(np.linalg.norm(self.frame[3:]) / self.scale)}
 
     def report(self, summary: dict) -> str:
         """The sentence ``clrf eval`` prints of ``summary``."""
         return (f"training poses corrected by {summary['rotation_deg']:.3f} deg and "
                 f"{summary['translation']:.4g} ({100 * summary['translation_rel']:.2f} % of "
                 f"the scene's extent) on average over {summary['images']} images (the test "
-                f"views keep theirs)")
+                f"views keep theirs)" + _frame_report(summary))
 
     def describe(self) -> str:
         """'poses corrected by 0.42 deg, 0.3 % of the scene' for progress lines."""

@@ -6,7 +6,8 @@ The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposur
 ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
 ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
 ``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
-``pose_reg``). A section without one of the optional keys takes what the correction does
+``pose_reg``, ``pose_hold_frame``). A section without one of the optional keys takes what the
+correction does
 without it (a constant rate, no fit, no clip; the Adam betas of clrf/runtime/optim.py where it
 has no ``beta1`` / ``beta2`` of its own). This module imports no correction until one is made
 (the configurations import EXPOSURE_MATRICES from here, before the self-check that reports a
@@ -86,12 +87,13 @@ def _pose(device, s, views: Views, batches: str, state=None):
     from .pose import PoseCorrection
     if batches != VIEWS:
         raise ValueError("a pose correction needs a model that trains on whole views")
+    hold = getattr(s, "pose_hold_frame", True)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
-                              state=state, lr_final=s.lr_pose_final)
+                              state=state, lr_final=s.lr_pose_final, hold_frame=hold)
     return PoseCorrection(views.n_images, s.lr_pose, s.pose_reg, views.scale,
                           pivots=views.pivots() if views.pivots else None,
-                          lr_final=s.lr_pose_final)
+                          lr_final=s.lr_pose_final, hold_frame=hold)
 
 
 MAKE = {"exposure": _exposure, "pose": _pose}

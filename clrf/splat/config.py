@@ -177,6 +177,10 @@ class SplatConfig:
     #                                 constant 1e-3, with the same rotation error, and its
     #                                 test views refined at the same rate to 0.50 dB more)
     pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_hold_frame: bool = True    # take the corrections' common rigid motion out after each
+    #                                 pass, so the scene stays in the given poses' frame and
+    #                                 the test views' given poses fit it (clrf/corrections/
+    #                                 pose.py); false: the frame drifts with the corrections
     antialiased: bool = True        # Mip-Splatting's filters: a 3D low-pass filter per
     #                                 Gaussian bounded by the training views' sampling rate
     #                                 and the screen-space dilation with opacity compensation,

@@ -67,3 +67,16 @@ def checkpoint_dataset(state, data_override=None):
     path = data_override if data_override is not None else tr.get("data", "")
     return load_data(path, tr.get("downscale", 1) if path else 1,
                      str(state.get("kind", registry.DEFAULT)))
+
+
+def adopt_capture(model, state, ds) -> dict:
+    """A splat file read as a scene (``state["scene_file"]``) scored or rendered on capture
+    ``ds`` (``--data``): the model renders on the capture's background (an RGBA capture's
+    composite, as a run trained on it does) and the views take the capture's resolution and
+    intrinsics. Returns the dataset metadata renders use (the checkpoint's own for a run)."""
+    if not state.get("scene_file"):
+        return state["dataset"]
+    from .trainer import dataset_meta
+    model.background = tuple(float(b) for b in ds.background)
+    return dataset_meta(ds)
+
