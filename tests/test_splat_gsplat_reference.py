@@ -182,8 +182,15 @@ def psnr(a, b):
     return -10.0 * math.log10(float(np.mean((np.asarray(a, np.float64) - b) ** 2)))
 
 
-@pytest.mark.parametrize("antialiased", [False, True], ids=["classic", "antialiased"])
-@pytest.mark.parametrize("suffix", FORMATS)
+# each case renders 2 x 160 x 120 pixels in torch (~10 s on 2 vCPUs): the quick tier takes
+# the .ply, classic
+SLOW = pytest.mark.slow
+
+
+@pytest.mark.parametrize("antialiased", [pytest.param(False, id="classic"),
+                                         pytest.param(True, id="antialiased", marks=SLOW)])
+@pytest.mark.parametrize("suffix", [FORMATS[0]] + [pytest.param(s, marks=SLOW)
+                                                   for s in FORMATS[1:]])
 def test_gsplat_reference_renders_clrf_files(device, read_back, suffix, antialiased):
     g = read_back[suffix]
     assert len(g["means"]) == N
@@ -197,6 +204,7 @@ def test_gsplat_reference_renders_clrf_files(device, read_back, suffix, antialia
         assert p >= GSPLAT_REF_PSNR_DB, (suffix, antialiased, k, p)
 
 
+@SLOW
 def test_the_bound_catches_a_convention_off(device, read_back):
     """The same comparison with one convention of the map off falls below the bound: the
     reference's pixel centres at the integers (not +0.5); anti-aliased, gsplat's own 2D filter

@@ -127,6 +127,7 @@ VIEW_FOV = 40.0                # degrees, vertical
 VIEW_WAIT = 120.0              # seconds for the frame (PoCL on a loaded 2-core machine)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".spz", ".glb"])
 def test_view_serves_what_render_renders(tmp_path, suffix):
     """`clrf view --ckpt FILE` on a splat file, in a subprocess: the frame it serves over its
