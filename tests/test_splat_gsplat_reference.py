@@ -94,16 +94,22 @@ def _cameras():
 
 
 @pytest.fixture(scope="module")
-def read_back(tmp_path_factory):
-    """{suffix: the arrays clrf's reader gives back of clrf's file of the scene}."""
+def files(tmp_path_factory):
+    """{suffix: clrf's file of the scene}."""
     g = _scene()
     out = {}
     for s in FORMATS:
         path = tmp_path_factory.mktemp("gsref") / f"scene{s}"
         sh = g["sh"][:, :1] if s == ".splat" else g["sh"]
         write_splat_file(path, g["means"], g["log_scales"], g["quats"], g["opacity_logits"], sh)
-        out[s] = read_splat_file(path)
+        out[s] = path
     return out
+
+
+@pytest.fixture(scope="module")
+def read_back(files):
+    """{suffix: the arrays clrf's reader gives back of clrf's file of the scene}."""
+    return {s: read_splat_file(path) for s, path in files.items()}
 
 
 def composite(means2d, conics, opacities, colors, depths, radii, width, height, background,
@@ -140,9 +146,10 @@ def composite(means2d, conics, opacities, colors, depths, radii, width, height, 
     return rgb + T_end[..., None] * torch.tensor(background, dtype=torch.float64), T_end
 
 
-def gsplat_render(g, cam, antialiased, eps2d, pixel_offset=0.5):
-    """(rgb, T) of the splats ``g`` (clrf's arrays) through ``cam`` by gsplat's reference
-    functions and `composite`, float64; the parameter map of the module doc."""
+def gsplat_render(g, cam, antialiased, eps2d, pixel_offset=0.5, background=BACKGROUND):
+    """(rgb, T) of the splats ``g`` (clrf's arrays) through ``cam`` on ``background`` by
+    gsplat's reference functions and `composite`, float64; the parameter map of the module
+    doc."""
     t = {k: torch.from_numpy(np.asarray(g[k], np.float64))
          for k in ("means", "log_scales", "quats", "opacity_logits", "sh")}
     covars, _ = gs._quat_scale_to_covar_preci(t["quats"], torch.exp(t["log_scales"]),
@@ -161,7 +168,7 @@ def gsplat_render(g, cam, antialiased, eps2d, pixel_offset=0.5):
     colors = torch.clamp_min(gs._spherical_harmonics(degree, t["means"] - campos, t["sh"]) + 0.5,
                              0.0)
     rgb, T = composite(means2d[0], conics[0], opacities, colors, depths[0], radii[0],
-                       cam.width, cam.height, BACKGROUND, pixel_offset)
+                       cam.width, cam.height, background, pixel_offset)
     return rgb.numpy(), T.numpy()
 
 
@@ -218,3 +225,23 @@ def test_the_bound_catches_a_convention_off(device, read_back):
     assert rast.filter2d != 0.3
     assert psnr(rgb, gsplat_render(g, cam, True, 0.3)[0]) < GSPLAT_REF_PSNR_DB
     assert psnr(rgb, gsplat_render(g, cam, False, rast.filter2d)[0]) < GSPLAT_REF_PSNR_DB
+
+
+@SLOW
+def test_a_scene_file_as_clrf_render_renders_it(device, files):
+    """The path `clrf render --ckpt scene.spz` takes (load_model, the model's render_image: its
+    configuration's anti-aliasing and 2D filter, its tile, a black background, the camera
+    from an OpenGL camera-to-world pose) against the reference of the file's arrays."""
+    from clrf.splat.model import camera_of
+    from clrf.training.models import load_model
+    model, state, _ = load_model(device, files[".spz"])
+    assert model.rast.antialiased and model.background == (0.0, 0.0, 0.0)
+    g = read_splat_file(files[".spz"])
+    for cam in _cameras():
+        c2w = np.linalg.inv(cam.viewmat) @ np.diag([1.0, -1.0, -1.0, 1.0])   # OpenCV -> OpenGL
+        intrinsics = (cam.fx, cam.fy, cam.cx, cam.cy)
+        used = camera_of(c2w, intrinsics, (H, W))
+        np.testing.assert_allclose(used.viewmat, cam.viewmat, atol=1e-12)
+        rgb = model.render_image(c2w, intrinsics, (H, W), depth=False)["rgb"]
+        ref, _ = gsplat_render(g, used, True, model.rast.filter2d, background=model.background)
+        assert psnr(rgb, ref) >= GSPLAT_REF_PSNR_DB
