@@ -150,3 +150,69 @@ def test_a_file_scored_on_an_rgba_capture_takes_its_background(scene, tmp_path):
     import imageio.v3 as iio
     img = iio.imread(next(frames.glob("*.png")))
     assert img.shape[:2] == (400, 400) and img[0, 0].min() > 240   # a white corner
+
+
+VIEW_W, VIEW_H = 64, 48        # the frame's pixels, below the viewer's resolution cap
+VIEW_FOV = 40.0                # degrees, vertical
+VIEW_WAIT = 120.0              # seconds for the frame (PoCL on a loaded 2-core machine)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("suffix", [".spz", ".glb"])
+def test_view_serves_what_render_renders(tmp_path, suffix):
+    """`clrf view --ckpt FILE` on a splat file, in a subprocess: the frame it serves over its
+    WebSocket for a camera is `clrf render --camera-path` of that camera, to VIEWER_PIXEL_ATOL
+    (both through clrf/outputs/frames.py); it is not blank, and the render of a camera 10
+    degrees about the scene's vertical from it is clearly another image."""
+    pytest.importorskip("websockets", reason="the viewer needs websockets (clrf[view])")
+    import json
+    import time
+
+    import imageio.v3 as iio
+    from websockets.sync.client import connect
+
+    from clrf.cli.main import main as cli
+    from clrf.data.cameras import look_at
+    from clrf.outputs import camera_path
+    from clrf.testing.tolerances import VIEWER_PIXEL_ATOL
+    from clrf.viewer.server import decode_frame
+    from viewer_util import ViewProcess
+    f = _write(tmp_path / f"scene{suffix}", _splats())
+    c2w = look_at([1.6, 1.0, 2.2], [0.0, 0.0, 0.0], up=(0.0, -1.0, 0.0))
+    turn = np.radians(10.0)
+    other = look_at([1.6 * np.cos(turn) + 2.2 * np.sin(turn), 1.0,
+                     2.2 * np.cos(turn) - 1.6 * np.sin(turn)], [0.0, 0.0, 0.0],
+                    up=(0.0, -1.0, 0.0))
+    view = ViewProcess(f)
+    try:
+        ws_url = view.url.replace("http://", "ws://", 1).replace("/?token=", "/ws?token=", 1)
+        with connect(ws_url, open_timeout=VIEW_WAIT) as ws:
+            assert json.loads(ws.recv(timeout=VIEW_WAIT))["type"] == "hello"
+            ws.send(json.dumps({"type": "render", "seq": 1, "fov": VIEW_FOV, "width": VIEW_W,
+                                "height": VIEW_H, "c2w": c2w.reshape(-1).tolist()}))
+            deadline = time.monotonic() + VIEW_WAIT
+            frame = None
+            while frame is None and time.monotonic() < deadline:
+                m = ws.recv(timeout=max(0.1, deadline - time.monotonic()))
+                if isinstance(m, bytes):
+                    frame = decode_frame(m)
+                else:
+                    assert json.loads(m)["type"] != "error", m
+        assert frame is not None, "no frame from clrf view"
+        hdr, img = frame
+        assert hdr["seq"] == 1 and img.shape == (VIEW_H, VIEW_W, 3)
+    finally:
+        view.close()
+    out = tmp_path / "render"
+    out.mkdir()
+    path = out / "camera_path.json"
+    camera_path.save(path, camera_path.CameraPath(np.stack([c2w, other]),
+                                                  np.array([VIEW_FOV, VIEW_FOV]), VIEW_W, VIEW_H))
+    assert cli(["--quiet", "render", "--ckpt", str(f), "--camera-path", str(path),
+                "--out", str(out)]) == 0
+    want = iio.imread(out / "path_000.png")[..., :3]
+    assert img.std() > 5, "a blank frame proves nothing"
+    diff = np.abs(img.astype(int) - want.astype(int))
+    assert diff.max() <= VIEWER_PIXEL_ATOL, diff.max()
+    turned = iio.imread(out / "path_001.png")[..., :3]
+    assert np.abs(img.astype(int) - turned.astype(int)).mean() > 5
