@@ -2,13 +2,14 @@
 viser's recording of the splat scene (scene.viser). Without a browser: the folder holds viser's
 page with one line added and a recording much smaller than the PLY, whose Gaussians are the
 PLY's (centres bit for bit, colours and opacities as viser quantises them) and whose opening
-camera is the run's first test view, or, for a splat file, the view `clrf render`'s orbit starts
-at; every refusal (the extra missing, a folder not empty, a model that is not a splat scene)
-exits 2 and writes nothing, and a failure while writing leaves nothing behind. In headless
-Chromium (SwiftShader's WebGL): the folder served by `http.server` on a free port draws the
-scene at the opening camera (the client's own camera log, ?logCamera), a frame that is not the
-background, and another frame after a mouse drag moves the camera. Skips with the reason when
-viser or the browser is missing (`bash tools/setup.sh web,test`)."""
+camera is the run's first test view, or, for a splat file or a run whose dataset is gone, the
+view `clrf render`'s orbit starts at; every refusal (the extra missing, a folder not empty, a
+model that is not a splat scene) exits 2 and writes nothing, and a failure while writing leaves
+nothing behind. In headless Chromium (SwiftShader's WebGL): the folder served by `http.server`
+on a free port draws the scene at the opening camera (the client's own camera log,
+?logCamera), a frame that is not the background, and another frame after a mouse drag moves
+the camera. Skips with the reason when viser or the browser is missing
+(`bash tools/setup.sh web,test`)."""
 import base64
 import functools
 import http.server
@@ -182,6 +183,25 @@ def test_web_from_a_splat_file_opens_at_the_box(ply, tmp_path, capsys):
                                atol=WEB_AXIS_ATOL)
     assert np.all(_background(msgs) == 0)              # a splat file's black
 
+
+
+def test_web_of_a_run_whose_cameras_are_gone_opens_at_the_box(trained, tmp_path, capsys,
+                                                               monkeypatch):
+    _viser()
+    from clrf.data.base import DataError
+    from clrf.training import models
+
+    def gone(state, data=None):
+        raise DataError("scenes/mine: no such folder")
+    monkeypatch.setattr(models, "checkpoint_dataset", gone)
+    site = tmp_path / "site"
+    assert cli(["export", "--ckpt", str(trained), "--web", str(site)]) == 0
+    assert "opens at a view of the scene's box (the run's cameras are unavailable: " \
+           "scenes/mine: no such folder)" in capsys.readouterr().out
+    _, msgs, _ = read_recording(site / "scene.viser")
+    bbox = np.asarray(checkpoint.load(trained)["dataset"]["bbox"], np.float64)
+    want = orbit_poses(1, 1.15 * float(np.linalg.norm(bbox[1] - bbox[0])), 30.0, bbox.mean(0))
+    np.testing.assert_array_equal(_camera(msgs)["position"], want[0, :3, 3])
 
 # ---- refusals ----------------------------------------------------------------------------------
 def test_web_without_viser_names_the_extra(tmp_path, capsys, monkeypatch):
