@@ -417,8 +417,8 @@ def build_parser():
     from .evaluate import add_eval_parser
     add_eval_parser(sub, cmd_eval)
 
-    x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint, "
-                                      "as binary PLY")
+    x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint "
+                                      "as binary PLY; a splat scene's files or web page")
     x.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
     x.add_argument("--mesh", default=None, metavar="FILE.ply", help="write a coloured mesh")
     x.add_argument("--points", default=None, metavar="FILE.ply",
