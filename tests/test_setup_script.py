@@ -169,6 +169,8 @@ def test_setup_without_the_mpi_extra_installs_no_mpi(tmp_path):
     ("view", False, True, 0, False),         # the viewer alone needs no browser
     ("test", False, True, 0, False),
     ("view,test", False, False, 1, False),   # cannot install: say so and fail
+    ("web,test", False, True, 0, True),      # the exported page's browser test too
+    ("web", False, True, 0, False),
 ])
 def test_setup_installs_chromium_for_view_and_test(tmp_path, extras, browser, sudo_ok, rc,
                                                    installs):

@@ -74,25 +74,32 @@ class ViewProcess:
                 self.p.wait(timeout=10)
 
 
-def browser():
-    """Headless Chromium through Selenium; skips the test with the reason when missing."""
+def browser(webgl=False, extras="view,test"):
+    """Headless Chromium through Selenium; skips the test with the reason when missing.
+    ``webgl``: with WebGL drawn by SwiftShader (Chromium's CPU renderer; no GPU needed) and the
+    page's whole console log kept (console.log lines too, in d.get_log("browser")); ``extras``
+    names what `tools/setup.sh` installs it with, for the skip message."""
     if importlib.util.find_spec("selenium") is None:
-        pytest.skip("selenium is not installed (bash tools/setup.sh view,test)")
-    if importlib.util.find_spec("websockets") is None:
+        pytest.skip(f"selenium is not installed (bash tools/setup.sh {extras})")
+    if "view" in extras.split(",") and importlib.util.find_spec("websockets") is None:
         pytest.skip("websockets is not installed (clrf[view])")
     binary = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome")
                    if shutil.which(n)), None)
     driver = shutil.which("chromedriver")
     if binary is None or driver is None:
         pytest.skip("no headless Chromium here: install Debian's chromium and chromium-driver "
-                    "(bash tools/setup.sh view,test)")
+                    f"(bash tools/setup.sh {extras})")
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
     opts = webdriver.ChromeOptions()
     opts.binary_location = binary
-    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+    gpu = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader") if webgl else \
+        ("--disable-gpu",)
+    for a in ("--headless=new", "--no-sandbox", *gpu, "--disable-dev-shm-usage",
               "--window-size=1100,720", "--force-device-scale-factor=1"):
         opts.add_argument(a)
+    if webgl:
+        opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
     return webdriver.Chrome(options=opts, service=Service(driver))
 
 

@@ -31,6 +31,9 @@
 #   bash tools/setup.sh view,test # plus headless Chromium for the viewer's browser test:
 #                                # Debian's chromium and chromium-driver when chromium or
 #                                # chromedriver is missing (Selenium drives it; no download)
+#   bash tools/setup.sh web      # plus viser's web client for `clrf export --web DIR` (a
+#                                # static page of a splat scene); web,test: headless Chromium
+#                                # too (as view,test), for that page's browser test
 #   bash tools/setup.sh eval     # plus LPIPS for `clrf eval`: torch ($CLRF_TORCH, default
 #                                # torch==2.13.0) and the lpips package's weight files, installed
 #                                # without lpips's torchvision, which clrf does not use
@@ -146,15 +149,15 @@ case ",${1:-}," in
         fi ;;
 esac
 extras=${extras//,gpucc/}
-# extras "view" and "test" together: the browser test needs a system Chromium and its driver
+# extras "view" or "web" with "test": the browser tests need a system Chromium and its driver
 case ",${1:-}," in
-    *,view,*)
+    *,view,*|*,web,*)
         case ",${1:-}," in
             *,test,*)
                 if ! { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; } ||
                    ! command -v chromedriver >/dev/null; then
-                    echo "clrf: extras 'view,test': installing headless Chromium" \
-                         "(chromium chromium-driver)" >&2
+                    echo "clrf: extras '${1}': installing headless Chromium" \
+                         "(chromium chromium-driver) for the browser tests" >&2
                     apt_install "Chromium and its WebDriver (chromium, chromedriver)" \
                         chromium chromium-driver || exit 1
                 fi ;;

@@ -1,4 +1,5 @@
-"""``clrf export`` (mesh / point cloud PLY) and the video and depth outputs of ``clrf render``.
+"""``clrf export`` (mesh / point cloud PLY; a splat scene's files and web page) and the video
+and depth outputs of ``clrf render``.
 
 Options are checked before anything is computed or written; bad ones raise ExportError, which
 the CLI reports as ``clrf: error: ...`` with exit code 2.
@@ -48,8 +49,13 @@ def kind_exports(a) -> dict:
 
 def check_export_args(a):
     """Validate ``clrf export`` options; returns (mesh path | None, points path | None)."""
-    if not a.mesh and not a.points and not kind_exports(a):
-        raise _error("export: nothing to do: pass --mesh FILE.ply and/or --points FILE.ply")
+    if not a.mesh and not a.points and not a.web and not kind_exports(a):
+        raise _error("export: nothing to do: pass --mesh FILE.ply, --points FILE.ply or (a "
+                     "splat scene) --splats FILE or --web DIR")
+    if a.web:   # before the model loads: the extra is there, the folder new or empty
+        from ..splat.web import check_web_dir, need_viser
+        need_viser()
+        check_web_dir(a.web)
     mesh = _check_ply("--mesh", a.mesh) if a.mesh else None
     points = _check_ply("--points", a.points) if a.points else None
     if a.level is not None and not (math.isfinite(a.level) and a.level > 0):
@@ -90,6 +96,9 @@ def cmd_export(a):
             owners = registry.exports()[name][1]
             raise _error(f"--{name}: a --model {', '.join(owners)} export; this checkpoint holds "
                          f"a {model.kind} model: use --mesh or --points")
+    if a.web and model.kind != "splat":
+        raise _error(f"--web {a.web}: shows a splat scene (a --model splat run or a splat "
+                     f"file); {a.ckpt} holds a {model.kind} model: use --mesh or --points")
     meta = state["dataset"]
     ndc = _ndc_of(meta)
     if points_path:   # load the dataset first: a bad one must stop the run before any output
@@ -121,6 +130,9 @@ def cmd_export(a):
     for name, path in own.items():
         path.parent.mkdir(parents=True, exist_ok=True)
         print(exports[name].write(model, path))
+    if a.web:
+        from ..splat.web import write_web
+        print(write_web(model, state, a.web, a.data))
     return 0
 
 

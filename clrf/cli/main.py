@@ -418,8 +418,8 @@ def build_parser():
     from .evaluate import add_eval_parser
     add_eval_parser(sub, cmd_eval)
 
-    x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint, "
-                                      "as binary PLY")
+    x = sub.add_parser("export", help="mesh (marching cubes) or point cloud of a checkpoint "
+                                      "as binary PLY; a splat scene's files or web page")
     x.add_argument("--ckpt", required=True, help="run directory (or its ckpt.npz)")
     x.add_argument("--mesh", default=None, metavar="FILE.ply", help="write a coloured mesh")
     x.add_argument("--points", default=None, metavar="FILE.ply",
@@ -438,7 +438,12 @@ def build_parser():
     x.add_argument("--min-opacity", type=float, default=0.5,
                    help="keep rays whose accumulated opacity is at least this (--points)")
     x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
-    x.add_argument("--data", default=None, help="dataset for --points (default: the run's)")
+    x.add_argument("--data", default=None,
+                   help="dataset for --points and --web's cameras (default: the run's)")
+    x.add_argument("--web", default=None, metavar="DIR",
+                   help="a new folder whose index.html shows the splat scene in a browser from "
+                        "any static file server, drawn by viser's web client (needs clrf[web]; "
+                        "--model splat checkpoints and splat files)")
     for name, (exp, owners) in registry.exports().items():   # a kind's own files
         x.add_argument(f"--{name}", default=None, metavar=f"FILE{'|'.join(exp.suffixes)}",
                        help=f"{exp.help} (--model {', '.join(owners)} checkpoints)")

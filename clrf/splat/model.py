@@ -745,24 +745,29 @@ def model_from_state(device, state, cfg) -> SplatModel:
     return SplatModel.from_state_dict(device, state)
 
 
+def viewer_params(model: SplatModel) -> tuple:
+    """(the host parameters as a viewer without clrf's filters draws them, a note for
+    messages): an anti-aliased model's 3D filter baked in, scales sqrt(s^2 + f2) and opacity
+    times prod s / se (the screen-space compensation is the viewer's own); else as trained."""
+    p = model.host_params()
+    if not model.rast.antialiased:
+        return p, ""
+    f2 = download(model._rparams()["filter3d"]).astype(np.float64)
+    s = np.exp(p["log_scales"].astype(np.float64))
+    se = np.sqrt(s * s + f2[:, None])
+    o = 1.0 / (1.0 + np.exp(-p["opacity_logits"].astype(np.float64))) * np.prod(s / se, 1)
+    o = np.clip(o, 1e-7, 1 - 1e-7)
+    p["log_scales"] = np.log(se).astype(np.float32)
+    p["opacity_logits"] = np.log(o / (1 - o)).astype(np.float32)
+    return p, " (the 3D anti-aliasing filter baked into scales and opacities)"
+
+
 def write_splats(model: SplatModel, path) -> str:
     """``clrf export --splats FILE``: the Gaussians in the format the ending names (files.py:
-    3DGS PLY, SPZ, glTF, compressed PLY, .splat); an anti-aliased model's SPZ carries the
-    format's flag."""
+    3DGS PLY, SPZ, glTF, compressed PLY, .splat), as viewer_params gives them; an
+    anti-aliased model's SPZ carries the format's flag."""
     from .files import format_of, write_splat_file
-    p = model.host_params()
-    note = ""
-    if model.rast.antialiased:
-        # the 3D filter baked in, for viewers without it: scales sqrt(s^2 + f2), opacity
-        # times prod s / se (the screen-space compensation is the viewer's own)
-        f2 = download(model._rparams()["filter3d"]).astype(np.float64)
-        s = np.exp(p["log_scales"].astype(np.float64))
-        se = np.sqrt(s * s + f2[:, None])
-        o = 1.0 / (1.0 + np.exp(-p["opacity_logits"].astype(np.float64))) * np.prod(s / se, 1)
-        o = np.clip(o, 1e-7, 1 - 1e-7)
-        p["log_scales"] = np.log(se).astype(np.float32)
-        p["opacity_logits"] = np.log(o / (1 - o)).astype(np.float32)
-        note = " (the 3D anti-aliasing filter baked into scales and opacities)"
+    p, note = viewer_params(model)
     n = write_splat_file(path, p["means"], p["log_scales"], p["quats"], p["opacity_logits"],
                          p["sh"], antialiased=model.rast.antialiased)
     fmt = format_of(path)
@@ -772,4 +777,5 @@ def write_splats(model: SplatModel, path) -> str:
     return f"saved {path} ({fmt.title}): {n} Gaussians, SH degree {degree}{note}"
 
 
-__all__ = ["SplatModel", "create_model", "model_from_state", "write_splats"]
+__all__ = ["SplatModel", "create_model", "model_from_state", "viewer_params",
+           "write_splats"]

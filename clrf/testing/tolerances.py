@@ -402,9 +402,30 @@ EXPOSURE_ADAM_ATOL = 1e-6
 # edges, where clrf's tiles of a Gaussian end at 3 standard deviations of its major axis (the
 # 3DGS paper's radius) and gsplat's box at 3.33 per axis: a pixel just past the 3-sigma square
 # can still get alpha >= 1/255 in gsplat (side camera: 150 of 19,200 pixels off by more than
-# 1e-4, the largest, 0.007, at tile edges). Seen 80.4-95.3 dB over five formats, two cameras, classic and anti-aliased (PoCL 3.1,
-# Zen 5). 45 dB would let conventions through: gsplat's own 2D filter 0.3 px^2 where clrf's
+# 1e-4, the largest, 0.007, at tile edges). Seen 80.4-95.3 dB over five formats, two cameras,
+# classic and anti-aliased (PoCL 3.1, Zen 5). 45 dB would let conventions through: gsplat's own 2D filter 0.3 px^2 where clrf's
 # anti-aliased mode uses 0.1 reads 45.5 dB, the opacity compensation left out 48.8 dB. 65 dB is
 # 15 dB under the lowest seen and above both; pixel centres moved half a pixel read 30 dB, the
 # odd SH bands negated 18 dB.
 GSPLAT_REF_PSNR_DB = 65.0
+# `clrf export --web` (tests/test_export_web.py): directions and points the recording holds in
+# float64 (the float32 poses and means convert exactly), after a normalisation, a dot product and
+# a quaternion rotation: each rounds at ~1e-16 relative, so 1e-9 (of a unit vector, or of the
+# scene's diagonal for a point) leaves 1e6x and still catches any wrong axis or sign (>= 1e-3).
+WEB_AXIS_ATOL = 1e-9
+# The same page in headless Chromium. viser's client logs its
+# camera (?logCamera) with three decimals (toFixed(3)): within 5e-4 of the float64 pose the
+# recording holds, plus float64 roundoff of the up-direction rotation it goes through (~1e-15).
+WEB_CAMERA_LOG_ATOL = 5e-4 + 1e-9
+# A pixel "shows the scene" where it differs from the background colour by more than this many
+# uint8 levels in some channel: SwiftShader's blending of the last faint splat edges and the
+# PNG background's sRGB handling stay within a few levels; the scene's surfaces differ by tens.
+WEB_SCENE_LEVEL = 16
+# A frame is not blank when at least this fraction of the canvas shows the scene: the opening
+# view of the test's scene fills about half of it; a page that drew nothing (or only the
+# background) has none.
+WEB_SCENE_MIN_FRACTION = 0.05
+# A camera move changed the frame: the mean absolute difference of the two frames, uint8
+# levels over all pixels and channels; a half-turn drag of the test's scene moves it by tens of
+# levels, the same frame drawn twice by 0 (SwiftShader is deterministic).
+WEB_MOVED_MEAN_LEVELS = 2.0
