@@ -395,3 +395,21 @@ EXPOSURE_GRAD_RTOL = 1e-5
 # Three Adam steps against the float64 twin: each update is lr * m / (sqrt(v) + eps) with m, v
 # formed in float32 (relative error ~1e-7 each), so rows agree to ~lr * 1e-6.
 EXPOSURE_ADAM_ATOL = 1e-6
+
+# The bilateral grid (cl/bilateral.cl). Its slice sums 8 corners' weights (products of three
+# float32 factors) times cells ~1, and out = A x + y b sums 4 such products: a few ulps of
+# values <= ~3, so 2e-6 absolute + 1e-6 relative (seen 3e-7).
+BILATERAL_ATOL = 2e-6
+BILATERAL_RTOL = 1e-6
+# dL/drgb: A^T g (3 products) plus the guidance's share, a 12-term dot product scaled by L - 1
+# (up to 63): rounding ~1e-7 of the largest entry times L; 1e-5 of the largest entry (seen 1.3e-7
+# at L = 3) leaves room for L = 64.
+BILATERAL_GRAD_REL_TO_MAX = 1e-5
+# dL/dG: a cell sums w dL/dM over its footprint's n pixels in float32, in pixel order:
+# ~sqrt(n) 6e-8 |terms| for terms ~ N(0, 1); 1e-5 sqrt(n) absolute, as the exposure's sums.
+BILATERAL_SUM_ATOL_PER_SQRT_N = 1e-5
+# The prior's gradient: a difference of two differences of entries ~1 over n_d in float32,
+# a few ulps of the cells: 1e-6 of the largest entry of weight / V times 2 / n_d (seen 1e-7).
+BILATERAL_TV_REL_TO_MAX = 1e-6
+# Three Adam steps of every grid against the float64 twin: as the exposure's rows.
+BILATERAL_ADAM_ATOL = 1e-6
