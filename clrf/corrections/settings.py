@@ -114,7 +114,8 @@ def _bilateral(device, s, views: Views, batches: str, state=None):
     from .bilateral import BilateralGrid
     if batches != VIEWS:
         raise ValueError("a bilateral grid needs a model that trains on whole views")
-    return BilateralGrid(device, views.n_images, s.lr_bilateral_grid, s.bilateral_grid_tv,
+    n = views.n_images if state is None else len(state["bilateral_grid"])
+    return BilateralGrid(device, n, s.lr_bilateral_grid, s.bilateral_grid_tv,
                          shape=s.bilateral_grid_shape, state=state, masked=views.masked)
 
 
