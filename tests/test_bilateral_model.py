@@ -126,3 +126,72 @@ def test_a_run_trains_evaluates_and_reports_it(tmp_path, capsys):
     e = json.loads((tmp_path / "e.json").read_text())
     assert e["bilateral_correction"]["steps"] == s["steps"]
     assert np.isfinite(e["psnr_color_corrected"])
+
+
+def _capture(root, rng):
+    """A Blender-layout capture of 12 training and 2 test RGBA images, 9 x 14."""
+    import imageio.v3 as iio
+    for split, n in (("train", 12), ("test", 2)):
+        (root / split).mkdir(parents=True)
+        frames = []
+        for i in range(n):
+            iio.imwrite(root / split / f"r_{i}.png", rng.integers(0, 256, (9, 14, 4),
+                                                                   dtype=np.uint8))
+            frames.append({"file_path": f"./{split}/r_{i}",
+                           "transform_matrix": np.eye(4).tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps(
+            {"camera_angle_x": 0.7, "frames": frames}))
+
+
+def test_perturb_capture_vignettes_as_recorded(tmp_path):
+    """tools/perturb_capture.py --vignette S: every training image is its source times
+    clip(1 - s r^2, 0, 1) about the recorded centre (r over half the diagonal), s in [S/2, S],
+    the centre within 10 % of the image's; rounded to 8 bits; alpha and the test images
+    untouched; the same seed gives the same capture, and the exposure draws of a seed stay
+    what they were without it; a strength outside (0, 1] is refused (exit 2)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import imageio.v3 as iio
+    src = tmp_path / "src"
+    _capture(src, np.random.default_rng(5))
+    tool = Path(__file__).resolve().parents[1] / "tools" / "perturb_capture.py"
+    sys.path.insert(0, str(tool.parent))
+    from perturb_capture import vignette
+
+    def run(out, *flags):
+        return subprocess.run([sys.executable, str(tool), str(src), str(tmp_path / out),
+                               *flags], capture_output=True, text=True)
+    assert run("a", "--vignette", "0.4").returncode == 0
+    rec = json.loads((tmp_path / "a" / "perturbation.json").read_text())
+    assert rec["vignette"] == 0.4 and len(rec["frames"]) == 12
+    strengths = []
+    for i, f in enumerate(rec["frames"]):
+        a = iio.imread(src / "train" / f"r_{i}.png").astype(np.float64)
+        b = iio.imread(tmp_path / "a" / "train" / f"r_{i}.png").astype(np.float64)
+        s, (cx, cy) = f["vignette"]["strength"], f["vignette"]["centre"]
+        strengths.append(s)
+        assert 0.2 <= s <= 0.4 and abs(cx - 7) <= 1.4 + 1e-12 and abs(cy - 4.5) <= 0.9 + 1e-12
+        want = a[..., :3] * vignette(9, 14, s, (cx, cy))[..., None]
+        np.testing.assert_allclose(b[..., :3], want, atol=0.5 + 1e-9)
+        assert np.array_equal(a[..., 3], b[..., 3])
+        corner = vignette(9, 14, s, (cx, cy))[[0, 0, -1, -1], [0, -1, 0, -1]]
+        assert np.all(corner < 1 - s * 0.5) and np.all(corner > 0)
+    assert len(set(strengths)) == 12                  # a strength per image
+    for i in range(2):
+        assert np.array_equal(iio.imread(src / "test" / f"r_{i}.png"),
+                              iio.imread(tmp_path / "a" / "test" / f"r_{i}.png"))
+    assert run("b", "--vignette", "0.4").returncode == 0
+    for i in range(12):
+        assert np.array_equal(iio.imread(tmp_path / "a" / "train" / f"r_{i}.png"),
+                              iio.imread(tmp_path / "b" / "train" / f"r_{i}.png"))
+    assert run("c", "--exposure").returncode == 0
+    assert run("d", "--exposure", "--vignette", "0.4").returncode == 0
+    plain = json.loads((tmp_path / "c" / "perturbation.json").read_text())["frames"]
+    both = json.loads((tmp_path / "d" / "perturbation.json").read_text())["frames"]
+    assert [f["gain"] for f in plain] == [f["gain"] for f in both]
+    assert [f["vignette"] for f in both] == [f["vignette"] for f in rec["frames"]]
+    for bad in ("0", "1.5", "-0.2"):
+        p = run(f"bad{bad}", "--vignette", bad)
+        assert p.returncode == 2 and "--vignette" in p.stderr, p.stderr
