@@ -147,7 +147,7 @@ def cmd_eval(a):
     if lp_why is not None:
         print(lp_why)
     if "psnr_shared_gain" in res:
-        print(f"a colour transform per training image: NeRF-W protocol (fitted on each view's "
+        print(f"a colour correction per training image: NeRF-W protocol (fitted on each view's "
               f"left half) right halves PSNR {res['psnr_half_fitted']:.3f} (as rendered "
               f"{res['psnr_right_half']:.3f}); under one gain per channel for all views PSNR "
               f"{res['psnr_shared_gain']:.3f} (gain "
