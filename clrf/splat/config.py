@@ -171,7 +171,7 @@ class SplatConfig:
     #                                 without it (clrf/corrections/bilateral.py). One colour
     #                                 correction at a time: not with splat.exposure
     bilateral_grid_shape: list = dataclasses.field(default_factory=lambda: [16, 16, 8])
-    #                                 cells per image: x bins, y bins, luminance bins (gsplat's)
+    # ^ cells per image: x bins, y bins and luminance bins (gsplat's)
     lr_bilateral_grid: float = 0.002   # Adam rate of the grids (gsplat's), warmed up from 1 %
     #                                 over the first 1/30 of the budget and decayed to 1 % at
     #                                 its end, as gsplat's 1,000 of 30,000 steps
