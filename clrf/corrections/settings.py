@@ -8,11 +8,12 @@ The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposur
 ``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
 ``pose_reg``), ``splat.bilateral_grid`` (with ``bilateral_grid_shape``,
 ``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction at a time
-(``colour_conflict``: the configurations' validation names the keys). A section without one of the optional keys takes what the correction does
-without it (a constant rate, no fit, no clip; the Adam betas of clrf/runtime/optim.py where it
-has no ``beta1`` / ``beta2`` of its own). This module imports no correction until one is made
-(the configurations import EXPOSURE_MATRICES from here, before the self-check that reports a
-missing clrf.references).
+(``colour_conflict``: the configurations' validation names the keys). A section without one
+of the optional keys takes what the correction does without it (a constant rate, no fit, no
+clip; the Adam betas of clrf/runtime/optim.py where it has no ``beta1`` / ``beta2`` of its
+own). This module imports no correction until one is made (the configurations import
+EXPOSURE_MATRICES and colour_conflict from here, before the self-check that reports a missing
+clrf.references).
 
 >>> corr = build(dev, cfg.splat, Views(len(ds.images), ds.alpha is not None, scale=extent,
 ...                                    pivots=lambda: depths), VIEWS)
