@@ -9,6 +9,7 @@ import pytest
 
 from clrf.corrections import VIEWS, Views, build
 from clrf.references.reference_bilateral import IDENTITY
+from clrf.testing import tolerances as tol
 
 
 def _model(device, **splat):
@@ -104,6 +105,31 @@ def test_training_moves_the_trained_grids_and_the_checkpoint_keeps_them(device):
     # the test views render without it
     out = back.render_image(ds.poses[ds.split["test"][0]], ds.intrinsics, ds.hw, depth=False)
     assert np.all(np.isfinite(out["rgb"]))
+
+
+def test_a_masked_capture_trains_with_its_background_kept(device):
+    """An RGBA capture (the dataset's alpha): the grids are made masked, and a step on a grid
+    far from the identity gives the loss the scene's background where the render is
+    transparent (the model hands ``apply`` the render's T and background)."""
+    from clrf.runtime.programs import download, upload
+    m, ds = _model(device)
+    ds.alpha = np.ones(ds.images.shape[:3], np.float32)
+    m.attach(ds)
+    bil = m.corrections.get("bilateral")
+    assert bil.masked
+    rng = np.random.default_rng(11)
+    g = bil.host_grids()
+    bil.grids.set(np.ascontiguousarray((g + rng.normal(0, 0.3, g.shape)).astype(np.float32)
+                                       .reshape(-1)))
+    for it in range(2):
+        assert np.isfinite(m.train_step(it))
+    H, W = ds.hw
+    q = device.queue
+    rgb = np.tile(np.asarray(m.background, np.float32), (H, W, 1))
+    out = m.corrections.apply(upload(q, rgb), 0, upload(q, np.ones((H, W), np.float32)),
+                              m.background)
+    np.testing.assert_allclose(download(out), rgb, rtol=tol.BILATERAL_RTOL,
+                               atol=tol.BILATERAL_ATOL)
 
 
 @pytest.mark.slow
