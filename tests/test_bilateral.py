@@ -256,3 +256,21 @@ def test_state_round_trip(device):
     assert back.n_images == 2 and back.shape == (3, 2, 4) and back.masked and back.steps == 1
     for k, a in st.items():
         np.testing.assert_array_equal(back.state_dict()[k], a)
+
+
+def test_bad_arrays_are_refused_at_the_boundary(device):
+    bil = BilateralGrid(device, 2, shape=(3, 3, 2), masked=True)
+    q = device.queue
+    rgb = np.zeros((4, 5, 3), np.float32)
+    with pytest.raises(ValueError, match="float32"):
+        bil.apply(upload(q, rgb.astype(np.float64)), 0)
+    with pytest.raises(ValueError, match=r"\[H, W, 3\]"):
+        bil.apply(upload(q, rgb.reshape(-1, 3)), 0)
+    with pytest.raises(ValueError, match="view 2"):
+        bil.apply(upload(q, rgb), 2)
+    with pytest.raises(ValueError, match=r"T must be"):
+        bil.apply(upload(q, rgb), 0, upload(q, np.zeros((4, 4), np.float32)), BG)
+    with pytest.raises(ValueError, match="background"):
+        bil.apply(upload(q, rgb), 0, upload(q, np.zeros((4, 5), np.float32)))
+    with pytest.raises(ValueError, match="grad_out"):
+        bil.backward(upload(q, rgb), None, BG, upload(q, np.zeros((4, 5), np.float32)), 0)

@@ -98,10 +98,21 @@ class BilateralGrid:
         self._prg = program(device, self.shape[2])
 
     # ---- the kernels ---------------------------------------------------------------------
-    def _common(self, rgb, T, background):
+    def _common(self, rgb, T, background, v: int):
+        """(H, W, the kernels' leading arguments) of a render, checked: rgb float32 [H, W, 3],
+        T float32 [H, W] (a masked capture's), both contiguous, v a row."""
+        if rgb.dtype != np.float32 or rgb.ndim != 3 or rgb.shape[2] != 3 or \
+                not rgb.flags.c_contiguous:
+            raise ValueError(f"BilateralGrid: rgb must be a contiguous float32 [H, W, 3], got "
+                             f"{rgb.dtype} {rgb.shape}")
+        if not 0 <= v < self.n_images:
+            raise ValueError(f"BilateralGrid: view {v} is not one of its {self.n_images}")
         H, W = (int(s) for s in rgb.shape[:2])
         gx, gy, _ = self.shape
         masked = self.masked and T is not None
+        if masked and (T.dtype != np.float32 or T.size != H * W or not T.flags.c_contiguous):
+            raise ValueError(f"BilateralGrid: T must be a contiguous float32 [{H}, {W}], got "
+                             f"{T.dtype} {T.shape}")
         if masked and background is None:
             raise ValueError("BilateralGrid: a masked capture's render needs its background")
         bg = float4(*(float(c) for c in background[:3]), 0.0) if masked else \
@@ -112,7 +123,7 @@ class BilateralGrid:
     def apply(self, rgb, v: int, T=None, background=None):
         """View v's grid applied to its render ``rgb`` [H, W, 3] (a masked capture: its
         transmittance ``T`` [H, W] on ``background`` given), a new device array."""
-        H, W, head = self._common(rgb, T, background)
+        H, W, head = self._common(rgb, T, background, v)
         out = scratch(self.device, rgb.shape)
         launch(self.device, self._prg.kernel("bilateral_apply"), H * W,
                head + (self.grids.data, np.int32(v), out.data))
@@ -121,7 +132,10 @@ class BilateralGrid:
     def backward(self, rgb, T, background, grad_out, v: int):
         """(dL/drgb [H, W, 3], dL/dG of view v's grid [cells]) from dL/dout: new and the
         correction's own device arrays (the second is overwritten by the next call)."""
-        H, W, head = self._common(rgb, T, background)
+        H, W, head = self._common(rgb, T, background, v)
+        if grad_out.shape != rgb.shape or grad_out.dtype != np.float32:
+            raise ValueError(f"BilateralGrid: grad_out must be float32 {rgb.shape}, got "
+                             f"{grad_out.dtype} {grad_out.shape}")
         grad_rgb = scratch(self.device, rgb.shape)
         launch(self.device, self._prg.kernel("bilateral_backward_rgb"), H * W,
                head + (grad_out.data, self.grids.data, np.int32(v), grad_rgb.data))
@@ -176,8 +190,9 @@ class BilateralGrid:
         return download(self.grids).reshape(self.n_images, gl, gy, gx, CHANNELS)
 
     def state_dict(self) -> dict:
-        shape = self.host_grids().shape
-        return {"bilateral_grid": self.host_grids(),
+        grids = self.host_grids()
+        shape = grids.shape
+        return {"bilateral_grid": grids,
                 "bilateral_grid_m": download(self._opt.state).reshape(shape),
                 "bilateral_grid_v": download(self._opt.state2).reshape(shape),
                 "bilateral_grid_steps": np.array(self.steps, np.int64),
