@@ -114,7 +114,7 @@ EVERY_IMPL_MODULES = {
     "test_hash_encode", "test_hash_kernels",
     "test_splat_kernels", "test_splat_loss", "test_sort", "test_splat_exposure",
     "test_splat_pose", "test_splat_antialias", "test_splat_strategy", "test_hash_exposure",
-    "test_mlp_gpu", "test_splat_targets",
+    "test_mlp_gpu", "test_splat_targets", "test_bilateral",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
 # program variant for seconds and held 9 GB on the 128^3 test) runs the small kernel-vs-reference
@@ -131,6 +131,7 @@ SLOW_IMPL_TESTS = {
     "test_splat_rasterize_matches_reference", "test_splat_rasterize_backward_matches_reference",
     "test_small_network_under_every_pass", "test_device_loss_matches_twin",
     "test_splat_rows_shape_with_small_tiles", "test_backward_matches_the_twin",
+    "test_apply_and_backward_match_the_twin",
 }
 
 def pytest_generate_tests(metafunc):

@@ -115,7 +115,7 @@ def model_files(pkg: Path = PKG) -> list:
 
 def test_no_model_file_names_a_correction():
     names = correction_names()
-    assert names >= {"exposure", "pose"}, names
+    assert names >= {"exposure", "bilateral", "pose"}, names
     files = model_files()
     assert {p.parent.name for p in files} >= set(REPRESENTATIONS), files
     bad = named_corrections(files, names)
@@ -188,7 +188,8 @@ def protocol_gaps(cls) -> list:
 
 def test_every_correction_class_has_its_protocols_hooks():
     classes = correction_classes()
-    assert {c.__name__ for c in classes} >= {"Exposure", "RayExposure", "PoseCorrection"}
+    assert {c.__name__ for c in classes} >= {"Exposure", "RayExposure", "PoseCorrection",
+                                             "BilateralGrid"}
     bad = [g for cls in classes for g in protocol_gaps(cls)]
     assert not bad, "\n".join(bad)
 
@@ -212,11 +213,14 @@ def test_the_protocol_check_can_fail():
 
 def test_the_corrections_each_section_turns_on_are_their_protocols_instances(device):
     """What the settings make of the splat and hash sections are instances of their protocols
-    (members included), one of each correction class."""
+    (members included), one of each correction class (the colour corrections of the splat
+    section one at a time)."""
     from clrf.hash.config import HashConfig
     from clrf.splat.config import SplatConfig
     made = list(build(device, SplatConfig(exposure=True, pose_opt=True),
                       Views(3, pivots=lambda: [1.0, 2.0, 0.0]), VIEWS))
+    made += list(build(device, SplatConfig(bilateral_grid=True, bilateral_grid_shape=[3, 2, 2]),
+                       Views(3), VIEWS))
     made += list(build(device, HashConfig(exposure=True), Views(3, pixels=16), RAYS))
     assert sorted(type(c).__name__ for c in made) == sorted(
         c.__name__ for c in correction_classes())

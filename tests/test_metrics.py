@@ -72,3 +72,42 @@ def test_ssim_needs_the_window():
     assert ssim(b, b) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="differ"):
         ssim(a, b)
+
+
+# ---- the colour-corrected PSNR (docs/evaluation.md) ----------------------------------------
+def test_a_known_affine_change_per_channel_is_undone_exactly():
+    """A render that is the ground truth under r = alpha gt + beta per channel (inside [0, 1];
+    the blue channel unchanged): the fit finds the inverse map, the corrected render is the
+    ground truth to rounding, and the score is a perfect match's."""
+    from clrf.training.metrics import colour_corrected, psnr_color_corrected
+    gt = np.random.default_rng(1).uniform(0, 1, (13, 17, 3))
+    render = gt * np.array([0.5, 0.8, 1.0]) + np.array([0.2, 0.1, 0.0])
+    assert render.min() >= 0 and render.max() <= 1
+    np.testing.assert_allclose(colour_corrected(render, gt), gt, rtol=0, atol=1e-12)
+    assert psnr_color_corrected(render, gt) > 200
+    assert image_metrics(render, gt)["psnr"] < 25          # the plain score sees the change
+
+
+def test_noise_after_an_affine_change_is_bounded_by_its_own_power():
+    """r = alpha (gt + n) + beta: the true inverse map leaves the noise n, so the least-squares
+    map's error is at most mean(n^2) (a bound that holds for the sample, not on average); the
+    corrected PSNR is never below the plain one (the identity is a candidate map)."""
+    from clrf.training.metrics import psnr_color_corrected
+    rng = np.random.default_rng(2)
+    gt = rng.uniform(0.1, 0.9, (32, 24, 3))
+    for sigma in (1e-3, 1e-2, 3e-2):
+        n = rng.normal(0, sigma, gt.shape)
+        render = 0.6 * (gt + n) + 0.15
+        assert render.min() >= 0 and render.max() <= 1
+        bound = -10 * np.log10(np.mean(n ** 2))
+        got = psnr_color_corrected(render, gt)
+        assert bound <= got < bound + 1.0, (sigma, got, bound)
+        assert got >= image_metrics(render, gt)["psnr"]
+
+
+def test_a_constant_channel_maps_to_the_ground_truths_mean():
+    from clrf.training.metrics import colour_corrected
+    gt = np.random.default_rng(3).uniform(0, 1, (5, 6, 3))
+    render = np.full_like(gt, 0.3)
+    np.testing.assert_allclose(colour_corrected(render, gt).reshape(-1, 3),
+                               np.broadcast_to(gt.reshape(-1, 3).mean(0), (30, 3)), atol=1e-15)

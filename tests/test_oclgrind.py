@@ -11,6 +11,7 @@ composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling 
 network), the hash encoding's backward, the hash march (windows, alive rays, contraction), Adam
 over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
 backward; anti-aliased; the camera's gradient), the MCMC strategy's regularisers and noise, the
+bilateral grid (slice, both backward passes, the prior and Adam over every grid), the
 training images' widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's
 chunked sort) and tile rasteriser (forward, backward), and the hash model's bounded step (capped
 offsets, the encoding and the MLP on both tilings reading a device count, a bounded step with
@@ -112,6 +113,11 @@ CASES = [
     "tests/test_hash_exposure.py::test_rays_and_their_gradient_match_the_twin[default-71-masked]",
     "tests/test_hash_exposure.py::test_background_share_matches_the_twin[default]",
     "tests/test_hash_exposure.py::test_diagonal_rows_train_gains_and_offsets_only[default-gain]",
+    "tests/test_bilateral.py::test_apply_and_backward_match_the_twin"
+    "[default-3x97-grid4x3x5-masked]",
+    "tests/test_bilateral.py::test_apply_and_backward_match_the_twin"
+    "[default-1x1-grid16x16x8-plain]",
+    "tests/test_bilateral.py::test_adam_steps_every_grid_as_the_twin_does[default]",
     "tests/test_splat_pose.py::test_camera_gradient_on_the_device_matches_the_twin[default-3]",
     "tests/test_splat_antialias.py::test_project_and_backward_match_the_twin[default-3-0.1]",
     "tests/test_splat_antialias.py::test_filter3d_matches_the_twin[default]",

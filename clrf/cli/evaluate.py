@@ -105,6 +105,8 @@ def cmd_eval(a):
     H, W = (int(x) // a.downscale for x in ds.hw)
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
            "ssim": float(np.mean([m["ssim"] for m in per_view])), "ssim_window": SSIM_NAME,
+           "psnr_color_corrected": float(np.mean([m["psnr_color_corrected"]
+                                                  for m in per_view])),
            "lpips": (float(np.mean([m["lpips"] for m in per_view])) if lp_why is None else None),
            "lpips_net": net, "lpips_unavailable": lp_why,
            "n_views": len(per_view), "resolution": [W, H]}
@@ -141,11 +143,12 @@ def cmd_eval(a):
     lp = (f"  LPIPS({net}) {res['lpips']:.4f}" if lp_why is None else "")
     head = f"{a.protocol} protocol, " if pd is not None else ""
     print(f"{head}mean over {len(per_view)} views at {W}x{H}: PSNR {res['psnr']:.3f}  "
-          f"SSIM {res['ssim']:.4f}{lp}  (render {secs:.1f} s)")
+          f"SSIM {res['ssim']:.4f}{lp}  (render {secs:.1f} s); colour-corrected PSNR "
+          f"{res['psnr_color_corrected']:.3f}")
     if lp_why is not None:
         print(lp_why)
     if "psnr_shared_gain" in res:
-        print(f"a colour transform per training image: NeRF-W protocol (fitted on each view's "
+        print(f"a colour correction per training image: NeRF-W protocol (fitted on each view's "
               f"left half) right halves PSNR {res['psnr_half_fitted']:.3f} (as rendered "
               f"{res['psnr_right_half']:.3f}); under one gain per channel for all views PSNR "
               f"{res['psnr_shared_gain']:.3f} (gain "

@@ -5,6 +5,8 @@ model's section and makes them (settings.py ``build``, ``from_state``):
 
 - exposure.py   a colour transform per training image (``splat.exposure``: ``Exposure``, whole
                 views; ``hash.exposure``: ``RayExposure``, ray batches; cl/splat_exposure.cl)
+- bilateral.py  a bilateral grid of affine colour transforms per training image
+                (``splat.bilateral_grid``: ``BilateralGrid``, whole views; cl/bilateral.cl)
 - pose.py       a pose correction per training camera (``splat.pose_opt``: ``PoseCorrection``,
                 its SO(3) helpers)
 

@@ -16,7 +16,7 @@ by name (``get``) where they report it.
 >>> corr = Corrections([exposure, pose])
 >>> cam = corr.camera(cam, v)                        # the corrected camera of view v
 >>> bg = corr.background(v, bg)                      # the background to render view v on
->>> shown = corr.apply(rgb, v)                       # what the loss sees
+>>> shown = corr.apply(rgb, v, T, bg)                # what the loss sees
 >>> grad = corr.colour_backward(v, rgb, T, bg, grad_shown, progress, images, background)
 >>> corr.camera_step(v, cam.viewmat, dR, dt)         # from the renderer's camera gradient
 """
@@ -85,8 +85,10 @@ class ViewColourCorrection(Correction, Protocol):
     def background(self, v: int, background) -> tuple:
         """The background colour to render view v on, given the scene's ``background``."""
 
-    def apply(self, rgb, v: int):
-        """What the loss sees of view v's render ``rgb`` [H, W, 3] (a new device array)."""
+    def apply(self, rgb, v: int, T=None, background=None):
+        """What the loss sees of view v's render ``rgb`` [H, W, 3] (a new device array); ``T``
+        [H, W] its transmittance and ``background`` the colour it was rendered on (what a
+        correction that keeps a masked capture's background needs)."""
 
     def backward_and_step(self, rgb, T, background, grad_out, v: int):
         """dL/drgb (a new device array) from dL/dout of the render ``rgb`` and its
@@ -195,11 +197,11 @@ class Corrections:
         c = self._changing(COLOUR)
         return background if c is None else c.background(v, background)
 
-    def apply(self, rgb, v: int):
+    def apply(self, rgb, v: int, T=None, background=None):
         """What the loss sees of view v's render (``rgb`` itself without a colour
-        correction)."""
+        correction), rendered with transmittance ``T`` on ``background``."""
         c = self._changing(COLOUR)
-        return rgb if c is None else c.apply(rgb, v)
+        return rgb if c is None else c.apply(rgb, v, T, background)
 
     def colour_backward(self, v: int, rgb, T, background, grad_out, progress: float, images,
                         scene_background):

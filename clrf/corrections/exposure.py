@@ -149,9 +149,10 @@ class Exposure(_Rows):
         # forms under them: ``seed``)
         self.hold_until = float(state.get("exposure_hold_until", 0.0)) if state else 0.0
 
-    def apply(self, rgb, v: int):
+    def apply(self, rgb, v: int, T=None, background=None):
         """A_v rgb + b_v (clamped to [0, 1] with ``clip``), a new device array shaped like
-        ``rgb``."""
+        ``rgb`` (``T`` and ``background`` unused: a masked capture is rendered on
+        ``self.background(v, bg)`` instead)."""
         out = scratch(self.device, rgb.shape)
         n = int(rgb.size) // 3
         launch(self.device, self._prg.kernel("exposure_apply"), n,

@@ -6,12 +6,14 @@ The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposur
 ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
 ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
 ``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
-``pose_reg``, ``pose_hold_frame``). A section without one of the optional keys takes what the
-correction does
-without it (a constant rate, no fit, no clip; the Adam betas of clrf/runtime/optim.py where it
-has no ``beta1`` / ``beta2`` of its own). This module imports no correction until one is made
-(the configurations import EXPOSURE_MATRICES from here, before the self-check that reports a
-missing clrf.references).
+``pose_reg``, ``pose_hold_frame``), ``splat.bilateral_grid`` (with ``bilateral_grid_shape``,
+``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction at a time
+(``colour_conflict``: the configurations' validation names the keys). A section without one
+of the optional keys takes what the correction does without it (a constant rate, no fit, no
+clip; the Adam betas of clrf/runtime/optim.py where it has no ``beta1`` / ``beta2`` of its
+own). This module imports no correction until one is made (the configurations import
+EXPOSURE_MATRICES and colour_conflict from here, before the self-check that reports a missing
+clrf.references).
 
 >>> corr = build(dev, cfg.splat, Views(len(ds.images), ds.alpha is not None, scale=extent,
 ...                                    pivots=lambda: depths), VIEWS)
@@ -31,9 +33,23 @@ from .base import RAYS, VIEWS, Corrections
 # nothing before it imports the references.
 EXPOSURE_MATRICES = ("full", "diagonal", "gain")
 
-ORDER = ("exposure", "pose")                           # the list's order (its checkpoint's)
-SWITCH = {"exposure": "exposure", "pose": "pose_opt"}  # the section's key that turns one on
-WHAT = {"exposure": "the exposure transforms", "pose": "the pose corrections"}
+ORDER = ("exposure", "bilateral", "pose")             # the list's order (its checkpoint's)
+SWITCH = {"exposure": "exposure", "bilateral": "bilateral_grid",   # the section's key that
+          "pose": "pose_opt"}                                      # turns one on
+STATE = {"exposure": "exposure", "bilateral": "bilateral_grid",    # the checkpoint key that
+         "pose": "pose"}                                           # says one is there
+WHAT = {"exposure": "the exposure transforms", "bilateral": "the bilateral grids",
+        "pose": "the pose corrections"}
+COLOURS = ("exposure", "bilateral")                    # change the colour: one at a time
+
+
+def colour_conflict(section, prefix: str):
+    """(ok, key, message) for a configuration's checks: at most one of the colour corrections
+    ``section`` turns on (the list holds one correction of each kind of change)."""
+    on = [f"{prefix}.{SWITCH[n]}" for n in COLOURS if getattr(section, SWITCH[n], False)]
+    return (len(on) <= 1, on[-1] if on else f"{prefix}.{SWITCH[COLOURS[0]]}",
+            f"one colour correction at a time: {' and '.join(on)} are both on; turn one off "
+            f"(--set {on[-1] if on else ''}=false)")
 
 
 @dataclass(frozen=True)
@@ -96,7 +112,16 @@ def _pose(device, s, views: Views, batches: str, state=None):
                           lr_final=s.lr_pose_final, hold_frame=hold)
 
 
-MAKE = {"exposure": _exposure, "pose": _pose}
+def _bilateral(device, s, views: Views, batches: str, state=None):
+    from .bilateral import BilateralGrid
+    if batches != VIEWS:
+        raise ValueError("a bilateral grid needs a model that trains on whole views")
+    n = views.n_images if state is None else len(state["bilateral_grid"])
+    return BilateralGrid(device, n, s.lr_bilateral_grid, s.bilateral_grid_tv,
+                         shape=s.bilateral_grid_shape, state=state, masked=views.masked)
+
+
+MAKE = {"exposure": _exposure, "bilateral": _bilateral, "pose": _pose}
 
 
 def build(device, section, views: Views, batches: str, current=None) -> Corrections:
@@ -117,16 +142,18 @@ def build(device, section, views: Views, batches: str, current=None) -> Correcti
     if ex is not None and ex.batches == VIEWS:   # an RGBA capture: its background stays
         ex.masked = views.masked
         ex.clip = clip_mode(section)
+    if "bilateral" in have:
+        have["bilateral"].masked = views.masked
     return Corrections(have[n] for n in ORDER if n in have)
 
 
 def from_state(device, section, state: dict, views: Views, batches: str) -> Corrections:
     """The corrections a checkpoint's ``state`` holds (its keys: ``exposure``, ``exposure_m``,
-    ..., ``pose``, ``pose_m``, ...), with ``section``'s settings; StateError where one is
-    unreadable."""
+    ..., ``bilateral_grid``, ``bilateral_grid_m``, ..., ``pose``, ``pose_m``, ...), with
+    ``section``'s settings; StateError where one is unreadable."""
     out = []
     for name in ORDER:
-        if name not in state:
+        if STATE[name] not in state:
             continue
         try:
             out.append(MAKE[name](device, section, views, batches, state=state))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..corrections.settings import EXPOSURE_MATRICES
+from ..corrections.settings import EXPOSURE_MATRICES, colour_conflict
 
 
 @dataclass(frozen=True)
@@ -163,6 +163,20 @@ class SplatConfig:
     #                                 passes a gradient that would bring it back inside
     #                                 [0, 1] (a render past white where the capture was not
     #                                 white is pulled down)
+    bilateral_grid: bool = False    # learn a bilateral grid per training image (Wang et al.
+    #                                 2024, gsplat's use_bilateral_grid): affine colour
+    #                                 transforms sliced by pixel position and the render's
+    #                                 luminance, for per-photo processing (exposure, white
+    #                                 balance, tone curves, vignetting); test views are scored
+    #                                 without it (clrf/corrections/bilateral.py). One colour
+    #                                 correction at a time: not with splat.exposure
+    bilateral_grid_shape: list = dataclasses.field(default_factory=lambda: [16, 16, 8])
+    # ^ cells per image: x bins, y bins and luminance bins (gsplat's)
+    lr_bilateral_grid: float = 0.002   # Adam rate of the grids (gsplat's), warmed up from 1 %
+    #                                 over the first 1/30 of the budget and decayed to 1 % at
+    #                                 its end, as gsplat's 1,000 of 30,000 steps
+    bilateral_grid_tv: float = 10.0   # weight of the grids' total variation, summed over the
+    #                                 images and divided by their number (gsplat's)
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation of its frame), for poses from structure
     #                                 from motion that are a little off; test views keep
@@ -301,6 +315,15 @@ class SplatConfig:
              "must be an integer >= 1"),
             (0 <= self.exposure_calibrate_hold <= 1, "splat.exposure_calibrate_hold",
              "must be a budget fraction in [0, 1]"),
+            colour_conflict(self, "splat"),
+            (len(self.bilateral_grid_shape) == 3
+             and all(isinstance(n, int) and 1 <= n <= 64 for n in self.bilateral_grid_shape),
+             "splat.bilateral_grid_shape",
+             "must be three whole numbers in 1..64: x, y and luminance bins (gsplat: "
+             "[16, 16, 8])"),
+            (0 < self.lr_bilateral_grid <= 1, "splat.lr_bilateral_grid",
+             "must be in (0, 1] (gsplat: 0.002)"),
+            (self.bilateral_grid_tv >= 0, "splat.bilateral_grid_tv", "must be >= 0 (gsplat: 10)"),
             (0 < self.lr_pose <= 0.1, "splat.lr_pose", "must be in (0, 0.1] (radians a step)"),
             (0 < self.lr_pose_final <= self.lr_pose, "splat.lr_pose_final",
              "must be in (0, splat.lr_pose]"),

@@ -326,6 +326,7 @@ def check_settings(cfg, ranks: int):
     c = cfg.splat
     for key, on, why in (
             ("splat.exposure", c.exposure, "the colour transforms per image"),
+            ("splat.bilateral_grid", c.bilateral_grid, "the bilateral grids per image"),
             ("splat.pose_opt", c.pose_opt, "the pose corrections"),
             ("splat.strategy", c.strategy == "mcmc",
              "MCMC's regularisers and relocation (weighted by the whole count)")):

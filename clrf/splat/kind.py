@@ -52,11 +52,12 @@ def programs(device, cfg):
     """Every program a splat run of ``cfg`` asks ``device`` for (Kind.programs): projection and
     rasteriser at the device's default tile, the loss, the densification statistics, the
     rows shape's depth sort and Adam, the colour transform per image (splat.exposure), the
+    bilateral grids per image at the section's luminance bins (splat.bilateral_grid), the
     projection with the camera's gradient (splat.pose_opt), the anti-aliased projection
     (splat.antialiased), the rasteriser with depth (renders that ask for it) and with absolute
     screen gradients (splat.absgrad); the options' programs listed whatever cfg says: the
     offline builds cover every program a run may build)."""
-    from ..corrections import exposure
+    from ..corrections import bilateral, exposure
     from ..runtime import optim, sort
     from . import loss, raster
     degree, tile = cfg.splat.sh_degree, raster.default_tile(device)
@@ -70,6 +71,7 @@ def programs(device, cfg):
     sort.program(device)
     optim.program(device, "adam")
     exposure.program(device)                               # clrf/corrections/exposure.py
+    bilateral.program(device, cfg.splat.bilateral_grid_shape[2])   # corrections/bilateral.py
 
 
 def scene_file(path):

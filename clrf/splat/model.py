@@ -234,7 +234,8 @@ class SplatModel:
         params = self._rparams()
         proj, bins, ras = self.rast.forward(params, cam, bg)
         # the loss sees the render as the colour correction shows it (the render without one)
-        grad, stats = self._loss().loss_and_grad(corr.apply(ras.rgb, v), self._target(v))
+        grad, stats = self._loss().loss_and_grad(corr.apply(ras.rgb, v, ras.T, bg),
+                                                  self._target(v))
         grad = corr.colour_backward(v, ras.rgb, ras.T, bg, grad, self.progress, ds.images,
                                     self.background)
         absgrad = self.strategy.absgrad

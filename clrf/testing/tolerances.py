@@ -403,8 +403,9 @@ EXPOSURE_ADAM_ATOL = 1e-6
 # 3DGS paper's radius) and gsplat's box at 3.33 per axis: a pixel just past the 3-sigma square
 # can still get alpha >= 1/255 in gsplat (side camera: 150 of 19,200 pixels off by more than
 # 1e-4, the largest, 0.007, at tile edges). Seen 80.4-95.3 dB over five formats, two cameras,
-# classic and anti-aliased (PoCL 3.1, Zen 5). 45 dB would let conventions through: gsplat's own 2D filter 0.3 px^2 where clrf's
-# anti-aliased mode uses 0.1 reads 45.5 dB, the opacity compensation left out 48.8 dB. 65 dB is
+# classic and anti-aliased (PoCL 3.1, Zen 5). 45 dB would let conventions through: gsplat's
+# own 2D filter 0.3 px^2 where clrf's anti-aliased mode uses 0.1 reads 45.5 dB, the opacity
+# compensation left out 48.8 dB. 65 dB is
 # 15 dB under the lowest seen and above both; pixel centres moved half a pixel read 30 dB, the
 # odd SH bands negated 18 dB.
 GSPLAT_REF_PSNR_DB = 65.0
@@ -429,3 +430,20 @@ WEB_SCENE_MIN_FRACTION = 0.05
 # levels over all pixels and channels; a half-turn drag of the test's scene moves it by tens of
 # levels, the same frame drawn twice by 0 (SwiftShader is deterministic).
 WEB_MOVED_MEAN_LEVELS = 2.0
+# The bilateral grid (cl/bilateral.cl). Its slice sums 8 corners' weights (products of three
+# float32 factors) times cells ~1, and out = A x + y b sums 4 such products: a few ulps of
+# values <= ~3, so 2e-6 absolute + 1e-6 relative (seen 3e-7).
+BILATERAL_ATOL = 2e-6
+BILATERAL_RTOL = 1e-6
+# dL/drgb: A^T g (3 products) plus the guidance's share, a 12-term dot product scaled by L - 1
+# (up to 63): rounding ~1e-7 of the largest entry times L; 1e-5 of the largest entry (seen 1.3e-7
+# at L = 3) leaves room for L = 64.
+BILATERAL_GRAD_REL_TO_MAX = 1e-5
+# dL/dG: a cell sums w dL/dM over its footprint's n pixels in float32, in pixel order:
+# ~sqrt(n) 6e-8 |terms| for terms ~ N(0, 1); 1e-5 sqrt(n) absolute, as the exposure's sums.
+BILATERAL_SUM_ATOL_PER_SQRT_N = 1e-5
+# The prior's gradient: a difference of two differences of entries ~1 over n_d in float32,
+# a few ulps of the cells: 1e-6 of the largest entry of weight / V times 2 / n_d (seen 1e-7).
+BILATERAL_TV_REL_TO_MAX = 1e-6
+# Three Adam steps of every grid against the float64 twin: as the exposure's rows.
+BILATERAL_ADAM_ATOL = 1e-6

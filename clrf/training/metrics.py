@@ -54,13 +54,42 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
                                        use_sample_covariance=False))
 
 
+def colour_corrected(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """``pred`` [..., 3] (clipped to [0, 1], as it is scored) under the affine map of each
+    channel that brings it closest to ``gt`` in least squares, r' = a r + b with
+    a = cov(r, g) / var(r), b = mean(g) - a mean(r) (float64; a constant channel maps to gt's
+    mean), clipped to [0, 1] (which can only bring it nearer a gt in [0, 1]).
+
+    >>> gt = np.random.default_rng(0).uniform(0, 1, (4, 4, 3))
+    >>> bool(np.allclose(colour_corrected(0.5 * gt + 0.2, gt), gt))   # undone exactly
+    True
+    """
+    r = np.clip(np.asarray(pred, np.float64), 0, 1).reshape(-1, 3)
+    g = np.asarray(gt, np.float64)[..., :3].reshape(-1, 3)
+    rm, gm = r.mean(0), g.mean(0)
+    var = ((r - rm) ** 2).mean(0)
+    cov = ((r - rm) * (g - gm)).mean(0)
+    a = np.where(var > 0, cov / np.where(var > 0, var, 1.0), 0.0)
+    return np.clip(a * (r - rm) + gm, 0, 1).reshape(np.shape(pred))
+
+
+def psnr_color_corrected(pred: np.ndarray, gt: np.ndarray) -> float:
+    """PSNR of ``colour_corrected(pred, gt)``: a score blind to a gain and an offset per
+    channel (a capture's exposure and white balance), never below the plain PSNR (the identity
+    is one of the maps). docs/evaluation.md compares it with gsplat's and multinerf's."""
+    g = np.asarray(gt, np.float64)[..., :3]
+    return psnr_from_mse(float(np.mean((colour_corrected(pred, g) - g) ** 2)))
+
+
 def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
-    """PSNR and the standard SSIM (``ssim``) of one [H, W, 3] prediction (clipped to [0, 1])
-    against ground truth; MSE accumulated in float64."""
+    """PSNR, the standard SSIM (``ssim``) and the colour-corrected PSNR
+    (``psnr_color_corrected``) of one [H, W, 3] prediction (clipped to [0, 1]) against ground
+    truth; MSE accumulated in float64."""
     p = np.clip(np.asarray(pred, np.float64), 0, 1)
     g = np.asarray(gt, np.float64)
     mse = float(np.mean((p - g) ** 2))
-    return {"psnr": psnr_from_mse(mse), "ssim": ssim(p, g), "mse": mse}
+    return {"psnr": psnr_from_mse(mse), "ssim": ssim(p, g), "mse": mse,
+            "psnr_color_corrected": psnr_color_corrected(p, g)}
 
 
 @functools.lru_cache(maxsize=None)

@@ -20,7 +20,8 @@ metrics.csv is pure training time. Outputs in the run directory:
 - ``error_vs_time.png`` eval PSNR against training seconds
 - ``ckpt.npz``          the last checkpoint, replaced atomically; --resume continues from it
 - ``eval.json``         per-view and mean PSNR/SSIM of the final evaluation (``ssim_window``:
-                        "gaussian11", the standard SSIM; files without it hold the old 7x7 one)
+                        "gaussian11", the standard SSIM; files without it hold the old 7x7 one),
+                        the colour-corrected PSNR (``psnr_color_corrected``: docs/evaluation.md)
                         and ``device_memory``: training's peak of clrf's device buffers and
                         memory pool (clrf/runtime/devmem.py; on a GPU, the card's memory the
                         run needed)
@@ -189,7 +190,9 @@ def train_on_batch(model, rays: RayStore, seed: int, it: int, n: int) -> float:
 
 def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False,
              seconds=None, comm=None):
-    """PSNR/SSIM of the model's renders of the given test view indices (into ds.images).
+    """PSNR/SSIM of the model's renders of the given test view indices (into ds.images), and
+    the PSNR after an affine colour map per view and channel fitted to its ground truth
+    (``psnr_color_corrected``: metrics.psnr_color_corrected).
 
     downscale f > 1: render (H // f) x (W // f) views and compare them with the box-averaged
     images (f^2 times fewer rays; for cheap evaluations between checkpoints).
@@ -223,6 +226,8 @@ def evaluate(model, ds, views, keep_images=False, downscale=1, half_fitted=False
     mse = float(np.mean([m["mse"] for m in per_view]))
     res = {"psnr": float(np.mean([m["psnr"] for m in per_view])),
            "ssim": float(np.mean([m["ssim"] for m in per_view])),
+           "psnr_color_corrected": float(np.mean([m["psnr_color_corrected"]
+                                                  for m in per_view])),
            "psnr_of_mean_mse": psnr_from_mse(mse), "views": per_view}
     if half_fitted:
         for k in ("psnr_half_fitted", "psnr_right_half"):
@@ -625,6 +630,7 @@ class Trainer:
                 result["renders"] = [str(p) for p in save_renders(
                     self.out, self.ds, self.test_views, ev.pop("images"))]
             result.update(psnr=ev["psnr"], ssim=ev["ssim"], ssim_window=SSIM_NAME,
+                          psnr_color_corrected=ev["psnr_color_corrected"],
                           views=ev["views"], n_views=len(self.test_views))
             if fitted:
                 result.update({k: ev[k] for k in ("psnr_half_fitted", "psnr_right_half",
@@ -638,7 +644,8 @@ class Trainer:
             if self.primary:
                 write_text(self.out / "eval.json", json.dumps(result, indent=2))
             loop.prog.message(f"final: {len(self.test_views)} test views, PSNR {ev['psnr']:.2f} "
-                              f"SSIM {ev['ssim']:.3f} after {self.seconds:.1f} s "
+                              f"SSIM {ev['ssim']:.3f} (colour-corrected PSNR "
+                              f"{ev['psnr_color_corrected']:.2f}) after {self.seconds:.1f} s "
                               f"({self.iteration} iterations)")
             if fitted:
                 loop.prog.message(
