@@ -1,4 +1,4 @@
-"""The splat model's density strategies (clrf/splat/strategy.py, splat.strategy) and parameter
+"""The splat model's density strategies (clrf/splat/strategies/, splat.strategy) and parameter
 table (clrf/splat/params.py): each strategy's refinement on numpy arrays (no device, no
 dataset: the cap holds, relocation keeps the count, a pruned Gaussian's moments go with it,
 a changed Gaussian's moments start at zero), MCMC's relocation formula against the integral
@@ -13,7 +13,7 @@ import pytest
 
 from clrf.references import reference_strategy as rst
 from clrf.splat import params as sp
-from clrf.splat import strategy as ss
+from clrf.splat import strategies as ss
 from clrf.splat.config import SplatConfig
 
 from test_splat_model import _model
@@ -84,8 +84,17 @@ def test_edit_rows_moves_moments_with_their_rows():
 
 
 # ---- default ----------------------------------------------------------------------------------
-def _default(**kw):
-    return ss.DefaultStrategy.of(dataclasses.replace(SplatConfig(), **kw))
+def _default(resets=0, **kw):
+    """The default strategy of SplatConfig() with ``kw`` changed, ``resets`` opacity resets
+    done."""
+    st = ss.DefaultStrategy.of(dataclasses.replace(SplatConfig(), **kw))
+    st.state.resets = resets
+    return st
+
+
+def _stats(a):
+    """The default strategy's statistics of an array [3, n] (summed norms, counts, radii)."""
+    return dict(zip(ss.DefaultStrategy.ROWS, np.asarray(a, np.float32)))
 
 
 def test_default_refine_clones_splits_prunes_under_the_cap():
@@ -101,7 +110,7 @@ def test_default_refine_clones_splits_prunes_under_the_cap():
     stats[0, 30:] = 0.0                                      # but these ten
     st = _default()
     rng = np.random.default_rng(0)
-    h, m, msg = st.refine(host, mo, stats, extent=1.0, cap=1000, resets=0, rng=rng)
+    h, m, msg = st.refine(host, mo, _stats(stats), extent=1.0, cap=1000, rng=rng)
     assert msg == "densified: 40 -> 60 Gaussians (15 cloned, 10 split, 5 pruned)"
     rows = _rows_of(m)
     # survivors keep their moments in order (pruned and split ones are gone), new rows zero
@@ -112,18 +121,19 @@ def test_default_refine_clones_splits_prunes_under_the_cap():
     np.testing.assert_allclose(split_scales, 0.5 / 1.6, rtol=1e-6)
     # the cap: no room beyond it, highest gradients first
     stats[0, 15:30] = np.arange(15)
-    h, m, msg = st.refine(host, mo, stats, extent=1.0, cap=40, resets=0, rng=rng)
+    h, m, msg = st.refine(host, mo, _stats(stats), extent=1.0, cap=40, rng=rng)
     assert len(h["means"]) == 40 and "5 pruned" in msg
     # after a reset, huge Gaussians go too
-    h, m, _ = st.refine(host, mo, np.zeros((3, n)), extent=1.0, cap=1000, resets=1, rng=rng)
+    h, m, _ = _default(resets=1).refine(host, mo, _stats(np.zeros((3, n))), extent=1.0,
+                                        cap=1000, rng=rng)
     assert len(h["means"]) == 25
 
 
 def test_default_never_removes_every_gaussian():
     host = _host(4)
     host["opacity_logits"][:] = -20.0
-    h, m, _ = _default().refine(host, _moments(host), np.zeros((3, 4)), extent=1.0, cap=10,
-                                resets=0, rng=np.random.default_rng(0))
+    h, m, _ = _default().refine(host, _moments(host), _stats(np.zeros((3, 4))), extent=1.0,
+                                cap=10, rng=np.random.default_rng(0))
     assert len(h["means"]) == 1
 
 
@@ -172,7 +182,7 @@ def test_mcmc_relocation_keeps_the_count_and_growth_holds_the_cap():
     h, m, msg = st.refine(host, mo, None, cap=n, rng=rng)
     assert len(h["means"]) == n and msg.startswith("relocated 10 of 50")
     o = rst.sigmoid(h["opacity_logits"])
-    assert o.min() > st.min_opacity
+    assert o.min() > st.settings.min_opacity
     rows = _rows_of(m)
     changed = rows == 0
     # the dead rows now hold copies of live ones (same mean, relocated opacity and scale)
@@ -330,14 +340,14 @@ def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
         msg = m.on_iteration(it + 1, Budget(it + 1, 1.0, 0.05 * (it + 1), None))
         msgs.append(msg)
     assert m.n == 330 and any(msg and "relocated" in msg for msg in msgs)
-    # the stats kernel does not run for mcmc: its statistics stay zero
-    assert not np.any(m.host_moments()["stats"])
+    # mcmc keeps no per-Gaussian statistics (the stats kernel does not run for it)
+    assert m.strategy.host_rows() == {} and m.strategy.row_keys() == ()
     # the means moved (Adam and noise; the noise itself: test_mcmc_noise_matches_the_twin)
     assert np.any(m.host_params()["means"][:300] != p0["means"])
     st = m.state_dict()
-    assert st["strategy_last_refine"] == m.refine_state.last_refine > 0
+    assert st["strategy_last_refine"] == m.strategy.state.last_refine > 0
     back = SplatModel.from_state_dict(device, st)
-    assert back.refine_state == m.refine_state and back.n == 330
+    assert back.strategy.state == m.strategy.state and back.n == 330
     assert isinstance(back.strategy, ss.MCMCStrategy)
 
 
@@ -358,24 +368,23 @@ def test_mcmc_relocation_in_place_is_the_host_edit(device, spread):
     st = m.state_dict()
     twin = SplatModel.from_state_dict(device, st)
     h, mo = m.host_params(), m.host_moments()
-    mo.pop("stats")
     want_h, want_m, want_msg = m.strategy.refine(h, mo, None, cap=300,
                                                  rng=np.random.default_rng(4))
-    msg = twin.strategy.refine_in_place(twin, np.random.default_rng(4))
+    msg = twin.strategy.refine_in_place(twin, 300, np.random.default_rng(4))
     assert msg == want_msg and msg.startswith("relocated 43 of 300") and twin.n == 300
     got_h, got_m = twin.host_params(), twin.host_moments()
     for k in sp.NAMES:
         np.testing.assert_array_equal(got_h[k], want_h[k].astype(np.float32), err_msg=k)
         for mk in sp.moment_keys(k):
             np.testing.assert_array_equal(got_m[mk], want_m[mk], err_msg=mk)
-    assert np.any(got_m["means_m"]) and not np.any(got_m["stats"][:, ::7])
+    assert np.any(got_m["means_m"])
     # gathering rows is the download's rows
     np.testing.assert_array_equal(twin.get_rows("sh", [5, 2, 5]), got_h["sh"][[5, 2, 5]])
     with pytest.raises(IndexError, match="put_rows"):
         twin.put_rows([300], {})
     # under the cap the count grows: not in place
     m2, _ = _model(device, strategy="mcmc", init_points=300, max_gaussians=400)
-    assert m2.strategy.refine_in_place(m2, np.random.default_rng(0)) is None
+    assert m2.strategy.refine_in_place(m2, m2.max_count, np.random.default_rng(0)) is None
     assert "added 15" in m2.refine() and m2.n == 315
 
 
@@ -388,7 +397,7 @@ def test_default_model_resumes_an_old_checkpoint_state(device):
             del st[k]
     st.update(resets=2, last_reset=40, last_densify=55, densify_frac=0.25)
     back = SplatModel.from_state_dict(device, st)
-    assert back.refine_state == ss.RefineState(55, 0.25, 2, 40)
+    assert back.strategy.state == ss.RefineState(55, 0.25, 2, 40)
 
 
 @pytest.mark.parametrize("field,value", [("strategy", "adc"), ("mcmc_growth", 0.5),
@@ -410,12 +419,12 @@ def test_absgrad_statistics_bound_the_plain_ones(device):
     densify_absgrad_threshold."""
     plain, _ = _model(device, init_points=300)
     absg, _ = _model(device, init_points=300, absgrad=True)
-    assert absg.strategy.absgrad and absg.strategy.grad_threshold == 8e-4
-    assert plain.strategy.grad_threshold == 2e-4
+    assert absg.strategy.absgrad and absg.strategy.settings.grad_threshold == 8e-4
+    assert plain.strategy.settings.grad_threshold == 2e-4
     plain.train_step(0)
     absg.train_step(0)
-    a = plain.host_moments()["stats"]
-    b = absg.host_moments()["stats"]
+    a = np.stack(list(plain.strategy.host_rows().values()))
+    b = np.stack(list(absg.strategy.host_rows().values()))
     np.testing.assert_array_equal(a[1], b[1])      # the same Gaussians seen
     seen = a[1] > 0
     assert seen.sum() > 50

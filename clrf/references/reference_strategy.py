@@ -1,12 +1,12 @@
 """Float64 twins of the MCMC density strategy's kernels (cl/splat_train.cl splat_mcmc_reg,
-splat_mcmc_noise; clrf/splat/strategy.py): the regularisers' gradients and the noise on the
+splat_mcmc_noise; clrf/splat/strategies/mcmc.py): the regularisers' gradients and the noise on the
 means, drawn from the kernel's counter-based hash so that both draw the same normals."""
 from __future__ import annotations
 
 import numpy as np
 
 from .reference_splat import quat_rot as unit_quat_rot
-from .reference_splat import sigmoid  # noqa: F401  (clrf/splat/strategy.py uses it from here)
+from .reference_splat import sigmoid  # noqa: F401  (clrf/splat/strategies use it from here)
 
 GOLDEN = 0x9E3779B9
 MIX = 0x85EBCA6B
