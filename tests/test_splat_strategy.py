@@ -450,3 +450,161 @@ def test_first_gaussians_follow_the_strategy():
                                rtol=1e-5)
     np.testing.assert_allclose(np.exp(h2["log_scales"]), 2.0 * np.exp(h0["log_scales"]),
                                rtol=1e-5)
+
+
+# ---- the interface (clrf/splat/strategies/base.py) --------------------------------------------
+def test_the_model_keeps_no_strategy_internals(device):
+    """The model files name no strategy and hold no statistics: no ``strategy ==`` tests, no
+    strategy names, no statistics attributes; a trained model's statistics are its
+    strategy's, one float32 row per Gaussian."""
+    import re
+    from pathlib import Path
+    from clrf.splat import config, distributed, model
+    for mod in (model, distributed, config):
+        text = Path(mod.__file__).read_text()
+        assert not re.search(r"strategy\s*(==|!=)|strategy\s+in\s*[(\[{]", text), mod.__name__
+        if mod is not config:   # (whose comments describe the strategies)
+            assert not re.search(r"[\"'](mcmc|default)[\"']", text), mod.__name__
+        assert not re.search(r"\.(accum|max_radius|refine_state|reset_opacity)\b", text), \
+            mod.__name__
+    m, _ = _model(device, init_points=200)
+    m.train_step(0)
+    assert not {"accum", "count", "max_radius", "refine_state", "stats"} & set(vars(m))
+    rows = m.strategy.host_rows()
+    assert list(rows) == list(ss.DefaultStrategy.ROWS)
+    assert all(r.shape == (m.n,) and r.dtype == np.float32 for r in rows.values())
+    assert rows["grad_count"].max() == 1
+    assert set(m.host_moments()) == {mk for k in sp.NAMES for mk in sp.moment_keys(k)}
+
+
+class _SeenStrategy(ss.Strategy):
+    """A strategy for the test: counts the views that see each Gaussian (its one statistic)
+    and at each refinement removes the Gaussians no view saw; records what its hooks got."""
+    name = "seen"
+    FIRST_OPACITY = 0.3
+    ROWS = ("seen",)
+
+    @dataclasses.dataclass(frozen=True)
+    class Settings:
+        schedule: ss.Schedule
+
+        @classmethod
+        def of(cls, c):
+            return cls(ss.Schedule(c.densify_from, c.densify_until, c.densify_every,
+                                   c.densify_min_steps))
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.calls = []
+
+    def step_post_backward(self, params, grads, moments, step, render):
+        n = params["means"].shape[0]
+        assert set(params) == set(grads) - {"camera"} == set(moments) == set(sp.NAMES)
+        assert render.radius.shape == (n,) and render.grad_xy.shape == (n, 2)
+        seen = self.rows["seen"].get() + (render.radius.get() > 0)
+        self.rows["seen"].set(seen.astype(np.float32))
+        self.calls.append(("backward", step, render.width, render.height))
+
+    def step_post_update(self, params, moments, step, lr):
+        self.calls.append(("update", step, lr))
+
+    def refine(self, host, moments, rows, *, extent, cap, rng):
+        keep = rows["seen"] > 0
+        host, moments = sp.edit_rows(host, moments, keep=keep)
+        return host, moments, f"kept the {int(keep.sum())} seen of {len(keep)}"
+
+
+def test_a_registered_strategy_trains_and_checkpoints(device, monkeypatch):
+    """A strategy registered in a test (one class, one ``register``): splat.strategy takes its
+    name, the first Gaussians take its opacity, a step calls its hooks with the step's arrays
+    (before and after the update), its refinement edits the rows, its statistic is zeroed
+    after it, follows the rows and comes back from the checkpoint."""
+    from clrf.interface import Budget
+    from clrf.splat.model import SplatModel
+    from clrf.training.config import build_config
+    monkeypatch.setattr(ss, "REGISTRY", dict(ss.REGISTRY))
+    assert ss.register(_SeenStrategy) is _SeenStrategy
+    build_config("procedural", overrides={"train": {"model": "splat"},
+                                          "splat": {"strategy": "seen"}}).validate()
+    with pytest.raises(TypeError, match="not a Strategy"):
+        ss.register(dict)
+    m, ds = _model(device, strategy="seen", init_points=300, densify_from=0.0,
+                   densify_every=0.25, densify_min_steps=1)
+    assert isinstance(m.strategy, _SeenStrategy)
+    np.testing.assert_allclose(rst.sigmoid(m.host_params()["opacity_logits"]), 0.3, rtol=1e-6)
+    for it in range(3):
+        m.train_step(it)
+    H, W = ds.hw
+    assert m.strategy.calls[:2] == [("backward", 0, W, H), ("update", 1, m.lr_means)]
+    assert [c[1] for c in m.strategy.calls] == [0, 1, 1, 2, 2, 3]
+    counts = m.strategy.host_rows()["seen"]
+    assert counts.max() == 3 and np.all(counts >= 0)
+    unseen = int((counts == 0).sum())
+    msg = m.on_iteration(3, Budget(3, 1.0, 0.3, None))
+    assert msg == f"kept the {300 - unseen} seen of 300" and m.n == 300 - unseen
+    assert m.strategy.state.last_refine == 3
+    assert not np.any(m.strategy.host_rows()["seen"])   # afresh after the edit
+    m.train_step(3)
+    st = m.state_dict()
+    np.testing.assert_array_equal(st["strategy_row_seen"], m.strategy.host_rows()["seen"])
+    back = SplatModel.from_state_dict(device, st)
+    assert isinstance(back.strategy, _SeenStrategy) and back.strategy.state.last_refine == 3
+    np.testing.assert_array_equal(back.strategy.host_rows()["seen"], st["strategy_row_seen"])
+
+
+def _old_layout(st: dict, rows: tuple) -> dict:
+    """A state as the model wrote it before strategies owned their statistics: the default
+    strategy's three rows as ``adam_stats`` [3, n] among the moments (zeros for mcmc)."""
+    old = {k: v for k, v in st.items() if not k.startswith("strategy_row_")}
+    n = st["param_means"].shape[0]
+    old["adam_stats"] = (np.stack([st[f"strategy_row_{k}"] for k in rows]) if rows
+                         else np.zeros((3, n), np.float32))
+    return old
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_a_checkpoint_of_the_old_layout_loads_renders_and_resumes(device, strategy):
+    """A state with the statistics on the model (``adam_stats``) loads with them in the
+    strategy's rows, renders as the model did, and resumes exactly as the same state in the
+    new layout (parameters and statistics bit for bit, refinements included)."""
+    from clrf.interface import Budget
+    from clrf.splat.model import SplatModel
+    m, ds = _model(device, strategy=strategy, init_points=300, max_gaussians=330,
+                   densify_from=0.0, densify_every=0.2, densify_min_steps=1,
+                   densify_grad_threshold=1e-7)
+    for it in range(3):
+        m.train_step(it)
+    st = m.state_dict()
+    rows = type(m.strategy).ROWS
+    assert all(st[k].shape == (300,) for k in m.strategy.row_keys()) and "adam_stats" not in st
+    old = SplatModel.from_state_dict(device, _old_layout(st, rows))
+    new = SplatModel.from_state_dict(device, st)
+    for k, v in m.strategy.host_rows().items():
+        np.testing.assert_array_equal(old.strategy.host_rows()[k], v)
+    if rows:
+        assert old.strategy.host_rows()["grad_count"].max() == 3
+    assert old.strategy.state == m.strategy.state
+    c2w = ds.poses[ds.split["train"][0]]
+    np.testing.assert_array_equal(old.render_image(c2w, ds.intrinsics, ds.hw)["rgb"],
+                                  m.render_image(c2w, ds.intrinsics, ds.hw)["rgb"])
+    msgs = []
+    for r in (old, new):
+        r.attach(ds)
+        for it in range(3, 6):
+            r.train_step(it)
+            msgs.append(r.on_iteration(it + 1, Budget(it + 1, 1.0, 0.1 * (it + 1), None)))
+    assert msgs[:3] == msgs[3:] and any(msgs)
+    for k, v in new.host_params().items():
+        np.testing.assert_array_equal(old.host_params()[k], v, err_msg=k)
+    for k, v in new.strategy.host_rows().items():
+        np.testing.assert_array_equal(old.strategy.host_rows()[k], v, err_msg=k)
+
+
+def test_a_checkpoint_with_statistics_of_the_wrong_length_is_refused(device):
+    from clrf.interface import StateError
+    from clrf.splat.model import SplatModel
+    m, _ = _model(device, init_points=100)
+    st = m.state_dict()
+    st["strategy_row_grad_count"] = st["strategy_row_grad_count"][:-1]
+    with pytest.raises(StateError, match="grad_count.*expected \\(100,\\)"):
+        SplatModel.from_state_dict(device, st)

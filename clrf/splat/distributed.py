@@ -36,6 +36,7 @@ import numpy as np
 from .raster import Projected
 from ..runtime.dataparallel import shard_bounds
 from ..runtime.programs import download, upload
+from .config import SplatConfig
 from .model import FILTER3D_EVERY, SplatModel, camera_of
 from .params import NAMES, moment_keys
 from .strategies import RenderInfo, strategy_class
@@ -330,6 +331,6 @@ def check_settings(cfg, ranks: int):
             ("splat.pose_opt", c.pose_opt, "the pose corrections"),
             ("splat.strategy", bool(unsharded), unsharded)):
         if on:
-            off = "default" if key.endswith("strategy") else "false"
+            off = SplatConfig.strategy if key.endswith("strategy") else "false"
             raise ValueError(f"{key}: {why} are not split over MPI ranks yet ({ranks} ranks); "
                              f"turn it off (--set {key}={off}) or run as one process")

@@ -94,7 +94,8 @@ class Schedule:
 class Strategy:
     """A density strategy (the module's text). A subclass sets ``name``, ``Settings`` (a
     frozen dataclass with ``of(splat_config)``), ``ROWS``, ``FIRST_OPACITY``,
-    ``FIRST_SCALE`` and ``UNSHARDED``, and overrides the hooks it uses; every hook here does nothing."""
+    ``FIRST_SCALE`` and ``UNSHARDED``, and overrides the hooks it uses: here the step's
+    hooks do nothing and ``refine_due`` follows ``settings.schedule`` where there is one."""
     name: ClassVar[str]
     Settings: ClassVar[type]
     ROWS: ClassVar[tuple] = ()        # its per-Gaussian statistics, float32 [n] each
