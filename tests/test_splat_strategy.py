@@ -608,3 +608,33 @@ def test_a_checkpoint_with_statistics_of_the_wrong_length_is_refused(device):
     st["strategy_row_grad_count"] = st["strategy_row_grad_count"][:-1]
     with pytest.raises(StateError, match="grad_count.*expected \\(100,\\)"):
         SplatModel.from_state_dict(device, st)
+
+
+@pytest.mark.parametrize("n", [1, 7, 257])
+def test_default_statistics_match_the_twin(device, n):
+    """The default strategy's post-backward hook (splat_densify_stats) over two steps against
+    the float64 twin: seen Gaussians (radius > 0) add their NDC-scaled gradient norm and a
+    view, non-finite norms add nothing, every seen one raises the largest radius; unseen
+    rows keep what they had."""
+    from clrf.testing.tolerances import SPLAT_STATS_RTOL
+    rng = np.random.default_rng(n)
+    st = ss.DefaultStrategy.of(SplatConfig(), device)
+    start = [rng.uniform(0, 1, n), rng.integers(0, 4, n).astype(float), rng.uniform(0, 9, n)]
+    st.allocate(n, dict(zip(st.ROWS, np.asarray(start, np.float32))))
+    want = [np.asarray(a, np.float32) for a in start]
+    params = {"means": _up(device, np.zeros((n, 3), np.float32))}
+    for step, (W, H) in enumerate([(64, 48), (7, 101)]):
+        g = rng.normal(0, 1e-3, (n, 2)).astype(np.float32)
+        r = np.where(rng.uniform(size=n) < 0.3, 0.0, rng.uniform(0.5, 20, n)).astype(np.float32)
+        r[: n // 7] = -1.0                          # negative: unseen too
+        if n > 2:
+            g[-1, 0], g[-2, 1] = np.nan, np.inf     # non-finite norms: not counted
+            r[-2:] = 3.0
+        st.step_post_backward(params, {}, {}, step, ss.RenderInfo(_up(device, r),
+                                                                  _up(device, g), W, H))
+        want = rst.densify_stats(g, r, W, H, want)
+    got = st.host_rows()
+    np.testing.assert_allclose(got["grad_accum"], want[0], rtol=SPLAT_STATS_RTOL, atol=0)
+    np.testing.assert_array_equal(got["grad_count"], want[1])
+    np.testing.assert_array_equal(got["max_radius"], want[2])
+    assert np.any(got["grad_count"] > start[1])
