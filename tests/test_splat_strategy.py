@@ -475,6 +475,12 @@ def test_the_model_keeps_no_strategy_internals(device):
     assert all(r.shape == (m.n,) and r.dtype == np.float32 for r in rows.values())
     assert rows["grad_count"].max() == 1
     assert set(m.host_moments()) == {mk for k in sp.NAMES for mk in sp.moment_keys(k)}
+    # rows overwritten in place start their statistics afresh, the others keep theirs
+    seen = np.flatnonzero(rows["grad_count"] > 0)[:3]
+    m.put_rows(seen, {})
+    for k, v in m.strategy.host_rows().items():
+        assert not np.any(v[seen]), k
+        np.testing.assert_array_equal(np.delete(v, seen), np.delete(rows[k], seen), err_msg=k)
 
 
 class _SeenStrategy(ss.Strategy):

@@ -382,7 +382,7 @@ class SplatModel:
                     raise ValueError(f"put_rows: {k} needs {flat.size // len(idx)} floats a row")
                 cla.multi_put([cla.to_device(q, v)], flat, out=[a.reshape(-1)])
             cla.multi_put([zero, zero], flat, out=[m.reshape(-1) for m in self.moments[k]])
-        self.strategy.zero_rows(cla.to_device(q, idx), zero)
+        self.strategy.zero_rows(idx)
         self.filter3d = None   # the Gaussians changed: the 3D filter is recomputed when needed
 
     def render(self, origins, dirs) -> dict:

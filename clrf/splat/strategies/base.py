@@ -142,12 +142,14 @@ class Strategy:
         """{name: float32 [n]} of the statistics."""
         return {k: download(a) for k, a in self.rows.items()}
 
-    def zero_rows(self, idx_device, zero):
-        """Rows ``idx_device`` (an int64 device array) of every statistic set to ``zero`` (a
-        device array of one float32 0)."""
-        from pyopencl.array import multi_put
-        if self.rows:
-            multi_put([zero] * len(self.rows), idx_device, out=list(self.rows.values()))
+    def zero_rows(self, idx):
+        """Rows ``idx`` (int64) of every statistic set to 0 (rows overwritten in place)."""
+        from pyopencl.array import multi_put, to_device
+        if self.rows and len(idx):
+            q = self.device.queue
+            zero = device_zeros(q, 1, np.float32)
+            multi_put([zero] * len(self.rows), to_device(q, np.asarray(idx, np.int64)),
+                      out=list(self.rows.values()))
 
     # ---- the step's hooks ------------------------------------------------------------------
     def step_post_backward(self, params: dict, grads: dict, moments: dict, step: int,
