@@ -12,9 +12,10 @@ A training step calls, in this order:
 
 - forward, loss, backward (with ``absgrad``: the render record carries the per-pixel
   absolute screen gradients);
-- ``step_post_backward(params, grads, moments, step, render)``: the parameters, their
-  gradients and Adam moments (device arrays by name), the step and the render record
-  (``RenderInfo``: screen radii, screen gradients, image size) before the update;
+- ``step_post_backward(params, grads, moments, step, render)``: the parameters and their
+  gradients (device arrays by name), their Adam moments ({name: (first, second)}), the step
+  and the render record (``RenderInfo``: screen radii, screen gradients, image size) before
+  the update;
 - the Adam update;
 - ``step_post_update(params, moments, step, lr)``: after it (``lr``: the means' rate);
 
