@@ -8,10 +8,11 @@
  *   cl/optim.cl adam_step with no weight decay: m = b1 m + (1 - b1) g, v = b2 v + (1 - b2) g^2,
  *   p -= lr (m / bc1) / (sqrt(v / bc2) + eps); a non-finite gradient leaves p, m, v unchanged.
  *
- * splat_densify_stats: the densification statistics of one step, for Gaussians seen in it
- *   (radius > 0): accum += |(gx sx, gy sy)| (the screen-space gradient of the mean, scaled from
- *   pixels to NDC units by sx = W / 2, sy = H / 2), count += 1, max_radius = max(max_radius,
- *   radius).
+ * splat_densify_stats: the default strategy's statistics of one step (clrf/splat/strategies/
+ *   default.py; float64 twin: clrf/references/reference_strategy.py densify_stats), for
+ *   Gaussians seen in it (radius > 0): accum += |(gx sx, gy sy)| (the screen-space gradient of
+ *   the mean, scaled from pixels to NDC units by sx = W / 2, sy = H / 2; a non-finite norm adds
+ *   nothing), count += 1 (likewise), max_radius = max(max_radius, radius).
  */
 
 #include "adam.h"
@@ -48,7 +49,7 @@ __kernel void splat_densify_stats(const int n, __global const float *grad_xy,
     max_radius[i] = fmax(max_radius[i], r);
 }
 
-/* ---- the MCMC strategy (clrf/splat/strategy.py; Kheradmand et al. 2024, 3DGS as MCMC) -------
+/* ---- the MCMC strategy (clrf/splat/strategies/mcmc.py; Kheradmand et al. 2024, 3DGS as MCMC)
  *
  * splat_mcmc_reg: the regularisers' gradients added to the step's: opacity_reg mean(o) and
  *   scale_reg mean(s) (o = sigmoid(opacity logit), s = exp(log scale), means over the n

@@ -119,7 +119,7 @@ def train(out, steps=6):
     from clrf.runtime.mpi import world
     from clrf.splat.distributed import DistSplatModel
     from clrf.splat.model import camera_of
-    from clrf.splat.strategy import StepInfo
+    from clrf.splat.strategies import RenderInfo
     from clrf.training.config import build_config
 
     comm = world()
@@ -132,7 +132,7 @@ def train(out, steps=6):
     dist = create_model(dev, cfg, ds, (0.0, 0.0, 0.0), cls=DistSplatModel)
     dist._join_ranks(comm, dist.max_count).take_shard()
     losses = [dist.train_step(it) for it in range(int(steps))]
-    shards = comm.gather((dist.host_params(), dist.host_moments()), root=0)
+    shards = comm.gather((dist.host_params(), dist.strategy.host_rows()), root=0)
     if r:
         return
     one = create_model(dev, cfg, ds, (0.0, 0.0, 0.0))
@@ -151,9 +151,10 @@ def train(out, steps=6):
             g2d = one.rast.rasterize_backward(proj, bins, ras, cam, grad, one.background,
                                               absgrad=absgrad)
             grads = one.rast.project_backward(params, cam, g2d)
-            one.strategy.after_backward(one, StepInfo(proj.radius,
-                                                      g2d["xy_abs" if absgrad else "xy"],
-                                                      cam.width, cam.height), grads)
+            one.strategy.step_post_backward(
+                one.params, grads, one.moments, one.step,
+                RenderInfo(proj.radius, g2d["xy_abs" if absgrad else "xy"], cam.width,
+                           cam.height))
             if total is None:
                 total = grads
             else:
@@ -168,8 +169,9 @@ def train(out, steps=6):
     for name, v in one.host_params().items():
         res[f"p1_{name}"] = v
         res[f"p_{name}"] = np.concatenate([s[0][name] for s in shards])
-    res["stats1"] = one.host_moments()["stats"]
-    res["stats"] = np.concatenate([s[1]["stats"] for s in shards], axis=1)
+    rows = one.strategy.ROWS
+    res["stats1"] = np.stack([one.strategy.host_rows()[k] for k in rows])
+    res["stats"] = np.stack([np.concatenate([s[1][k] for s in shards]) for k in rows])
     np.savez(out, **res)
 
 
@@ -197,20 +199,20 @@ def rebalance(out):
     m = create_model(dev, cfg, ds, (0.0, 0.0, 0.0), cls=DistSplatModel)
     m._join_ranks(comm, m.max_count)
     whole = m.host_params()
-    m.accum.set(np.arange(m.n, dtype=np.float32))   # the statistics move with their rows
-    mom = m.host_moments()
+    m.strategy.rows["grad_accum"].set(np.arange(m.n, dtype=np.float32))   # the statistics
+    mom, stats = m.host_moments(), m.strategy.host_rows()                # move with their rows
     cuts = np.round(np.cumsum([0] + ([0.7, 0.3] if P == 2 else [0.6, 0.3, 0.1])) * m.n)
     lo, hi = int(cuts[r]), int(cuts[r + 1])
     m._release()
-    m._set_host({k: v[lo:hi] for k, v in whole.items()},
-                {k: (v[:, lo:hi] if k == "stats" else v[lo:hi]) for k, v in mom.items()})
+    m._set_host({k: v[lo:hi] for k, v in whole.items()}, {k: v[lo:hi] for k, v in mom.items()},
+                {k: v[lo:hi] for k, v in stats.items()})
     counts = comm.allgather(m.n)
     m.rebalance(counts)
-    after = comm.gather((m.host_params(), m.host_moments()["stats"]), root=0)
+    after = comm.gather((m.host_params(), m.strategy.host_rows()), root=0)
     if r == 0:
         res = {"counts": np.array([a[0]["means"].shape[0] for a in after]),
-               "stats": np.concatenate([a[1] for a in after], axis=1),
-               "stats0": mom["stats"]}
+               "stats": np.stack([np.concatenate([a[1][k] for a in after]) for k in stats]),
+               "stats0": np.stack(list(stats.values()))}
         for k, v in whole.items():
             res[f"before_{k}"] = v
             res[f"after_{k}"] = np.concatenate([a[0][k] for a in after])

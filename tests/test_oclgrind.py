@@ -10,12 +10,12 @@ gather, the ray store's strided read-back, fused loss), the optimisers, encode, 
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
 network), the hash encoding's backward, the hash march (windows, alive rays, contraction), Adam
 over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
-backward; anti-aliased; the camera's gradient), the MCMC strategy's regularisers and noise, the
-bilateral grid (slice, both backward passes, the prior and Adam over every grid), the
-training images' widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's
-chunked sort) and tile rasteriser (forward, backward), and the hash model's bounded step (capped
-offsets, the encoding and the MLP on both tilings reading a device count, a bounded step with
-the GPU tiling).
+backward; anti-aliased; the camera's gradient), the density strategies' statistics (default)
+and regularisers and noise (MCMC), the bilateral grid (slice, both backward passes, the prior
+and Adam over every grid), the training images' widening (uint8, float16), binning (pyopencl's
+scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward), and the hash
+model's bounded step (capped offsets, the encoding and the MLP on both tilings reading a device
+count, a bounded step with the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -124,6 +124,7 @@ CASES = [
     "tests/test_splat_strategy.py::test_mcmc_reg_matches_the_twin_and_central_differences"
     "[default]",
     "tests/test_splat_strategy.py::test_mcmc_noise_matches_the_twin[default]",
+    "tests/test_splat_strategy.py::test_default_statistics_match_the_twin[default-7]",
     "tests/test_splat_targets.py::test_uint8_images_widen_bit_for_bit[default]",
     "tests/test_splat_targets.py::test_other_images_widen_to_numpys_halves[default-averaged]",
     "tests/test_scan.py::test_capped_offsets_match_clipped_cumsum[100]",

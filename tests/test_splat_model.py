@@ -103,8 +103,8 @@ def test_views_cycle_and_inactive_sh_bands_stay_put(device):
     assert not np.any(after["sh"][:, 1:]) and np.any(after["sh"][:, 0] != before["sh"][:, 0])
     for k_ in ("means", "log_scales", "opacity_logits"):
         assert np.any(after[k_] != before[k_]), k_
-    mo = m.host_moments()
-    accum, count, _ = mo["stats"]
+    st = m.strategy.host_rows()
+    accum, count = st["grad_accum"], st["grad_count"]
     assert count.max() == 3 and np.all(accum[count == 0] == 0) and accum.max() > 0
     m.active_degree = 3
     m.train_step(3)
@@ -173,7 +173,7 @@ def test_densify_and_prune_keep_the_cap(device):
         assert np.isfinite(m.train_step(it))
     assert m.n <= 340
     # the budget hook densifies only inside [densify_from, densify_until) and after enough steps
-    m.refine_state.last_refine = 0
+    m.strategy.state.last_refine = 0
     assert m.on_iteration(10, Budget(10, 1.0, 0.01, None)) is None
     assert "densified" in m.on_iteration(30, Budget(30, 1.0, 0.05, None))
     assert m.n <= 340 and m.describe().startswith(f"{m.n} Gaussians")

@@ -1,4 +1,4 @@
-"""The splat model's density strategies (clrf/splat/strategy.py, splat.strategy) and parameter
+"""The splat model's density strategies (clrf/splat/strategies/, splat.strategy) and parameter
 table (clrf/splat/params.py): each strategy's refinement on numpy arrays (no device, no
 dataset: the cap holds, relocation keeps the count, a pruned Gaussian's moments go with it,
 a changed Gaussian's moments start at zero), MCMC's relocation formula against the integral
@@ -13,7 +13,7 @@ import pytest
 
 from clrf.references import reference_strategy as rst
 from clrf.splat import params as sp
-from clrf.splat import strategy as ss
+from clrf.splat import strategies as ss
 from clrf.splat.config import SplatConfig
 
 from test_splat_model import _model
@@ -84,8 +84,17 @@ def test_edit_rows_moves_moments_with_their_rows():
 
 
 # ---- default ----------------------------------------------------------------------------------
-def _default(**kw):
-    return ss.DefaultStrategy.of(dataclasses.replace(SplatConfig(), **kw))
+def _default(resets=0, **kw):
+    """The default strategy of SplatConfig() with ``kw`` changed, ``resets`` opacity resets
+    done."""
+    st = ss.DefaultStrategy.of(dataclasses.replace(SplatConfig(), **kw))
+    st.state.resets = resets
+    return st
+
+
+def _stats(a):
+    """The default strategy's statistics of an array [3, n] (summed norms, counts, radii)."""
+    return dict(zip(ss.DefaultStrategy.ROWS, np.asarray(a, np.float32)))
 
 
 def test_default_refine_clones_splits_prunes_under_the_cap():
@@ -101,7 +110,7 @@ def test_default_refine_clones_splits_prunes_under_the_cap():
     stats[0, 30:] = 0.0                                      # but these ten
     st = _default()
     rng = np.random.default_rng(0)
-    h, m, msg = st.refine(host, mo, stats, extent=1.0, cap=1000, resets=0, rng=rng)
+    h, m, msg = st.refine(host, mo, _stats(stats), extent=1.0, cap=1000, rng=rng)
     assert msg == "densified: 40 -> 60 Gaussians (15 cloned, 10 split, 5 pruned)"
     rows = _rows_of(m)
     # survivors keep their moments in order (pruned and split ones are gone), new rows zero
@@ -112,18 +121,19 @@ def test_default_refine_clones_splits_prunes_under_the_cap():
     np.testing.assert_allclose(split_scales, 0.5 / 1.6, rtol=1e-6)
     # the cap: no room beyond it, highest gradients first
     stats[0, 15:30] = np.arange(15)
-    h, m, msg = st.refine(host, mo, stats, extent=1.0, cap=40, resets=0, rng=rng)
+    h, m, msg = st.refine(host, mo, _stats(stats), extent=1.0, cap=40, rng=rng)
     assert len(h["means"]) == 40 and "5 pruned" in msg
     # after a reset, huge Gaussians go too
-    h, m, _ = st.refine(host, mo, np.zeros((3, n)), extent=1.0, cap=1000, resets=1, rng=rng)
+    h, m, _ = _default(resets=1).refine(host, mo, _stats(np.zeros((3, n))), extent=1.0,
+                                        cap=1000, rng=rng)
     assert len(h["means"]) == 25
 
 
 def test_default_never_removes_every_gaussian():
     host = _host(4)
     host["opacity_logits"][:] = -20.0
-    h, m, _ = _default().refine(host, _moments(host), np.zeros((3, 4)), extent=1.0, cap=10,
-                                resets=0, rng=np.random.default_rng(0))
+    h, m, _ = _default().refine(host, _moments(host), _stats(np.zeros((3, 4))), extent=1.0,
+                                cap=10, rng=np.random.default_rng(0))
     assert len(h["means"]) == 1
 
 
@@ -172,7 +182,7 @@ def test_mcmc_relocation_keeps_the_count_and_growth_holds_the_cap():
     h, m, msg = st.refine(host, mo, None, cap=n, rng=rng)
     assert len(h["means"]) == n and msg.startswith("relocated 10 of 50")
     o = rst.sigmoid(h["opacity_logits"])
-    assert o.min() > st.min_opacity
+    assert o.min() > st.settings.min_opacity
     rows = _rows_of(m)
     changed = rows == 0
     # the dead rows now hold copies of live ones (same mean, relocated opacity and scale)
@@ -330,14 +340,14 @@ def test_mcmc_model_grows_to_the_cap_and_checkpoints(device):
         msg = m.on_iteration(it + 1, Budget(it + 1, 1.0, 0.05 * (it + 1), None))
         msgs.append(msg)
     assert m.n == 330 and any(msg and "relocated" in msg for msg in msgs)
-    # the stats kernel does not run for mcmc: its statistics stay zero
-    assert not np.any(m.host_moments()["stats"])
+    # mcmc keeps no per-Gaussian statistics (the stats kernel does not run for it)
+    assert m.strategy.host_rows() == {} and m.strategy.row_keys() == ()
     # the means moved (Adam and noise; the noise itself: test_mcmc_noise_matches_the_twin)
     assert np.any(m.host_params()["means"][:300] != p0["means"])
     st = m.state_dict()
-    assert st["strategy_last_refine"] == m.refine_state.last_refine > 0
+    assert st["strategy_last_refine"] == m.strategy.state.last_refine > 0
     back = SplatModel.from_state_dict(device, st)
-    assert back.refine_state == m.refine_state and back.n == 330
+    assert back.strategy.state == m.strategy.state and back.n == 330
     assert isinstance(back.strategy, ss.MCMCStrategy)
 
 
@@ -358,24 +368,23 @@ def test_mcmc_relocation_in_place_is_the_host_edit(device, spread):
     st = m.state_dict()
     twin = SplatModel.from_state_dict(device, st)
     h, mo = m.host_params(), m.host_moments()
-    mo.pop("stats")
     want_h, want_m, want_msg = m.strategy.refine(h, mo, None, cap=300,
                                                  rng=np.random.default_rng(4))
-    msg = twin.strategy.refine_in_place(twin, np.random.default_rng(4))
+    msg = twin.strategy.refine_in_place(twin, 300, np.random.default_rng(4))
     assert msg == want_msg and msg.startswith("relocated 43 of 300") and twin.n == 300
     got_h, got_m = twin.host_params(), twin.host_moments()
     for k in sp.NAMES:
         np.testing.assert_array_equal(got_h[k], want_h[k].astype(np.float32), err_msg=k)
         for mk in sp.moment_keys(k):
             np.testing.assert_array_equal(got_m[mk], want_m[mk], err_msg=mk)
-    assert np.any(got_m["means_m"]) and not np.any(got_m["stats"][:, ::7])
+    assert np.any(got_m["means_m"])
     # gathering rows is the download's rows
     np.testing.assert_array_equal(twin.get_rows("sh", [5, 2, 5]), got_h["sh"][[5, 2, 5]])
     with pytest.raises(IndexError, match="put_rows"):
         twin.put_rows([300], {})
     # under the cap the count grows: not in place
     m2, _ = _model(device, strategy="mcmc", init_points=300, max_gaussians=400)
-    assert m2.strategy.refine_in_place(m2, np.random.default_rng(0)) is None
+    assert m2.strategy.refine_in_place(m2, m2.max_count, np.random.default_rng(0)) is None
     assert "added 15" in m2.refine() and m2.n == 315
 
 
@@ -388,7 +397,7 @@ def test_default_model_resumes_an_old_checkpoint_state(device):
             del st[k]
     st.update(resets=2, last_reset=40, last_densify=55, densify_frac=0.25)
     back = SplatModel.from_state_dict(device, st)
-    assert back.refine_state == ss.RefineState(55, 0.25, 2, 40)
+    assert back.strategy.state == ss.RefineState(55, 0.25, 2, 40)
 
 
 @pytest.mark.parametrize("field,value", [("strategy", "adc"), ("mcmc_growth", 0.5),
@@ -410,12 +419,12 @@ def test_absgrad_statistics_bound_the_plain_ones(device):
     densify_absgrad_threshold."""
     plain, _ = _model(device, init_points=300)
     absg, _ = _model(device, init_points=300, absgrad=True)
-    assert absg.strategy.absgrad and absg.strategy.grad_threshold == 8e-4
-    assert plain.strategy.grad_threshold == 2e-4
+    assert absg.strategy.absgrad and absg.strategy.settings.grad_threshold == 8e-4
+    assert plain.strategy.settings.grad_threshold == 2e-4
     plain.train_step(0)
     absg.train_step(0)
-    a = plain.host_moments()["stats"]
-    b = absg.host_moments()["stats"]
+    a = np.stack(list(plain.strategy.host_rows().values()))
+    b = np.stack(list(absg.strategy.host_rows().values()))
     np.testing.assert_array_equal(a[1], b[1])      # the same Gaussians seen
     seen = a[1] > 0
     assert seen.sum() > 50
@@ -441,3 +450,197 @@ def test_first_gaussians_follow_the_strategy():
                                rtol=1e-5)
     np.testing.assert_allclose(np.exp(h2["log_scales"]), 2.0 * np.exp(h0["log_scales"]),
                                rtol=1e-5)
+
+
+# ---- the interface (clrf/splat/strategies/base.py) --------------------------------------------
+def test_the_model_keeps_no_strategy_internals(device):
+    """The model files name no strategy and hold no statistics: no ``strategy ==`` tests, no
+    strategy names, no statistics attributes; a trained model's statistics are its
+    strategy's, one float32 row per Gaussian."""
+    import re
+    from pathlib import Path
+    from clrf.splat import config, distributed, model
+    for mod in (model, distributed, config):
+        text = Path(mod.__file__).read_text()
+        assert not re.search(r"strategy\s*(==|!=)|strategy\s+in\s*[(\[{]", text), mod.__name__
+        if mod is not config:   # (whose comments describe the strategies)
+            assert not re.search(r"[\"'](mcmc|default)[\"']", text), mod.__name__
+        assert not re.search(r"\.(accum|max_radius|refine_state|reset_opacity)\b", text), \
+            mod.__name__
+    m, _ = _model(device, init_points=200)
+    m.train_step(0)
+    assert not {"accum", "count", "max_radius", "refine_state", "stats"} & set(vars(m))
+    rows = m.strategy.host_rows()
+    assert list(rows) == list(ss.DefaultStrategy.ROWS)
+    assert all(r.shape == (m.n,) and r.dtype == np.float32 for r in rows.values())
+    assert rows["grad_count"].max() == 1
+    assert set(m.host_moments()) == {mk for k in sp.NAMES for mk in sp.moment_keys(k)}
+    # rows overwritten in place start their statistics afresh, the others keep theirs
+    seen = np.flatnonzero(rows["grad_count"] > 0)[:3]
+    m.put_rows(seen, {})
+    for k, v in m.strategy.host_rows().items():
+        assert not np.any(v[seen]), k
+        np.testing.assert_array_equal(np.delete(v, seen), np.delete(rows[k], seen), err_msg=k)
+
+
+class _SeenStrategy(ss.Strategy):
+    """A strategy for the test: counts the views that see each Gaussian (its one statistic)
+    and at each refinement removes the Gaussians no view saw; records what its hooks got."""
+    name = "seen"
+    FIRST_OPACITY = 0.3
+    ROWS = ("seen",)
+
+    @dataclasses.dataclass(frozen=True)
+    class Settings:
+        schedule: ss.Schedule
+
+        @classmethod
+        def of(cls, c):
+            return cls(ss.Schedule(c.densify_from, c.densify_until, c.densify_every,
+                                   c.densify_min_steps))
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.calls = []
+
+    def step_post_backward(self, params, grads, moments, step, render):
+        n = params["means"].shape[0]
+        assert set(params) == set(grads) - {"camera"} == set(moments) == set(sp.NAMES)
+        assert render.radius.shape == (n,) and render.grad_xy.shape == (n, 2)
+        seen = self.rows["seen"].get() + (render.radius.get() > 0)
+        self.rows["seen"].set(seen.astype(np.float32))
+        self.calls.append(("backward", step, render.width, render.height))
+
+    def step_post_update(self, params, moments, step, lr):
+        self.calls.append(("update", step, lr))
+
+    def refine(self, host, moments, rows, *, extent, cap, rng):
+        keep = rows["seen"] > 0
+        host, moments = sp.edit_rows(host, moments, keep=keep)
+        return host, moments, f"kept the {int(keep.sum())} seen of {len(keep)}"
+
+
+def test_a_registered_strategy_trains_and_checkpoints(device, monkeypatch):
+    """A strategy registered in a test (one class, one ``register``): splat.strategy takes its
+    name, the first Gaussians take its opacity, a step calls its hooks with the step's arrays
+    (before and after the update), its refinement edits the rows, its statistic is zeroed
+    after it, follows the rows and comes back from the checkpoint."""
+    from clrf.interface import Budget
+    from clrf.splat.model import SplatModel
+    from clrf.training.config import build_config
+    monkeypatch.setattr(ss, "REGISTRY", dict(ss.REGISTRY))
+    assert ss.register(_SeenStrategy) is _SeenStrategy
+    build_config("procedural", overrides={"train": {"model": "splat"},
+                                          "splat": {"strategy": "seen"}}).validate()
+    with pytest.raises(TypeError, match="not a Strategy"):
+        ss.register(dict)
+    m, ds = _model(device, strategy="seen", init_points=300, densify_from=0.0,
+                   densify_every=0.25, densify_min_steps=1)
+    assert isinstance(m.strategy, _SeenStrategy)
+    np.testing.assert_allclose(rst.sigmoid(m.host_params()["opacity_logits"]), 0.3, rtol=1e-6)
+    for it in range(3):
+        m.train_step(it)
+    H, W = ds.hw
+    assert m.strategy.calls[:2] == [("backward", 0, W, H), ("update", 1, m.lr_means)]
+    assert [c[1] for c in m.strategy.calls] == [0, 1, 1, 2, 2, 3]
+    counts = m.strategy.host_rows()["seen"]
+    assert counts.max() == 3 and np.all(counts >= 0)
+    unseen = int((counts == 0).sum())
+    msg = m.on_iteration(3, Budget(3, 1.0, 0.3, None))
+    assert msg == f"kept the {300 - unseen} seen of 300" and m.n == 300 - unseen
+    assert m.strategy.state.last_refine == 3
+    assert not np.any(m.strategy.host_rows()["seen"])   # afresh after the edit
+    m.train_step(3)
+    st = m.state_dict()
+    np.testing.assert_array_equal(st["strategy_row_seen"], m.strategy.host_rows()["seen"])
+    back = SplatModel.from_state_dict(device, st)
+    assert isinstance(back.strategy, _SeenStrategy) and back.strategy.state.last_refine == 3
+    np.testing.assert_array_equal(back.strategy.host_rows()["seen"], st["strategy_row_seen"])
+
+
+def _old_layout(st: dict, rows: tuple) -> dict:
+    """A state as the model wrote it before strategies owned their statistics: the default
+    strategy's three rows as ``adam_stats`` [3, n] among the moments (zeros for mcmc)."""
+    old = {k: v for k, v in st.items() if not k.startswith("strategy_row_")}
+    n = st["param_means"].shape[0]
+    old["adam_stats"] = (np.stack([st[f"strategy_row_{k}"] for k in rows]) if rows
+                         else np.zeros((3, n), np.float32))
+    return old
+
+
+@pytest.mark.parametrize("strategy", ["default", "mcmc"])
+def test_a_checkpoint_of_the_old_layout_loads_renders_and_resumes(device, strategy):
+    """A state with the statistics on the model (``adam_stats``) loads with them in the
+    strategy's rows, renders as the model did, and resumes exactly as the same state in the
+    new layout (parameters and statistics bit for bit, refinements included)."""
+    from clrf.interface import Budget
+    from clrf.splat.model import SplatModel
+    m, ds = _model(device, strategy=strategy, init_points=300, max_gaussians=330,
+                   densify_from=0.0, densify_every=0.2, densify_min_steps=1,
+                   densify_grad_threshold=1e-7)
+    for it in range(3):
+        m.train_step(it)
+    st = m.state_dict()
+    rows = type(m.strategy).ROWS
+    assert all(st[k].shape == (300,) for k in m.strategy.row_keys()) and "adam_stats" not in st
+    old = SplatModel.from_state_dict(device, _old_layout(st, rows))
+    new = SplatModel.from_state_dict(device, st)
+    for k, v in m.strategy.host_rows().items():
+        np.testing.assert_array_equal(old.strategy.host_rows()[k], v)
+    if rows:
+        assert old.strategy.host_rows()["grad_count"].max() == 3
+    assert old.strategy.state == m.strategy.state
+    c2w = ds.poses[ds.split["train"][0]]
+    np.testing.assert_array_equal(old.render_image(c2w, ds.intrinsics, ds.hw)["rgb"],
+                                  m.render_image(c2w, ds.intrinsics, ds.hw)["rgb"])
+    msgs = []
+    for r in (old, new):
+        r.attach(ds)
+        for it in range(3, 6):
+            r.train_step(it)
+            msgs.append(r.on_iteration(it + 1, Budget(it + 1, 1.0, 0.1 * (it + 1), None)))
+    assert msgs[:3] == msgs[3:] and any(msgs)
+    for k, v in new.host_params().items():
+        np.testing.assert_array_equal(old.host_params()[k], v, err_msg=k)
+    for k, v in new.strategy.host_rows().items():
+        np.testing.assert_array_equal(old.strategy.host_rows()[k], v, err_msg=k)
+
+
+def test_a_checkpoint_with_statistics_of_the_wrong_length_is_refused(device):
+    from clrf.interface import StateError
+    from clrf.splat.model import SplatModel
+    m, _ = _model(device, init_points=100)
+    st = m.state_dict()
+    st["strategy_row_grad_count"] = st["strategy_row_grad_count"][:-1]
+    with pytest.raises(StateError, match="grad_count.*expected \\(100,\\)"):
+        SplatModel.from_state_dict(device, st)
+
+
+@pytest.mark.parametrize("n", [1, 7, 257])
+def test_default_statistics_match_the_twin(device, n):
+    """The default strategy's post-backward hook (splat_densify_stats) over two steps against
+    the float64 twin: seen Gaussians (radius > 0) add their NDC-scaled gradient norm and a
+    view, non-finite norms add nothing, every seen one raises the largest radius; unseen
+    rows keep what they had."""
+    from clrf.testing.tolerances import SPLAT_STATS_RTOL
+    rng = np.random.default_rng(n)
+    st = ss.DefaultStrategy.of(SplatConfig(), device)
+    start = [rng.uniform(0, 1, n), rng.integers(0, 4, n).astype(float), rng.uniform(0, 9, n)]
+    st.allocate(n, dict(zip(st.ROWS, np.asarray(start, np.float32))))
+    want = [np.asarray(a, np.float32) for a in start]
+    params = {"means": _up(device, np.zeros((n, 3), np.float32))}
+    for step, (W, H) in enumerate([(64, 48), (7, 101)]):
+        g = rng.normal(0, 1e-3, (n, 2)).astype(np.float32)
+        r = np.where(rng.uniform(size=n) < 0.3, 0.0, rng.uniform(0.5, 20, n)).astype(np.float32)
+        r[: n // 7] = -1.0                          # negative: unseen too
+        if n > 2:
+            g[-1, 0], g[-2, 1] = np.nan, np.inf     # non-finite norms: not counted
+            r[-2:] = 3.0
+        st.step_post_backward(params, {}, {}, step, ss.RenderInfo(_up(device, r),
+                                                                  _up(device, g), W, H))
+        want = rst.densify_stats(g, r, W, H, want)
+    got = st.host_rows()
+    np.testing.assert_allclose(got["grad_accum"], want[0], rtol=SPLAT_STATS_RTOL, atol=0)
+    np.testing.assert_array_equal(got["grad_count"], want[1])
+    np.testing.assert_array_equal(got["max_radius"], want[2])
+    assert np.any(got["grad_count"] > start[1])

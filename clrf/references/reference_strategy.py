@@ -1,12 +1,13 @@
-"""Float64 twins of the MCMC density strategy's kernels (cl/splat_train.cl splat_mcmc_reg,
-splat_mcmc_noise; clrf/splat/strategy.py): the regularisers' gradients and the noise on the
-means, drawn from the kernel's counter-based hash so that both draw the same normals."""
+"""Float64 twins of the density strategies' kernels (cl/splat_train.cl; clrf/splat/strategies/):
+the default strategy's statistics (splat_densify_stats), and MCMC's regularisers' gradients
+(splat_mcmc_reg) and noise on the means (splat_mcmc_noise), drawn from the kernel's
+counter-based hash so that both draw the same normals."""
 from __future__ import annotations
 
 import numpy as np
 
 from .reference_splat import quat_rot as unit_quat_rot
-from .reference_splat import sigmoid  # noqa: F401  (clrf/splat/strategy.py uses it from here)
+from .reference_splat import sigmoid  # noqa: F401  (clrf/splat/strategies use it from here)
 
 GOLDEN = 0x9E3779B9
 MIX = 0x85EBCA6B
@@ -67,3 +68,21 @@ def mcmc_reg_grads(opacity_logits, log_scales, opacity_reg: float, scale_reg: fl
     s = np.exp(np.asarray(log_scales, np.float64))
     n = max(len(o), 1)
     return opacity_reg / n * o * (1 - o), scale_reg / (3 * n) * s
+
+
+def densify_stats(grad_xy, radius, width: int, height: int, stats):
+    """The default strategy's statistics (grad_accum, grad_count, max_radius) [n] each after
+    one step of screen-position gradients ``grad_xy`` [n, 2] (pixels) and screen radii
+    ``radius`` [n]: for each seen Gaussian (radius > 0) with a finite norm
+    |(gx W / 2, gy H / 2)|, the norm added and the count raised by one; the largest radius
+    of every seen one."""
+    accum, count, max_radius = (np.array(a, np.float64) for a in stats)
+    g = np.asarray(grad_xy, np.float64) * [0.5 * width, 0.5 * height]
+    r = np.asarray(radius, np.float64)
+    seen = r > 0
+    norm = np.sqrt((g * g).sum(1))
+    add = seen & np.isfinite(norm)
+    accum[add] += norm[add]
+    count[add] += 1
+    max_radius[seen] = np.maximum(max_radius[seen], r[seen])
+    return accum, count, max_radius

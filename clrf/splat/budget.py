@@ -18,7 +18,8 @@ GRAD2D_BYTES = 4 * (2 + 3 + 1 + 3)
 PAIRS_PER_GAUSSIAN = 16     # tiles a Gaussian covers on average (a guess on the safe side)
 PAIR_BYTES = 8 + 4          # uint64 key + int32 id
 SORT_COPIES = 3             # the pairs, the radix sort's output and its scratch
-DENSIFY_FLOATS = 4          # accumulated gradient norm, view count, max screen radius, spare
+DENSIFY_FLOATS = 4          # a strategy's statistics (the default's three: summed gradient
+#                             norm, view count, largest screen radius) and a spare
 LOSS_PLANE_BYTES = 10 * 12  # clrf/splat/loss.py: 9 scratch planes and the gradient, float3
 PIXEL_BYTES = 4 * (3 + 3 + 1 + 1 + 3) + LOSS_PLANE_BYTES   # rgb, its gradient, T, n_contrib,
 #                                                           the step's target widened, loss

@@ -43,7 +43,7 @@ class SplatConfig:
     #                                 or random), in pixels of the nearest training view that
     #                                 sees it in front; 0: none (published: the 3-nearest-
     #                                 neighbour distance whatever it covers on screen)
-    strategy: str = "default"       # density control (clrf/splat/strategy.py): "default"
+    strategy: str = "default"       # density control (clrf/splat/strategies/): "default"
     #                                 (clone, split and prune by screen-space gradients, as
     #                                 published) or "mcmc" (3DGS as MCMC: a fixed budget of
     #                                 Gaussians, dead ones relocated onto live ones, noise on
@@ -217,14 +217,6 @@ class SplatConfig:
     #                                 (HOST_UNIFIED_MEMORY: CPU runtimes, integrated GPUs),
     #                                 else uploaded (clrf/splat/targets.py)
 
-    def first_opacity(self) -> float:
-        """The first Gaussians' opacity (init_opacity, or the strategy's published value)."""
-        return self.init_opacity or (0.5 if self.strategy == "mcmc" else 0.1)
-
-    def first_scale(self) -> float:
-        """The first Gaussians' size factor (init_scale, or the strategy's published value)."""
-        return self.init_scale or (0.1 if self.strategy == "mcmc" else 1.0)
-
     @staticmethod
     def from_preset(name: str, **overrides) -> "SplatConfig":
         """``"full"`` (the defaults) or ``"tiny"``: few initial Gaussians and a small cap,
@@ -247,6 +239,7 @@ class SplatConfig:
 
     def checks(self):
         """(ok, field, message) for Config.validate."""
+        from .strategies import REGISTRY
         frac = lambda x: 0.0 <= x <= 1.0   # noqa: E731
         return [
             (self.preset in SPLAT_PRESETS, "splat.preset",
@@ -255,7 +248,7 @@ class SplatConfig:
             (self.init in INIT_MODES, "splat.init", f"must be one of {list(INIT_MODES)}"),
             (1 <= self.init_points <= 1 << 24, "splat.init_points", "must be in 1..16777216"),
             (self.init_max_pixels >= 0, "splat.init_max_pixels", "must be >= 0 (0: no limit)"),
-            (self.strategy in STRATEGIES, "splat.strategy", f"must be one of {list(STRATEGIES)}"),
+            (self.strategy in REGISTRY, "splat.strategy", f"must be one of {list(REGISTRY)}"),
             (frac(self.mcmc_until), "splat.mcmc_until", "must be a budget fraction in [0, 1]"),
             (1.0 <= self.mcmc_growth <= 2.0, "splat.mcmc_growth", "must be in [1, 2]"),
             (self.mcmc_noise_lr >= 0, "splat.mcmc_noise_lr", "must be >= 0 (0: no noise)"),
@@ -335,7 +328,6 @@ class SplatConfig:
 
 
 INIT_MODES = ("auto", "points", "random")
-STRATEGIES = ("default", "mcmc")   # clrf/splat/strategy.py
 IMAGES_ON_DEVICE = ("auto", "true", "false")   # clrf/splat/targets.py resident
 # The value of a setting whose default changed, for a checkpoint written before the setting
 # existed: how that run was trained (SplatConfig.from_dict).

@@ -36,9 +36,10 @@ import numpy as np
 from .raster import Projected
 from ..runtime.dataparallel import shard_bounds
 from ..runtime.programs import download, upload
+from .config import SplatConfig
 from .model import FILTER3D_EVERY, SplatModel, camera_of
 from .params import NAMES, moment_keys
-from .strategy import StepInfo
+from .strategies import RenderInfo, strategy_class
 
 # the columns of a projected record: xy 2, conic 3, radius, depth, colour 3, opacity, rect 4
 # (int32 bits in float32 columns)
@@ -160,10 +161,11 @@ def allgather_records(comm, rast, params: dict, cam) -> Projected:
 # ---- the model ------------------------------------------------------------------------------
 REBALANCE_AT = 0.10   # shards are evened out when the largest exceeds the smallest by this share
 # the per-Gaussian arrays of a state (clrf/splat/model.py state_dict) and the axis their rows
-# run along: what a checkpoint's shards join (clrf/outputs/checkpoint.py merge_shards)
+# run along: what a checkpoint's shards join (clrf/outputs/checkpoint.py merge_shards); the
+# strategy's statistics add theirs (checkpoint_layout)
 ROW_KEYS = {**{f"param_{k}": 0 for k in NAMES},
             **{f"adam_{mk}": 0 for k in NAMES for mk in moment_keys(k)},
-            "adam_stats": 1, "filter3d": 0}
+            "filter3d": 0}
 
 
 def _split_cap(cap: int, ranks: int, rank: int) -> int:
@@ -172,13 +174,12 @@ def _split_cap(cap: int, ranks: int, rank: int) -> int:
 
 
 def _rows(d: dict, a: int, b: int) -> dict:
-    """Rows [a, b) of every per-row array of ``d`` (the statistics [3, n] by column)."""
-    return {k: (v[:, a:b] if k == "stats" else v[a:b]) for k, v in d.items()}
+    """Rows [a, b) of every per-row array of ``d``."""
+    return {k: v[a:b] for k, v in d.items()}
 
 
 def _join(parts: list) -> dict:
-    return {k: np.concatenate([p[k] for p in parts], axis=1 if k == "stats" else 0)
-            for k in parts[0]}
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
 class DistSplatModel(SplatModel):
@@ -206,10 +207,10 @@ class DistSplatModel(SplatModel):
         """Keep this rank's rows of a model every rank holds whole (the same Gaussians
         everywhere: a new run, or a checkpoint joined from another rank count)."""
         lo, hi = shard_bounds(self.n, self.P)[self.rank]
-        host, mom = self.host_params(), self.host_moments()
+        host, mom, stats = self.host_params(), self.host_moments(), self.strategy.host_rows()
         f2 = download(self.filter3d) if self.filter3d is not None else None
         self._release()
-        self._set_host(_rows(host, lo, hi), _rows(mom, lo, hi))
+        self._set_host(_rows(host, lo, hi), _rows(mom, lo, hi), _rows(stats, lo, hi))
         if f2 is not None:
             self.filter3d = upload(self.device.queue, np.ascontiguousarray(f2[lo:hi]))
         self.n_total = self._total(self.n)
@@ -247,9 +248,10 @@ class DistSplatModel(SplatModel):
         for k, g in enumerate(back):
             g = {name: upload(q, np.ascontiguousarray(a)) for name, a in g.items()}
             grads = self.rast.project_backward(params, cams[k], g)
-            self.strategy.after_backward(
-                self, StepInfo(radii[k], g["xy_abs" if absgrad else "xy"],
-                               int(cams[k].width), int(cams[k].height)), grads)
+            self.strategy.step_post_backward(
+                self.params, grads, self.moments, self.step,
+                RenderInfo(radii[k], g["xy_abs" if absgrad else "xy"], int(cams[k].width),
+                           int(cams[k].height)))
             if total is None:
                 total = grads
             else:
@@ -259,7 +261,7 @@ class DistSplatModel(SplatModel):
             total[name] *= np.float32(1.0 / self.P)
         self.step += 1
         self._adam(total, self.step)
-        self.strategy.after_step(self)
+        self.strategy.step_post_update(self.params, self.moments, self.step, self.lr_means)
         return float(self.comm.allreduce(float(mse), op=MPI.SUM)) / self.P
 
     def on_iteration(self, it, budget):
@@ -285,16 +287,15 @@ class DistSplatModel(SplatModel):
         old = np.concatenate([[0], np.cumsum(counts)])
         new = shard_bounds(int(old[-1]), self.P)
         lo, hi = int(old[self.rank]), int(old[self.rank + 1])
-        host, mom = self.host_params(), self.host_moments()
+        parts = self.host_params(), self.host_moments(), self.strategy.host_rows()
         send = []
         for a, b in new:
             s, e = max(lo, a), min(hi, b)
-            send.append((_rows(host, s - lo, e - lo), _rows(mom, s - lo, e - lo))
-                        if e > s else None)
+            send.append(tuple(_rows(d, s - lo, e - lo) for d in parts) if e > s else None)
         got = [g for g in self.comm.alltoall(send) if g is not None]
         self._release()
         self.device.pool.free_held()
-        self._set_host(_join([g[0] for g in got]), _join([g[1] for g in got]))
+        self._set_host(*(_join([g[i] for g in got]) for i in range(3)))
 
     # ---- renders (collective) ------------------------------------------------------
     def _render_raster(self, cam, depth: bool):
@@ -318,19 +319,19 @@ class DistSplatModel(SplatModel):
 
     def checkpoint_layout(self) -> dict:
         """The per-Gaussian arrays the checkpoint's shards join (save_distributed)."""
-        return {"rows": ROW_KEYS}
+        return {"rows": {**ROW_KEYS, **{k: 0 for k in self.strategy.row_keys()}}}
 
 
 def check_settings(cfg, ranks: int):
     """ValueError naming the setting that splats over ``ranks`` MPI ranks do not take."""
     c = cfg.splat
+    unsharded = strategy_class(c.strategy).UNSHARDED
     for key, on, why in (
             ("splat.exposure", c.exposure, "the colour transforms per image"),
             ("splat.bilateral_grid", c.bilateral_grid, "the bilateral grids per image"),
             ("splat.pose_opt", c.pose_opt, "the pose corrections"),
-            ("splat.strategy", c.strategy == "mcmc",
-             "MCMC's regularisers and relocation (weighted by the whole count)")):
+            ("splat.strategy", bool(unsharded), unsharded)):
         if on:
-            off = "default" if key.endswith("strategy") else "false"
+            off = SplatConfig.strategy if key.endswith("strategy") else "false"
             raise ValueError(f"{key}: {why} are not split over MPI ranks yet ({ranks} ranks); "
                              f"turn it off (--set {key}={off}) or run as one process")

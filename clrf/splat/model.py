@@ -22,11 +22,13 @@ the colour's backward and step, the camera's step from the projection's camera g
 schedules and the recentring after each pass over the views.
 
 Between steps (on_iteration) the budget fraction drives the means' learning-rate decay, the
-SH degree's increase and the density strategy (splat.strategy, clrf/splat/strategy.py: the
+SH degree's increase and the density strategy (splat.strategy, clrf/splat/strategies/: the
 published clone / split / prune with opacity resets, or MCMC's relocation under a fixed cap).
-A refinement runs on the host: it downloads the parameters and moments, edits them with numpy
-(clrf/splat/params.py edit_rows) and uploads them again. The parameters, their moments and
-learning rates follow one table (clrf/splat/params.py TABLE).
+The strategy owns its running statistics and takes the step's parameters, gradients, moments
+and render record through its hooks (strategies/base.py). A refinement runs on the host
+where it changes the count: it downloads the parameters and moments, the strategy edits them
+with numpy (clrf/splat/params.py edit_rows) and they are uploaded again. The parameters, their
+moments and learning rates follow one table (clrf/splat/params.py TABLE).
 """
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ from .config import SplatConfig
 from .loss import STATS, DeviceLoss
 from .params import NAMES, learning_rates, moment_keys
 from .raster import PARAM_NAMES, SplatCamera, SplatRasterizer, camera_gradient, default_tile
-from .strategy import RefineState, StepInfo, logit, make_strategy
+from .strategies import RenderInfo, logit, make_strategy, strategy_class
 from .targets import DeviceImages, ViewImages, resident
 
 assert NAMES == PARAM_NAMES, "clrf/splat/params.py TABLE and the rasteriser's PARAM_NAMES"
@@ -97,8 +99,8 @@ class SplatModel:
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.active_degree = 0
         self.lr_means = config.lr_position * self.extent
-        self.strategy = make_strategy(config)   # density control (splat.strategy)
-        self.refine_state = RefineState()        # its running state
+        # density control (splat.strategy): its settings, schedule and statistics
+        self.strategy = make_strategy(config, device, self.seed)
         self.progress = 0.0
         self._ds = None                # the training views (create, or loaded on demand)
         self._loss_fn = None           # DeviceLoss for the views' size
@@ -111,8 +113,9 @@ class SplatModel:
         self._set_host(host)
 
     # ---- parameters on the device ---------------------------------------------------------
-    def _set_host(self, host: dict, moments: dict | None = None):
-        """Upload parameters (and Adam moments, zeros where absent) and fresh statistics."""
+    def _set_host(self, host: dict, moments: dict | None = None, stats: dict | None = None):
+        """Upload parameters (and Adam moments, zeros where absent) and the strategy's
+        statistics (``stats``: its ``host_rows``; None: zeros)."""
         q = self.device.queue
         n = int(host["means"].shape[0])
         self.params = {k: upload(q, np.ascontiguousarray(host[k], np.float32)) for k in NAMES}
@@ -132,10 +135,7 @@ class SplatModel:
         # GPU shapes: every group in one launch (the SH coefficients have their own kernel)
         self._adam_groups = (AdamSet(self.device, [self.opts[k] for k in GROUPS])
                              if getattr(self.device.tuning, "gpu_kernels", False) else None)
-        stats = moments.get("stats")
-        stats = np.zeros((3, n), np.float32) if stats is None else stats
-        self.accum, self.count, self.max_radius = (upload(q, np.ascontiguousarray(s, np.float32))
-                                                   for s in stats)
+        self.strategy.allocate(n, stats)
         self.n = n
         self.filter3d = None   # the Gaussians changed: the 3D filter is recomputed when needed
 
@@ -169,10 +169,7 @@ class SplatModel:
         return {k: download(v) for k, v in self.params.items()}
 
     def host_moments(self) -> dict:
-        out = {mk: download(a) for k in NAMES for mk, a in zip(moment_keys(k), self.moments[k])}
-        out["stats"] = np.stack([download(self.accum), download(self.count),
-                                 download(self.max_radius)])
-        return out
+        return {mk: download(a) for k in NAMES for mk, a in zip(moment_keys(k), self.moments[k])}
 
     # ---- the dataset ----------------------------------------------------------------------
     def attach(self, ds, max_images: int = 0):
@@ -244,12 +241,13 @@ class SplatModel:
         grads = self.rast.project_backward(params, cam, g2d, camera_grad=moved)
         if moved:   # reads twelve numbers: the camera's gradient
             corr.camera_step(v, cam.viewmat, *camera_gradient(grads["camera"]))
-        self.strategy.after_backward(
-            self, StepInfo(proj.radius, g2d["xy_abs" if absgrad else "xy"], int(cam.width),
-                           int(cam.height)), grads)
+        self.strategy.step_post_backward(
+            self.params, grads, self.moments, self.step,
+            RenderInfo(proj.radius, g2d["xy_abs" if absgrad else "xy"], int(cam.width),
+                       int(cam.height)))
         self.step += 1
         self._adam(grads, self.step)
-        self.strategy.after_step(self)
+        self.strategy.step_post_update(self.params, self.moments, self.step, self.lr_means)
         if self.step % len(self.train_views) == 0:
             corr.after_pass()           # after each pass over the views
         if self.defer_loss:
@@ -312,7 +310,9 @@ class SplatModel:
                                  c.lr_position_final * self.extent, 1.0)
         self.active_degree = min(c.sh_degree, int(f / c.sh_increase_every))
         self.corrections.schedule(f)
-        return "; ".join(self.strategy.on_iteration(self, it, f)) or None
+        msgs = [self.refine()] if self.strategy.refine_due(it, f, self.step) else []
+        msgs += self.strategy.step_schedule(self.params, self.moments, f, self.step)
+        return "; ".join(msgs) or None
 
     def refine(self) -> str:
         """One refinement of the density strategy now; the count stays at or below the cap.
@@ -321,20 +321,18 @@ class SplatModel:
         peak holds two host copies, not those and two device copies), the strategy's edit, up
         again. Returns a log line."""
         rng = np.random.default_rng((self.seed, 7, self.step))
-        msg = self.strategy.refine_in_place(self, rng)
+        msg = self.strategy.refine_in_place(self, self.max_count, rng)
         if msg is not None:
             return msg
-        mo = self.host_moments()
-        stats = mo.pop("stats")
+        mo, stats = self.host_moments(), self.strategy.host_rows()
         host = self.host_params()
         self._release()
         # the pool's per-step buffers are sized by the count, which this edit changes: return
         # them, or every size the count has passed through stays held (clrf/runtime/device.py)
         self.device.pool.free_held()
-        host, moments, msg = self.strategy.refine(
-            host, mo, stats, extent=self.extent, cap=self.max_count,
-            resets=self.refine_state.resets, rng=rng)
-        del mo
+        host, moments, msg = self.strategy.refine(host, mo, stats, extent=self.extent,
+                                                  cap=self.max_count, rng=rng)
+        del mo, stats
         self._set_host(host, moments)
         del host, moments
         release_free_heap()   # the host copies' pages (hostmem.release_free_heap)
@@ -344,7 +342,7 @@ class SplatModel:
         """Drops the device's parameters, moments, optimisers and statistics (``_set_host``
         makes new ones)."""
         self.params = self.moments = self.opts = self._adam_groups = None
-        self.accum = self.count = self.max_radius = None
+        self.strategy.release()
         self.filter3d = None
 
     def get_rows(self, name: str, idx=None) -> np.ndarray:
@@ -367,7 +365,7 @@ class SplatModel:
     def put_rows(self, idx, rows: dict):
         """In place on the device, as ``params.edit_rows(assign=(idx, rows))`` on the host:
         rows ``idx`` of each named parameter set to ``rows[name]``, and the Adam moments (of
-        every parameter) and the densification statistics of those rows zeroed. A row listed
+        every parameter) and the strategy's statistics of those rows zeroed. A row listed
         twice must be given the same values twice."""
         idx = np.asarray(idx, np.int64)
         if idx.size == 0:
@@ -385,17 +383,8 @@ class SplatModel:
                     raise ValueError(f"put_rows: {k} needs {flat.size // len(idx)} floats a row")
                 cla.multi_put([cla.to_device(q, v)], flat, out=[a.reshape(-1)])
             cla.multi_put([zero, zero], flat, out=[m.reshape(-1) for m in self.moments[k]])
-        rows1 = cla.to_device(q, idx)
-        cla.multi_put([zero, zero, zero], rows1, out=[self.accum, self.count, self.max_radius])
+        self.strategy.zero_rows(idx)
         self.filter3d = None   # the Gaussians changed: the 3D filter is recomputed when needed
-
-    def reset_opacity(self, value: float):
-        """Opacities above ``value`` are lowered to it (their Adam moments zeroed)."""
-        lo = logit(value)
-        p = download(self.params["opacity_logits"])
-        self.params["opacity_logits"].set(np.minimum(p, np.float32(lo)).astype(np.float32))
-        for a in self.moments["opacity_logits"]:
-            a.fill(0)
 
     def render(self, origins, dirs) -> dict:
         raise Unsupported("the splat model renders whole cameras, not single rays (so --points "
@@ -471,7 +460,7 @@ class SplatModel:
               "bbox": self.bbox.tolist(), "seed": self.seed, "max_count": self.max_count,
               "step": self.step, "active_degree": self.active_degree,
               "progress": self.progress, "lr_means": self.lr_means}
-        st.update(self.refine_state.state_dict())
+        st.update(self.strategy.state_dict())
         for k, v in self.host_params().items():
             st[f"param_{k}"] = v
         for k, v in self.host_moments().items():
@@ -510,7 +499,10 @@ class SplatModel:
         m.corrections = from_state(device, config, state, Views(scale=m.extent), VIEWS)
         m.step = int(state["step"])
         m.active_degree = int(state["active_degree"])
-        m.refine_state = RefineState.from_state(state)
+        try:
+            m.strategy.load_state_dict(state, n)
+        except ValueError as e:
+            raise StateError(f"state_dict: the strategy's {e}") from None
         m.progress = float(state["progress"])
         m.lr_means = float(state["lr_means"])
         return m
@@ -526,9 +518,9 @@ def scene_extent(ds) -> float:
 
 def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
     """Gaussians at ``means`` [n, 3] with colours ``rgb`` [n, 3] in [0, 1] (degree 0 only):
-    isotropic scales from the mean squared distance to the 3 nearest neighbours (times
-    config.first_scale()), opacity config.first_opacity(), no rotation (the published
-    initialisation: 1 and 0.1; MCMC's: 0.1 and 0.5)."""
+    isotropic scales from the mean squared distance to the 3 nearest neighbours (times the
+    strategy's first size factor), its first opacity, no rotation (Strategy.first: the
+    published initialisation 1 and 0.1; MCMC's 0.1 and 0.5)."""
     from scipy.spatial import cKDTree
     means = np.asarray(means, np.float64)
     n = len(means)
@@ -538,7 +530,8 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
         d2 = np.mean(d[:, 1:] ** 2, axis=1)
     else:
         d2 = np.full(n, 1e-2)
-    log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)) * config.first_scale())
+    opacity, size = strategy_class(config.strategy).first(config)
+    log_s = np.log(np.sqrt(np.maximum(d2, 1e-14)) * size)
     nb = (config.sh_degree + 1) ** 2
     sh = np.zeros((n, nb, 3), np.float32)
     sh[:, 0, :] = (np.asarray(rgb, np.float64) - 0.5) / SH_C0
@@ -546,7 +539,7 @@ def _gaussians_at(config: SplatConfig, means, rgb, rng) -> dict:
     quats[:, 0] = 1
     return {"means": means.astype(np.float32),
             "log_scales": np.repeat(log_s[:, None], 3, 1).astype(np.float32),
-            "quats": quats, "opacity_logits": np.full(n, logit(config.first_opacity()), np.float32),
+            "quats": quats, "opacity_logits": np.full(n, logit(opacity), np.float32),
             "sh": sh}
 
 

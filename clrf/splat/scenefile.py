@@ -38,7 +38,7 @@ def state_from_file(path) -> dict:
     clrf cannot read raises SplatFileError naming it."""
     from .config import SplatConfig
     from .params import NAMES, moment_keys
-    from .strategy import RefineState
+    from .strategies import make_strategy
     g = read_splat_file(path)
     means = np.asarray(g["means"], np.float64)
     n = int(means.shape[0])
@@ -67,10 +67,11 @@ def state_from_file(path) -> dict:
                          "near": 0.01 * extent, "far": 100.0 * extent, "preset": "",
                          "bbox": [lo.tolist(), hi.tolist()], "distortion": None},
              "scene_file": str(path)}
-    state.update(RefineState().state_dict())
     for k in NAMES:
         state[f"param_{k}"] = np.ascontiguousarray(g[k], np.float32)
         for mk in moment_keys(k):
             state[f"adam_{mk}"] = np.zeros_like(state[f"param_{k}"])
-    state["adam_stats"] = np.zeros((3, n), np.float32)
+    strategy = make_strategy(config)
+    state.update(strategy.state.state_dict())
+    state.update({k: np.zeros(n, np.float32) for k in strategy.row_keys()})
     return state

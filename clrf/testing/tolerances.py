@@ -382,6 +382,10 @@ SPLAT_FD_RTOL = 1e-6
 # dL/d(R, t), each within SPLAT_GRAD_REL_TO_MAX of the largest share, compared relative to the
 # sum of the shares' magnitudes (what a sum's rounding scales with).
 SPLAT_CAMERA_SUM_REL = 1e-5
+# The default strategy's statistics (splat_densify_stats): each step adds a float32 norm of
+# two scaled products (~3 ulps) to a float32 sum of norms, rounded once more; two steps of
+# norms of similar size stay within ~6 ulps (3.6e-7) of the float64 sum; 1e-6 relative.
+SPLAT_STATS_RTOL = 1e-6
 
 # The splat model's colour transform (cl/splat_exposure.cl): out = A rgb + b is 3 products
 # and 3 sums of terms <= ~2 in float32: a few ulps, 1e-6 absolute + relative is ~10x that.
