@@ -109,13 +109,24 @@ class Model(Protocol):
 
 @dataclass(frozen=True)
 class Export:
-    """A file only this kind can write: ``clrf export --NAME FILE``. ``write(model, path)``
-    writes it (atomically, in the format its ending names) and returns a one-line summary;
-    ``suffix`` is the file ending it requires (e.g. ".ply"), or a tuple of the endings it
-    accepts, the usual one first (e.g. (".ply", ".spz", ".splat"))."""
+    """A file (or folder) only this kind can write: ``clrf export --NAME PATH``.
+    ``write(model, path, state, views)`` writes it (atomically, in the format its ending names)
+    and returns a one-line summary (``state``: the checkpoint's; ``views``: an ExportViews
+    where ``wants_views``, else None); ``suffix`` is the file ending it requires (e.g. ".ply"),
+    or a tuple of the endings it accepts, the usual one first (e.g. (".ply", ".spz",
+    ".splat")), and "/" for a folder. ``check(path)``, where given, runs before the checkpoint
+    loads (what the export needs is installed, the path can be written) and raises a
+    ValueError naming the fix otherwise (Unsupported)."""
     help: str
     suffix: str | tuple
     write: Callable
+    check: Optional[Callable] = None
+    wants_views: bool = False
+
+    @property
+    def folder(self) -> bool:
+        """Whether the export writes a folder (``suffix`` "/")."""
+        return self.suffixes == ("/",)
 
     @property
     def suffixes(self) -> tuple:
@@ -126,6 +137,16 @@ class Export:
         """'.ply', or '.ply, .spz or .splat' (every ending), for messages."""
         s = self.suffixes
         return s[0] if len(s) == 1 else ", ".join(s[:-1]) + " or " + s[-1]
+
+
+@dataclass(frozen=True)
+class ExportViews:
+    """The cameras an export that opens at a view gets from the command line: the run's
+    dataset (or ``--data``'s) or None with ``why`` there is none, and ``orbit(n, radius,
+    elevation_deg, center)``: camera-to-world poses [n, 4, 4] of ``clrf render``'s orbit."""
+    dataset: Any
+    why: str
+    orbit: Callable
 
 
 @dataclass(frozen=True)

@@ -234,7 +234,7 @@ def test_web_refuses_a_model_that_is_not_splats(tmp_path, capsys):
     site = tmp_path / "site"
     assert cli(["export", "--ckpt", str(run), "--web", str(site)]) == 2
     err = capsys.readouterr().err
-    assert "shows a splat scene" in err and "holds a grid model" in err
+    assert "--web: a --model splat export" in err and "holds a grid model" in err
     assert not site.exists()
 
 

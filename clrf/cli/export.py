@@ -1,5 +1,5 @@
-"""``clrf export`` (mesh / point cloud PLY; a splat scene's files and web page) and the video
-and depth outputs of ``clrf render``.
+"""``clrf export`` (mesh / point cloud PLY; a model kind's own files and folders) and the
+video and depth outputs of ``clrf render``.
 
 Options are checked before anything is computed or written; bad ones raise ExportError, which
 the CLI reports as ``clrf: error: ...`` with exit code 2.
@@ -40,6 +40,9 @@ def kind_exports(a) -> dict:
         v = getattr(a, name.replace("-", "_"), None)
         if v:
             p = Path(v)
+            if exp.folder:
+                out[name] = p
+                continue
             if not p.name.lower().endswith(exp.suffixes) or p.is_dir():
                 raise _error(f"--{name} {v}: the output must be a {exp.suffix_list()} file, "
                              f"e.g. --{name} scene{exp.suffixes[0]}")
@@ -47,15 +50,36 @@ def kind_exports(a) -> dict:
     return out
 
 
+def export_views(state, data):
+    """The cameras an export may open at (interface.ExportViews): the run's dataset or
+    ``data``'s, or None and why (a splat file without --data, a capture that is gone)."""
+    from ..data.base import DataError
+    from ..data.cameras import orbit_poses
+    from ..interface import ExportViews
+    from ..training import models
+    if data is None and state.get("scene_file"):
+        return ExportViews(None, "a splat file has no cameras (--data names a capture's)",
+                           orbit_poses)
+    try:
+        return ExportViews(models.checkpoint_dataset(state, data), "", orbit_poses)
+    except (DataError, OSError) as e:
+        return ExportViews(None, f"the run's cameras are unavailable: {e}", orbit_poses)
+
+
 def check_export_args(a):
     """Validate ``clrf export`` options; returns (mesh path | None, points path | None)."""
-    if not a.mesh and not a.points and not a.web and not kind_exports(a):
-        raise _error("export: nothing to do: pass --mesh FILE.ply, --points FILE.ply or (a "
-                     "splat scene) --splats FILE or --web DIR")
-    if a.web:   # before the model loads: the extra is there, the folder new or empty
-        from ..splat.web import check_web_dir, need_viser
-        need_viser()
-        check_web_dir(a.web)
+    own = kind_exports(a)
+    if not a.mesh and not a.points and not own:
+        from .. import registry
+        kinds = ", ".join(f"--{n} {'DIR' if e.folder else 'FILE'}"
+                          for n, (e, _) in registry.exports().items())
+        raise _error(f"export: nothing to do: pass --mesh FILE.ply, --points FILE.ply or a "
+                     f"model's own export ({kinds})")
+    from .. import registry
+    for name, path in own.items():   # before the model loads (an extra, a folder to write)
+        exp = registry.exports()[name][0]
+        if exp.check is not None:
+            exp.check(path)
     mesh = _check_ply("--mesh", a.mesh) if a.mesh else None
     points = _check_ply("--points", a.points) if a.points else None
     if a.level is not None and not (math.isfinite(a.level) and a.level > 0):
@@ -96,9 +120,6 @@ def cmd_export(a):
             owners = registry.exports()[name][1]
             raise _error(f"--{name}: a --model {', '.join(owners)} export; this checkpoint holds "
                          f"a {model.kind} model: use --mesh or --points")
-    if a.web and model.kind != "splat":
-        raise _error(f"--web {a.web}: shows a splat scene (a --model splat run or a splat "
-                     f"file); {a.ckpt} holds a {model.kind} model: use --mesh or --points")
     meta = state["dataset"]
     ndc = _ndc_of(meta)
     if points_path:   # load the dataset first: a bad one must stop the run before any output
@@ -129,10 +150,8 @@ def cmd_export(a):
               f"(accumulated opacity >= {a.min_opacity})")
     for name, path in own.items():
         path.parent.mkdir(parents=True, exist_ok=True)
-        print(exports[name].write(model, path))
-    if a.web:
-        from ..splat.web import write_web
-        print(write_web(model, state, a.web, a.data))
+        views = export_views(state, a.data) if exports[name].wants_views else None
+        print(exports[name].write(model, path, state=state, views=views))
     return 0
 
 

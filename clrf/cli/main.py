@@ -440,12 +440,9 @@ def build_parser():
     x.add_argument("--seed", type=int, default=0, help="which training rays --points uses")
     x.add_argument("--data", default=None,
                    help="dataset for --points and --web's cameras (default: the run's)")
-    x.add_argument("--web", default=None, metavar="DIR",
-                   help="a new folder whose index.html shows the splat scene in a browser from "
-                        "any static file server, drawn by viser's web client (needs clrf[web]; "
-                        "--model splat checkpoints and splat files)")
     for name, (exp, owners) in registry.exports().items():   # a kind's own files
-        x.add_argument(f"--{name}", default=None, metavar=f"FILE{'|'.join(exp.suffixes)}",
+        x.add_argument(f"--{name}", default=None,
+                       metavar="DIR" if exp.folder else f"FILE{'|'.join(exp.suffixes)}",
                        help=f"{exp.help} (--model {', '.join(owners)} checkpoints)")
     x.set_defaults(func=cmd_export)
 

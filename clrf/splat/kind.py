@@ -43,9 +43,20 @@ def from_state(device, state, cfg):
     return model_from_state(device, state, cfg)
 
 
-def write_splats(model, path):
+def write_splats(model, path, state=None, views=None):
     from .model import write_splats as write
     return write(model, path)
+
+
+def write_web(model, path, state=None, views=None):
+    from .web import write_web as write
+    return write(model, state, path, views)
+
+
+def check_web(path):
+    from .web import check_web_dir, need_viser
+    need_viser()
+    check_web_dir(path)
 
 
 def programs(device, cfg):
@@ -122,9 +133,14 @@ SPLATS = Export(help="3D Gaussian splats, the format by the ending: .ply (the st
                 suffix=(".ply", ".spz", ".glb", ".gltf", ".compressed.ply", ".splat"),
                 write=write_splats)
 
+WEB = Export(help="a new folder whose index.html shows the splat scene in a browser from any "
+                  "static file server, drawn by viser's web client (needs clrf[web]; cameras "
+                  "from --data or the run's)", suffix="/", write=write_web, check=check_web,
+             wants_views=True)
+
 KIND = Kind(name="splat", title="3D Gaussian splatting (tile rasteriser, whole views)",
             config=SplatConfig, presets=SPLAT_PRESETS, scene_presets=SCENE_PRESETS,
             create=create, from_state=from_state, memory=budget.memory,
-            exports={"splats": SPLATS}, batches="views", check=check, world_cameras=True,
+            exports={"splats": SPLATS, "web": WEB}, batches="views", check=check, world_cameras=True,
             wants_points=wants_points, programs=programs, distributed=Distributed,
             scene_file=scene_file)

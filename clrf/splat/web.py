@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..outputs.export import ExportError
+from ..interface import Unsupported
 from ..runtime.atomicfile import atomic_dir
 
 SCENE_FILE = "scene.viser"
@@ -54,7 +54,7 @@ PLAYBACK_SCRIPT = ("<script>(function(){{var q=new URLSearchParams(location.sear
                    "</script>")
 
 
-class WebExportError(ExportError):
+class WebExportError(Unsupported):
     """Bad input to ``--web``: the CLI reports it as ``clrf: error: ...`` (exit 2)."""
 
 
@@ -104,25 +104,12 @@ def colours(sh, opacity_logits) -> tuple:
 
 
 # ---- the opening camera ----------------------------------------------------------------------
-def _dataset(state, data):
-    """(the run's dataset or None, why there is none)."""
-    if data is None and state.get("scene_file"):
-        return None, "a splat file has no cameras (--data names a capture's)"
-    from ..data.base import DataError
-    from ..training.models import checkpoint_dataset
-    try:
-        return checkpoint_dataset(state, data), ""
-    except (DataError, OSError) as e:
-        return None, f"the run's cameras are unavailable: {e}"
-
-
-def opening_camera(state, means, data=None) -> dict:
+def opening_camera(state, means, views) -> dict:
     """The camera the page opens at (module doc): position, look_at, up (camera), scene_up,
     fov (vertical, radians), near, far and what it is (``what``), world units."""
-    from ..data.cameras import orbit_poses
     means = np.asarray(means, np.float64).reshape(-1, 3)
     centre = np.median(means, 0) if len(means) else np.zeros(3)
-    ds, why = _dataset(state, data)
+    ds, why = views.dataset, views.why
     if ds is not None:
         test = np.asarray(ds.split.get("test", []))
         split = "test" if len(test) else "train"
@@ -135,7 +122,7 @@ def opening_camera(state, means, data=None) -> dict:
         meta = state["dataset"]
         bbox = np.asarray(meta["bbox"], np.float64).reshape(2, 3)
         radius = ORBIT_DIAGONALS * float(np.linalg.norm(bbox[1] - bbox[0]))
-        pose = orbit_poses(1, radius, ORBIT_ELEVATION_DEG, bbox.mean(0))[0]
+        pose = views.orbit(1, radius, ORBIT_ELEVATION_DEG, bbox.mean(0))[0]
         centre = bbox.mean(0)
         fy, height = float(meta["intrinsics"][1]), int(meta["H"])
         scene_up = np.array([0.0, 0.0, 1.0])
@@ -190,18 +177,18 @@ def page(viser) -> str:
     return html[:at] + PLAYBACK_SCRIPT.format(scene=SCENE_FILE) + html[at:]
 
 
-def write_web(model, state, out, data=None) -> str:
+def write_web(model, state, out, views) -> str:
     """Write the folder ``out`` (new or empty; module doc) of the splat ``model`` loaded with
     checkpoint ``state``, built under a temporary name and renamed into place (an error
-    leaves nothing); ``data`` a dataset for the cameras instead of the run's. Returns the line
-    to print."""
+    leaves nothing); ``views`` (interface.ExportViews) the cameras it may open at. Returns the
+    line to print."""
     from .model import viewer_params
     viser = need_viser()
     out = check_web_dir(out)
     params, note = viewer_params(model)
     if len(params["means"]) == 0:
         raise WebExportError(f"--web {out}: the scene has no Gaussians to show")
-    camera = opening_camera(state, params["means"], data)
+    camera = opening_camera(state, params["means"], views)
     scene = recording(viser, params, camera, model.background)
     html = page(viser)
     out.parent.mkdir(parents=True, exist_ok=True)
