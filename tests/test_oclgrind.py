@@ -8,8 +8,8 @@ small test of each kernel family (CASES) in a child pytest: grid forward and bac
 loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample, prune, batch
 gather, the ray store's strided read-back, fused loss), the optimisers, encode, sample,
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
-network), the hash encoding's backward, the hash march (windows, alive rays, contraction), Adam
-over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
+network), the hash encoding's backward and spatial derivative, the hash march (windows, alive
+rays, contraction), Adam over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
 backward; anti-aliased; the camera's gradient), the MCMC strategy's regularisers and noise, the
 training images' widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's
 chunked sort) and tile rasteriser (forward, backward), and the hash model's bounded step (capped
@@ -76,6 +76,7 @@ CASES = [
     f"tests/test_nerf_mlp.py::test_forward_matches_reference[default-0-{next(iter(MLP_SPECS))}]",
     "tests/test_mlp_gpu.py::test_small_network_under_every_pass",
     "tests/test_hash_encode.py::test_backward_matches_reference",
+    "tests/test_hash_encode.py::test_dx_matches_twin[default-2-65]",
     "tests/test_hash_kernels.py::test_march_matches_reference",
     "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",

@@ -316,6 +316,22 @@ HASH_FD_ATOL = 1e-10
 # Kernel self-consistency: enc(table + h e_j) - enc(table) with h = 1 equals h times the
 # kernel's gradient column for a linear map; both in float32 on O(1) values: a few u -> 1e-6.
 HASH_KERNEL_FD_ATOL = 1e-6
+# Spatial derivative (hash_dx) vs float64: same cell and float32 weights as the twin; each
+# level's sum of 8 corner terms (each 2 weight products times a float32 dot of F features) and
+# the sum over levels carry <= ~16 u relative of the sum of the terms' magnitudes, which the
+# tests bound by B_a = 2 inv_ext_a sum_l N_l sum_f |dL/denc_lf| max|table|: 16 u ~ 1e-6 of B,
+# 2e-6 with margin. A wrong sign, corner or level scale moves dx by O(N_l / sum N_l) of B.
+HASH_DX_RTOL_OF_BOUND = 2e-6
+# Twin vs central differences of the float64 twin (u and p in float64) with x steps of 1e-7
+# box units: along one axis the encoding is linear inside a cell, so the difference is exact
+# up to roundoff, |L| ~ 10 times 1e-16 over 1e-7 ~ 1e-8; 1e-6 is 100x that and still ~1e6
+# below a missing level's share.
+HASH_DX_FD_EPS = 1e-7
+HASH_DX_FD_ATOL = 1e-6
+# ... and relative to dx: p = u N_l rounds by ~u64 N_l, which shifts L by u64 |dL/dx| / inv_ext
+# (dL/dx = N_l inv_ext dL/dw); over a step of h = 1e-7: u64 / (h inv_ext) ~ 7e-9 relative at
+# inv_ext = 1/3 (fine levels, where |dx| ~ 1e3, see 3e-6 absolute); 3e-8 with margin.
+HASH_DX_FD_RTOL = 3e-8
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6
