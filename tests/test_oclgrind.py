@@ -9,7 +9,7 @@ loss modes with touched marks, the MSI background, bricks, grid ops (TV, resampl
 gather, the ray store's strided read-back, fused loss), the optimisers, encode, sample,
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
 network), the hash encoding's backward and spatial derivative, the hash march (windows, alive
-rays, contraction), Adam over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
+rays, contraction, each ray's camera gradient), Adam over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
 backward; anti-aliased; the camera's gradient), the MCMC strategy's regularisers and noise, the
 training images' widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's
 chunked sort) and tile rasteriser (forward, backward), and the hash model's bounded step (capped
@@ -80,6 +80,9 @@ CASES = [
     "tests/test_hash_kernels.py::test_march_matches_reference",
     "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
+    # each ray's camera gradient (HASH_POSE_GRAD): plain with no SH share, contracted with it
+    "tests/test_hash_pose.py::test_ray_grad_matches_twin[default-False-False]",
+    "tests/test_hash_pose.py::test_ray_grad_matches_twin[default-True-True]",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
     "tests/test_hash_kernels.py::test_adam_over_many_spans_in_one_launch",
     "tests/test_hash_kernels.py::test_adam_set_steps_every_buffer_in_one_launch",

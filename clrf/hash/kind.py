@@ -24,7 +24,8 @@ SCENE_PRESETS = {
 
 def programs(device, cfg):
     """Every program a hash run of ``cfg`` asks ``device`` for (Kind.programs): the encoding,
-    the marcher (box and contracted), the occupancy grid, the fused MLP and Adam."""
+    the marcher (box and contracted; each also with the rays' camera gradient, listed whatever
+    cfg says), the occupancy grid, the fused MLP and Adam."""
     from ..mlp import mlp
     from ..runtime import optim
     from . import encoding, march
@@ -33,6 +34,7 @@ def programs(device, cfg):
     encoding.program(device, c.levels, c.features, c.log2_table)
     for contract in (False, True):
         march.program(device, contract)
+        march.program(device, contract, pose=True)         # pose refinement
     device.program("hash_occ.cl", {})                      # occupancy.py
     if c.exposure:
         from ..corrections import exposure

@@ -55,6 +55,7 @@ from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
                     packed_backward, packed_forward)
+from .march import ray_grad as packed_ray_grad
 from .occupancy import OccupancyGrid
 
 RENDER_ROUND_SAMPLES = (1 << 16, 1 << 20)   # (ray, bin) pairs a render round marches at most
@@ -377,7 +378,7 @@ class HashModel:
         return full if target <= 0 else min(full, BOUND_FACTOR * int(target))
 
     def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None,
-                      index=None, rays_total: int | None = None):
+                      index=None, rays_total: int | None = None, ray_grad=None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
@@ -385,7 +386,9 @@ class HashModel:
         the RGB behind the rays (None: the model's own). With ``bounded`` (see train_step) the
         loss is a Pending and the live samples the buffers' capacity. With hash.exposure the
         loss compares each ray's colour under its image's transform (index: the rays' places
-        in the training images), and the transforms take their Adam step here."""
+        in the training images), and the transforms take their Adam step here. ``ray_grad``
+        (device float32 [B, 6], or None): filled with each ray's dL/d(origin, direction)
+        (pose refinement; zero when no sample is live)."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
         scale = 1.0 / (3.0 * (B if rays_total is None else int(rays_total)))
@@ -440,9 +443,14 @@ class HashModel:
             else:   # train_step adapts to the whole batch's live samples
                 self._marched = (B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
+            if ray_grad is not None:
+                ray_grad.fill(np.float32(0))
             return loss, 0
-        dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
+        dx, dd = self.net.backward(g["sigma"], g["rgb"], want_input=True)
         self.enc.backward(pk.xyz, dx, count=pk.count)
+        if ray_grad is not None:
+            gp = self.enc.dx(pk.xyz, dx, count=pk.count)
+            packed_ray_grad(dev, pk, origins, dirs, gp, dd, self.contraction, out=ray_grad)
         return loss, pk.m
 
     def _adapt_batch(self, rays: int, live: int):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reference import sh_basis
+from .reference import sh_basis, sh_dir_grad
 
 PRIME_Y = 2654435761
 PRIME_Z = 805459861
@@ -268,3 +268,45 @@ def packed_keep(offsets, dt, sigma, t_stop):
         below = np.flatnonzero(T[1:] < t_stop)
         keep[i] = (below[0] + 1) if len(below) else b - a
     return keep, T_front
+
+
+# ---- the camera gradient of a ray batch (cl/hash_march.cl packed_ray_grad) --------------------
+def contract_vjp(x, gp, centre, half):
+    """dL/dx [m, 3] at world points x of dL/dp at p = contract((x - centre) / half)."""
+    y = (np.asarray(x, np.float64) - np.asarray(centre)) / np.asarray(half)
+    gp = np.asarray(gp, np.float64)
+    a = np.abs(y)
+    n = a.max(axis=1)
+    out = gp.copy()
+    far = n > 1
+    nf = n[far]
+    out[far] = gp[far] * ((2 - 1 / nf) / nf)[:, None]
+    k = np.sum(y[far] * gp[far], axis=1) * 2 * (1 - nf) / nf ** 3
+    m = np.argmax(a[far], axis=1)          # the first axis on ties, as the kernel
+    rows = np.flatnonzero(far)
+    out[rows, m] += k * np.sign(y[rows, m])
+    return out / np.asarray(half)
+
+
+def ray_grad(offsets, t, origins, dirs, gp, gsh=None, centre=None, half=None):
+    """dL/d(origin, direction) [n, 6] of rays x_k = o + t_k d / |d| from the samples' dL/dp
+    gp [M, 3] (p: the point the encoding reads, contracted with ``centre``/``half``) and dL/dY
+    gsh [M, 16] (the view direction's SH basis) or None."""
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(dirs, np.float64)
+    length = np.linalg.norm(d, axis=1)
+    dh = d / length[:, None]
+    t = np.asarray(t, np.float64)
+    ray = np.repeat(np.arange(len(o)), np.diff(offsets))
+    gx = np.asarray(gp, np.float64)
+    if centre is not None:
+        gx = contract_vjp(o[ray] + t[:, None] * dh[ray], gx, centre, half)
+    gd_s = t[:, None] * gx
+    if gsh is not None:
+        gd_s = gd_s + sh_dir_grad(dh[ray], np.asarray(gsh, np.float64), 3)
+    go = np.zeros_like(o)
+    gd = np.zeros_like(o)
+    np.add.at(go, ray, gx)
+    np.add.at(gd, ray, gd_s)
+    gd = (gd - dh * np.sum(dh * gd, axis=1, keepdims=True)) / length[:, None]
+    return np.concatenate([go, gd], axis=1)

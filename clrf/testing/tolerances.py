@@ -332,6 +332,20 @@ HASH_DX_FD_ATOL = 1e-6
 # (dL/dx = N_l inv_ext dL/dw); over a step of h = 1e-7: u64 / (h inv_ext) ~ 7e-9 relative at
 # inv_ext = 1/3 (fine levels, where |dx| ~ 1e3, see 3e-6 absolute); 3e-8 with margin.
 HASH_DX_FD_RTOL = 3e-8
+# Each ray's dL/d(origin, direction) (packed_ray_grad) vs float64: float32 sums of <= 9
+# samples' terms t_k dL/dx_k and SH derivatives (16 terms each), each a few u relative, then
+# the projection over |d|: relative to the terms' magnitudes (the tests' per-ray scale, which
+# the result may cancel far below) 2e-6 (~30 u) covers the sums' growth. A sample dropped, a
+# missing t_k or projection moves the ray's gradient by O(1) of its terms.
+HASH_RAY_GRAD_RTOL = 2e-6
+# The float64 chain's dL/d(o, d) vs central differences of its loss (steps of 1e-6 world units
+# in o and d): the chain is smooth where no sample crosses a cell face (piecewise multilinear
+# encoding, relu MLP); its second-order error is h^2 |L'''| ~ 1e-12, and roundoff of a loss of
+# ~0.1 over 2h is ~1e-11. A kink crossed within h costs at most |jump in dL/dx| h / (2h) of one
+# sample: rare, and bounded below 1e-5 of the largest component here; 1e-5 is still 1e4 below
+# a missing sample's share.
+HASH_RAY_FD_EPS = 1e-6
+HASH_RAY_FD_RTOL = 1e-5
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6
