@@ -36,6 +36,8 @@ def programs(device, cfg):
         march.program(device, contract)
         march.program(device, contract, pose=True)         # pose refinement
     device.program("hash_occ.cl", {})                      # occupancy.py
+    from ..corrections import ray_pose
+    ray_pose.program(device)                               # hash.pose_opt, listed always
     if c.exposure:
         from ..corrections import exposure
         exposure.program(device)                           # clrf/corrections/exposure.py

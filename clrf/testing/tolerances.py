@@ -346,6 +346,19 @@ HASH_RAY_GRAD_RTOL = 2e-6
 # a missing sample's share.
 HASH_RAY_FD_EPS = 1e-6
 HASH_RAY_FD_RTOL = 1e-5
+# Rays from corrected cameras (cl/ray_pose.cl): the rows are float32 roundings of float64
+# (|A| <= 1, |c| ~ 3: 2e-7 absolute), a direction a float32 dot of 3 (|d0| ~ 1): a few u of
+# |A||d0| ~ 5e-7; 1e-6 for the rows and centres, three times that for the directions. A
+# wrong row, transposed A or wrong image moves them by O(1).
+RAY_POSE_ATOL = 1e-6
+# Per-image sums of a batch (ray_pose_sums): float32 sums of <= 300 products in a fixed tree,
+# the error <= ~log2(n) + 2 u of the sum of the terms' magnitudes (the test's bound): 1e-6.
+RAY_POSE_SUM_RTOL = 1e-6
+# dL/dR, dL/dt (float64) vs central differences with steps of 1e-6 in R's and t's entries: the
+# loss is smooth (sines and squares of O(1)), second-order error ~1e-12 / h^0, roundoff
+# ~1e-16 |L| / h ~ 1e-9; 1e-6 relative (of max(1, |g|)) is far below a wrong sign or
+# transpose (O(1)).
+RAY_POSE_FD_RTOL = 1e-6
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6

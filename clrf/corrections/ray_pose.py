@@ -1,0 +1,77 @@
+"""A pose correction per training camera for models whose batches mix rays of many images
+(``hash.pose_opt``): the maths of clrf/corrections/pose.py (a rotation vector and a translation
+about a pivot per image, its Adam step on the host), on rays (cl/ray_pose.cl).
+
+Ray i of a batch comes from training image v = index[i] // pixels; the ray store holds it as the
+given camera [R0 t0] (world-to-camera, OpenCV axes) made it. Each step the rays are remade
+from each image's corrected camera [R t] (``rays``: o = -R^T t, d = R^T R0 d0), the model gives
+each ray's dL/do, dL/dd (cl/hash_march.cl packed_ray_grad), and the device sums them per image
+(S_d = sum_i d_i dL/dd_i^T, S_o = sum_i dL/do_i) so that
+
+    dL/dR = R S_d - t S_o^T,    dL/dt = -R S_o                    (``camera_gradient``)
+
+come back as twelve numbers a touched image; PoseCorrection turns them into dL/dw, dL/dtau and
+steps each image that had rays in the batch. Under NDC (forward-facing scenes) the store's rays
+are not the camera's, so the correction is refused there (clrf/hash/kind.py).
+
+>>> pose = RayPose(dev, viewmats0, pixels=400 * 400, lr=1e-3, reg=1e-4, scale=4.0,
+...                pivots=depths)
+>>> o_d, d_d = pose.rays(index_d, o0_d, d0_d)      # the batch from the corrected cameras
+>>> pose.step_rays(index_d, d_d, ray_grad_d)       # one Adam step of each touched image
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..runtime.programs import download, launch, scratch, upload
+from .base import CAMERA, RAYS
+from .pose import PoseCorrection
+
+LOCAL = 64   # work-items per image of ray_pose_sums (cl/ray_pose.cl RAY_POSE_LS)
+SUMS = 13    # floats per image of ray_pose_sums: S_d (9), S_o (3), the ray count
+
+
+def program(device):
+    """cl/ray_pose.cl on ``device`` (clrf/hash/kind.py lists it)."""
+    return device.program("ray_pose.cl", {"RAY_POSE_LS": LOCAL})
+
+
+def camera_gradient(viewmat, sums) -> tuple:
+    """(dL/dR [3, 3], dL/dt [3]) of the camera ``viewmat`` [4, 4] that made the rays whose
+    per-image sums are ``sums`` [13] (module doc)."""
+    V = np.asarray(viewmat, np.float64)
+    R, t = V[:3, :3], V[:3, 3]
+    s = np.asarray(sums, np.float64)
+    S_d, S_o = s[:9].reshape(3, 3), s[9:12]
+    return R @ S_d - np.outer(t, S_o), -R @ S_o
+
+
+def ray_rows(viewmats0, viewmats) -> np.ndarray:
+    """float32 [V, 12]: per image A = R^T R0 (row-major) and the centre c = -R^T t of given
+    viewmats0 [V, 4, 4] and corrected viewmats [V, 4, 4] (world-to-camera)."""
+    V0, V = np.asarray(viewmats0, np.float64), np.asarray(viewmats, np.float64)
+    A = np.einsum("vji,vjk->vik", V[:, :3, :3], V0[:, :3, :3])
+    c = -np.einsum("vji,vj->vi", V[:, :3, :3], V[:, :3, 3])
+    return np.ascontiguousarray(np.concatenate([A.reshape(-1, 9), c], axis=1), np.float32)
+
+
+def apply_rays(device, index, pixels: int, rows, o0, d0):
+    """(o, d) [n, 3] device: the rays o0/d0 [n, 3] (device) moved by their images' rows
+    ([V, 12] device, ``ray_rows``)."""
+    n = int(o0.shape[0])
+    o, d = scratch(device, (max(n, 1), 3)), scratch(device, (max(n, 1), 3))
+    launch(device, program(device).kernel("ray_pose_apply"), n,
+           (np.int32(n), np.int32(pixels), index.data, rows.data, o0.data, d0.data, o.data,
+            d.data), device.tuning.elementwise_local_size)
+    return o[:n], d[:n]
+
+
+def ray_sums(device, index, pixels: int, d, ray_grad, n_images: int):
+    """[V, 13] device: per image S_d (row-major), S_o and its ray count over the batch's rays
+    (index [n] int32, d [n, 3], ray_grad [n, 6] = dL/d(o, d); module doc)."""
+    n = int(d.shape[0])
+    out = scratch(device, (n_images, SUMS))
+    launch(device, program(device).kernel("ray_pose_sums"), n_images * LOCAL,
+           (np.int32(n), np.int32(pixels), index.data, d.data, ray_grad.data, out.data),
+           local_size=LOCAL)
+    return out
