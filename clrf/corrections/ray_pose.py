@@ -75,3 +75,68 @@ def ray_sums(device, index, pixels: int, d, ray_grad, n_images: int):
            (np.int32(n), np.int32(pixels), index.data, d.data, ray_grad.data, out.data),
            local_size=LOCAL)
     return out
+
+
+class RayPose:
+    """The pose corrections of ``n_images`` training cameras (given world-to-camera
+    ``viewmats0`` [V, 4, 4], OpenCV axes) of ``pixels`` pixels each, for a model whose batches
+    mix rays of many images (module doc): a PoseCorrection (the corrections, their Adam and
+    pull, on the host) and the rows [V, 12] of the corrected cameras on the device."""
+    name = "pose"
+    changes = CAMERA
+    batches = RAYS
+
+    def __init__(self, device, viewmats0, pixels: int, lr: float, reg: float, scale: float,
+                 pivots=None, lr_final: float | None = None, state: dict | None = None):
+        if state is not None:
+            viewmats0 = state["pose_viewmats"]
+            pixels = int(state["pose_pixels"])
+        self.viewmats0 = np.asarray(viewmats0, np.float64).reshape(-1, 4, 4).copy()
+        if pixels < 1 or not np.all(np.isfinite(self.viewmats0)):
+            raise ValueError(f"RayPose needs finite viewmats and pixels >= 1, got {pixels}")
+        self.device = device
+        self.pixels = int(pixels)
+        self.pose = PoseCorrection(len(self.viewmats0), lr, reg, scale, state=state,
+                                   pivots=pivots, lr_final=lr_final)
+        self.n_images = self.pose.n_images
+        self.rows = upload(device.queue, ray_rows(self.viewmats0, self.viewmats()))
+
+    def viewmats(self) -> np.ndarray:
+        """[V, 4, 4] every image's corrected world-to-camera."""
+        return np.stack([self.pose.viewmat(m, v) for v, m in enumerate(self.viewmats0)])
+
+    def rays(self, index, origins, dirs):
+        """(origins, dirs) [n, 3] device: the batch as the corrected cameras make it."""
+        return apply_rays(self.device, index, self.pixels, self.rows, origins, dirs)
+
+    def step_rays(self, index, dirs, ray_grad) -> None:
+        """One Adam step of each image with rays in the batch (PoseCorrection.step), from the
+        rays' corrected directions and dL/d(o, d); the rows are then remade."""
+        sums = download(ray_sums(self.device, index, self.pixels, dirs, ray_grad,
+                                 self.n_images))
+        touched = np.flatnonzero(sums[:, SUMS - 1] > 0)
+        for v in touched:
+            vm = self.pose.viewmat(self.viewmats0[v], v)
+            dR, dt = camera_gradient(vm, sums[v])
+            self.pose.step(v, vm, dR, dt)
+        if len(touched):
+            self.rows.set(ray_rows(self.viewmats0, self.viewmats()))
+
+    def schedule(self, progress: float) -> None:
+        self.pose.schedule(progress)
+
+    def after_pass(self) -> None:
+        """Nothing: each correction stays as trained."""
+
+    def state_dict(self) -> dict:
+        return {**self.pose.state_dict(), "pose_viewmats": self.viewmats0.copy(),
+                "pose_pixels": self.pixels}
+
+    def summary(self, trained=None) -> dict:
+        return self.pose.summary(trained)
+
+    def report(self, summary: dict) -> str:
+        return self.pose.report(summary)
+
+    def describe(self) -> str:
+        return self.pose.describe()

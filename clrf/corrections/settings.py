@@ -5,12 +5,12 @@ checkpoint's.
 The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposure`` (with
 ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
 ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
-``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
-``pose_reg``). A section without one of the optional keys takes what the correction does
-without it (a constant rate, no fit, no clip; the Adam betas of clrf/runtime/optim.py where it
-has no ``beta1`` / ``beta2`` of its own). This module imports no correction until one is made
-(the configurations import EXPOSURE_MATRICES from here, before the self-check that reports a
-missing clrf.references).
+``exposure_clip_inward``), ``splat.pose_opt`` and ``hash.pose_opt`` (with ``lr_pose``,
+``lr_pose_final``, ``pose_reg``). A section without one of the optional keys takes what the
+correction does without it (a constant rate, no fit, no clip; the Adam betas of
+clrf/runtime/optim.py where it has no ``beta1`` / ``beta2`` of its own). This module imports no
+correction until one is made (the configurations import EXPOSURE_MATRICES from here, before the
+self-check that reports a missing clrf.references).
 
 >>> corr = build(dev, cfg.splat, Views(len(ds.images), ds.alpha is not None, scale=extent,
 ...                                    pivots=lambda: depths), VIEWS)
@@ -46,12 +46,15 @@ class Views:
     scale     the scene's extent (pose translations and their pull are relative to it)
     pivots    a function giving each image's pivot depth (called when a pose correction is
               made)
+    viewmats  a function giving each image's world-to-camera [V, 4, 4] (OpenCV axes; ray
+              batches: the cameras that made the ray store's rays)
     """
     n_images: int = 0
     masked: bool = False
     pixels: int = 0
     scale: float = 1.0
     pivots: Optional[Callable] = None
+    viewmats: Optional[Callable] = None
 
 
 def clip_mode(section) -> int:
@@ -84,8 +87,16 @@ def _exposure(device, s, views: Views, batches: str, state=None):
 
 def _pose(device, s, views: Views, batches: str, state=None):
     from .pose import PoseCorrection
-    if batches != VIEWS:
-        raise ValueError("a pose correction needs a model that trains on whole views")
+    if batches == RAYS:
+        from .ray_pose import RayPose
+        if state is not None:
+            return RayPose(device, None, 0, s.lr_pose, s.pose_reg, views.scale, state=state,
+                           lr_final=s.lr_pose_final)
+        if views.viewmats is None:
+            raise ValueError("a pose correction of ray batches needs the training cameras")
+        return RayPose(device, views.viewmats(), views.pixels, s.lr_pose, s.pose_reg,
+                       views.scale, pivots=views.pivots() if views.pivots else None,
+                       lr_final=s.lr_pose_final)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
                               state=state, lr_final=s.lr_pose_final)

@@ -198,12 +198,21 @@ class HashModel:
         # one rank of a data-parallel run over MPI (clrf/runtime/dataparallel.py), or None
         self.ranks = None
 
-    def attach_corrections(self, n_images: int, pixels: int, masked: bool):
+    def attach_corrections(self, n_images: int, pixels: int, masked: bool, viewmats=None,
+                           pivots=None):
         """The per-view corrections the config turns on, a row per training image of
         ``pixels`` pixels (masked: an RGBA capture); training steps then may need each ray's
-        index in the concatenated training images (``ray_index``)."""
-        self.corrections = build(self.device, self.config, Views(n_images, masked, pixels),
-                                 RAYS)
+        index in the concatenated training images (``ray_index``). hash.pose_opt: ``viewmats``
+        and ``pivots``, functions giving the training cameras' world-to-camera [V, 4, 4]
+        (OpenCV axes) and pivot depths (clrf/corrections/pose.py)."""
+        views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
+                      viewmats=viewmats)
+        self.corrections = build(self.device, self.config, views, RAYS)
+
+    @property
+    def extent(self) -> float:
+        """The scene's extent: the box's largest side (pose translations are relative to it)."""
+        return float((self.bbox[1] - self.bbox[0]).max())
 
     @property
     def ray_index(self) -> bool:
@@ -388,9 +397,15 @@ class HashModel:
         loss compares each ray's colour under its image's transform (index: the rays' places
         in the training images), and the transforms take their Adam step here. ``ray_grad``
         (device float32 [B, 6], or None): filled with each ray's dL/d(origin, direction)
-        (pose refinement; zero when no sample is live)."""
+        (zero when no sample is live). With hash.pose_opt the rays are first remade from
+        their images' corrected cameras, and each image with rays in the batch takes its
+        correction's Adam step here (none when no sample is live)."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
+        camera = self.corrections.ray_camera   # hash.pose_opt: the corrected cameras' rays
+        if camera is not None:
+            origins, dirs = camera.rays(index, origins, dirs)
+            ray_grad = device_empty(dev.queue, (B, 6), np.float32)
         scale = 1.0 / (3.0 * (B if rays_total is None else int(rays_total)))
         jitter = c.perturb if jitter is None else bool(jitter)
         # each rank of a data-parallel run jitters its rays with its own stream
@@ -451,6 +466,8 @@ class HashModel:
         if ray_grad is not None:
             gp = self.enc.dx(pk.xyz, dx, count=pk.count)
             packed_ray_grad(dev, pk, origins, dirs, gp, dd, self.contraction, out=ray_grad)
+        if camera is not None:
+            camera.step_rays(index, dirs, ray_grad)
         return loss, pk.m
 
     def _adapt_batch(self, rays: int, live: int):
@@ -550,6 +567,7 @@ class HashModel:
         seconds and iterations over their limits) is the learning rate's clock under
         lr_schedule "budget"."""
         self.progress = float(budget.fraction)
+        self.corrections.schedule(self.progress)
         return None
 
     def describe(self) -> str:
@@ -595,5 +613,6 @@ class HashModel:
             arr.set(np.ascontiguousarray(v))
         model.net.sync_params()
         model.occ._threshold(float(state["occ_threshold"]))
-        model.corrections = from_state(device, model.config, state, Views(), RAYS)
+        model.corrections = from_state(device, model.config, state, Views(scale=model.extent),
+                                       RAYS)
         return model

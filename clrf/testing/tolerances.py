@@ -359,6 +359,13 @@ RAY_POSE_SUM_RTOL = 1e-6
 # ~1e-16 |L| / h ~ 1e-9; 1e-6 relative (of max(1, |g|)) is far below a wrong sign or
 # transpose (O(1)).
 RAY_POSE_FD_RTOL = 1e-6
+# hash.pose_opt's dL/d(w, tau) (each ray's gradient, the per-image sums, the host's chain)
+# vs central differences of the float32 step loss in (w, tau) with steps of 1e-3: the
+# difference's own error is its second-order term, h^2 |L'''| / 6 (the field's cells are ~1
+# unit seen from ~3: curvature scales of ~0.3 rad, so ~1e-3 of |g|), and float32 roundoff of
+# a loss of ~5e-4, ~1e-7 relative over 2h: ~2e-8 absolute; seen 7e-4 of the largest
+# component. 2e-3 of it is still far below a wrong sign, transpose or missing term (O(1)).
+HASH_POSE_FD_REL_TO_MAX = 2e-3
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6
