@@ -140,14 +140,16 @@ def xyz_world(o, d, off, t):
     return np.repeat(np.asarray(o, np.float64), n, 0) + np.asarray(t)[:, None] * np.repeat(dh, n, 0)
 
 
-@pytest.mark.parametrize("contract", ["off", "on"])
-def test_step_ray_gradient_matches_chain_and_differences(device, contract):
+@pytest.mark.parametrize("contract,bounded", [("off", False), ("on", False), ("off", True)])
+def test_step_ray_gradient_matches_chain_and_differences(device, contract, bounded):
     """A tiny model's step fills dL/d(o, d) like the float64 chain, and the chain's gradient
     equals central differences of its loss in each ray's origin and direction (every cell
-    occupied and no termination: the samples move with the ray, none appears or goes)."""
+    occupied and no termination: the samples move with the ray, none appears or goes).
+    ``bounded``: the step of GPUs, whose sizes stay on the device (the kernels read the live
+    count)."""
     near, far = (1.5, 4.5) if contract == "off" else (0.05, 60.0)
     cfg = dataclasses.replace(SMALL, contract=contract, train_t_stop=0.0)
-    model = seeded_model(device, cfg, near, far)
+    model = seeded_model(device, cfg, near, far, bounded=bounded)
     model.occ.ema.fill(np.float32(1.0))
     model.occ._threshold(0.5)
     o, d = _rays(6, seed=7)
