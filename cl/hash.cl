@@ -30,6 +30,16 @@
  *     by construction: no atomics and, unlike the grid's per-compute-unit copies, no scratch
  *     copy of the tables and no reduction pass (16 levels keep up to 16 cores busy).
  *
+ * Spatial derivative (hash_dx, for pose refinement): dL/dx [n, 3] of each point from dL/denc,
+ * OVERWRITTEN (one work-item per point, summing its levels). In the cell of level l the
+ * encoding is multilinear in w, so with s_c = sum_f dL/denc[l F + f] table[l, row_c, f]:
+ *   dL/dw_a = sum_c (c_a ? 1 : -1) prod_{b != a} (c_b ? w_b : 1 - w_b) s_c,
+ *   dL/dx_a = inside_a inv_ext_a sum_l N_l dL/dw_a(l),
+ * inside_a = 1 where 0 <= (x_a - lo_a) inv_ext_a <= 1, else 0 (the clamp; NaN -> 0). The
+ * derivative is that of the cell the forward reads: on an interior cell face (w_a = 0) the
+ * one-sided derivative from the cell above, at u_a = 1 (w_a = 1 in the last cell) the one
+ * from inside, where the encoding has a kink (it is continuous, piecewise multilinear).
+ *
  * SH encoding (hash_sh_encode): the real SH basis of sh.h at degree 3 (16 coefficients,
  * "degree 4" in the 4-band count) of d / |d| (zero d -> the basis at (0, 0, 0)).
  *
@@ -206,6 +216,45 @@ __kernel void hash_backward(const int n_max, __global const int *count,
                      0);
 }
 #endif
+
+/* dx [n, 3] = dL/dx of points x [n, 3] from genc [n, L F] (see the header), one work-item a
+ * point; the levels are summed in float32 in level order. */
+__kernel void hash_dx(const int n_max, __global const int *count, __global const float *x,
+                      const float4 lo, const float4 inv_ext, __global const int *res,
+                      __global const float *table, __global const float *genc,
+                      __global float *dx) {
+    const int n = live_rows(n_max, count);
+    const size_t i = get_global_id(0);
+    if (i >= (size_t)n) return;
+    const float3 raw = (load3(x, i) - lo.xyz) * inv_ext.xyz;
+    const float3 u = fmin(fmax(raw, (float3)(0.0f)), (float3)(1.0f));
+    float3 g = (float3)(0.0f);
+    for (int l = 0; l < HASH_LEVELS; ++l) {
+        const int N = res[l];
+        const cell_t c = hash_cell(u, N);
+        const float3 p = u * (float)N;     /* the weights of hash_cell, per axis */
+        const float3 w = p - fmin(floor(p), (float3)((float)(N - 1)));
+        __global const float *tab = table + (size_t)l * HASH_T * HASH_FEATURES;
+        __global const float *ge = genc + i * HASH_DIM + l * HASH_FEATURES;
+        float3 gw = (float3)(0.0f);
+        for (int k = 0; k < 8; ++k) {
+            const int cx = k & 1, cy = (k >> 1) & 1, cz = (k >> 2) & 1;
+            float s = 0.0f;
+            for (int f = 0; f < HASH_FEATURES; ++f)
+                s += ge[f] * tab[(size_t)c.row[k] * HASH_FEATURES + f];
+            const float wx = cx ? w.x : 1.0f - w.x, wy = cy ? w.y : 1.0f - w.y,
+                        wz = cz ? w.z : 1.0f - w.z;
+            gw.x += (cx ? s : -s) * wy * wz;
+            gw.y += (cy ? s : -s) * wx * wz;
+            gw.z += (cz ? s : -s) * wx * wy;
+        }
+        g += gw * (float)N;
+    }
+    const float3 inside = (float3)(raw.x >= 0.0f && raw.x <= 1.0f ? 1.0f : 0.0f,
+                                   raw.y >= 0.0f && raw.y <= 1.0f ? 1.0f : 0.0f,
+                                   raw.z >= 0.0f && raw.z <= 1.0f ? 1.0f : 0.0f);
+    vstore3(g * inv_ext.xyz * inside, i, dx);
+}
 
 /* SH basis (sh.h, degree 3: 16 coefficients) of the unit direction of d [n, 3] -> out [n, 16]. */
 #define SH_DEGREE 3

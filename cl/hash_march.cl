@@ -45,14 +45,30 @@
  * sample's dL/dsigma and dL/dc are bounded by T_k |g| (|c| + 1) dt resp. T_k |g|, so below
  * t_stop times the largest kept one's scale.
  *
- * Defines read: HASH_T_STOP, HASH_CONTRACT. Twin: clrf/references/reference_hash.py (march_samples,
- * packed_forward, packed_backward, packed_keep).
+ * Camera gradient (HASH_POSE_GRAD 1, pose refinement; the kernels above are unchanged):
+ * packed_ray_grad gives each ray's dL/d(origin, direction) [n, 6] from its samples' dL/dp
+ * (p the encoding's point; cl/hash.cl hash_dx) and dL/dY (the direction's SH basis; the MLP's
+ * input gradient, or none). The sample x_k = o + t_k dh (t_k does not depend on the ray), so
+ *   dL/dx_k = dL/dp_k (HASH_CONTRACT 0), or J_c(x_k)^T dL/dp_k with the contraction's Jacobian
+ *     (n > 1, m the axis of the largest |y_a|, s(n) = (2 - 1/n) / n, s' = 2 (1 - n) / n^3):
+ *     dL/dy = s dL/dp + s' (y . dL/dp) sign(y_m) e_m,  dL/dx = dL/dy / half;
+ *   dL/do = sum_k dL/dx_k,   dL/ddh = sum_k (t_k dL/dx_k + sum_b dL/dY_b,k dY_b/dv),
+ *   dL/dd = (dL/ddh - dh (dh . dL/ddh)) / |d|   (dh = d / |d|; the SH reads v / |v| at v = dh,
+ *     whose Jacobian (I - dh dh^T) the final projection already contains).
+ *
+ * Defines read: HASH_T_STOP, HASH_CONTRACT, HASH_POSE_GRAD. Twin:
+ * clrf/references/reference_hash.py (march_samples, packed_forward, packed_backward,
+ * packed_keep, ray_grad).
  */
 #include "hash_occ.h"
 #include "volrend.h"
 
 #ifndef HASH_CONTRACT
 #define HASH_CONTRACT 0
+#endif
+
+#ifndef HASH_POSE_GRAD
+#define HASH_POSE_GRAD 0   /* 1: also packed_ray_grad (pose refinement) */
 #endif
 
 #ifndef HASH_T_STOP
@@ -297,3 +313,56 @@ __kernel void packed_gather(const int n, const int width, __global const int *of
     const size_t len = (size_t)(new_offsets[i + 1] - new_offsets[i]) * width;
     for (size_t k = 0; k < len; ++k) dst[b + k] = src[a + k];
 }
+
+#if HASH_POSE_GRAD
+#define SH_DEGREE 3
+#include "sh.h"
+
+/* dL/dx at world point x of dL/dp at the encoding's point p = enc_point(x) (see the header). */
+CLRF_INLINE float3 enc_point_vjp(const float3 x, const float3 gp, const float4 c,
+                                 const float4 ih) {
+#if HASH_CONTRACT
+    const float3 y = (x - c.xyz) * ih.xyz, a = fabs(y);
+    const float n = fmax(a.x, fmax(a.y, a.z));
+    if (n <= 1.0f) return gp * ih.xyz;
+    const float k = dot(y, gp) * 2.0f * (1.0f - n) / (n * n * n);
+    float3 gy = gp * ((2.0f - 1.0f / n) / n);
+    if (a.x >= a.y && a.x >= a.z) gy.x += k * sign(y.x);   /* the first axis on ties */
+    else if (a.y >= a.z) gy.y += k * sign(y.y);
+    else gy.z += k * sign(y.z);
+    return gy * ih.xyz;
+#else
+    return gp;
+#endif
+}
+
+/* grad [n, 6] = (dL/do, dL/dd) of ray i (overwritten) from gp [M, 3] = dL/dp of its samples
+ * and gsh [M, SH_BASIS] = dL/dY (null: no direction encoding's share); see the header. */
+__kernel void packed_ray_grad(const int n, __global const int *offsets, __global const float *t,
+                              __global const float *origins, __global const float *dirs,
+                              const float4 centre, const float4 inv_half,
+                              __global const float *gp, __global const float *gsh,
+                              __global float *grad) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const float3 o = load3(origins, i), dh = unit_dir(dirs, i);
+    float3 go = (float3)(0.0f), gd = (float3)(0.0f);
+    for (int j = offsets[i]; j < offsets[i + 1]; ++j) {
+        const float3 gx = enc_point_vjp(o + t[j] * dh, load3(gp, j), centre, inv_half);
+        go += gx;
+        gd += t[j] * gx;
+        if (gsh) {
+            float w[SH_BASIS];
+            for (int b = 0; b < SH_BASIS; ++b) w[b] = gsh[(size_t)j * SH_BASIS + b];
+            gd += sh_dir_grad(dh, w);
+        }
+    }
+    const float3 d = load3(dirs, i);
+    const float mx = fmax(fabs(d.x), fmax(fabs(d.y), fabs(d.z)));
+    const float len = mx > 0.0f ? mx * length(d / mx) : 0.0f;   /* |d| without overflow */
+    gd = (gd - dh * dot(dh, gd)) * safe_div(1.0f, len);
+    __global float *g = grad + (size_t)i * 6;
+    g[0] = go.x; g[1] = go.y; g[2] = go.z;
+    g[3] = gd.x; g[4] = gd.y; g[5] = gd.z;
+}
+#endif

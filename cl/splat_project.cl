@@ -252,54 +252,6 @@ CLRF_INLINE float3 splat_view_dir(const float3 m, __global const float *cam, flo
     return v / *dist;
 }
 
-/* sum_b w_b dY_b/dd at direction d (the components treated as independent; the caller projects
- * out the radial part). Derivatives of sh.h's polynomials, term by term. */
-CLRF_INLINE float3 sh_dir_grad(const float3 d, const float *w) {
-    float3 g = (float3)(0.0f);
-#if SH_DEGREE >= 1
-    const float x = d.x, y = d.y, z = d.z;
-    g.x += -SH_C1 * w[3];
-    g.y += -SH_C1 * w[1];
-    g.z += SH_C1 * w[2];
-#endif
-#if SH_DEGREE >= 2
-    const float xx = x * x, yy = y * y, zz = z * z;
-    g.x += SH_C2_0 * y * w[4];
-    g.y += SH_C2_0 * x * w[4];
-    g.y += SH_C2_1 * z * w[5];
-    g.z += SH_C2_1 * y * w[5];
-    g.x += -2.0f * SH_C2_2 * x * w[6];
-    g.y += -2.0f * SH_C2_2 * y * w[6];
-    g.z += 4.0f * SH_C2_2 * z * w[6];
-    g.x += SH_C2_3 * z * w[7];
-    g.z += SH_C2_3 * x * w[7];
-    g.x += 2.0f * SH_C2_4 * x * w[8];
-    g.y += -2.0f * SH_C2_4 * y * w[8];
-#endif
-#if SH_DEGREE >= 3
-    g.x += 6.0f * SH_C3_0 * x * y * w[9];
-    g.y += SH_C3_0 * (3.0f * xx - 3.0f * yy) * w[9];
-    g.x += SH_C3_1 * y * z * w[10];
-    g.y += SH_C3_1 * x * z * w[10];
-    g.z += SH_C3_1 * x * y * w[10];
-    g.x += -2.0f * SH_C3_2 * x * y * w[11];
-    g.y += SH_C3_2 * (4.0f * zz - xx - 3.0f * yy) * w[11];
-    g.z += 8.0f * SH_C3_2 * y * z * w[11];
-    g.x += -6.0f * SH_C3_3 * x * z * w[12];
-    g.y += -6.0f * SH_C3_3 * y * z * w[12];
-    g.z += SH_C3_3 * (6.0f * zz - 3.0f * xx - 3.0f * yy) * w[12];
-    g.x += SH_C3_4 * (4.0f * zz - 3.0f * xx - yy) * w[13];
-    g.y += -2.0f * SH_C3_4 * x * y * w[13];
-    g.z += 8.0f * SH_C3_4 * x * z * w[13];
-    g.x += 2.0f * SH_C3_5 * x * z * w[14];
-    g.y += -2.0f * SH_C3_5 * y * z * w[14];
-    g.z += SH_C3_5 * (xx - yy) * w[14];
-    g.x += SH_C3_6 * (3.0f * xx - 3.0f * yy) * w[15];
-    g.y += -6.0f * SH_C3_6 * x * y * w[15];
-#endif
-    return g;
-}
-
 /* Tile index range [lo, hi) covering [centre - radius, centre + radius] along one axis. */
 CLRF_INLINE int2 splat_tile_span(const float centre, const float radius, const int ntiles) {
     const float lo = clamp(floor((centre - radius) / (float)TILE), 0.0f, (float)ntiles);

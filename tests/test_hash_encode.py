@@ -1,5 +1,7 @@
 """Multiresolution hash encoding (cl/hash.cl) vs the float64 reference, its backward on both
 accumulation paths (float atomics, private copies per slot), and the SH direction encoding."""
+from types import SimpleNamespace
+
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -249,3 +251,168 @@ def test_bad_sizes_raise(device):
         HashEncoding(device, 2, 2, 4, 2, 4, box=((0, 0, 0), (1, 0, 1)))
     with pytest.raises(ValueError, match="table"):
         HashEncoding(device, 2, 2, 4, 2, 4, table=np.zeros((2, 8, 2)))
+
+
+# ---- the spatial derivative dL/dx (hash_dx) ------------------------------------------------
+def _dx(enc, x, genc):
+    q = enc.device.queue
+    return enc.dx(cla.to_device(q, x), cla.to_device(q, genc)).get()
+
+
+def _ref_dx(enc, x, genc, table, f64=False):
+    return ref.hash_dx(x, enc.lo, enc.inv_ext, enc.res_host, table, genc, f64)
+
+
+def _dx_bound(enc, genc, table):
+    """B [n, 3] = 2 inv_ext_a sum_l N_l sum_f |dL/denc_lf| max|table| (tolerances)."""
+    gl = np.abs(np.asarray(genc, np.float64)).reshape(len(genc), enc.levels, enc.features).sum(axis=2)
+    return 2 * (gl @ enc.res_host.astype(np.float64))[:, None] * np.abs(table).max() \
+        * enc.inv_ext.astype(np.float64)[None, :]
+
+
+def _assert_dx(enc, got, want, genc, table):
+    """Kernel vs twin within HASH_DX_RTOL_OF_BOUND of each point's bound B_a."""
+    assert got.shape == want.shape
+    err = np.abs(got - want)
+    assert np.all(err <= tol.HASH_DX_RTOL_OF_BOUND * _dx_bound(enc, genc, table)), err.max()
+
+
+def _loss64(enc, x, genc, table):
+    return np.sum(genc * ref.hash_forward(x, enc.lo, enc.inv_ext, enc.res_host, table, True),
+                  axis=1)
+
+
+def _off_faces(x, enc, margin):
+    """Rows of x whose p = u N_l lies at least ``margin`` (in p units per unit of N_l u) from
+    every cell face of every level, strictly inside the box."""
+    u = ref.unit_coords(x, enc.lo, enc.inv_ext, True)
+    ok = np.all((u > margin) & (u < 1 - margin), axis=1)
+    for N in enc.res_host:
+        fr = u * N - np.floor(u * N)
+        ok &= np.all((fr > margin * N) & (fr < 1 - margin * N), axis=1)
+    return x[ok]
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 65])
+@pytest.mark.parametrize("F", [1, 2, 4])
+def test_dx_matches_twin(device, n, F):
+    enc, table = _enc(device, F=F, seed=20 + n + F)
+    x = _points(n, seed=30 + n)
+    genc = np.random.default_rng(n + F).uniform(-1, 1, (n, enc.dim)).astype(np.float32)
+    _assert_dx(enc, _dx(enc, x, genc), _ref_dx(enc, x, genc, table), genc, table)
+
+
+def test_twin_dx_vs_central_differences():
+    """The twin (float64 u and p) against central differences of L = sum genc * enc(x) with
+    steps that stay inside each level's cell: the encoding is linear along an axis there."""
+    rng = np.random.default_rng(11)
+    L, T, F = 4, 1 << 10, 2
+    table = rng.uniform(-1, 1, (L, T, F))
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    enc = SimpleNamespace(lo=lo, inv_ext=1 / (hi - lo), res_host=ref.level_resolutions(L, 2, 40),
+                          levels=L, features=F)
+    x = _off_faces(_points(200, seed=11, lo=0.0, hi=1.0).astype(np.float64), enc, 1e-4)[:25]
+    assert len(x) >= 10
+    genc = rng.uniform(-1, 1, (len(x), L * F))
+    g = _ref_dx(enc, x, genc, table, True)
+    h = tol.HASH_DX_FD_EPS
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        fd = (_loss64(enc, x + e, genc, table) - _loss64(enc, x - e, genc, table)) / (2 * h)
+        np.testing.assert_allclose(g[:, a], fd, rtol=tol.HASH_DX_FD_RTOL,
+                                   atol=tol.HASH_DX_FD_ATOL)
+    assert np.abs(g).max() > 1.0     # the test is not of zeros
+
+
+def test_kernel_dx_vs_kernel_forward_differences(device):
+    """The float32 kernels against each other on the unit box: x on a 2^-20 grid and steps of
+    h = 2^-8 (both exact in float32) that stay inside every level's cell, where the encoding is
+    linear along the axis; each forward value is within HASH_ATOL of float64, so the central
+    difference is within sum|genc| HASH_ATOL / h of the exact derivative, and the kernel's dx
+    within its bound of it."""
+    box = ((0.0,) * 3, (1.0,) * 3)
+    enc, table = _enc(device, L=3, F=2, log2_t=10, n_min=2, n_max=12, seed=12, box=box)
+    h = 2.0 ** -8
+    rng = np.random.default_rng(12)
+    x = np.round(rng.uniform(0, 1, (400, 3)) * 2 ** 20) / 2 ** 20
+    x = _off_faces(x, enc, 2 * h)[:20].astype(np.float32)
+    assert len(x) >= 10
+    genc = rng.uniform(-1, 1, (len(x), enc.dim)).astype(np.float32)
+    got = _dx(enc, x, genc)
+    slack = np.abs(genc).sum(axis=1) * tol.HASH_ATOL / h
+    for a in range(3):
+        e = np.zeros(3, np.float32)
+        e[a] = h
+        fd = (np.sum(genc * _fwd(enc, x + e), axis=1, dtype=np.float64)
+              - np.sum(genc * _fwd(enc, x - e), axis=1, dtype=np.float64)) / (2 * h)
+        want = _ref_dx(enc, x, genc, table)[:, a]
+        assert np.all(np.abs(fd - want) <= slack), np.abs(fd - want).max()
+        bound = tol.HASH_DX_RTOL_OF_BOUND * _dx_bound(enc, genc, table)[:, a]
+        assert np.all(np.abs(got[:, a] - fd) <= slack + bound)
+
+
+def test_dx_on_faces_corners_and_box_bounds(device):
+    """Points on cell faces, vertices and the box's faces (u = k / 16, exact): the kernel equals
+    the twin, and the twin equals the one-sided difference into the cell the forward reads
+    (from above on an interior face and at u = 0, from below at u = 1)."""
+    box = ((0.0,) * 3, (1.0,) * 3)
+    enc, table = _enc(device, L=3, n_min=4, n_max=16, log2_t=12, box=box, seed=13)
+    k = np.arange(0, 17) / 16.0
+    x = np.stack(np.meshgrid(k, k[::3], k[::5], indexing="ij"), -1).reshape(-1, 3)
+    x = x.astype(np.float32)
+    genc = np.random.default_rng(13).uniform(-1, 1, (len(x), enc.dim)).astype(np.float32)
+    want = _ref_dx(enc, x, genc, table)
+    _assert_dx(enc, _dx(enc, x, genc), want, genc, table)
+    h = tol.HASH_DX_FD_EPS
+    x64 = x.astype(np.float64)
+    for a in range(3):
+        step = np.where(x64[:, a] < 1.0, h, -h)     # into the cell the forward reads
+        e = np.zeros_like(x64)
+        e[:, a] = step
+        fd = (_loss64(enc, x64 + e, genc, table) - _loss64(enc, x64, genc, table)) / step
+        np.testing.assert_allclose(_ref_dx(enc, x64, genc, table, True)[:, a], fd, rtol=0,
+                                   atol=tol.HASH_DX_FD_ATOL)
+
+
+def test_dx_outside_the_box_nan_and_huge(device):
+    """Outside the box on an axis the encoding is clamped there: that axis's derivative is 0,
+    the others are the boundary point's; NaN and 1e30 give finite zeros."""
+    enc, table = _enc(device, seed=14)
+    lo, hi = np.asarray(BOX[0]), np.asarray(BOX[1])
+    inside = _points(9, lo=0.05, hi=0.95)
+    out = inside.copy()
+    out[:, 0] = hi[0] + 10.0
+    face = inside.copy()
+    face[:, 0] = hi[0]
+    genc = np.random.default_rng(14).uniform(-1, 1, (9, enc.dim)).astype(np.float32)
+    g_out, g_face = _dx(enc, out, genc), _dx(enc, face, genc)
+    assert np.all(g_out[:, 0] == 0) and np.all(g_face[:, 0] != 0)
+    np.testing.assert_array_equal(g_out[:, 1:], g_face[:, 1:])
+    _assert_dx(enc, g_out, _ref_dx(enc, out, genc, table), genc, table)
+    odd = np.array([[np.nan, 0.0, 0.5], [1e30, -1e30, 1e30], [np.nan] * 3], np.float32)
+    g = _dx(enc, odd, genc[:3])
+    assert np.all(np.isfinite(g))
+    assert np.all(g[1:] == 0) and g[0, 0] == 0
+    _assert_dx(enc, g, _ref_dx(enc, odd, genc[:3], table), genc[:3], table)
+
+
+@pytest.mark.parametrize("levels,n_min,n_max,log2_t", [(1, 1, 1, 4), (2, 1, 4096, 8)])
+def test_dx_coarsest_and_finest_levels(device, levels, n_min, n_max, log2_t):
+    """One cell over the whole box (N = 1, dense), and a 4096-cell level hashed into 256 rows
+    next to N = 1: the kernel against the twin, and the twin against central differences."""
+    enc, table = _enc(device, L=levels, n_min=n_min, n_max=n_max, log2_t=log2_t, seed=15)
+    x = _points(65, seed=15, lo=0.0, hi=1.0)
+    genc = np.random.default_rng(15).uniform(-1, 1, (65, enc.dim)).astype(np.float32)
+    _assert_dx(enc, _dx(enc, x, genc), _ref_dx(enc, x, genc, table), genc, table)
+    h = tol.HASH_DX_FD_EPS
+    x64 = _off_faces(x.astype(np.float64), enc, 1e-5)
+    assert len(x64) >= 10
+    g = _ref_dx(enc, x64, genc[:len(x64)], table, True)
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        fd = (_loss64(enc, x64 + e, genc[:len(x64)], table)
+              - _loss64(enc, x64 - e, genc[:len(x64)], table)) / (2 * h)
+        np.testing.assert_allclose(g[:, a], fd, rtol=tol.HASH_DX_FD_RTOL,
+                                   atol=tol.HASH_DX_FD_ATOL)

@@ -20,6 +20,7 @@ import pkgutil
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from clrf import corrections
@@ -221,7 +222,9 @@ def test_the_corrections_each_section_turns_on_are_their_protocols_instances(dev
                       Views(3, pivots=lambda: [1.0, 2.0, 0.0]), VIEWS))
     made += list(build(device, SplatConfig(bilateral_grid=True, bilateral_grid_shape=[3, 2, 2]),
                        Views(3), VIEWS))
-    made += list(build(device, HashConfig(exposure=True), Views(3, pixels=16), RAYS))
+    made += list(build(device, HashConfig(exposure=True, pose_opt=True),
+                       Views(3, pixels=16, viewmats=lambda: np.tile(np.eye(4), (3, 1, 1))),
+                       RAYS))
     assert sorted(type(c).__name__ for c in made) == sorted(
         c.__name__ for c in correction_classes())
     for c in made:

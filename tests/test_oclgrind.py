@@ -8,14 +8,16 @@ small test of each kernel family (CASES) in a child pytest: grid forward and bac
 loss modes with touched marks, the MSI background, bricks, grid ops (TV, resample, prune, batch
 gather, the ray store's strided read-back, fused loss), the optimisers, encode, sample,
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
-network), the hash encoding's backward, the hash march (windows, alive rays, contraction), Adam
-over spans and over several buffers in one launch, the Gaussian splatting projection (forward,
-backward; anti-aliased; the camera's gradient), the density strategies' statistics (default)
-and regularisers and noise (MCMC), the bilateral grid (slice, both backward passes, the prior
-and Adam over every grid), the training images' widening (uint8, float16), binning (pyopencl's
-scan and radix sort, clrf's chunked sort) and tile rasteriser (forward, backward), and the hash
-model's bounded step (capped offsets, the encoding and the MLP on both tilings reading a device
-count, a bounded step with the GPU tiling).
+network), the hash encoding's backward and spatial derivative, the hash march (windows, alive
+rays, contraction, each ray's camera gradient), the rays of corrected cameras and their
+per-image camera gradient sums, Adam over spans and over several buffers in one launch, the
+Gaussian splatting projection (forward, backward; anti-aliased; the camera's gradient), the
+density strategies' statistics (default) and regularisers and noise (MCMC), the bilateral grid
+(slice, both backward passes, the prior and Adam over every grid), the training images'
+widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's chunked sort) and
+tile rasteriser (forward, backward), and the hash model's bounded step (capped offsets, the
+encoding and the MLP on both tilings reading a device count, a bounded step with the GPU
+tiling).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -77,9 +79,14 @@ CASES = [
     f"tests/test_nerf_mlp.py::test_forward_matches_reference[default-0-{next(iter(MLP_SPECS))}]",
     "tests/test_mlp_gpu.py::test_small_network_under_every_pass",
     "tests/test_hash_encode.py::test_backward_matches_reference",
+    "tests/test_hash_encode.py::test_dx_matches_twin[default-2-65]",
     "tests/test_hash_kernels.py::test_march_matches_reference",
     "tests/test_hash_kernels.py::test_march_window_and_alive_rays",
     "tests/test_hash_kernels.py::test_march_contracted_matches_reference",
+    # each ray's camera gradient (HASH_POSE_GRAD): plain with no SH share, contracted with it
+    "tests/test_hash_pose.py::test_ray_grad_matches_twin[default-False-False]",
+    "tests/test_hash_pose.py::test_ray_grad_matches_twin[default-True-True]",
+    "tests/test_ray_pose.py::test_rays_and_sums_match_the_twin[default-300]",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
     "tests/test_hash_kernels.py::test_adam_over_many_spans_in_one_launch",
     "tests/test_hash_kernels.py::test_adam_set_steps_every_buffer_in_one_launch",

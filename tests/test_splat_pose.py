@@ -337,7 +337,8 @@ def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("setting", ["splat.lr_pose=0", "splat.lr_pose=-1",
-                                     "splat.pose_reg=-0.1", "hash.pose_opt=true"])
+                                     "splat.pose_reg=-0.1", "hash.lr_pose=0",
+                                     "hash.lr_pose_final=1"])
 def test_bad_pose_settings_are_one_clear_error(setting, tmp_path, capsys):
     from clrf.cli.main import main as cli
     model = setting.split(".")[0]

@@ -9,6 +9,7 @@ model's section and makes them (settings.py ``build``, ``from_state``):
                 (``splat.bilateral_grid``: ``BilateralGrid``, whole views; cl/bilateral.cl)
 - pose.py       a pose correction per training camera (``splat.pose_opt``: ``PoseCorrection``,
                 its SO(3) helpers)
+- ray_pose.py   the same for ray batches (``hash.pose_opt``: ``RayPose``; cl/ray_pose.cl)
 
 This package sits below the trainer and outside every representation: it imports the runtime,
 the float64 references and the model interface, never a representation, and a model calls the
@@ -16,5 +17,6 @@ list's hooks, never a correction by name (tests/test_layers.py). Importing the p
 no correction (settings.py says why).
 """
 from .base import (CAMERA, COLOUR, NONE, PROTOCOLS, RAYS, VIEWS, CameraCorrection,  # noqa: F401
-                   Correction, Corrections, RayColourCorrection, ViewColourCorrection, of)
+                   Correction, Corrections, RayCameraCorrection, RayColourCorrection,
+                   ViewColourCorrection, of)
 from .settings import EXPOSURE_MATRICES, Views, build, clip_mode, from_state  # noqa: F401

@@ -19,6 +19,8 @@ by name (``get``) where they report it.
 >>> shown = corr.apply(rgb, v, T, bg)                # what the loss sees
 >>> grad = corr.colour_backward(v, rgb, T, bg, grad_shown, progress, images, background)
 >>> corr.camera_step(v, cam.viewmat, dR, dt)         # from the renderer's camera gradient
+>>> o, d = corr.ray_camera.rays(index, o0, d0)       # ray batches: the corrected cameras' rays
+>>> corr.ray_camera.step_rays(index, d, ray_grad)    # from each ray's dL/d(origin, direction)
 """
 from __future__ import annotations
 
@@ -118,9 +120,24 @@ class RayColourCorrection(Correction, Protocol):
         """The rows' gradient over the last ``forward``'s rays and one optimiser step."""
 
 
+@runtime_checkable
+class RayCameraCorrection(Correction, Protocol):
+    """A correction of the cameras that made ray batches (ray i from image ``index[i] //
+    pixels``): the batch's rays are remade from the corrected cameras, and the model's
+    dL/d(origin, direction) of each ray trains them."""
+
+    def rays(self, index, origins, dirs):
+        """(origins, dirs) [n, 3] (new device arrays) of the batch's rays as their images'
+        corrected cameras make them, from those the given cameras made."""
+
+    def step_rays(self, index, dirs, ray_grad) -> None:
+        """One optimiser step of each image with rays in the batch, from the rays' corrected
+        directions ``dirs`` [n, 3] and dL/d(origin, direction) ``ray_grad`` [n, 6]."""
+
+
 # the hooks a correction of (changes, batches) has (tests/test_layers.py checks each class)
 PROTOCOLS = {(CAMERA, VIEWS): CameraCorrection, (COLOUR, VIEWS): ViewColourCorrection,
-             (COLOUR, RAYS): RayColourCorrection}
+             (COLOUR, RAYS): RayColourCorrection, (CAMERA, RAYS): RayCameraCorrection}
 
 
 class Corrections:
@@ -169,6 +186,12 @@ class Corrections:
     def colour(self):
         """The colour correction (ViewColourCorrection or RayColourCorrection), or None."""
         return self._changing(COLOUR)
+
+    @property
+    def ray_camera(self):
+        """The camera correction of ray batches (RayCameraCorrection), or None."""
+        c = self._changing(CAMERA)
+        return c if c is not None and c.batches == RAYS else None
 
     @property
     def moves_cameras(self) -> bool:

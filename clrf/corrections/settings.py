@@ -5,13 +5,13 @@ checkpoint's.
 The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposure`` (with
 ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
 ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
-``exposure_clip_inward``), ``splat.pose_opt`` (with ``lr_pose``, ``lr_pose_final``,
-``pose_reg``, ``pose_hold_frame``), ``splat.bilateral_grid`` (with ``bilateral_grid_shape``,
-``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction at a time
-(``colour_conflict``: the configurations' validation names the keys). A section without one
-of the optional keys takes what the correction does without it (a constant rate, no fit, no
-clip; the Adam betas of clrf/runtime/optim.py where it has no ``beta1`` / ``beta2`` of its
-own). This module imports no correction until one is made (the configurations import
+``exposure_clip_inward``), ``splat.pose_opt`` and ``hash.pose_opt`` (with ``lr_pose``,
+``lr_pose_final``, ``pose_reg``, ``pose_hold_frame``), ``splat.bilateral_grid`` (with
+``bilateral_grid_shape``, ``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction
+at a time (``colour_conflict``: the configurations' validation names the keys). A section
+without one of the optional keys takes what the correction does without it (a constant rate,
+no fit, no clip; the Adam betas of clrf/runtime/optim.py where it has no ``beta1`` / ``beta2``
+of its own). This module imports no correction until one is made (the configurations import
 EXPOSURE_MATRICES and colour_conflict from here, before the self-check that reports a missing
 clrf.references).
 
@@ -63,12 +63,15 @@ class Views:
     scale     the scene's extent (pose translations and their pull are relative to it)
     pivots    a function giving each image's pivot depth (called when a pose correction is
               made)
+    viewmats  a function giving each image's world-to-camera [V, 4, 4] (OpenCV axes; ray
+              batches: the cameras that made the ray store's rays)
     """
     n_images: int = 0
     masked: bool = False
     pixels: int = 0
     scale: float = 1.0
     pivots: Optional[Callable] = None
+    viewmats: Optional[Callable] = None
 
 
 def clip_mode(section) -> int:
@@ -101,9 +104,17 @@ def _exposure(device, s, views: Views, batches: str, state=None):
 
 def _pose(device, s, views: Views, batches: str, state=None):
     from .pose import PoseCorrection
-    if batches != VIEWS:
-        raise ValueError("a pose correction needs a model that trains on whole views")
     hold = getattr(s, "pose_hold_frame", True)
+    if batches == RAYS:
+        from .ray_pose import RayPose
+        if state is not None:
+            return RayPose(device, None, 0, s.lr_pose, s.pose_reg, views.scale, state=state,
+                           lr_final=s.lr_pose_final, hold_frame=hold)
+        if views.viewmats is None:
+            raise ValueError("a pose correction of ray batches needs the training cameras")
+        return RayPose(device, views.viewmats(), views.pixels, s.lr_pose, s.pose_reg,
+                       views.scale, pivots=views.pivots() if views.pivots else None,
+                       lr_final=s.lr_pose_final, hold_frame=hold)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
                               state=state, lr_final=s.lr_pose_final, hold_frame=hold)

@@ -89,6 +89,21 @@ class HashConfig:
     exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
     #                                 gain and an offset per channel; "gain": a gain per
     #                                 channel only (as splat.exposure_matrix)
+    pose_opt: bool = False          # refine each training camera's pose (a rotation and a
+    #                                 translation about a pivot, as splat.pose_opt), the rays
+    #                                 of each batch remade from the corrected cameras; test
+    #                                 views keep their given poses (clrf/corrections/ray_pose.py)
+    lr_pose: float = 1e-3           # Adam learning rate of the corrections at the start:
+    #                                 radians per step, translations this times the box's
+    #                                 extent. A third of splat.lr_pose: here every image with
+    #                                 rays in a batch steps every step (thousands of steps,
+    #                                 against a few dozen a camera for splats), on a few dozen
+    #                                 rays' noisy gradient (not tuned on a real capture)
+    lr_pose_final: float = 1e-4     # ... decayed log-linearly to this over the budget
+    pose_reg: float = 1e-4          # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_hold_frame: bool = True    # take the corrections' common rigid motion out every 100
+    #                                 steps, so the scene stays in the given poses' frame
+    #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "HashConfig":
@@ -145,6 +160,10 @@ class HashConfig:
             (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
             (0 < self.lr_exposure <= 1, "hash.lr_exposure", "must be in (0, 1]"),
             (self.exposure_reg >= 0, "hash.exposure_reg", "must be >= 0"),
+            (0 < self.lr_pose <= 0.1, "hash.lr_pose", "must be in (0, 0.1] (radians a step)"),
+            (0 < self.lr_pose_final <= self.lr_pose, "hash.lr_pose_final",
+             "must be in (0, hash.lr_pose]"),
+            (self.pose_reg >= 0, "hash.pose_reg", "must be >= 0"),
             (self.exposure_matrix in EXPOSURE_MATRICES, "hash.exposure_matrix",
              f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),

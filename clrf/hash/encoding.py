@@ -5,6 +5,7 @@ SH direction encoding. Math and layouts are in the kernel file's header.
 ...                    box=((-1.5,) * 3, (1.5,) * 3), seed=0)
 >>> y = enc.forward(x_d)            # x_d [n, 3] device -> y [n, L F] device
 >>> enc.backward(x_d, dy_d)         # enc.grad [L, T, F] += dL/dtable
+>>> gx = enc.dx(x_d, dy_d)          # dL/dx [n, 3] device (pose refinement)
 """
 from __future__ import annotations
 
@@ -145,6 +146,21 @@ class HashEncoding:
             return
         k.set_args(*args)   # one work-item (and work-group) per level
         cl.enqueue_nd_range_kernel(self.device.queue, k, (self.levels,), (1,))
+
+    def dx(self, x, genc, out=None, count=None):
+        """dL/dx [n, 3] (device, overwritten) of points x [n, 3] from dL/denc genc [n, L F]:
+        per level the derivative of the trilinear weights times N_l, summed, times inv_ext
+        (zero on an axis where the point is outside the box); the first ``count`` rows: see
+        forward."""
+        n = int(x.shape[0])
+        if tuple(genc.shape) != (n, self.dim):
+            raise ValueError(f"hash dx: dL/denc must be [{n}, {self.dim}], got {genc.shape}")
+        out = out if out is not None else scratch(self.device, (n, 3))
+        launch(self.device, self.program.kernel("hash_dx"), n,
+               (np.int32(n), count_arg(count), x.data, self.lo4, self.inv4, self.res.data,
+                self.table.data, genc.data, out.data),
+               self.device.tuning.elementwise_local_size)
+        return out
 
     def sh_encode(self, d, out=None, count=None):
         """SH basis (16) of the unit directions of d [n, 3] -> [n, 16] (the first ``count``

@@ -3,9 +3,13 @@ presets and settings per scene preset, factories and memory estimate. It has no 
 its own: its default device is the probe's choice."""
 from __future__ import annotations
 
+import numpy as np
+
 from ..interface import Kind
 from . import budget
 from .config import HASH_PRESETS, HashConfig
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # the datasets' camera axes to viewmats'
 
 SCENE_PRESETS = {
     # Synthetic scenes hold the full learning rate for 65 % of the budget, not 50 %: lego_400,
@@ -24,7 +28,8 @@ SCENE_PRESETS = {
 
 def programs(device, cfg):
     """Every program a hash run of ``cfg`` asks ``device`` for (Kind.programs): the encoding,
-    the marcher (box and contracted), the occupancy grid, the fused MLP and Adam."""
+    the marcher (box and contracted; each also with the rays' camera gradient, listed whatever
+    cfg says), the occupancy grid, the fused MLP and Adam."""
     from ..mlp import mlp
     from ..runtime import optim
     from . import encoding, march
@@ -33,7 +38,10 @@ def programs(device, cfg):
     encoding.program(device, c.levels, c.features, c.log2_table)
     for contract in (False, True):
         march.program(device, contract)
+        march.program(device, contract, pose=True)         # pose refinement
     device.program("hash_occ.cl", {})                      # occupancy.py
+    from ..corrections import ray_pose
+    ray_pose.program(device)                               # hash.pose_opt, listed always
     if c.exposure:
         from ..corrections import exposure
         exposure.program(device)                           # clrf/corrections/exposure.py
@@ -49,6 +57,10 @@ def _bounded(device) -> bool:
 
 def create(device, cfg, ds, background):
     from .model import HashModel, ray_range, resolve_contract, resolve_max_res
+    if cfg.hash.pose_opt and ds.ndc:
+        raise ValueError(f"dataset {ds.name}: hash.pose_opt corrects the cameras that make the "
+                         f"rays, and NDC (forward-facing) rays are not a camera's; pass --set "
+                         f"hash.pose_opt=false")
     hc = resolve_max_res(resolve_contract(cfg.hash, ds), ds)
     near, far = ray_range(ds, hc.contract == "on", ds.unit_far() if ds.ndc else None)
     model = HashModel(device, hc, near, far, ds.bbox, background, cfg.train.seed,
@@ -57,9 +69,28 @@ def create(device, cfg, ds, background):
     views = ds.split["train"]
     if cfg.train.max_train_images:
         views = views[:cfg.train.max_train_images]
+    poses = np.asarray(ds.poses, np.float64)[views]
     model.attach_corrections(len(views), int(ds.hw[0]) * int(ds.hw[1]),
-                             masked=ds.alpha is not None)
+                             masked=ds.alpha is not None,
+                             viewmats=lambda: np.stack([viewmat_of(p) for p in poses]),
+                             pivots=lambda: [pivot_depth(viewmat_of(p), ds.bbox) for p in poses])
     return model
+
+
+def viewmat_of(c2w) -> np.ndarray:
+    """World-to-camera (OpenCV axes) of a camera-to-world pose in OpenGL axes (the cameras of
+    the ray store's rays)."""
+    c2w = np.asarray(c2w, np.float64)
+    full = np.eye(4)
+    full[:c2w.shape[0]] = c2w
+    return OPENGL_TO_OPENCV @ np.linalg.inv(full)
+
+
+def pivot_depth(viewmat, bbox) -> float:
+    """The depth of the box's centre in camera ``viewmat`` (0 where it lies behind): the point
+    a pose correction turns the camera about (clrf/corrections/pose.py)."""
+    centre = np.append(np.asarray(bbox, np.float64).mean(0), 1.0)
+    return max(float((viewmat @ centre)[2]), 0.0)
 
 
 def from_state(device, state, cfg):
@@ -84,6 +115,10 @@ class Distributed:
             raise ValueError(f"hash.exposure: the colour transforms per image are not summed "
                              f"over MPI ranks yet ({self.comm.Get_size()} ranks); pass --set "
                              f"hash.exposure=false or run as one process")
+        if cfg.hash.pose_opt:
+            raise ValueError(f"hash.pose_opt: the pose corrections per image are not summed "
+                             f"over MPI ranks yet ({self.comm.Get_size()} ranks); pass --set "
+                             f"hash.pose_opt=false or run as one process")
 
     def rank_config(self, cfg):
         """Every rank holds the whole model: the configuration as it is."""

@@ -5,6 +5,7 @@ occupied cells) and their compositing (math and layouts in the kernel file's hea
 >>> pk.m, pk.offsets_host[:3], pk.t, pk.dt, pk.xyz, pk.vdir             # device t [M], ...
 >>> g = packed_backward(dev, pk, sigma_d, rgb_d, bg, target_d, loss_scale)
 >>> kept, (xe,) = keep_front(dev, pk, sigma_d, 1e-4, (xe_d,))   # what lies before T < 1e-4
+>>> g_od = ray_grad(dev, pk, origins_d, dirs_d, gp_d, gsh_d)    # dL/d(o, d) [n, 6] device
 >>> pk = march(dev, occ, origins_d, dirs_d, 256, 0.02, 1e3, contract=Contraction(box))
 >>> pk = march(dev, occ, origins_d, dirs_d, 128, 2.0, 6.0, cap=1 << 18)   # bounded: nothing
 >>> pk.m, pk.count, pk.total          # read back; m = 2^18 rows, count/total on the device
@@ -61,8 +62,13 @@ class Contraction:
         self.inv_half4 = float4(*(1.0 / self.half), 0.0)
 
 
-def program(device, contract: bool = False):
-    return device.program("hash_march.cl", {"HASH_CONTRACT": int(bool(contract))})
+def program(device, contract: bool = False, pose: bool = False):
+    """cl/hash_march.cl; ``pose``: the build with packed_ray_grad (HASH_POSE_GRAD), a program
+    of its own so that the default one is what it was."""
+    defines = {"HASH_CONTRACT": int(bool(contract))}
+    if pose:
+        defines["HASH_POSE_GRAD"] = 1
+    return device.program("hash_march.cl", defines)
 
 
 def contract_points(device, contraction: Contraction, xyz):
@@ -161,6 +167,24 @@ def packed_backward(device, pk: Packed, sigma, rgb, background, target,
     if pk.m == 0:
         out["sigma"], out["rgb"] = out["sigma"][:0], out["rgb"][:0]
     return out
+
+
+def ray_grad(device, pk: Packed, origins, dirs, gp, gsh=None,
+             contract: Contraction | None = None, out=None):
+    """dL/d(origin, direction) [n, 6] (device, overwritten) of pk's rays origins/dirs [n, 3]
+    from their samples' gp [M, 3] = dL/dp (p the encoding's point: HashEncoding.dx) and gsh
+    [M, 16] = dL/d(SH basis of the view direction) or None (math: the kernel file's header):
+    dL/do = sum_k dL/dx_k, dL/dd = (I - dh dh^T) / |d| sum_k (t_k dL/dx_k + dL/dY_k dY/dv)."""
+    n = pk.n
+    out = out if out is not None else scratch(device, (max(n, 1), 6))
+    zero4 = float4(0, 0, 0, 0)
+    centre = contract.centre4 if contract else zero4
+    inv_half = contract.inv_half4 if contract else zero4
+    launch(device, program(device, contract is not None, True).kernel("packed_ray_grad"), n,
+           (np.int32(n), pk.offsets.data, pk.t.data, origins.data, dirs.data, centre, inv_half,
+            gp.data, gsh.data if gsh is not None else None, out.data),
+           device.tuning.per_ray_local_size)
+    return out[:n]
 
 
 def keep_front(device, pk: Packed, sigma, t_stop: float, rows=(), max_fraction: float = 1.0):

@@ -55,6 +55,7 @@ from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
                     packed_backward, packed_forward)
+from .march import ray_grad as packed_ray_grad
 from .occupancy import OccupancyGrid
 
 RENDER_ROUND_SAMPLES = (1 << 16, 1 << 20)   # (ray, bin) pairs a render round marches at most
@@ -197,12 +198,21 @@ class HashModel:
         # one rank of a data-parallel run over MPI (clrf/runtime/dataparallel.py), or None
         self.ranks = None
 
-    def attach_corrections(self, n_images: int, pixels: int, masked: bool):
+    def attach_corrections(self, n_images: int, pixels: int, masked: bool, viewmats=None,
+                           pivots=None):
         """The per-view corrections the config turns on, a row per training image of
         ``pixels`` pixels (masked: an RGBA capture); training steps then may need each ray's
-        index in the concatenated training images (``ray_index``)."""
-        self.corrections = build(self.device, self.config, Views(n_images, masked, pixels),
-                                 RAYS)
+        index in the concatenated training images (``ray_index``). hash.pose_opt: ``viewmats``
+        and ``pivots``, functions giving the training cameras' world-to-camera [V, 4, 4]
+        (OpenCV axes) and pivot depths (clrf/corrections/pose.py)."""
+        views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
+                      viewmats=viewmats)
+        self.corrections = build(self.device, self.config, views, RAYS)
+
+    @property
+    def extent(self) -> float:
+        """The scene's extent: the box's largest side (pose translations are relative to it)."""
+        return float((self.bbox[1] - self.bbox[0]).max())
 
     @property
     def ray_index(self) -> bool:
@@ -377,7 +387,7 @@ class HashModel:
         return full if target <= 0 else min(full, BOUND_FACTOR * int(target))
 
     def loss_and_grad(self, it: int, origins, dirs, target, jitter=None, background=None,
-                      index=None, rays_total: int | None = None):
+                      index=None, rays_total: int | None = None, ray_grad=None):
         """(loss, live samples) of a batch; net.grad gets dL/dparams (overwritten) and
         enc.grad dL/dtable ADDED (it is zero between steps: the table's Adam step clears it);
         both untouched when no sample is live. L = sum over rays
@@ -385,9 +395,17 @@ class HashModel:
         the RGB behind the rays (None: the model's own). With ``bounded`` (see train_step) the
         loss is a Pending and the live samples the buffers' capacity. With hash.exposure the
         loss compares each ray's colour under its image's transform (index: the rays' places
-        in the training images), and the transforms take their Adam step here."""
+        in the training images), and the transforms take their Adam step here. ``ray_grad``
+        (device float32 [B, 6], or None): filled with each ray's dL/d(origin, direction)
+        (zero when no sample is live). With hash.pose_opt the rays are first remade from
+        their images' corrected cameras, and each image with rays in the batch takes its
+        correction's Adam step here (none when no sample is live)."""
         c, dev = self.config, self.device
         B = int(origins.shape[0])
+        camera = self.corrections.ray_camera   # hash.pose_opt: the corrected cameras' rays
+        if camera is not None:
+            origins, dirs = camera.rays(index, origins, dirs)
+            ray_grad = device_empty(dev.queue, (B, 6), np.float32)
         scale = 1.0 / (3.0 * (B if rays_total is None else int(rays_total)))
         jitter = c.perturb if jitter is None else bool(jitter)
         # each rank of a data-parallel run jitters its rays with its own stream
@@ -440,9 +458,16 @@ class HashModel:
             else:   # train_step adapts to the whole batch's live samples
                 self._marched = (B, marched)
         if pk.m == 0:            # no live sample in the batch: nothing to train
+            if ray_grad is not None:
+                ray_grad.fill(np.float32(0))
             return loss, 0
-        dx, _ = self.net.backward(g["sigma"], g["rgb"], want_input=True)
+        dx, dd = self.net.backward(g["sigma"], g["rgb"], want_input=True)
         self.enc.backward(pk.xyz, dx, count=pk.count)
+        if ray_grad is not None:
+            gp = self.enc.dx(pk.xyz, dx, count=pk.count)
+            packed_ray_grad(dev, pk, origins, dirs, gp, dd, self.contraction, out=ray_grad)
+        if camera is not None:
+            camera.step_rays(index, dirs, ray_grad)
         return loss, pk.m
 
     def _adapt_batch(self, rays: int, live: int):
@@ -542,6 +567,7 @@ class HashModel:
         seconds and iterations over their limits) is the learning rate's clock under
         lr_schedule "budget"."""
         self.progress = float(budget.fraction)
+        self.corrections.schedule(self.progress)
         return None
 
     def describe(self) -> str:
@@ -587,5 +613,6 @@ class HashModel:
             arr.set(np.ascontiguousarray(v))
         model.net.sync_params()
         model.occ._threshold(float(state["occ_threshold"]))
-        model.corrections = from_state(device, model.config, state, Views(), RAYS)
+        model.corrections = from_state(device, model.config, state, Views(scale=model.extent),
+                                       RAYS)
         return model

@@ -44,6 +44,38 @@ def sh_basis(dirs, degree: int):
     return np.stack(out, axis=1)
 
 
+def sh_dir_grad(dirs, w, degree):
+    """sum_b w_b dY_b/dd [n, 3] (cl/sh.h sh_dir_grad), by the product rule on
+    sh_basis's polynomials, written out per term."""
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    g = np.zeros_like(dirs)
+    if degree >= 1:
+        g[:, 0] += -SH_C1 * w[:, 3]
+        g[:, 1] += -SH_C1 * w[:, 1]
+        g[:, 2] += SH_C1 * w[:, 2]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        g[:, 0] += SH_C2[0] * y * w[:, 4] - 2 * SH_C2[2] * x * w[:, 6] + SH_C2[3] * z * w[:, 7] \
+            + 2 * SH_C2[4] * x * w[:, 8]
+        g[:, 1] += SH_C2[0] * x * w[:, 4] + SH_C2[1] * z * w[:, 5] - 2 * SH_C2[2] * y * w[:, 6] \
+            - 2 * SH_C2[4] * y * w[:, 8]
+        g[:, 2] += SH_C2[1] * y * w[:, 5] + 4 * SH_C2[2] * z * w[:, 6] + SH_C2[3] * x * w[:, 7]
+    if degree >= 3:
+        c = SH_C3
+        g[:, 0] += (6 * c[0] * x * y * w[:, 9] + c[1] * y * z * w[:, 10]
+                    - 2 * c[2] * x * y * w[:, 11] - 6 * c[3] * x * z * w[:, 12]
+                    + c[4] * (4 * zz - 3 * xx - yy) * w[:, 13] + 2 * c[5] * x * z * w[:, 14]
+                    + c[6] * (3 * xx - 3 * yy) * w[:, 15])
+        g[:, 1] += (c[0] * (3 * xx - 3 * yy) * w[:, 9] + c[1] * x * z * w[:, 10]
+                    + c[2] * (4 * zz - xx - 3 * yy) * w[:, 11] - 6 * c[3] * y * z * w[:, 12]
+                    - 2 * c[4] * x * y * w[:, 13] - 2 * c[5] * y * z * w[:, 14]
+                    - 6 * c[6] * x * y * w[:, 15])
+        g[:, 2] += (c[1] * x * y * w[:, 10] + 8 * c[2] * y * z * w[:, 11]
+                    + c[3] * (6 * zz - 3 * xx - 3 * yy) * w[:, 12] + 8 * c[4] * x * z * w[:, 13]
+                    + c[5] * (xx - yy) * w[:, 14])
+    return g
+
+
 def ray_box(o, d, lo, hi):
     """Slab intersection of o + t d (t >= 0) with [lo, hi]: (t0, t1, hit), arrays [n]."""
     n = o.shape[0]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reference import sh_basis
+from .reference import sh_basis, sh_dir_grad
 
 PRIME_Y = 2654435761
 PRIME_Z = 805459861
@@ -25,22 +25,29 @@ def level_resolutions(levels: int, n_min: int, n_max: int) -> np.ndarray:
     return np.floor(n_min * b ** np.arange(levels) + 1e-9).astype(np.int64)
 
 
-def unit_coords(x, lo, inv_ext):
-    """u [n, 3] in [0, 1] (float32 arithmetic, NaN -> 0), returned as float32."""
-    x = np.asarray(x, np.float32)
+def unit_coords(x, lo, inv_ext, f64=False):
+    """u [n, 3] in [0, 1] (float32 arithmetic, NaN -> 0), returned as float32; ``f64``: the
+    same in float64 (for finite differences in x, which float32 would round away)."""
+    ft = np.float64 if f64 else np.float32
+    x = np.asarray(x, ft)
     with np.errstate(invalid="ignore"):
-        u = (x - np.asarray(lo, np.float32)) * np.asarray(inv_ext, np.float32)
-    u = np.where(np.isnan(u), np.float32(0), u)
-    return np.clip(u, np.float32(0), np.float32(1)).astype(np.float32)
+        u = (x - np.asarray(lo, ft)) * np.asarray(inv_ext, ft)
+    u = np.where(np.isnan(u), ft(0), u)
+    return np.clip(u, ft(0), ft(1)).astype(ft)
+
+
+def cell_weights(u, N: int):
+    """(i [n, 3] int64 cell, w [n, 3] float64 in [0, 1]) of level resolution N: p = u N in
+    u's precision, i = min(floor(p), N - 1), w = p - i."""
+    p = (u * u.dtype.type(N)).astype(u.dtype)
+    fl = np.minimum(np.floor(p), u.dtype.type(N - 1))
+    return fl.astype(np.int64), (p - fl).astype(np.float64)
 
 
 def cell(u, N: int, T: int):
     """(rows [n, 8] int64, weights [n, 8] float64) of level resolution N (corner k: bit 0 x,
     bit 1 y, bit 2 z), as cl/hash.cl hash_cell."""
-    p = (u * np.float32(N)).astype(np.float32)
-    fl = np.minimum(np.floor(p), np.float32(N - 1))
-    w = (p - fl).astype(np.float64)
-    i = fl.astype(np.int64)
+    i, w = cell_weights(u, N)
     R = N + 1
     dense = R ** 3 <= T
     rows = np.zeros((u.shape[0], 8), np.int64)
@@ -58,11 +65,11 @@ def cell(u, N: int, T: int):
     return rows, wts
 
 
-def hash_forward(x, lo, inv_ext, res, table):
-    """enc [n, L F] of points x [n, 3]; table [L, T, F]."""
+def hash_forward(x, lo, inv_ext, res, table, f64=False):
+    """enc [n, L F] of points x [n, 3]; table [L, T, F]; ``f64``: u and p in float64."""
     table = np.asarray(table, np.float64)
     L, T, F = table.shape
-    u = unit_coords(x, lo, inv_ext)
+    u = unit_coords(x, lo, inv_ext, f64)
     out = np.zeros((u.shape[0], L * F))
     for l in range(L):
         rows, wts = cell(u, int(res[l]), T)
@@ -81,6 +88,34 @@ def hash_backward(x, lo, inv_ext, res, genc, shape):
         for k in range(8):
             np.add.at(g[l], rows[:, k], wts[:, k, None] * genc[:, l * F:(l + 1) * F])
     return g
+
+
+def hash_dx(x, lo, inv_ext, res, table, genc, f64=False):
+    """dL/dx [n, 3] of points x [n, 3] from dL/denc genc [n, L F] (cl/hash.cl hash_dx): per
+    level dL/dw_a = sum_c (c_a ? 1 : -1) prod_{b != a} (c_b ? w_b : 1 - w_b) genc_l . table[l,
+    row_c], times N_l, summed over levels, times inv_ext_a where 0 <= (x_a - lo_a) inv_ext_a
+    <= 1 (else 0). The derivative of the cell the forward reads (one-sided on its faces)."""
+    table = np.asarray(table, np.float64)
+    L, T, F = table.shape
+    genc = np.asarray(genc, np.float64)
+    ft = np.float64 if f64 else np.float32
+    with np.errstate(invalid="ignore"):
+        raw = (np.asarray(x, ft) - np.asarray(lo, ft)) * np.asarray(inv_ext, ft)
+        inside = (raw >= 0) & (raw <= 1)
+    u = unit_coords(x, lo, inv_ext, f64)
+    g = np.zeros((u.shape[0], 3))
+    for l in range(L):
+        N = int(res[l])
+        rows, _ = cell(u, N, T)
+        _, w = cell_weights(u, N)
+        s = np.einsum("nf,nkf->nk", genc[:, l * F:(l + 1) * F], table[l][rows])
+        for k in range(8):
+            c = [k & 1, (k >> 1) & 1, (k >> 2) & 1]
+            f = [w[:, a] if c[a] else 1.0 - w[:, a] for a in range(3)]
+            for a in range(3):
+                b0, b1 = [b for b in range(3) if b != a]
+                g[:, a] += (1.0 if c[a] else -1.0) * f[b0] * f[b1] * s[:, k] * N
+    return g * np.asarray(inv_ext, np.float64) * inside
 
 
 def sh_encode(d):
@@ -233,3 +268,45 @@ def packed_keep(offsets, dt, sigma, t_stop):
         below = np.flatnonzero(T[1:] < t_stop)
         keep[i] = (below[0] + 1) if len(below) else b - a
     return keep, T_front
+
+
+# ---- the camera gradient of a ray batch (cl/hash_march.cl packed_ray_grad) --------------------
+def contract_vjp(x, gp, centre, half):
+    """dL/dx [m, 3] at world points x of dL/dp at p = contract((x - centre) / half)."""
+    y = (np.asarray(x, np.float64) - np.asarray(centre)) / np.asarray(half)
+    gp = np.asarray(gp, np.float64)
+    a = np.abs(y)
+    n = a.max(axis=1)
+    out = gp.copy()
+    far = n > 1
+    nf = n[far]
+    out[far] = gp[far] * ((2 - 1 / nf) / nf)[:, None]
+    k = np.sum(y[far] * gp[far], axis=1) * 2 * (1 - nf) / nf ** 3
+    m = np.argmax(a[far], axis=1)          # the first axis on ties, as the kernel
+    rows = np.flatnonzero(far)
+    out[rows, m] += k * np.sign(y[rows, m])
+    return out / np.asarray(half)
+
+
+def ray_grad(offsets, t, origins, dirs, gp, gsh=None, centre=None, half=None):
+    """dL/d(origin, direction) [n, 6] of rays x_k = o + t_k d / |d| from the samples' dL/dp
+    gp [M, 3] (p: the point the encoding reads, contracted with ``centre``/``half``) and dL/dY
+    gsh [M, 16] (the view direction's SH basis) or None."""
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(dirs, np.float64)
+    length = np.linalg.norm(d, axis=1)
+    dh = d / length[:, None]
+    t = np.asarray(t, np.float64)
+    ray = np.repeat(np.arange(len(o)), np.diff(offsets))
+    gx = np.asarray(gp, np.float64)
+    if centre is not None:
+        gx = contract_vjp(o[ray] + t[:, None] * dh[ray], gx, centre, half)
+    gd_s = t[:, None] * gx
+    if gsh is not None:
+        gd_s = gd_s + sh_dir_grad(dh[ray], np.asarray(gsh, np.float64), 3)
+    go = np.zeros_like(o)
+    gd = np.zeros_like(o)
+    np.add.at(go, ray, gx)
+    np.add.at(gd, ray, gd_s)
+    gd = (gd - dh * np.sum(dh * gd, axis=1, keepdims=True)) / length[:, None]
+    return np.concatenate([go, gd], axis=1)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reference import SH_C1, SH_C2, SH_C3, sh_basis
+from .reference import sh_basis, sh_dir_grad
 
 TILE = 16
 ALPHA_MAX = float(np.float32(0.99))
@@ -315,38 +315,6 @@ def rasterize_backward(proj, lists, fwd, width, height, grad_rgb, background=(0.
     return g
 
 
-def _sh_dir_grad(dirs, w, degree):
-    """sum_b w_b dY_b/dd [n, 3] (cl/splat_project.cl sh_dir_grad), by the product rule on
-    sh_basis's polynomials, written out per term."""
-    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
-    g = np.zeros_like(dirs)
-    if degree >= 1:
-        g[:, 0] += -SH_C1 * w[:, 3]
-        g[:, 1] += -SH_C1 * w[:, 1]
-        g[:, 2] += SH_C1 * w[:, 2]
-    if degree >= 2:
-        xx, yy, zz = x * x, y * y, z * z
-        g[:, 0] += SH_C2[0] * y * w[:, 4] - 2 * SH_C2[2] * x * w[:, 6] + SH_C2[3] * z * w[:, 7] \
-            + 2 * SH_C2[4] * x * w[:, 8]
-        g[:, 1] += SH_C2[0] * x * w[:, 4] + SH_C2[1] * z * w[:, 5] - 2 * SH_C2[2] * y * w[:, 6] \
-            - 2 * SH_C2[4] * y * w[:, 8]
-        g[:, 2] += SH_C2[1] * y * w[:, 5] + 4 * SH_C2[2] * z * w[:, 6] + SH_C2[3] * x * w[:, 7]
-    if degree >= 3:
-        c = SH_C3
-        g[:, 0] += (6 * c[0] * x * y * w[:, 9] + c[1] * y * z * w[:, 10]
-                    - 2 * c[2] * x * y * w[:, 11] - 6 * c[3] * x * z * w[:, 12]
-                    + c[4] * (4 * zz - 3 * xx - yy) * w[:, 13] + 2 * c[5] * x * z * w[:, 14]
-                    + c[6] * (3 * xx - 3 * yy) * w[:, 15])
-        g[:, 1] += (c[0] * (3 * xx - 3 * yy) * w[:, 9] + c[1] * x * z * w[:, 10]
-                    + c[2] * (4 * zz - xx - 3 * yy) * w[:, 11] - 6 * c[3] * y * z * w[:, 12]
-                    - 2 * c[4] * x * y * w[:, 13] - 2 * c[5] * y * z * w[:, 14]
-                    - 6 * c[6] * x * y * w[:, 15])
-        g[:, 2] += (c[1] * x * y * w[:, 10] + 8 * c[2] * y * z * w[:, 11]
-                    + c[3] * (6 * zz - 3 * xx - 3 * yy) * w[:, 12] + 8 * c[4] * x * z * w[:, 13]
-                    + c[5] * (xx - yy) * w[:, 14])
-    return g
-
-
 def project_backward(params, cam, grads2d) -> dict:
     """dL/d(means, log_scales, quats, opacity_logits, sh) from dL/d(xy, conic, color, opacity)
     of the projected splats (derivation: cl/splat_project.cl's header)."""
@@ -390,7 +358,7 @@ def _backward(params, cam, grads2d):
     gc = np.where(col < 0, 0.0, gcol)
     d_sh = Y[:, :, None] * gc[:, None, :]
     w = np.einsum("nc,nbc->nb", gc, sh)
-    gdir = _sh_dir_grad(dirs, w, degree)
+    gdir = sh_dir_grad(dirs, w, degree)
     gm = (gdir - dirs * np.sum(dirs * gdir, 1, keepdims=True)) / np.where(dist > 0, dist,
                                                                           1)[:, None]
     g_dir = gm

@@ -316,6 +316,56 @@ HASH_FD_ATOL = 1e-10
 # Kernel self-consistency: enc(table + h e_j) - enc(table) with h = 1 equals h times the
 # kernel's gradient column for a linear map; both in float32 on O(1) values: a few u -> 1e-6.
 HASH_KERNEL_FD_ATOL = 1e-6
+# Spatial derivative (hash_dx) vs float64: same cell and float32 weights as the twin; each
+# level's sum of 8 corner terms (each 2 weight products times a float32 dot of F features) and
+# the sum over levels carry <= ~16 u relative of the sum of the terms' magnitudes, which the
+# tests bound by B_a = 2 inv_ext_a sum_l N_l sum_f |dL/denc_lf| max|table|: 16 u ~ 1e-6 of B,
+# 2e-6 with margin. A wrong sign, corner or level scale moves dx by O(N_l / sum N_l) of B.
+HASH_DX_RTOL_OF_BOUND = 2e-6
+# Twin vs central differences of the float64 twin (u and p in float64) with x steps of 1e-7
+# box units: along one axis the encoding is linear inside a cell, so the difference is exact
+# up to roundoff, |L| ~ 10 times 1e-16 over 1e-7 ~ 1e-8; 1e-6 is 100x that and still ~1e6
+# below a missing level's share.
+HASH_DX_FD_EPS = 1e-7
+HASH_DX_FD_ATOL = 1e-6
+# ... and relative to dx: p = u N_l rounds by ~u64 N_l, which shifts L by u64 |dL/dx| / inv_ext
+# (dL/dx = N_l inv_ext dL/dw); over a step of h = 1e-7: u64 / (h inv_ext) ~ 7e-9 relative at
+# inv_ext = 1/3 (fine levels, where |dx| ~ 1e3, see 3e-6 absolute); 3e-8 with margin.
+HASH_DX_FD_RTOL = 3e-8
+# Each ray's dL/d(origin, direction) (packed_ray_grad) vs float64: float32 sums of <= 9
+# samples' terms t_k dL/dx_k and SH derivatives (16 terms each), each a few u relative, then
+# the projection over |d|: relative to the terms' magnitudes (the tests' per-ray scale, which
+# the result may cancel far below) 2e-6 (~30 u) covers the sums' growth. A sample dropped, a
+# missing t_k or projection moves the ray's gradient by O(1) of its terms.
+HASH_RAY_GRAD_RTOL = 2e-6
+# The float64 chain's dL/d(o, d) vs central differences of its loss (steps of 1e-6 world units
+# in o and d): the chain is smooth where no sample crosses a cell face (piecewise multilinear
+# encoding, relu MLP); its second-order error is h^2 |L'''| ~ 1e-12, and roundoff of a loss of
+# ~0.1 over 2h is ~1e-11. A kink crossed within h costs at most |jump in dL/dx| h / (2h) of one
+# sample: rare, and bounded below 1e-5 of the largest component here; 1e-5 is still 1e4 below
+# a missing sample's share.
+HASH_RAY_FD_EPS = 1e-6
+HASH_RAY_FD_RTOL = 1e-5
+# Rays from corrected cameras (cl/ray_pose.cl): the rows are float32 roundings of float64
+# (|A| <= 1, |c| ~ 3: 2e-7 absolute), a direction a float32 dot of 3 (|d0| ~ 1): a few u of
+# |A||d0| ~ 5e-7; 1e-6 for the rows and centres, three times that for the directions. A
+# wrong row, transposed A or wrong image moves them by O(1).
+RAY_POSE_ATOL = 1e-6
+# Per-image sums of a batch (ray_pose_sums): float32 sums of <= 300 products in a fixed tree,
+# the error <= ~log2(n) + 2 u of the sum of the terms' magnitudes (the test's bound): 1e-6.
+RAY_POSE_SUM_RTOL = 1e-6
+# dL/dR, dL/dt (float64) vs central differences with steps of 1e-6 in R's and t's entries: the
+# loss is smooth (sines and squares of O(1)), second-order error ~1e-12 / h^0, roundoff
+# ~1e-16 |L| / h ~ 1e-9; 1e-6 relative (of max(1, |g|)) is far below a wrong sign or
+# transpose (O(1)).
+RAY_POSE_FD_RTOL = 1e-6
+# hash.pose_opt's dL/d(w, tau) (each ray's gradient, the per-image sums, the host's chain)
+# vs central differences of the float32 step loss in (w, tau) with steps of 1e-3: the
+# difference's own error is its second-order term, h^2 |L'''| / 6 (the field's cells are ~1
+# unit seen from ~3: curvature scales of ~0.3 rad, so ~1e-3 of |g|), and float32 roundoff of
+# a loss of ~5e-4, ~1e-7 relative over 2h: ~2e-8 absolute; seen 7e-4 of the largest
+# component. 2e-3 of it is still far below a wrong sign, transpose or missing term (O(1)).
+HASH_POSE_FD_REL_TO_MAX = 2e-3
 # SH direction encoding: degree-3 polynomials of a float32-normalised direction, coefficients
 # <= 2.9: a few u times 3 -> 1e-6 (a wrong sign or index is O(0.1)).
 HASH_SH_ATOL = 1e-6

@@ -1,0 +1,154 @@
+"""A pose correction per training camera for models whose batches mix rays of many images
+(``hash.pose_opt``): the maths of clrf/corrections/pose.py (a rotation vector and a translation
+about a pivot per image, its Adam step on the host), on rays (cl/ray_pose.cl).
+
+Ray i of a batch comes from training image v = index[i] // pixels; the ray store holds it as the
+given camera [R0 t0] (world-to-camera, OpenCV axes) made it. Each step the rays are remade
+from each image's corrected camera [R t] (``rays``: o = -R^T t, d = R^T R0 d0), the model gives
+each ray's dL/do, dL/dd (cl/hash_march.cl packed_ray_grad), and the device sums them per image
+(S_d = sum_i d_i dL/dd_i^T, S_o = sum_i dL/do_i) so that
+
+    dL/dR = R S_d - t S_o^T,    dL/dt = -R S_o                    (``camera_gradient``)
+
+come back as twelve numbers a touched image; PoseCorrection turns them into dL/dw, dL/dtau and
+steps each image that had rays in the batch. Under NDC (forward-facing scenes) the store's rays
+are not the camera's, so the correction is refused there (clrf/hash/kind.py).
+
+>>> pose = RayPose(dev, viewmats0, pixels=400 * 400, lr=1e-3, reg=1e-4, scale=4.0,
+...                pivots=depths)
+>>> o_d, d_d = pose.rays(index_d, o0_d, d0_d)      # the batch from the corrected cameras
+>>> pose.step_rays(index_d, d_d, ray_grad_d)       # one Adam step of each touched image
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..runtime.programs import download, launch, scratch, upload
+from .base import CAMERA, RAYS
+from .pose import PoseCorrection
+
+LOCAL = 64   # work-items per image of ray_pose_sums (cl/ray_pose.cl RAY_POSE_LS)
+SUMS = 13    # floats per image of ray_pose_sums: S_d (9), S_o (3), the ray count
+
+
+def program(device):
+    """cl/ray_pose.cl on ``device`` (clrf/hash/kind.py lists it)."""
+    return device.program("ray_pose.cl", {"RAY_POSE_LS": LOCAL})
+
+
+def camera_gradient(viewmat, sums) -> tuple:
+    """(dL/dR [3, 3], dL/dt [3]) of the camera ``viewmat`` [4, 4] that made the rays whose
+    per-image sums are ``sums`` [13] (module doc)."""
+    V = np.asarray(viewmat, np.float64)
+    R, t = V[:3, :3], V[:3, 3]
+    s = np.asarray(sums, np.float64)
+    S_d, S_o = s[:9].reshape(3, 3), s[9:12]
+    return R @ S_d - np.outer(t, S_o), -R @ S_o
+
+
+def ray_rows(viewmats0, viewmats) -> np.ndarray:
+    """float32 [V, 12]: per image A = R^T R0 (row-major) and the centre c = -R^T t of given
+    viewmats0 [V, 4, 4] and corrected viewmats [V, 4, 4] (world-to-camera)."""
+    V0, V = np.asarray(viewmats0, np.float64), np.asarray(viewmats, np.float64)
+    A = np.einsum("vji,vjk->vik", V[:, :3, :3], V0[:, :3, :3])
+    c = -np.einsum("vji,vj->vi", V[:, :3, :3], V[:, :3, 3])
+    return np.ascontiguousarray(np.concatenate([A.reshape(-1, 9), c], axis=1), np.float32)
+
+
+def apply_rays(device, index, pixels: int, rows, o0, d0):
+    """(o, d) [n, 3] device: the rays o0/d0 [n, 3] (device) moved by their images' rows
+    ([V, 12] device, ``ray_rows``)."""
+    n = int(o0.shape[0])
+    o, d = scratch(device, (max(n, 1), 3)), scratch(device, (max(n, 1), 3))
+    launch(device, program(device).kernel("ray_pose_apply"), n,
+           (np.int32(n), np.int32(pixels), index.data, rows.data, o0.data, d0.data, o.data,
+            d.data), device.tuning.elementwise_local_size)
+    return o[:n], d[:n]
+
+
+def ray_sums(device, index, pixels: int, d, ray_grad, n_images: int):
+    """[V, 13] device: per image S_d (row-major), S_o and its ray count over the batch's rays
+    (index [n] int32, d [n, 3], ray_grad [n, 6] = dL/d(o, d); module doc)."""
+    n = int(d.shape[0])
+    out = scratch(device, (n_images, SUMS))
+    launch(device, program(device).kernel("ray_pose_sums"), n_images * LOCAL,
+           (np.int32(n), np.int32(pixels), index.data, d.data, ray_grad.data, out.data),
+           local_size=LOCAL)
+    return out
+
+
+FRAME_EVERY = 100   # steps between removals of the corrections' common motion (a ray batch
+#                     mixes every image, so there is no pass; the exposure rows' recentring
+#                     has the same rhythm)
+
+
+class RayPose:
+    """The pose corrections of ``n_images`` training cameras (given world-to-camera
+    ``viewmats0`` [V, 4, 4], OpenCV axes) of ``pixels`` pixels each, for a model whose batches
+    mix rays of many images (module doc): a PoseCorrection (the corrections, their Adam and
+    pull, on the host) and the rows [V, 12] of the corrected cameras on the device."""
+    name = "pose"
+    changes = CAMERA
+    batches = RAYS
+
+    def __init__(self, device, viewmats0, pixels: int, lr: float, reg: float, scale: float,
+                 pivots=None, lr_final: float | None = None, state: dict | None = None,
+                 hold_frame: bool = True):
+        if state is not None:
+            viewmats0 = state["pose_viewmats"]
+            pixels = int(state["pose_pixels"])
+        self.viewmats0 = np.asarray(viewmats0, np.float64).reshape(-1, 4, 4).copy()
+        if pixels < 1 or not np.all(np.isfinite(self.viewmats0)):
+            raise ValueError(f"RayPose needs finite viewmats and pixels >= 1, got {pixels}")
+        self.device = device
+        self.pixels = int(pixels)
+        self.pose = PoseCorrection(len(self.viewmats0), lr, reg, scale, state=state,
+                                   pivots=pivots, lr_final=lr_final, hold_frame=hold_frame)
+        self.pose.given = dict(enumerate(self.viewmats0))   # every image's given camera
+        self.steps = 0
+        self.n_images = self.pose.n_images
+        self.rows = upload(device.queue, ray_rows(self.viewmats0, self.viewmats()))
+
+    def viewmats(self) -> np.ndarray:
+        """[V, 4, 4] every image's corrected world-to-camera."""
+        return np.stack([self.pose.viewmat(m, v) for v, m in enumerate(self.viewmats0)])
+
+    def rays(self, index, origins, dirs):
+        """(origins, dirs) [n, 3] device: the batch as the corrected cameras make it."""
+        return apply_rays(self.device, index, self.pixels, self.rows, origins, dirs)
+
+    def step_rays(self, index, dirs, ray_grad) -> None:
+        """One Adam step of each image with rays in the batch (PoseCorrection.step), from the
+        rays' corrected directions and dL/d(o, d); the rows are then remade."""
+        sums = download(ray_sums(self.device, index, self.pixels, dirs, ray_grad,
+                                 self.n_images))
+        touched = np.flatnonzero(sums[:, SUMS - 1] > 0)
+        for v in touched:
+            vm = self.pose.viewmat(self.viewmats0[v], v)
+            dR, dt = camera_gradient(vm, sums[v])
+            self.pose.step(v, vm, dR, dt)
+        self.steps += 1
+        if self.pose.hold_frame and self.steps % FRAME_EVERY == 0:
+            self.pose.remove_common_motion()     # the frame held (clrf/corrections/pose.py)
+        if len(touched):
+            self.rows.set(ray_rows(self.viewmats0, self.viewmats()))
+
+    def schedule(self, progress: float) -> None:
+        self.pose.schedule(progress)
+
+    def after_pass(self) -> None:
+        """Nothing: there is no pass; the frame is held every FRAME_EVERY steps instead
+        (``step_rays``)."""
+
+    def state_dict(self) -> dict:
+        return {**self.pose.state_dict(), "pose_viewmats": self.viewmats0.copy(),
+                "pose_pixels": self.pixels}
+
+    def summary(self, trained=None) -> dict:
+        return self.pose.summary(trained)
+
+    def report(self, summary: dict) -> str:
+        return self.pose.report(summary)
+
+    def describe(self) -> str:
+        return self.pose.describe()
