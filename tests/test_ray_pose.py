@@ -241,3 +241,35 @@ def test_pose_opt_is_refused_on_ndc_scenes_and_over_ranks():
         create(None, cfg, SimpleNamespace(name="fern", ndc=True), (0, 0, 0))
     with pytest.raises(ValueError, match="hash.pose_opt.*MPI ranks"):
         Distributed(SimpleNamespace(Get_size=lambda: 2)).check(cfg)
+
+
+def test_the_frame_is_held_every_frame_every_steps(device, monkeypatch):
+    """RayPose knows every image's given camera, so the corrections' common motion is taken
+    out every FRAME_EVERY steps (clrf/corrections/pose.py): a common rigid motion of all the
+    cameras is gone, and the device rows follow; with the frame free it stays."""
+    from clrf.corrections import ray_pose as rp
+    from clrf.corrections.pose import twist_matrix
+    from clrf.references.reference_splat import look_at
+    monkeypatch.setattr(rp, "FRAME_EVERY", 2)
+    rng = np.random.default_rng(4)
+    given = np.stack([look_at(rng.normal(size=3) * 3 + 0.1, (0, 0, 0)) for _ in range(5)])
+    G = twist_matrix(np.radians(0.5) * np.array([0.0, 0.6, 0.8]), [0.02, 0.0, -0.03])
+    q = device.queue
+    empty = (cla.zeros(q, 0, np.int32), cla.zeros(q, (0, 3), np.float32),
+             cla.zeros(q, (0, 6), np.float32))
+    for hold in (True, False):
+        r = rp.RayPose(device, given, 16, 1e-3, 0.0, 3.0, hold_frame=hold)
+        for v, V in enumerate(given):
+            r.pose.set_viewmat(v, V, V @ G)
+        r.pose.steps[:] = 1
+        r.rows.set(ray_rows(given, r.viewmats()))
+        moved = r.pose.params.copy()
+        assert np.abs(r.rows.get() - ray_rows(given, given)).max() > 1e-3
+        r.step_rays(*empty)                  # step 1: no removal yet
+        np.testing.assert_array_equal(r.pose.params, moved)
+        r.step_rays(*empty)                  # step 2
+        if hold:
+            assert np.abs(r.pose.params).max() < 1e-9
+            np.testing.assert_allclose(r.rows.get(), ray_rows(given, given), atol=1e-6)
+        else:
+            np.testing.assert_array_equal(r.pose.params, moved)

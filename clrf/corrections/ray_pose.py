@@ -128,9 +128,10 @@ class RayPose:
             dR, dt = camera_gradient(vm, sums[v])
             self.pose.step(v, vm, dR, dt)
         self.steps += 1
-        if self.pose.hold_frame and self.steps % FRAME_EVERY == 0:
+        held = self.pose.hold_frame and self.steps % FRAME_EVERY == 0
+        if held:
             self.pose.remove_common_motion()     # the frame held (clrf/corrections/pose.py)
-        if len(touched):
+        if len(touched) or held:
             self.rows.set(ray_rows(self.viewmats0, self.viewmats()))
 
     def schedule(self, progress: float) -> None:
