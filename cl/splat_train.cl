@@ -13,6 +13,10 @@
  *   Gaussians seen in it (radius > 0): accum += |(gx sx, gy sy)| (the screen-space gradient of
  *   the mean, scaled from pixels to NDC units by sx = W / 2, sy = H / 2; a non-finite norm adds
  *   nothing), count += 1 (likewise), max_radius = max(max_radius, radius).
+ *
+ * splat_grad_sum: total = (total + g) scale, entry by entry in float32: a batch's gradients
+ *   summed view by view and the last sum scaled to the mean (clrf/splat/distributed.py; the
+ *   same two roundings as numpy's float32 (total + g) * scale).
  */
 
 #include "adam.h"
@@ -116,4 +120,11 @@ __kernel void splat_mcmc_noise(const int n, __global float *means,
                               R[3] * a.x + R[4] * a.y + R[5] * a.z,
                               R[6] * a.x + R[7] * a.y + R[8] * a.z);
     if (all(isfinite(d))) vstore3(vload3(i, means) + k * d, i, means);
+}
+
+__kernel void splat_grad_sum(const int n, __global float *total, __global const float *g,
+                             const float scale) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    total[i] = (total[i] + g[i]) * scale;
 }

@@ -12,12 +12,12 @@ network), the hash encoding's backward and spatial derivative, the hash march (w
 rays, contraction, each ray's camera gradient), the rays of corrected cameras and their
 per-image camera gradient sums, Adam over spans and over several buffers in one launch, the
 Gaussian splatting projection (forward, backward; anti-aliased; the camera's gradient), the
-density strategies' statistics (default) and regularisers and noise (MCMC), the bilateral grid
-(slice, both backward passes, the prior and Adam over every grid), the training images'
-widening (uint8, float16), binning (pyopencl's scan and radix sort, clrf's chunked sort) and
-tile rasteriser (forward, backward), and the hash model's bounded step (capped offsets, the
-encoding and the MLP on both tilings reading a device count, a bounded step with the GPU
-tiling).
+density strategies' statistics (default) and regularisers and noise (MCMC), the distributed
+step's gradient sum, the bilateral grid (slice, both backward passes, the prior and Adam over
+every grid), the training images' widening (uint8, float16), binning (pyopencl's scan and
+radix sort, clrf's chunked sort) and tile rasteriser (forward, backward), and the hash model's
+bounded step (capped offsets, the encoding and the MLP on both tilings reading a device count,
+a bounded step with the GPU tiling).
 The child's tests must pass and Oclgrind must report nothing.
 
 One API report is not clrf's: pyopencl asks every device for OpenCL 3.0 properties while
@@ -132,6 +132,7 @@ CASES = [
     "[default]",
     "tests/test_splat_strategy.py::test_mcmc_noise_matches_the_twin[default]",
     "tests/test_splat_strategy.py::test_default_statistics_match_the_twin[default-7]",
+    "tests/test_splat_kernels.py::test_grad_sum_rounds_as_numpy_float32[default-257]",
     "tests/test_splat_targets.py::test_uint8_images_widen_bit_for_bit[default]",
     "tests/test_splat_targets.py::test_other_images_widen_to_numpys_halves[default-averaged]",
     "tests/test_scan.py::test_capped_offsets_match_clipped_cumsum[100]",

@@ -638,3 +638,27 @@ def test_splat_default_tile_follows_the_shape(device):
     tile = sr.default_tile(device)
     assert sr.default_shape(device, tile) == ("rows" if tile == sr.CPU_TILE else "group")
     assert tile == (sr.TILE if getattr(device.tuning, "gpu_kernels", False) else sr.CPU_TILE)
+
+
+# ---- the batch's gradient sum (clrf/splat/distributed.py) ------------------------------------
+@pytest.mark.parametrize("n", [0, 1, 257, 4099])
+def test_grad_sum_rounds_as_numpy_float32(device, n):
+    """total = (total + g) * scale on the device: the float32 roundings of numpy's, bit for bit
+    (the distributed step's mean over the batch stays the one-process sum's), stiff values and
+    non-finite ones passing through as IEEE arithmetic has them."""
+    import pyopencl.array as cla
+    from clrf.splat.distributed import grad_sum
+    rng = np.random.default_rng(n)
+    total = (rng.normal(size=n) * 10.0 ** rng.integers(-30, 30, n)).astype(np.float32)
+    g = rng.normal(size=n).astype(np.float32)
+    if n > 4:
+        total[:4] = [np.inf, np.nan, 3e38, -1e-45]
+        g[:4] = [1.0, 2.0, 3e38, 1e-45]
+    q = device.queue
+    for scale in (1.0, 0.5, 1.0 / 3):
+        t = cla.to_device(q, total)
+        grad_sum(device, t, cla.to_device(q, g), scale)
+        want = (total + g) * np.float32(scale)
+        np.testing.assert_array_equal(t.get(), want)
+    with pytest.raises(ValueError, match="entries added"):
+        grad_sum(device, cla.to_device(q, total), cla.zeros(q, n + 1, np.float32), 1.0)

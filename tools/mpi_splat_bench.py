@@ -14,11 +14,14 @@ phase ends with the queue finished, so the phases' sum is the step):
 
   project      the shard projected into the P cameras (kernels) and the records read back
   exchange     the records' Alltoallv (after a barrier: the wait for the slowest is apart)
-  render       the owner's records uploaded, binning, raster, loss and raster backward
+  render       the owner's records uploaded, binning, raster and raster backward
+  loss         the owner's loss and its gradient (L1 and D-SSIM of the view)
   return       the gradients' Alltoallv and their scatter to the shard's rows (host)
   backward     the projection backward of the shard for the P cameras
+  stats        the strategy's statistics of each camera (after the backward and the update)
   adam         the shard's Adam step
-  host         the rest: the gradients uploaded, the density statistics, the loss read
+  host         the rest: the gradients uploaded, the loss read, the 3D filter's update
+               (every 100 steps, over every training camera)
 
 with the records (15 floats) and gradients (9 floats) each rank sent, the splats its view
 saw, and the Gaussians. ``--predict`` reads records of 1 rank (the terms) and prints the
@@ -38,8 +41,10 @@ import numpy as np
 
 sys.path.append(str(Path(__file__).resolve().parent.parent))  # an installed clrf comes first
 
-PHASES = ("project", "exchange", "render", "return", "backward", "adam", "host")
+PHASES = ("project", "exchange", "render", "loss", "return", "backward", "stats", "adam",
+          "host")
 RECORD_BYTES, GRAD_BYTES = 15 * 4, 9 * 4
+SHM_LATENCY = 2e-5      # seconds a message between ranks of one machine (Open MPI, shared memory)
 
 
 def cpu_name() -> str:
@@ -94,6 +99,12 @@ def instrument(model, clock: Clock, sent: dict):
     D.return_grads = return_grads
     adam = model._adam
     model._adam = lambda *a, **k: clock.run("adam", adam, *a, **k)
+    for hook in ("step_post_backward", "step_post_update"):
+        f = getattr(model.strategy, hook)
+        setattr(model.strategy, hook, (lambda f: lambda *a, **k: clock.run("stats", f, *a, **k))(f))
+    loss = model._loss()
+    lg = loss.loss_and_grad
+    loss.loss_and_grad = lambda *a, **k: clock.run("loss", lg, *a, **k)
     for name, phase in (("project", "project"), ("bin", "render"), ("rasterize", "render"),
                         ("rasterize_backward", "render"), ("project_backward", "backward")):
         f = getattr(rast, name)
@@ -167,7 +178,8 @@ def predict(terms: dict, P: int, cores: int, bandwidth_gbps: float | None,
     ph = terms["phases_s"]
     stretch = max(1.0, P / cores)
     compute = {"project": ph["project"], "backward": ph["backward"], "render": ph["render"],
-               "return": ph["return"], "host": ph["host"], "adam": ph["adam"] / P}
+               "loss": ph["loss"], "return": ph["return"], "stats": ph["stats"],
+               "host": ph["host"], "adam": ph["adam"] / P}
     share = (P - 1) / P
     bytes_ = share * splats_per_view * (RECORD_BYTES + GRAD_BYTES)
     comm = 2 * (P - 1) * latency_s
@@ -184,16 +196,23 @@ def main():
     ap.add_argument("run", nargs="?", help="a splat run folder or checkpoint")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--steps", type=int, default=10)
-    ap.add_argument("--predict", type=Path, help="print the model from a 1-rank record")
+    ap.add_argument("--predict", type=Path, nargs="+",
+                    help="print the model from a 1-rank record (the first), against the "
+                         "measured step of the records of more ranks that follow")
     ap.add_argument("--cores", type=int, default=2, help="cores of this machine (--predict)")
     ap.add_argument("--latency", type=float, default=5e-6,
                     help="seconds a message on the network (--predict)")
     a = ap.parse_args()
     if a.predict:
-        terms = json.loads(a.predict.read_text())
+        terms, *measured = (json.loads(p.read_text()) for p in a.predict)
         splats = terms["view_splats"]
-        out = {"here": [predict(terms, P, a.cores, None, terms.get("latency_s", 2e-5), splats)
-                        for P in (1, 2, 3)],
+        here = []
+        for m in [terms] + measured:
+            p = predict(terms, m["ranks"], a.cores, None, SHM_LATENCY, splats)
+            p["measured_step_s"] = m["step_s"]
+            p["error"] = p["step_s"] / m["step_s"] - 1.0
+            here.append(p)
+        out = {"here": here,
                "nodes": [dict(predict(terms, P, P, bw, a.latency, splats), gbps=bw)
                          for bw in (10, 25, 100) for P in (8, 16, 64)]}
         print(json.dumps(out, indent=2))

@@ -35,7 +35,7 @@ import numpy as np
 
 from .raster import Projected
 from ..runtime.dataparallel import shard_bounds
-from ..runtime.programs import download, upload
+from ..runtime.programs import download, launch, upload
 from .config import SplatConfig
 from .model import FILTER3D_EVERY, SplatModel, camera_of
 from .params import NAMES, moment_keys
@@ -168,6 +168,16 @@ ROW_KEYS = {**{f"param_{k}": 0 for k in NAMES},
             "filter3d": 0}
 
 
+def grad_sum(device, total, g, scale: float) -> None:
+    """total = (total + g) * scale in float32 (cl/splat_train.cl splat_grad_sum; device arrays
+    of one size): one pass, where pyopencl's array arithmetic makes two slower ones on PoCL."""
+    n = int(total.size)
+    if g.size != n:
+        raise ValueError(f"grad_sum: {g.size} entries added to {n}")
+    launch(device, device.program("splat_train.cl").kernel("splat_grad_sum"), n,
+           (np.int32(n), total.data, g.data, np.float32(scale)))
+
+
 def _split_cap(cap: int, ranks: int, rank: int) -> int:
     lo, hi = shard_bounds(cap, ranks)[rank]
     return max(1, hi - lo)
@@ -254,11 +264,10 @@ class DistSplatModel(SplatModel):
                            int(cams[k].height)))
             if total is None:
                 total = grads
-            else:
+            else:                   # the batch's mean gradient: summed, the last sum scaled
+                scale = 1.0 / self.P if k == len(back) - 1 else 1.0
                 for name in total:
-                    total[name] += grads[name]
-        for name in total:          # the batch's mean gradient
-            total[name] *= np.float32(1.0 / self.P)
+                    grad_sum(self.device, total[name], grads[name], scale)
         self.step += 1
         self._adam(total, self.step)
         self.strategy.step_post_update(self.params, self.moments, self.step, self.lr_means)
