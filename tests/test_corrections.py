@@ -145,7 +145,7 @@ def test_the_list_takes_one_of_each_change():
     with pytest.raises(ValueError, match="one of each name"):
         Corrections([_Fake("a", "colour"), _Fake("a", "camera")])
     with pytest.raises(ValueError, match="is not one of"):
-        Corrections([_Fake("a", "camera", "rays")])
+        Corrections([_Fake("a", "depth")])
     both = Corrections([_Fake("a", "colour", "rays"), _Fake("b", "camera")])
     assert both.colour.name == "a" and both.moves_cameras and both.ray_index
 

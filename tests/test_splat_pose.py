@@ -502,3 +502,19 @@ def test_a_free_frame_keeps_its_corrections_and_the_frame_is_saved():
     np.testing.assert_array_equal(back.frame, pc.frame)
     assert "common motion of 0.800 deg" in pc.report(pc.summary())
     assert "common motion" not in free.report(free.summary())
+
+
+def test_no_step_before_the_start_fraction():
+    """``start`` (splat.pose_opt_after): the corrections hold still until the budget reaches
+    it, then step as ever; a start outside [0, 1) is refused."""
+    pc = sp.PoseCorrection(2, lr=1e-3, reg=0.0, scale=1.0, start=0.25)
+    dR, dt = np.arange(9.0).reshape(3, 3), np.ones(3)
+    pc.schedule(0.2)
+    pc.step(0, np.eye(4), dR, dt)
+    assert not pc.params.any() and pc.steps.tolist() == [0, 0]
+    pc.schedule(0.25)
+    pc.step(0, np.eye(4), dR, dt)
+    assert pc.params[0].any() and pc.steps.tolist() == [1, 0]
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="start"):
+            sp.PoseCorrection(2, 1e-3, 0.0, 1.0, start=bad)

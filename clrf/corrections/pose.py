@@ -191,7 +191,7 @@ class PoseCorrection:
 
     def __init__(self, n_images: int, lr: float, reg: float, scale: float,
                  state: dict | None = None, pivots=None, lr_final: float | None = None,
-                 hold_frame: bool = True):
+                 hold_frame: bool = True, start: float = 0.0):
         if n_images < 1:
             raise ValueError(f"PoseCorrection needs at least one image, got {n_images}")
         if not (lr > 0 and reg >= 0 and scale > 0):
@@ -206,6 +206,9 @@ class PoseCorrection:
         self.v = np.zeros((self.n_images, 6))
         self.steps = np.zeros(self.n_images, np.int64)
         self.hold_frame = bool(hold_frame)
+        if not 0.0 <= start < 1.0:
+            raise ValueError(f"PoseCorrection: start must be in [0, 1), got {start}")
+        self.start, self.progress = float(start), 0.0    # no step before the fraction start
         self.given = {}                     # image -> its given world-to-camera (``camera``)
         self.frame = np.zeros(6)            # the common motion taken out so far (omega, nu)
         # each image's pivot depth d_v (module doc); a checkpoint's own wins over ``pivots``,
@@ -277,6 +280,8 @@ class PoseCorrection:
         """One Adam step of image v's correction (rotations at lr radians, translations at
         lr * scale)."""
         v = int(v)
+        if self.progress < self.start:
+            return   # the scene forms first (``start``)
         g = self.gradient(v, viewmat, dR, dt)
         if not np.all(np.isfinite(g)):
             return   # a non-finite gradient leaves the pose as it was (the loss reports it)
@@ -286,7 +291,8 @@ class PoseCorrection:
 
     def schedule(self, progress: float) -> None:
         """The rate at the budget fraction ``progress``: log-linear from its first rate to
-        ``lr_final`` (unchanged without one)."""
+        ``lr_final`` (unchanged without one); before the fraction ``start`` no step."""
+        self.progress = float(progress)
         if self.lr_final is not None:
             self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 

@@ -93,7 +93,7 @@ class RayPose:
 
     def __init__(self, device, viewmats0, pixels: int, lr: float, reg: float, scale: float,
                  pivots=None, lr_final: float | None = None, state: dict | None = None,
-                 hold_frame: bool = True):
+                 hold_frame: bool = True, start: float = 0.0):
         if state is not None:
             viewmats0 = state["pose_viewmats"]
             pixels = int(state["pose_pixels"])
@@ -103,7 +103,8 @@ class RayPose:
         self.device = device
         self.pixels = int(pixels)
         self.pose = PoseCorrection(len(self.viewmats0), lr, reg, scale, state=state,
-                                   pivots=pivots, lr_final=lr_final, hold_frame=hold_frame)
+                                   pivots=pivots, lr_final=lr_final, hold_frame=hold_frame,
+                                   start=start)
         self.pose.given = dict(enumerate(self.viewmats0))   # every image's given camera
         self.steps = 0
         self.n_images = self.pose.n_images

@@ -6,7 +6,7 @@ The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposur
 ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
 ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
 ``exposure_clip_inward``), ``splat.pose_opt`` and ``hash.pose_opt`` (with ``lr_pose``,
-``lr_pose_final``, ``pose_reg``, ``pose_hold_frame``), ``splat.bilateral_grid`` (with
+``lr_pose_final``, ``pose_reg``, ``pose_hold_frame``, ``pose_opt_after``), ``splat.bilateral_grid`` (with
 ``bilateral_grid_shape``, ``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction
 at a time (``colour_conflict``: the configurations' validation names the keys). A section
 without one of the optional keys takes what the correction does without it (a constant rate,
@@ -105,22 +105,24 @@ def _exposure(device, s, views: Views, batches: str, state=None):
 def _pose(device, s, views: Views, batches: str, state=None):
     from .pose import PoseCorrection
     hold = getattr(s, "pose_hold_frame", True)
+    start = getattr(s, "pose_opt_after", 0.0)
     if batches == RAYS:
         from .ray_pose import RayPose
         if state is not None:
             return RayPose(device, None, 0, s.lr_pose, s.pose_reg, views.scale, state=state,
-                           lr_final=s.lr_pose_final, hold_frame=hold)
+                           lr_final=s.lr_pose_final, hold_frame=hold, start=start)
         if views.viewmats is None:
             raise ValueError("a pose correction of ray batches needs the training cameras")
         return RayPose(device, views.viewmats(), views.pixels, s.lr_pose, s.pose_reg,
                        views.scale, pivots=views.pivots() if views.pivots else None,
-                       lr_final=s.lr_pose_final, hold_frame=hold)
+                       lr_final=s.lr_pose_final, hold_frame=hold, start=start)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
-                              state=state, lr_final=s.lr_pose_final, hold_frame=hold)
+                              state=state, lr_final=s.lr_pose_final, hold_frame=hold,
+                              start=start)
     return PoseCorrection(views.n_images, s.lr_pose, s.pose_reg, views.scale,
                           pivots=views.pivots() if views.pivots else None,
-                          lr_final=s.lr_pose_final, hold_frame=hold)
+                          lr_final=s.lr_pose_final, hold_frame=hold, start=start)
 
 
 def _bilateral(device, s, views: Views, batches: str, state=None):

@@ -101,6 +101,8 @@ class HashConfig:
     #                                 rays' noisy gradient (not tuned on a real capture)
     lr_pose_final: float = 1e-4     # ... decayed log-linearly to this over the budget
     pose_reg: float = 1e-4          # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_opt_after: float = 0.0     # budget fraction before the corrections take steps (the
+    #                                 scene forms first; 0: from the start)
     pose_hold_frame: bool = True    # take the corrections' common rigid motion out every 100
     #                                 steps, so the scene stays in the given poses' frame
     #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)
@@ -164,6 +166,7 @@ class HashConfig:
             (0 < self.lr_pose_final <= self.lr_pose, "hash.lr_pose_final",
              "must be in (0, hash.lr_pose]"),
             (self.pose_reg >= 0, "hash.pose_reg", "must be >= 0"),
+            (0 <= self.pose_opt_after < 1, "hash.pose_opt_after", "must be in [0, 1)"),
             (self.exposure_matrix in EXPOSURE_MATRICES, "hash.exposure_matrix",
              f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),

@@ -191,6 +191,8 @@ class SplatConfig:
     #                                 constant 1e-3, with the same rotation error, and its
     #                                 test views refined at the same rate to 0.50 dB more)
     pose_reg: float = 0.0001        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_opt_after: float = 0.0     # budget fraction before the corrections take steps (the
+    #                                 scene forms first; 0: from the start)
     pose_hold_frame: bool = True    # take the corrections' common rigid motion out after each
     #                                 pass, so the scene stays in the given poses' frame and
     #                                 the test views' given poses fit it (clrf/corrections/
@@ -321,6 +323,7 @@ class SplatConfig:
             (0 < self.lr_pose_final <= self.lr_pose, "splat.lr_pose_final",
              "must be in (0, splat.lr_pose]"),
             (self.pose_reg >= 0, "splat.pose_reg", "must be >= 0"),
+            (0 <= self.pose_opt_after < 1, "splat.pose_opt_after", "must be in [0, 1)"),
             (0 < self.aa_filter2d <= 1, "splat.aa_filter2d", "must be in (0, 1] px^2"),
             (self.images_on_device in IMAGES_ON_DEVICE, "splat.images_on_device",
              f"must be one of {list(IMAGES_ON_DEVICE)}"),
