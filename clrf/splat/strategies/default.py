@@ -14,12 +14,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...references.reference_strategy import quat_rot, sigmoid
 from ...runtime.programs import download, launch
 from ..params import edit_rows
 from .base import Schedule, Strategy, logit
 
 RESET_OPACITY = 0.01            # opacities above it are lowered to it by a reset
+
+
+def _twin():
+    """The float64 helpers of clrf/references/reference_strategy.py (sigmoid, quat_rot),
+    imported when a strategy first edits rows: nothing the command line imports before the
+    device's self-check may import the references (tests/test_install.py)."""
+    from ...references import reference_strategy
+    return reference_strategy
 
 
 @dataclass(frozen=True)
@@ -93,7 +100,7 @@ class DefaultStrategy(Strategy):
         scale = np.exp(np.asarray(host["log_scales"], np.float64)).max(axis=1)
         big = s.percent_dense * extent
         # prune first: the room it frees is the room for new Gaussians
-        prune = sigmoid(host["opacity_logits"]) < s.prune_opacity
+        prune = _twin().sigmoid(host["opacity_logits"]) < s.prune_opacity
         if self.state.resets > 0:
             prune |= (max_radius > s.prune_screen_size) | (scale > s.prune_world_size * extent)
         keep = ~prune
@@ -107,7 +114,7 @@ class DefaultStrategy(Strategy):
         new = {k: [np.asarray(host[k])[clone]] for k in host}
         if len(split):   # two samples of each split Gaussian, scales / 1.6, replace it
             sc = np.exp(np.asarray(host["log_scales"], np.float64)[split])
-            R = quat_rot(host["quats"][split])
+            R = _twin().quat_rot(host["quats"][split])
             for _ in range(2):
                 z = rng.standard_normal((len(split), 3)) * sc
                 new["means"].append(host["means"][split] + np.einsum("nij,nj->ni", R, z))

@@ -19,13 +19,20 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import comb
 
-from ...references.reference_strategy import quat_rot, sigmoid
 from ...runtime.programs import launch
 from ..params import edit_rows
 from .base import Schedule, Strategy, logit
 
 MCMC_MAX_COPIES = 51            # relocation: at most this many copies of one Gaussian at once
 OPACITY_EPS = 1.1920929e-07     # float32's epsilon: relocated opacities stay below 1 - eps
+
+
+def _twin():
+    """The float64 helpers of clrf/references/reference_strategy.py (sigmoid, quat_rot),
+    imported when a strategy first edits rows: nothing the command line imports before the
+    device's self-check may import the references (tests/test_install.py)."""
+    from ...references import reference_strategy
+    return reference_strategy
 
 
 def relocation(opacity, scale, copies):
@@ -103,7 +110,7 @@ class MCMCStrategy(Strategy):
         """(host, moments, log line) after relocating the dead Gaussians and growing toward
         the cap, on numpy arrays."""
         mo = self.settings.min_opacity
-        o = sigmoid(host["opacity_logits"])
+        o = _twin().sigmoid(host["opacity_logits"])
         dead = np.flatnonzero(o <= mo)
         alive = np.flatnonzero(o > mo)
         n0 = len(o)
@@ -128,11 +135,11 @@ class MCMCStrategy(Strategy):
         """(picked [k], opacity logits [k], log scales [k, 3]): k Gaussians of ``pool`` drawn in
         proportion to opacity (with replacement), and the relocated opacity and scale that each
         drawn one and its copies take."""
-        o = sigmoid(opacity_logits)[pool]
+        o = _twin().sigmoid(opacity_logits)[pool]
         p = o / o.sum() if o.sum() > 0 else None
         picked = pool[rng.choice(len(pool), size=k, replace=True, p=p)]
         copies = np.bincount(picked, minlength=len(opacity_logits))[picked] + 1
-        o_new, s_new = relocation(sigmoid(opacity_logits[picked]),
+        o_new, s_new = relocation(_twin().sigmoid(opacity_logits[picked]),
                                   np.exp(np.asarray(log_scales, np.float64)[picked]), copies)
         o_new = np.clip(o_new, self.settings.min_opacity, 1.0 - OPACITY_EPS)
         return picked, logit(o_new), np.log(s_new)
@@ -165,7 +172,7 @@ class MCMCStrategy(Strategy):
             return means
         z = rng.spawn(1)[0].standard_normal(means.shape)
         z *= np.exp(np.asarray(rows["log_scales"], np.float64))
-        off = np.einsum("nij,nj->ni", quat_rot(np.asarray(rows["quats"], np.float64)), z)
+        off = np.einsum("nij,nj->ni", _twin().quat_rot(np.asarray(rows["quats"], np.float64)), z)
         return (means + spread * off).astype(np.float32)
 
     def refine_in_place(self, table, cap, rng):
@@ -180,7 +187,7 @@ class MCMCStrategy(Strategy):
             return None
         mo = self.settings.min_opacity
         lo_all = table.get_rows("opacity_logits")
-        o = sigmoid(lo_all)
+        o = _twin().sigmoid(lo_all)
         dead = np.flatnonzero(o <= mo)
         alive = np.flatnonzero(o > mo)
         moved = 0
