@@ -67,8 +67,9 @@ def test_an_older_splat_checkpoint_loads_saves_renders_and_resumes(device, tmp_p
     assert {k for k in again if k.startswith(("exposure", "pose"))} == {
         "exposure", "exposure_m", "exposure_v", "exposure_steps", "exposure_masked",
         "exposure_hold_until", "pose", "pose_m", "pose_v", "pose_steps", "pose_pivot",
-        "pose_frame"}
+        "pose_frame", "pose_frame_scale"}
     np.testing.assert_array_equal(again["pose_frame"], np.zeros(6))   # none taken out yet
+    np.testing.assert_array_equal(again["pose_frame_scale"], [0.0])
     # renders, and resumes: the dataset attached keeps the corrections, a step trains them
     out = back.render_image(ds.poses[ds.split["test"][0]], ds.intrinsics, ds.hw, depth=False)
     assert np.all(np.isfinite(out["rgb"]))

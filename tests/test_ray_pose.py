@@ -273,3 +273,16 @@ def test_the_frame_is_held_every_frame_every_steps(device, monkeypatch):
             np.testing.assert_allclose(r.rows.get(), ray_rows(given, given), atol=1e-6)
         else:
             np.testing.assert_array_equal(r.pose.params, moved)
+
+
+def test_the_batched_camera_gradients_are_the_single_ones():
+    from clrf.corrections.ray_pose import camera_gradient, camera_gradients
+    from clrf.references.reference_splat import look_at
+    rng = np.random.default_rng(5)
+    V = np.stack([look_at(rng.normal(size=3) * 3, (0, 0, 0)) for _ in range(4)])
+    sums = rng.normal(size=(4, 13))
+    dR, dt = camera_gradients(V, sums)
+    for k in range(4):
+        a, b = camera_gradient(V[k], sums[k])
+        np.testing.assert_allclose(dR[k], a, atol=1e-14)
+        np.testing.assert_allclose(dt[k], b, atol=1e-14)

@@ -460,11 +460,50 @@ def test_a_common_motion_of_every_camera_is_taken_out():
     assert pc.summary()["frame_rotation_deg"] == pytest.approx(0.8, abs=1e-6)
 
 
+def test_a_common_scale_of_every_camera_is_taken_out():
+    """Corrections that move every camera as the world moved and scaled by 1 % would move
+    the scene with them (the images cannot tell): after a pass they are gone, and the frame
+    records the scale; with hold_scale=False only the rigid part goes and the scale stays."""
+    rng, given, pc, G = _frame_case()
+    omega, nu = sp.so3_log(G[:3, :3]), G[:3, 3]
+    keep = sp.PoseCorrection(len(given), 1e-3, 0.0, 3.0, pivots=pc.pivots, hold_scale=False)
+    for c in (pc, keep):
+        for v, V in enumerate(given):
+            c.set_viewmat(v, V, sp.similar_viewmat(V, omega, nu, np.log(1.01)))
+        c.steps[:] = 1
+        _rendered(c, given)
+    pc.remove_common_motion()
+    assert np.abs(pc.params).max() < 1e-9
+    assert pc.summary()["frame_scale_rel"] == pytest.approx(0.01, abs=1e-9)
+    assert "a scale of +1.00 %" in pc.report(pc.summary())
+    keep.remove_common_motion()
+    left = [keep.viewmat(V, v) for v, V in enumerate(given)]
+    for V, L in zip(given, left):     # what is left is the scale alone
+        np.testing.assert_allclose(L[:3, :3], V[:3, :3], atol=1e-9)
+        np.testing.assert_allclose(L[:3, 3], 1.01 * V[:3, 3], atol=1e-9)
+    assert keep.frame_scale == 0.0
+
+
+def test_a_similarity_and_its_removal_are_inverse():
+    rng = np.random.default_rng(3)
+    V = rs.look_at(rng.normal(size=3) * 3, (0, 0, 0))
+    w, nu, s = rng.normal(size=3) * 0.1, rng.normal(size=3) * 0.2, 0.05
+    back = sp.remove_similarity(sp.similar_viewmat(V, w, nu, s), w, nu, s)
+    np.testing.assert_allclose(back, V, atol=1e-12)
+    # the camera sees the moved and scaled world as V saw the world: a point x at e^s G^-1 x
+    x = rng.normal(size=3)
+    G = sp.twist_matrix(w, nu)
+    y = np.exp(s) * (np.linalg.inv(G) @ np.append(x, 1.0))[:3]
+    a = (V @ np.append(x, 1.0))[:3]
+    b = (sp.similar_viewmat(V, w, nu, s) @ np.append(y, 1.0))[:3]
+    np.testing.assert_allclose(b / b[2], a / a[2], atol=1e-12)
+
+
 def test_taking_the_frame_out_keeps_what_each_camera_corrected():
     """Corrections of their own plus a common motion: afterwards every corrected camera is
-    its corrected camera before moved by one and the same rigid motion of the world (the scene
-    sees the same relative poses), the common motion fitted to what is left is nil, and an
-    untrained image keeps the identity."""
+    its corrected camera before moved by one and the same similarity of the world (the scene
+    sees the same relative poses: the world's scale taken out, then one rigid motion), the
+    common motion fitted to what is left is nil, and an untrained image keeps the identity."""
     rng, given, pc, G = _frame_case()
     for v, V in enumerate(given[:-1]):
         own = sp.corrected_viewmat(V, rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.02,
@@ -475,14 +514,17 @@ def test_taking_the_frame_out_keeps_what_each_camera_corrected():
     before = [pc.viewmat(V, v) for v, V in enumerate(given)]
     pc.remove_common_motion()
     after = [pc.viewmat(V, v) for v, V in enumerate(given)]
-    H = [np.linalg.inv(b) @ a for a, b in zip(after[:-1], before[:-1])]
+    assert pc.frame_scale != 0.0
+    unscaled = [sp.similar_viewmat(b, np.zeros(3), np.zeros(3), -pc.frame_scale)
+                for b in before[:-1]]
+    H = [np.linalg.inv(b) @ a for a, b in zip(after[:-1], unscaled)]
     for h in H:
         np.testing.assert_allclose(h, H[0], atol=1e-12)
     assert sp.rotation_angle(H[0][:3, :3]) > np.radians(0.5)
     # each fit leaves a rest of second order in the corrections (about 1 %): three leave
     # 1e-6 of the 0.014 radians taken out
     rest = sp.common_motion(given[:-1], after[:-1], pc.scale)
-    assert np.abs(np.concatenate(rest)).max() < 1e-7
+    assert np.abs(np.hstack(rest)).max() < 1e-7
     assert not pc.params[-1].any()
 
 
@@ -518,3 +560,36 @@ def test_no_step_before_the_start_fraction():
     for bad in (-0.1, 1.0):
         with pytest.raises(ValueError, match="start"):
             sp.PoseCorrection(2, 1e-3, 0.0, 1.0, start=bad)
+
+
+def test_the_batched_steps_are_the_single_steps():
+    """step_many (hundreds of images a ray batch) takes the Adam steps that step takes one
+    image at a time, rotations near 0 (the series) and far from it alike; a non-finite
+    gradient leaves its image alone; the batched maths match the single functions."""
+    rng = np.random.default_rng(11)
+    n = 7
+    given = np.stack([rs.look_at(rng.normal(size=3) * 3 + 0.1, (0, 0, 0)) for _ in range(n)])
+    one = sp.PoseCorrection(n, lr=2e-3, reg=1e-3, scale=3.0, pivots=rng.uniform(0, 4, n))
+    many = sp.PoseCorrection(n, lr=2e-3, reg=1e-3, scale=3.0, pivots=one.pivots)
+    one.params[:] = rng.normal(size=(n, 6)) * np.array([0.3] * 3 + [0.1] * 3)
+    one.params[0, :3] = 1e-8                        # the series branch
+    many.params[:] = one.params
+    vs = np.array([5, 0, 2, 6, 3])
+    for it in range(3):
+        dR = rng.normal(size=(len(vs), 3, 3))
+        dt = rng.normal(size=(len(vs), 3))
+        if it == 1:
+            dt[2, 0] = np.nan                       # image 2 keeps its pose this step
+        vm = many.viewmats(given[vs], vs)
+        for k, v in enumerate(vs):
+            np.testing.assert_allclose(vm[k], one.viewmat(given[v], v), rtol=0, atol=1e-14)
+            one.step(v, vm[k], dR[k], dt[k])
+        many.step_many(vs, vm, dR, dt)
+        np.testing.assert_allclose(many.params, one.params, rtol=1e-13, atol=1e-16)
+        np.testing.assert_array_equal(many.steps, one.steps)
+    assert many.steps[2] == 2 and many.steps[1] == 0
+    w = rng.normal(size=(4, 3))
+    w[0] = 0.0
+    for k in range(4):
+        np.testing.assert_allclose(sp.so3_exps(w)[k], sp.so3_exp(w[k]), atol=1e-15)
+        np.testing.assert_allclose(sp.left_jacobians(w)[k], sp.left_jacobian(w[k]), atol=1e-15)

@@ -31,16 +31,19 @@ rotations at ``lr`` radians, translations at ``lr * scale``, the rate falling lo
 ``lr_final`` over the budget where one is given (``schedule``).
 
 The frame stays put (``hold_frame``, on by default). Images alone cannot tell a scene and all
-its cameras from the same scene and cameras moved together by one rigid motion G of the world,
-so the corrections' common part is free: left alone it drifts, the scene follows it, and the
-test views, which keep their given poses, no longer fit the scene. After each pass over the
-views (``after_pass``) the common motion of the trained images' corrections is taken out, as
-the exposure rows' common gain is: to first order a world twist (omega, nu) moves camera v's
-world-to-camera [R_v t_v] by the camera-frame rotation R_v omega and shift R_v nu + t_v x (R_v
-omega), so (omega, nu) is the least-squares fit of those to the corrections (rotation vector
-w_v, shift of the corrected transform c_v; shifts over the scene's extent), and each trained
-image's corrected transform C_v V_v becomes C_v V_v G^-1 exactly (``common_motion``,
-``remove_common_motion``). The scene, which followed the drift by no more than a pass's steps,
+its cameras from the same scene and cameras moved together by one rigid motion G of the world
+and scaled by one factor e^s about the world's origin, so the corrections' common part is free:
+left alone it drifts, the scene follows it, and the test views, which keep their given poses,
+no longer fit the scene (a common scale moves every camera along the line to the origin, as a
+camera's own translation does). After each pass over the views (``after_pass``) the common
+similarity of the trained images' corrections is taken out, as the exposure rows' common gain
+is: to first order a world twist (omega, nu) and a scale s move camera v's world-to-camera
+[R_v t_v] by the camera-frame rotation R_v omega and shift R_v nu + t_v x (R_v omega) + s t_v,
+so (omega, nu, s) is the least-squares fit of those to the corrections (rotation vector w_v,
+shift of the corrected transform c_v; shifts over the scene's extent), and each trained image's
+corrected transform C_v V_v becomes S(-s) C_v V_v G^-1 exactly (S(s): the translation times
+e^s; ``common_motion``, ``remove_common_motion``; ``hold_scale=False`` keeps the scale). The
+scene, which followed the drift by no more than a pass's steps,
 stays in the given poses' frame. Each image's given transform V_v is the one it was last
 rendered from (``camera``). Test views keep their given
 poses, as published protocols evaluate them; ``clrf eval --refine-poses N`` also scores them
@@ -125,19 +128,19 @@ def so3_log(R) -> np.ndarray:
 
 
 def common_motion(viewmats, corrected, scale: float) -> tuple:
-    """(omega, nu): the world twist whose camera-frame motions best fit the corrections of
-    given world-to-camera ``viewmats`` [n, 4, 4] to ``corrected`` [n, 4, 4] (module doc;
-    shifts weighed over ``scale``), by linear least squares."""
+    """(omega, nu, s): the world similarity whose camera-frame motions best fit the corrections
+    of given world-to-camera ``viewmats`` [n, 4, 4] to ``corrected`` [n, 4, 4] (module doc;
+    shifts weighed over ``scale``), by linear least squares; s the log of its scale."""
     rows, rhs = [], []
     for V, Vc in zip(np.asarray(viewmats, np.float64), np.asarray(corrected, np.float64)):
         R, t = V[:3, :3], V[:3, 3]
         C = Vc @ np.linalg.inv(V)                # the correction, in the camera's frame
-        rows.append(np.hstack([R, np.zeros((3, 3))]))
+        rows.append(np.hstack([R, np.zeros((3, 4))]))
         rhs.append(so3_log(C[:3, :3]))
-        rows.append(np.hstack([hat(t) @ R, R]) / scale)
+        rows.append(np.hstack([hat(t) @ R, R, t[:, None]]) / scale)
         rhs.append(C[:3, 3] / scale)
     x = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
-    return x[:3], x[3:]
+    return x[:3], x[3:6], float(x[6])
 
 
 def twist_matrix(omega, nu) -> np.ndarray:
@@ -145,6 +148,23 @@ def twist_matrix(omega, nu) -> np.ndarray:
     G = np.eye(4)
     G[:3, :3], G[:3, 3] = so3_exp(omega), np.asarray(nu, np.float64)
     return G
+
+
+def similar_viewmat(viewmat, omega, nu, s: float) -> np.ndarray:
+    """S(s) V G: world-to-camera ``viewmat`` V [4, 4] after the world moved by G =
+    twist_matrix(omega, nu), its translation then scaled by e^s (S(s)): the camera that sees
+    the world moved by G^-1, then scaled by e^s about its origin, as V saw it."""
+    out = np.asarray(viewmat, np.float64) @ twist_matrix(omega, nu)
+    out[:3, 3] *= np.exp(s)
+    return out
+
+
+def remove_similarity(corrected, omega, nu, s: float) -> np.ndarray:
+    """The world-to-camera ``corrected`` [4, 4] with the similarity of ``similar_viewmat``
+    taken out: S(-s) Vc G^-1 (its inverse, exact)."""
+    out = np.asarray(corrected, np.float64).copy()
+    out[:3, 3] *= np.exp(-s)
+    return out @ np.linalg.inv(twist_matrix(omega, nu))
 
 
 def pivot_point(pivot: float) -> np.ndarray:
@@ -174,13 +194,79 @@ def pose_gradient(viewmat, w, tau, dR, dt, pivot: float = 0.0) -> tuple:
     return left_jacobian(w).T @ g_phi, np.asarray(dt, np.float64).copy()
 
 
+def hats(w) -> np.ndarray:
+    """[k, 3, 3]: ``hat`` of each row of w [k, 3]."""
+    w = np.asarray(w, np.float64)
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return K
+
+
+def _series(w, small, large):
+    """(a, b) [k, 1, 1] of the rows of w [k, 3]: ``small(th2)`` below th^2 = 1e-12, else
+    ``large(th, th2)`` (the scalar functions' branches, row by row)."""
+    th2 = np.einsum("ki,ki->k", w, w)
+    near = th2 < 1e-12
+    th = np.sqrt(np.where(near, 1.0, th2))
+    a0, b0 = small(th2)
+    a1, b1 = large(th, np.where(near, 1.0, th2))
+    return (np.where(near, a0, a1)[:, None, None], np.where(near, b0, b1)[:, None, None])
+
+
+def so3_exps(w) -> np.ndarray:
+    """[k, 3, 3]: ``so3_exp`` of each row of w [k, 3]."""
+    w = np.asarray(w, np.float64).reshape(-1, 3)
+    K = hats(w)
+    a, b = _series(w, lambda t2: (1.0 - t2 / 6.0, 0.5 - t2 / 24.0),
+                   lambda th, t2: (np.sin(th) / th, (1.0 - np.cos(th)) / t2))
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def left_jacobians(w) -> np.ndarray:
+    """[k, 3, 3]: ``left_jacobian`` of each row of w [k, 3]."""
+    w = np.asarray(w, np.float64).reshape(-1, 3)
+    K = hats(w)
+    a, b = _series(w, lambda t2: (0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0),
+                   lambda th, t2: ((1.0 - np.cos(th)) / t2, (th - np.sin(th)) / (t2 * th)))
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def corrected_viewmats(viewmats, w, tau, pivots) -> np.ndarray:
+    """[k, 4, 4]: ``corrected_viewmat`` of each of viewmats [k, 4, 4] with its row of w, tau
+    [k, 3] and pivots [k]."""
+    V = np.asarray(viewmats, np.float64).reshape(-1, 4, 4)
+    E = so3_exps(w)
+    p = np.zeros((len(V), 3))
+    p[:, 2] = np.asarray(pivots, np.float64).reshape(-1)
+    out = np.broadcast_to(np.eye(4), V.shape).copy()
+    out[:, :3, :3] = E @ V[:, :3, :3]
+    out[:, :3, 3] = np.einsum("kij,kj->ki", E, V[:, :3, 3] - p) + p + np.asarray(tau)
+    return out
+
+
+def pose_gradients(viewmats, w, tau, dR, dt, pivots) -> tuple:
+    """(dL/dw, dL/dtau) [k, 3] each: ``pose_gradient`` of each corrected camera of viewmats
+    [k, 4, 4] with its rows of w, tau, dR [k, 3, 3], dt [k, 3] and pivots [k]."""
+    V = np.asarray(viewmats, np.float64).reshape(-1, 4, 4)
+    dt = np.asarray(dt, np.float64).reshape(-1, 3)
+    arm = V[:, :3, 3] - np.asarray(tau, np.float64)
+    arm[:, 2] -= np.asarray(pivots, np.float64).reshape(-1)
+    M = np.asarray(dR, np.float64) @ np.transpose(V[:, :3, :3], (0, 2, 1)) \
+        + dt[:, :, None] * arm[:, None, :]
+    g_phi = np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0],
+                      M[:, 1, 0] - M[:, 0, 1]], axis=1)
+    return np.einsum("kji,kj->ki", left_jacobians(w), g_phi), dt.copy()
+
+
 def _frame_report(summary: dict) -> str:
-    """'; a common motion of 0.41 deg and 0.2 % of the extent taken out (the frame held)'."""
+    """'; a common motion of 0.41 deg, 0.2 % of the extent and a scale of +0.1 % taken out
+    (the frame held)'."""
     if not summary.get("frame_held"):
         return ""
-    return (f"; a common motion of {summary['frame_rotation_deg']:.3f} deg and "
-            f"{100 * summary['frame_translation_rel']:.2f} % of the extent taken out (the "
-            f"frame held)")
+    return (f"; a common motion of {summary['frame_rotation_deg']:.3f} deg, "
+            f"{100 * summary['frame_translation_rel']:.2f} % of the extent and a scale of "
+            f"{100 * summary.get('frame_scale_rel', 0.0):+.2f} % taken out (the frame held)")
 
 
 class PoseCorrection:
@@ -191,7 +277,7 @@ class PoseCorrection:
 
     def __init__(self, n_images: int, lr: float, reg: float, scale: float,
                  state: dict | None = None, pivots=None, lr_final: float | None = None,
-                 hold_frame: bool = True, start: float = 0.0):
+                 hold_frame: bool = True, start: float = 0.0, hold_scale: bool = True):
         if n_images < 1:
             raise ValueError(f"PoseCorrection needs at least one image, got {n_images}")
         if not (lr > 0 and reg >= 0 and scale > 0):
@@ -211,6 +297,8 @@ class PoseCorrection:
         self.start, self.progress = float(start), 0.0    # no step before the fraction start
         self.given = {}                     # image -> its given world-to-camera (``camera``)
         self.frame = np.zeros(6)            # the common motion taken out so far (omega, nu)
+        self.hold_scale = bool(hold_scale)  # the common scale too (module doc)
+        self.frame_scale = 0.0              # the log of the common scale taken out so far
         # each image's pivot depth d_v (module doc); a checkpoint's own wins over ``pivots``,
         # and one written before pivots existed turned its cameras about their centres (0)
         self.pivots = np.zeros(self.n_images)
@@ -228,6 +316,8 @@ class PoseCorrection:
                            .copy() if "pose_pivot" in state else np.zeros(self.n_images))
             if "pose_frame" in state:
                 self.frame = np.asarray(state["pose_frame"], np.float64).reshape(6).copy()
+            if "pose_frame_scale" in state:
+                self.frame_scale = float(np.asarray(state["pose_frame_scale"]).reshape(-1)[0])
 
     def viewmat(self, viewmat, v: int) -> np.ndarray:
         """Image v's corrected world-to-camera [4, 4]."""
@@ -249,22 +339,29 @@ class PoseCorrection:
                                               C[:3, 3] + C[:3, :3] @ p - p])
 
     def remove_common_motion(self) -> np.ndarray:
-        """Takes the trained images' common motion out of their corrections (module doc);
-        returns it (omega, nu)."""
+        """Takes the trained images' common motion and scale out of their corrections (module
+        doc); returns the rigid part (omega, nu) (the scale's log is added to ``frame_scale``)."""
         idx = [v for v in sorted(self.given) if self.steps[v] > 0]
         if not idx:
             return np.zeros(6)
         given = [self.given[v] for v in idx]
-        total = np.eye(4)
+        # what the fits take out in all, Vc -> S(-log_scale)(Vc) K^-1: S(a)(X H) = S(a)(X) H'
+        # with H's translation times e^a, so each fit scales the K^-1 before it
+        k_inv, log_scale = np.eye(4), 0.0
         for _ in range(FRAME_ITERATIONS):    # the fit is linear: a second pass is exact to
             corrected = [self.viewmat(V, v) for V, v in zip(given, idx)]   # float64 rounding
-            G = twist_matrix(*common_motion(given, corrected, self.scale))
-            G_inv = np.linalg.inv(G)
+            omega, nu, s = common_motion(given, corrected, self.scale)
+            if not self.hold_scale:
+                s = 0.0
             for V, Vc, v in zip(given, corrected, idx):
-                self.set_viewmat(v, V, Vc @ G_inv)
-            total = G @ total
+                self.set_viewmat(v, V, remove_similarity(Vc, omega, nu, s))
+            k_inv[:3, 3] *= np.exp(-s)
+            k_inv = k_inv @ np.linalg.inv(twist_matrix(omega, nu))
+            log_scale += s
+        total = np.linalg.inv(k_inv)
         out = np.concatenate([so3_log(total[:3, :3]), total[:3, 3]])
         self.frame += out
+        self.frame_scale += log_scale
         return out
 
     def gradient(self, v: int, viewmat, dR, dt) -> np.ndarray:
@@ -289,6 +386,34 @@ class PoseCorrection:
         lr = np.array([self.lr] * 3 + [self.lr * self.scale] * 3)
         adam_host_step(self.params[v], self.m[v], self.v[v], g, int(self.steps[v]), lr)
 
+    def viewmats(self, viewmats, vs) -> np.ndarray:
+        """[k, 4, 4]: the corrected world-to-camera of images vs [k] from their given
+        ``viewmats`` [k, 4, 4] (``viewmat``, all at once)."""
+        vs = np.asarray(vs, np.int64).reshape(-1)
+        p = self.params[vs]
+        return corrected_viewmats(viewmats, p[:, :3], p[:, 3:], self.pivots[vs])
+
+    def step_many(self, vs, viewmats, dR, dt) -> None:
+        """``step`` of each image of vs [k] (distinct) at once, from its corrected camera
+        ``viewmats`` [k, 4, 4] and dL/dR [k, 3, 3], dL/dt [k, 3]: the same Adam steps (the
+        models whose batches touch hundreds of images a step)."""
+        if self.progress < self.start:
+            return
+        vs = np.asarray(vs, np.int64).reshape(-1)
+        p = self.params[vs]
+        gw, gtau = pose_gradients(viewmats, p[:, :3], p[:, 3:], dR, dt, self.pivots[vs])
+        g = np.concatenate([gw + 2.0 * self.reg * p[:, :3],
+                            gtau + 2.0 * self.reg * p[:, 3:] / self.scale ** 2], axis=1)
+        ok = np.all(np.isfinite(g), axis=1)  # a non-finite gradient leaves its pose as it was
+        vs, g = vs[ok], g[ok]
+        if not len(vs):
+            return
+        self.steps[vs] += 1
+        lr = np.array([self.lr] * 3 + [self.lr * self.scale] * 3)
+        param, m, v = self.params[vs], self.m[vs], self.v[vs]
+        adam_host_step(param, m, v, g, self.steps[vs][:, None].astype(np.float64), lr)
+        self.params[vs], self.m[vs], self.v[vs] = param, m, v
+
     def schedule(self, progress: float) -> None:
         """The rate at the budget fraction ``progress``: log-linear from its first rate to
         ``lr_final`` (unchanged without one); before the fraction ``start`` no step."""
@@ -304,7 +429,8 @@ class PoseCorrection:
     def state_dict(self) -> dict:
         return {"pose": self.params.copy(), "pose_m": self.m.copy(), "pose_v": self.v.copy(),
                 "pose_steps": self.steps.copy(), "pose_pivot": self.pivots.copy(),
-                "pose_frame": self.frame.copy()}
+                "pose_frame": self.frame.copy(),
+                "pose_frame_scale": np.array([self.frame_scale])}
 
     def centre_shift(self, v: int) -> float:
         """How far image v's correction moved its camera's centre: in the given camera's frame
@@ -328,7 +454,8 @@ class PoseCorrection:
                 "translation_rel": float(np.mean(tr) / self.scale),
                 "frame_held": self.hold_frame,
                 "frame_rotation_deg": float(np.degrees(np.linalg.norm(self.frame[:3]))),
-                "frame_translation_rel": float(np.linalg.norm(self.frame[3:]) / self.scale)}
+                "frame_translation_rel": float(np.linalg.norm(self.frame[3:]) / self.scale),
+                "frame_scale_rel": float(np.expm1(self.frame_scale))}
 
     def report(self, summary: dict) -> str:
         """The sentence ``clrf eval`` prints of ``summary``."""

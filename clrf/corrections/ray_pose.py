@@ -46,6 +46,17 @@ def camera_gradient(viewmat, sums) -> tuple:
     return R @ S_d - np.outer(t, S_o), -R @ S_o
 
 
+def camera_gradients(viewmats, sums) -> tuple:
+    """``camera_gradient`` of k cameras at once: (dL/dR [k, 3, 3], dL/dt [k, 3]) from
+    viewmats [k, 4, 4] and sums [k, 13]."""
+    V = np.asarray(viewmats, np.float64).reshape(-1, 4, 4)
+    s = np.asarray(sums, np.float64).reshape(len(V), -1)
+    R, t = V[:, :3, :3], V[:, :3, 3]
+    S_d, S_o = s[:, :9].reshape(-1, 3, 3), s[:, 9:12]
+    return (R @ S_d - t[:, :, None] * S_o[:, None, :],
+            -np.einsum("kij,kj->ki", R, S_o))
+
+
 def ray_rows(viewmats0, viewmats) -> np.ndarray:
     """float32 [V, 12]: per image A = R^T R0 (row-major) and the centre c = -R^T t of given
     viewmats0 [V, 4, 4] and corrected viewmats [V, 4, 4] (world-to-camera)."""
@@ -112,7 +123,7 @@ class RayPose:
 
     def viewmats(self) -> np.ndarray:
         """[V, 4, 4] every image's corrected world-to-camera."""
-        return np.stack([self.pose.viewmat(m, v) for v, m in enumerate(self.viewmats0)])
+        return self.pose.viewmats(self.viewmats0, np.arange(self.n_images))
 
     def rays(self, index, origins, dirs):
         """(origins, dirs) [n, 3] device: the batch as the corrected cameras make it."""
@@ -124,10 +135,10 @@ class RayPose:
         sums = download(ray_sums(self.device, index, self.pixels, dirs, ray_grad,
                                  self.n_images))
         touched = np.flatnonzero(sums[:, SUMS - 1] > 0)
-        for v in touched:
-            vm = self.pose.viewmat(self.viewmats0[v], v)
-            dR, dt = camera_gradient(vm, sums[v])
-            self.pose.step(v, vm, dR, dt)
+        if len(touched):   # every touched image's step at once (hundreds a batch)
+            vm = self.pose.viewmats(self.viewmats0[touched], touched)
+            dR, dt = camera_gradients(vm, sums[touched])
+            self.pose.step_many(touched, vm, dR, dt)
         self.steps += 1
         held = self.pose.hold_frame and self.steps % FRAME_EVERY == 0
         if held:
