@@ -38,7 +38,8 @@ def _ray_scale(t, gx, gv, d):
     min(|d|, 1) (dL/dd carries 1 / |d|)."""
     n, K = t.shape
     term = ((1 + np.abs(t)).reshape(-1) * np.abs(gx).sum(1) + np.abs(gv).sum(1)).reshape(n, K)
-    return (term.sum(1) / np.minimum(np.linalg.norm(d, axis=1), 1.0))[:, None]
+    length = np.linalg.norm(np.asarray(d, np.float64), axis=1)    # float64: |d| may be 1e20
+    return (term.sum(1) / np.minimum(length, 1.0))[:, None]
 
 
 def _assert_rays(got, want, scale, rtol):
@@ -450,10 +451,23 @@ def test_checkpoint_round_trip_with_corrections_and_an_older_one(device):
     assert not loaded.corrections and not loaded.ray_index
 
 
-@pytest.mark.parametrize("key,value", [("lr_pose", 0.0), ("lr_pose", -1e-3),
-                                       ("lr_pose_final", 1.0), ("pose_reg", -1.0),
-                                       ("pose_opt_after", 1.0), ("lr_exposure", 0.0),
-                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed")])
+BAD = [("lr_pose", 0.0), ("lr_pose", -1e-3), ("lr_pose", float("nan")), ("lr_pose_final", 1.0),
+       ("pose_reg", -1.0), ("pose_opt_after", 1.0), ("lr_exposure", 0.0),
+       ("lr_exposure", -1.0), ("exposure_reg", -0.1), ("exposure_matrix", "mixed")]
+
+
+def test_bad_settings_fail_the_sections_checks():
+    """Each bad value fails the check that names its key (a rate of 0 also its final rate's,
+    which must lie in (0, lr_pose]); the defaults pass."""
+    assert all(ok for ok, _, _ in NerfConfig(pose_opt=True, exposure=True).checks())
+    for key, value in BAD:
+        failed = [f for ok, f, _ in NerfConfig(pose_opt=True, exposure=True,
+                                               **{key: value}).checks() if not ok]
+        want = {f"nerf.{key}"} | ({"nerf.lr_pose_final"} if key == "lr_pose" else set())
+        assert f"nerf.{key}" in failed and set(failed) <= want, (key, value, failed)
+
+
+@pytest.mark.parametrize("key,value", [("lr_pose", 0.0), ("exposure_matrix", "mixed")])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "nerf", "--out", str(tmp_path / "run"),
