@@ -350,8 +350,9 @@ def test_pose_opt_moves_a_perturbed_camera_toward_its_true_pose(device):
     """Targets rendered by the model from two true cameras; image 0's rays come from a given
     camera off by a known correction (w*, tau*) (0.03 rad, 0.05). Steps of nerf.pose_opt (the
     networks' rate 1e-9: the scene held still) bring its correction toward (w*, tau*): the
-    error falls below half. The targets are the fine pass's renders, which the coarse pass
-    does not reproduce, so the coarse loss (weight 0 here) would pull toward another pose."""
+    error falls fourfold (seen 0.032 -> 0.0024 in 40 steps). The targets are the fine pass's
+    renders, which the coarse pass does not reproduce, so the coarse loss (weight 0 here)
+    would pull toward another pose."""
     from clrf.corrections.pose import so3_exp
     from clrf.corrections.ray_pose import OPENGL_TO_OPENCV, pivot_depth, viewmat_of
     model = _model(device, pose_opt=True, lr=1e-9, lr_pose=3e-3, lr_pose_final=3e-3,
@@ -383,17 +384,18 @@ def test_pose_opt_moves_a_perturbed_camera_toward_its_true_pose(device):
     before = error()
     for it in range(40):
         assert np.isfinite(float(model.train_step(it, o, d, target, index=index)))
-    assert error() < 0.5 * before, (before, error(), pose.pose.params[0], star)
+    assert error() < 0.25 * before, (before, error(), pose.pose.params[0], star)
     assert pose.pose.steps.tolist() == [40, 40]
     assert "pose" in model.describe()
 
 
 def test_exposure_moves_gains_toward_the_truth(device):
     """Targets rendered by the model (held still) and scaled per image by gains 0.8 and 1.25:
-    nerf.exposure (gains only) moves each image's gain toward its own, and the checkpoint
-    keeps the rows."""
+    nerf.exposure (gains only) moves each image's gain toward its own (within a quarter of
+    its distance from 1; seen 0.820 and 1.240 after 40 steps), and the checkpoint keeps the rows.
+    The coarse loss is off as in the pose test: the targets are the fine pass's renders."""
     model = _model(device, exposure=True, exposure_matrix="gain", lr=1e-9,
-                   lr_exposure=0.02, exposure_reg=0.0)
+                   lr_exposure=0.02, exposure_reg=0.0, coarse_loss_weight=0.0)
     c2w, view = _views()
     rays = [view(q) for q in c2w]
     gains = np.array([0.8, 1.25])
@@ -408,7 +410,7 @@ def test_exposure_moves_gains_toward_the_truth(device):
         model.train_step(it, o, d, target, index=index)
     rows = exp.rows()
     got = rows[:, [0, 4, 8]].mean(1)
-    assert np.all(np.abs(got - gains) < 0.5 * np.abs(1 - gains)), got
+    assert np.all(np.abs(got - gains) < 0.25 * np.abs(1 - gains)), got
     assert np.all(rows[:, [1, 2, 3, 5, 6, 7, 9, 10, 11]] == 0)
     back = NerfModel.from_state_dict(device, model.state_dict()).corrections.colour
     assert np.array_equal(back.rows(), rows) and back.steps == 40

@@ -1,10 +1,9 @@
 """A learned colour transform per training image (``splat.exposure``, ``hash.exposure``,
-``nerf.exposure``): phone
-captures change exposure and white balance from frame to frame, which a static scene cannot
-explain. ``Exposure`` serves models that train on whole views (the splat model), ``RayExposure``
-models whose batches mix rays of many images (the hash and NeRF models); both are colour corrections of
-the protocol in clrf/corrections/base.py, on the kernels of cl/splat_exposure.cl (float64 twin:
-clrf/references/reference_exposure.py).
+``nerf.exposure``): phone captures change exposure and white balance from frame to frame,
+which a static scene cannot explain. ``Exposure`` serves models that train on whole views (the
+splat model), ``RayExposure`` models whose batches mix rays of many images (the hash and NeRF
+models); both are colour corrections of the protocol in clrf/corrections/base.py, on the
+kernels of cl/splat_exposure.cl (float64 twin: clrf/references/reference_exposure.py).
 
 Each training image v owns a row of P [V, 12] on the device: a 3 x 3 matrix A and an offset b,
 so that a pixel the loss sees is ``A (c + T bg) + b`` (c the premultiplied colour, T the

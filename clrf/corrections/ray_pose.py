@@ -1,6 +1,7 @@
 """A pose correction per training camera for models whose batches mix rays of many images
-(``hash.pose_opt``, ``nerf.pose_opt``): the maths of clrf/corrections/pose.py (a rotation vector and a translation
-about a pivot per image, its Adam step on the host), on rays (cl/ray_pose.cl).
+(``hash.pose_opt``, ``nerf.pose_opt``): the maths of clrf/corrections/pose.py (a rotation
+vector and a translation about a pivot per image, its Adam step on the host), on rays
+(cl/ray_pose.cl).
 
 Ray i of a batch comes from training image v = index[i] // pixels; the ray store holds it as the
 given camera [R0 t0] (world-to-camera, OpenCV axes) made it. Each step the rays are remade

@@ -120,8 +120,9 @@ class NerfModel:
                        last, accumulate, dirs, points, ray_grad, add_rays):
         """The backward of one pass (coarse or fine) over the batch: the network's gradient
         (added with ``accumulate``), the colour correction's (stepped when ``last``), the rays'
-        camera gradient into ``ray_grad`` (when given; added to it with ``add_rays``). Returns the composite backward's
-        dict (its weights) and each ray's squared residual [B] as the loss sees it."""
+        camera gradient into ``ray_grad`` (when given; added to it with ``add_rays``).
+        Returns the composite backward's dict (its weights) and each ray's squared residual
+        [B] as the loss sees it."""
         dev, c = self.device, self.config
         colour = self.corrections.colour
         if colour is None:

@@ -1,7 +1,7 @@
 """Thin host wrappers of the NeRF-path kernels other than the MLP (cl/encode.cl, cl/sample.cl,
 cl/composite.cl), with the rays' camera gradient (``ray_points_backward``) and composite state
-(``composite_state``) of the per-view corrections. All take and return pyopencl arrays (float32, C order);
-shapes are in each docstring and the math in the kernel file headers.
+(``composite_state``) of the per-view corrections. All take and return pyopencl arrays
+(float32, C order); shapes are in each docstring and the math in the kernel file headers.
 
 >>> t = sample_stratified(dev, n=2, K=4, near=2.0, far=6.0)     # jitter off: bin centres
 >>> t.get()
