@@ -19,6 +19,12 @@
  * marched twice and nothing is stored per sample. dL/dsigma_k = 0 where sigma_k is not > 0.
  * The per-sample steps are volrend.h's, the same as the grid renderer's.
  *
+ * Per-ray state (composite_state, for the colour corrections of ray batches, nerf.exposure:
+ * clrf/corrections/exposure.py RayExposure reads it as cl/hash_march.cl's packed_forward
+ * writes it): state [n, 8] = (c, acc, depth, logT, 0, 0) with c = sum_k w_k c_k the colour on a
+ * black background; and the packing those corrections read of a ray's samples, which here is
+ * every sample: offsets [n + 1] = i K and dt [n*K] = delta_k (dT_K/dsigma_k = -delta_k T_K).
+ *
  * Defines read: GRAD_MODE.
  */
 #include "volrend.h"
@@ -112,4 +118,21 @@ __kernel void composite_backward(const int n, const int K, const float far,
         drgb[3 * q + 1] = w * g.y;
         drgb[3 * q + 2] = w * g.z;
     }
+}
+
+/* One work-item per ray: state [n, 8], offsets [n + 1] (int) and dt [n*K] (header). */
+__kernel void composite_state(const int n, const int K, const float far,
+                              __global const float *t, __global const float *sigma,
+                              __global const float *rgb, __global float *state,
+                              __global int *offsets, __global float *dt) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    const size_t o = (size_t)i * K;
+    const fwd_t f = composite_march(K, far, t + o, sigma + o, rgb + 3 * o, 0);
+    __global float *s = state + 8 * (size_t)i;
+    s[0] = f.rgb.x; s[1] = f.rgb.y; s[2] = f.rgb.z;
+    s[3] = f.acc; s[4] = f.depth; s[5] = f.logT; s[6] = 0.0f; s[7] = 0.0f;
+    offsets[i] = i * K;
+    if (i == n - 1) offsets[n] = n * K;
+    for (int k = 0; k < K; ++k) dt[o + k] = seg_delta(t + o, k, K, far);
 }

@@ -19,6 +19,17 @@
  * Random numbers: uniform01 (common.h) of a host key and the sample's counter, so a kernel
  * and its float64 reference draw the same numbers.
  *
+ * Camera gradient (nerf.pose_opt; ray_points_backward): sample k of ray i is
+ * x_k = o + t_k dh, seen along v_k = dh (dh = d / |d|), with t_k held constant (the
+ * stratified distances do not depend on the ray, and the importance samples' distances,
+ * drawn from the coarse weights, are taken as given: no gradient flows through where they
+ * fall). From the samples' dL/dx_k and dL/dv_k (cl/encode.cl encode_backward of the MLP's
+ * input gradient):
+ *   dL/do = sum_k dL/dx_k,   dL/ddh = sum_k (t_k dL/dx_k + dL/dv_k),
+ *   dL/dd = (dL/ddh - dh (dh . dL/ddh)) / |d|     (the Jacobian of d / |d|),
+ * summed over the passes that saw the ray (coarse and fine: ``accumulate``). A zero d gives
+ * dL/dd = 0 (its unit direction is 0, as ray_points makes it).
+ *
  * Defines read: PDF_PAD.
  */
 #include "common.h"
@@ -98,4 +109,39 @@ __kernel void ray_points(const int n, const int K, __global const float *origins
     const float3 x = o + t[i] * d;
     xyz[3 * i] = x.x; xyz[3 * i + 1] = x.y; xyz[3 * i + 2] = x.z;
     vdir[3 * i] = d.x; vdir[3 * i + 1] = d.y; vdir[3 * i + 2] = d.z;
+}
+
+/* dL/d(origin, direction) [n, 6] of rays whose samples x = o + t d/|d| (ray_points, with the
+ * same t [n, K]) got dL/dx gx [n*K, 3] and dL/dv gv [n*K, 3] (v the unit direction the
+ * samples were seen along): written, or added to ray_grad with accumulate (a second pass over
+ * the same rays). One work-item per ray. */
+__kernel void ray_points_backward(const int n, const int K, __global const float *dirs,
+                                  __global const float *t, __global const float *gx,
+                                  __global const float *gv, const int accumulate,
+                                  __global float *ray_grad) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    float3 d = (float3)(dirs[3 * i], dirs[3 * i + 1], dirs[3 * i + 2]);
+    const float mx = fmax(fabs(d.x), fmax(fabs(d.y), fabs(d.z)));
+    d = mx > 0.0f ? d / mx : (float3)(0.0f);  /* as ray_points: scale first */
+    const float len = length(d);              /* |d| / mx, in [1, sqrt 3] unless d = 0 */
+    const float3 dh = d * safe_div(1.0f, len);
+    float3 go = (float3)(0.0f), gd = (float3)(0.0f);
+    for (int k = 0; k < K; ++k) {
+        const size_t q = (size_t)i * K + k;
+        const float3 g = load3(gx, q);
+        go += g;
+        gd += t[q] * g + load3(gv, q);
+    }
+    /* (I - dh dh^T) dL/ddh / |d|, |d| = mx len: divided by len first, then by mx, so a tiny
+     * |d| overflows only where the true value does */
+    gd = (gd - dh * dot(dh, gd)) * safe_div(1.0f, len);
+    gd = mx > 0.0f ? gd / mx : (float3)(0.0f);
+    __global float *out = ray_grad + 6 * (size_t)i;
+    if (accumulate) {
+        go += (float3)(out[0], out[1], out[2]);
+        gd += (float3)(out[3], out[4], out[5]);
+    }
+    out[0] = go.x; out[1] = go.y; out[2] = go.z;
+    out[3] = gd.x; out[4] = gd.y; out[5] = gd.z;
 }

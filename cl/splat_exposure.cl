@@ -57,8 +57,11 @@
  *                    rays of row v; x = c + T bg, y = 1, or masked x = c, y = a), plus the pull
  *                    2 reg (P_v - I) weighted by the row's share of the batch (its rays / n), so
  *                    that a row's pull against its data is that of the splat model's
- *                    whole-image step; grad [V, 12]. matrix 1 or 2 (hash.exposure_matrix):
- *                    the entries it does not train get 0, so that Adam leaves them at 0.
+ *                    whole-image step; grad [V, 12] (written, or added to with
+ *                    accumulate: a renderer whose loss has several passes over the same rays,
+ *                    NeRF's coarse and fine, each passes its own scale and reg = 0 but the
+ *                    last). matrix 1 or 2 (hash.exposure_matrix): the entries it does not train
+ *                    get 0, so that Adam leaves them at 0.
  *
  * Defines read: none.
  */
@@ -203,7 +206,7 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
                         __global const float *state, const int masked, const float4 bg,
                         __global const float *resid,
                         __global const float *P, const float scale, const float reg,
-                        const int matrix, __global float *grad) {
+                        const int matrix, const int accumulate, __global float *grad) {
     __local float part[EXPOSURE_LS * (EXPOSURE_ROW + 1)];
     const int v = get_group_id(0), l = get_local_id(0);
     float s[EXPOSURE_ROW + 1];
@@ -232,6 +235,7 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
         const float share = part[EXPOSURE_ROW] / (float)max(n, 1);
         const size_t j = (size_t)v * EXPOSURE_ROW + l;
         grad[j] = !exposure_trained(l, matrix) ? 0.0f
-                  : 2.0f * scale * part[l] + 2.0f * reg * share * (P[j] - identity_entry(l));
+                  : (accumulate ? grad[j] : 0.0f) + 2.0f * scale * part[l]
+                    + 2.0f * reg * share * (P[j] - identity_entry(l));
     }
 }

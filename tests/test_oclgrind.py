@@ -72,6 +72,12 @@ CASES = [
     "tests/test_nerf_composite.py::test_forward_matches_reference",
     "tests/test_nerf_composite.py::test_backward_matches_reference",
     "tests/test_nerf_composite.py::test_mse_mode_loss_and_gradient",
+    # NeRF's per-view corrections: each ray's camera gradient (with accumulate), the composite
+    # state, and a whole step through both passes' exposure (exposure_rays_grad accumulating)
+    "tests/test_nerf_corrections.py::test_ray_points_backward_matches_twin[default-37-5]",
+    "tests/test_nerf_corrections.py::test_composite_state_matches_twin",
+    "tests/test_nerf_corrections.py::"
+    "test_exposure_gradients_of_both_passes_match_the_chain[default-True]",
     # every network of SPECS at 37 rows (a partial tile), and an empty launch; the sizes
     # between change no code path the simulator's checks see
     *[f"tests/test_nerf_mlp.py::test_{pass_}_matches_reference[default-37-{name}]"

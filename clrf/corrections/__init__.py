@@ -4,12 +4,14 @@ and the trainer reports (``Corrections``), and one place that reads their settin
 model's section and makes them (settings.py ``build``, ``from_state``):
 
 - exposure.py   a colour transform per training image (``splat.exposure``: ``Exposure``, whole
-                views; ``hash.exposure``: ``RayExposure``, ray batches; cl/splat_exposure.cl)
+                views; ``hash.exposure``, ``nerf.exposure``: ``RayExposure``, ray batches;
+                cl/splat_exposure.cl)
 - bilateral.py  a bilateral grid of affine colour transforms per training image
                 (``splat.bilateral_grid``: ``BilateralGrid``, whole views; cl/bilateral.cl)
 - pose.py       a pose correction per training camera (``splat.pose_opt``: ``PoseCorrection``,
                 its SO(3) helpers)
-- ray_pose.py   the same for ray batches (``hash.pose_opt``: ``RayPose``; cl/ray_pose.cl)
+- ray_pose.py   the same for ray batches (``hash.pose_opt``, ``nerf.pose_opt``: ``RayPose``;
+                cl/ray_pose.cl)
 
 This package sits below the trainer and outside every representation: it imports the runtime,
 the float64 references and the model interface, never a representation, and a model calls the

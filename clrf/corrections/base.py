@@ -114,10 +114,17 @@ class RayColourCorrection(Correction, Protocol):
 
     def add_background(self, pk, sigma, loss_scale: float, dsigma) -> None:
         """Adds the background's share of dL/dsigma to ``dsigma`` (the backward ran on
-        black)."""
+        black); ``pk`` the rays' samples: n, m, offsets [n + 1] and segment lengths dt [m]
+        (the hash marcher's Packed, NeRF's composite_state)."""
+
+    def backward(self, state, background, index, loss_scale: float) -> None:
+        """The rows' gradient over the last ``forward``'s rays, kept for the next
+        ``backward_and_step`` (a renderer whose loss has several passes over the batch, each
+        with its own ``forward``: NeRF's coarse pass)."""
 
     def backward_and_step(self, state, background, index, loss_scale: float) -> None:
-        """The rows' gradient over the last ``forward``'s rays and one optimiser step."""
+        """The rows' gradient over the last ``forward``'s rays (plus what ``backward`` kept)
+        and one optimiser step."""
 
 
 @runtime_checkable

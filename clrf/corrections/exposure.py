@@ -1,9 +1,9 @@
-"""A learned colour transform per training image (``splat.exposure``, ``hash.exposure``): phone
-captures change exposure and white balance from frame to frame, which a static scene cannot
-explain. ``Exposure`` serves models that train on whole views (the splat model), ``RayExposure``
-models whose batches mix rays of many images (the hash model); both are colour corrections of
-the protocol in clrf/corrections/base.py, on the kernels of cl/splat_exposure.cl (float64 twin:
-clrf/references/reference_exposure.py).
+"""A learned colour transform per training image (``splat.exposure``, ``hash.exposure``,
+``nerf.exposure``): phone captures change exposure and white balance from frame to frame,
+which a static scene cannot explain. ``Exposure`` serves models that train on whole views (the
+splat model), ``RayExposure`` models whose batches mix rays of many images (the hash and NeRF
+models); both are colour corrections of the protocol in clrf/corrections/base.py, on the
+kernels of cl/splat_exposure.cl (float64 twin: clrf/references/reference_exposure.py).
 
 Each training image v owns a row of P [V, 12] on the device: a 3 x 3 matrix A and an offset b,
 so that a pixel the loss sees is ``A (c + T bg) + b`` (c the premultiplied colour, T the
@@ -43,7 +43,10 @@ residual), whose loss gradient is the colour's through the transform, and
 ``exposure_rays_bg`` adds the background's share to the densities' gradient. Every row takes
 one Adam step a training step (pyopencl's device arrays, cl/optim.cl's Adam); the pull toward
 the identity is weighted by each row's share of the batch, and every RECENTRE_EVERY steps the
-rows are recentred.
+rows are recentred. A renderer whose loss has several passes over the batch (NeRF: the coarse
+and the fine pass, ``nerf.exposure``; its composite gives the same state and packing,
+cl/composite.cl composite_state) calls ``backward`` after each pass but the last, which keeps
+that pass's gradient for the one Adam step of ``backward_and_step``.
 
 >>> exp = RayExposure(dev, n_images=100, pixels=400 * 400, lr=1e-3, reg=1e-3)
 >>> eff, sq = exp.forward(state_d, bg, target_d, index_d)    # before the marcher's backward
@@ -302,6 +305,7 @@ class RayExposure(_Rows):
                              grad=self.grad, state=upload(q, np.ascontiguousarray(m)),
                              state2=upload(q, np.ascontiguousarray(v)))
         self._resid = self._bgt = None
+        self._pending = False   # grad holds a pass's gradient (``backward``) not yet stepped
 
     @staticmethod
     def _bg(background):
@@ -325,25 +329,39 @@ class RayExposure(_Rows):
 
     def add_background(self, pk, sigma, loss_scale: float, dsigma):
         """Adds the background's share of dL/dsigma (the last ``forward``'s rays, packed as
-        ``pk``; the marcher's backward ran on a black background) to ``dsigma``, in place."""
+        ``pk``: n rays, m samples, offsets [n + 1] and dt [m] on the device; the renderer's
+        backward ran on a black background) to ``dsigma``, in place."""
         if pk.m:
             launch(self.device, self._prg.kernel("exposure_rays_bg"), pk.n,
                    (np.int32(pk.n), pk.offsets.data, pk.dt.data, sigma.data, self._bgt.data,
                     np.float32(loss_scale), dsigma.data))
 
-    def backward_and_step(self, state, background, index, loss_scale: float):
-        """dL/dP of L = loss_scale sum |r|^2 over the last ``forward``'s rays (on
-        ``background``), the pull added, and one Adam step of every row; every
-        RECENTRE_EVERY steps the rows are recentred."""
+    def _grad(self, state, background, index, loss_scale: float, reg: float):
+        """dL/dP of the last ``forward``'s rays (and the pull ``reg``) into ``grad``: written,
+        or added to what ``backward`` left there."""
         n = int(self._resid.shape[0])
         launch(self.device, self._prg.kernel("exposure_rays_grad"), self.n_images * LOCAL,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
                 np.int32(self.masked), self._bg(background), self._resid.data, self.P.data,
-                np.float32(loss_scale), np.float32(self.reg), np.int32(self.matrix),
-                self.grad.data), local_size=LOCAL)
+                np.float32(loss_scale), np.float32(reg), np.int32(self.matrix),
+                np.int32(self._pending), self.grad.data), local_size=LOCAL)
+        self._resid = self._bgt = None
+
+    def backward(self, state, background, index, loss_scale: float):
+        """dL/dP of L = loss_scale sum |r|^2 over the last ``forward``'s rays (on
+        ``background``), kept for the next ``backward_and_step`` (a renderer whose loss has
+        several passes over the batch: NeRF's coarse pass; the pull is added once, there)."""
+        self._grad(state, background, index, loss_scale, 0.0)
+        self._pending = True
+
+    def backward_and_step(self, state, background, index, loss_scale: float):
+        """dL/dP of L = loss_scale sum |r|^2 over the last ``forward``'s rays (on
+        ``background``), plus what ``backward`` kept since the last step, the pull added, and
+        one Adam step of every row; every RECENTRE_EVERY steps the rows are recentred."""
+        self._grad(state, background, index, loss_scale, self.reg)
+        self._pending = False
         self.steps += 1
         self.opt.step(None, self.lr, t=self.steps)
-        self._resid = self._bgt = None
         if self.steps % RECENTRE_EVERY == 0:
             self.recentre()
 

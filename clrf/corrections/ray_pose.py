@@ -1,18 +1,22 @@
 """A pose correction per training camera for models whose batches mix rays of many images
-(``hash.pose_opt``): the maths of clrf/corrections/pose.py (a rotation vector and a translation
-about a pivot per image, its Adam step on the host), on rays (cl/ray_pose.cl).
+(``hash.pose_opt``, ``nerf.pose_opt``): the maths of clrf/corrections/pose.py (a rotation
+vector and a translation about a pivot per image, its Adam step on the host), on rays
+(cl/ray_pose.cl).
 
 Ray i of a batch comes from training image v = index[i] // pixels; the ray store holds it as the
 given camera [R0 t0] (world-to-camera, OpenCV axes) made it. Each step the rays are remade
 from each image's corrected camera [R t] (``rays``: o = -R^T t, d = R^T R0 d0), the model gives
-each ray's dL/do, dL/dd (cl/hash_march.cl packed_ray_grad), and the device sums them per image
+each ray's dL/do, dL/dd (cl/hash_march.cl packed_ray_grad; NeRF: cl/sample.cl
+ray_points_backward), and the device sums them per image
 (S_d = sum_i d_i dL/dd_i^T, S_o = sum_i dL/do_i) so that
 
     dL/dR = R S_d - t S_o^T,    dL/dt = -R S_o                    (``camera_gradient``)
 
 come back as twelve numbers a touched image; PoseCorrection turns them into dL/dw, dL/dtau and
 steps each image that had rays in the batch. Under NDC (forward-facing scenes) the store's rays
-are not the camera's, so the correction is refused there (clrf/hash/kind.py).
+are not the camera's, so the correction is refused there (clrf/hash/kind.py,
+clrf/nerf/kind.py). ``viewmat_of`` and ``pivot_depth`` give the models' kinds the store's
+cameras and their pivots.
 
 >>> pose = RayPose(dev, viewmats0, pixels=400 * 400, lr=1e-3, reg=1e-4, scale=4.0,
 ...                pivots=depths)
@@ -86,6 +90,25 @@ def ray_sums(device, index, pixels: int, d, ray_grad, n_images: int):
            (np.int32(n), np.int32(pixels), index.data, d.data, ray_grad.data, out.data),
            local_size=LOCAL)
     return out
+
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # the datasets' camera axes to viewmats'
+
+
+def viewmat_of(c2w) -> np.ndarray:
+    """World-to-camera (OpenCV axes) of a camera-to-world pose in OpenGL axes (the cameras of
+    the ray store's rays)."""
+    c2w = np.asarray(c2w, np.float64)
+    full = np.eye(4)
+    full[:c2w.shape[0]] = c2w
+    return OPENGL_TO_OPENCV @ np.linalg.inv(full)
+
+
+def pivot_depth(viewmat, bbox) -> float:
+    """The depth of the box's centre in camera ``viewmat`` (0 where it lies behind): the point
+    a pose correction turns the camera about (clrf/corrections/pose.py)."""
+    centre = np.append(np.asarray(bbox, np.float64).mean(0), 1.0)
+    return max(float((viewmat @ centre)[2]), 0.0)
 
 
 FRAME_EVERY = 100   # steps between removals of the corrections' common motion (a ray batch

@@ -2,13 +2,14 @@
 makes them: ``build`` for a new run or a model given its training views, ``from_state`` for a
 checkpoint's.
 
-The keys users type stay each model's own: ``splat.exposure`` and ``hash.exposure`` (with
-``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat section also
-``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``, ``exposure_clip``,
-``exposure_clip_inward``), ``splat.pose_opt`` and ``hash.pose_opt`` (with ``lr_pose``,
-``lr_pose_final``, ``pose_reg``, ``pose_hold_frame``, ``pose_opt_after``), ``splat.bilateral_grid`` (with
-``bilateral_grid_shape``, ``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction
-at a time (``colour_conflict``: the configurations' validation names the keys). A section
+The keys users type stay each model's own: ``splat.exposure``, ``hash.exposure`` and
+``nerf.exposure`` (with ``lr_exposure``, ``exposure_reg``, ``exposure_matrix``; the splat
+section also ``lr_exposure_final``, ``exposure_fit``, ``exposure_fit_after``,
+``exposure_clip``, ``exposure_clip_inward``), ``splat.pose_opt``, ``hash.pose_opt`` and
+``nerf.pose_opt`` (with ``lr_pose``, ``lr_pose_final``, ``pose_reg``, ``pose_hold_frame``,
+``pose_opt_after``), ``splat.bilateral_grid`` (with ``bilateral_grid_shape``,
+``lr_bilateral_grid``, ``bilateral_grid_tv``). One colour correction at a time
+(``colour_conflict``: the configurations' validation names the keys). A section
 without one of the optional keys takes what the correction does without it (a constant rate,
 no fit, no clip; the Adam betas of clrf/runtime/optim.py where it has no ``beta1`` / ``beta2``
 of its own). This module imports no correction until one is made (the configurations import

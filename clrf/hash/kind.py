@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
+# the ray store's cameras and their pivots (pose corrections), shared with NeRF's kind
+from ..corrections.ray_pose import OPENGL_TO_OPENCV, pivot_depth, viewmat_of  # noqa: F401
 from ..interface import Kind
 from . import budget
 from .config import HASH_PRESETS, HashConfig
-
-OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # the datasets' camera axes to viewmats'
 
 SCENE_PRESETS = {
     # Synthetic scenes hold the full learning rate for 65 % of the budget, not 50 %: lego_400,
@@ -75,22 +75,6 @@ def create(device, cfg, ds, background):
                              viewmats=lambda: np.stack([viewmat_of(p) for p in poses]),
                              pivots=lambda: [pivot_depth(viewmat_of(p), ds.bbox) for p in poses])
     return model
-
-
-def viewmat_of(c2w) -> np.ndarray:
-    """World-to-camera (OpenCV axes) of a camera-to-world pose in OpenGL axes (the cameras of
-    the ray store's rays)."""
-    c2w = np.asarray(c2w, np.float64)
-    full = np.eye(4)
-    full[:c2w.shape[0]] = c2w
-    return OPENGL_TO_OPENCV @ np.linalg.inv(full)
-
-
-def pivot_depth(viewmat, bbox) -> float:
-    """The depth of the box's centre in camera ``viewmat`` (0 where it lies behind): the point
-    a pose correction turns the camera about (clrf/corrections/pose.py)."""
-    centre = np.append(np.asarray(bbox, np.float64).mean(0), 1.0)
-    return max(float((viewmat @ centre)[2]), 0.0)
 
 
 def from_state(device, state, cfg):

@@ -6,6 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from ..corrections.settings import EXPOSURE_MATRICES
 from ..mlp.tiling import MLP_ROWS
 
 
@@ -42,6 +43,26 @@ class NerfConfig:
     mlp_rows: int | None = None     # samples per work-item in the fused MLP; None (null): per
                                     # device
     dw_chunk: int | None = None     # rows per partial weight gradient; None (null): 64 tiles
+    exposure: bool = False          # learn a colour transform (3 x 3 matrix and offset) per
+    #                                 training image, seen by the coarse and the fine pass's
+    #                                 loss; test views are scored under the identity
+    #                                 (as hash.exposure: clrf/corrections/exposure.py)
+    lr_exposure: float = 1e-3       # Adam learning rate of the transforms (one step a batch)
+    exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
+    #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
+    exposure_matrix: str = "full"   # "full" | "diagonal" | "gain" (as hash.exposure_matrix)
+    pose_opt: bool = False          # refine each training camera's pose (as hash.pose_opt): the
+    #                                 rays of each batch remade from the corrected cameras,
+    #                                 trained by both passes' dL/d(origin, direction); test
+    #                                 views keep their given poses (clrf/corrections/ray_pose.py)
+    lr_pose: float = 1e-3           # Adam learning rate of the corrections at the start:
+    #                                 radians per step, translations this times the box's
+    #                                 extent (hash.lr_pose's; not tuned for NeRF)
+    lr_pose_final: float = 1e-4     # ... decayed log-linearly to this over the budget
+    pose_reg: float = 1e-4          # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_opt_after: float = 0.0     # budget fraction before the corrections take steps
+    pose_hold_frame: bool = True    # take the corrections' common rigid motion out every 100
+    #                                 steps (as hash.pose_hold_frame)
 
     @staticmethod
     def from_preset(name: str, **overrides) -> "NerfConfig":
@@ -106,6 +127,15 @@ class NerfConfig:
              f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
             (self.dw_chunk is None or 1 <= self.dw_chunk <= 1 << 20, "nerf.dw_chunk",
              "must be null (per device) or in 1..1048576"),
+            (0 < self.lr_exposure <= 1, "nerf.lr_exposure", "must be in (0, 1]"),
+            (self.exposure_reg >= 0, "nerf.exposure_reg", "must be >= 0"),
+            (self.exposure_matrix in EXPOSURE_MATRICES, "nerf.exposure_matrix",
+             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
+            (0 < self.lr_pose <= 0.1, "nerf.lr_pose", "must be in (0, 0.1] (radians a step)"),
+            (0 < self.lr_pose_final <= self.lr_pose, "nerf.lr_pose_final",
+             "must be in (0, nerf.lr_pose]"),
+            (self.pose_reg >= 0, "nerf.pose_reg", "must be >= 0"),
+            (0 <= self.pose_opt_after < 1, "nerf.pose_opt_after", "must be in [0, 1)"),
         ]
 
 

@@ -2,6 +2,9 @@
 factories, memory estimate and device workload."""
 from __future__ import annotations
 
+import numpy as np
+
+from ..corrections.ray_pose import pivot_depth, viewmat_of
 from ..interface import Kind
 from . import budget
 from .config import NERF_PRESETS, NerfConfig
@@ -10,7 +13,23 @@ from .workload import WORKLOAD
 
 def create(device, cfg, ds, background):
     from .model import NerfModel
-    return NerfModel(device, cfg.nerf, ds.near, ds.unit_far(), background, cfg.train.seed)
+    if cfg.nerf.pose_opt and ds.ndc:
+        raise ValueError(f"dataset {ds.name}: nerf.pose_opt corrects the cameras that make the "
+                         f"rays, and NDC (forward-facing) rays are not a camera's; pass --set "
+                         f"nerf.pose_opt=false")
+    model = NerfModel(device, cfg.nerf, ds.near, ds.unit_far(), background, cfg.train.seed)
+    # the per-view corrections: a row per training image, in the trainer's ray store's order
+    # (the cameras, pivots and extent as the hash grid takes them: clrf/hash/kind.py)
+    views = ds.split["train"]
+    if cfg.train.max_train_images:
+        views = views[:cfg.train.max_train_images]
+    poses = np.asarray(ds.poses, np.float64)[views]
+    box = np.asarray(ds.bbox, np.float64)
+    model.attach_corrections(len(views), int(ds.hw[0]) * int(ds.hw[1]),
+                             masked=ds.alpha is not None, extent=float((box[1] - box[0]).max()),
+                             viewmats=lambda: np.stack([viewmat_of(p) for p in poses]),
+                             pivots=lambda: [pivot_depth(viewmat_of(p), box) for p in poses])
+    return model
 
 
 def from_state(device, state, cfg):
@@ -31,6 +50,11 @@ def programs(device, cfg):
     ops._sample_prg(device)
     for mode in (0, 1):
         ops._composite_prg(device, mode)
+    from ..corrections import ray_pose
+    ray_pose.program(device)                               # nerf.pose_opt, listed always
+    if c.exposure:
+        from ..corrections import exposure
+        exposure.program(device)                           # clrf/corrections/exposure.py
     mlp.program(device, c.mlp_spec())
     mlp.program(device, mlp.MLPSpec(**workload.SPEC_FIELDS))
     optim.program(device, "adam")

@@ -11,6 +11,20 @@ One training step on B rays (nothing per sample crosses to the host):
   Adam on both, exponential lr decay; refresh the transposed weights.
 Loss = MSE(fine) + coarse_loss_weight * MSE(coarse), MSE = mean over rays and channels.
 
+Per-view corrections (clrf/corrections; ``attach_corrections``, each ray's image from the
+``index`` the trainer passes):
+  nerf.exposure: each pass's loss compares the ray's colour under its image's transform with
+  the target (RayExposure): the composite state of the pass (composite_state, on black) gives
+  the transformed residual and the target whose MSE backward on a black background is the
+  colour's gradient through the transform; the background's share of dL/dsigma is added; the
+  coarse pass's gradient of the rows is kept (``backward``) and the fine pass's steps them.
+  nerf.pose_opt: the batch's rays are remade from their images' corrected cameras (RayPose),
+  and each pass adds its rays' dL/d(origin, direction): the MLP's input gradient through the
+  encodings' derivative (encode.cl encode_backward) to dL/dpoint and dL/dview-direction per
+  sample, summed along each ray with the sample distances t held constant (sample.cl
+  ray_points_backward: the importance samples' distances count as given, no gradient flows
+  through the coarse weights that placed them); one Adam step of each touched image.
+
 >>> model = NerfModel(dev, NerfConfig.from_preset("tiny"), near=2.0, far=6.0, background=(0, 0, 0))
 >>> loss = model.train_step(0, origins_d, dirs_d, target_d)     # pyopencl arrays [B, 3]
 >>> out = model.render(origins, dirs)                           # numpy: rgb [n,3], depth, acc
@@ -23,11 +37,12 @@ import numpy as np
 import pyopencl.array as cla
 
 from . import ops
+from ..corrections import RAYS, Corrections, Views, build, from_state
 from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
 from .config import NerfConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP
-from ..runtime.programs import download, upload
+from ..runtime.programs import device_empty, download, upload
 from ..runtime.rng import step_key as _key
 
 
@@ -64,26 +79,88 @@ class NerfModel:
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self._adam_all = (AdamSet(device, [self._adam[id(n)] for n in self._nets()])
                           if self.defer_loss and len(self._nets()) > 1 else None)
+        self.corrections = Corrections()   # per-view corrections (clrf/corrections)
+        self.extent = 1.0   # the scene's extent (pose translations are relative to it)
+
+    def attach_corrections(self, n_images: int, pixels: int, masked: bool, extent: float,
+                           viewmats=None, pivots=None):
+        """The per-view corrections the config turns on (nerf.exposure, nerf.pose_opt), a row
+        per training image of ``pixels`` pixels (masked: an RGBA capture); training steps then
+        need each ray's index in the concatenated training images (``ray_index``).
+        ``extent``: the scene's size (pose translations are relative to it); nerf.pose_opt:
+        ``viewmats`` and ``pivots``, functions giving the training cameras' world-to-camera
+        [V, 4, 4] (OpenCV axes) and pivot depths (clrf/corrections/pose.py)."""
+        self.extent = float(extent)
+        views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
+                      viewmats=viewmats)
+        self.corrections = build(self.device, self.config, views, RAYS)
+
+    @property
+    def ray_index(self) -> bool:
+        """Whether train_step needs each ray's index in the training images (the trainer
+        passes it)."""
+        return self.corrections.ray_index
 
     def _nets(self):
         return [self.coarse] if self.fine is self.coarse else [self.coarse, self.fine]
 
     # ---- one pass over a sample list --------------------------------------------------------
-    def _eval(self, net: MLP, origins, dirs, t):
+    def _eval(self, net: MLP, origins, dirs, t, points=None):
+        """sigma, rgb of the samples t [n, K] of the rays; ``points``: a list that gets the
+        samples' points and view directions (the camera gradient reads them)."""
         c = self.config
         xyz, vdir = ops.ray_points(self.device, origins, dirs, t)
+        if points is not None:
+            points[:] = [xyz, vdir]
         xe = ops.encode(self.device, xyz, c.pos_freqs, c.include_input, c.pos_scale)
         de = ops.encode(self.device, vdir, c.dir_freqs, c.include_input, c.dir_scale)
         return net.forward(xe, de)
 
+    def _pass_backward(self, net, t, sig, rgb, target, loss_scale, want_weights, index,
+                       last, accumulate, dirs, points, ray_grad, add_rays):
+        """The backward of one pass (coarse or fine) over the batch: the network's gradient
+        (added with ``accumulate``), the colour correction's (stepped when ``last``), the rays'
+        camera gradient into ``ray_grad`` (when given; added to it with ``add_rays``).
+        Returns the composite backward's dict (its weights) and each ray's squared residual
+        [B] as the loss sees it."""
+        dev, c = self.device, self.config
+        colour = self.corrections.colour
+        if colour is None:
+            cb = ops.composite_backward(dev, t, sig, rgb, self.far, target, self.background,
+                                        mse=True, loss_scale=loss_scale,
+                                        want_weights=want_weights)
+            sq = cb["sq_err"]
+        else:   # the backward sees the target whose gradient is the one through the transform
+            rs = ops.composite_state(dev, t, sig, rgb, self.far)
+            eff, sq = colour.forward(rs.state, self.background, target, index)
+            cb = ops.composite_backward(dev, t, sig, rgb, self.far, eff, (0.0, 0.0, 0.0),
+                                        mse=True, loss_scale=loss_scale,
+                                        want_weights=want_weights)
+            colour.add_background(rs, sig, loss_scale, cb["sigma"])
+            if last:
+                colour.backward_and_step(rs.state, self.background, index, loss_scale)
+            else:
+                colour.backward(rs.state, self.background, index, loss_scale)
+        want = ray_grad is not None
+        g = net.backward(cb["sigma"], cb["rgb"], accumulate=accumulate, want_input=want)
+        if want:
+            dx, dd = g
+            xyz, vdir = points
+            gx = ops.encode_backward(dev, xyz, dx, c.pos_freqs, c.include_input, c.pos_scale)
+            gv = ops.encode_backward(dev, vdir, dd, c.dir_freqs, c.include_input, c.dir_scale)
+            ops.ray_points_backward(dev, dirs, t, gx, gv, ray_grad, accumulate=add_rays)
+        return cb, sq
+
     def lr_at(self, it: int) -> float:
         return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
 
-    def train_step(self, it: int, origins, dirs, target):
+    def train_step(self, it: int, origins, dirs, target, index=None):
         """One optimiser step on a batch. origins/dirs/target are pyopencl float32 arrays [B,3]
         on device. Returns the batch MSE (mean over rays and channels) of the fine network: a
         float, or with ``defer_loss`` (the GPU shapes) a Pending the trainer reads when it
-        reports."""
+        reports. index: each ray's place in the concatenated training images (int32 device
+        [B]), needed with the per-view corrections (``ray_index``); the loss is then the one
+        the corrections see (under each image's colour transform)."""
         for name, a in (("origins", origins), ("dirs", dirs), ("target", target)):
             if not isinstance(a, cla.Array) or a.dtype != np.float32 or a.ndim != 2 \
                     or a.shape[1] != 3 or not a.flags.c_contiguous:
@@ -94,25 +171,33 @@ class NerfModel:
         if dirs.shape[0] != B or target.shape[0] != B or B == 0:
             raise ValueError(f"train_step: origins, dirs, target need the same B > 0 rows, got "
                              f"{origins.shape}, {dirs.shape}, {target.shape}")
+        if self.ray_index and (index is None or int(index.shape[0]) != B):
+            raise ValueError("train_step: the per-image corrections need each ray's image "
+                             "index [B]")
         c, dev = self.config, self.device
         scale = 1.0 / (3.0 * B)
+        camera = self.corrections.ray_camera   # nerf.pose_opt: the corrected cameras' rays
+        ray_grad = points = None
+        if camera is not None:
+            origins, dirs = camera.rays(index, origins, dirs)
+            ray_grad = device_empty(dev.queue, (B, 6), np.float32)
+            points = []
         t_c = ops.sample_stratified(dev, B, c.n_coarse, self.near, self.far, c.perturb,
                                     _key(self.seed, it, 0))
-        sig, rgb = self._eval(self.coarse, origins, dirs, t_c)
-        cb = ops.composite_backward(dev, t_c, sig, rgb, self.far, target, self.background,
-                                    mse=True, loss_scale=scale * c.coarse_loss_weight,
-                                    want_weights=c.n_fine > 0)
-        self.coarse.backward(cb["sigma"], cb["rgb"])
-        sq_err = cb["sq_err"]
+        sig, rgb = self._eval(self.coarse, origins, dirs, t_c, points)
+        cb, sq_err = self._pass_backward(self.coarse, t_c, sig, rgb, target,
+                                         scale * c.coarse_loss_weight, c.n_fine > 0, index,
+                                         c.n_fine == 0, False, dirs, points, ray_grad, False)
         if c.n_fine > 0:
             t_f = ops.sample_importance(dev, t_c, cb["weights"], c.n_fine, self.near, self.far,
                                         c.perturb, _key(self.seed, it, 1))
             t_all = ops.merge_sorted(dev, t_c, t_f)
-            sig, rgb = self._eval(self.fine, origins, dirs, t_all)
-            fb = ops.composite_backward(dev, t_all, sig, rgb, self.far, target, self.background,
-                                        mse=True, loss_scale=scale)
-            self.fine.backward(fb["sigma"], fb["rgb"], accumulate=self.fine is self.coarse)
-            sq_err = fb["sq_err"]
+            sig, rgb = self._eval(self.fine, origins, dirs, t_all, points)
+            _, sq_err = self._pass_backward(self.fine, t_all, sig, rgb, target, scale, False,
+                                            index, True, self.fine is self.coarse, dirs,
+                                            points, ray_grad, True)
+        if camera is not None:
+            camera.step_rays(index, dirs, ray_grad)
         lr = self.lr_at(it)
         nets = self._nets()
         if self._adam_all is not None:
@@ -163,6 +248,8 @@ class NerfModel:
         return self.config.batch_rays
 
     def on_iteration(self, it, budget):
+        """The corrections' rates follow the spent fraction of the budget."""
+        self.corrections.schedule(float(budget.fraction))
         return None
 
     # ---- export (clrf/outputs/export.py) -------------------------------------------------
@@ -191,11 +278,13 @@ class NerfModel:
     def describe(self) -> str:
         c = self.config
         return (f"NeRF {c.depth}x{c.width}, {c.n_coarse}+{c.n_fine} samples"
-                f"{', shared net' if c.shared_net else ''}")
+                f"{', shared net' if c.shared_net else ''}"
+                + (f", {self.corrections.describe()}" if self.corrections else ""))
 
     # ---- checkpoints --------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """numpy arrays + python scalars: weights, Adam moments, step, config as dict."""
+        """numpy arrays + python scalars: weights, Adam moments, step, config as dict, and the
+        per-view corrections with the scene's extent where the model has any."""
         st = {"kind": self.kind, "config": asdict(self.config), "near": self.near,
               "far": self.far, "background": list(self.background), "seed": self.seed,
               "step": self.step, "n_params": self.coarse.layout.n_params}
@@ -206,6 +295,8 @@ class NerfModel:
             st[f"{name}_params"] = download(net.params)
             st[f"{name}_adam_m"] = download(a.state)
             st[f"{name}_adam_v"] = download(a.state2)
+        if self.corrections:   # checkpoints without them (older ones too) load without them
+            st.update(self.corrections.state_dict(), extent=self.extent)
         return st
 
     @classmethod
@@ -227,4 +318,7 @@ class NerfModel:
                                      f"{arr.shape}")
                 arr.set(np.ascontiguousarray(v))
             net.sync_params()
+        model.extent = float(state.get("extent", 1.0))
+        model.corrections = from_state(device, model.config, state, Views(scale=model.extent),
+                                       RAYS)
         return model

@@ -1,6 +1,7 @@
 """Thin host wrappers of the NeRF-path kernels other than the MLP (cl/encode.cl, cl/sample.cl,
-cl/composite.cl). All take and return pyopencl arrays (float32, C order);
-shapes are in each docstring and the math in the kernel file headers.
+cl/composite.cl), with the rays' camera gradient (``ray_points_backward``) and composite state
+(``composite_state``) of the per-view corrections. All take and return pyopencl arrays
+(float32, C order); shapes are in each docstring and the math in the kernel file headers.
 
 >>> t = sample_stratified(dev, n=2, K=4, near=2.0, far=6.0)     # jitter off: bin centres
 >>> t.get()
@@ -98,6 +99,38 @@ def ray_points(device, origins, dirs, t, xyz=None, vdir=None):
            (np.int32(n), np.int32(K), origins.data, dirs.data, t.data, xyz.data, vdir.data),
            device.tuning.elementwise_local_size)
     return xyz, vdir
+
+
+def ray_points_backward(device, dirs, t, gx, gv, out, accumulate: bool = False):
+    """dL/d(origin, direction) [n, 6] into ``out`` (written, or added to with accumulate) of
+    rays dirs [n, 3] whose samples ``ray_points(o, dirs, t)`` got dL/dpoint gx [n*K, 3] and
+    dL/dview-direction gv [n*K, 3] (t held constant: cl/sample.cl)."""
+    n, K = (int(s) for s in t.shape)
+    launch(device, _sample_prg(device).kernel("ray_points_backward"), n,
+           (np.int32(n), np.int32(K), dirs.data, t.data, gx.data, gv.data,
+            np.int32(bool(accumulate)), out.data), device.tuning.per_ray_local_size)
+    return out
+
+
+class RaySamples:
+    """The composite state of n rays of K samples each as the colour corrections of ray
+    batches read it (cl/composite.cl composite_state; the hash marcher's Packed has the same
+    members): state [n, 8], offsets [n + 1] (int32), dt [n*K], n rays, m samples."""
+
+    def __init__(self, state, offsets, dt, n: int, m: int):
+        self.state, self.offsets, self.dt, self.n, self.m = state, offsets, dt, n, m
+
+
+def composite_state(device, t, sigma, rgb, far: float) -> RaySamples:
+    """The rays' state on a black background (colour, acc, depth, logT) and their samples'
+    segment lengths for t [n, K], sigma [n*K], rgb [n*K, 3]."""
+    n, K = (int(s) for s in t.shape)
+    state, dt = _empty(device, (n, 8)), _empty(device, n * K)
+    offsets = device_empty(device.queue, n + 1, np.int32)
+    launch(device, _composite_prg(device, 0).kernel("composite_state"), n,
+           (np.int32(n), np.int32(K), np.float32(far), t.data, sigma.data, rgb.data,
+            state.data, offsets.data, dt.data), device.tuning.per_ray_local_size)
+    return RaySamples(state, offsets, dt, n, n * K)
 
 
 def _bg4(background):

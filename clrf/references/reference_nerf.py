@@ -13,8 +13,8 @@ import numpy as np
 
 __all__ = ["hash_u32", "uniform01", "encode", "encode_backward", "mlp_forward", "mlp_backward",
            "sample_stratified", "sample_importance", "importance_cdf", "merge_sorted",
-           "ray_points", "composite_forward", "composite_backward", "numeric_gradient",
-           "PDF_PAD"]
+           "ray_points", "ray_grad", "composite_forward", "composite_backward",
+           "composite_state", "numeric_gradient", "PDF_PAD"]
 
 PDF_PAD = 1e-5   # cl/sample.cl PDF_PAD
 _M32 = np.uint64(0xFFFFFFFF)
@@ -39,8 +39,11 @@ def uniform01(key, counter):
 
 
 # ---- positional encoding ------------------------------------------------------------------
-def _scaled(x, scale):
-    """p = scale * x rounded once to float32, as the kernel computes it, then in float64."""
+def _scaled(x, scale, exact=False):
+    """p = scale * x rounded once to float32, as the kernel computes it, then in float64;
+    ``exact``: in float64 throughout (a smooth function of x, for finite differences)."""
+    if exact:
+        return float(np.float32(scale)) * np.asarray(x, np.float64)
     return (np.float32(scale) * np.asarray(x, np.float32)).astype(np.float64)
 
 
@@ -49,9 +52,9 @@ def _sincospi(y):
     return np.sin(np.pi * r), np.cos(np.pi * r)
 
 
-def encode(x, n_freqs: int, include_input: bool = True, scale: float = 1.0):
-    """gamma(x) [n, 3*include_input + 6*n_freqs] (cl/encode.cl)."""
-    p = _scaled(x, scale)
+def encode(x, n_freqs: int, include_input: bool = True, scale: float = 1.0, exact=False):
+    """gamma(x) [n, 3*include_input + 6*n_freqs] (cl/encode.cl); ``exact``: ``_scaled``."""
+    p = _scaled(x, scale, exact)
     out = [p] if include_input else []
     for k in range(n_freqs):
         s, c = _sincospi(2.0 ** k * p)
@@ -59,9 +62,11 @@ def encode(x, n_freqs: int, include_input: bool = True, scale: float = 1.0):
     return np.concatenate(out, axis=1) if out else np.zeros((p.shape[0], 0))
 
 
-def encode_backward(x, grad_out, n_freqs: int, include_input: bool = True, scale: float = 1.0):
-    """dL/dx [n, 3] from dL/dgamma."""
-    p = _scaled(x, scale)
+def encode_backward(x, grad_out, n_freqs: int, include_input: bool = True, scale: float = 1.0,
+                    exact=False):
+    """dL/dx [n, 3] from dL/dgamma: d/dx of p, sin(2^k pi p), cos(2^k pi p) with p = s x is
+    s, 2^k pi s cos(2^k pi p), -2^k pi s sin(2^k pi p); ``exact``: ``_scaled``."""
+    p = _scaled(x, scale, exact)
     g = np.asarray(grad_out, np.float64)
     i0 = 3 if include_input else 0
     dp = g[:, :3].copy() if include_input else np.zeros_like(p)
@@ -235,6 +240,23 @@ def ray_points(origins, dirs, t):
     return x.reshape(-1, 3), np.repeat(d, t.shape[1], axis=0)
 
 
+def ray_grad(dirs, t, gx, gv):
+    """dL/d(origin, direction) [n, 6] of rays whose samples x_k = o + t_k d / |d|, seen along
+    v_k = d / |d| (``ray_points``), got dL/dx gx [n*K, 3] and dL/dv gv [n*K, 3]; t [n, K]
+    held constant (cl/sample.cl ray_points_backward)."""
+    d = np.asarray(dirs, np.float64)
+    length = np.linalg.norm(d, axis=1)
+    dh = d / length[:, None]
+    t = np.asarray(t, np.float64)
+    n, K = t.shape
+    gx = np.asarray(gx, np.float64).reshape(n, K, 3)
+    gv = np.asarray(gv, np.float64).reshape(n, K, 3)
+    go = gx.sum(axis=1)
+    gdh = np.einsum("nk,nkc->nc", t, gx) + gv.sum(axis=1)
+    gd = (gdh - dh * np.sum(dh * gdh, axis=1, keepdims=True)) / length[:, None]
+    return np.concatenate([go, gd], axis=1)
+
+
 # ---- compositing --------------------------------------------------------------------------
 def _deltas(t, far):
     t = np.asarray(t, np.float64)
@@ -272,6 +294,18 @@ def composite_backward(t, sigma, rgb, far, grad_rgb, background=(0, 0, 0)):
     dsig = _deltas(t, far) * (f["Tnext"] * gc - R)
     dsig = np.where(np.asarray(sigma, np.float64) > 0, dsig, 0.0)
     return dict(sigma=dsig, rgb=w[..., None] * g[:, None, :])
+
+
+def composite_state(t, sigma, rgb, far):
+    """(state [n, 8], dt [n, K]) of cl/composite.cl composite_state: the colour on black, acc,
+    depth, logT, 0, 0; the segment lengths."""
+    f = composite_forward(t, sigma, rgb, far)
+    n = f["rgb"].shape[0]
+    state = np.zeros((n, 8))
+    state[:, :3], state[:, 3], state[:, 4] = f["rgb"], f["acc"], f["depth"]
+    with np.errstate(divide="ignore"):
+        state[:, 5] = np.log(f["T_end"])
+    return state, _deltas(t, far)
 
 
 def numeric_gradient(fn, x, eps):

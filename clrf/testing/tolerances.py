@@ -346,6 +346,25 @@ HASH_RAY_GRAD_RTOL = 2e-6
 # a missing sample's share.
 HASH_RAY_FD_EPS = 1e-6
 HASH_RAY_FD_RTOL = 1e-5
+# NeRF's dL/d(origin, direction) of each ray (cl/sample.cl ray_points_backward) vs float64:
+# float32 sums of K (<= 16 here) terms t_k dL/dx_k + dL/dv_k, a few u each, then the
+# projection over |d|: relative to the terms' magnitudes (the test's per-ray scale) 2e-6
+# (~30 u), as HASH_RAY_GRAD_RTOL. A dropped sample, t_k or projection is O(1) of a term.
+NERF_RAY_GRAD_RTOL = 2e-6
+# The float64 twin's / chain's dL/d(o, d) vs central differences of its loss (steps 1e-6 in o,
+# 1e-6 |d| in d): the loss is smooth (softplus MLP, sines, the composite's exponentials with
+# the sample distances held), its second-order error ~h^2 |L'''| ~ 1e-12 and the roundoff of
+# a loss of ~0.1 over 2h ~1e-10 relative to the largest component (~0.1 .. 10); 1e-5 of it
+# is still 1e4 below a missing pass or sample's share.
+NERF_RAY_FD_EPS = 1e-6
+NERF_RAY_FD_RTOL = 1e-5
+# One whole NeRF step (both passes: encodings, fused MLP, composite, MLP backward,
+# encode_backward, the per-ray sums; with nerf.exposure the transforms' gradients) vs the
+# float64 chain: the MLP's float32 error (~1e-5 relative) compounds through its backward and
+# the importance samples' distances, drawn from float32 weights, differ by ~1e-6 of a bin;
+# relative to the largest entry 1e-4, as HASH_STEP_GRAD_REL_TO_MAX: 100x below a missing
+# pass, a wrong row or a transposed term (O(1e-2)).
+NERF_STEP_GRAD_REL_TO_MAX = 1e-4
 # Rays from corrected cameras (cl/ray_pose.cl): the rows are float32 roundings of float64
 # (|A| <= 1, |c| ~ 3: 2e-7 absolute), a direction a float32 dot of 3 (|d0| ~ 1): a few u of
 # |A||d0| ~ 5e-7; 1e-6 for the rows and centres, three times that for the directions. A
