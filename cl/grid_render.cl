@@ -98,13 +98,38 @@
  * its ray's own index, so the results are those of the given order (gradients up to the
  * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
  *
+ * Camera gradient (GRID_POSE_GRAD 1, pose refinement, clrf/corrections/ray_pose.py; without
+ * the define no line of it is compiled): render_backward also writes each ray's
+ *   ray_grad [n, 6] = (dL/do, dL/dd)
+ * of the same loss. What is held constant: each sample's world distance t_k = t0 + mid_k along
+ * the unit direction dh = d / |d| and its segment length delta_k (the march's entry t0, step
+ * dt and segment ends are not differentiated: moving the ray moves its samples, it does not
+ * re-place them, as the hash model's packed_ray_grad does). Sample k sits at x_k = o + t_k dh,
+ * in box units p_k = (x_k - bmin) scale, so dp/dx = diag(scale). With the corner weights
+ * w_c(p) = prod_a (1 - f_a or f_a), f_a the fraction lerp_axis gives (df_a/dp_a = 1 where
+ * 0 < p_a - 1/2 < reso_a - 1 and reso_a >= 2, else 0: the clamped outer half voxels and a
+ * 1-voxel axis are constant), and q_c,ch = sum_b sh_c,ch,b Y_b(dh) corner c's colour:
+ *   dsigma_k/dp = sum_c density_c dw_c/dp   (sigma_k > 0: the ReLU passes; else no term)
+ *   dpre_k,ch/dp = sum_c q_c,ch dw_c/dp
+ *   dL/dx_k = scale * (dL/dsigma_k dsigma_k/dp + sum_ch dL/dpre_k,ch dpre_k,ch/dp)
+ * with dL/dsigma_k and dL/dpre_k,ch = w_k g_ch [pre > 0] the values the backward above forms
+ * (empty corners count as zero, as in the forward). Then, over the ray's samples,
+ *   dL/do = sum_k dL/dx_k,
+ *   dL/ddh = sum_k t_k dL/dx_k + sum_b dL/dY_b dY_b/dv,  dL/dY_b = sum_k sum_ch dL/dpre_k,ch
+ *            sh_ch,b(x_k) (the interpolated coefficients; sh.h sh_dir_grad),
+ *   dL/dd = (dL/ddh - dh (dh . dL/ddh)) / |d|
+ * and a ray that misses the box gets zeros. A per-ray background's own dependence on the ray
+ * (BG_PER_RAY: the MSI) is not in it. Not with BRICK (the distributed grid refuses pose
+ * refinement). Twin: clrf/references/reference.py ray_grad.
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, GRAD_MERGE,
- * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE,
+ * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, GRID_POSE_GRAD, BLOCK, BLOCK_FINE,
  * COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
  * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves
  * unused are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
  * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
- * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
+ * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; ray_grad follows
+ * them with GRID_POSE_GRAD; with RAY_ORDER,
  * render_forward and render_backward end with ray_order.
  */
 #include "march.h"
@@ -147,6 +172,14 @@
 #ifndef BG_PER_RAY
 #define BG_PER_RAY 0     /* 1: a background colour per ray (bg_rays [n, 3]) instead of the constant
                             bg, the backward writes dL/d bg_rays, and ray_exit is built */
+#endif
+
+#ifndef GRID_POSE_GRAD
+#define GRID_POSE_GRAD 0 /* 1: render_backward also writes ray_grad [n, 6] = dL/d(origin,
+                            direction) of each ray (pose refinement; see the header) */
+#endif
+#if GRID_POSE_GRAD && BRICK
+#error "GRID_POSE_GRAD with BRICK: the distributed grid has no pose refinement"
 #endif
 
 /* The background argument of render_forward / render_backward and its value for ray i. */
@@ -345,6 +378,53 @@ CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *lo
 }
 #endif
 
+#if GRID_POSE_GRAD
+/* d f / d p of lerp_axis along one axis: 1 where the fraction follows the point, 0 where it is
+ * clamped (the outer half voxels) or the axis has one voxel. */
+CLRF_INLINE float lerp_axis_slope(float p, int r) {
+    const float u = p - 0.5f;
+    return (r >= 2 && u > 0.0f && u < (float)(r - 1)) ? 1.0f : 0.0f;
+}
+
+/* One sample's share of its ray's camera gradient (header, GRID_POSE_GRAD): adds dL/dp_k (box
+ * units) to *gp and sum_ch dL/dpre_ch sh_ch,b(p_k) to gY[b]. p: the sample (box units), L: its
+ * corners (set up at p), dsig = dL/dsigma_k, dpre = dL/dpre_k (zero where the colour is
+ * clamped), Y the ray's SH factors. Reads the corner rows again: an opt-in variant. */
+CLRF_INLINE void pose_grad_sample(float3 p, int4 reso, const lerp_t *L,
+                                  __global const float *density, __global const float *sh,
+                                  const float *Y, float dsig, float3 dpre, float3 *gp, float *gY) {
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
+                wz[2] = {1.0f - q.fz, q.fz};
+    const float sx = lerp_axis_slope(p.x, reso.x), sy = lerp_axis_slope(p.y, reso.y),
+                sz = lerp_axis_slope(p.z, reso.z);
+    const float dx[2] = {-sx, sx}, dy[2] = {-sy, sy}, dz[2] = {-sz, sz};
+    float3 acc = (float3)(0.0f);
+    for (int c = 0; c < 8; ++c) {
+        const int k = L->idx[c];
+        if (k < 0) continue;
+        const int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
+        __global const float *row = sh + (size_t)k * SH_DIM;
+        float qc[3];
+        for (int ch = 0; ch < 3; ++ch) {
+            float v = 0.0f;
+            for (int b = 0; b < SH_BASIS; ++b) v += row[ch * SH_BASIS + b] * Y[b];
+            qc[ch] = v;
+        }
+        /* dL/d(corner c's weight), times dw_c/dp */
+        const float s = dsig * density[k] + dpre.x * qc[0] + dpre.y * qc[1] + dpre.z * qc[2];
+        acc += s * (float3)(dx[cx] * wy[cy] * wz[cz], wx[cx] * dy[cy] * wz[cz],
+                            wx[cx] * wy[cy] * dz[cz]);
+        const float wc = L->w[c];
+        for (int b = 0; b < SH_BASIS; ++b)
+            gY[b] += wc * (dpre.x * row[b] + dpre.y * row[SH_BASIS + b]
+                           + dpre.z * row[2 * SH_BASIS + b]);
+    }
+    *gp += acc;
+}
+#endif
+
 /* Backward pass. GRAD_MODE 0: ray_in = dL/drgb [n,3]. GRAD_MODE 1: ray_in = target rgb [n,3],
  * g = 2 (rgb - target) * loss_scale, and ray_out[i] = |rgb - target|^2 (summed over channels).
  * Gradients are added into grad_density [N] and grad_sh [N, SH_DIM].
@@ -382,6 +462,9 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global float *grad_density, __global float *grad_sh,
 #if BG_PER_RAY
                               __global float *grad_bg,
+#endif
+#if GRID_POSE_GRAD
+                              __global float *ray_grad,
 #endif
 #if TRACK_TOUCHED
                               __global uchar *touched,
@@ -475,6 +558,16 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
     const float total = dot(g, rgb) + Tend * gT;
 #endif
+#if GRID_POSE_GRAD
+    if (!hit) {   /* the loss does not depend on a ray that misses the box */
+        vstore3((float3)(0.0f), 2 * i, ray_grad);
+        vstore3((float3)(0.0f), 2 * i + 1, ray_grad);
+        return;
+    }
+    float3 pg_o = (float3)(0.0f), pg_dh = (float3)(0.0f);   /* dL/do, dL/ddh so far */
+    float pg_Y[SH_BASIS];                                    /* dL/dY_b so far */
+    for (int b = 0; b < SH_BASIS; ++b) pg_Y[b] = 0.0f;
+#endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
 #if SH_PER_CORNER
@@ -567,6 +660,15 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         const float3 c = fmax(pre, 0.0f);
         const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+#if GRID_POSE_GRAD
+        {
+            float3 gp = (float3)(0.0f);
+            pose_grad_sample(m.p0 + mid * m.dg, reso, &L, density, sh, Y, dsig, dpre, &gp, pg_Y);
+            const float3 gx = gp * scale.xyz;   /* dL/dx_k: dp/dx = diag(scale) */
+            pg_o += gx;
+            pg_dh += (m.t0 + mid) * gx;
+        }
+#endif
 #if !SH_PER_CORNER
         /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
         shv_t dco = shv_scale(S.ych[0], dpre.x);
@@ -624,6 +726,17 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     }
     if (GRAD_MERGE && cur_cell >= 0) FLUSH_CELL();
 #undef FLUSH_CELL
+#if GRID_POSE_GRAD
+    {
+        pg_dh += sh_dir_grad(m.dir, pg_Y);
+        const float3 d0 = load3(dirs, i);   /* |d|, scaled first as march_setup does */
+        const float mx = fmax(fabs(d0.x), fmax(fabs(d0.y), fabs(d0.z)));
+        const float dn = mx * length(d0 / mx);
+        const float3 gd = (pg_dh - m.dir * dot(m.dir, pg_dh)) / dn;
+        vstore3(pg_o, 2 * i, ray_grad);
+        vstore3(gd, 2 * i + 1, ray_grad);
+    }
+#endif
 #if GRAD_SLOTS > 0
     if (slot >= 0) lock_release(slot_lock + slot);
 #endif
