@@ -77,6 +77,25 @@ def ray_sums(device, index, pixels: int, d, ray_grad, n_images: int):
     return out
 
 
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])   # the datasets' camera axes to viewmats'
+
+
+def viewmat_of(c2w) -> np.ndarray:
+    """World-to-camera (OpenCV axes) of a camera-to-world pose in OpenGL axes (the cameras of
+    a ray store's rays; the same as clrf/hash/kind.py's, which predates this one)."""
+    c2w = np.asarray(c2w, np.float64)
+    full = np.eye(4)
+    full[:c2w.shape[0]] = c2w
+    return OPENGL_TO_OPENCV @ np.linalg.inv(full)
+
+
+def pivot_depth(viewmat, bbox) -> float:
+    """The depth of the box's centre in camera ``viewmat`` (0 where it lies behind): the point
+    a pose correction turns the camera about (clrf/corrections/pose.py)."""
+    centre = np.append(np.asarray(bbox, np.float64).mean(0), 1.0)
+    return max(float((viewmat @ centre)[2]), 0.0)
+
+
 FRAME_EVERY = 100   # steps between removals of the corrections' common motion (a ray batch
 #                     mixes every image, so there is no pass; the exposure rows' recentring
 #                     has the same rhythm)

@@ -281,13 +281,16 @@ def held_samples(density, sh, bbox, origins, dirs, step=0.5, t_stop=T_STOP):
 
 
 def render_held(density, sh, bbox, origins, dirs, t, delta, live, background=(1, 1, 1),
-                grad_rgb=None, grad_T=None):
+                grad_rgb=None, grad_T=None, magnitude=False):
     """rgb [n, 3] of rays (origins, dirs) through samples at the given distances ``t`` along
     each unit direction with segment lengths ``delta`` (``held_samples``), no termination: the
     renderer's function of the ray with its sample distances held. With ``grad_rgb`` also the
     gradient of sum(grad_rgb * rgb) (+ grad_T [n] times each ray's T_end) with respect to
     (origin, direction) [n, 6] (cl/grid_render.cl GRID_POSE_GRAD, derived here independently:
-    suffix sums, dense corner arrays)."""
+    suffix sums, dense corner arrays). With ``magnitude`` also [n]: per ray the sum of the
+    magnitudes of the terms the gradient adds up (each sample's corner terms, dL/dsigma's
+    as |remaining radiance| + |T g.c|, times 1 + t_k, and the SH direction terms; over |d|
+    where |d| < 1): the scale of a float32 evaluation's rounding (tests' tolerances)."""
     density = np.asarray(density, np.float64)
     sh = np.asarray(sh, np.float64)
     B = sh.shape[-1] // 3
@@ -329,9 +332,11 @@ def render_held(density, sh, bbox, origins, dirs, t, delta, live, background=(1,
     for r in rec:
         wgc[r["rays"], r["k"]] = r["wgt"] * np.sum(g[r["rays"]] * r["c"], axis=1)
     after = np.cumsum(wgc[:, ::-1], axis=1)[:, ::-1] - wgc          # sum_{j>k}
+    after_abs = np.cumsum(np.abs(wgc)[:, ::-1], axis=1)[:, ::-1]    # sum_{j>=k} |.|
     bgterm = T_end * (np.sum(g * bg, axis=1)
                       + (0.0 if grad_T is None else np.asarray(grad_T, np.float64)))
     g_o, g_dh, g_Y = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, B))
+    mag, mag_Y = np.zeros(n), np.zeros((n, B))
     for r in rec:
         rays, k, m = r["rays"], r["k"], r["rays"].size
         on = r["sigma_raw"] > 0
@@ -340,13 +345,27 @@ def render_held(density, sh, bbox, origins, dirs, t, delta, live, background=(1,
         dpre = r["wgt"][:, None] * g[rays] * (r["pre"] > 0) * on[:, None]
         q = np.einsum("mcjb,mb->mcj", r["sh_c"].reshape(m, 8, 3, B), Y[rays])   # corner colours
         s_c = dsig[:, None] * r["dens_c"] + np.einsum("mj,mcj->mc", dpre, q)
-        gx = np.einsum("mc,mca->ma", s_c, trilerp_weight_grad(r["p"], reso)) * scale
+        dw = trilerp_weight_grad(r["p"], reso)
+        gx = np.einsum("mc,mca->ma", s_c, dw) * scale
         g_o[rays] += gx
         g_dh[rays] += t[rays, k, None] * gx
         g_Y[rays] += np.einsum("mj,mjb->mb", dpre, r["co"].reshape(m, 3, B))
+        if magnitude:
+            dsig_mag = delta[rays, k] * (r["Tnext"] * np.abs(gc) + after_abs[rays, k]
+                                         + np.abs(bgterm[rays])) * on
+            s_mag = (dsig_mag[:, None] * np.abs(r["dens_c"])
+                     + np.einsum("mj,mcj->mc", np.abs(dpre), np.abs(q)))
+            term = np.einsum("mc,mca->m", s_mag, np.abs(dw) * scale)
+            mag[rays] += (1.0 + np.abs(t[rays, k])) * term
+            mag_Y[rays] += np.einsum("mj,mjb->mb", np.abs(dpre),
+                                     np.abs(r["co"].reshape(m, 3, B)))
     g_dh += sh_dir_grad(dh, g_Y, degree)
     g_d = (g_dh - dh * np.sum(dh * g_dh, axis=1, keepdims=True)) / np.where(dn > 0, dn, 1)[:, None]
-    return rgb, np.concatenate([g_o, g_d], axis=1)
+    out = np.concatenate([g_o, g_d], axis=1)
+    if not magnitude:
+        return rgb, out
+    mag += np.sum(np.abs(sh_dir_grad(np.abs(dh), mag_Y, degree)), axis=1)
+    return rgb, out, mag * np.maximum(1.0, 1.0 / np.where(dn > 0, dn, 1))
 
 
 def ray_grad(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, background=(1, 1, 1),
