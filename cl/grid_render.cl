@@ -99,12 +99,13 @@
  * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
  *
  * Camera gradient (GRID_POSE_GRAD 1, pose refinement, clrf/corrections/ray_pose.py; without
- * the define no line of it is compiled): render_backward also writes each ray's
+ * the define no line of it is compiled): the kernel render_ray_grad gives each ray's
  *   ray_grad [n, 6] = (dL/do, dL/dd)
- * of the same loss. What is held constant: each sample's world distance t_k = t0 + mid_k along
- * the unit direction dh = d / |d| and its segment length delta_k (the march's entry t0, step
- * dt and segment ends are not differentiated: moving the ray moves its samples, it does not
- * re-place them, as the hash model's packed_ray_grad does). Sample k sits at x_k = o + t_k dh,
+ * of the loss render_backward takes (the same arguments), marching the ray as it does. What
+ * is held constant: each sample's world distance t_k = t0 + mid_k along the unit direction
+ * dh = d / |d| and its segment length delta_k (the march's entry t0, step dt and segment ends
+ * are not differentiated: moving the ray moves its samples, it does not re-place them, as
+ * the hash model's packed_ray_grad does). Sample k sits at x_k = o + t_k dh,
  * in box units p_k = (x_k - bmin) scale, so dp/dx = diag(scale). With the corner weights
  * w_c(p) = prod_a (1 - f_a or f_a), f_a the fraction lerp_axis gives (df_a/dp_a = 1 where
  * 0 < p_a - 1/2 < reso_a - 1 and reso_a >= 2, else 0: the clamped outer half voxels and a
@@ -112,8 +113,8 @@
  *   dsigma_k/dp = sum_c density_c dw_c/dp   (sigma_k > 0: the ReLU passes; else no term)
  *   dpre_k,ch/dp = sum_c q_c,ch dw_c/dp
  *   dL/dx_k = scale * (dL/dsigma_k dsigma_k/dp + sum_ch dL/dpre_k,ch dpre_k,ch/dp)
- * with dL/dsigma_k and dL/dpre_k,ch = w_k g_ch [pre > 0] the values the backward above forms
- * (empty corners count as zero, as in the forward). Then, over the ray's samples,
+ * with dL/dsigma_k and dL/dpre_k,ch = w_k g_ch [pre > 0] the backward's values (below; empty
+ * corners count as zero, as in the forward). Then, over the ray's samples,
  *   dL/do = sum_k dL/dx_k,
  *   dL/ddh = sum_k t_k dL/dx_k + sum_b dL/dY_b dY_b/dv,  dL/dY_b = sum_k sum_ch dL/dpre_k,ch
  *            sh_ch,b(x_k) (the interpolated coefficients; sh.h sh_dir_grad),
@@ -128,8 +129,7 @@
  * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves
  * unused are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
  * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
- * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; ray_grad follows
- * them with GRID_POSE_GRAD; with RAY_ORDER,
+ * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
  * render_forward and render_backward end with ray_order.
  */
 #include "march.h"
@@ -175,7 +175,7 @@
 #endif
 
 #ifndef GRID_POSE_GRAD
-#define GRID_POSE_GRAD 0 /* 1: render_backward also writes ray_grad [n, 6] = dL/d(origin,
+#define GRID_POSE_GRAD 0 /* 1: build render_ray_grad, ray_grad [n, 6] = dL/d(origin,
                             direction) of each ray (pose refinement; see the header) */
 #endif
 #if GRID_POSE_GRAD && BRICK
@@ -387,41 +387,50 @@ CLRF_INLINE float lerp_axis_slope(float p, int r) {
 }
 
 /* One sample's share of its ray's camera gradient (header, GRID_POSE_GRAD): adds dL/dp_k (box
- * units) to *gp and sum_ch dL/dpre_ch sh_ch,b(p_k) to gY[b]. p: the sample (box units), L: its
- * corners (set up at p), dsig = dL/dsigma_k, dpre = dL/dpre_k (zero where the colour is
- * clamped), Y the ray's SH factors. Reads the corner rows again: an opt-in variant. */
+ * units) to *gp and the SH direction term sum_b dL/dY_b,k dY_b/dv (dL/dY_b,k = sum_ch
+ * dL/dpre_ch sh_ch,b(p_k)) to *gdir. p: the sample (box units), L: its corners (set up at p),
+ * dsig = dL/dsigma_k, dpre = dL/dpre_k (zero where the colour is clamped), Y the ray's SH
+ * factors, dir the unit direction. Per corner c, with u_b = sum_ch dpre_ch sh_c,ch,b:
+ * dL/dw_c = dsig density_c + sum_b Y_b u_b, and dL/dY_b gets w_c u_b. Reads the corner rows
+ * again (an opt-in variant); the SH term is taken per sample so that the loop carries 6
+ * floats, not SH_BASIS + 6, and every loop is unrolled so that the private arrays are indexed
+ * by constants: Intel's Xe-LP (GRAD_MERGE 0, SH_PER_CORNER) spilled otherwise. */
 CLRF_INLINE void pose_grad_sample(float3 p, int4 reso, const lerp_t *L,
                                   __global const float *density, __global const float *sh,
-                                  const float *Y, float dsig, float3 dpre, float3 *gp, float *gY) {
+                                  const float *Y, const float3 dir, float dsig, float3 dpre,
+                                  float3 *gp, float3 *gdir) {
     cellpos_t q;
     cell_locate(p, reso, &q);
-    const float wx[2] = {1.0f - q.fx, q.fx}, wy[2] = {1.0f - q.fy, q.fy},
-                wz[2] = {1.0f - q.fz, q.fz};
     const float sx = lerp_axis_slope(p.x, reso.x), sy = lerp_axis_slope(p.y, reso.y),
                 sz = lerp_axis_slope(p.z, reso.z);
-    const float dx[2] = {-sx, sx}, dy[2] = {-sy, sy}, dz[2] = {-sz, sz};
     float3 acc = (float3)(0.0f);
+    float dY[SH_BASIS];
+#pragma unroll
+    for (int b = 0; b < SH_BASIS; ++b) dY[b] = 0.0f;
+#pragma unroll
     for (int c = 0; c < 8; ++c) {
         const int k = L->idx[c];
         if (k < 0) continue;
-        const int cx = c >> 2, cy = (c >> 1) & 1, cz = c & 1;
+        /* corner c's weight is ax ay az; its slope along x is (c's x bit ? sx : -sx) ay az */
+        const float ax = (c & 4) ? q.fx : 1.0f - q.fx, ay = (c & 2) ? q.fy : 1.0f - q.fy,
+                    az = (c & 1) ? q.fz : 1.0f - q.fz;
+        const float3 dw = (float3)(((c & 4) ? sx : -sx) * ay * az,
+                                   ax * ((c & 2) ? sy : -sy) * az,
+                                   ax * ay * ((c & 1) ? sz : -sz));
         __global const float *row = sh + (size_t)k * SH_DIM;
-        float qc[3];
-        for (int ch = 0; ch < 3; ++ch) {
-            float v = 0.0f;
-            for (int b = 0; b < SH_BASIS; ++b) v += row[ch * SH_BASIS + b] * Y[b];
-            qc[ch] = v;
-        }
-        /* dL/d(corner c's weight), times dw_c/dp */
-        const float s = dsig * density[k] + dpre.x * qc[0] + dpre.y * qc[1] + dpre.z * qc[2];
-        acc += s * (float3)(dx[cx] * wy[cy] * wz[cz], wx[cx] * dy[cy] * wz[cz],
-                            wx[cx] * wy[cy] * dz[cz]);
         const float wc = L->w[c];
-        for (int b = 0; b < SH_BASIS; ++b)
-            gY[b] += wc * (dpre.x * row[b] + dpre.y * row[SH_BASIS + b]
-                           + dpre.z * row[2 * SH_BASIS + b]);
+        float s = dsig * density[k];   /* dL/dw_c */
+#pragma unroll
+        for (int b = 0; b < SH_BASIS; ++b) {
+            const float u = dpre.x * row[b] + dpre.y * row[SH_BASIS + b]
+                            + dpre.z * row[2 * SH_BASIS + b];
+            s += Y[b] * u;
+            dY[b] += wc * u;
+        }
+        acc += s * dw;
     }
     *gp += acc;
+    *gdir += sh_dir_grad(dir, dY);
 }
 #endif
 
@@ -462,9 +471,6 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
                               __global float *grad_density, __global float *grad_sh,
 #if BG_PER_RAY
                               __global float *grad_bg,
-#endif
-#if GRID_POSE_GRAD
-                              __global float *ray_grad,
 #endif
 #if TRACK_TOUCHED
                               __global uchar *touched,
@@ -558,16 +564,6 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #endif
     const float total = dot(g, rgb) + Tend * gT;
 #endif
-#if GRID_POSE_GRAD
-    if (!hit) {   /* the loss does not depend on a ray that misses the box */
-        vstore3((float3)(0.0f), 2 * i, ray_grad);
-        vstore3((float3)(0.0f), 2 * i + 1, ray_grad);
-        return;
-    }
-    float3 pg_o = (float3)(0.0f), pg_dh = (float3)(0.0f);   /* dL/do, dL/ddh so far */
-    float pg_Y[SH_BASIS];                                    /* dL/dY_b so far */
-    for (int b = 0; b < SH_BASIS; ++b) pg_Y[b] = 0.0f;
-#endif
     if (!hit) return;
     const int use_rec = rec != 0 && n_rec >= 0;
 #if SH_PER_CORNER
@@ -660,15 +656,6 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
         const float3 c = fmax(pre, 0.0f);
         const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
         const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
-#if GRID_POSE_GRAD
-        {
-            float3 gp = (float3)(0.0f);
-            pose_grad_sample(m.p0 + mid * m.dg, reso, &L, density, sh, Y, dsig, dpre, &gp, pg_Y);
-            const float3 gx = gp * scale.xyz;   /* dL/dx_k: dp/dx = diag(scale) */
-            pg_o += gx;
-            pg_dh += (m.t0 + mid) * gx;
-        }
-#endif
 #if !SH_PER_CORNER
         /* d(loss)/d(coefficients) of this sample: dpre_ch * Y_b at ch*SH_BASIS + b */
         shv_t dco = shv_scale(S.ych[0], dpre.x);
@@ -726,21 +713,94 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     }
     if (GRAD_MERGE && cur_cell >= 0) FLUSH_CELL();
 #undef FLUSH_CELL
-#if GRID_POSE_GRAD
-    {
-        pg_dh += sh_dir_grad(m.dir, pg_Y);
-        const float3 d0 = load3(dirs, i);   /* |d|, scaled first as march_setup does */
-        const float mx = fmax(fabs(d0.x), fmax(fabs(d0.y), fabs(d0.z)));
-        const float dn = mx * length(d0 / mx);
-        const float3 gd = (pg_dh - m.dir * dot(m.dir, pg_dh)) / dn;
-        vstore3(pg_o, 2 * i, ray_grad);
-        vstore3(gd, 2 * i + 1, ray_grad);
-    }
-#endif
 #if GRAD_SLOTS > 0
     if (slot >= 0) lock_release(slot_lock + slot);
 #endif
 }
+
+#if GRID_POSE_GRAD
+/* ray_grad [n, 6] = (dL/do, dL/dd) of each ray, the loss as render_backward takes it (GRAD_MODE
+ * 0: ray_in = dL/drgb; 1: ray_in = the targets, with loss_scale and the beta prior's
+ * beta_scale), its sample distances held (header, GRID_POSE_GRAD); zeros for a ray that misses
+ * the box. A kernel of its own, run after render_backward: it marches the ray forward (for
+ * g.rgb) and back again as render_backward does, but scatters nothing, so the backward's
+ * gradient state and this one's per-ray sums are never live together (in render_backward
+ * they spilled on Intel's Xe-LP, where even 6 more floats carried across the march did). */
+__kernel void render_ray_grad(const int n_rays, __global const float *origins,
+                              __global const float *dirs, __global const int *links,
+                              __global const float *density, __global const float *sh,
+                              const int4 reso, const float4 bmin, const float4 scale,
+                              const float step, BG_ARG, __global const float *ray_in,
+#if GRAD_MODE == 1
+                              const float loss_scale, const float beta_scale,
+#endif
+                              __global float *ray_grad, __global const uchar *occ,
+                              const int4 oreso RAY_ORDER_ARG) {
+    const int gid = get_global_id(0);
+    if (gid >= n_rays) return;
+    const int i = RAY_OF(gid);
+    march_t m;
+    m.occ = occ;
+    m.oreso = oreso;
+    const float3 d0 = load3(dirs, i);
+    float3 g_o = (float3)(0.0f), g_dh = (float3)(0.0f);   /* dL/do, dL/ddh */
+    if (march_setup(load3(origins, i), d0, reso, bmin, scale, step, &m)) {
+        float Y[SH_BASIS];
+        sh_basis(m.dir, Y);
+        fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+        int kfirst = -1;
+        march_forward(&m, reso, links, density, sh, Y, &kfirst, &f);
+        const float Tend = exp(f.logT);
+        const float3 rgb = f.rgb + Tend * BG_OF(i);
+#if GRAD_MODE == 1   /* as render_backward: the MSE's gradient and the beta prior's dL/dT */
+        const float3 g = 2.0f * loss_scale * (rgb - load3(ray_in, i));
+        const float gT = beta_scale != 0.0f
+            ? beta_scale * (1.0f / (Tend + BETA_EPS) - 1.0f / (1.0f - Tend + BETA_EPS)) : 0.0f;
+#else
+        const float3 g = load3(ray_in, i);
+        const float gT = 0.0f;
+#endif
+        const float total = dot(g, rgb) + Tend * gT;
+#if SH_PER_CORNER
+        const int S = 0;   /* (SAMPLE_PRE takes no vectors) */
+#else
+        shy_t S;
+        shy_setup(Y, &S);
+#endif
+        lerp_t L;
+        L.cell = -1;
+        ksum_t logT = {0.0f, 0.0f};
+        ksum_t prefix = {0.0f, 0.0f};
+        float T = 1.0f;
+        for (int k = 0; k < m.nsteps; ++k) {
+            float mid, delta;
+            if (!march_visit(&m, reso, links, density, sh, 0, 0, 0, &k, &mid, &delta, &L))
+                continue;
+            const float sigma = lerp_density(&L, density);
+            if (!(sigma > 0.0f)) continue;
+            float Tnext;
+            const float w = vr_step(&logT, T, sigma * delta, &Tnext);
+            const float3 pre = SAMPLE_PRE(&L, sh, &S, Y);
+            const float3 c = fmax(pre, 0.0f);
+            const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
+            const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+            float3 gp = (float3)(0.0f);
+            pose_grad_sample(m.p0 + mid * m.dg, reso, &L, density, sh, Y, m.dir, dsig, dpre,
+                             &gp, &g_dh);
+            const float3 gx = gp * scale.xyz;   /* dL/dx_k: dp/dx = diag(scale) */
+            g_o += gx;
+            g_dh += (m.t0 + mid) * gx;
+            T = Tnext;
+            if (Tnext < T_STOP) break;
+        }
+        /* dL/dd = (I - dh dh^T) dL/ddh / |d|, |d| scaled first as march_setup does */
+        const float mx = fmax(fabs(d0.x), fmax(fabs(d0.y), fabs(d0.z)));
+        g_dh = (g_dh - m.dir * dot(m.dir, g_dh)) / (mx * length(d0 / mx));
+    }
+    vstore3(g_o, 2 * i, ray_grad);
+    vstore3(g_dh, 2 * i + 1, ray_grad);
+}
+#endif
 
 /* After render_backward with GRAD_SLOTS > 0: for every row k marked in a scratch copy, add the
  * copy's gradient into grad_density / grad_sh, zero it and clear the mark (so the copies are

@@ -112,9 +112,8 @@ def programs(device, cfg):
             grid_program(g, step=c.step, bg_per_ray=bg, ray_order=order)
             grid_program(g, 1, True, step=c.step, slots=slots, record=record, bg_per_ray=bg,
                          ray_order=order)
-            if c.pose_opt:                   # grid.pose_opt: each ray's camera gradient
-                grid_program(g, 1, True, step=c.step, slots=slots, record=record,
-                             bg_per_ray=bg, ray_order=order, pose_grad=True)
+            # grid.pose_opt: each ray's camera gradient (listed always, as the hash's)
+            grid_program(g, 1, step=c.step, bg_per_ray=bg, ray_order=order, pose_grad=True)
         if bg:
             grid_program(g, step=c.step, bg_per_ray=True)              # ray_exit
         bricks._program(g, c.step)                                     # MPI ranks
@@ -131,9 +130,8 @@ def programs(device, cfg):
     if bg:
         msi.program(device, c.background_layers, c.background_height)
     optim.program(device, c.optimizer)
-    if c.pose_opt:
-        from ..corrections import ray_pose
-        ray_pose.program(device)                       # grid.pose_opt
+    from ..corrections import ray_pose
+    ray_pose.program(device)                           # grid.pose_opt, listed always
     if c.exposure:
         from ..corrections import exposure
         exposure.program(device)                       # grid.exposure

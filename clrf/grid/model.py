@@ -12,9 +12,10 @@ Per-image corrections (clrf/corrections, ``attach_corrections``; ray i of a batc
 training image index[i] // pixels, so training steps take ``index``):
 
 - ``grid.pose_opt`` (RayPose): the batch's rays are remade from their images' corrected
-  cameras, the fused backward also gives each ray's dL/d(origin, direction) (the
-  GRID_POSE_GRAD build of cl/grid_render.cl: sample distances held), and each image with rays
-  in the batch takes its correction's Adam step from them.
+  cameras, after the fused backward render_ray_grad (the GRID_POSE_GRAD build of
+  cl/grid_render.cl: sample distances held) gives each ray's dL/d(origin, direction) of the
+  same loss, and each image with rays in the batch takes its correction's Adam step from
+  them.
 - ``grid.exposure`` (RayExposure): the loss compares out = A_v pixel + b_v with the target,
   where pixel = C + T_end bg is the ray's whole render (the MSI's colour included). The
   transform acts on the pixel as rendered, so the correction is given the composite state

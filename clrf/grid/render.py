@@ -43,7 +43,7 @@ def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: 
     record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
     a background colour per ray, BG_PER_RAY; brick: the BRICK variant for one brick of a
     distributed grid, clrf/grid/bricks.py, built with t_stop 0; ray_order: the render kernels
-    take a ray permutation, RAY_ORDER; pose_grad: render_backward also writes each ray's
+    take a ray permutation, RAY_ORDER; pose_grad: also render_ray_grad, each ray's
     dL/d(origin, direction), GRID_POSE_GRAD, for grid.pose_opt). The constant-background build
     has no BG_PER_RAY define at all, so it is the same program as before per-ray backgrounds;
     likewise RAY_ORDER and GRID_POSE_GRAD."""
@@ -262,7 +262,8 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     grad_bg (float32 device [n, 3], overwritten) receives dL/d background = T_end dL/dpixel
     per ray (allocated if None). Returns grad_bg (None for a constant background).
     ray_grad (float32 device [n, 6], overwritten, or None): each ray's dL/d(origin,
-    direction), sample distances held (the GRID_POSE_GRAD build; cl/grid_render.cl header).
+    direction) of the same loss, sample distances held (cl/grid_render.cl render_ray_grad, in
+    the GRID_POSE_GRAD build, launched after the backward).
     """
     dev = grid.device
     n = origins_d.shape[0]
@@ -278,7 +279,7 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
                          f"{ray_grad.dtype} {ray_grad.shape}")
     prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots,
                        step=step, record=record, bg_per_ray=per_ray,
-                       ray_order=order is not None, pose_grad=ray_grad is not None)
+                       ray_order=order is not None)
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
             ray_in_d.data]
@@ -293,10 +294,21 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         if grad_bg is None:
             grad_bg = device_empty(dev.queue, (n, 3), np.float32)
         args.append(grad_bg.data)
-    if ray_grad is not None:
-        args.append(ray_grad.data)
     launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
                     grid.reso, step, () if order is None else (order.data,))
+    if ray_grad is not None:   # render_ray_grad: the same loss's camera gradient per ray
+        pose = grid_program(grid, grad_mode, t_stop=t_stop, step=step, bg_per_ray=per_ray,
+                            ray_order=order is not None, pose_grad=True)
+        occ, oreso = block_occupancy(grid)
+        rargs = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+                 grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
+                 ray_in_d.data]
+        if grad_mode == 1:
+            rargs += [np.float32(loss_scale), np.float32(beta_scale)]
+        launch(dev, pose.kernel("render_ray_grad"), n,
+               rargs + [ray_grad.data, occ.data, oreso] + ([] if order is None else
+                                                          [order.data]),
+               dev.tuning.grid_local_size)
     return grad_bg
 
 
