@@ -2,6 +2,8 @@
 transform against the float64 render's, a perturbed camera pulled toward its true pose, gains
 learned, checkpoints with the corrections (and older ones without), and one clear error for
 each refused or bad setting (each ray's camera gradient: tests/test_grid_pose.py)."""
+import dataclasses
+
 import numpy as np
 import pyopencl.array as cla
 import pytest
@@ -63,6 +65,11 @@ def _given_pose(c2w_true, w, tau, pivot):
 
 
 CAMERAS = (([0.3, -3.0, 0.8], [2.8, 1.0, -0.5], [-2.5, 1.5, 1.2], [0.5, 2.9, -1.0]))
+
+
+def _looks(eyes):
+    from clrf.data.cameras import look_at
+    return [look_at(e, [0.0, 0.0, 0.0]) for e in eyes]
 
 
 def _batch(device, rays, targets):
@@ -186,8 +193,6 @@ def test_checkpoint_keeps_the_corrections_and_older_ones_load(device, tmp_path):
     """A model with grid.pose_opt and grid.exposure after a few steps, through a checkpoint
     file: the same corrections, moments and rows, and the next step the same; a checkpoint
     written without them (before these keys) loads with none."""
-    import dataclasses
-
     from clrf.grid.model import GridModel
     from clrf.outputs import checkpoint
     model, _, (o, d, target, index), _ = _pose_scene(device, exposure=True)
@@ -268,3 +273,34 @@ def test_a_grid_run_with_corrections_reports_them_and_resumes(tmp_path):
                 "--out", str(tmp_path / "e.json")]) == 0
     e = json.loads((tmp_path / "e.json").read_text())
     assert e["pose_correction"]["images"] > 0 and "psnr_half_fitted" in e
+
+
+def test_exposure_at_the_identity_is_the_plain_step_with_an_msi_background(device):
+    """With an MSI background behind the grid and every transform at the identity, the step
+    with grid.exposure gives the grid and the MSI the gradients and loss of the step without
+    it (the transform acts on the whole pixel, the MSI's colour included): the same up to the
+    float32 rounding of target = pixel - (pixel - target)."""
+    from clrf.grid.background import GridBackground
+    from clrf.grid.model import GridModel
+    steps = []
+    for on in (False, True):
+        base = _model(device)
+        cfg = dataclasses.replace(base.cfg, background_layers=2, background_height=8,
+                                  exposure=on)
+        bgm = GridBackground.create(device, cfg, base.grid.bbox, base.background)
+        m = GridModel(device, cfg, base.grid, base.background, bg_model=bgm)
+        o, d = (np.concatenate(a) for a in zip(*[_view(p) for p in _looks(CAMERAS[:2])]))
+        target = np.random.default_rng(5).uniform(0, 1, o.shape).astype(np.float32)
+        if on:
+            m.attach_corrections(2, len(o) // 2, False)
+        for opt in (m.opt_density, m.opt_sh, bgm.opt_density, bgm.opt_color):
+            opt.step = lambda *a, **k: None          # keep the gradients
+        loss = float(m.train_step(0, _up(device, o), _up(device, d), _up(device, target),
+                                  index=_up(device, np.arange(len(o)), np.int32)))
+        steps.append((loss, [a.grad.get() for a in (m.opt_density, m.opt_sh, bgm.opt_density,
+                                                     bgm.opt_color)]))
+    (l0, g0), (l1, g1) = steps
+    np.testing.assert_allclose(l1, l0, rtol=1e-6)
+    for a, b in zip(g0, g1):
+        assert np.abs(a).max() > 0
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-5 * np.abs(a).max())

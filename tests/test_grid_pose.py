@@ -248,3 +248,34 @@ def test_missing_zero_and_empty_rays_get_zeros(device):
     zero = kernel_ray_grad(device, np.zeros_like(dens), np.zeros_like(sh), BBOX, o2, d2,
                            np.ones((20, 3), np.float32), 0.5, (1, 1, 1))
     assert np.all(zero == 0)
+
+
+@pytest.mark.parametrize("order", [0, 1], ids=["given", "sorted"])
+def test_training_loss_and_ray_order_match_twin(render_device, order):
+    """The training step's call (render_backward_device, GRAD_MODE 1: the MSE against targets
+    with loss_scale and the beta prior on T_end) with each ray's gradient, rays rendered in the
+    given order or sorted (RAY_ORDER, dense grids): the twin's gradient of loss_scale |rgb -
+    target|^2 + the prior, each ray's at its own index."""
+    from clrf.grid.render import ray_order, render_backward_device
+    rng = np.random.default_rng(90 + order)
+    dens, sh = random_grid(rng, (7, 6, 8), 2, dens_hi=1.0)
+    n = 300
+    o, d = random_rays(rng, n)
+    target = rng.uniform(0, 1, (n, 3)).astype(np.float32)
+    dev = render_device.with_tuning(ray_order=order)
+    grid = clrf.SparseGrid.from_dense(dev, dens, sh, BBOX)
+    assert (ray_order(grid, _up(dev, o), _up(dev, d), 0.5) is not None) == bool(order)
+    s, beta = 0.7, 0.05
+    rg = cla.empty(dev.queue, (n, 6), np.float32)
+    gd = cla.zeros(dev.queue, grid.density.shape, np.float32)
+    gs = cla.zeros(dev.queue, grid.sh.shape, np.float32)
+    render_backward_device(grid, _up(dev, o), _up(dev, d), _up(dev, target), 0.5, (0.1, 0.2, 0.3),
+                           gd, gs, grad_mode=1, loss_scale=s, beta_scale=beta, ray_grad=rg)
+    f = ref.render_forward(dens, sh, BBOX, o, d, 0.5, (0.1, 0.2, 0.3), record=True)
+    g = 2 * s * (f["rgb"] - target)
+    gT = ref.beta_grad_T(f["T_end"], beta)
+    t, delta, live = ref.held_samples(dens, sh, BBOX, o, d, 0.5)
+    _, want, mag = ref.render_held(dens, sh, BBOX, o, d, t, delta, live, (0.1, 0.2, 0.3), g,
+                                   gT, magnitude=True)
+    assert np.abs(want).max() > 0.1
+    assert_rays_match(rg.get(), want, mag)

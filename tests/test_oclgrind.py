@@ -10,9 +10,10 @@ gather, the ray store's strided read-back, fused loss), the optimisers, encode, 
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
 network), the hash encoding's backward and spatial derivative, the hash march (windows, alive
 rays, contraction, each ray's camera gradient), the grid's camera gradient (both shapes),
-the rays of corrected cameras and their per-image camera gradient sums, Adam over spans and
-over several buffers in one launch, the Gaussian splatting projection (forward, backward;
-anti-aliased; the camera's gradient), the density strategies' statistics (default) and regularisers and noise (MCMC), the distributed
+the rays of corrected cameras and their
+per-image camera gradient sums, Adam over spans and over several buffers in one launch, the
+Gaussian splatting projection (forward, backward; anti-aliased; the camera's gradient), the
+density strategies' statistics (default) and regularisers and noise (MCMC), the distributed
 step's gradient sum, the bilateral grid (slice, both backward passes, the prior and Adam over
 every grid), the training images' widening (uint8, float16), binning (pyopencl's scan and
 radix sort, clrf's chunked sort) and tile rasteriser (forward, backward), and the hash model's
