@@ -98,8 +98,33 @@
  * its ray's own index, so the results are those of the given order (gradients up to the
  * order of float additions). The host uses it on dense grids only (clrf/grid/render.py).
  *
+ * Camera gradient (GRID_POSE_GRAD 1, pose refinement, clrf/corrections/ray_pose.py; without
+ * the define no line of it is compiled): the kernel render_ray_grad gives each ray's
+ *   ray_grad [n, 6] = (dL/do, dL/dd)
+ * of the loss render_backward takes (the same arguments), marching the ray as it does. What
+ * is held constant: each sample's world distance t_k = t0 + mid_k along the unit direction
+ * dh = d / |d| and its segment length delta_k (the march's entry t0, step dt and segment ends
+ * are not differentiated: moving the ray moves its samples, it does not re-place them, as
+ * the hash model's packed_ray_grad does). Sample k sits at x_k = o + t_k dh,
+ * in box units p_k = (x_k - bmin) scale, so dp/dx = diag(scale). With the corner weights
+ * w_c(p) = prod_a (1 - f_a or f_a), f_a the fraction lerp_axis gives (df_a/dp_a = 1 where
+ * 0 < p_a - 1/2 < reso_a - 1 and reso_a >= 2, else 0: the clamped outer half voxels and a
+ * 1-voxel axis are constant), and q_c,ch = sum_b sh_c,ch,b Y_b(dh) corner c's colour:
+ *   dsigma_k/dp = sum_c density_c dw_c/dp   (sigma_k > 0: the ReLU passes; else no term)
+ *   dpre_k,ch/dp = sum_c q_c,ch dw_c/dp
+ *   dL/dx_k = scale * (dL/dsigma_k dsigma_k/dp + sum_ch dL/dpre_k,ch dpre_k,ch/dp)
+ * with dL/dsigma_k and dL/dpre_k,ch = w_k g_ch [pre > 0] the backward's values (below; empty
+ * corners count as zero, as in the forward). Then, over the ray's samples,
+ *   dL/do = sum_k dL/dx_k,
+ *   dL/ddh = sum_k t_k dL/dx_k + sum_b dL/dY_b dY_b/dv,  dL/dY_b = sum_k sum_ch dL/dpre_k,ch
+ *            sh_ch,b(x_k) (the interpolated coefficients; sh.h sh_dir_grad),
+ *   dL/dd = (dL/ddh - dh (dh . dL/ddh)) / |d|
+ * and a ray that misses the box gets zeros. A per-ray background's own dependence on the ray
+ * (BG_PER_RAY: the MSI) is not in it. Not with BRICK (the distributed grid refuses pose
+ * refinement). Twin: clrf/references/reference.py ray_grad.
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, GRAD_MERGE,
- * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, BLOCK, BLOCK_FINE,
+ * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, GRID_POSE_GRAD, BLOCK, BLOCK_FINE,
  * COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
  * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves
  * unused are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
@@ -147,6 +172,14 @@
 #ifndef BG_PER_RAY
 #define BG_PER_RAY 0     /* 1: a background colour per ray (bg_rays [n, 3]) instead of the constant
                             bg, the backward writes dL/d bg_rays, and ray_exit is built */
+#endif
+
+#ifndef GRID_POSE_GRAD
+#define GRID_POSE_GRAD 0 /* 1: build render_ray_grad, ray_grad [n, 6] = dL/d(origin,
+                            direction) of each ray (pose refinement; see the header) */
+#endif
+#if GRID_POSE_GRAD && BRICK
+#error "GRID_POSE_GRAD with BRICK: the distributed grid has no pose refinement"
 #endif
 
 /* The background argument of render_forward / render_backward and its value for ray i. */
@@ -342,6 +375,62 @@ CLRF_INLINE void flush_cell_locked(int3 lo, int4 reso, __global volatile int *lo
     if (ok) flush_cell_private(idx, gsig, gsh, Y, gdens, gsh_rows, mark, do_mark);
     for (int j = n - 1; j >= 0; --j) lock_release(locks + held[j]);
     if (!ok) flush_cell_atomic(idx, gsig, gsh, Y, sdens, ssh, smark, 1);
+}
+#endif
+
+#if GRID_POSE_GRAD
+/* d f / d p of lerp_axis along one axis: 1 where the fraction follows the point, 0 where it is
+ * clamped (the outer half voxels) or the axis has one voxel. */
+CLRF_INLINE float lerp_axis_slope(float p, int r) {
+    const float u = p - 0.5f;
+    return (r >= 2 && u > 0.0f && u < (float)(r - 1)) ? 1.0f : 0.0f;
+}
+
+/* One sample's share of its ray's camera gradient (header, GRID_POSE_GRAD): adds dL/dp_k (box
+ * units) to *gp and the SH direction term sum_b dL/dY_b,k dY_b/dv (dL/dY_b,k = sum_ch
+ * dL/dpre_ch sh_ch,b(p_k)) to *gdir. p: the sample (box units), L: its corners (set up at p),
+ * dsig = dL/dsigma_k, dpre = dL/dpre_k (zero where the colour is clamped), Y the ray's SH
+ * factors, dir the unit direction. Per corner c, with u_b = sum_ch dpre_ch sh_c,ch,b:
+ * dL/dw_c = dsig density_c + sum_b Y_b u_b, and dL/dY_b gets w_c u_b. Reads the corner rows
+ * again (an opt-in variant); the SH term is taken per sample so that the loop carries 6
+ * floats, not SH_BASIS + 6, and every loop is unrolled so that the private arrays are indexed
+ * by constants: Intel's Xe-LP (GRAD_MERGE 0, SH_PER_CORNER) spilled otherwise. */
+CLRF_INLINE void pose_grad_sample(float3 p, int4 reso, const lerp_t *L,
+                                  __global const float *density, __global const float *sh,
+                                  const float *Y, const float3 dir, float dsig, float3 dpre,
+                                  float3 *gp, float3 *gdir) {
+    cellpos_t q;
+    cell_locate(p, reso, &q);
+    const float sx = lerp_axis_slope(p.x, reso.x), sy = lerp_axis_slope(p.y, reso.y),
+                sz = lerp_axis_slope(p.z, reso.z);
+    float3 acc = (float3)(0.0f);
+    float dY[SH_BASIS];
+#pragma unroll
+    for (int b = 0; b < SH_BASIS; ++b) dY[b] = 0.0f;
+#pragma unroll
+    for (int c = 0; c < 8; ++c) {
+        const int k = L->idx[c];
+        if (k < 0) continue;
+        /* corner c's weight is ax ay az; its slope along x is (c's x bit ? sx : -sx) ay az */
+        const float ax = (c & 4) ? q.fx : 1.0f - q.fx, ay = (c & 2) ? q.fy : 1.0f - q.fy,
+                    az = (c & 1) ? q.fz : 1.0f - q.fz;
+        const float3 dw = (float3)(((c & 4) ? sx : -sx) * ay * az,
+                                   ax * ((c & 2) ? sy : -sy) * az,
+                                   ax * ay * ((c & 1) ? sz : -sz));
+        __global const float *row = sh + (size_t)k * SH_DIM;
+        const float wc = L->w[c];
+        float s = dsig * density[k];   /* dL/dw_c */
+#pragma unroll
+        for (int b = 0; b < SH_BASIS; ++b) {
+            const float u = dpre.x * row[b] + dpre.y * row[SH_BASIS + b]
+                            + dpre.z * row[2 * SH_BASIS + b];
+            s += Y[b] * u;
+            dY[b] += wc * u;
+        }
+        acc += s * dw;
+    }
+    *gp += acc;
+    *gdir += sh_dir_grad(dir, dY);
 }
 #endif
 
@@ -628,6 +717,90 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     if (slot >= 0) lock_release(slot_lock + slot);
 #endif
 }
+
+#if GRID_POSE_GRAD
+/* ray_grad [n, 6] = (dL/do, dL/dd) of each ray, the loss as render_backward takes it (GRAD_MODE
+ * 0: ray_in = dL/drgb; 1: ray_in = the targets, with loss_scale and the beta prior's
+ * beta_scale), its sample distances held (header, GRID_POSE_GRAD); zeros for a ray that misses
+ * the box. A kernel of its own, run after render_backward: it marches the ray forward (for
+ * g.rgb) and back again as render_backward does, but scatters nothing, so the backward's
+ * gradient state and this one's per-ray sums are never live together (in render_backward
+ * they spilled on Intel's Xe-LP, where even 6 more floats carried across the march did). */
+__kernel void render_ray_grad(const int n_rays, __global const float *origins,
+                              __global const float *dirs, __global const int *links,
+                              __global const float *density, __global const float *sh,
+                              const int4 reso, const float4 bmin, const float4 scale,
+                              const float step, BG_ARG, __global const float *ray_in,
+#if GRAD_MODE == 1
+                              const float loss_scale, const float beta_scale,
+#endif
+                              __global float *ray_grad, __global const uchar *occ,
+                              const int4 oreso RAY_ORDER_ARG) {
+    const int gid = get_global_id(0);
+    if (gid >= n_rays) return;
+    const int i = RAY_OF(gid);
+    march_t m;
+    m.occ = occ;
+    m.oreso = oreso;
+    const float3 d0 = load3(dirs, i);
+    float3 g_o = (float3)(0.0f), g_dh = (float3)(0.0f);   /* dL/do, dL/ddh */
+    if (march_setup(load3(origins, i), d0, reso, bmin, scale, step, &m)) {
+        float Y[SH_BASIS];
+        sh_basis(m.dir, Y);
+        fwd_t f = {(float3)(0.0f), 0.0f, 0.0f, 0.0f};
+        int kfirst = -1;
+        march_forward(&m, reso, links, density, sh, Y, &kfirst, &f);
+        const float Tend = exp(f.logT);
+        const float3 rgb = f.rgb + Tend * BG_OF(i);
+#if GRAD_MODE == 1   /* as render_backward: the MSE's gradient and the beta prior's dL/dT */
+        const float3 g = 2.0f * loss_scale * (rgb - load3(ray_in, i));
+        const float gT = beta_scale != 0.0f
+            ? beta_scale * (1.0f / (Tend + BETA_EPS) - 1.0f / (1.0f - Tend + BETA_EPS)) : 0.0f;
+#else
+        const float3 g = load3(ray_in, i);
+        const float gT = 0.0f;
+#endif
+        const float total = dot(g, rgb) + Tend * gT;
+#if SH_PER_CORNER
+        const int S = 0;   /* (SAMPLE_PRE takes no vectors) */
+#else
+        shy_t S;
+        shy_setup(Y, &S);
+#endif
+        lerp_t L;
+        L.cell = -1;
+        ksum_t logT = {0.0f, 0.0f};
+        ksum_t prefix = {0.0f, 0.0f};
+        float T = 1.0f;
+        for (int k = 0; k < m.nsteps; ++k) {
+            float mid, delta;
+            if (!march_visit(&m, reso, links, density, sh, 0, 0, 0, &k, &mid, &delta, &L))
+                continue;
+            const float sigma = lerp_density(&L, density);
+            if (!(sigma > 0.0f)) continue;
+            float Tnext;
+            const float w = vr_step(&logT, T, sigma * delta, &Tnext);
+            const float3 pre = SAMPLE_PRE(&L, sh, &S, Y);
+            const float3 c = fmax(pre, 0.0f);
+            const float dsig = vr_dsigma(&prefix, total, w, Tnext, dot(g, c), delta);
+            const float3 dpre = select((float3)(0.0f), w * g, isgreater(pre, (float3)(0.0f)));
+            float3 gp = (float3)(0.0f);
+            pose_grad_sample(m.p0 + mid * m.dg, reso, &L, density, sh, Y, m.dir, dsig, dpre,
+                             &gp, &g_dh);
+            const float3 gx = gp * scale.xyz;   /* dL/dx_k: dp/dx = diag(scale) */
+            g_o += gx;
+            g_dh += (m.t0 + mid) * gx;
+            T = Tnext;
+            if (Tnext < T_STOP) break;
+        }
+        /* dL/dd = (I - dh dh^T) dL/ddh / |d|, |d| scaled first as march_setup does */
+        const float mx = fmax(fabs(d0.x), fmax(fabs(d0.y), fabs(d0.z)));
+        g_dh = (g_dh - m.dir * dot(m.dir, g_dh)) / (mx * length(d0 / mx));
+    }
+    vstore3(g_o, 2 * i, ray_grad);
+    vstore3(g_dh, 2 * i + 1, ray_grad);
+}
+#endif
 
 /* After render_backward with GRAD_SLOTS > 0: for every row k marked in a scratch copy, add the
  * copy's gradient into grad_density / grad_sh, zero it and clear the mark (so the copies are

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..corrections.settings import EXPOSURE_MATRICES
+
 
 @dataclass
 class GridConfig:
@@ -45,6 +47,30 @@ class GridConfig:
     lr_bg_density_final: float = 3e-3     # MSI density learning rate at lr_decay_steps
     lr_bg_color: float = 0.1      # MSI colour learning rate (svox2: 1e-1 -> 5e-6)
     lr_bg_color_final: float = 5e-6       # MSI colour learning rate at lr_decay_steps
+    exposure: bool = False        # learn a colour transform (3 x 3 matrix and offset) per
+    #                               training image, for captures whose exposure or white balance
+    #                               changes; test views are scored under the identity
+    #                               (clrf/corrections/exposure.py, as hash.exposure). Not on
+    #                               RGBA captures (a masked background; docs/guide.md)
+    lr_exposure: float = 1e-3     # Adam learning rate of the transforms (each step)
+    exposure_reg: float = 1e-3    # pull of each transform toward the identity, reg
+    #                               (|A - I|^2 + |b|^2) weighted by the image's share of the batch
+    exposure_matrix: str = "full"  # "full": A a 3 x 3 matrix; "diagonal": a gain and an offset
+    #                               per channel; "gain": a gain per channel only
+    pose_opt: bool = False        # refine each training camera's pose (a rotation and a
+    #                               translation about a pivot), the rays of each batch remade from
+    #                               the corrected cameras and trained by the renderer's gradient
+    #                               with respect to each ray (GRID_POSE_GRAD); test views keep
+    #                               their given poses (clrf/corrections/ray_pose.py, as
+    #                               hash.pose_opt). Not with NDC (forward-facing) or MPI ranks
+    lr_pose: float = 1e-3         # Adam learning rate of the corrections at the start: radians
+    #                               per step, translations this times the box's extent
+    lr_pose_final: float = 1e-4   # ... decayed log-linearly to this over the budget
+    pose_reg: float = 1e-4        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
+    pose_opt_after: float = 0.0   # budget fraction before the corrections take steps (the scene
+    #                               forms first; 0: from the start)
+    pose_hold_frame: bool = True  # take the corrections' common rigid motion out every 100
+    #                               steps, so the scene stays in the given poses' frame
 
     def checks(self):
         """(ok, field, message) for Config.validate: the ranges the kernels and the schedule
@@ -86,4 +112,13 @@ class GridConfig:
              "must be > 0 (with lr_bg_density_final)"),
             (g.lr_bg_color > 0 and g.lr_bg_color_final > 0, "grid.lr_bg_color",
              "must be > 0 (with lr_bg_color_final)"),
+            (0 < g.lr_exposure <= 1, "grid.lr_exposure", "must be in (0, 1]"),
+            (g.exposure_reg >= 0, "grid.exposure_reg", "must be >= 0"),
+            (g.exposure_matrix in EXPOSURE_MATRICES, "grid.exposure_matrix",
+             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
+            (0 < g.lr_pose <= 0.1, "grid.lr_pose", "must be in (0, 0.1] (radians a step)"),
+            (0 < g.lr_pose_final <= g.lr_pose, "grid.lr_pose_final",
+             "must be in (0, grid.lr_pose]"),
+            (g.pose_reg >= 0, "grid.pose_reg", "must be >= 0"),
+            (0 <= g.pose_opt_after < 1, "grid.pose_opt_after", "must be in [0, 1)"),
         ]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..corrections import Corrections
 from ..interface import StateError
 from ..runtime.optim import Optimizer
 from ..runtime.programs import device_zeros, download, upload
@@ -79,6 +80,9 @@ class DistGridModel(GridModel):
         self.background = tuple(float(b) for b in background)
         self.stage = stage
         self.bg_model = None        # the bricks carry no background model (the CLI refuses one)
+        # nor per-image corrections (clrf/grid/kind.py Distributed.check refuses them); the
+        # empty list GridModel's hooks (on_iteration, describe) call
+        self.corrections = Corrections()
         self.dist = DistGrid(comm, bgrid, bricks)
         self._set_grid(bgrid, opt_state)
 

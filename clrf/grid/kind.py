@@ -49,7 +49,35 @@ SCENE_PRESETS = {
 
 def create(device, cfg, ds, background):
     from .model import GridModel
-    return GridModel.create(device, cfg.grid, ds.bbox, background)
+    if cfg.grid.pose_opt and ds.ndc:
+        raise ValueError(f"dataset {ds.name}: grid.pose_opt corrects the cameras that make the "
+                         f"rays, and NDC (forward-facing) rays are not a camera's; pass --set "
+                         f"grid.pose_opt=false")
+    model = GridModel.create(device, cfg.grid, ds.bbox, background)
+    if cfg.grid.exposure or cfg.grid.pose_opt:
+        attach(model, cfg, ds)
+    return model
+
+
+def attach(model, cfg, ds):
+    """The per-image corrections on ``model``: a row per training image, in the trainer's ray
+    store's order (its first max_train_images training views), with their cameras."""
+    import numpy as np
+
+    from ..corrections.ray_pose import pivot_depth, viewmat_of
+    if cfg.grid.exposure and ds.alpha is not None:
+        raise ValueError(f"dataset {ds.name}: grid.exposure acts on whole pixels, and this "
+                         f"capture has alpha (its background composited in, which a transform "
+                         f"must leave alone); pass --set grid.exposure=false, or train "
+                         f"--model hash with hash.exposure")
+    views = ds.split["train"]
+    if cfg.train.max_train_images:
+        views = views[:cfg.train.max_train_images]
+    poses = np.asarray(ds.poses, np.float64)[views]
+    model.attach_corrections(len(views), int(ds.hw[0]) * int(ds.hw[1]),
+                             masked=ds.alpha is not None,
+                             viewmats=lambda: np.stack([viewmat_of(p) for p in poses]),
+                             pivots=lambda: [pivot_depth(viewmat_of(p), ds.bbox) for p in poses])
 
 
 def from_state(device, state, cfg):
@@ -84,6 +112,8 @@ def programs(device, cfg):
             grid_program(g, step=c.step, bg_per_ray=bg, ray_order=order)
             grid_program(g, 1, True, step=c.step, slots=slots, record=record, bg_per_ray=bg,
                          ray_order=order)
+            # grid.pose_opt: each ray's camera gradient (listed always, as the hash's)
+            grid_program(g, 1, step=c.step, bg_per_ray=bg, ray_order=order, pose_grad=True)
         if bg:
             grid_program(g, step=c.step, bg_per_ray=True)              # ray_exit
         bricks._program(g, c.step)                                     # MPI ranks
@@ -100,6 +130,11 @@ def programs(device, cfg):
     if bg:
         msi.program(device, c.background_layers, c.background_height)
     optim.program(device, c.optimizer)
+    from ..corrections import ray_pose
+    ray_pose.program(device)                           # grid.pose_opt, listed always
+    if c.exposure:
+        from ..corrections import exposure
+        exposure.program(device)                       # grid.exposure
 
 
 class Distributed:
@@ -113,6 +148,11 @@ class Distributed:
     def check(self, cfg):
         """ValueError naming the setting when ``cfg`` cannot run on these ranks."""
         from .dist_model import check_schedule
+        for key in ("exposure", "pose_opt"):
+            if getattr(cfg.grid, key):
+                raise ValueError(f"grid.{key}: the per-image corrections are not supported by "
+                                 f"the distributed grid ({self.comm.Get_size()} MPI ranks); pass "
+                                 f"--set grid.{key}=false or run as one process")
         if cfg.grid.background_layers > 0:
             raise ValueError(f"grid.background_layers = {cfg.grid.background_layers}: the "
                              f"distributed grid ({self.comm.Get_size()} MPI ranks) has no "

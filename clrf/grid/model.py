@@ -7,12 +7,34 @@ Implements the model interface the trainer drives (shared with clrf.nerf.NerfMod
 With ``cfg.background_layers > 0`` an MSI background (clrf/grid/background.py) sits behind the
 grid: each ray's pixel is C_fg + T_fg * bg_rgb, trained jointly. With 0 (the default) no
 background kernel is built or launched and every call is the constant-background one.
+
+Per-image corrections (clrf/corrections, ``attach_corrections``; ray i of a batch comes from
+training image index[i] // pixels, so training steps take ``index``):
+
+- ``grid.pose_opt`` (RayPose): the batch's rays are remade from their images' corrected
+  cameras, after the fused backward render_ray_grad (the GRID_POSE_GRAD build of
+  cl/grid_render.cl: sample distances held) gives each ray's dL/d(origin, direction) of the
+  same loss, and each image with rays in the batch takes its correction's Adam step from
+  them.
+- ``grid.exposure`` (RayExposure): the loss compares out = A_v pixel + b_v with the target,
+  where pixel = C + T_end bg is the ray's whole render (the MSI's colour included). The
+  transform acts on the pixel as rendered, so the correction is given the composite state
+  (pixel, opacity 1): T = 0, nothing behind for it to add (``pixel_state``). Its ``forward``
+  returns eff = pixel - A^T r (r = out - target), and the fused backward run with GRAD_MODE 1
+  on eff and the same background gives g = 2 s (pixel - eff) = 2 s A^T r = dL/dpixel: every
+  gradient of the grid (and the MSI's) through the transform, the beta prior unchanged, with
+  no kernel of its own. ``add_background`` has nothing to add (T = 0). Costs one forward
+  render a step. A masked (RGBA) capture, whose transform must leave the composited
+  background alone (out = A C + (1 - T) b + T bg), would need dL/dT_end per ray in the
+  backward: refused (``attach_corrections``).
 """
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 import pyopencl.array as cla
 
+from ..corrections import RAYS, Corrections, Views, build, from_state
 from . import ops as grid_ops
 from .config import GridConfig
 from .background import GridBackground
@@ -39,6 +61,22 @@ def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
                                   np.zeros((n, sh_dim(cfg.sh_degree)), np.float32), bbox)
 
 
+STATE = 8   # floats per ray of the composite state RayExposure reads (cl/splat_exposure.cl)
+
+
+def pixel_state(device, rgb, out):
+    """``out`` [n, STATE] (device): the composite state RayExposure reads of whole pixels rgb
+    [n, 3] (device), their colour and opacity 1 (T = 0: the background is in the pixel); the
+    other entries, which it does not read, 1. One fill and one strided copy, no kernel."""
+    n = int(rgb.shape[0])
+    out.fill(np.float32(1.0))
+    if n:
+        cl.enqueue_copy(device.queue, out.data, rgb.data, src_origin=(0, 0, 0),
+                        dst_origin=(0, 0, 0), region=(12, n, 1), src_pitches=(12, 12 * n),
+                        dst_pitches=(4 * STATE, 4 * STATE * n))
+    return out
+
+
 def export_program(device, sh_degree: int):
     """cl/export.cl for SH degree ``sh_degree`` on ``device``."""
     return device.program("export.cl", {"SH_DEGREE": sh_degree})
@@ -56,7 +94,33 @@ class GridModel:
         self.bg_model = bg_model    # GridBackground, or None: constant background only
         # the step's loss stays on the device until read (GPUs; train_step)
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
+        self.corrections = Corrections()   # per-image corrections (attach_corrections)
         self._set_grid(grid, opt_state)
+
+    def attach_corrections(self, n_images: int, pixels: int, masked: bool, viewmats=None,
+                           pivots=None):
+        """The per-image corrections the config turns on (grid.exposure, grid.pose_opt), a
+        row per training image of ``pixels`` pixels (masked: an RGBA capture); training steps
+        then need each ray's index in the concatenated training images (``ray_index``).
+        grid.pose_opt: ``viewmats`` and ``pivots``, functions giving the training cameras'
+        world-to-camera [V, 4, 4] (OpenCV axes) and pivot depths (clrf/corrections/pose.py).
+        A colour correction acts on whole pixels here (module doc): clrf/grid/kind.py refuses
+        one on a masked capture."""
+        views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
+                      viewmats=viewmats)
+        self.corrections = build(self.device, self.cfg, views, RAYS)
+
+    @property
+    def extent(self) -> float:
+        """The scene's extent: the box's largest side (pose translations are relative to it)."""
+        b = np.asarray(self.grid.bbox, np.float64)
+        return float((b[1] - b[0]).max())
+
+    @property
+    def ray_index(self) -> bool:
+        """Whether train_step needs each ray's index in the training images (the trainer
+        passes it)."""
+        return self.corrections.ray_index
 
     @classmethod
     def create(cls, device, cfg: GridConfig, bbox, background):
@@ -82,35 +146,59 @@ class GridModel:
                          c.lr_density_delay_steps, c.lr_density_delay_mult),
                 expon_lr(it, c.lr_sh, c.lr_sh_final, c.lr_decay_steps))
 
-    def train_step(self, it, origins, dirs, target):
+    def train_step(self, it, origins, dirs, target, index=None):
         """One RMSProp step on a batch (device arrays [B, 3]); returns the batch MSE: a float,
         or where the device runs the GPU-shaped kernels (``defer_loss``) a Pending that the
         trainer reads when it reports (clrf/runtime/pending.py), so that no step waits for
-        the device."""
+        the device.
+
+        index: each ray's place in the concatenated training images (int32 device [B]),
+        needed with the per-image corrections (``ray_index``; module doc): with grid.pose_opt
+        the rays are remade from their images' corrected cameras and each image with rays in
+        the batch takes a step; with grid.exposure the loss is that of the transformed pixels
+        and the transforms take a step."""
         c = self.cfg
         B = origins.shape[0]
         q = self.device.queue
+        if self.ray_index and (index is None or int(index.shape[0]) != B):
+            raise ValueError("train_step: the per-image corrections need each ray's image "
+                             "index [B]")
+        camera, colour = self.corrections.ray_camera, self.corrections.colour
+        ray_grad = None
+        if camera is not None:
+            origins, dirs = camera.rays(index, origins, dirs)
+            ray_grad = device_empty(q, (B, 6), np.float32)
         if self._sqerr is None or self._sqerr.shape[0] != B:
             self._sqerr = device_empty(q, B, np.float32)
         bgm = self.bg_model
-        if bgm is None:
-            render_backward_device(self.grid, origins, dirs, target, c.step, self.background,
-                                   self.opt_density.grad, self.opt_sh.grad, grad_mode=1,
-                                   loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
-                                   touched=self.touched, beta_scale=c.lambda_beta / B)
-        else:
-            t_start, bg_rgb = bgm.forward(self.grid, origins, dirs, c.step)
-            grad_bg = render_backward_device(
-                self.grid, origins, dirs, target, c.step, bg_rgb, self.opt_density.grad,
-                self.opt_sh.grad, grad_mode=1, loss_scale=1.0 / (3 * B), ray_out=self._sqerr,
-                touched=self.touched, beta_scale=c.lambda_beta / B, grad_bg=bgm.grad_buffer(B))
+        bg = self.background
+        if bgm is not None:
+            t_start, bg = bgm.forward(self.grid, origins, dirs, c.step)
+        scale = 1.0 / (3 * B)
+        eff = target
+        if colour is not None:   # the backward's target whose gradient is the transform's
+            pixel = render_forward_device(self.grid, origins, dirs, c.step, bg)["rgb"]
+            state = pixel_state(self.device, pixel, device_empty(q, (B, STATE), np.float32))
+            eff, sq_rays = colour.forward(state, (0.0, 0.0, 0.0), target, index)
+        grad_bg = render_backward_device(
+            self.grid, origins, dirs, eff, c.step, bg, self.opt_density.grad, self.opt_sh.grad,
+            grad_mode=1, loss_scale=scale, ray_out=self._sqerr, touched=self.touched,
+            beta_scale=c.lambda_beta / B, grad_bg=None if bgm is None else bgm.grad_buffer(B),
+            ray_grad=ray_grad)
+        if bgm is not None:
             bgm.backward_step(it, origins, dirs, t_start, grad_bg)
+        if colour is not None:
+            colour.backward_and_step(state, (0.0, 0.0, 0.0), index, scale)
+        if camera is not None:
+            camera.step_rays(index, dirs, ray_grad)
         if not (c.tv_early_only and self.stage > 0):
             self._tv(it)
         lr_d, lr_s = self.learning_rates(it)
         self.opt_density.step(self.touched, lr_d, clear_touched=False)
         self.opt_sh.step(self.touched, lr_s, clear_touched=True)
-        loss, scale = cla.sum(self._sqerr, queue=q), 1.0 / (3 * B)
+        # the loss's squared errors: the transformed pixels' with grid.exposure (_sqerr then
+        # holds |pixel - eff|^2, the backward's own)
+        loss = cla.sum(self._sqerr if colour is None else sq_rays, queue=q)
         if self.defer_loss:
             return Pending(q, loss, scale)
         return float(loss.get()) * scale
@@ -142,6 +230,7 @@ class GridModel:
         """Prune and upsample at the scheduled iterations (on ``budget.rays``, the training
         rays). Returns a log message or None."""
         c = self.cfg
+        self.corrections.schedule(float(budget.fraction))
         if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
             o, d = budget.rays.strided(c.prune_rays)
             return self.upsample(o, d)
@@ -225,7 +314,8 @@ class GridModel:
         if self.bg_model is not None:
             m = self.bg_model.msi
             bg = f", MSI background {m.layers}x{m.height}x{m.width}"
-        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows{bg}"
+        corr = f", {self.corrections.describe()}" if self.corrections else ""
+        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows{bg}{corr}"
 
     # ---- state -------------------------------------------------------------------------
     def state_dict(self):
@@ -238,6 +328,7 @@ class GridModel:
             "density": download(self.grid.density)[:n], "sh": download(self.grid.sh)[:n],
             "opt_density": download(self.opt_density.state)[:n],
             "opt_sh": download(self.opt_sh.state)[:n],
+            **self.corrections.state_dict(),
         }
 
     @classmethod
@@ -257,5 +348,9 @@ class GridModel:
                 f"configuration sets grid.background_layers = {cfg.background_layers}; resume "
                 f"with the run's own configuration")
         bg_model = GridBackground.from_state_dict(device, state, cfg) if has_bg else None
-        return cls(device, cfg, grid, state["background"], int(state["stage"]), opt,
-                   bg_model=bg_model)
+        model = cls(device, cfg, grid, state["background"], int(state["stage"]), opt,
+                    bg_model=bg_model)
+        # the corrections the checkpoint holds (none in one written before grid.exposure and
+        # grid.pose_opt: from_state finds no key)
+        model.corrections = from_state(device, cfg, state, Views(scale=model.extent), RAYS)
+        return model

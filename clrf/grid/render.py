@@ -37,17 +37,22 @@ def check_step(grid, step) -> float:
 
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
                  slots: int = 0, step: float = 0.5, record: bool = False,
-                 bg_per_ray: bool = False, brick: bool = False, ray_order: bool = False):
+                 bg_per_ray: bool = False, brick: bool = False, ray_order: bool = False,
+                 pose_grad: bool = False):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
     record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
     a background colour per ray, BG_PER_RAY; brick: the BRICK variant for one brick of a
     distributed grid, clrf/grid/bricks.py, built with t_stop 0; ray_order: the render kernels
-    take a ray permutation, RAY_ORDER). The constant-background build has no BG_PER_RAY define
-    at all, so it is the same program as before per-ray backgrounds; likewise RAY_ORDER."""
+    take a ray permutation, RAY_ORDER; pose_grad: also render_ray_grad, each ray's
+    dL/d(origin, direction), GRID_POSE_GRAD, for grid.pose_opt). The constant-background build
+    has no BG_PER_RAY define at all, so it is the same program as before per-ray backgrounds;
+    likewise RAY_ORDER and GRID_POSE_GRAD."""
     t = grid.device.tuning
     extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
     if ray_order:
         extra["RAY_ORDER"] = 1
+    if pose_grad:
+        extra["GRID_POSE_GRAD"] = 1
     if not t.grad_merge and slots <= 0:
         extra["GRAD_MERGE"] = 0   # each sample's gradients added as it is met (Intel GPUs)
     reso = getattr(grid, "march_reso", grid.reso)
@@ -245,7 +250,7 @@ def ray_exit_device(grid, origins_d, dirs_d, step, out=None):
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
                            grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
-                           beta_scale=0.0, grad_bg=None, t_stop=T_STOP):
+                           beta_scale=0.0, grad_bg=None, t_stop=T_STOP, ray_grad=None):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
@@ -256,6 +261,9 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     background: three numbers, or a float32 device array [n, 3] of per-ray colours; then
     grad_bg (float32 device [n, 3], overwritten) receives dL/d background = T_end dL/dpixel
     per ray (allocated if None). Returns grad_bg (None for a constant background).
+    ray_grad (float32 device [n, 6], overwritten, or None): each ray's dL/d(origin,
+    direction) of the same loss, sample distances held (cl/grid_render.cl render_ray_grad, in
+    the GRID_POSE_GRAD build, launched after the backward).
     """
     dev = grid.device
     n = origins_d.shape[0]
@@ -265,6 +273,10 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     slots = grad_slots(grid)
     record = slots > 0 and dev.tuning.sample_record
     order = ray_order(grid, origins_d, dirs_d, step)
+    if ray_grad is not None and (ray_grad.dtype != np.float32 or ray_grad.shape != (n, 6)
+                                 or not ray_grad.flags.c_contiguous):
+        raise ValueError(f"ray_grad: a contiguous float32 device array of shape ({n}, 6), got "
+                         f"{ray_grad.dtype} {ray_grad.shape}")
     prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots,
                        step=step, record=record, bg_per_ray=per_ray,
                        ray_order=order is not None)
@@ -284,6 +296,19 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         args.append(grad_bg.data)
     launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
                     grid.reso, step, () if order is None else (order.data,))
+    if ray_grad is not None:   # render_ray_grad: the same loss's camera gradient per ray
+        pose = grid_program(grid, grad_mode, t_stop=t_stop, step=step, bg_per_ray=per_ray,
+                            ray_order=order is not None, pose_grad=True)
+        occ, oreso = block_occupancy(grid)
+        rargs = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+                 grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
+                 ray_in_d.data]
+        if grad_mode == 1:
+            rargs += [np.float32(loss_scale), np.float32(beta_scale)]
+        launch(dev, pose.kernel("render_ray_grad"), n,
+               rargs + [ray_grad.data, occ.data, oreso] + ([] if order is None else
+                                                          [order.data]),
+               dev.tuning.grid_local_size)
     return grad_bg
 
 
@@ -350,11 +375,14 @@ def render_rays(grid, origins, dirs, step=0.5, background=(1.0, 1.0, 1.0)):
     return {k: v.get() for k, v in out.items()}
 
 
-def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.0, 1.0, 1.0)):
+def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.0, 1.0, 1.0),
+                         ray_grad=False):
     """Gradient of ``sum(grad_rgb * rgb)`` with respect to the grid's values.
 
     Returns dense numpy ``density`` [X,Y,Z] and ``sh`` [X,Y,Z,C] (zeros at empty voxels); with
-    a per-ray ``background`` [n, 3] also ``background`` [n, 3] = T_end * grad_rgb, its gradient.
+    a per-ray ``background`` [n, 3] also ``background`` [n, 3] = T_end * grad_rgb, its gradient;
+    with ``ray_grad`` also ``ray_grad`` [n, 6], each ray's gradient with respect to its origin
+    and direction (sample distances held: cl/grid_render.cl, GRID_POSE_GRAD).
     """
     o, d = check_rays(origins, dirs)
     g = check_array("grad_rgb", grad_rgb, ndim=2, shape_tail=(3,))
@@ -367,11 +395,14 @@ def render_rays_backward(grid, origins, dirs, grad_rgb, step=0.5, background=(1.
     gd = device_zeros(q, grid.density.shape[0], np.float32)
     gs = device_zeros(q, grid.sh.shape, np.float32)
     gbg = None
+    rg = device_empty(q, (n, 6), np.float32) if ray_grad and n else None
     if n:
         gbg = render_backward_device(grid, upload(q, o), upload(q, d),
-                                     upload(q, g), step, bg, gd, gs)
+                                     upload(q, g), step, bg, gd, gs, ray_grad=rg)
     dens, sh = grid.rows_to_dense(gd.get(), gs.get())
     out = {"density": dens, "sh": sh}
+    if ray_grad:
+        out["ray_grad"] = rg.get() if rg is not None else np.zeros((0, 6), np.float32)
     if np.ndim(background) == 2:
         out["background"] = gbg.get() if gbg is not None else np.zeros((0, 3), np.float32)
     return out

@@ -190,7 +190,8 @@ def render_forward(density, sh, bbox, origins, dirs, step=0.5, background=(1, 1,
         depth[rays] += wgt * (m["t0"][rays] + mid)
         logT[rays] -= tau
         if record:
-            rec.append(dict(rays=rays, delta=delta, idx=idx, w=w, sigma_raw=sigma_raw,
+            rec.append(dict(rays=rays, t=m["t0"][rays] + mid, delta=delta, idx=idx, w=w,
+                            sigma_raw=sigma_raw,
                             pre=pre, c=c, wgt=wgt, Tnext=np.exp(logT[rays])))
         stop = rays[np.exp(logT[rays]) < t_stop]
         alive[stop] = False
@@ -244,6 +245,137 @@ def render_backward(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, backgr
     if mask is None:
         mask = (density != 0) | np.any(sh != 0, axis=-1)
     return dict(density=gd * mask, sh=gs * mask[..., None], background=T_end[:, None] * g)
+
+
+# ---- each ray's gradient with respect to its origin and direction (GRID_POSE_GRAD) ---------
+def trilerp_weight_grad(p, reso):
+    """dw_c/dp [n, 8, 3] of trilerp_corners' weights at points p [n, 3] (box units): 0 along
+    an axis where the interpolation is clamped (the outer half voxels, a 1-voxel axis)."""
+    reso = np.asarray(reso)
+    u = np.clip(p - 0.5, 0, reso - 1)
+    i0 = np.minimum(np.floor(u).astype(np.int64), np.maximum(reso - 2, 0))
+    f = u - i0
+    raw = p - 0.5
+    slope = ((reso >= 2) & (raw > 0) & (raw < reso - 1)).astype(np.float64)
+    out = np.empty(p.shape[:1] + (8, 3))
+    for c in range(8):
+        bits = ((c >> 2) & 1, (c >> 1) & 1, c & 1)
+        wa = [np.where(bits[a], f[:, a], 1 - f[:, a]) for a in range(3)]
+        da = [np.where(bits[a], 1.0, -1.0) * slope[:, a] for a in range(3)]
+        out[:, c, 0] = da[0] * wa[1] * wa[2]
+        out[:, c, 1] = wa[0] * da[1] * wa[2]
+        out[:, c, 2] = wa[0] * wa[1] * da[2]
+    return out
+
+
+def held_samples(density, sh, bbox, origins, dirs, step=0.5, t_stop=T_STOP):
+    """The samples render_forward takes, as (t, delta, live) [n, K]: each one's world distance
+    along the unit direction, its segment length, and whether it is there (the march of a
+    ray stops at T < t_stop). What GRID_POSE_GRAD holds constant while the ray moves."""
+    f = render_forward(density, sh, bbox, origins, dirs, step, (0, 0, 0), t_stop, record=True)
+    n, K = np.asarray(origins).shape[0], len(f["_rec"])
+    t, delta, live = np.zeros((n, K)), np.zeros((n, K)), np.zeros((n, K), bool)
+    for k, r in enumerate(f["_rec"]):
+        t[r["rays"], k], delta[r["rays"], k], live[r["rays"], k] = r["t"], r["delta"], True
+    return t, delta, live
+
+
+def render_held(density, sh, bbox, origins, dirs, t, delta, live, background=(1, 1, 1),
+                grad_rgb=None, grad_T=None, magnitude=False):
+    """rgb [n, 3] of rays (origins, dirs) through samples at the given distances ``t`` along
+    each unit direction with segment lengths ``delta`` (``held_samples``), no termination: the
+    renderer's function of the ray with its sample distances held. With ``grad_rgb`` also the
+    gradient of sum(grad_rgb * rgb) (+ grad_T [n] times each ray's T_end) with respect to
+    (origin, direction) [n, 6] (cl/grid_render.cl GRID_POSE_GRAD, derived here independently:
+    suffix sums, dense corner arrays). With ``magnitude`` also [n]: per ray the sum of the
+    magnitudes of the terms the gradient adds up (each sample's corner terms, dL/dsigma's
+    as |remaining radiance| + |T g.c|, times 1 + t_k, and the SH direction terms; over |d|
+    where |d| < 1): the scale of a float32 evaluation's rounding (tests' tolerances)."""
+    density = np.asarray(density, np.float64)
+    sh = np.asarray(sh, np.float64)
+    B = sh.shape[-1] // 3
+    degree = int(round(np.sqrt(B))) - 1
+    o, d = np.asarray(origins, np.float64), np.asarray(dirs, np.float64)
+    n, K = t.shape
+    dn = np.linalg.norm(d, axis=1)
+    dh = d / np.where(dn > 0, dn, 1)[:, None]
+    bbox = np.asarray(bbox, np.float64)
+    reso = np.asarray(density.shape)
+    scale = reso / (bbox[1] - bbox[0])
+    Y = sh_basis(dh, degree)
+    bg = np.broadcast_to(np.asarray(background, np.float64), (n, 3))
+    rgb, logT, rec = np.zeros((n, 3)), np.zeros(n), []
+    for k in range(K):
+        rays = np.nonzero(live[:, k])[0]
+        if rays.size == 0:
+            continue
+        p = (o[rays] + t[rays, k, None] * dh[rays] - bbox[0]) * scale
+        idx, w = trilerp_corners(p, reso)
+        dens_c = density[idx[..., 0], idx[..., 1], idx[..., 2]]
+        sh_c = sh[idx[..., 0], idx[..., 1], idx[..., 2]]
+        sigma_raw = np.sum(w * dens_c, axis=1)
+        co = np.einsum("nc,ncj->nj", w, sh_c)
+        pre = np.einsum("ncb,nb->nc", co.reshape(-1, 3, B), Y[rays]) + COLOR_OFFSET
+        c = np.maximum(pre, 0.0)
+        tau = np.maximum(sigma_raw, 0.0) * delta[rays, k]
+        wgt = np.exp(logT[rays]) * alpha_of_tau(tau)
+        rgb[rays] += wgt[:, None] * c
+        logT[rays] -= tau
+        rec.append(dict(k=k, rays=rays, p=p, dens_c=dens_c, sh_c=sh_c, sigma_raw=sigma_raw,
+                        co=co, pre=pre, c=c, wgt=wgt, Tnext=np.exp(logT[rays])))
+    T_end = np.exp(logT)
+    rgb = rgb + T_end[:, None] * bg
+    if grad_rgb is None:
+        return rgb
+    g = np.asarray(grad_rgb, np.float64)
+    wgc = np.zeros((n, K))
+    for r in rec:
+        wgc[r["rays"], r["k"]] = r["wgt"] * np.sum(g[r["rays"]] * r["c"], axis=1)
+    after = np.cumsum(wgc[:, ::-1], axis=1)[:, ::-1] - wgc          # sum_{j>k}
+    after_abs = np.cumsum(np.abs(wgc)[:, ::-1], axis=1)[:, ::-1]    # sum_{j>=k} |.|
+    bgterm = T_end * (np.sum(g * bg, axis=1)
+                      + (0.0 if grad_T is None else np.asarray(grad_T, np.float64)))
+    g_o, g_dh, g_Y = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, B))
+    mag, mag_Y = np.zeros(n), np.zeros((n, B))
+    for r in rec:
+        rays, k, m = r["rays"], r["k"], r["rays"].size
+        on = r["sigma_raw"] > 0
+        gc = np.sum(g[rays] * r["c"], axis=1)
+        dsig = delta[rays, k] * (r["Tnext"] * gc - (after[rays, k] + bgterm[rays])) * on
+        dpre = r["wgt"][:, None] * g[rays] * (r["pre"] > 0) * on[:, None]
+        q = np.einsum("mcjb,mb->mcj", r["sh_c"].reshape(m, 8, 3, B), Y[rays])   # corner colours
+        s_c = dsig[:, None] * r["dens_c"] + np.einsum("mj,mcj->mc", dpre, q)
+        dw = trilerp_weight_grad(r["p"], reso)
+        gx = np.einsum("mc,mca->ma", s_c, dw) * scale
+        g_o[rays] += gx
+        g_dh[rays] += t[rays, k, None] * gx
+        g_Y[rays] += np.einsum("mj,mjb->mb", dpre, r["co"].reshape(m, 3, B))
+        if magnitude:
+            dsig_mag = delta[rays, k] * (r["Tnext"] * np.abs(gc) + after_abs[rays, k]
+                                         + np.abs(bgterm[rays])) * on
+            s_mag = (dsig_mag[:, None] * np.abs(r["dens_c"])
+                     + np.einsum("mj,mcj->mc", np.abs(dpre), np.abs(q)))
+            term = np.einsum("mc,mca->m", s_mag, np.abs(dw) * scale)
+            mag[rays] += (1.0 + np.abs(t[rays, k])) * term
+            mag_Y[rays] += np.einsum("mj,mjb->mb", np.abs(dpre),
+                                     np.abs(r["co"].reshape(m, 3, B)))
+    g_dh += sh_dir_grad(dh, g_Y, degree)
+    g_d = (g_dh - dh * np.sum(dh * g_dh, axis=1, keepdims=True)) / np.where(dn > 0, dn, 1)[:, None]
+    out = np.concatenate([g_o, g_d], axis=1)
+    if not magnitude:
+        return rgb, out
+    mag += np.sum(np.abs(sh_dir_grad(np.abs(dh), mag_Y, degree)), axis=1)
+    return rgb, out, mag * np.maximum(1.0, 1.0 / np.where(dn > 0, dn, 1))
+
+
+def ray_grad(density, sh, bbox, origins, dirs, grad_rgb, step=0.5, background=(1, 1, 1),
+             t_stop=T_STOP, grad_T=None):
+    """[n, 6] float64 twin of render_backward's ray_grad (GRID_POSE_GRAD): the gradient of
+    sum(grad_rgb * rgb) with respect to each ray's origin and direction, the sample distances
+    of render_forward's march held (``held_samples``, ``render_held``)."""
+    t, delta, live = held_samples(density, sh, bbox, origins, dirs, step, t_stop)
+    return render_held(density, sh, bbox, origins, dirs, t, delta, live, background, grad_rgb,
+                       grad_T)[1]
 
 
 def ray_exit(origins, dirs, reso, bbox, step=0.5):

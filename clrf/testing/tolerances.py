@@ -520,3 +520,11 @@ BILATERAL_SUM_ATOL_PER_SQRT_N = 1e-5
 BILATERAL_TV_REL_TO_MAX = 1e-6
 # Three Adam steps of every grid against the float64 twin: as the exposure's rows.
 BILATERAL_ADAM_ATOL = 1e-6
+# Each ray's dL/d(origin, direction) from the grid's backward (GRID_POSE_GRAD) vs its float64
+# twin: per sample, float32 corner terms (dL/dsigma from the remaining radiance, itself a
+# difference of float32 sums, and the colour's), times t_k, summed over up to ~900 samples,
+# then the SH direction terms and the projection over |d|. Relative to the sum of the terms'
+# magnitudes (reference.render_held(magnitude=True)), a few u per term plus the sums' growth:
+# 1e-6 (~17 u). A dropped sample, a wrong slope, a missing t_k, SH term or projection moves a
+# ray's gradient by O(1) of its terms.
+GRID_RAY_GRAD_RTOL = 1e-6
