@@ -63,6 +63,15 @@
  *                    last). matrix 1 or 2 (hash.exposure_matrix): the entries it does not train
  *                    get 0, so that Adam leaves them at 0.
  *
+ * exposure_rays_behind  for a masked capture on a renderer that composites the background
+ *                    itself (the grid): each ray's background bg'_i = A_v^-1 (bg - b_v) of its
+ *                    row v (the adjugate over the determinant), so that its whole pixel
+ *                    rgb' = c + T bg' gives A rgb' + b = A c + (1 - T) b + T bg, the masked out
+ *                    above, and the transform of whole pixels (state (rgb', opacity 1)) is the
+ *                    masked one exactly; a row with a non-finite entry, whose A is singular
+ *                    (|det| <= 1e-12) or whose result is not finite gives bg (never near the identity rows are pulled
+ *                    to; clrf/corrections/exposure.py Exposure.background does the same).
+ *
  * Defines read: none.
  */
 
@@ -238,4 +247,26 @@ void exposure_rays_grad(const int n, const int pixels, __global const int *index
                   : (accumulate ? grad[j] : 0.0f) + 2.0f * scale * part[l]
                     + 2.0f * reg * share * (P[j] - identity_entry(l));
     }
+}
+
+/* out [n, 3]: A_v^-1 (bg - b_v) of each ray's row v (see the header). */
+__kernel void exposure_rays_behind(const int n, const int pixels, __global const int *index,
+                                   const float4 bg, __global const float *P,
+                                   __global float *out) {
+    const int i = get_global_id(0);
+    if (i >= n) return;
+    __global const float *a = P + (size_t)(index[i] / pixels) * EXPOSURE_ROW;
+    const float3 r = bg.xyz - (float3)(a[9], a[10], a[11]);
+    /* the cofactors of A's first row, then A^-1 = adj(A) / det, adj(A)_ij = C_ji */
+    const float c00 = a[4] * a[8] - a[5] * a[7], c01 = a[5] * a[6] - a[3] * a[8],
+                c02 = a[3] * a[7] - a[4] * a[6];
+    const float det = a[0] * c00 + a[1] * c01 + a[2] * c02;
+    const float3 x = (float3)(c00 * r.x + (a[2] * a[7] - a[1] * a[8]) * r.y
+                                  + (a[1] * a[5] - a[2] * a[4]) * r.z,
+                              c01 * r.x + (a[0] * a[8] - a[2] * a[6]) * r.y
+                                  + (a[2] * a[3] - a[0] * a[5]) * r.z,
+                              c02 * r.x + (a[1] * a[6] - a[0] * a[7]) * r.y
+                                  + (a[0] * a[4] - a[1] * a[3]) * r.z) / det;
+    const int ok = isfinite(det) && fabs(det) > 1e-12f && isfinite(x.x) && isfinite(x.y) && isfinite(x.z);
+    vstore3(ok ? x : bg.xyz, i, out);
 }

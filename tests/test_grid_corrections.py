@@ -173,6 +173,46 @@ def test_exposure_gradient_is_the_gradient_through_the_transform(device):
     np.testing.assert_allclose(loss, s * np.sum(r * r), rtol=1e-5)
 
 
+def test_a_masked_captures_gradient_leaves_its_background_alone(device):
+    """A masked (RGBA) capture: the loss compares out = A C + (1 - T) b + T bg with the
+    target (the transform leaves the composited background alone), and the step's gradient is
+    the float64 render's backward of that loss: C + T bg' rendered on each ray's bg' = A^-1 (bg
+    - b) and dL/dpixel' = 2 s A^T r, the densities' share through T included."""
+    from clrf.references import reference_exposure as rex
+    model, (o, d, target, index), pixels = _exposure_scene(device, (1.0, 1.0),
+                                                           exposure_matrix="full")
+    model.attach_corrections(2, pixels, True)
+    rng = np.random.default_rng(91)
+    exp = model.corrections.colour
+    exp.P.set((exp.rows() + rng.normal(0, 0.1, exp.rows().shape)).astype(np.float32))
+    rows = exp.P.get().astype(np.float64)
+    target.set(rng.uniform(0, 1, target.shape).astype(np.float32))
+    model.opt_density.step = model.opt_sh.step = lambda *a, **k: None   # keep the gradients
+    loss = float(model.train_step(0, o, d, target, index=index))
+    dens, sh = model.grid.to_dense()
+    on, dn, tg, ix = o.get(), d.get(), target.get().astype(np.float64), index.get()
+    bg = np.asarray(model.background, np.float64)
+    black = ref.render_forward(dens, sh, model.grid.bbox, on, dn, 0.5, (0, 0, 0), record=True)
+    C, T = black["rgb"], black["T_end"]
+    A, b = rows[ix // pixels, :9].reshape(-1, 3, 3), rows[ix // pixels, 9:]
+    r = np.einsum("nij,nj->ni", A, C) + (1 - T)[:, None] * b + T[:, None] * bg - tg
+    B = len(tg)
+    s = 1.0 / (3 * B)
+    np.testing.assert_allclose(loss, s * np.sum(r * r), rtol=1e-5)
+    behind = rex.rays_behind(rows, ix, pixels, bg)
+    assert np.abs(behind - bg).max() > 0.05
+    want = ref.render_backward(dens, sh, model.grid.bbox, on, dn,
+                               np.einsum("nji,nj->ni", A, r), 0.5, behind)
+    gd, gs = model.grid.rows_to_dense(model.opt_density.grad.get(), model.opt_sh.grad.get())
+    np.testing.assert_allclose(gd / (2 * s), want["density"], atol=tol.GRAD_ATOL,
+                               rtol=tol.GRAD_RTOL)
+    np.testing.assert_allclose(gs / (2 * s), want["sh"], atol=tol.GRAD_ATOL, rtol=tol.GRAD_RTOL)
+    # the densities' gradient differs from the unmasked transform's (the background's share)
+    plain = ref.render_backward(dens, sh, model.grid.bbox, on, dn,
+                                np.einsum("nji,nj->ni", A, r), 0.5, bg)
+    assert np.abs(plain["density"] - want["density"]).max() > 100 * tol.GRAD_ATOL
+
+
 def test_exposure_learns_each_images_gain(device):
     """Images whose colours are scaled by gains (geometric mean 1, so the recentring keeps
     them) on a scene held still: after 150 steps of grid.exposure (gain matrices) each
@@ -222,9 +262,9 @@ def test_checkpoint_keeps_the_corrections_and_older_ones_load(device, tmp_path):
 
 
 def test_corrections_are_refused_with_one_clear_error():
-    """NDC rays are not a camera's, the distributed grid sums no corrections, and the grid's
-    transform of whole pixels would change a masked capture's background: one ValueError
-    naming the key and the fix each."""
+    """NDC rays are not a camera's, the distributed grid sums no corrections, and a masked
+    capture's exposure renders each image on a background of its own, which the MSI
+    background would replace: one ValueError naming the key and the fix each."""
     from types import SimpleNamespace
 
     from clrf.grid.config import GridConfig
@@ -237,7 +277,8 @@ def test_corrections_are_refused_with_one_clear_error():
         with pytest.raises(ValueError, match=rf"grid.{key}.*MPI ranks.*--set grid.{key}=false"):
             Distributed(SimpleNamespace(Get_size=lambda: 2, Get_rank=lambda: 0)).check(c)
     with pytest.raises(ValueError, match=r"grid.exposure.*alpha.*--set grid.exposure=false"):
-        attach(None, SimpleNamespace(grid=GridConfig(exposure=True)),
+        attach(SimpleNamespace(bg_model=object()),
+               SimpleNamespace(grid=GridConfig(exposure=True)),
                SimpleNamespace(name="lego", alpha=np.ones(1)))
 
 

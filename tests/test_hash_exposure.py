@@ -265,3 +265,34 @@ def test_stiff_rays_stay_finite(device):
     exp.backward_and_step(st, BG, idx, 1.0 / (3 * n))
     rows = exp.rows()
     assert np.all(np.isfinite(rows)) and np.abs(rows - ref.IDENTITY).max() <= 0.01 + 1e-6
+
+
+@pytest.mark.parametrize("n", [1, 37])
+def test_each_rays_own_background_matches_the_twin(device, n):
+    """RayExposure.behind (a masked capture on a renderer that composites the background
+    itself): A_v^-1 (bg - b_v) of each ray's row, bg for a singular row and a non-finite one,
+    and a render on it transformed is the masked pixel."""
+    rng = np.random.default_rng(n)
+    _, _, index, P = _batch(rng, n, 5, 16)
+    P[3, :9] = (1, 2, 3, 2, 4, 6, 0, 1, 1)           # singular: rows 1 and 2 dependent
+    P[4, 0] = np.inf
+    index[: min(n, 2)] = np.array([3 * 16 + 1, 4 * 16])[: min(n, 2)]
+    exp = _exposure(device, P, 16)
+    q = device.queue
+    got = exp.behind(BG, upload(q, index)).get()
+    want = ref.rays_behind(P, index, 16, BG)
+    np.testing.assert_allclose(got, want, rtol=tol.EXPOSURE_GRAD_RTOL, atol=tol.EXPOSURE_ATOL)
+    if n > 2:
+        assert np.abs(want - np.asarray(BG)).max() > 0.05     # moved off bg where A is regular
+    np.testing.assert_array_equal(got[: min(n, 2)], np.tile(BG, (min(n, 2), 1)))
+    # the transform of a whole pixel rendered on it is the masked capture's pixel
+    c = rng.uniform(0, 1, (n, 3)) * 0.5
+    T = rng.uniform(0, 1, n)
+    for i in range(min(n, 2), n):
+        v = index[i] // 16
+        if v >= 3:
+            continue                                 # the rows that fall back to bg
+        A, b = ref.split(P[v].astype(np.float64))
+        whole = A @ (c[i] + T[i] * want[i]) + b
+        masked = ref.shown(c[i][None], T[i], BG, P.astype(np.float64), v, masked=True)[0]
+        np.testing.assert_allclose(whole, masked, atol=1e-9)

@@ -327,6 +327,18 @@ class RayExposure(_Rows):
                 self._resid.data, eff.data, sq.data, self._bgt.data))
         return eff, sq
 
+    def behind(self, background, index):
+        """[n, 3] device: each ray's background A_v^-1 (bg - b_v) (cl/splat_exposure.cl
+        exposure_rays_behind), for a masked capture on a renderer that composites the
+        background itself and hands ``forward`` whole pixels (the grid): its render on these
+        is what the transform maps to the masked pixel."""
+        n = int(index.shape[0])
+        out = scratch(self.device, (max(n, 1), 3))
+        launch(self.device, self._prg.kernel("exposure_rays_behind"), n,
+               (np.int32(n), np.int32(self.pixels), index.data, self._bg(background),
+                self.P.data, out.data))
+        return out[:n]
+
     def add_background(self, pk, sigma, loss_scale: float, dsigma):
         """Adds the background's share of dL/dsigma (the last ``forward``'s rays, packed as
         ``pk``: n rays, m samples, offsets [n + 1] and dt [m] on the device; the renderer's

@@ -65,11 +65,11 @@ def attach(model, cfg, ds):
     import numpy as np
 
     from ..corrections.ray_pose import pivot_depth, viewmat_of
-    if cfg.grid.exposure and ds.alpha is not None:
-        raise ValueError(f"dataset {ds.name}: grid.exposure acts on whole pixels, and this "
-                         f"capture has alpha (its background composited in, which a transform "
-                         f"must leave alone); pass --set grid.exposure=false, or train "
-                         f"--model hash with hash.exposure")
+    if cfg.grid.exposure and ds.alpha is not None and model.bg_model is not None:
+        raise ValueError(f"dataset {ds.name}: grid.exposure on a capture with alpha renders "
+                         f"each image on a background of its own, which the MSI background "
+                         f"(grid.background_layers) would replace; pass --set "
+                         f"grid.exposure=false or --set grid.background_layers=0")
     views = ds.split["train"]
     if cfg.train.max_train_images:
         views = views[:cfg.train.max_train_images]

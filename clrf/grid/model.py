@@ -25,8 +25,10 @@ training image index[i] // pixels, so training steps take ``index``):
   gradient of the grid (and the MSI's) through the transform, the beta prior unchanged, with
   no kernel of its own. ``add_background`` has nothing to add (T = 0). Costs one forward
   render a step. A masked (RGBA) capture, whose transform must leave the composited
-  background alone (out = A C + (1 - T) b + T bg), would need dL/dT_end per ray in the
-  backward: refused (``attach_corrections``).
+  background bg alone (out = A C + (1 - T) b + T bg), renders each ray on bg'_v = A_v^-1 (bg -
+  b_v) instead (RayExposure.behind): then A_v (C + T bg'_v) + b_v is that out exactly, and the
+  same backward, on bg', gives every gradient, the background's share of the densities'
+  included, as the splat model's masked exposure does with whole views.
 """
 from __future__ import annotations
 
@@ -104,8 +106,8 @@ class GridModel:
         then need each ray's index in the concatenated training images (``ray_index``).
         grid.pose_opt: ``viewmats`` and ``pivots``, functions giving the training cameras'
         world-to-camera [V, 4, 4] (OpenCV axes) and pivot depths (clrf/corrections/pose.py).
-        A colour correction acts on whole pixels here (module doc): clrf/grid/kind.py refuses
-        one on a masked capture."""
+        A colour correction acts on whole pixels here, a masked capture's rendered on each
+        image's own background (module doc)."""
         views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
                       viewmats=viewmats)
         self.corrections = build(self.device, self.cfg, views, RAYS)
@@ -176,6 +178,8 @@ class GridModel:
             t_start, bg = bgm.forward(self.grid, origins, dirs, c.step)
         scale = 1.0 / (3 * B)
         eff = target
+        if colour is not None and colour.masked:   # each ray on A_v^-1 (bg - b_v) (module doc)
+            bg = colour.behind(bg, index)
         if colour is not None:   # the backward's target whose gradient is the transform's
             pixel = render_forward_device(self.grid, origins, dirs, c.step, bg)["rgb"]
             state = pixel_state(self.device, pixel, device_empty(q, (B, STATE), np.float32))

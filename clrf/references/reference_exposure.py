@@ -57,6 +57,23 @@ def render_background(P, v, background, masked=True):
     return np.linalg.solve(A, bg - b)
 
 
+def rays_behind(P, index, pixels, background):
+    """[n, 3]: each ray's background A_v^-1 (bg - b_v) of its row v = index // pixels (a masked
+    capture on a renderer that composites the background itself; cl/splat_exposure.cl
+    exposure_rays_behind), bg where the row has a non-finite entry, A_v is singular (|det| <=
+    1e-12) or the result is not finite."""
+    bg = np.asarray(background, np.float64)[:3]
+    rows = np.asarray(P, np.float64).reshape(-1, ROW)[np.asarray(index) // int(pixels)]
+    out = np.tile(bg, (len(rows), 1))
+    for i, row in enumerate(rows):
+        A, b = split(row)
+        if np.all(np.isfinite(row)) and abs(np.linalg.det(A)) > 1e-12:
+            x = np.linalg.solve(A, bg - b)
+            if np.all(np.isfinite(x)):
+                out[i] = x
+    return out
+
+
 def backward(rgb, grad_out, P, v, T=None, background=None, clip=False):
     """(dL/drgb' [n, 3], dL/dP_v [12]) from dL/dout ``grad_out`` [n, 3] of out = A rgb' + b.
     A masked capture (T and its render's ``background`` bg' given): rgb' = c + T bg', bg'
