@@ -70,7 +70,7 @@ def test_ray_points_backward_matches_twin(device, n, K):
         gv.reshape(n, K, 3)[2] = 0.0
     d32, t32 = d.astype(np.float32), t.astype(np.float32)
     got = _kernel_ray_grad(device, d, t, gx, gv)
-    want = rn.ray_grad(d32, t32, gx.astype(np.float32), gv.astype(np.float32))
+    want = rn.ray_points_grad(d32, t32, gx.astype(np.float32), gv.astype(np.float32))
     scale = _ray_scale(t, gx, gv, d)
     _assert_rays(got, want, scale, tol.NERF_RAY_GRAD_RTOL)
     if n > 3:
@@ -95,7 +95,7 @@ def test_twin_ray_grad_vs_central_differences():
     def loss(o, d):
         x, v = rn.ray_points(o, d, t)
         return np.sum(gx * x + gv * v, 1).reshape(n, K).sum(1)       # one loss per ray
-    g = rn.ray_grad(d, t, gx, gv)
+    g = rn.ray_points_grad(d, t, gx, gv)
     h = 1e-6 * np.concatenate([np.ones((n, 3)), np.repeat(np.linalg.norm(d, axis=1)[:, None],
                                                           3, 1)], 1)
     for a in range(6):
@@ -131,7 +131,7 @@ def test_stiff_rays_are_finite_and_right(device):
     np.testing.assert_allclose(gx.get(), gx_want, rtol=0, atol=tol.ENCODE_GRAD_RTOL
                                * np.linalg.norm(gx_want, axis=1, keepdims=True).max())
     live = [0, 1, 3, 4, 5, 6, 7]
-    want = rn.ray_grad(d[live].astype(np.float32), t[live].astype(np.float32),
+    want = rn.ray_points_grad(d[live].astype(np.float32), t[live].astype(np.float32),
                        gx_want.reshape(n, K, 3)[live].reshape(-1, 3),
                        gv.reshape(n, K, 3)[live].reshape(-1, 3))
     scale = _ray_scale(t[live], gx_want.reshape(n, K, 3)[live].reshape(-1, 3),
@@ -251,7 +251,7 @@ def _chain(model, params, o, d, target, t_f=None, exact=False, P=None, index=Non
                                 exact)
         gv = rn.encode_backward(v, mb["d_enc"], c.dir_freqs, c.include_input, c.dir_scale,
                                 exact)
-        rg += rn.ray_grad(d, t, gx, gv)
+        rg += rn.ray_points_grad(d, t, gx, gv)
         if k == 0 and c.n_fine > 0:
             if t_f is None:
                 t_f = rn.sample_importance(t_c, f["weights"], c.n_fine, NEAR, FAR)
@@ -488,3 +488,16 @@ def test_pose_opt_is_refused_on_ndc_scenes_and_nerf_has_no_ranks():
     with pytest.raises(ValueError, match="nerf.pose_opt.*NDC.*nerf.pose_opt=false"):
         create(None, cfg, SimpleNamespace(name="fern", ndc=True), (0, 0, 0))
     assert registry.get("nerf").distributed is None
+
+
+def test_the_grid_reference_keeps_its_own_names():
+    """clrf/references/reference.py ends by re-exporting NeRF's twins (``from .reference_nerf
+    import *``): none of those may share a name with a function reference.py defines, or the
+    grid's twin of that name is silently replaced (it happened to ``ray_grad``)."""
+    import ast
+    import inspect
+
+    from clrf.references import reference, reference_nerf
+    tree = ast.parse(inspect.getsource(reference))
+    own = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    assert own and not own & set(reference_nerf.__all__), own & set(reference_nerf.__all__)

@@ -188,7 +188,7 @@ def test_pose_refinement_moves_a_perturbed_camera_toward_its_true_pose(device):
     larger than 0.015 that way; image 1, at its true pose, stays within one step of it (seen:
     the error 0.027 -> 0.0023 in 40 steps; image 1 within a tenth of a step)."""
     model, _, star, (o0, d0, target, index), pixels = _scene(
-        device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0)
+        device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0, pose_opt_after=0.0)
     pose = model.corrections.ray_camera
     w_star, tau_star = star
     star = np.concatenate([w_star, tau_star / model.extent])

@@ -297,7 +297,8 @@ def test_a_run_refines_saves_reports_and_resumes_its_poses(tmp_path, capsys):
     out = tmp_path / "run"
     args = ["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "120",
             "--set", "train.max_iters=40", "--set", "splat.preset=tiny", "--set",
-            "splat.pose_opt=true", "--set", "train.eval_views=1"]
+            "splat.pose_opt=true", "--set", "splat.pose_opt_after=0", "--set",
+            "train.eval_views=1"]
     assert cli(args) == 0
     st = checkpoint.load(out)
     steps = np.asarray(st["pose_steps"])

@@ -101,9 +101,10 @@ class HashConfig:
     #                                 rays' noisy gradient (not tuned on a real capture)
     lr_pose_final: float = 1e-4     # ... decayed log-linearly to this over the budget
     pose_reg: float = 1e-4          # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
-    pose_opt_after: float = 0.0     # budget fraction before the corrections take steps (the
-    #                                 scene forms first; 0: from the start)
-    pose_hold_frame: bool = True    # take the corrections' common rigid motion out every 100
+    pose_opt_after: float = 0.3     # budget fraction before the corrections take steps (the
+    #                                 scene forms first on the given poses; 0: from the start;
+    #                                 splat.pose_opt_after's default, chosen on splats)
+    pose_hold_frame: bool = True    # take the corrections' common similarity out every 100
     #                                 steps, so the scene stays in the given poses' frame
     #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)
 

@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["hash_u32", "uniform01", "encode", "encode_backward", "mlp_forward", "mlp_backward",
            "sample_stratified", "sample_importance", "importance_cdf", "merge_sorted",
-           "ray_points", "ray_grad", "composite_forward", "composite_backward",
+           "ray_points", "ray_points_grad", "composite_forward", "composite_backward",
            "composite_state", "numeric_gradient", "PDF_PAD"]
 
 PDF_PAD = 1e-5   # cl/sample.cl PDF_PAD
@@ -240,7 +240,7 @@ def ray_points(origins, dirs, t):
     return x.reshape(-1, 3), np.repeat(d, t.shape[1], axis=0)
 
 
-def ray_grad(dirs, t, gx, gv):
+def ray_points_grad(dirs, t, gx, gv):
     """dL/d(origin, direction) [n, 6] of rays whose samples x_k = o + t_k d / |d|, seen along
     v_k = d / |d| (``ray_points``), got dL/dx gx [n*K, 3] and dL/dv gv [n*K, 3]; t [n, K]
     held constant (cl/sample.cl ray_points_backward)."""
