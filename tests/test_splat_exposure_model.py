@@ -87,14 +87,15 @@ def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     assert rc == 2 and err.count("clrf: error:") == 1 and f"splat.{key}" in err, err
 
 
-@pytest.mark.parametrize("model", ["grid", "nerf"])
-def test_exposure_on_a_model_without_it_is_one_clear_error(model, capsys, tmp_path):
+def test_a_correction_on_a_model_without_it_is_one_clear_error(capsys, tmp_path):
+    """Every model takes exposure and pose_opt now; the bilateral grid is the splat model's
+    alone (it needs whole views): asking the grid for one is one clear error, exit 2."""
     from clrf.cli.main import main as cli
-    rc = cli(["--quiet", "train", "--model", model, "--out", str(tmp_path / "run"),
-              "--set", f"{model}.exposure=true",
-              "--max-seconds", "1"])
+    rc = cli(["--quiet", "train", "--model", "grid", "--out", str(tmp_path / "run"),
+              "--set", "grid.bilateral_grid=true", "--max-seconds", "1"])
     err = capsys.readouterr().err
-    assert rc == 2 and err.count("clrf: error:") == 1 and f"{model}.exposure" in err, err
+    assert rc == 2 and err.count("clrf: error:") == 1 and "grid.bilateral_grid" in err, err
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.slow
