@@ -53,6 +53,24 @@ def colour_conflict(section, prefix: str):
             f"(--set {on[-1] if on else ''}=false)")
 
 
+def ray_correction_checks(section, prefix: str) -> list:
+    """(ok, key, message) of the exposure and pose settings of a model whose batches mix rays
+    (``<prefix>.lr_exposure``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
+    ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``): the hash grid's, the grid's and
+    NeRF's configuration checks share them."""
+    s, p = section, prefix
+    return [
+        (0 < s.lr_exposure <= 1, f"{p}.lr_exposure", "must be in (0, 1]"),
+        (s.exposure_reg >= 0, f"{p}.exposure_reg", "must be >= 0"),
+        (s.exposure_matrix in EXPOSURE_MATRICES, f"{p}.exposure_matrix",
+         f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
+        (0 < s.lr_pose <= 0.1, f"{p}.lr_pose", "must be in (0, 0.1] (radians a step)"),
+        (0 < s.lr_pose_final <= s.lr_pose, f"{p}.lr_pose_final", f"must be in (0, {p}.lr_pose]"),
+        (s.pose_reg >= 0, f"{p}.pose_reg", "must be >= 0"),
+        (0 <= s.pose_opt_after < 1, f"{p}.pose_opt_after", "must be in [0, 1)"),
+    ]
+
+
 @dataclass(frozen=True)
 class Views:
     """What a correction needs to know of a model's training images.

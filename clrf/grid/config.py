@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from ..corrections.settings import EXPOSURE_MATRICES
+from ..corrections.settings import ray_correction_checks
 
 
 @dataclass
@@ -112,13 +112,5 @@ class GridConfig:
              "must be > 0 (with lr_bg_density_final)"),
             (g.lr_bg_color > 0 and g.lr_bg_color_final > 0, "grid.lr_bg_color",
              "must be > 0 (with lr_bg_color_final)"),
-            (0 < g.lr_exposure <= 1, "grid.lr_exposure", "must be in (0, 1]"),
-            (g.exposure_reg >= 0, "grid.exposure_reg", "must be >= 0"),
-            (g.exposure_matrix in EXPOSURE_MATRICES, "grid.exposure_matrix",
-             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
-            (0 < g.lr_pose <= 0.1, "grid.lr_pose", "must be in (0, 0.1] (radians a step)"),
-            (0 < g.lr_pose_final <= g.lr_pose, "grid.lr_pose_final",
-             "must be in (0, grid.lr_pose]"),
-            (g.pose_reg >= 0, "grid.pose_reg", "must be >= 0"),
-            (0 <= g.pose_opt_after < 1, "grid.pose_opt_after", "must be in [0, 1)"),
+            *ray_correction_checks(g, "grid"),
         ]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..corrections.settings import EXPOSURE_MATRICES
+from ..corrections.settings import ray_correction_checks
 from ..mlp.tiling import MLP_ROWS
 
 
@@ -161,15 +161,7 @@ class HashConfig:
             (self.occ_tau >= 0, "hash.occ_tau", "must be >= 0"),
             (self.occ_warmup >= 0, "hash.occ_warmup", "must be >= 0"),
             (0 < self.lr <= 1, "hash.lr", "must be in (0, 1]"),
-            (0 < self.lr_exposure <= 1, "hash.lr_exposure", "must be in (0, 1]"),
-            (self.exposure_reg >= 0, "hash.exposure_reg", "must be >= 0"),
-            (0 < self.lr_pose <= 0.1, "hash.lr_pose", "must be in (0, 0.1] (radians a step)"),
-            (0 < self.lr_pose_final <= self.lr_pose, "hash.lr_pose_final",
-             "must be in (0, hash.lr_pose]"),
-            (self.pose_reg >= 0, "hash.pose_reg", "must be >= 0"),
-            (0 <= self.pose_opt_after < 1, "hash.pose_opt_after", "must be in [0, 1)"),
-            (self.exposure_matrix in EXPOSURE_MATRICES, "hash.exposure_matrix",
-             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
+            *ray_correction_checks(self, "hash"),
             (self.lr_decay_steps >= 1, "hash.lr_decay_steps", "must be >= 1"),
             (self.lr_schedule in ("budget", "steps"), "hash.lr_schedule",
              "must be 'budget' or 'steps'"),

@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from ..corrections.settings import EXPOSURE_MATRICES
+from ..corrections.settings import ray_correction_checks
 from ..mlp.tiling import MLP_ROWS
 
 
@@ -127,15 +127,7 @@ class NerfConfig:
              f"must be null (per device) or one of {', '.join(map(str, MLP_ROWS))}"),
             (self.dw_chunk is None or 1 <= self.dw_chunk <= 1 << 20, "nerf.dw_chunk",
              "must be null (per device) or in 1..1048576"),
-            (0 < self.lr_exposure <= 1, "nerf.lr_exposure", "must be in (0, 1]"),
-            (self.exposure_reg >= 0, "nerf.exposure_reg", "must be >= 0"),
-            (self.exposure_matrix in EXPOSURE_MATRICES, "nerf.exposure_matrix",
-             f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
-            (0 < self.lr_pose <= 0.1, "nerf.lr_pose", "must be in (0, 0.1] (radians a step)"),
-            (0 < self.lr_pose_final <= self.lr_pose, "nerf.lr_pose_final",
-             "must be in (0, nerf.lr_pose]"),
-            (self.pose_reg >= 0, "nerf.pose_reg", "must be >= 0"),
-            (0 <= self.pose_opt_after < 1, "nerf.pose_opt_after", "must be in [0, 1)"),
+            *ray_correction_checks(self, "nerf"),
         ]
 
 
