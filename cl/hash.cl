@@ -217,6 +217,33 @@ __kernel void hash_backward(const int n_max, __global const int *count,
 }
 #endif
 
+/* dL/dw (w the cell weights of hash_cell) of the level whose table is tab, from its features'
+ * gradient ge [F]: s_k = ge . table[row_k], then per axis the differences of s along that axis
+ * weighted by the other two axes' weights (the header's formula, unrolled). */
+CLRF_INLINE float3 cell_dw(__global const float *tab, __global const float *ge,
+                           const cell_t *c, const float3 w) {
+    const feat_t g = FEAT_LOAD(ge, 0);
+    float s[8];
+#pragma unroll
+    for (int k = 0; k < 8; ++k) {
+        const feat_t t = FEAT_LOAD(tab, c->row[k]) * g;
+#if HASH_FEATURES == 1
+        s[k] = t;
+#elif HASH_FEATURES == 2
+        s[k] = t.x + t.y;
+#else
+        s[k] = (t.x + t.y) + (t.z + t.w);
+#endif
+    }
+    const float ux = 1.0f - w.x, uy = 1.0f - w.y, uz = 1.0f - w.z;
+    return (float3)(uy * uz * (s[1] - s[0]) + w.y * uz * (s[3] - s[2])
+                        + uy * w.z * (s[5] - s[4]) + w.y * w.z * (s[7] - s[6]),
+                    ux * uz * (s[2] - s[0]) + w.x * uz * (s[3] - s[1])
+                        + ux * w.z * (s[6] - s[4]) + w.x * w.z * (s[7] - s[5]),
+                    ux * uy * (s[4] - s[0]) + w.x * uy * (s[5] - s[1])
+                        + ux * w.y * (s[6] - s[2]) + w.x * w.y * (s[7] - s[3]));
+}
+
 /* dx [n, 3] = dL/dx of points x [n, 3] from genc [n, L F] (see the header), one work-item a
  * point; the levels are summed in float32 in level order. */
 __kernel void hash_dx(const int n_max, __global const int *count, __global const float *x,
@@ -234,21 +261,8 @@ __kernel void hash_dx(const int n_max, __global const int *count, __global const
         const cell_t c = hash_cell(u, N);
         const float3 p = u * (float)N;     /* the weights of hash_cell, per axis */
         const float3 w = p - fmin(floor(p), (float3)((float)(N - 1)));
-        __global const float *tab = table + (size_t)l * HASH_T * HASH_FEATURES;
-        __global const float *ge = genc + i * HASH_DIM + l * HASH_FEATURES;
-        float3 gw = (float3)(0.0f);
-        for (int k = 0; k < 8; ++k) {
-            const int cx = k & 1, cy = (k >> 1) & 1, cz = (k >> 2) & 1;
-            float s = 0.0f;
-            for (int f = 0; f < HASH_FEATURES; ++f)
-                s += ge[f] * tab[(size_t)c.row[k] * HASH_FEATURES + f];
-            const float wx = cx ? w.x : 1.0f - w.x, wy = cy ? w.y : 1.0f - w.y,
-                        wz = cz ? w.z : 1.0f - w.z;
-            gw.x += (cx ? s : -s) * wy * wz;
-            gw.y += (cy ? s : -s) * wx * wz;
-            gw.z += (cz ? s : -s) * wx * wy;
-        }
-        g += gw * (float)N;
+        g += cell_dw(table + (size_t)l * HASH_T * HASH_FEATURES,
+                     genc + i * HASH_DIM + l * HASH_FEATURES, &c, w) * (float)N;
     }
     const float3 inside = (float3)(raw.x >= 0.0f && raw.x <= 1.0f ? 1.0f : 0.0f,
                                    raw.y >= 0.0f && raw.y <= 1.0f ? 1.0f : 0.0f,

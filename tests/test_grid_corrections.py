@@ -104,7 +104,7 @@ def test_pose_opt_moves_a_perturbed_camera_toward_its_true_pose(device):
     model, star, (o, d, target, index), _ = _pose_scene(
         device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0, pose_hold_frame=False)
     assert model.ray_index and "pose" in model.describe()
-    pose = model.corrections.ray_camera
+    pose = model.corrections.get("pose")
     w_star, tau_star = star
     want = np.concatenate([w_star, tau_star / model.extent])
 
@@ -241,7 +241,7 @@ def test_checkpoint_keeps_the_corrections_and_older_ones_load(device, tmp_path):
     assert "pose" in model.describe() and "exposure" in model.describe()
     checkpoint.save(tmp_path / "ckpt.npz", model.state_dict())
     back = GridModel.from_state_dict(device, checkpoint.load(tmp_path / "ckpt.npz"), model.cfg)
-    a, b = model.corrections.ray_camera, back.corrections.ray_camera
+    a, b = model.corrections.get("pose"), back.corrections.get("pose")
     for k in ("params", "m", "v", "steps", "pivots"):
         np.testing.assert_array_equal(getattr(a.pose, k), getattr(b.pose, k))
     np.testing.assert_array_equal(a.viewmats0, b.viewmats0)

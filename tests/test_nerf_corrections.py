@@ -169,6 +169,7 @@ class _Capture:
     """A camera correction that leaves the rays as they are and keeps the step's ray gradient
     (the model's dL/d(origin, direction), as RayPose would get it)."""
     name, changes, batches, n_images = "pose", CAMERA, RAYS, 1
+    trains = True
     grad = None
 
     def rays(self, index, origins, dirs):
@@ -309,7 +310,7 @@ def test_exposure_gradients_of_both_passes_match_the_chain(device, masked):
     model = _model(device, exposure=True, exposure_reg=0.3)
     model.attach_corrections(2, 4, masked, extent=1.0)
     exp = model.corrections.colour
-    assert model.ray_index and model.corrections.ray_camera is None
+    assert model.ray_index and model.corrections.get("pose") is None
     rng = np.random.default_rng(9)
     P = np.tile(rex.IDENTITY, (2, 1)) + rng.normal(scale=0.2, size=(2, 12))
     exp.P.set(P.astype(np.float32))
@@ -371,7 +372,7 @@ def test_pose_opt_moves_a_perturbed_camera_toward_its_true_pose(device):
     model.attach_corrections(2, pixels, False, extent=3.0,
                              viewmats=lambda: np.stack([V0, viewmat_of(c2w[1])]),
                              pivots=lambda: pivots)
-    pose = model.corrections.ray_camera
+    pose = model.corrections.get("pose")
     rays = [view(given), view(c2w[1])]
     o, d = (_up(device, np.concatenate([r[k] for r in rays])) for k in (0, 1))
     target = _up(device, np.concatenate(targets))
@@ -434,7 +435,7 @@ def test_checkpoint_round_trip_with_corrections_and_an_older_one(device):
         model.train_step(it, o, d, target, index=index)
     back = NerfModel.from_state_dict(device, model.state_dict())
     assert back.extent == 2.5 and back.ray_index
-    a, b = model.corrections.ray_camera, back.corrections.ray_camera
+    a, b = model.corrections.get("pose"), back.corrections.get("pose")
     for k in ("params", "m", "v", "steps", "pivots"):
         np.testing.assert_array_equal(getattr(a.pose, k), getattr(b.pose, k))
     assert a.pose.scale == b.pose.scale == 2.5

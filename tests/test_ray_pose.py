@@ -157,7 +157,7 @@ def test_pose_gradient_matches_differences_of_the_step_loss(device):
     step loss in (w, tau), at the given pose and half-way to the true one."""
     from clrf.corrections import Corrections
     model, _, star, (o0, d0, target, index), pixels = _scene(device, pose_reg=0.0)
-    pose = model.corrections.ray_camera
+    pose = model.corrections.get("pose")
     model.corrections = Corrections()        # the loss alone; the correction is driven here
 
     def loss_grad(p):
@@ -189,7 +189,7 @@ def test_pose_refinement_moves_a_perturbed_camera_toward_its_true_pose(device):
     the error 0.027 -> 0.0023 in 40 steps; image 1 within a tenth of a step)."""
     model, _, star, (o0, d0, target, index), pixels = _scene(
         device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0, pose_opt_after=0.0)
-    pose = model.corrections.ray_camera
+    pose = model.corrections.get("pose")
     w_star, tau_star = star
     star = np.concatenate([w_star, tau_star / model.extent])
 
@@ -211,6 +211,29 @@ def test_pose_refinement_moves_a_perturbed_camera_toward_its_true_pose(device):
     assert pose.pose.steps.tolist() == [40, 40]
 
 
+def test_no_camera_gradient_before_the_start(device, monkeypatch):
+    """Before hash.pose_opt_after of the budget the correction does not train: the model sees
+    no camera correction (Corrections.ray_camera is None), renders the stored rays and
+    computes no spatial derivative (HashEncoding.dx is not called); from the start on it does,
+    and the poses move."""
+    from clrf.hash.encoding import HashEncoding
+    model, _, _, (o0, d0, target, index), _ = _scene(
+        device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0, pose_opt_after=0.5)
+    pose = model.corrections.get("pose")
+    calls = []
+    real_dx = HashEncoding.dx
+    monkeypatch.setattr(HashEncoding, "dx", lambda self, *a, **k: calls.append(1) or
+                        real_dx(self, *a, **k))
+    model.corrections.schedule(0.4)
+    assert not pose.trains and model.corrections.ray_camera is None
+    model.loss_and_grad(0, o0, d0, target, jitter=False, index=index)
+    assert calls == [] and not pose.pose.params.any() and pose.pose.steps.tolist() == [0, 0]
+    model.corrections.schedule(0.5)
+    assert pose.trains and model.corrections.ray_camera is pose
+    model.loss_and_grad(1, o0, d0, target, jitter=False, index=index)
+    assert calls == [1] and pose.pose.params[0].any() and pose.pose.steps.tolist() == [1, 1]
+
+
 def test_checkpoint_keeps_the_corrections_and_resumes_alike(device):
     """A model with hash.pose_opt after a few steps, through state_dict and from_state_dict:
     the same corrections, Adam moments, cameras and rows, and the next step the same."""
@@ -219,7 +242,7 @@ def test_checkpoint_keeps_the_corrections_and_resumes_alike(device):
     for it in range(3):
         model.loss_and_grad(it, o0, d0, target, jitter=False, index=index)
     back = HashModel.from_state_dict(device, model.state_dict())
-    a, b = model.corrections.ray_camera, back.corrections.ray_camera
+    a, b = model.corrections.get("pose"), back.corrections.get("pose")
     for k in ("params", "m", "v", "steps", "pivots"):
         np.testing.assert_array_equal(getattr(a.pose, k), getattr(b.pose, k))
     np.testing.assert_array_equal(a.viewmats0, b.viewmats0)

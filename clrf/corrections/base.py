@@ -141,6 +141,12 @@ class RayCameraCorrection(Correction, Protocol):
         """One optimiser step of each image with rays in the batch, from the rays' corrected
         directions ``dirs`` [n, 3] and dL/d(origin, direction) ``ray_grad`` [n, 6]."""
 
+    @property
+    def trains(self) -> bool:
+        """Whether the next batch takes a step: False while the correction waits for its start
+        (its cameras are then the given ones, so the model renders the stored rays and
+        computes no camera gradient: that gradient costs a fifth of a hash step)."""
+
 
 # the hooks a correction of (changes, batches) has (tests/test_layers.py checks each class)
 PROTOCOLS = {(CAMERA, VIEWS): CameraCorrection, (COLOUR, VIEWS): ViewColourCorrection,
@@ -196,9 +202,10 @@ class Corrections:
 
     @property
     def ray_camera(self):
-        """The camera correction of ray batches (RayCameraCorrection), or None."""
+        """The camera correction of ray batches (RayCameraCorrection) while it trains, or None
+        (none, or one still waiting for its start: ``RayCameraCorrection.trains``)."""
         c = self._changing(CAMERA)
-        return c if c is not None and c.batches == RAYS else None
+        return c if c is not None and c.batches == RAYS and c.trains else None
 
     @property
     def moves_cameras(self) -> bool:

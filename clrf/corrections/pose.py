@@ -414,6 +414,11 @@ class PoseCorrection:
         adam_host_step(param, m, v, g, self.steps[vs][:, None].astype(np.float64), lr)
         self.params[vs], self.m[vs], self.v[vs] = param, m, v
 
+    @property
+    def trains(self) -> bool:
+        """Whether ``step`` moves a pose now: from the budget fraction ``start`` on."""
+        return self.progress >= self.start
+
     def schedule(self, progress: float) -> None:
         """The rate at the budget fraction ``progress``: log-linear from its first rate to
         ``lr_final`` (unchanged without one); before the fraction ``start`` no step."""

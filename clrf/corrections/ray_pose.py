@@ -152,6 +152,11 @@ class RayPose:
         """(origins, dirs) [n, 3] device: the batch as the corrected cameras make it."""
         return apply_rays(self.device, index, self.pixels, self.rows, origins, dirs)
 
+    @property
+    def trains(self) -> bool:
+        """False before the budget fraction ``start`` (the corrections are all zero then)."""
+        return self.pose.trains
+
     def step_rays(self, index, dirs, ray_grad) -> None:
         """One Adam step of each image with rays in the batch (PoseCorrection.step), from the
         rays' corrected directions and dL/d(o, d); the rows are then remade."""
