@@ -48,7 +48,10 @@
  *                    eff = c - A^T r for the marcher's backward run on a black background
  *                    (its 2 s (c - eff) is then dL/dc = 2 s A^T r: the colour's gradient
  *                    through the transform), and bgt [n] = T r.(dout/dT): the background's
- *                    share, T r.(A bg), or T r.(bg - b) masked;
+ *                    share, T r.(A bg), or T r.(bg - b) masked. With clip (hash.exposure_clip,
+ *                    ...) the loss sees out clamped to [0, 1] as above: sq = |clamp(out) -
+ *                    target|^2, and r (hence eff, bgt and the row's gradient) is 0 in a
+ *                    channel where out lies outside [0, 1];
  * exposure_rays_bg   adds that share to dL/dsigma of each live sample j of ray i,
  *                    -2 s dt_j bgt_i (dT/dsigma_j = -dt_j T), which the black background left
  *                    out;
@@ -169,7 +172,8 @@ __kernel void exposure_adam(const int items, __global const float *partials,
 #define EXPOSURE_LS 64
 
 __kernel void exposure_rays(const int n, const int pixels, __global const int *index,
-                            __global const float *state, const int masked, const float4 bg,
+                            __global const float *state, const int masked, const int clip,
+                            const float4 bg,
                             __global const float *target, __global const float *P,
                             __global float *resid, __global float *eff, __global float *sq,
                             __global float *bgt) {
@@ -187,15 +191,20 @@ __kernel void exposure_rays(const int n, const int pixels, __global const int *i
     const float3 x = masked ? c : c + t * bg.xyz;
     const float y = masked ? s[3] : 1.0f;
     const float3 d = masked ? bg.xyz - b : Ab;
-    const float3 e = (float3)(a[0] * x.x + a[1] * x.y + a[2] * x.z,
+    const float3 o = (float3)(a[0] * x.x + a[1] * x.y + a[2] * x.z,
                               a[3] * x.x + a[4] * x.y + a[5] * x.z,
                               a[6] * x.x + a[7] * x.y + a[8] * x.z)
-                     + y * b + (masked ? t * bg.xyz : (float3)(0.0f)) - load3(target, i);
+                     + y * b + (masked ? t * bg.xyz : (float3)(0.0f));
+    const float3 tg = load3(target, i);
+    /* with clip: the loss sees clamp(o, 0, 1), and a clipped channel passes no gradient */
+    const float3 es = (clip ? clamp(o, 0.0f, 1.0f) : o) - tg;
+    const int3 out_of = isless(o, (float3)(0.0f)) | isgreater(o, (float3)(1.0f));
+    const float3 e = clip ? select(o - tg, (float3)(0.0f), out_of) : o - tg;
     resid[3 * i] = e.x; resid[3 * i + 1] = e.y; resid[3 * i + 2] = e.z;
     eff[3 * i] = c.x - (a[0] * e.x + a[3] * e.y + a[6] * e.z);
     eff[3 * i + 1] = c.y - (a[1] * e.x + a[4] * e.y + a[7] * e.z);
     eff[3 * i + 2] = c.z - (a[2] * e.x + a[5] * e.y + a[8] * e.z);
-    sq[i] = dot(e, e);
+    sq[i] = dot(es, es);
     bgt[i] = t * dot(e, d);
 }
 

@@ -62,6 +62,48 @@ def test_rays_and_their_gradient_match_the_twin(device, n, masked):
     assert np.all(got[1] == 0)      # a row without rays: neither data nor pull
 
 
+@pytest.mark.parametrize("masked", [True, False], ids=["masked", "plain"])
+def test_clipped_rays_match_the_twin_and_its_differences(device, masked):
+    """hash.exposure_clip: the loss sees the transformed colour clamped to [0, 1]; a channel
+    outside passes no gradient. The kernel's residuals, targets, squared errors and rows'
+    gradient against the twin with clip (rows brightened by 1.6 so that about a third of the
+    channels clip), and the twin's gradient against central differences of its clamped loss
+    (no channel within the step of 0 or 1, where the clamp has its kinks)."""
+    rng = np.random.default_rng(5)
+    pixels, V, n = 31, 4, 2 * LOCAL + 9
+    state, target, index, P = _batch(rng, n, V, pixels)
+    P[:, :9] *= 1.6
+    q = device.queue
+    exp = RayExposure(device, V, pixels, lr=1e-30, reg=0.0, masked=masked, clip=True)
+    exp.P.set(np.ascontiguousarray(P))
+    st, idx = upload(q, state), upload(q, index)
+    eff, sq = exp.forward(st, BG, upload(q, target), idx)
+    r, want_eff, want_sq, want_bgt = ref.rays(state, BG, target, P, index, pixels, masked,
+                                              clip=True)
+    unclipped = ref.rays(state, BG, target, P, index, pixels, masked)[0]
+    clipped = (r == 0) & (unclipped != 0)
+    assert 0.15 < clipped.mean() < 0.6, clipped.mean()
+    for got, want in ((exp._resid, r), (eff, want_eff), (exp._bgt, want_bgt), (sq, want_sq)):
+        np.testing.assert_allclose(download(got), want, rtol=tol.EXPOSURE_GRAD_RTOL,
+                                   atol=4 * tol.EXPOSURE_ATOL)
+    assert np.all(download(exp._resid)[clipped] == 0)
+    scale = 1.0 / (3 * n)
+    exp.backward_and_step(st, BG, idx, scale)
+    want = ref.rays_grad(state, BG, r, P, index, pixels, scale, 0.0, masked)
+    np.testing.assert_allclose(download(exp.grad).reshape(V, ref.ROW), want,
+                               rtol=tol.EXPOSURE_GRAD_RTOL,
+                               atol=tol.EXPOSURE_SUM_ATOL_PER_SQRT_N * n ** 0.5 * scale)
+    P64, h = P.astype(np.float64), 1e-6
+    for v, e in ((0, 0), (2, 4), (3, 10), (0, 11)):
+        Pp, Pm = P64.copy(), P64.copy()
+        Pp[v, e] += h
+        Pm[v, e] -= h
+        fd = (ref.rays_loss(state, BG, target, Pp, index, pixels, scale, masked, clip=True)
+              - ref.rays_loss(state, BG, target, Pm, index, pixels, scale, masked,
+                              clip=True)) / (2 * h)
+        assert abs(fd - want[v, e]) <= 1e-6 * max(1.0, abs(fd)), (v, e, fd, want[v, e])
+
+
 @pytest.mark.parametrize("matrix", ["diagonal", "gain"])
 def test_diagonal_rows_train_gains_and_offsets_only(device, matrix):
     """hash.exposure_matrix=diagonal (gain): the kernel's gradient is the twin's with the

@@ -129,6 +129,7 @@ CASES = [
     "test_clipped_apply_and_backward_match_the_twin[default-7-inward]",
     "tests/test_hash_exposure.py::test_rays_and_their_gradient_match_the_twin[default-71-masked]",
     "tests/test_hash_exposure.py::test_background_share_matches_the_twin[default]",
+    "tests/test_hash_exposure.py::test_clipped_rays_match_the_twin_and_its_differences[default-plain]",
     "tests/test_hash_exposure.py::test_each_rays_own_background_matches_the_twin[default-37]",
     "tests/test_hash_exposure.py::test_diagonal_rows_train_gains_and_offsets_only[default-gain]",
     "tests/test_bilateral.py::test_apply_and_backward_match_the_twin"

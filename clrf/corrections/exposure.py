@@ -285,11 +285,12 @@ class RayExposure(_Rows):
 
     def __init__(self, device, n_images: int, pixels: int, lr: float, reg: float,
                  beta=ADAM_BETAS, eps: float = ADAM_EPS, state: dict | None = None,
-                 masked: bool = False, matrix: str = "full"):
+                 masked: bool = False, matrix: str = "full", clip: bool = False):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
         super().__init__(device, n_images, lr, reg, masked, matrix)
         self.pixels = int(pixels)
+        self.clip = bool(clip)   # the loss sees out clamped to [0, 1] (<model>.exposure_clip)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
         m = v = np.zeros_like(rows)
@@ -323,8 +324,9 @@ class RayExposure(_Rows):
         sq = scratch(self.device, n)
         launch(self.device, self._prg.kernel("exposure_rays"), n,
                (np.int32(n), np.int32(self.pixels), index.data, state.data,
-                np.int32(self.masked), self._bg(background), target.data, self.P.data,
-                self._resid.data, eff.data, sq.data, self._bgt.data))
+                np.int32(self.masked), np.int32(self.clip), self._bg(background),
+                target.data, self.P.data, self._resid.data, eff.data, sq.data,
+                self._bgt.data))
         return eff, sq
 
     def behind(self, background, index):

@@ -118,7 +118,7 @@ def _exposure(device, s, views: Views, batches: str, state=None):
         n, pixels = len(state["exposure"]), int(state["exposure_pixels"])
         masked = bool(state["exposure_masked"])
     return RayExposure(device, n, pixels, s.lr_exposure, s.exposure_reg, betas, state=state,
-                       masked=masked, matrix=s.exposure_matrix)
+                       masked=masked, matrix=s.exposure_matrix, clip=clip_mode(s) > 0)
 
 
 def _pose(device, s, views: Views, batches: str, state=None):
@@ -174,6 +174,8 @@ def build(device, section, views: Views, batches: str, current=None) -> Correcti
     if ex is not None and ex.batches == VIEWS:   # an RGBA capture: its background stays
         ex.masked = views.masked
         ex.clip = clip_mode(section)
+    elif ex is not None:
+        ex.clip = clip_mode(section) > 0
     if "bilateral" in have:
         have["bilateral"].masked = views.masked
     return Corrections(have[n] for n in ORDER if n in have)

@@ -57,6 +57,9 @@ class GridConfig:
     #                               (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"  # "full": A a 3 x 3 matrix; "diagonal": a gain and an offset
     #                               per channel; "gain": a gain per channel only
+    exposure_clip: bool = False   # the transformed colour clamped to [0, 1] in the loss, as the
+    #                               camera clipped it; clipped channels pass no gradient (as
+    #                               splat.exposure_clip)
     pose_opt: bool = False        # refine each training camera's pose (a rotation and a
     #                               translation about a pivot), the rays of each batch remade from
     #                               the corrected cameras and trained by the renderer's gradient

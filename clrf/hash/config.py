@@ -89,6 +89,9 @@ class HashConfig:
     exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a
     #                                 gain and an offset per channel; "gain": a gain per
     #                                 channel only (as splat.exposure_matrix)
+    exposure_clip: bool = False     # the transformed colour clamped to [0, 1] in the loss, as
+    #                                 the camera clipped it; clipped channels pass no gradient (as
+    #                                 splat.exposure_clip)
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation about a pivot, as splat.pose_opt), the rays
     #                                 of each batch remade from the corrected cameras; test

@@ -51,6 +51,7 @@ class NerfConfig:
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"   # "full" | "diagonal" | "gain" (as hash.exposure_matrix)
+    exposure_clip: bool = False     # as hash.exposure_clip
     pose_opt: bool = False          # refine each training camera's pose (as hash.pose_opt): the
     #                                 rays of each batch remade from the corrected cameras,
     #                                 trained by both passes' dL/d(origin, direction); test

@@ -124,27 +124,34 @@ def _ray_terms(state, background, P, index, pixels, masked):
     return c + (1 - a) * bg, np.ones_like(a), np.einsum("nij,j->ni", A, bg), A, b
 
 
-def rays(state, background, target, P, index, pixels, masked=True):
+def rays(state, background, target, P, index, pixels, masked=True, clip=False):
     """(residual r = out - target [n, 3], the marcher's target eff = c - A^T r [n, 3] (its
     backward on a black background), sq = |r|^2 [n], the background's share bgt = T r.dout/dT
     [n]) of a ray batch: c, a = state[:, :3], state[:, 3] (premultiplied colour, opacity),
     T = 1 - a, out = A c + a b + T bg (masked) or A (c + T bg) + b; ray i's row is
-    index[i] // pixels."""
+    index[i] // pixels. ``clip``: sq of out clamped to [0, 1], and r (so eff, bgt and the
+    rows' gradient) 0 in a channel where out lies outside [0, 1]."""
     x, y, d, A, b = _ray_terms(state, background, P, index, pixels, masked)
     st = np.asarray(state, np.float64).reshape(-1, 8)
     T = 1 - st[:, 3:4]
     out = np.einsum("nij,nj->ni", A, x) + y * b
     if masked:
         out = out + T * np.asarray(background, np.float64)[:3]
-    r = out - np.asarray(target, np.float64).reshape(-1, 3)
+    t = np.asarray(target, np.float64).reshape(-1, 3)
+    r = out - t
+    sq = np.sum(r * r, axis=1)
+    if clip:   # the loss sees the clamped colour; a clipped channel passes no gradient
+        sq = np.sum((np.clip(out, 0.0, 1.0) - t) ** 2, axis=1)
+        r = np.where((out < 0) | (out > 1), 0.0, r)
     eff = st[:, :3] - np.einsum("nji,nj->ni", A, r)
-    return r, eff, np.sum(r * r, axis=1), T[:, 0] * np.sum(r * d, axis=1)
+    return r, eff, sq, T[:, 0] * np.sum(r * d, axis=1)
 
 
-def rays_loss(state, background, target, P, index, pixels, scale, masked=True):
+def rays_loss(state, background, target, P, index, pixels, scale, masked=True, clip=False):
     """L = scale sum_i |r_i|^2 of a ray batch (``rays``; what rays_grad differentiates, the
     pull aside)."""
-    return float(scale * rays(state, background, target, P, index, pixels, masked)[2].sum())
+    return float(scale * rays(state, background, target, P, index, pixels, masked,
+                              clip)[2].sum())
 
 
 def rays_bg(offsets, dt, sigma, bgt, scale, dsigma):
