@@ -324,3 +324,23 @@ def test_an_interrupted_calibration_leaves_nothing_trained(tmp_path, monkeypatch
               "--set", "splat.init_points=1000"])
     assert rc == 130 and "exposure calibration" in capsys.readouterr().err
     assert not (out / "ckpt.npz").exists() and not (out / "calibration" / "ckpt.npz").exists()
+
+
+def test_the_calibration_has_a_rate_of_its_own():
+    """splat.lr_exposure_calibrate: the calibration's held rate, so that the run's own
+    lr_exposure can be small; 0 (the default) holds lr_exposure as before."""
+    import dataclasses
+    from clrf.training import calibrate
+    from clrf.training.config import Config
+    cfg = Config()
+    cfg.train.model = "splat"
+    cfg.train.max_seconds = 100.0
+    low = dataclasses.replace(cfg.splat, lr_exposure=0.005, lr_exposure_final=0.0005)
+    cfg.set_section("splat", low)
+    small = calibrate.calibration_config(cfg)
+    assert (small.splat.lr_exposure, small.splat.lr_exposure_final) == (0.005, 0.005)
+    cfg.set_section("splat", dataclasses.replace(low, lr_exposure_calibrate=0.05))
+    small = calibrate.calibration_config(cfg)
+    assert (small.splat.lr_exposure, small.splat.lr_exposure_final) == (0.05, 0.05)
+    assert small.train.max_seconds == 100.0 * cfg.splat.exposure_calibrate
+    assert cfg.splat.lr_exposure == 0.005       # the run's own rate is left as it was

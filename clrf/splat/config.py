@@ -153,6 +153,10 @@ class SplatConfig:
     #                                 (0.08 at 1/8), 30.99 (0.15 at 1/4), none 30.44
     exposure_calibrate_downscale: int = 8   # the calibration's resolution divisor (no
     #                                 smaller than 32 pixels a side: clrf/training/calibrate.py)
+    lr_exposure_calibrate: float = 0.0   # the calibration's rate, held (0: lr_exposure):
+    #                                 large, to find the gains of a capture whose exposures
+    #                                 differ a lot, while the run's own lr_exposure can stay
+    #                                 small, so that the rows of a steady one do not wander
     exposure_calibrate_hold: float = 0.1   # budget fraction the calibrated transforms stay
     #                                 as they are while the scene forms under them
     exposure_clip: bool = True      # the transformed render clamped to [0, 1], as the camera
@@ -298,6 +302,8 @@ class SplatConfig:
              "must be a budget fraction in (0, 1]"),
             (self.seed >= 0, "splat.seed", "must be >= 0"),
             (0 < self.lr_exposure <= 1, "splat.lr_exposure", "must be in (0, 1]"),
+            (0 <= self.lr_exposure_calibrate <= 1, "splat.lr_exposure_calibrate",
+             "must be in [0, 1] (0: splat.lr_exposure)"),
             (0 < self.lr_exposure_final <= self.lr_exposure, "splat.lr_exposure_final",
              "must be in (0, splat.lr_exposure]"),
             (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),

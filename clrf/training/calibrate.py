@@ -69,9 +69,16 @@ def calibration_config(cfg):
     t.max_seconds = float(cfg.train.max_seconds) * s.exposure_calibrate
     t.final_eval = False
     t.eval_every = t.checkpoint_every = 2.0 * t.max_seconds + 1.0
+    rate = calibration_rate(s)
     small.set_section(name, dataclasses.replace(
-        s, exposure_calibrate=0.0, lr_exposure_final=s.lr_exposure))
+        s, exposure_calibrate=0.0, lr_exposure=rate, lr_exposure_final=rate))
     return small
+
+
+def calibration_rate(section) -> float:
+    """The transforms' rate in the calibration, held: ``lr_exposure_calibrate``, or where that
+    is 0 (or the section has none) ``lr_exposure``."""
+    return float(getattr(section, "lr_exposure_calibrate", 0.0) or section.lr_exposure)
 
 
 def calibrate_exposure(device, ds, cfg, out, model_factory=None, log=print):
@@ -82,7 +89,7 @@ def calibrate_exposure(device, ds, cfg, out, model_factory=None, log=print):
     factor = calibration_factor(cfg, ds.hw)
     small_cfg = calibration_config(cfg)
     budget = small_cfg.train.max_seconds
-    rate = cfg.section(cfg.train.model).lr_exposure
+    rate = calibration_rate(cfg.section(cfg.train.model))
     log(f"exposure calibration: {budget:.0f} s at 1/{factor} resolution, the transforms' "
         f"rate held at {rate:g}; then {cfg.train.max_seconds - budget:.0f} s "
         f"from its transforms")
