@@ -338,3 +338,19 @@ def test_each_rays_own_background_matches_the_twin(device, n):
         whole = A @ (c[i] + T[i] * want[i]) + b
         masked = ref.shown(c[i][None], T[i], BG, P.astype(np.float64), v, masked=True)[0]
         np.testing.assert_allclose(whole, masked, atol=1e-9)
+
+
+def test_the_rate_falls_log_linearly_to_its_final_one(device):
+    """<model>.lr_exposure_final: the ray transforms' rate falls log-linearly over the budget
+    (constant where it is not given), and a final rate above the first is refused."""
+    from clrf.hash.config import HashConfig
+    exp = RayExposure(device, 3, 10, lr=1e-3, reg=0.0, lr_final=1e-5)
+    for f, want in ((0.0, 1e-3), (0.5, 1e-4), (1.0, 1e-5)):
+        exp.schedule(f)
+        assert exp.lr == pytest.approx(want, rel=1e-9)
+    flat = RayExposure(device, 3, 10, lr=1e-3, reg=0.0)
+    flat.schedule(0.7)
+    assert flat.lr == 1e-3
+    bad = [key for ok, key, _ in HashConfig(lr_exposure=1e-3, lr_exposure_final=2e-3).checks()
+           if not ok]
+    assert bad == ["hash.lr_exposure_final"]

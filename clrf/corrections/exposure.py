@@ -285,10 +285,13 @@ class RayExposure(_Rows):
 
     def __init__(self, device, n_images: int, pixels: int, lr: float, reg: float,
                  beta=ADAM_BETAS, eps: float = ADAM_EPS, state: dict | None = None,
-                 masked: bool = False, matrix: str = "full", clip: bool = False):
+                 masked: bool = False, matrix: str = "full", clip: bool = False,
+                 lr_final: float | None = None):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
         super().__init__(device, n_images, lr, reg, masked, matrix)
+        self.lr_start = self.lr
+        self.lr_final = None if lr_final is None else float(lr_final)
         self.pixels = int(pixels)
         self.clip = bool(clip)   # the loss sees out clamped to [0, 1] (<model>.exposure_clip)
         q = device.queue
@@ -385,7 +388,12 @@ class RayExposure(_Rows):
         self._recentre(np.arange(self.n_images))
 
     def schedule(self, progress: float) -> None:
-        """A constant rate (``hash.exposure`` has no schedule of its own)."""
+        """The rate at the budget fraction ``progress``: log-linear from its first rate to
+        ``lr_final`` (``<model>.lr_exposure_final``; constant without one). Every row steps
+        every batch here, on a handful of its rays, so a constant rate keeps the rows
+        wandering on that noise to the end."""
+        if self.lr_final is not None:
+            self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 
     def after_pass(self) -> None:
         """Nothing: a ray batch mixes every image, so there is no pass; the rows are

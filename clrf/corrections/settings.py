@@ -55,12 +55,14 @@ def colour_conflict(section, prefix: str):
 
 def ray_correction_checks(section, prefix: str) -> list:
     """(ok, key, message) of the exposure and pose settings of a model whose batches mix rays
-    (``<prefix>.lr_exposure``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
+    (``<prefix>.lr_exposure``, ``lr_exposure_final``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
     ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``): the hash grid's, the grid's and
     NeRF's configuration checks share them."""
     s, p = section, prefix
     return [
         (0 < s.lr_exposure <= 1, f"{p}.lr_exposure", "must be in (0, 1]"),
+        (0 < s.lr_exposure_final <= s.lr_exposure, f"{p}.lr_exposure_final",
+         f"must be in (0, {p}.lr_exposure]"),
         (s.exposure_reg >= 0, f"{p}.exposure_reg", "must be >= 0"),
         (s.exposure_matrix in EXPOSURE_MATRICES, f"{p}.exposure_matrix",
          f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
@@ -118,7 +120,8 @@ def _exposure(device, s, views: Views, batches: str, state=None):
         n, pixels = len(state["exposure"]), int(state["exposure_pixels"])
         masked = bool(state["exposure_masked"])
     return RayExposure(device, n, pixels, s.lr_exposure, s.exposure_reg, betas, state=state,
-                       masked=masked, matrix=s.exposure_matrix, clip=clip_mode(s) > 0)
+                       masked=masked, matrix=s.exposure_matrix, clip=clip_mode(s) > 0,
+                       lr_final=getattr(s, "lr_exposure_final", None))
 
 
 def _pose(device, s, views: Views, batches: str, state=None):
