@@ -101,6 +101,10 @@ class Model(Protocol):
     # Optional, for models with per-view corrections (a colour transform per image, a pose
     # correction per camera: clrf/corrections): ``corrections``, the list it holds and calls;
     # the trainer and `clrf eval` report them (clrf.corrections.of(model)).
+    # Optional, for `clrf eval --refine-poses N` (BARF's protocol): refine_view_pose(c2w,
+    #   intrinsics, hw, image [H, W, 3], steps, lr, rays=None) -> (the corrected c2w [4, 4],
+    #   the correction's summary), the model held still; ``rays``: a callable returning the
+    #   camera's (origins, dirs) [H W, 3] (the ray models refine on them: splat ignores it).
     # What a kind cannot do raises Unsupported.
 
     def describe(self) -> str:

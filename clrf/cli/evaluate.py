@@ -6,11 +6,15 @@ Output JSON (default CKPT/eval_cli.json, or CKPT/eval_PROTOCOL.json with --proto
 ``lpips_unavailable``), ``views`` (per view), ``n_views``, ``resolution`` [W, H]; with a protocol
 also ``protocol``, ``protocol_resolution``, ``standard`` (false: NOT the protocol) and ``note``;
 with ``--downscale N`` (the test views rendered at 1/N of the training resolution against the
-test images box-averaged by N) also ``downscale``; with ``--refine-poses N`` (splat runs) also
+test images box-averaged by N) also ``downscale``; with ``--refine-poses N`` (splat, hash grid
+and Plenoxels grid runs, with or without pose refinement in training) also
 ``psnr_poses_refined`` and ``ssim_poses_refined``: each test view scored again after N steps of
 a pose correction of its own against its own image, the scene held still (BARF's protocol for
 runs that refine their poses: such a scene may sit a little off the given poses' frame), and
-``poses_refined``, the test corrections' mean.
+``poses_refined``, the test corrections' mean. The splat model renders the whole view each
+step; the ray models take a training step's batch of the view's rays a step (the hash grid's
+adapted batch, grid.batch_size; clrf/corrections/ray_pose.py refine_view_pose), so a view
+costs about N training steps either way.
 """
 from __future__ import annotations
 
@@ -78,6 +82,8 @@ def cmd_eval(a):
     if a.refine_poses:
         _check_refine(a, model)
     ds, views, pd = _views_and_data(a, state)
+    if a.refine_poses:
+        _check_refine_scene(ds)
     adopt_capture(model, state, ds)
     full = len(views)
     if a.max_views:
@@ -180,17 +186,23 @@ def cmd_eval(a):
 
 
 def _refine_lr(a, model) -> float:
-    return float(a.refine_poses_lr if a.refine_poses_lr is not None else model.config.lr_pose)
+    """--refine-poses-lr, else the run's own first pose learning rate (its section's
+    ``lr_pose``, whether or not the run refined its training poses)."""
+    if a.refine_poses_lr is not None:
+        return float(a.refine_poses_lr)
+    section = getattr(model, "config", None) or getattr(model, "cfg")
+    return float(section.lr_pose)
 
 
 def _check_refine(a, model):
-    """--refine-poses applies to splat runs at their own resolution; one clear error else."""
+    """--refine-poses applies to the models with ``refine_view_pose`` (splat, hash, grid) at
+    their test images' own resolution; one clear error else."""
     from .common import CliError
     if a.refine_poses < 0:
         raise CliError(f"--refine-poses {a.refine_poses}: must be a step count >= 0")
     if not hasattr(model, "refine_view_pose"):
         raise CliError(f"--refine-poses: the {getattr(model, 'kind', '?')} model cannot refine "
-                       f"a camera's pose; only --model splat runs can")
+                       f"a camera's pose; --model splat, hash and grid runs can")
     if a.downscale != 1:
         raise CliError("--refine-poses does not apply with --downscale: the poses are refined "
                        "at the test images' own resolution")
@@ -199,12 +211,26 @@ def _check_refine(a, model):
                        f"a step)")
 
 
+def _check_refine_scene(ds):
+    """--refine-poses corrects the camera that makes a view's rays: not NDC rays."""
+    if ds.ndc:
+        from .common import CliError
+        raise CliError(f"--refine-poses: {ds.name} is a forward-facing (NDC) scene, whose rays "
+                       f"are not a camera's; its test poses cannot be refined")
+
+
 def _refined(model, ds, v, a) -> dict:
-    """View v's metrics after its pose is refined against its own image (--refine-poses)."""
+    """View v's metrics after its pose is refined against its own image (--refine-poses): the
+    model's refine_view_pose from the view's given pose and rays (the ray models step on
+    batches of them), then the view rendered from the corrected pose."""
+    from ..data.cameras import view_rays
+    from ..interface import render_view
     from ..training.metrics import image_metrics
     c2w, pc = model.refine_view_pose(np.asarray(ds.poses[v], np.float64), ds.intrinsics, ds.hw,
-                                     ds.images[v], a.refine_poses, _refine_lr(a, model))
-    rgb = model.render_image(c2w, ds.intrinsics, ds.hw, depth=False)["rgb"]
+                                     ds.images[v], a.refine_poses, _refine_lr(a, model),
+                                     rays=lambda: view_rays(ds, ds.poses[v:v + 1]))
+    rgb = render_view(model, c2w, ds.intrinsics, ds.hw, lambda: view_rays(ds, c2w[None]),
+                      depth=False)["rgb"]
     m = image_metrics(rgb, ds.images[v])
     return {"psnr_poses_refined": m["psnr"], "ssim_poses_refined": m["ssim"],
             "pose_refined_deg": pc["rotation_deg"], "pose_refined_rel": pc["translation_rel"]}
@@ -235,14 +261,16 @@ def add_eval_parser(sub, func):
                    help="mipnerf360: indoor (1/2 resolution) or outdoor (1/4) for a scene whose "
                         "name is not one of the published ones")
     e.add_argument("--refine-poses", type=int, default=0, metavar="N",
-                   help="splat runs: also score each test view after N Adam steps of a pose "
-                        "correction of its own against its own image, the scene held still "
-                        "(BARF's protocol for runs that refined their training poses, whose "
-                        "scene may sit a little off the given poses' frame); about N training "
-                        "steps of time a view")
+                   help="splat, hash and grid runs: also score each test view after N Adam "
+                        "steps of a pose correction of its own against its own image, the "
+                        "scene held still (BARF's protocol for runs that refined their training "
+                        "poses, whose scene may sit a little off the given poses' frame); about "
+                        "N training steps of time a view (hash, grid: a training batch of the "
+                        "view's rays a step); 100 steps are plenty for poses off by a degree")
     e.add_argument("--refine-poses-lr", type=float, default=None, metavar="RAD",
                    help="with --refine-poses: the first step's rate in radians, falling to a "
-                        "tenth (default: the run's own pose learning rate)")
+                        "tenth (default: the run's own lr_pose, whether or not it refined its "
+                        "training poses: splat 3e-3, hash and grid 1e-3)")
     e.add_argument("--lpips", choices=["alex", "vgg", "none"], default="alex",
                    help="LPIPS backbone (default alex; vgg as the NeRF paper's Blender table); "
                         "needs the 'eval' extra and the backbone's ImageNet weights, else the "

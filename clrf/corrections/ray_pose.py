@@ -18,6 +18,10 @@ are not the camera's, so the correction is refused there (clrf/hash/kind.py,
 clrf/nerf/kind.py). ``viewmat_of`` and ``pivot_depth`` give the models' kinds the store's
 cameras and their pivots.
 
+``refine_view_pose`` is the same correction of one test camera at evaluation time (``clrf eval
+--refine-poses N``, BARF's protocol): a one-image RayPose stepped against the view's own image
+from each ray's dL/d(o, d) of a model held still (the model's ``ray_loss_grad``).
+
 >>> pose = RayPose(dev, viewmats0, pixels=400 * 400, lr=1e-3, reg=1e-4, scale=4.0,
 ...                pivots=depths)
 >>> o_d, d_d = pose.rays(index_d, o0_d, d0_d)      # the batch from the corrected cameras
@@ -28,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime.programs import download, launch, scratch, upload
+from ..runtime.validate import check_array
 from .base import CAMERA, RAYS
 from .pose import PoseCorrection
 
@@ -193,3 +198,64 @@ class RayPose:
 
     def describe(self) -> str:
         return self.pose.describe()
+
+
+REFINE_BATCH = 4096   # rays a step of a test view's refinement by default (the models pass
+#                       their training batch: HashModel / GridModel.refine_view_pose)
+
+
+def refine_view_pose(device, ray_loss_grad, c2w, rays, image, steps: int, lr: float, bbox,
+                     scale: float, batch: int = REFINE_BATCH, seed: int = 0):
+    """Test-time pose refinement of one camera for a model whose batches are rays (BARF's
+    protocol for runs that refine their poses; ``clrf eval --refine-poses``): ``steps`` Adam
+    steps of a correction of this one camera (clrf/corrections/pose.py: turned about the depth
+    of the centre of the box ``bbox`` [2, 3], translations relative to ``scale``, no pull toward
+    the given pose, the frame free) against ``image`` [H, W, 3], the rate falling log-linearly
+    from ``lr`` to a tenth of it over the steps, as the splat model's ``refine_view_pose``.
+
+    ``c2w``: the given camera-to-world [4, 4] or [3, 4] (OpenGL axes); ``rays``: a callable
+    returning (origins, dirs) [H W, 3] of every pixel of that camera, row by row, as the
+    trainer's ray store makes them (clrf/data/cameras.py view_rays; not NDC rays).
+
+    Each step draws ``batch`` of the pixels (with replacement, from a generator seeded with
+    ``seed``: a call's draws are the same every time; every pixel once a step where the view
+    has no more than ``batch``), remakes their rays from the corrected camera
+    (``RayPose.rays``), takes each ray's dL/d(origin, direction) [B, 6] (device float32) of the
+    model's training loss from ``ray_loss_grad(origins, dirs, target)`` (device [B, 3] each;
+    the model held still) and steps (``RayPose.step_rays``).
+
+    Returns (the corrected camera-to-world [4, 4], OpenGL axes; the correction's summary,
+    PoseCorrection.summary of the one image: ``rotation_deg``, ``translation_rel``, ...)."""
+    if steps < 1 or not lr > 0 or batch < 1:
+        raise ValueError(f"refine_view_pose: steps >= 1, lr > 0 and batch >= 1, got {steps}, "
+                         f"{lr}, {batch}")
+    if not callable(rays):
+        raise ValueError("refine_view_pose: rays must be a callable returning the camera's "
+                         "origins, dirs [H W, 3]")
+    target = check_array("image", image, ndim=3, shape_tail=(3,)).reshape(-1, 3)
+    n = len(target)
+    o0, d0 = rays()
+    o0 = check_array("origins", o0, ndim=2, shape_tail=(3,))
+    d0 = check_array("dirs", d0, ndim=2, shape_tail=(3,))
+    if len(o0) != n or len(d0) != n or n == 0:
+        raise ValueError(f"refine_view_pose: a ray per pixel of the image, got {len(o0)} "
+                         f"origins and {len(d0)} directions for {n} pixels")
+    vm0 = viewmat_of(c2w)
+    pose = RayPose(device, vm0[None], n, lr, 0.0, scale, pivots=[pivot_depth(vm0, bbox)],
+                   lr_final=0.1 * lr, hold_frame=False)
+    q = device.queue
+    rng = np.random.default_rng(seed)
+    every = n <= batch
+    if every:
+        index, o_b, d_b, t_b = (upload(q, a) for a in (np.arange(n, dtype=np.int32), o0, d0,
+                                                        target))
+    for k in range(int(steps)):
+        pose.schedule(k / max(int(steps) - 1, 1))
+        if not every:
+            pixels = rng.integers(0, n, int(batch))
+            index, o_b, d_b, t_b = (upload(q, a) for a in (pixels.astype(np.int32), o0[pixels],
+                                                            d0[pixels], target[pixels]))
+        o, d = pose.rays(index, o_b, d_b)
+        pose.step_rays(index, d, ray_loss_grad(o, d, t_b))
+    V = pose.viewmats()[0]
+    return np.linalg.inv(OPENGL_TO_OPENCV @ V), pose.summary([0])

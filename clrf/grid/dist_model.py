@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..corrections import Corrections
-from ..interface import StateError
+from ..interface import StateError, Unsupported
 from ..runtime.optim import Optimizer
 from ..runtime.programs import device_zeros, download, upload
 from . import bricks as B
@@ -183,6 +183,12 @@ class DistGridModel(GridModel):
     def _render_chunk(self, o, d):
         """GridModel.render's chunks, composed over the bricks."""
         return self.dist.forward(o, d, self.cfg.step, self.background)[0]
+
+    def ray_loss_grad(self, origins, dirs, target):
+        """Refused: a ray's camera gradient would need every brick's share of it (a test view's
+        pose is refined on a whole grid: `clrf eval` loads the checkpoint in one process)."""
+        raise Unsupported("the distributed grid cannot refine a camera's pose over its bricks; "
+                          "run `clrf eval --refine-poses` in one process")
 
     def describe(self):
         r = self.grid.march_reso

@@ -42,7 +42,7 @@ from .config import GridConfig
 from .background import GridBackground
 from .grid import SparseGrid, sh_dim
 from ..runtime.optim import Optimizer, expon_lr
-from .render import render_backward_device, render_forward_device
+from .render import render_backward_device, render_forward_device, render_ray_grad_device
 from ..runtime.pending import Pending
 from ..runtime.programs import device_empty, device_zeros, download, launch, upload
 
@@ -206,6 +206,34 @@ class GridModel:
         if self.defer_loss:
             return Pending(q, loss, scale)
         return float(loss.get()) * scale
+
+    def ray_loss_grad(self, origins, dirs, target):
+        """Each ray's dL/d(origin, direction) [B, 6] (device float32) of the photometric part of
+        the training loss, L = sum over rays and channels of (pixel - target)^2 / (3 B), of
+        rays origins/dirs/target [B, 3] (device) on the model's background (the MSI's colour
+        where it has one, held), under no per-image correction (the render_ray_grad kernel
+        alone: render.py ``render_ray_grad_device``). The model is held still: nothing of the
+        grid, its gradients, touched rows or optimiser state is written (test-time camera
+        refinement: ``refine_view_pose``)."""
+        B = int(origins.shape[0])
+        bg = self.background
+        if self.bg_model is not None:
+            bg = self.bg_model.forward(self.grid, origins, dirs, self.cfg.step, reuse=False)[1]
+        return render_ray_grad_device(self.grid, origins, dirs, target, self.cfg.step, bg,
+                                      grad_mode=1, loss_scale=1.0 / (3 * B))
+
+    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float, rays=None):
+        """Test-time pose refinement (BARF's protocol; ``clrf eval --refine-poses``): ``steps``
+        Adam steps of a correction of the camera ``c2w`` (camera-to-world, OpenGL axes) against
+        ``image`` [H, W, 3], the grid held still (``ray_loss_grad``), the rate falling
+        log-linearly from ``lr`` to a tenth of it, a training step's batch of the view's rays
+        (``batch_size``) a step (clrf/corrections/ray_pose.py refine_view_pose). ``rays``: a
+        callable returning the camera's (origins, dirs) [H W, 3] as evaluation makes them for
+        ``intrinsics`` and ``hw`` (the model makes no rays of its own). Returns (the corrected
+        camera-to-world [4, 4], the correction's summary)."""
+        from ..corrections.ray_pose import refine_view_pose as refine
+        return refine(self.device, self.ray_loss_grad, c2w, rays, image, steps, lr,
+                      self.grid.bbox, self.extent, batch=self.batch_size)
 
     def _tv(self, it):
         """TV (and the sparsity prior) over one random contiguous window of the grid's cells;

@@ -297,19 +297,51 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,
                     grid.reso, step, () if order is None else (order.data,))
     if ray_grad is not None:   # render_ray_grad: the same loss's camera gradient per ray
-        pose = grid_program(grid, grad_mode, t_stop=t_stop, step=step, bg_per_ray=per_ray,
-                            ray_order=order is not None, pose_grad=True)
-        occ, oreso = block_occupancy(grid)
-        rargs = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
-                 grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
-                 ray_in_d.data]
-        if grad_mode == 1:
-            rargs += [np.float32(loss_scale), np.float32(beta_scale)]
-        launch(dev, pose.kernel("render_ray_grad"), n,
-               rargs + [ray_grad.data, occ.data, oreso] + ([] if order is None else
-                                                          [order.data]),
-               dev.tuning.grid_local_size)
+        _launch_ray_grad(grid, origins_d, dirs_d, ray_in_d, step, background, grad_mode,
+                         loss_scale, beta_scale, t_stop, ray_grad, order)
     return grad_bg
+
+
+def render_ray_grad_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_mode=0,
+                           loss_scale=1.0, beta_scale=0.0, t_stop=T_STOP, ray_grad=None):
+    """Each ray's dL/d(origin, direction) [n, 6] (float32 device, ``ray_grad`` overwritten or a
+    new array) of the loss ``render_backward_device`` takes with the same arguments (sample
+    distances held: cl/grid_render.cl render_ray_grad, the GRID_POSE_GRAD build, built when
+    first asked for), with nothing else formed: no gradient of the grid's values, no touched
+    rows, no per-ray loss. The grid is only read (test-time camera refinement)."""
+    n = int(origins_d.shape[0])
+    q = grid.device.queue
+    if ray_grad is None:
+        ray_grad = device_empty(q, (max(n, 1), 6), np.float32)[:n]
+    elif (ray_grad.dtype != np.float32 or ray_grad.shape != (n, 6)
+          or not ray_grad.flags.c_contiguous):
+        raise ValueError(f"ray_grad: a contiguous float32 device array of shape ({n}, 6), got "
+                         f"{ray_grad.dtype} {ray_grad.shape}")
+    if n:
+        _launch_ray_grad(grid, origins_d, dirs_d, ray_in_d, step, background, grad_mode,
+                         loss_scale, beta_scale, t_stop, ray_grad,
+                         ray_order(grid, origins_d, dirs_d, step))
+    return ray_grad
+
+
+def _launch_ray_grad(grid, origins_d, dirs_d, ray_in_d, step, background, grad_mode,
+                     loss_scale, beta_scale, t_stop, ray_grad, order):
+    """render_ray_grad over the n rays into ``ray_grad`` [n, 6], in the ray permutation
+    ``order`` (or None)."""
+    dev = grid.device
+    n = int(origins_d.shape[0])
+    pose = grid_program(grid, grad_mode, t_stop=t_stop, step=step,
+                        bg_per_ray=_per_ray(background, n), ray_order=order is not None,
+                        pose_grad=True)
+    occ, oreso = block_occupancy(grid)
+    rargs = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
+             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
+             ray_in_d.data]
+    if grad_mode == 1:
+        rargs += [np.float32(loss_scale), np.float32(beta_scale)]
+    launch(dev, pose.kernel("render_ray_grad"), n,
+           rargs + [ray_grad.data, occ.data, oreso] + ([] if order is None else [order.data]),
+           dev.tuning.grid_local_size)
 
 
 def launch_backward(grid, prg, n, args, grad_density, grad_sh, touched, slots, record,

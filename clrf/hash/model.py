@@ -50,7 +50,7 @@ from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP, MLPSpec
 from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
 from ..runtime.programs import (device_empty, device_zeros, download, first_run, launch,
-                                upload)
+                                scratch, upload)
 from ..runtime.rng import step_key
 from .encoding import SH_DIM, HashEncoding
 from .march import (STATE, Contraction, contract_points, finish_state, keep_front, march,
@@ -469,6 +469,49 @@ class HashModel:
         if camera is not None:
             camera.step_rays(index, dirs, ray_grad)
         return loss, pk.m
+
+    def ray_loss_grad(self, origins, dirs, target):
+        """Each ray's dL/d(origin, direction) [B, 6] (device float32; zero where no sample is
+        live) of the training loss L = sum over rays and channels of (rgb - target)^2 / (3 B)
+        of rays origins/dirs/target [B, 3] (device), marched and composited as a training step
+        does (its termination included) but without jitter, on the model's background and
+        under no per-image correction. The model is held still: the parameters, their
+        gradients (the network's goes to a scratch buffer, the table's is not formed), Adam's
+        state, the occupancy grid and the next batch's size are as they were (test-time
+        camera refinement: ``refine_view_pose``)."""
+        c, dev, q = self.config, self.device, self.device.queue
+        B = int(origins.shape[0])
+        out = device_zeros(q, (max(B, 1), 6), np.float32)[:B]
+        pk = march(dev, self.occ, origins, dirs, c.samples, self.near, self.far, False, 0,
+                   contract=self.contraction)
+        if pk.m == 0:
+            return out
+        xe = self.enc.forward(pk.xyz)
+        kept = None
+        if c.train_t_stop > 0:
+            kept = keep_front(dev, pk, self.net.density(xe), c.train_t_stop, (xe,), KEEP_BELOW)
+        if kept is not None:
+            pk, (xe,) = kept
+        sigma, rgb = self.net.forward(xe, self.enc.sh_encode(pk.vdir))
+        g = packed_backward(dev, pk, sigma, rgb, self.background, target, 1.0 / (3.0 * B))
+        dx, dd = self.net.backward(g["sigma"], g["rgb"], grad=scratch(dev, self.net.grad.shape),
+                                   want_input=True)
+        packed_ray_grad(dev, pk, origins, dirs, self.enc.dx(pk.xyz, dx), dd, self.contraction,
+                        out=out)
+        return out
+
+    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float, rays=None):
+        """Test-time pose refinement (BARF's protocol; ``clrf eval --refine-poses``): ``steps``
+        Adam steps of a correction of the camera ``c2w`` (camera-to-world, OpenGL axes) against
+        ``image`` [H, W, 3], the model held still (``ray_loss_grad``), the rate falling
+        log-linearly from ``lr`` to a tenth of it, a training step's batch of the view's rays
+        (``batch_size``) a step (clrf/corrections/ray_pose.py refine_view_pose). ``rays``: a
+        callable returning the camera's (origins, dirs) [H W, 3] as evaluation makes them for
+        ``intrinsics`` and ``hw`` (the model makes no rays of its own). Returns (the corrected
+        camera-to-world [4, 4], the correction's summary)."""
+        from ..corrections.ray_pose import refine_view_pose as refine
+        return refine(self.device, self.ray_loss_grad, c2w, rays, image, steps, lr, self.bbox,
+                      self.extent, batch=self.batch_size)
 
     def _adapt_batch(self, rays: int, live: int):
         """Rays of the next step: batch_samples over this step's live samples per ray, within

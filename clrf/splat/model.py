@@ -410,12 +410,13 @@ class SplatModel:
         raise NotExportable("a splat model has no density field to mesh or sample: --mesh and "
                             "--points do not apply; export the Gaussians with --splats FILE.ply")
 
-    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float):
+    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float, rays=None):
         """Test-time pose refinement (BARF's protocol for runs that refine their poses): ``steps``
         Adam steps of a correction of this one camera (clrf/corrections/pose.py, turned about the
         scene's centre, no pull toward the given pose) against ``image`` [H, W, 3] under the
         training loss, the Gaussians held still, the rate falling log-linearly from ``lr`` to a
-        tenth of it. Returns (the corrected camera-to-world pose, the correction's summary)."""
+        tenth of it. ``rays`` (the ray models' camera rays) is not used: the model renders the
+        whole camera. Returns (the corrected camera-to-world pose, the correction's summary)."""
         from ..corrections.pose import PoseCorrection
         if steps < 1 or not lr > 0:
             raise ValueError(f"refine_view_pose: steps >= 1 and lr > 0, got {steps}, {lr}")
