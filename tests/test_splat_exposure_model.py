@@ -295,7 +295,9 @@ def test_a_calibrated_run_starts_from_the_calibrations_rows(tmp_path, monkeypatc
     assert cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "600",
                 "--set", "train.max_iters=150", "--set", "splat.exposure=true",
                 "--set", "splat.exposure_calibrate=0.25", "--set", "splat.init_points=1000",
-                "--set", "train.eval_every=1000"]) == 0
+                "--set", "train.eval_every=1000",
+                # the procedural scene is of one exposure: kept from the steady start
+                "--set", "splat.exposure_steady_spread=0"]) == 0
     assert seen["cfg"] == (150.0, 0.05, 0.0, False)
     np.testing.assert_array_equal(seen["seed"][0], seen["rows"])
     assert seen["seed"][1] == 0.1
@@ -309,6 +311,35 @@ def test_a_calibrated_run_starts_from_the_calibrations_rows(tmp_path, monkeypatc
     assert (out / "calibration" / "metrics.csv").exists()
     assert not (out / "calibration" / "ckpt.npz").exists()
     assert np.isfinite(ev["psnr_shared_gain"]) and len(ev["shared_gain"]) == 3
+    assert cal["steady"] is False and cal["gain_spread"] > 0
+
+
+def test_a_steady_calibration_starts_the_run_from_the_identity(tmp_path, monkeypatch):
+    """A calibration that found a steady capture (its gains' spread under
+    splat.exposure_steady_spread): the run's rows start at the identity, unheld, and its
+    exposure rates are times splat.exposure_steady_rate."""
+    from clrf import corrections
+    from clrf.cli.main import main as cli
+    from clrf.references.reference_exposure import IDENTITY
+    from clrf.training import calibrate
+    from clrf.training import trainer as T
+    rows = np.tile(IDENTITY, (64, 1)) * 1.03
+    info = {"seconds_budget": 1.0, "seconds": 1.0, "iterations": 5, "downscale": 2,
+            "images_trained": 64, "folder": "x", "gain_spread": 0.01, "steady": True}
+    monkeypatch.setattr(calibrate, "calibrate_exposure", lambda *a, **k: (rows, info))
+    seen = {}
+
+    def run(self):
+        exp = corrections.of(self.model).get("exposure")
+        seen.update(P=exp.rows(), lr=(exp.lr, exp.lr_final), hold=exp.hold_until)
+        return {"iteration": 0, "seconds": 0.0, "interrupted": True}
+    monkeypatch.setattr(T.Trainer, "run", run)
+    cli(["--quiet", "train", "--model", "splat", "--out", str(tmp_path / "run"),
+         "--max-seconds", "40", "--set", "splat.exposure=true",
+         "--set", "splat.init_points=1000", "--set", "splat.exposure_steady_rate=0.1"])
+    np.testing.assert_array_equal(seen["P"], np.tile(IDENTITY.astype(np.float32),
+                                                     (len(seen["P"]), 1)))
+    assert seen["lr"] == pytest.approx((0.005, 0.00005)) and seen["hold"] == 0.0
 
 
 def test_an_interrupted_calibration_leaves_nothing_trained(tmp_path, monkeypatch, capsys):
@@ -344,3 +375,38 @@ def test_the_calibration_has_a_rate_of_its_own():
     assert (small.splat.lr_exposure, small.splat.lr_exposure_final) == (0.05, 0.05)
     assert small.train.max_seconds == 100.0 * cfg.splat.exposure_calibrate
     assert cfg.splat.lr_exposure == 0.005       # the run's own rate is left as it was
+
+
+def test_a_steady_capture_is_told_by_the_calibrated_gains_spread():
+    """splat.exposure_steady_spread: the spread is the largest channel's standard deviation of
+    the log gains (rows with a bad gain left out); below the limit the capture is steady, and
+    a limit of 0 never finds one; Exposure.slow scales both rates."""
+    from clrf.references.reference_exposure import IDENTITY
+    from clrf.splat.config import SplatConfig
+    from clrf.training import calibrate
+    rng = np.random.default_rng(0)
+    rows = np.tile(IDENTITY, (50, 1))
+    gains = np.exp(rng.normal(0, [0.02, 0.05, 0.3], (50, 3)))
+    rows[:, [0, 4, 8]] = gains
+    rows[3, 0] = np.nan                                  # left out
+    rows[7, 4] = -1.0                                    # left out
+    keep = np.ones(50, bool)
+    keep[[3, 7]] = False
+    want = np.log(gains[keep]).std(axis=0).max()
+    assert calibrate.gain_spread(rows) == pytest.approx(want, rel=1e-12)
+    assert calibrate.gain_spread(rows[:1]) == 0.0
+    c = SplatConfig()
+    assert not calibrate.steady({"gain_spread": 0.25}, c)          # lego_400, changed
+    assert calibrate.steady({"gain_spread": 0.06}, c)              # bonsai, one exposure
+    assert not calibrate.steady({"gain_spread": 0.06}, SplatConfig(exposure_steady_spread=0))
+
+
+def test_slow_scales_both_rates(device):
+    from clrf.corrections.exposure import Exposure
+    exp = Exposure(device, 4, lr=0.05, reg=0.0, lr_final=0.0005)
+    exp.slow(0.01)
+    assert (exp.lr, exp.lr_start, exp.lr_final) == pytest.approx((5e-4, 5e-4, 5e-6))
+    exp.schedule(1.0)
+    assert exp.lr == pytest.approx(5e-6)
+    with pytest.raises(ValueError):
+        exp.slow(0.0)

@@ -164,9 +164,13 @@ def cmd_train(a):
     trainer = Trainer(dev, ds, cfg, out, resume=a.resume, model_factory=factory,
                       log=lambda m: print(f"clrf: {m}", file=sys.stderr))
     if calibrated is not None:
-        hold = cfg.section(kind.name).exposure_calibrate_hold
+        sect = cfg.section(kind.name)
         from .. import corrections
-        corrections.of(trainer.model).get("exposure").seed(calibrated[0], hold)
+        exposure = corrections.of(trainer.model).get("exposure")
+        if calibrated[1]["steady"]:   # the rows' noise left out, the rates lowered
+            exposure.slow(sect.exposure_steady_rate)
+        else:
+            exposure.seed(calibrated[0], sect.exposure_calibrate_hold)
         trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog

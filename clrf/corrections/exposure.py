@@ -249,6 +249,16 @@ class Exposure(_Rows):
         self.P.set(np.ascontiguousarray(rows.astype(np.float32)))
         self.hold_until = float(hold_until)
 
+    def slow(self, factor: float) -> None:
+        """The rates (first and final) times ``factor`` (a steady capture:
+        clrf/training/calibrate.py)."""
+        if not factor > 0:
+            raise ValueError(f"Exposure.slow: factor > 0, got {factor}")
+        self.lr_start *= float(factor)
+        self.lr = self.lr_start
+        if self.lr_final is not None:
+            self.lr_final *= float(factor)
+
     def schedule(self, progress: float) -> None:
         """The rate at the budget fraction ``progress``: log-linear from its first rate to
         ``lr_final`` (unchanged without one)."""

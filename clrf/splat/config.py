@@ -157,6 +157,14 @@ class SplatConfig:
     #                                 large, to find the gains of a capture whose exposures
     #                                 differ a lot, while the run's own lr_exposure can stay
     #                                 small, so that the rows of a steady one do not wander
+    exposure_steady_spread: float = 0.12   # a calibration whose gains spread less than
+    #                                 this (the standard deviation of their logarithms over
+    #                                 the images) found a capture of one exposure: the run
+    #                                 starts from the identity, its exposure rates times
+    #                                 exposure_steady_rate (clrf/training/calibrate.py;
+    #                                 bonsai's quarter 0.05-0.07, lego_400 with changed
+    #                                 exposures 0.25); 0: the calibration's rows always
+    exposure_steady_rate: float = 0.01   # ... the factor of the rates then
     exposure_calibrate_hold: float = 0.1   # budget fraction the calibrated transforms stay
     #                                 as they are while the scene forms under them
     exposure_clip: bool = True      # the transformed render clamped to [0, 1], as the camera
@@ -304,6 +312,9 @@ class SplatConfig:
             (0 < self.lr_exposure <= 1, "splat.lr_exposure", "must be in (0, 1]"),
             (0 <= self.lr_exposure_calibrate <= 1, "splat.lr_exposure_calibrate",
              "must be in [0, 1] (0: splat.lr_exposure)"),
+            (self.exposure_steady_spread >= 0, "splat.exposure_steady_spread", "must be >= 0"),
+            (0 < self.exposure_steady_rate <= 1, "splat.exposure_steady_rate",
+             "must be in (0, 1]"),
             (0 < self.lr_exposure_final <= self.lr_exposure, "splat.lr_exposure_final",
              "must be in (0, splat.lr_exposure]"),
             (self.exposure_reg >= 0, "splat.exposure_reg", "must be >= 0"),
