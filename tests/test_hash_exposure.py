@@ -354,3 +354,6 @@ def test_the_rate_falls_log_linearly_to_its_final_one(device):
     bad = [key for ok, key, _ in HashConfig(lr_exposure=1e-3, lr_exposure_final=2e-3).checks()
            if not ok]
     assert bad == ["hash.lr_exposure_final"]
+    for final in (0.0, 1e-5):    # 0: a constant rate; a lower lr_exposure alone is fine too
+        assert all(ok for ok, _, _ in HashConfig(lr_exposure=1e-4,
+                                                 lr_exposure_final=final).checks())

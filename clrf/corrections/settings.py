@@ -61,8 +61,9 @@ def ray_correction_checks(section, prefix: str) -> list:
     s, p = section, prefix
     return [
         (0 < s.lr_exposure <= 1, f"{p}.lr_exposure", "must be in (0, 1]"),
-        (0 < s.lr_exposure_final <= s.lr_exposure, f"{p}.lr_exposure_final",
-         f"must be in (0, {p}.lr_exposure]"),
+        (0 <= s.lr_exposure_final and (s.lr_exposure_final <= s.lr_exposure
+                                       or not s.lr_exposure > 0), f"{p}.lr_exposure_final",
+         f"must be in [0, {p}.lr_exposure] (0: a constant rate)"),
         (s.exposure_reg >= 0, f"{p}.exposure_reg", "must be >= 0"),
         (s.exposure_matrix in EXPOSURE_MATRICES, f"{p}.exposure_matrix",
          f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
@@ -121,7 +122,7 @@ def _exposure(device, s, views: Views, batches: str, state=None):
         masked = bool(state["exposure_masked"])
     return RayExposure(device, n, pixels, s.lr_exposure, s.exposure_reg, betas, state=state,
                        masked=masked, matrix=s.exposure_matrix, clip=clip_mode(s) > 0,
-                       lr_final=getattr(s, "lr_exposure_final", None))
+                       lr_final=getattr(s, "lr_exposure_final", 0.0) or None)
 
 
 def _pose(device, s, views: Views, batches: str, state=None):

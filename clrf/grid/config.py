@@ -53,8 +53,8 @@ class GridConfig:
     #                               (clrf/corrections/exposure.py, as hash.exposure). Not on
     #                               RGBA captures (a masked background; docs/guide.md)
     lr_exposure: float = 1e-3     # Adam learning rate of the transforms (each step)
-    lr_exposure_final: float = 1e-3  # ... falling log-linearly to this over the budget
-    #                               (equal: a constant rate)
+    lr_exposure_final: float = 0.0  # ... falling log-linearly to this over the budget
+    #                               (0: a constant rate)
     exposure_reg: float = 1e-3    # pull of each transform toward the identity, reg
     #                               (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"  # "full": A a 3 x 3 matrix; "diagonal": a gain and an offset

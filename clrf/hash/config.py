@@ -84,8 +84,8 @@ class HashConfig:
     #                                 the identity (clrf/corrections/exposure.py)
     lr_exposure: float = 1e-3       # Adam learning rate of the transforms (every image with
     #                                 rays in a batch steps: each step, on a full batch)
-    lr_exposure_final: float = 1e-3  # ... falling log-linearly to this over the budget
-    #                                 (equal: a constant rate)
+    lr_exposure_final: float = 0.0  # ... falling log-linearly to this over the budget
+    #                                 (0: a constant rate)
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"   # "full": A a 3 x 3 matrix (channels mix); "diagonal": a

@@ -48,8 +48,8 @@ class NerfConfig:
     #                                 loss; test views are scored under the identity
     #                                 (as hash.exposure: clrf/corrections/exposure.py)
     lr_exposure: float = 1e-3       # Adam learning rate of the transforms (one step a batch)
-    lr_exposure_final: float = 1e-3  # ... falling log-linearly to this over the budget
-    #                                 (equal: a constant rate)
+    lr_exposure_final: float = 0.0  # ... falling log-linearly to this over the budget
+    #                                 (0: a constant rate)
     exposure_reg: float = 1e-3      # pull of each transform toward the identity, reg
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"   # "full" | "diagonal" | "gain" (as hash.exposure_matrix)
