@@ -91,18 +91,21 @@ def test_camera_gradient_vs_central_differences():
 
 
 # ---- hash.pose_opt on a tiny scene --------------------------------------------------------
-def _pose_model(device, **cfg):
-    """A tiny hash model with hash.pose_opt whose field is smooth (only its two coarse levels
-    non-zero), occupied everywhere, in a box that holds every sample of the test's cameras (no
-    sample enters or leaves the box as a camera moves), rendering the bins it trains on."""
+def _pose_model(device, bounded=False, **cfg):
+    """A tiny hash model with hash.pose_opt (unless ``cfg`` turns it off) whose field is smooth
+    (only its two coarse levels non-zero), occupied everywhere, in a box that holds every
+    sample of the test's cameras (no sample enters or leaves the box as a camera moves),
+    rendering the bins it trains on; ``bounded``: the GPU-shaped step."""
     import dataclasses
     import sys
     from pathlib import Path
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_hash_model import SMALL
     from clrf.hash.model import HashModel
-    c = dataclasses.replace(SMALL, pose_opt=True, train_t_stop=0.0, render_oversample=1, **cfg)
-    model = HashModel(device, c, 1.5, 4.5, [[-8.0] * 3, [8.0] * 3], (0.2, 0.5, 1.0))
+    c = dataclasses.replace(SMALL, **{"pose_opt": True, "train_t_stop": 0.0,
+                                      "render_oversample": 1, **cfg})
+    model = HashModel(device, c, 1.5, 4.5, [[-8.0] * 3, [8.0] * 3], (0.2, 0.5, 1.0),
+                      bounded=bounded)
     t = np.random.default_rng(3).uniform(-1, 1, model.enc.shape).astype(np.float32)
     t[2:] = 0.0
     model.enc.table.set(t)

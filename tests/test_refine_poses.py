@@ -25,20 +25,10 @@ def _rays(c2w):
 
 
 def _hash_model(device, bounded=False, **cfg):
-    """A tiny hash model whose field is smooth (its two coarse levels only), occupied
-    everywhere, in a box that holds every sample of the cameras below (as
-    tests/test_ray_pose.py's)."""
-    from test_hash_model import SMALL
-    from clrf.hash.model import HashModel
-    c = dataclasses.replace(SMALL, train_t_stop=0.0, render_oversample=1, **cfg)
-    model = HashModel(device, c, 1.5, 4.5, [[-8.0] * 3, [8.0] * 3], (0.2, 0.5, 1.0),
-                      bounded=bounded)
-    t = np.random.default_rng(3).uniform(-1, 1, model.enc.shape).astype(np.float32)
-    t[2:] = 0.0
-    model.enc.table.set(t)
-    model.occ.ema.fill(np.float32(1.0))
-    model.occ._threshold(0.5)
-    return model
+    """tests/test_ray_pose.py's tiny hash model (a smooth field, occupied everywhere, every
+    sample of the cameras below inside its box), without hash.pose_opt unless ``cfg`` asks."""
+    from test_ray_pose import _pose_model
+    return _pose_model(device, bounded, **{"pose_opt": False, **cfg})
 
 
 def _grid_model(device, **cfg):

@@ -81,13 +81,21 @@ class _Rows:
     changes = COLOUR
 
     def __init__(self, device, n_images: int, lr: float, reg: float, masked: bool,
-                 matrix: str):
+                 matrix: str, lr_final: float | None = None):
         self.device, self.n_images = device, int(n_images)
         self.masked = bool(masked)     # an RGBA capture: the background stays (module doc)
         # the entries that train (exposure_matrix): an index of MATRICES, the kernels' argument
         self.matrix = MATRICES.index(matrix)
         self.lr, self.reg = float(lr), float(reg)
+        self.lr_start = self.lr
+        self.lr_final = None if lr_final is None else float(lr_final)
         self._prg = program(device)
+
+    def schedule(self, progress: float) -> None:
+        """The rate at the budget fraction ``progress``: log-linear from its first rate to
+        ``lr_final`` (``<model>.lr_exposure_final``; constant without one)."""
+        if self.lr_final is not None:
+            self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 
     def rows(self) -> np.ndarray:
         """P [V, 12] on the host."""
@@ -125,12 +133,10 @@ class Exposure(_Rows):
                  lr_final: float | None = None, fit: float = 0.0, fit_after: float = 0.0):
         if n_images < 1:
             raise ValueError(f"Exposure needs at least one image, got {n_images}")
-        super().__init__(device, n_images, lr, reg, masked, matrix)
+        super().__init__(device, n_images, lr, reg, masked, matrix, lr_final)
         # clamped to [0, 1] as a camera clips (exposure_clip): 0 no, 1 clipped channels pass
         # no gradient, 2 only one that points back inside (exposure_clip_inward)
         self.clip = int(clip)
-        self.lr_start = self.lr
-        self.lr_final = None if lr_final is None else float(lr_final)
         self.fit_eta, self.fit_after = float(fit), float(fit_after)
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
@@ -259,12 +265,6 @@ class Exposure(_Rows):
         if self.lr_final is not None:
             self.lr_final *= float(factor)
 
-    def schedule(self, progress: float) -> None:
-        """The rate at the budget fraction ``progress``: log-linear from its first rate to
-        ``lr_final`` (unchanged without one)."""
-        if self.lr_final is not None:
-            self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
-
     def recentre(self):
         """Takes the trained rows' geometric mean transform out of them (module doc)."""
         self._recentre(np.flatnonzero(self.steps > 0))
@@ -299,9 +299,7 @@ class RayExposure(_Rows):
                  lr_final: float | None = None):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
-        super().__init__(device, n_images, lr, reg, masked, matrix)
-        self.lr_start = self.lr
-        self.lr_final = None if lr_final is None else float(lr_final)
+        super().__init__(device, n_images, lr, reg, masked, matrix, lr_final)
         self.pixels = int(pixels)
         self.clip = bool(clip)   # the loss sees out clamped to [0, 1] (<model>.exposure_clip)
         q = device.queue
@@ -396,14 +394,6 @@ class RayExposure(_Rows):
         """Takes the rows' geometric mean transform out of them (module doc);
         ``backward_and_step`` calls it every RECENTRE_EVERY steps."""
         self._recentre(np.arange(self.n_images))
-
-    def schedule(self, progress: float) -> None:
-        """The rate at the budget fraction ``progress``: log-linear from its first rate to
-        ``lr_final`` (``<model>.lr_exposure_final``; constant without one). Every row steps
-        every batch here, on a handful of its rays, so a constant rate keeps the rows
-        wandering on that noise to the end."""
-        if self.lr_final is not None:
-            self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 
     def after_pass(self) -> None:
         """Nothing: a ray batch mixes every image, so there is no pass; the rows are

@@ -501,14 +501,10 @@ class HashModel:
         return out
 
     def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float, rays=None):
-        """Test-time pose refinement (BARF's protocol; ``clrf eval --refine-poses``): ``steps``
-        Adam steps of a correction of the camera ``c2w`` (camera-to-world, OpenGL axes) against
-        ``image`` [H, W, 3], the model held still (``ray_loss_grad``), the rate falling
-        log-linearly from ``lr`` to a tenth of it, a training step's batch of the view's rays
-        (``batch_size``) a step (clrf/corrections/ray_pose.py refine_view_pose). ``rays``: a
-        callable returning the camera's (origins, dirs) [H W, 3] as evaluation makes them for
-        ``intrinsics`` and ``hw`` (the model makes no rays of its own). Returns (the corrected
-        camera-to-world [4, 4], the correction's summary)."""
+        """Test-time pose refinement (``clrf eval --refine-poses``): clrf/corrections/ray_pose.py
+        ``refine_view_pose`` of camera ``c2w`` against ``image``, a training batch of its rays
+        (``rays()``, as evaluation makes them) a step through ``ray_loss_grad``. Returns (the
+        corrected camera-to-world [4, 4], the correction's summary)."""
         from ..corrections.ray_pose import refine_view_pose as refine
         return refine(self.device, self.ray_loss_grad, c2w, rays, image, steps, lr, self.bbox,
                       self.extent, batch=self.batch_size)
