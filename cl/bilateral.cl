@@ -27,13 +27,14 @@
  *                     (u within 1 of x, w within 1 of y) in pixel order: deterministic, no
  *                     atomics. Float32 sums: a cell of an 800 x 800 render at 16 x 16 sums
  *                     ~11,000 terms of one sign pattern, ~1e-7 sqrt(n) relative error.
- * bilateral_tv_grad   the gradient every grid takes in a step of view v: weight times the
+ * bilateral_tv_grad   the gradient a grid takes in a step of view v: weight times the
  *                     gradient of gsplat's total variation of each grid, TV(G) = sum over
  *                     the axes d of sum (G[i+1] - G[i])^2 / n_d (n_d: the differences along
  *                     d times 12), d TV / dG[i] = 2 / n_d ((G[i] - G[i-1]) - (G[i+1] - G[i]))
  *                     (the neighbours that exist), plus view v's data gradient (v < 0: none);
- *                     one work-item per entry of all grids. clrf/runtime/optim.py's Adam
- *                     (cl/optim.cl, cl/adam.h) then steps them.
+ *                     one work-item per entry of grids first .. first + count - 1 (every grid
+ *                     in gsplat's dense step; view v's alone with splat.bilateral_grid_sparse).
+ *                     clrf/runtime/optim.py's Adam (cl/optim.cl, cl/adam.h) then steps them.
  *
  * Defines read:
  *   BILATERAL_L  the grid's luminance bins (splat.bilateral_grid_shape[2]): the size of
@@ -217,13 +218,14 @@ CLRF_INLINE float bilateral_tv_axis(__global const float *G, const size_t i, con
     return 2.0f / pairs * d;
 }
 
-__kernel void bilateral_tv_grad(const int views, const int GX, const int GY,
+__kernel void bilateral_tv_grad(const int first, const int count, const int GX, const int GY,
                                 __global const float *grids, const int v,
                                 __global const float *data_grad, const float weight,
                                 __global float *grad) {
-    const size_t i = get_global_id(0);
     const size_t per = (size_t)BILATERAL_L * GY * GX * BILATERAL_CH;
-    if (i >= (size_t)views * per) return;
+    const size_t gid = get_global_id(0);
+    if (gid >= (size_t)count * per) return;
+    const size_t i = (size_t)first * per + gid;
     const size_t e = i % per;
     const int cell = (int)(e / BILATERAL_CH);
     const int x = cell % GX, y = (cell / GX) % GY, z = cell / (GX * GY);

@@ -12,6 +12,9 @@
  *   SGD     (OPT_MODE 1):                  param[i] -= lr g
  * then grad[i] = 0, so gradient buffers stay zero outside the rows touched by the next step
  * (no dense zero-fill per step). With clear_touched = 1 the row's flag is reset too.
+ * Only the columns j with j % group < live step (group = live = D: all of them); the others'
+ * gradient is consumed and their parameter and state left as they are (the grid's SH rows,
+ * channel-major: group = SH_BASIS, live = 1 trains band 0 alone, grid.sh_diffuse_until).
  * A zero or NaN gradient leaves param and state unchanged (state stays 0 until the first real
  * touch); +-inf is clamped like any huge gradient.
  *
@@ -47,13 +50,15 @@
 __kernel void update_rows(const int n_rows, const int D, __global float *param,
                           __global float *grad, __global float *state,
                           __global uchar *touched, const float lr, const float beta,
-                          const float eps, const int clear_touched) {
+                          const float eps, const int clear_touched, const int group,
+                          const int live) {
     const int k = get_global_id(0);
     if (k >= n_rows || !touched[k]) return;
     for (int j = 0; j < D; ++j) {
         const size_t i = (size_t)k * D + j;
         const float g0 = grad[i];
         grad[i] = 0.0f;
+        if (j % group >= live) continue;
         /* NaN is skipped like 0: clamp(NaN) is fmin(fmax(NaN, -C), C) = -C on conformant
          * devices, which stepped the parameter by +lr and set the state to 1e36 */
         if (g0 == 0.0f || isnan(g0)) continue;

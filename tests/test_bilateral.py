@@ -189,6 +189,71 @@ def test_adam_steps_every_grid_as_the_twin_does(device):
     assert np.abs(bil.host_grids() - G).min() > 0   # every entry of every grid moved
 
 
+def test_a_sparse_step_moves_the_trained_views_grid_alone(device):
+    """splat.bilateral_grid_sparse: steps of views 2, 0, 2 move grid v by its data and prior
+    gradients alone (the twin's step gradient, row v), Adam bias-corrected by that grid's own
+    step count; grid 1, never trained, is left exactly as it was, and the optimiser's
+    gradient outside the stepped grid is not written."""
+    rng = np.random.default_rng(11)
+    shape = (3, 3, 4)
+    bil, G = _grid(device, 3, shape, rng, spread=0.05)
+    bil.sparse = True
+    bil.schedule(0.5)
+    lr = bil.lr
+    m, v = np.zeros_like(G), np.zeros_like(G)
+    want = G.copy()
+    rgb, _, g = _render(rng, 8, 7)
+    q = device.queue
+    counts = {0: 0, 2: 0}
+    for view in (2, 0, 2):
+        now = bil.host_grids().astype(np.float64)
+        _, data = ref.backward(now[view], rgb, 8, 7, g)
+        grad = ref.step_gradient(now, view, data, bil.tv_weight)[view]
+        bil.backward_and_step(upload(q, rgb), None, BG, upload(q, g), view)
+        counts[view] += 1
+        adam_host_step(want[view], m[view], v[view], grad, counts[view], lr, ADAM_BETAS,
+                       ADAM_EPS)
+    assert bil.steps == 3 and list(bil.view_steps) == [1, 0, 2]
+    got = bil.host_grids()
+    np.testing.assert_allclose(got, want, rtol=0, atol=tol.BILATERAL_ADAM_ATOL)
+    np.testing.assert_array_equal(got[1], G[1].astype(np.float32))
+    assert np.abs(got[[0, 2]] - G[[0, 2]]).min() > 0
+    assert not np.any(download(bil._opt.grad).reshape(G.shape)[1])
+
+
+def test_seeded_grids_apply_each_images_affine_transform_and_hold(device):
+    """``seed`` (an exposure calibration's rows P [V, 12]): every cell of grid v holds
+    (A_v | b_v), so the slice gives A_v rgb + b_v at any pixel and luminance; before
+    ``hold_until`` a training step leaves the grids as they are (dL/drgb through them), after
+    it they step; the hold survives a checkpoint. Bad rows are refused."""
+    rng = np.random.default_rng(12)
+    bil = BilateralGrid(device, 2, shape=(4, 3, 5))
+    P = np.zeros((2, 12))
+    P[:, :9] = (np.eye(3)[None] * np.array([0.7, 1.3])[:, None, None]
+                + rng.normal(0, 0.05, (2, 3, 3))).reshape(2, 9)
+    P[:, 9:] = rng.normal(0, 0.05, (2, 3))
+    bil.seed(P, hold_until=0.2)
+    rgb, _, g = _render(rng, 6, 7)
+    q = device.queue
+    for v in range(2):
+        A, b = P[v, :9].reshape(3, 3), P[v, 9:]
+        np.testing.assert_allclose(download(bil.apply(upload(q, rgb), v)),
+                                   rgb.astype(np.float64) @ A.T + b, rtol=0, atol=1e-5)
+    before = bil.host_grids().copy()
+    d_rgb = bil.train_view(1, upload(q, rgb), None, BG, upload(q, g), 0.1, None, BG)
+    np.testing.assert_array_equal(bil.host_grids(), before)
+    np.testing.assert_allclose(download(d_rgb), g.astype(np.float64) @ P[1, :9].reshape(3, 3),
+                               rtol=0, atol=1e-5)
+    back = BilateralGrid(device, 2, state=bil.state_dict())
+    assert back.hold_until == 0.2 and back.steps == 0
+    bil.train_view(1, upload(q, rgb), None, BG, upload(q, g), 0.3, None, BG)
+    assert bil.steps == 1 and np.any(bil.host_grids() != before)
+    with pytest.raises(ValueError, match="2 finite rows"):
+        bil.seed(P[:1])
+    with pytest.raises(ValueError, match="2 finite rows"):
+        bil.seed(np.full((2, 12), np.nan))
+
+
 @pytest.mark.parametrize("masked", [False, True], ids=["plain", "masked"])
 def test_stiff_colours_and_bin_edges(device, masked):
     """Pixels black and white, far below 0 and above 1 (the guidance clamped: no luminance
@@ -256,6 +321,11 @@ def test_state_round_trip(device):
     assert back.n_images == 2 and back.shape == (3, 2, 4) and back.masked and back.steps == 1
     for k, a in st.items():
         np.testing.assert_array_equal(back.state_dict()[k], a)
+    assert list(back.view_steps) == [1, 1] and back.hold_until == 0.0
+    older = {k: a for k, a in st.items()
+             if k not in ("bilateral_grid_view_steps", "bilateral_grid_hold_until")}
+    old = BilateralGrid(device, 2, state=older)   # a checkpoint from before these keys
+    assert list(old.view_steps) == [1, 1] and old.hold_until == 0.0
 
 
 def test_bad_arrays_are_refused_at_the_boundary(device):

@@ -55,6 +55,11 @@ def test_gsplats_defaults():
     c = SplatConfig()
     assert not c.bilateral_grid and c.bilateral_grid_shape == [16, 16, 8]
     assert c.lr_bilateral_grid == 2e-3 and c.bilateral_grid_tv == 10.0
+    # two departures: the trained view's grid alone steps (a checkpoint from before the
+    # setting resumes with gsplat's dense step), and no calibration unless asked
+    assert c.bilateral_grid_sparse and c.bilateral_grid_calibrate == 0
+    old = {k: v for k, v in c.__dict__.items() if k != "bilateral_grid_sparse"}
+    assert not SplatConfig.from_dict(old).bilateral_grid_sparse
 
 
 def test_mpi_ranks_refuse_it():
@@ -94,7 +99,7 @@ def test_training_moves_the_trained_grids_and_the_checkpoint_keeps_them(device):
     state = m.state_dict()
     assert {k for k in state if k.startswith("bilateral")} == {
         "bilateral_grid", "bilateral_grid_m", "bilateral_grid_v", "bilateral_grid_steps",
-        "bilateral_grid_masked"}
+        "bilateral_grid_view_steps", "bilateral_grid_hold_until", "bilateral_grid_masked"}
     back = SplatModel.from_state_dict(device, state)
     b2 = back.corrections.get("bilateral")
     np.testing.assert_array_equal(b2.host_grids(), grids)
@@ -152,6 +157,56 @@ def test_a_run_trains_evaluates_and_reports_it(tmp_path, capsys):
     e = json.loads((tmp_path / "e.json").read_text())
     assert e["bilateral_correction"]["steps"] == s["steps"]
     assert np.isfinite(e["psnr_color_corrected"])
+
+
+def test_the_calibration_of_a_bilateral_grid_is_an_exposure_calibration():
+    """splat.bilateral_grid_calibrate: the calibration run trains exposure transforms (no
+    grid) at their held first rate on its share of the budget; 0 asks for none."""
+    import dataclasses
+
+    from clrf.training import calibrate
+    from clrf.training.config import build_config
+    cfg = build_config("procedural", overrides={"train": {"model": "splat", "max_seconds": 100},
+                                                "splat": {"bilateral_grid": True,
+                                                          "bilateral_grid_calibrate": 0.1}})
+    assert calibrate.wants_calibration(cfg)
+    small = calibrate.calibration_config(cfg)
+    s = small.splat
+    assert s.exposure and not s.bilateral_grid and s.bilateral_grid_calibrate == 0
+    assert s.exposure_calibrate == 0 and s.lr_exposure == s.lr_exposure_final == 0.05
+    assert small.train.max_seconds == pytest.approx(10.0) and not small.train.final_eval
+    cfg.set_section("splat", dataclasses.replace(cfg.splat, bilateral_grid_calibrate=0.0))
+    assert not calibrate.wants_calibration(cfg)
+
+
+@pytest.mark.slow
+def test_a_calibrated_grid_starts_from_the_calibrations_transforms(tmp_path, monkeypatch):
+    """`clrf train` with splat.bilateral_grid_calibrate (and the sparse step): the calibration
+    runs first (its metrics kept, eval.json's exposure_calibration), every grid starts from
+    its image's calibrated transform, held for splat.exposure_calibrate_hold, then trains."""
+    from clrf.cli.main import main as cli
+    from clrf.corrections import bilateral as B
+    seen = {}
+    real_seed = B.BilateralGrid.seed
+
+    def seed_spy(self, rows, hold_until=0.0):
+        seen["seed"] = (np.array(rows), hold_until, self.sparse)
+        return real_seed(self, rows, hold_until)
+    monkeypatch.setattr(B.BilateralGrid, "seed", seed_spy)
+    out = tmp_path / "run"
+    assert cli(["--quiet", "train", "--model", "splat", "--out", str(out), "--max-seconds", "600",
+                "--set", "train.max_iters=150", "--set", "splat.bilateral_grid=true",
+                "--set", "splat.bilateral_grid_sparse=true",
+                "--set", "splat.bilateral_grid_calibrate=0.25", "--set", "splat.init_points=1000",
+                "--set", "train.eval_every=1000", "--set", "splat.exposure_steady_spread=0"]) == 0
+    rows, hold, sparse = seen["seed"]
+    assert rows.shape == (72, 12) and np.all(np.isfinite(rows)) and sparse
+    assert hold == pytest.approx(0.1) and np.abs(rows[:, [0, 4, 8]] - 1).max() > 0
+    assert (out / "calibration" / "metrics.csv").exists()
+    assert not (out / "calibration" / "ckpt.npz").exists()
+    ev = json.loads((out / "eval.json").read_text())
+    assert ev["exposure_calibration"]["iterations"] > 0
+    assert ev["bilateral_correction"]["steps"] > 0
 
 
 def _capture(root, rng):

@@ -229,6 +229,29 @@ def test_exposure_learns_each_images_gain(device):
     assert np.all(exp.rows()[:, [1, 2, 3, 5, 6, 7, 9, 10, 11]] == 0)
 
 
+def test_sh_diffuse_until_trains_band_0_alone_before_it(device):
+    """grid.sh_diffuse_until 0.5 with grid.exposure: steps before half the budget move each
+    channel's band-0 coefficient and leave bands 1.. exactly as they were (their gradients
+    consumed); from the fraction on every band steps."""
+    from types import SimpleNamespace
+    model, (o, d, target, index), _ = _exposure_scene(
+        device, (0.8, 1.25), lr_sh=1e-2, lr_sh_final=1e-2, sh_diffuse_until=0.5)
+    dc = np.arange(12) % 4 == 0
+    sh0 = model.grid.sh.get()
+    assert "SH band 0 alone" in model.describe()
+    for it in range(3):
+        model.on_iteration(it, SimpleNamespace(fraction=0.1 * it))
+        model.train_step(it, o, d, target, index=index)
+    sh1 = model.grid.sh.get()
+    np.testing.assert_array_equal(sh1[:, ~dc], sh0[:, ~dc])
+    assert np.any(sh1[:, dc] != sh0[:, dc])
+    assert not np.any(model.opt_sh.grad.get()) and not np.any(model.opt_sh.state.get()[:, ~dc])
+    model.on_iteration(3, SimpleNamespace(fraction=0.5))
+    assert "SH band 0" not in model.describe()
+    model.train_step(3, o, d, target, index=index)
+    assert np.any(model.grid.sh.get()[:, ~dc] != sh1[:, ~dc])
+
+
 def test_checkpoint_keeps_the_corrections_and_older_ones_load(device, tmp_path):
     """A model with grid.pose_opt and grid.exposure after a few steps, through a checkpoint
     file: the same corrections, moments and rows, and the next step the same; a checkpoint
@@ -285,7 +308,8 @@ def test_corrections_are_refused_with_one_clear_error():
 @pytest.mark.parametrize("key,value", [("lr_pose", 0.0), ("lr_pose", -1.0),
                                        ("lr_pose_final", 0.0), ("pose_reg", -1.0),
                                        ("pose_opt_after", 1.0), ("lr_exposure", 0.0),
-                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed")])
+                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed"),
+                                       ("sh_diffuse_until", 1.5), ("pose_opt_every", 0)])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "grid", "--out", str(tmp_path / "run"),

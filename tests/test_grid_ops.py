@@ -53,6 +53,34 @@ def test_update_rows_vs_reference(device, mode):
     assert np.all(tch.get() == 0)
 
 
+@pytest.mark.parametrize("mode", ["rmsprop", "sgd"])
+def test_update_rows_live_columns(device, mode):
+    """columns=(group, live): only the columns j % group < live step (the grid's SH band 0,
+    grid.sh_diffuse_until); the others keep parameter and state, their gradient consumed."""
+    rng = np.random.default_rng(1)
+    q = device.queue
+    n, D, cols = 23, 12, (4, 1)
+    p0 = rng.normal(size=(n, D)).astype(np.float32)
+    g = rng.normal(size=(n, D)).astype(np.float32)
+    s0 = np.where(rng.random((n, D)) < 0.5, 0, rng.uniform(0.1, 1, (n, D))).astype(np.float32)
+    touched = (rng.random(n) < 0.7).astype(np.uint8)
+    param = cla.to_device(q, p0)
+    opt = Optimizer(device, param, mode=mode, state=cla.to_device(q, s0))
+    opt.grad.set(g)
+    opt.step(cla.to_device(q, touched), lr=0.1, columns=cols)
+    p_ref, s_ref = ref.update_rows(p0, g, s0, touched, 0.1, mode=mode, columns=cols)
+    np.testing.assert_allclose(param.get(), p_ref, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(opt.state.get(), s_ref, rtol=1e-6, atol=1e-30)
+    dead = np.arange(D) % cols[0] >= cols[1]
+    got = param.get()
+    assert np.all(got[:, dead] == p0[:, dead]) and np.all(opt.state.get()[:, dead] == s0[:, dead])
+    assert np.all(got[touched == 1][:, ~dead] != p0[touched == 1][:, ~dead])
+    gg = opt.grad.get()
+    assert np.all(gg[touched == 1] == 0) and np.all(gg[touched == 0] == g[touched == 0])
+    with pytest.raises(ValueError, match="columns"):
+        opt.step(cla.to_device(q, touched), lr=0.1, columns=(5, 1))
+
+
 def test_update_rows_1d_and_first_step(device):
     q = device.queue
     p = cla.to_device(q, np.array([1.0, 2.0, 3.0], np.float32))

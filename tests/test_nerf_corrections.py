@@ -175,6 +175,9 @@ class _Capture:
     def rays(self, index, origins, dirs):
         return origins, dirs
 
+    def gradient_due(self):
+        return True
+
     def step_rays(self, index, dirs, ray_grad):
         self.grad = ray_grad.get()
 

@@ -237,6 +237,27 @@ def test_no_camera_gradient_before_the_start(device, monkeypatch):
     assert calls == [1] and pose.pose.params[0].any() and pose.pose.steps.tolist() == [1, 1]
 
 
+def test_pose_opt_every_forms_the_camera_gradient_on_one_step_in_k(device, monkeypatch):
+    """hash.pose_opt_every 3: of six steps, the first and the fourth form the spatial
+    derivative and step the cameras; the others render the corrected cameras' rays (a moved
+    camera's rays differ from the stored ones) with no derivative and no camera step."""
+    from clrf.hash.encoding import HashEncoding
+    model, _, _, (o0, d0, target, index), _ = _scene(
+        device, lr_pose=3e-3, lr_pose_final=3e-3, pose_reg=0.0, pose_opt_after=0.0,
+        pose_opt_every=3)
+    pose = model.corrections.get("pose")
+    calls, seen = [], []
+    real_dx, real_rays = HashEncoding.dx, type(pose).rays
+    monkeypatch.setattr(HashEncoding, "dx", lambda self, *a, **k: calls.append(1) or
+                        real_dx(self, *a, **k))
+    monkeypatch.setattr(type(pose), "rays", lambda self, *a: seen.append(1) or
+                        real_rays(self, *a))
+    for it in range(6):
+        model.loss_and_grad(it, o0, d0, target, jitter=False, index=index)
+        assert pose.pose.steps.tolist() == [1 + it // 3] * 2 and len(calls) == 1 + it // 3
+    assert len(seen) == 6 and pose.pose.params[0].any()
+
+
 def test_checkpoint_keeps_the_corrections_and_resumes_alike(device):
     """A model with hash.pose_opt after a few steps, through state_dict and from_state_dict:
     the same corrections, Adam moments, cameras and rows, and the next step the same."""

@@ -375,6 +375,11 @@ def test_the_calibration_has_a_rate_of_its_own():
     assert (small.splat.lr_exposure, small.splat.lr_exposure_final) == (0.05, 0.05)
     assert small.train.max_seconds == 100.0 * cfg.splat.exposure_calibrate
     assert cfg.splat.lr_exposure == 0.005       # the run's own rate is left as it was
+    # splat.exposure_calibrate_fit (0.3 by default): the calibration's last part fits the rows
+    assert (small.splat.exposure_fit, small.splat.exposure_fit_after) == (1.0, 0.7)
+    cfg.set_section("splat", dataclasses.replace(low, exposure_calibrate_fit=0.0))
+    small = calibrate.calibration_config(cfg)   # 0: Adam throughout, as the run's own
+    assert small.splat.exposure_fit == cfg.splat.exposure_fit == 0.0
 
 
 def test_a_steady_capture_is_told_by_the_calibrated_gains_spread():

@@ -166,11 +166,13 @@ def cmd_train(a):
     if calibrated is not None:
         sect = cfg.section(kind.name)
         from .. import corrections
-        exposure = corrections.of(trainer.model).get("exposure")
-        if calibrated[1]["steady"]:   # the rows' noise left out, the rates lowered
-            exposure.slow(sect.exposure_steady_rate)
+        have = corrections.of(trainer.model)
+        exposure, grids = have.get("exposure"), have.get("bilateral")
+        if calibrated[1]["steady"]:   # the rows' noise left out (the grids: the identity)
+            if exposure is not None:
+                exposure.slow(sect.exposure_steady_rate)   # and the rates lowered
         else:
-            exposure.seed(calibrated[0], sect.exposure_calibrate_hold)
+            (exposure or grids).seed(calibrated[0], sect.exposure_calibrate_hold)
         trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog

@@ -137,6 +137,11 @@ class RayCameraCorrection(Correction, Protocol):
         """(origins, dirs) [n, 3] (new device arrays) of the batch's rays as their images'
         corrected cameras make them, from those the given cameras made."""
 
+    def gradient_due(self) -> bool:
+        """Whether this training step forms the cameras' gradient and calls ``step_rays``
+        (one step in ``pose_opt_every``); counts the step. The other steps use ``rays``
+        alone."""
+
     def step_rays(self, index, dirs, ray_grad) -> None:
         """One optimiser step of each image with rays in the batch, from the rays' corrected
         directions ``dirs`` [n, 3] and dL/d(origin, direction) ``ray_grad`` [n, 6]."""

@@ -15,7 +15,16 @@ by their number; Adam at 2e-3 (``splat.lr_bilateral_grid``, eps 1e-15, betas 0.9
 with every grid stepped every training step (a view's grid by its data gradient and the prior,
 the others by the prior and their moments); the rate warmed up linearly from 1 % over the
 first 1,000 of 30,000 steps (a budget fraction WARMUP) and decayed exponentially to 1 % at
-the end (FINAL). Test views are rendered without it (the identity), as gsplat scores them;
+the end (FINAL).
+
+Two departures, each a setting: ``sparse`` (``splat.bilateral_grid_sparse``) steps the trained
+view's grid alone (its data and prior gradients; Adam's bias correction by that grid's own
+step count), so that a step costs one grid's update, not all of them (gsplat's dense update of
+100 grids took 37 % of a CPU run's steps); ``seed`` starts every cell of each image's grid from
+that image's affine transform found by an exposure calibration
+(``splat.bilateral_grid_calibrate``, clrf/training/calibrate.py) and holds the grids until a
+budget fraction while the scene forms under them: on a CPU budget each grid is trained a few
+dozen times, far too few for gsplat's rate to reach an exposure change from the identity. Test views are rendered without it (the identity), as gsplat scores them;
 gsplat reports them after a colour correction fitted to each test image as well, as clrf's
 ``psnr_color_corrected`` does (docs/evaluation.md).
 
@@ -61,13 +70,16 @@ class BilateralGrid:
     batches = VIEWS
 
     def __init__(self, device, n_images: int, lr: float = LR, tv: float = TV_WEIGHT,
-                 shape=SHAPE, state: dict | None = None, masked: bool = False):
+                 shape=SHAPE, state: dict | None = None, masked: bool = False,
+                 sparse: bool = False):
         if n_images < 1:
             raise ValueError(f"BilateralGrid needs at least one image, got {n_images}")
         self.device, self.n_images = device, int(n_images)
         self.masked = bool(masked)
         self.lr_start = self.lr = float(lr)
         self.tv_weight = float(tv)
+        self.sparse = bool(sparse)
+        self.hold_until = 0.0
         steps = 0
         if state is None:
             gx, gy, gl = (int(s) for s in shape)
@@ -78,6 +90,7 @@ class BilateralGrid:
             m = np.asarray(state["bilateral_grid_m"], np.float32).reshape(grids.shape)
             v = np.asarray(state["bilateral_grid_v"], np.float32).reshape(grids.shape)
             steps = int(np.asarray(state["bilateral_grid_steps"]))
+            self.hold_until = float(state.get("bilateral_grid_hold_until", 0.0))
             self.masked = bool(state.get("bilateral_grid_masked", masked))
             if grids.ndim != 5 or grids.shape[-1] != CHANNELS:
                 raise ValueError(f"bilateral_grid: [V, L, GY, GX, {CHANNELS}] expected, got "
@@ -85,6 +98,10 @@ class BilateralGrid:
             self.n_images = grids.shape[0]
         self.shape = (grids.shape[3], grids.shape[2], grids.shape[1])   # (x, y, luminance)
         self.steps = steps
+        # each grid's own Adam step count (sparse steps); a dense step counts in all of them
+        self.view_steps = np.full(self.n_images, steps, np.int64)
+        if state is not None and "bilateral_grid_view_steps" in state:
+            self.view_steps = np.asarray(state["bilateral_grid_view_steps"], np.int64).copy()
         q = device.queue
         self.grids = upload(q, np.ascontiguousarray(grids).reshape(-1))   # flat [V L GY GX 12]
         self.cells = int(grids[0].size)                  # floats of one grid
@@ -144,20 +161,29 @@ class BilateralGrid:
         return grad_rgb, self._data
 
     def gradient(self, v: int):
-        """Every grid's gradient of a step of view v into the optimiser's gradient: the data
-        gradient of the last ``backward`` (v < 0: none) plus the prior's, tv / V times each
-        grid's total-variation gradient (gsplat's loss)."""
+        """The gradient of a step of view v into the optimiser's gradient: the data gradient
+        of the last ``backward`` (v < 0: none) plus the prior's, tv / V times each grid's
+        total-variation gradient (gsplat's loss); every grid's, or with ``sparse`` grid v's
+        alone (the others' entries left as they are)."""
         gx, gy, _ = self.shape
-        launch(self.device, self._prg.kernel("bilateral_tv_grad"), int(self.grids.size),
-               (np.int32(self.n_images), np.int32(gx), np.int32(gy), self.grids.data,
-                np.int32(v), self._data.data, np.float32(self.tv_weight / self.n_images),
-                self._opt.grad.data))
+        first, count = (v, 1) if self.sparse and v >= 0 else (0, self.n_images)
+        launch(self.device, self._prg.kernel("bilateral_tv_grad"), count * self.cells,
+               (np.int32(first), np.int32(count), np.int32(gx), np.int32(gy),
+                self.grids.data, np.int32(v), self._data.data,
+                np.float32(self.tv_weight / self.n_images), self._opt.grad.data))
         return self._opt.grad
 
     def step(self, v: int):
-        """One Adam step of every grid (the prior's gradient and view v's data gradient)."""
+        """One Adam step from view v's data gradient and the prior's: of every grid, or with
+        ``sparse`` of grid v alone (bias-corrected by its own step count)."""
         self.gradient(v)
         self.steps += 1
+        if self.sparse and v >= 0:
+            self.view_steps[v] += 1
+            self._opt.step(None, self.lr, t=int(self.view_steps[v]),
+                           spans=[(v * self.cells, (v + 1) * self.cells)])
+            return
+        self.view_steps += 1
         self._opt.step(None, self.lr, t=self.steps)
 
     # ---- the protocol (clrf/corrections/base.py) ----------------------------------------
@@ -174,8 +200,26 @@ class BilateralGrid:
 
     def train_view(self, v: int, rgb, T, background, grad_out, progress: float, images,
                    scene_background):
-        """``backward_and_step`` (gsplat trains the grids every step from the first)."""
+        """``backward_and_step`` (gsplat trains the grids every step from the first); seeded
+        grids (``seed``) are held, dL/drgb through them alone, before ``hold_until``."""
+        if progress < self.hold_until:
+            return self.backward(rgb, T, background, grad_out, v)[0]
         return self.backward_and_step(rgb, T, background, grad_out, v)
+
+    def seed(self, rows, hold_until: float = 0.0):
+        """Every cell of image v's grid set to row v of ``rows`` P [V, 12] (an affine
+        transform: A row-major, then b; an exposure calibration's, clrf/training/calibrate.py)
+        in place of the identity, the grids held until the budget fraction ``hold_until``."""
+        rows = np.asarray(rows, np.float64).reshape(-1, 12)
+        if len(rows) != self.n_images or not np.all(np.isfinite(rows)):
+            raise ValueError(f"BilateralGrid.seed: {self.n_images} finite rows of 12 expected, "
+                             f"got {rows.shape}")
+        cell = np.concatenate([rows[:, :9].reshape(-1, 3, 3), rows[:, 9:, None]], axis=2)
+        gx, gy, gl = self.shape
+        grids = np.broadcast_to(cell.reshape(-1, 1, 1, 1, CHANNELS),
+                                (self.n_images, gl, gy, gx, CHANNELS))
+        self.grids.set(np.ascontiguousarray(grids, np.float32).reshape(-1))
+        self.hold_until = float(hold_until)
 
     def schedule(self, progress: float) -> None:
         """gsplat's rate at the budget fraction ``progress``: warm-up, then the decay."""
@@ -196,6 +240,8 @@ class BilateralGrid:
                 "bilateral_grid_m": download(self._opt.state).reshape(shape),
                 "bilateral_grid_v": download(self._opt.state2).reshape(shape),
                 "bilateral_grid_steps": np.array(self.steps, np.int64),
+                "bilateral_grid_view_steps": self.view_steps.copy(),
+                "bilateral_grid_hold_until": self.hold_until,
                 "bilateral_grid_masked": self.masked}
 
     def summary(self) -> dict:

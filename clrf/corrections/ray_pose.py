@@ -132,7 +132,7 @@ class RayPose:
 
     def __init__(self, device, viewmats0, pixels: int, lr: float, reg: float, scale: float,
                  pivots=None, lr_final: float | None = None, state: dict | None = None,
-                 hold_frame: bool = True, start: float = 0.0):
+                 hold_frame: bool = True, start: float = 0.0, every: int = 1):
         if state is not None:
             viewmats0 = state["pose_viewmats"]
             pixels = int(state["pose_pixels"])
@@ -146,6 +146,8 @@ class RayPose:
                                    start=start)
         self.pose.given = dict(enumerate(self.viewmats0))   # every image's given camera
         self.steps = 0
+        self.every = int(every)    # training steps a camera step (pose_opt_every)
+        self.calls = 0             # training steps seen (gradient_due)
         self.n_images = self.pose.n_images
         self.rows = upload(device.queue, ray_rows(self.viewmats0, self.viewmats()))
 
@@ -161,6 +163,14 @@ class RayPose:
     def trains(self) -> bool:
         """False before the budget fraction ``start`` (the corrections are all zero then)."""
         return self.pose.trains
+
+    def gradient_due(self) -> bool:
+        """Whether this training step forms the cameras' gradient and steps them: one step in
+        ``every`` (``pose_opt_every``: the rest use the corrected cameras without their
+        gradient's pass). Counts the step."""
+        due = self.calls % self.every == 0
+        self.calls += 1
+        return due
 
     def step_rays(self, index, dirs, ray_grad) -> None:
         """One Adam step of each image with rays in the batch (PoseCorrection.step), from the

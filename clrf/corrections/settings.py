@@ -56,7 +56,7 @@ def colour_conflict(section, prefix: str):
 def ray_correction_checks(section, prefix: str) -> list:
     """(ok, key, message) of the exposure and pose settings of a model whose batches mix rays
     (``<prefix>.lr_exposure``, ``lr_exposure_final``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
-    ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``): the hash grid's, the grid's and
+    ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``, ``pose_opt_every``): the hash grid's, the grid's and
     NeRF's configuration checks share them."""
     s, p = section, prefix
     return [
@@ -71,6 +71,8 @@ def ray_correction_checks(section, prefix: str) -> list:
         (0 < s.lr_pose_final <= s.lr_pose, f"{p}.lr_pose_final", f"must be in (0, {p}.lr_pose]"),
         (s.pose_reg >= 0, f"{p}.pose_reg", "must be >= 0"),
         (0 <= s.pose_opt_after < 1, f"{p}.pose_opt_after", "must be in [0, 1)"),
+        (isinstance(s.pose_opt_every, int) and 1 <= s.pose_opt_every <= 1000,
+         f"{p}.pose_opt_every", "must be a whole number of steps in 1..1000"),
     ]
 
 
@@ -131,14 +133,16 @@ def _pose(device, s, views: Views, batches: str, state=None):
     start = getattr(s, "pose_opt_after", 0.0)
     if batches == RAYS:
         from .ray_pose import RayPose
+        every = getattr(s, "pose_opt_every", 1)
         if state is not None:
             return RayPose(device, None, 0, s.lr_pose, s.pose_reg, views.scale, state=state,
-                           lr_final=s.lr_pose_final, hold_frame=hold, start=start)
+                           lr_final=s.lr_pose_final, hold_frame=hold, start=start,
+                           every=every)
         if views.viewmats is None:
             raise ValueError("a pose correction of ray batches needs the training cameras")
         return RayPose(device, views.viewmats(), views.pixels, s.lr_pose, s.pose_reg,
                        views.scale, pivots=views.pivots() if views.pivots else None,
-                       lr_final=s.lr_pose_final, hold_frame=hold, start=start)
+                       lr_final=s.lr_pose_final, hold_frame=hold, start=start, every=every)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
                               state=state, lr_final=s.lr_pose_final, hold_frame=hold,
@@ -154,7 +158,8 @@ def _bilateral(device, s, views: Views, batches: str, state=None):
         raise ValueError("a bilateral grid needs a model that trains on whole views")
     n = views.n_images if state is None else len(state["bilateral_grid"])
     return BilateralGrid(device, n, s.lr_bilateral_grid, s.bilateral_grid_tv,
-                         shape=s.bilateral_grid_shape, state=state, masked=views.masked)
+                         shape=s.bilateral_grid_shape, state=state, masked=views.masked,
+                         sparse=s.bilateral_grid_sparse)
 
 
 MAKE = {"exposure": _exposure, "bilateral": _bilateral, "pose": _pose}

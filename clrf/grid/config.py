@@ -14,6 +14,11 @@ class GridConfig:
     upsample_at: list = field(default_factory=lambda: [300, 1200])
     # ^ iterations at which to prune (by rendering weight) and upsample to the next resolution
     sh_degree: int = 2            # SH degree of colour (0: diffuse .. 3)
+    sh_diffuse_until: float = 0.0  # budget fraction during which only SH band 0 (a colour that
+    #                               is the same from every side) learns; the higher bands start
+    #                               from 0 after it. With grid.exposure the per-image transforms
+    #                               settle first, before view-dependent colour can take up the
+    #                               images' exposure changes (0: every band from the start)
     step: float = 0.5             # ray-march step in voxels
     init_density: float = 0.1     # initial density of every voxel of the first grid
     sphere_bound: bool = True     # start with voxels inside the bbox's inscribed sphere only
@@ -74,6 +79,8 @@ class GridConfig:
     pose_reg: float = 1e-4        # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
     pose_opt_after: float = 0.0   # budget fraction before the corrections take steps (the scene
     #                               forms first; 0: from the start)
+    pose_opt_every: int = 1       # training steps a camera step: the camera gradient's pass
+    #                               runs on one step in this many (as hash.pose_opt_every)
     pose_hold_frame: bool = True  # take the corrections' common rigid motion out every 100
     #                               steps, so the scene stays in the given poses' frame
 
@@ -90,6 +97,8 @@ class GridConfig:
              and g.upsample_at == sorted(g.upsample_at), "grid.upsample_at",
              "must list one increasing iteration per resolution after the first"),
             (g.sh_degree in (0, 1, 2, 3), "grid.sh_degree", "must be 0, 1, 2 or 3"),
+            (0 <= g.sh_diffuse_until <= 1, "grid.sh_diffuse_until",
+             "must be a budget fraction in [0, 1]"),
             (0 < g.step <= 4, "grid.step", "must be in (0, 4] voxels"),
             (g.init_density >= 0, "grid.init_density", "must be >= 0"),
             (1 <= g.batch_size <= 1 << 22, "grid.batch_size", "must be in 1..4194304"),

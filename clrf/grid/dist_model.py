@@ -83,6 +83,7 @@ class DistGridModel(GridModel):
         # nor per-image corrections (clrf/grid/kind.py Distributed.check refuses them); the
         # empty list GridModel's hooks (on_iteration, describe) call
         self.corrections = Corrections()
+        self.progress = 0.0         # the budget fraction reached (GridModel.on_iteration)
         self.dist = DistGrid(comm, bgrid, bricks)
         self._set_grid(bgrid, opt_state)
 
@@ -157,7 +158,7 @@ class DistGridModel(GridModel):
         self.dist.sum_halo(self.opt_density.grad, self.opt_sh.grad, self.touched)
         lr_d, lr_s = self.learning_rates(it)
         self.opt_density.step(self.touched, lr_d, clear_touched=False)
-        self.opt_sh.step(self.touched, lr_s, clear_touched=True)
+        self.opt_sh.step(self.touched, lr_s, clear_touched=True, columns=self.sh_columns())
         return sq / (3 * n)
 
     def _tv_cells(self):

@@ -97,6 +97,7 @@ class GridModel:
         # the step's loss stays on the device until read (GPUs; train_step)
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.corrections = Corrections()   # per-image corrections (attach_corrections)
+        self.progress = 0.0         # the budget fraction reached (on_iteration)
         self._set_grid(grid, opt_state)
 
     def attach_corrections(self, n_images: int, pixels: int, masked: bool, viewmats=None,
@@ -169,7 +170,10 @@ class GridModel:
         ray_grad = None
         if camera is not None:
             origins, dirs = camera.rays(index, origins, dirs)
-            ray_grad = device_empty(q, (B, 6), np.float32)
+            if camera.gradient_due():
+                ray_grad = device_empty(q, (B, 6), np.float32)
+            else:                              # grid.pose_opt_every: no camera step now
+                camera = None
         if self._sqerr is None or self._sqerr.shape[0] != B:
             self._sqerr = device_empty(q, B, np.float32)
         bgm = self.bg_model
@@ -199,13 +203,21 @@ class GridModel:
             self._tv(it)
         lr_d, lr_s = self.learning_rates(it)
         self.opt_density.step(self.touched, lr_d, clear_touched=False)
-        self.opt_sh.step(self.touched, lr_s, clear_touched=True)
+        self.opt_sh.step(self.touched, lr_s, clear_touched=True, columns=self.sh_columns())
         # the loss's squared errors: the transformed pixels' with grid.exposure (_sqerr then
         # holds |pixel - eff|^2, the backward's own)
         loss = cla.sum(self._sqerr if colour is None else sq_rays, queue=q)
         if self.defer_loss:
             return Pending(q, loss, scale)
         return float(loss.get()) * scale
+
+    def sh_columns(self):
+        """The SH optimiser's live columns: (SH_BASIS, 1), band 0 of each channel alone, before
+        the budget fraction grid.sh_diffuse_until; None (every band) after it."""
+        basis = (self.grid.sh_degree + 1) ** 2
+        if basis > 1 and self.progress < self.cfg.sh_diffuse_until:
+            return (basis, 1)
+        return None
 
     def ray_loss_grad(self, origins, dirs, target):
         """Each ray's dL/d(origin, direction) [B, 6] (device float32) of the photometric part of
@@ -258,7 +270,8 @@ class GridModel:
         """Prune and upsample at the scheduled iterations (on ``budget.rays``, the training
         rays). Returns a log message or None."""
         c = self.cfg
-        self.corrections.schedule(float(budget.fraction))
+        self.progress = float(budget.fraction)
+        self.corrections.schedule(self.progress)
         if self.stage < len(c.upsample_at) and it >= c.upsample_at[self.stage]:
             o, d = budget.rays.strided(c.prune_rays)
             return self.upsample(o, d)
@@ -343,7 +356,8 @@ class GridModel:
             m = self.bg_model.msi
             bg = f", MSI background {m.layers}x{m.height}x{m.width}"
         corr = f", {self.corrections.describe()}" if self.corrections else ""
-        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows{bg}{corr}"
+        sh = ", SH band 0 alone" if self.sh_columns() else ""
+        return f"{r[0]}x{r[1]}x{r[2]} grid, {self.grid.n_rows} rows{sh}{bg}{corr}"
 
     # ---- state -------------------------------------------------------------------------
     def state_dict(self):

@@ -109,6 +109,9 @@ class HashConfig:
     pose_opt_after: float = 0.3     # budget fraction before the corrections take steps (the
     #                                 scene forms first on the given poses; 0: from the start;
     #                                 splat.pose_opt_after's default, chosen on splats)
+    pose_opt_every: int = 1         # training steps a camera step: the camera gradient's pass
+    #                                 runs on one step in this many (its cost and the number of
+    #                                 its noisy steps that much less)
     pose_hold_frame: bool = True    # take the corrections' common similarity out every 100
     #                                 steps, so the scene stays in the given poses' frame
     #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)

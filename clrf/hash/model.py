@@ -405,7 +405,10 @@ class HashModel:
         camera = self.corrections.ray_camera   # hash.pose_opt: the corrected cameras' rays
         if camera is not None:
             origins, dirs = camera.rays(index, origins, dirs)
-            ray_grad = device_empty(dev.queue, (B, 6), np.float32)
+            if camera.gradient_due():
+                ray_grad = device_empty(dev.queue, (B, 6), np.float32)
+            else:                              # hash.pose_opt_every: no camera step now
+                camera = None
         scale = 1.0 / (3.0 * (B if rays_total is None else int(rays_total)))
         jitter = c.perturb if jitter is None else bool(jitter)
         # each rank of a data-parallel run jitters its rays with its own stream

@@ -180,8 +180,11 @@ class NerfModel:
         ray_grad = points = None
         if camera is not None:
             origins, dirs = camera.rays(index, origins, dirs)
-            ray_grad = device_empty(dev.queue, (B, 6), np.float32)
-            points = []
+            if camera.gradient_due():
+                ray_grad = device_empty(dev.queue, (B, 6), np.float32)
+                points = []
+            else:                              # nerf.pose_opt_every: no camera step now
+                camera = None
         t_c = ops.sample_stratified(dev, B, c.n_coarse, self.near, self.far, c.perturb,
                                     _key(self.seed, it, 0))
         sig, rgb = self._eval(self.coarse, origins, dirs, t_c, points)

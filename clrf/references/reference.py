@@ -435,8 +435,10 @@ def finite_difference(density, sh, bbox, origins, dirs, grad_rgb, which, index, 
 GRAD_CLAMP = 1e18
 
 
-def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsprop"):
-    """Float64 twin of update_rows: returns (param, state); rows not touched are unchanged."""
+def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsprop",
+                columns=None):
+    """Float64 twin of update_rows: returns (param, state); rows not touched are unchanged,
+    nor columns j with j % group >= live (``columns`` (group, live); None: all step)."""
     p = np.array(param, np.float64)
     s = np.array(state, np.float64)
     g = np.asarray(grad, np.float64)
@@ -445,6 +447,8 @@ def update_rows(param, grad, state, touched, lr, beta=0.95, eps=1e-8, mode="rmsp
     if p.ndim == 1:
         p, s, g = p[:, None], s[:, None], g[:, None]
     m = t[:, None] & (g != 0)
+    if columns is not None:
+        m &= (np.arange(p.shape[1]) % int(columns[0]) < int(columns[1]))[None, :]
     if mode == "rmsprop":
         s_new = np.where(s == 0, g * g, beta * s + (1 - beta) * g * g)
         s = np.where(m, s_new, s)

@@ -174,8 +174,11 @@ class Optimizer:
     def _kernel(self, name):
         return program(self.device, self.mode).kernel(name)
 
-    def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False, spans=None):
-        """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed).
+    def step(self, touched, lr, clear_touched=False, t: int = 1, clear_grad=False, spans=None,
+             columns=None):
+        """One update. RMSProp / SGD: rows with touched[k] != 0 (their gradient zeroed);
+        ``columns`` (group, live): only the columns j with j % group < live step, the others'
+        gradient is dropped (None: every column).
         Adam: every entry, or only those in ``spans`` ((start, stop) index pairs of the flat
         buffer: entries that can never get a gradient need no update; one launch for them all
         where the device runs the GPU-shaped kernels, a launch a span on CPUs); clear_grad
@@ -199,7 +202,10 @@ class Optimizer:
             return
         n = self.param.shape[0]
         D = 1 if self.param.ndim == 1 else self.param.shape[1]
+        group, live = (D, D) if columns is None else (int(columns[0]), int(columns[1]))
+        if not 1 <= group <= D or D % group or not 0 <= live <= group:
+            raise ValueError(f"optimizer: columns {columns} do not divide a row of {D}")
         launch(self.device, self._kernel("update_rows"), n,
                (np.int32(n), np.int32(D), self.param.data, self.grad.data, self.state.data,
                 touched.data, np.float32(lr), np.float32(self.beta), np.float32(self.eps),
-                np.int32(bool(clear_touched))))
+                np.int32(bool(clear_touched)), np.int32(group), np.int32(live)))

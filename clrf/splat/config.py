@@ -165,6 +165,15 @@ class SplatConfig:
     #                                 bonsai's quarter 0.05-0.07, lego_400 with changed
     #                                 exposures 0.25); 0: the calibration's rows always
     exposure_steady_rate: float = 0.01   # ... the factor of the rates then
+    exposure_calibrate_fit: float = 0.3   # the calibration's last fraction in which each
+    #                                 trained image's transform is set to the least-squares
+    #                                 fit of its render (as exposure_fit=1), not an Adam step:
+    #                                 the transforms then read the images' exposures off the
+    #                                 calibration's scene, however few Adam steps the
+    #                                 calibration gave them (a 19 s calibration of lego_400
+    #                                 with changed exposures: gains spread 0.155 fitted, 0.083
+    #                                 by Adam, so the steady rule took it for steady; bonsai's
+    #                                 quarter 0.053 and 0.069); 0: Adam throughout
     exposure_calibrate_hold: float = 0.1   # budget fraction the calibrated transforms stay
     #                                 as they are while the scene forms under them
     exposure_clip: bool = True      # the transformed render clamped to [0, 1], as the camera
@@ -189,6 +198,15 @@ class SplatConfig:
     #                                 its end, as gsplat's 1,000 of 30,000 steps
     bilateral_grid_tv: float = 10.0   # weight of the grids' total variation, summed over the
     #                                 images and divided by their number (gsplat's)
+    bilateral_grid_sparse: bool = True   # each step moves the trained image's grid alone
+    #                                 (its data and prior gradients, Adam counting its own
+    #                                 steps), not every grid as gsplat does
+    bilateral_grid_calibrate: float = 0.0   # with splat.bilateral_grid: this fraction of
+    #                                 train.max_seconds goes first to an exposure calibration
+    #                                 (as splat.exposure_calibrate, with its downscale, rate
+    #                                 and steady rule), whose per-image transforms start every
+    #                                 cell of each image's grid, held for
+    #                                 exposure_calibrate_hold of the budget; 0: the identity
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation of its frame), for poses from structure
     #                                 from motion that are a little off; test views keep
@@ -330,6 +348,8 @@ class SplatConfig:
             (isinstance(self.exposure_calibrate_downscale, int)
              and self.exposure_calibrate_downscale >= 1, "splat.exposure_calibrate_downscale",
              "must be an integer >= 1"),
+            (0 <= self.exposure_calibrate_fit <= 1, "splat.exposure_calibrate_fit",
+             "must be a fraction of the calibration in [0, 1]"),
             (0 <= self.exposure_calibrate_hold <= 1, "splat.exposure_calibrate_hold",
              "must be a budget fraction in [0, 1]"),
             colour_conflict(self, "splat"),
@@ -341,6 +361,8 @@ class SplatConfig:
             (0 < self.lr_bilateral_grid <= 1, "splat.lr_bilateral_grid",
              "must be in (0, 1] (gsplat: 0.002)"),
             (self.bilateral_grid_tv >= 0, "splat.bilateral_grid_tv", "must be >= 0 (gsplat: 10)"),
+            (0 <= self.bilateral_grid_calibrate <= 0.5, "splat.bilateral_grid_calibrate",
+             "must be a budget fraction in [0, 0.5] (0: no calibration)"),
             (0 < self.lr_pose <= 0.1, "splat.lr_pose", "must be in (0, 0.1] (radians a step)"),
             (0 < self.lr_pose_final <= self.lr_pose, "splat.lr_pose_final",
              "must be in (0, splat.lr_pose]"),
@@ -362,6 +384,7 @@ BEFORE_FIELD = {
     "mcmc_spread": 0.0,       # copies in place
     "exposure_matrix": "full",   # a 3 x 3 matrix and an offset
     "exposure_calibrate": 0.0,   # no calibration (a resumed run never calibrates)
+    "bilateral_grid_sparse": False,   # every grid stepped every step (gsplat's)
 }
 
 # Field values of each splat preset (the rest are SplatConfig's defaults).

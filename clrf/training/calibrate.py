@@ -19,6 +19,9 @@ spread 0.05 to 0.07; lego_400 with gains drawn from [0.6, 1.5], 0.25), which the
 would keep. The run starts from the identity instead, its rates times
 ``splat.exposure_steady_rate``.
 
+The bilateral grid (``splat.bilateral_grid_calibrate``) starts from the same calibration: each
+image's transform in every cell of its grid (clrf/corrections/bilateral.py ``seed``).
+
 >>> rows, info = calibrate_exposure(dev, ds, cfg, out / "calibration", log=print)
 >>> cfg.train.max_seconds -= info["seconds_budget"]   # the run's own share
 """
@@ -38,12 +41,21 @@ MIN_SIDE = 32   # pixels: the calibration's images are no smaller a side (the lo
 #                 window is 11)
 
 
+def calibration_share(section) -> float:
+    """The budget fraction a calibration takes: ``bilateral_grid_calibrate`` where the model
+    section trains a bilateral grid (and no exposure transforms), else
+    ``exposure_calibrate`` (0 for a kind without them)."""
+    if getattr(section, "bilateral_grid", False) and not getattr(section, "exposure", False):
+        return float(getattr(section, "bilateral_grid_calibrate", 0.0))
+    return float(getattr(section, "exposure_calibrate", 0.0))
+
+
 def wants_calibration(cfg) -> bool:
-    """Whether the run's model section asks for a calibration (its ``exposure`` on and
-    ``exposure_calibrate`` > 0; a kind without them never does)."""
-    sect = cfg.section(cfg.train.model)
-    return bool(getattr(sect, "exposure", False)) and \
-        getattr(sect, "exposure_calibrate", 0.0) > 0
+    """Whether the run's model section asks for a calibration: its ``exposure`` or
+    ``bilateral_grid`` on, with a ``calibration_share`` > 0."""
+    s = cfg.section(cfg.train.model)
+    on = getattr(s, "exposure", False) or getattr(s, "bilateral_grid", False)
+    return bool(on) and calibration_share(s) > 0
 
 
 def gain_spread(rows) -> float:
@@ -89,17 +101,25 @@ def downscaled(ds, factor: int):
 
 def calibration_config(cfg):
     """The calibration run's configuration: ``cfg`` with the budget's calibration share, the
-    transforms' rate held at its start, no calibration of its own, no final evaluation and
-    no periodic one after the first."""
+    exposure transforms on (in place of a bilateral grid) at their first rate, held (with
+    ``exposure_calibrate_fit``, its last part sets each trained row to its render's
+    least-squares fit instead), no calibration of its own, no final evaluation and no
+    periodic one after the first."""
     small = copy.deepcopy(cfg)
     name = cfg.train.model   # the model's section
     t, s = small.train, small.section(name)
-    t.max_seconds = float(cfg.train.max_seconds) * s.exposure_calibrate
+    t.max_seconds = float(cfg.train.max_seconds) * calibration_share(s)
     t.final_eval = False
     t.eval_every = t.checkpoint_every = 2.0 * t.max_seconds + 1.0
     rate = calibration_rate(s)
-    small.set_section(name, dataclasses.replace(
-        s, exposure_calibrate=0.0, lr_exposure=rate, lr_exposure_final=rate))
+    s = dataclasses.replace(s, exposure=True, exposure_calibrate=0.0, lr_exposure=rate,
+                            lr_exposure_final=rate)
+    fit = float(getattr(s, "exposure_calibrate_fit", 0.0))
+    if fit > 0:   # the last part: each row set to its render's least-squares fit
+        s = dataclasses.replace(s, exposure_fit=1.0, exposure_fit_after=1.0 - fit)
+    if getattr(s, "bilateral_grid", False):
+        s = dataclasses.replace(s, bilateral_grid=False, bilateral_grid_calibrate=0.0)
+    small.set_section(name, s)
     return small
 
 
