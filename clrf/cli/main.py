@@ -172,7 +172,8 @@ def cmd_train(a):
             if exposure is not None:
                 exposure.slow(sect.exposure_steady_rate)   # and the rates lowered
         else:
-            (exposure or grids).seed(calibrated[0], sect.exposure_calibrate_hold)
+            (grids if exposure is None else exposure).seed(calibrated[0],
+                                                           sect.exposure_calibrate_hold)
         trainer.calibration = calibrated[1]
     if a.log == "tensorboard":
         from ..outputs.tblog import TensorBoardLog

@@ -19,12 +19,15 @@ the end (FINAL).
 
 Two departures, each a setting: ``sparse`` (``splat.bilateral_grid_sparse``) steps the trained
 view's grid alone (its data and prior gradients; Adam's bias correction by that grid's own
-step count), so that a step costs one grid's update, not all of them (gsplat's dense update of
-100 grids took 37 % of a CPU run's steps); ``seed`` starts every cell of each image's grid from
-that image's affine transform found by an exposure calibration
-(``splat.bilateral_grid_calibrate``, clrf/training/calibrate.py) and holds the grids until a
-budget fraction while the scene forms under them: on a CPU budget each grid is trained a few
-dozen times, far too few for gsplat's rate to reach an exposure change from the identity. Test views are rendered without it (the identity), as gsplat scores them;
+step count), so that a step costs one grid's update, not all of them (the splat model holds a
+grid per image of the capture, 400 on lego_400; with gsplat's dense update a CPU run there
+made 37 % fewer steps than with the exposure transforms); ``seed`` starts every cell of each image's grid from that image's
+affine transform found by an exposure calibration (``splat.bilateral_grid_calibrate``,
+clrf/training/calibrate.py) and holds the grids until a budget fraction while the scene forms
+under them: on a CPU budget each grid is trained a few dozen times, far too few for gsplat's
+rate to reach an exposure change from the identity.
+
+Test views are rendered without it (the identity), as gsplat scores them;
 gsplat reports them after a colour correction fitted to each test image as well, as clrf's
 ``psnr_color_corrected`` does (docs/evaluation.md).
 
@@ -146,9 +149,10 @@ class BilateralGrid:
                head + (self.grids.data, np.int32(v), out.data))
         return out
 
-    def backward(self, rgb, T, background, grad_out, v: int):
+    def backward(self, rgb, T, background, grad_out, v: int, grid: bool = True):
         """(dL/drgb [H, W, 3], dL/dG of view v's grid [cells]) from dL/dout: new and the
-        correction's own device arrays (the second is overwritten by the next call)."""
+        correction's own device arrays (the second is overwritten by the next call; not
+        formed with ``grid`` False: held grids take no step)."""
         H, W, head = self._common(rgb, T, background, v)
         if grad_out.shape != rgb.shape or grad_out.dtype != np.float32:
             raise ValueError(f"BilateralGrid: grad_out must be float32 {rgb.shape}, got "
@@ -156,8 +160,9 @@ class BilateralGrid:
         grad_rgb = scratch(self.device, rgb.shape)
         launch(self.device, self._prg.kernel("bilateral_backward_rgb"), H * W,
                head + (grad_out.data, self.grids.data, np.int32(v), grad_rgb.data))
-        launch(self.device, self._prg.kernel("bilateral_backward_grid"),
-               self.shape[0] * self.shape[1], head + (grad_out.data, self._data.data))
+        if grid:
+            launch(self.device, self._prg.kernel("bilateral_backward_grid"),
+                   self.shape[0] * self.shape[1], head + (grad_out.data, self._data.data))
         return grad_rgb, self._data
 
     def gradient(self, v: int):
@@ -203,7 +208,7 @@ class BilateralGrid:
         """``backward_and_step`` (gsplat trains the grids every step from the first); seeded
         grids (``seed``) are held, dL/drgb through them alone, before ``hold_until``."""
         if progress < self.hold_until:
-            return self.backward(rgb, T, background, grad_out, v)[0]
+            return self.backward(rgb, T, background, grad_out, v, grid=False)[0]
         return self.backward_and_step(rgb, T, background, grad_out, v)
 
     def seed(self, rows, hold_until: float = 0.0):
