@@ -2,6 +2,7 @@
 grid; rank 0 writes what the test compares with a single-device run to an .npz.
 
     mpirun -n 2 python tests/mpi_script.py render OUT.npz
+    mpirun -n 2 python tests/mpi_script.py fail raise|exit
 """
 import sys
 
@@ -97,10 +98,24 @@ def upsample(out, new_reso):
         np.savez(out, density=D, sh=S, alloc=A)
 
 
+def fail(how):
+    """Rank 1 fails alone while rank 0 waits for it in a collective: by an uncaught exception
+    (how="raise") or by the CLI's way, an error printed and exit status 2 (how="exit")."""
+    from clrf.runtime.mpi import end_job_if_failed, world
+    comm = world()
+    if comm.Get_rank() == 1:
+        if how == "raise":
+            raise RuntimeError("rank 1 fails alone")
+        print("clrf: error: rank 1 fails alone", file=sys.stderr)
+        end_job_if_failed(2)
+        sys.exit(2)
+    comm.barrier()
+
+
 # pruning threshold of the upsample case: keeps 15 of 478 rows, 133 after dilation; no max
 # weight within 3e-3 of it, so float32 weights decide as the float64 reference does
 UPSAMPLE_WEIGHT_THRESH = 0.2
 
 
 if __name__ == "__main__":
-    {"render": render, "upsample": upsample}[sys.argv[1]](*sys.argv[2:])
+    {"render": render, "upsample": upsample, "fail": fail}[sys.argv[1]](*sys.argv[2:])

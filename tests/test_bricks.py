@@ -255,3 +255,25 @@ def test_pin_threads_tells_pocl_the_ranks_cpus(monkeypatch):
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)))
     mpi.pin_threads()
     assert "POCL_MAX_PTHREAD_COUNT" not in os.environ
+
+
+def test_each_rank_builds_into_a_kernel_cache_of_its_own(monkeypatch, tmp_path):
+    """Ranks building the same program at once must not share PoCL's kernel cache: under a
+    launcher each rank gets a folder named by its rank (stable over runs); a cache the
+    environment names, or a process no launcher started, is left alone."""
+    import os
+    from clrf.runtime import mpi
+    for v in mpi.LAUNCHER_RANK_VARS:
+        monkeypatch.delenv(v, raising=False)
+    monkeypatch.delenv("POCL_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    mpi.own_kernel_cache()
+    assert "POCL_CACHE_DIR" not in os.environ
+    monkeypatch.setenv("PMI_RANK", "3")
+    mpi.own_kernel_cache()
+    assert os.environ["POCL_CACHE_DIR"] == str(tmp_path / "pocl" / "kcache-rank3")
+    monkeypatch.setenv("POCL_CACHE_DIR", "/elsewhere")
+    monkeypatch.setenv("OMPI_COMM_WORLD_RANK", "1")
+    mpi.own_kernel_cache()
+    assert os.environ["POCL_CACHE_DIR"] == "/elsewhere"
+

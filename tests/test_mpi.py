@@ -35,11 +35,30 @@ def mpirun(n, *args, timeout=MPI_TIMEOUT, env=None, check=True):
     cmd = [MPIRUN, "--oversubscribe", "--allow-run-as-root", "-n", str(n), sys.executable, *args]
     e = dict(os.environ, **(env or {}))
     e.setdefault("OMPI_MCA_rmaps_base_oversubscribe", "1")
-    p = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True, timeout=timeout,
-                       env=e)
+    try:
+        p = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True,
+                           timeout=timeout, env=e)
+    except subprocess.TimeoutExpired as t:   # what the ranks printed says why
+        raise AssertionError(f"{' '.join(cmd)} ran past {timeout} s:\n"
+                             f"{_text(t.stdout)}\n{_text(t.stderr)}") from None
     if check and p.returncode != 0:
         raise AssertionError(f"{' '.join(cmd)} exited {p.returncode}:\n{p.stdout}\n{p.stderr}")
     return p
+
+
+def _text(out) -> str:
+    return out.decode(errors="replace") if isinstance(out, bytes) else (out or "")
+
+
+@pytest.mark.parametrize("how", ["raise", "exit"])
+def test_a_rank_failing_alone_ends_the_job(how):
+    """One rank's uncaught exception, or its error exit through the CLI's path, ends every
+    rank with the error shown, instead of leaving the others waiting for ever."""
+    p = mpirun(2, "tests/mpi_script.py", "fail", how, timeout=60, check=False)
+    assert p.returncode != 0
+    assert "rank 1 fails alone" in p.stderr, p.stderr
+    if how == "exit":
+        assert p.returncode == 2, p.stderr
 
 
 @pytest.fixture(scope="module")

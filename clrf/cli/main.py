@@ -498,13 +498,16 @@ def main(argv=None):
         faulthandler.enable()   # a crash inside a driver leaves the Python stack on stderr
     from ..runtime.selfcheck import ClrfBug, InstallError
     try:
-        return a.func(a)
+        status = a.func(a)
     except (*_user_errors(), InstallError) as e:
         print(f"clrf: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        status = EXIT_USAGE
     except ClrfBug as e:
         print(f"clrf: internal error: {e}", file=sys.stderr)
-        return EXIT_BUG
+        status = EXIT_BUG
+    from ..runtime.mpi import end_job_if_failed
+    end_job_if_failed(status)   # under mpirun: one rank's failure ends every rank
+    return status
 
 
 if __name__ == "__main__":
