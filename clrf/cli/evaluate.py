@@ -195,14 +195,14 @@ def _refine_lr(a, model) -> float:
 
 
 def _check_refine(a, model):
-    """--refine-poses applies to the models with ``refine_view_pose`` (splat, hash, grid) at
+    """--refine-poses applies to the models with ``refine_view_pose`` (splat, hash, grid, nerf) at
     their test images' own resolution; one clear error else."""
     from .common import CliError
     if a.refine_poses < 0:
         raise CliError(f"--refine-poses {a.refine_poses}: must be a step count >= 0")
     if not hasattr(model, "refine_view_pose"):
         raise CliError(f"--refine-poses: the {getattr(model, 'kind', '?')} model cannot refine "
-                       f"a camera's pose; --model splat, hash and grid runs can")
+                       f"a camera's pose; --model splat, hash, grid and nerf runs can")
     if a.downscale != 1:
         raise CliError("--refine-poses does not apply with --downscale: the poses are refined "
                        "at the test images' own resolution")
@@ -261,11 +261,11 @@ def add_eval_parser(sub, func):
                    help="mipnerf360: indoor (1/2 resolution) or outdoor (1/4) for a scene whose "
                         "name is not one of the published ones")
     e.add_argument("--refine-poses", type=int, default=0, metavar="N",
-                   help="splat, hash and grid runs: also score each test view after N Adam "
+                   help="splat, hash, grid and nerf runs: also score each test view after N Adam "
                         "steps of a pose correction of its own against its own image, the "
                         "scene held still (BARF's protocol for runs that refined their training "
                         "poses, whose scene may sit a little off the given poses' frame); about "
-                        "N training steps of time a view (hash, grid: a training batch of the "
+                        "N training steps of time a view (hash, grid, nerf: a training batch of the "
                         "view's rays a step); 100 steps are plenty for poses off by a degree")
     e.add_argument("--refine-poses-lr", type=float, default=None, metavar="RAD",
                    help="with --refine-poses: the first step's rate in radians, falling to a "

@@ -28,7 +28,8 @@ def create(device, cfg, ds, background):
     model.attach_corrections(len(views), int(ds.hw[0]) * int(ds.hw[1]),
                              masked=ds.alpha is not None, extent=float((box[1] - box[0]).max()),
                              viewmats=lambda: np.stack([viewmat_of(p) for p in poses]),
-                             pivots=lambda: [pivot_depth(viewmat_of(p), box) for p in poses])
+                             pivots=lambda: [pivot_depth(viewmat_of(p), box) for p in poses],
+                             bbox=box)
     return model
 
 

@@ -42,7 +42,7 @@ from ..runtime.optim import AdamSet, Optimizer
 from ..runtime.pending import Pending
 from .config import NerfConfig
 from ..mlp.mlp import MAX_RENDER_SCRATCH, MLP
-from ..runtime.programs import device_empty, download, upload
+from ..runtime.programs import device_empty, device_zeros, download, scratch, upload
 from ..runtime.rng import step_key as _key
 
 
@@ -81,16 +81,20 @@ class NerfModel:
                           if self.defer_loss and len(self._nets()) > 1 else None)
         self.corrections = Corrections()   # per-view corrections (clrf/corrections)
         self.extent = 1.0   # the scene's extent (pose translations are relative to it)
+        self.bbox = None    # the scene's box [2, 3] (a refined camera turns about its centre)
 
     def attach_corrections(self, n_images: int, pixels: int, masked: bool, extent: float,
-                           viewmats=None, pivots=None):
+                           viewmats=None, pivots=None, bbox=None):
         """The per-view corrections the config turns on (nerf.exposure, nerf.pose_opt), a row
         per training image of ``pixels`` pixels (masked: an RGBA capture); training steps then
         need each ray's index in the concatenated training images (``ray_index``).
         ``extent``: the scene's size (pose translations are relative to it); nerf.pose_opt:
         ``viewmats`` and ``pivots``, functions giving the training cameras' world-to-camera
-        [V, 4, 4] (OpenCV axes) and pivot depths (clrf/corrections/pose.py)."""
+        [V, 4, 4] (OpenCV axes) and pivot depths (clrf/corrections/pose.py). ``bbox``: the
+        scene's box [2, 3], kept for test-time pose refinement (``refine_view_pose``)."""
         self.extent = float(extent)
+        if bbox is not None:
+            self.bbox = np.asarray(bbox, np.float64).reshape(2, 3)
         views = Views(n_images, masked, pixels, scale=self.extent, pivots=pivots,
                       viewmats=viewmats)
         self.corrections = build(self.device, self.config, views, RAYS)
@@ -150,6 +154,51 @@ class NerfModel:
             gv = ops.encode_backward(dev, vdir, dd, c.dir_freqs, c.include_input, c.dir_scale)
             ops.ray_points_backward(dev, dirs, t, gx, gv, ray_grad, accumulate=add_rays)
         return cb, sq
+
+    def ray_loss_grad(self, origins, dirs, target):
+        """Each ray's dL/d(origin, direction) [B, 6] (device float32) of the training loss,
+        L = MSE(fine) + coarse_loss_weight MSE(coarse) over rays and channels, of rays
+        origins/dirs/target [B, 3] (device), sampled as a training step samples them but
+        without jitter, on the model's background and under no per-image correction (each
+        pass's gradient as ``train_step`` forms it with nerf.pose_opt). The model is held
+        still: the parameters, their gradients (the networks' go to a scratch buffer), Adam's
+        state and the step count are as they were (test-time camera refinement:
+        ``refine_view_pose``)."""
+        c, dev = self.config, self.device
+        B = int(origins.shape[0])
+        scale = 1.0 / (3.0 * B)
+        out = device_zeros(dev.queue, (max(B, 1), 6), np.float32)[:B]
+        t_c = ops.sample_stratified(dev, B, c.n_coarse, self.near, self.far, False, 0)
+        passes = [(self.coarse, t_c, scale * c.coarse_loss_weight)]
+        for k, (net, t, s) in enumerate(passes):
+            points = []
+            sig, rgb = self._eval(net, origins, dirs, t, points)
+            want_weights = k == 0 and c.n_fine > 0
+            cb = ops.composite_backward(dev, t, sig, rgb, self.far, target, self.background,
+                                        mse=True, loss_scale=s, want_weights=want_weights)
+            dx, dd = net.backward(cb["sigma"], cb["rgb"], grad=scratch(dev, net.grad.shape),
+                                  want_input=True)
+            xyz, vdir = points
+            gx = ops.encode_backward(dev, xyz, dx, c.pos_freqs, c.include_input, c.pos_scale)
+            gv = ops.encode_backward(dev, vdir, dd, c.dir_freqs, c.include_input, c.dir_scale)
+            ops.ray_points_backward(dev, dirs, t, gx, gv, out, accumulate=k > 0)
+            if want_weights:
+                t_f = ops.sample_importance(dev, t_c, cb["weights"], c.n_fine, self.near,
+                                            self.far, False, 0)
+                passes.append((self.fine, ops.merge_sorted(dev, t_c, t_f), scale))
+        return out
+
+    def refine_view_pose(self, c2w, intrinsics, hw, image, steps: int, lr: float, rays=None):
+        """Test-time pose refinement (``clrf eval --refine-poses``): clrf/corrections/ray_pose.py
+        ``refine_view_pose`` of camera ``c2w`` against ``image``, a training batch of its rays
+        (``rays()``, as evaluation makes them) a step through ``ray_loss_grad``, the camera
+        turned about the depth of the scene box's centre (a checkpoint from before the box
+        was kept: the origin's). Returns (the corrected camera-to-world [4, 4], the
+        correction's summary)."""
+        from ..corrections.ray_pose import refine_view_pose as refine
+        box = self.bbox if self.bbox is not None else np.zeros((2, 3))
+        return refine(self.device, self.ray_loss_grad, c2w, rays, image, steps, lr, box,
+                      self.extent, batch=self.batch_size)
 
     def lr_at(self, it: int) -> float:
         return self.config.lr * 0.1 ** (it / self.config.lr_decay_steps)
@@ -299,7 +348,10 @@ class NerfModel:
             st[f"{name}_adam_m"] = download(a.state)
             st[f"{name}_adam_v"] = download(a.state2)
         if self.corrections:   # checkpoints without them (older ones too) load without them
-            st.update(self.corrections.state_dict(), extent=self.extent)
+            st.update(self.corrections.state_dict())
+        st["extent"] = self.extent
+        if self.bbox is not None:
+            st["bbox"] = self.bbox.copy()
         return st
 
     @classmethod
@@ -322,6 +374,8 @@ class NerfModel:
                 arr.set(np.ascontiguousarray(v))
             net.sync_params()
         model.extent = float(state.get("extent", 1.0))
+        if state.get("bbox") is not None:
+            model.bbox = np.asarray(state["bbox"], np.float64).reshape(2, 3)
         model.corrections = from_state(device, model.config, state, Views(scale=model.extent),
                                        RAYS)
         return model
