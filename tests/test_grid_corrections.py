@@ -309,7 +309,8 @@ def test_corrections_are_refused_with_one_clear_error():
                                        ("lr_pose_final", 0.0), ("pose_reg", -1.0),
                                        ("pose_opt_after", 1.0), ("lr_exposure", 0.0),
                                        ("exposure_reg", -0.1), ("exposure_matrix", "mixed"),
-                                       ("sh_diffuse_until", 1.5), ("pose_opt_every", 0)])
+                                       ("sh_diffuse_until", 1.5), ("pose_opt_every", 0),
+                                       ("pose_opt_rays", -1)])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "grid", "--out", str(tmp_path / "run"),

@@ -55,6 +55,45 @@ def test_rays_and_sums_match_the_twin(device, n):
     assert np.all(np.abs(s - want) <= tol.RAY_POSE_SUM_RTOL * bound)
 
 
+def test_pose_opt_rays_gathers_an_images_batches_into_one_step(device):
+    """pose_opt_rays R: an image steps once its batches hold R rays, on the sum of their
+    sums (the same step as one batch of all of them), and what it gathered is then cleared;
+    an image short of R does not move; the gathered sums go through the checkpoint."""
+    from clrf.corrections.ray_pose import RayPose
+    V, pixels, R = 4, 50, 30
+    vm0 = _viewmats(V, 2)
+    rng = np.random.default_rng(3)
+    # image 0: 20 + 20 rays, image 1: 10 + 10, image 2: 40 in the first batch, image 3: none
+    counts = [(20, 20), (10, 10), (40, 0), (0, 0)]
+    batches = []
+    for k in range(2):
+        index = np.concatenate([v * pixels + rng.integers(0, pixels, c[k])
+                                for v, c in enumerate(counts)]).astype(np.int32)
+        batches.append((index, rng.normal(size=(len(index), 3)),
+                        rng.normal(size=(len(index), 6)) * 1e-2))
+    gather = RayPose(device, vm0, pixels, 1e-3, 0.0, 3.0, hold_frame=False, min_rays=R)
+    once = RayPose(device, vm0, pixels, 1e-3, 0.0, 3.0, hold_frame=False)
+    index, d, g = batches[0]
+    gather.step_rays(_up(device, index, np.int32), _up(device, d), _up(device, g))
+    assert gather.pose.steps.tolist() == [0, 0, 1, 0]      # image 2 had 40 rays at once
+    state = gather.state_dict()
+    assert state["pose_gathered"][0, 12] == 20 and state["pose_gathered"][2, 12] == 0
+    back = RayPose(device, None, 0, 1e-3, 0.0, 3.0, hold_frame=False, min_rays=R,
+                   state=state)
+    np.testing.assert_array_equal(back.gathered, gather.gathered)
+    index, d, g = batches[1]
+    gather.step_rays(_up(device, index, np.int32), _up(device, d), _up(device, g))
+    assert gather.pose.steps.tolist() == [1, 0, 1, 0]      # image 0: 40 rays; image 1: 20
+    assert gather.gathered[0].sum() == 0 and gather.gathered[1, 12] == 20
+    assert not gather.pose.params[1].any() and not gather.pose.params[3].any()
+    both = [np.concatenate([batches[0][i][batches[0][0] // pixels == 0],
+                            batches[1][i][batches[1][0] // pixels == 0]]) for i in range(3)]
+    once.step_rays(_up(device, both[0], np.int32), _up(device, both[1]), _up(device, both[2]))
+    np.testing.assert_allclose(gather.pose.params[0], once.pose.params[0], rtol=1e-5,
+                               atol=1e-9)
+    assert np.abs(gather.pose.params[0]).max() > 1e-4
+
+
 def test_camera_gradient_vs_central_differences():
     """L of the rays a camera [R t] makes (o = -R^T t, d = R^T d_cam, a smooth nonlinear loss):
     dL/dR, dL/dt from the per-ray gradients' sums (host and twin) against central differences

@@ -132,7 +132,8 @@ class RayPose:
 
     def __init__(self, device, viewmats0, pixels: int, lr: float, reg: float, scale: float,
                  pivots=None, lr_final: float | None = None, state: dict | None = None,
-                 hold_frame: bool = True, start: float = 0.0, every: int = 1):
+                 hold_frame: bool = True, start: float = 0.0, every: int = 1,
+                 min_rays: int = 0):
         if state is not None:
             viewmats0 = state["pose_viewmats"]
             pixels = int(state["pose_pixels"])
@@ -148,6 +149,14 @@ class RayPose:
         self.steps = 0
         self.every = int(every)    # training steps a camera step (pose_opt_every)
         self.calls = 0             # training steps seen (gradient_due)
+        # rays an image gathers before its step (pose_opt_rays; 0: a step every batch it is
+        # in): its sums add up over the batches, at a pose that holds still meanwhile
+        self.min_rays = int(min_rays)
+        n = len(self.viewmats0)
+        self.gathered = np.zeros((n, SUMS))
+        if state is not None and state.get("pose_gathered") is not None:
+            self.gathered = np.asarray(state["pose_gathered"], np.float64).reshape(
+                n, SUMS).copy()
         self.n_images = self.pose.n_images
         self.rows = upload(device.queue, ray_rows(self.viewmats0, self.viewmats()))
 
@@ -174,14 +183,22 @@ class RayPose:
 
     def step_rays(self, index, dirs, ray_grad) -> None:
         """One Adam step of each image with rays in the batch (PoseCorrection.step), from the
-        rays' corrected directions and dL/d(o, d); the rows are then remade."""
+        rays' corrected directions and dL/d(o, d); the rows are then remade. With
+        ``min_rays``, an image's sums are gathered over batches and it steps once they hold
+        that many rays: a gradient of that many rays, not of the one or two that a batch of
+        a capture with hundreds of images gives it."""
         sums = download(ray_sums(self.device, index, self.pixels, dirs, ray_grad,
                                  self.n_images))
-        touched = np.flatnonzero(sums[:, SUMS - 1] > 0)
+        if self.min_rays > 0:
+            self.gathered += sums
+            sums = self.gathered
+        touched = np.flatnonzero(sums[:, SUMS - 1] >= max(self.min_rays, 1))
         if len(touched):   # every touched image's step at once (hundreds a batch)
             vm = self.pose.viewmats(self.viewmats0[touched], touched)
             dR, dt = camera_gradients(vm, sums[touched])
             self.pose.step_many(touched, vm, dR, dt)
+            if self.min_rays > 0:
+                self.gathered[touched] = 0.0
         self.steps += 1
         held = self.pose.hold_frame and self.steps % FRAME_EVERY == 0
         if held:
@@ -198,7 +215,7 @@ class RayPose:
 
     def state_dict(self) -> dict:
         return {**self.pose.state_dict(), "pose_viewmats": self.viewmats0.copy(),
-                "pose_pixels": self.pixels}
+                "pose_pixels": self.pixels, "pose_gathered": self.gathered.copy()}
 
     def summary(self, trained=None) -> dict:
         return self.pose.summary(trained)

@@ -56,7 +56,7 @@ def colour_conflict(section, prefix: str):
 def ray_correction_checks(section, prefix: str) -> list:
     """(ok, key, message) of the exposure and pose settings of a model whose batches mix rays
     (``<prefix>.lr_exposure``, ``lr_exposure_final``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
-    ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``, ``pose_opt_every``): the hash grid's, the grid's and
+    ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``, ``pose_opt_every``, ``pose_opt_rays``): the hash grid's, the grid's and
     NeRF's configuration checks share them."""
     s, p = section, prefix
     return [
@@ -73,6 +73,9 @@ def ray_correction_checks(section, prefix: str) -> list:
         (0 <= s.pose_opt_after < 1, f"{p}.pose_opt_after", "must be in [0, 1)"),
         (isinstance(s.pose_opt_every, int) and 1 <= s.pose_opt_every <= 1000,
          f"{p}.pose_opt_every", "must be a whole number of steps in 1..1000"),
+        (isinstance(s.pose_opt_rays, int) and 0 <= s.pose_opt_rays <= 1 << 20,
+         f"{p}.pose_opt_rays", "must be a whole number of rays in 0..1048576 (0: a step "
+         "every batch)"),
     ]
 
 
@@ -134,15 +137,17 @@ def _pose(device, s, views: Views, batches: str, state=None):
     if batches == RAYS:
         from .ray_pose import RayPose
         every = getattr(s, "pose_opt_every", 1)
+        rays = getattr(s, "pose_opt_rays", 0)
         if state is not None:
             return RayPose(device, None, 0, s.lr_pose, s.pose_reg, views.scale, state=state,
                            lr_final=s.lr_pose_final, hold_frame=hold, start=start,
-                           every=every)
+                           every=every, min_rays=rays)
         if views.viewmats is None:
             raise ValueError("a pose correction of ray batches needs the training cameras")
         return RayPose(device, views.viewmats(), views.pixels, s.lr_pose, s.pose_reg,
                        views.scale, pivots=views.pivots() if views.pivots else None,
-                       lr_final=s.lr_pose_final, hold_frame=hold, start=start, every=every)
+                       lr_final=s.lr_pose_final, hold_frame=hold, start=start, every=every,
+                       min_rays=rays)
     if state is not None:
         return PoseCorrection(len(state["pose"]), s.lr_pose, s.pose_reg, views.scale,
                               state=state, lr_final=s.lr_pose_final, hold_frame=hold,

@@ -81,6 +81,9 @@ class GridConfig:
     #                               forms first; 0: from the start)
     pose_opt_every: int = 1       # training steps a camera step: the camera gradient's pass
     #                               runs on one step in this many (as hash.pose_opt_every)
+    pose_opt_rays: int = 0        # rays an image gathers before its camera steps (its
+    #                               gradient summed over the batches meanwhile); 0: a step
+    #                               every batch the image has rays in
     pose_hold_frame: bool = True  # take the corrections' common rigid motion out every 100
     #                               steps, so the scene stays in the given poses' frame
 

@@ -112,6 +112,9 @@ class HashConfig:
     pose_opt_every: int = 1         # training steps a camera step: the camera gradient's pass
     #                                 runs on one step in this many (its cost and the number of
     #                                 its noisy steps that much less)
+    pose_opt_rays: int = 0          # rays an image gathers before its camera steps (its
+    #                                 gradient summed over the batches meanwhile); 0: a step
+    #                                 every batch the image has rays in
     pose_hold_frame: bool = True    # take the corrections' common similarity out every 100
     #                                 steps, so the scene stays in the given poses' frame
     #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)

@@ -65,6 +65,9 @@ class NerfConfig:
     pose_reg: float = 1e-4          # pull toward the given pose, reg (|w|^2 + |tau / extent|^2)
     pose_opt_after: float = 0.0     # budget fraction before the corrections take steps
     pose_opt_every: int = 1         # training steps a camera step (as hash.pose_opt_every)
+    pose_opt_rays: int = 0          # rays an image gathers before its camera steps (its
+    #                                 gradient summed over the batches meanwhile); 0: a step
+    #                                 every batch the image has rays in
     pose_hold_frame: bool = True    # take the corrections' common rigid motion out every 100
     #                                 steps (as hash.pose_hold_frame)
 
