@@ -137,6 +137,29 @@ def test_config_precedence(tmp_path):
         build_config(overrides={"grid": {"batch_size": "many"}})
 
 
+def test_the_first_ctrl_c_is_a_flag_read_after_the_step():
+    """In the training loop a first SIGINT only sets the trainer's flag (so that it cannot be
+    raised, and lost, inside a finalizer: a CI run trained on past one that way); a second
+    raises KeyboardInterrupt; a process that ignores SIGINT keeps ignoring it."""
+    from types import SimpleNamespace
+    from clrf.training.trainer import _hold_sigint
+    old = signal.getsignal(signal.SIGINT)
+    t = SimpleNamespace(_sigint=False)
+    try:
+        assert _hold_sigint(t)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert t._sigint
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        assert not _hold_sigint(SimpleNamespace(_sigint=False))
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 @pytest.mark.slow
 def test_ctrl_c_keeps_a_loadable_checkpoint(tmp_path):
     out = tmp_path / "r"

@@ -63,6 +63,26 @@ CSV_FIELDS = ["iteration", "seconds", "train_loss", "train_psnr", "eval_psnr", "
               "eval_views", "rays_per_s", "model"]
 
 
+def _hold_sigint(trainer) -> bool:
+    """Ctrl-C in the training loop sets ``trainer._sigint``, read after each step, instead of
+    raising KeyboardInterrupt wherever the interpreter happens to be: raised inside a
+    finalizer (pyopencl frees buffers from weakref callbacks) it is printed and dropped, and
+    the run trained on past the signal (a CI run). A second Ctrl-C raises at once. Returns
+    whether the handler was installed (only the main thread can; a process that ignores
+    SIGINT keeps ignoring it)."""
+    def on_sigint(signum, frame):
+        if trainer._sigint:
+            raise KeyboardInterrupt
+        trainer._sigint = True
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        return False        # started ignoring it (a shell's background job): left so
+    try:
+        signal.signal(signal.SIGINT, on_sigint)
+    except ValueError:      # not the main thread: Python's own handler stays
+        return False
+    return True
+
+
 class RayStore:
     """All training rays and colours on the device; random batches drawn on the device.
 
@@ -441,6 +461,8 @@ class Trainer:
             memory.reset_peaks()   # the run's own peak (what an earlier run freed left out)
         interrupted = False
         old = signal.getsignal(signal.SIGINT)
+        self._sigint = False
+        held = _hold_sigint(self)
         try:
             while True:
                 self._maybe_eval(loop)
@@ -448,11 +470,14 @@ class Trainer:
                     break
                 self._maybe_checkpoint(loop)
                 self._step(loop)
+                if self._interrupt_seen():
+                    raise KeyboardInterrupt
         except KeyboardInterrupt:
             interrupted = True
             loop.prog.message(f"interrupted at iteration {self.iteration}: saving a checkpoint")
         finally:
-            signal.signal(signal.SIGINT, old)
+            if held:
+                signal.signal(signal.SIGINT, old)
             loop.prog.close()
         self._take_losses(loop)
         if memory is not None:   # training's peak, before the final evaluation renders
@@ -460,6 +485,15 @@ class Trainer:
             loop.prog.message(memory.describe())
         self.save()
         return self._finish(loop, interrupted)
+
+    def _interrupt_seen(self) -> bool:
+        """Whether Ctrl-C came during the last step (``_hold_sigint``); under MPI, whether it
+        came to any rank, so that every rank stops after the same step."""
+        seen = self._sigint
+        if self.comm is not None:
+            from mpi4py import MPI
+            seen = bool(self.comm.allreduce(int(seen), op=MPI.MAX))
+        return seen
 
     def _setup(self) -> "_Loop":
         """The loop's state: progress output, the first evaluation and checkpoint times."""
