@@ -357,3 +357,76 @@ def test_the_rate_falls_log_linearly_to_its_final_one(device):
     for final in (0.0, 1e-5):    # 0: a constant rate; a lower lr_exposure alone is fine too
         assert all(ok for ok, _, _ in HashConfig(lr_exposure=1e-4,
                                                  lr_exposure_final=final).checks())
+
+
+def _spread_rows(rng, n, sigma):
+    """Rows P [n, 12] whose diagonal gains are exp(N(0, sigma)), the rest the identity's."""
+    P = np.tile(ref.IDENTITY, (n, 1))
+    P[:, [0, 4, 8]] = np.exp(rng.normal(0, sigma, (n, 3)))
+    return P.astype(np.float32)
+
+
+def test_a_steady_capture_goes_back_to_the_identity(device):
+    """<model>.exposure_steady_spread: at exposure_steady_after of the budget, rows whose
+    gains spread less than the limit return to the identity with their Adam moments cleared
+    and their rates scaled by exposure_steady_rate, once; the finding is in the checkpoint
+    (a resumed run keeps its scaled rates and checks no more) and in eval.json's summary."""
+    from clrf.corrections.exposure import gain_spread
+    rng = np.random.default_rng(3)
+    P = _spread_rows(rng, 40, 0.02)
+    exp = RayExposure(device, 40, 10, lr=1e-3, reg=0.0, lr_final=1e-4, steady_spread=0.05,
+                      steady_rate=0.01, steady_after=0.2)
+    exp.P.set(P)
+    exp.opt.state.fill(0.5)
+    exp.steps = 7
+    exp.schedule(0.1)                                  # before the check: nothing changes
+    assert exp.steady is None and exp.summary() == {}
+    np.testing.assert_array_equal(exp.rows(), P)
+    assert exp.lr == pytest.approx(1e-3 * (1e-4 / 1e-3) ** 0.1, rel=1e-9)
+    exp.schedule(0.25)
+    assert exp.steady is True
+    assert exp.spread_seen == pytest.approx(gain_spread(P), rel=1e-6)
+    np.testing.assert_array_equal(exp.rows(), np.tile(ref.IDENTITY, (40, 1)))
+    assert not download(exp.opt.state).any() and not download(exp.opt.state2).any()
+    assert exp.lr == pytest.approx(1e-5 * (1e-6 / 1e-5) ** 0.25, rel=1e-9)
+    exp.schedule(0.5)                                  # once: the rates are scaled no more
+    assert exp.lr == pytest.approx(1e-5 * (1e-6 / 1e-5) ** 0.5, rel=1e-9)
+    summary = exp.summary()
+    assert summary["steady"] is True and "identity" in exp.report(summary)
+    assert "steady" in exp.describe()
+    again = RayExposure(device, 40, 10, lr=1e-3, reg=0.0, lr_final=1e-4, steady_spread=0.05,
+                        state=exp.state_dict())
+    assert again.steady is True and again.lr_start == pytest.approx(1e-5, rel=1e-9)
+    again.schedule(0.5)
+    assert again.lr == pytest.approx(exp.lr, rel=1e-9)
+    # a checkpoint from before the check: unchecked, so its run checks on resuming
+    old = {k: v for k, v in exp.state_dict().items() if "steady" not in k and "seen" not in k}
+    assert RayExposure(device, 40, 10, lr=1e-3, reg=0.0, state=old).steady is None
+
+
+@pytest.mark.parametrize("sigma, limit", [(0.2, 0.05), (0.02, 0.0)],
+                         ids=["changing-exposure", "check-off"])
+def test_rows_of_a_changing_exposure_are_kept(device, sigma, limit):
+    """Gains that spread more than the limit (lego_400 with changed exposures: 0.17), or a
+    limit of 0, leave the rows and rates as they are."""
+    rng = np.random.default_rng(4)
+    P = _spread_rows(rng, 40, sigma)
+    exp = RayExposure(device, 40, 10, lr=1e-3, reg=0.0, steady_spread=limit)
+    exp.P.set(P)
+    exp.steps = 7
+    exp.schedule(0.9)
+    np.testing.assert_array_equal(exp.rows(), P)
+    assert exp.lr == 1e-3
+    assert exp.steady is (None if limit == 0 else False)
+
+
+@pytest.mark.parametrize("kind", ["hash", "grid", "nerf"])
+def test_bad_steady_settings_are_refused(kind):
+    from clrf.grid.config import GridConfig
+    from clrf.hash.config import HashConfig
+    from clrf.nerf.config import NerfConfig
+    make = {"hash": HashConfig, "grid": GridConfig, "nerf": NerfConfig}[kind]
+    for key, value in (("exposure_steady_spread", -0.1), ("exposure_steady_rate", 0.0),
+                       ("exposure_steady_rate", 2.0), ("exposure_steady_after", 1.0)):
+        bad = [k for ok, k, _ in make(**{key: value}).checks() if not ok]
+        assert bad == [f"{kind}.{key}"], (key, value, bad)

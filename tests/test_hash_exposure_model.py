@@ -111,6 +111,9 @@ def test_a_hash_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
                 "--set", "hash.exposure=true", "--set", "train.eval_every=100"]) == 0
     ev = json.loads((out / "eval.json").read_text())
     assert np.isfinite(ev["psnr_half_fitted"]) and np.isfinite(ev["psnr_right_half"])
+    # the built-in scene has one exposure: the steady check (at 0.2 of the budget) found so
+    found = ev["exposure_correction"]
+    assert found["steady"] is True and 0 <= found["gain_spread"] < 0.05, found
     # resumed: the transforms and their Adam state carry on
     assert cli(["--quiet", "train", "--out", str(out), "--resume", "--max-seconds", "4"]) == 0
     assert cli(["--quiet", "eval", "--ckpt", str(out), "--max-views", "2", "--lpips", "none",
@@ -119,7 +122,9 @@ def test_a_hash_run_with_exposure_reports_the_half_fitted_protocol(tmp_path):
 
 
 @pytest.mark.parametrize("key,value", [("lr_exposure", 0.0), ("lr_exposure", -1.0),
-                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed")])
+                                       ("exposure_reg", -0.1), ("exposure_matrix", "mixed"),
+                                       ("exposure_steady_spread", -1.0),
+                                       ("exposure_steady_rate", 0.0)])
 def test_bad_settings_are_one_clear_error(key, value, capsys, tmp_path):
     from clrf.cli.main import main as cli
     rc = cli(["--quiet", "train", "--model", "hash", "--out", str(tmp_path / "run"),

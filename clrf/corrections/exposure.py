@@ -69,6 +69,20 @@ LOCAL = 64               # cl/splat_exposure.cl EXPOSURE_LS (exposure_rays_grad'
 RECENTRE_EVERY = 100     # RayExposure: steps between recentrings
 
 
+def gain_spread(rows) -> float:
+    """The spread of the gains of rows P [V, 12] (A row-major, then b): the standard deviation
+    over the rows of log A_cc, the largest of the three channels; rows with a non-finite or
+    non-positive gain are left out (0.0 with fewer than two rows left). How a steady capture
+    (one exposure throughout) is told from one whose exposure changes: the splat model's
+    calibration (clrf/training/calibrate.py) and ``RayExposure``'s check."""
+    P = np.asarray(rows, np.float64).reshape(-1, ROW)
+    d = P[:, [0, 4, 8]]
+    ok = np.all(np.isfinite(d) & (d > 0), axis=1)
+    if ok.sum() < 2:
+        return 0.0
+    return float(np.log(d[ok]).std(axis=0).max())
+
+
 def program(device):
     """cl/splat_exposure.cl on ``device`` (its one build; clrf/training/catalog.py lists it)."""
     return device.program("splat_exposure.cl")
@@ -296,12 +310,19 @@ class RayExposure(_Rows):
     def __init__(self, device, n_images: int, pixels: int, lr: float, reg: float,
                  beta=ADAM_BETAS, eps: float = ADAM_EPS, state: dict | None = None,
                  masked: bool = False, matrix: str = "full", clip: bool = False,
-                 lr_final: float | None = None):
+                 lr_final: float | None = None, steady_spread: float = 0.0,
+                 steady_rate: float = 0.01, steady_after: float = 0.2):
         if n_images < 1 or pixels < 1:
             raise ValueError(f"RayExposure needs images and pixels, got {n_images}, {pixels}")
         super().__init__(device, n_images, lr, reg, masked, matrix, lr_final)
         self.pixels = int(pixels)
         self.clip = bool(clip)   # the loss sees out clamped to [0, 1] (<model>.exposure_clip)
+        # the steady check (``schedule``): at the budget fraction steady_after, rows whose gains
+        # spread less than steady_spread (0: never) go back to the identity and the rates are
+        # scaled by steady_rate; self.steady None until then, after it whether it found so
+        self.steady_spread, self.steady_rate = float(steady_spread), float(steady_rate)
+        self.steady_after = float(steady_after)
+        self.steady, self.spread_seen = None, None
         q = device.queue
         rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
         m = v = np.zeros_like(rows)
@@ -311,6 +332,9 @@ class RayExposure(_Rows):
             m = np.asarray(state["exposure_m"], np.float32).reshape(self.n_images, ROW)
             v = np.asarray(state["exposure_v"], np.float32).reshape(self.n_images, ROW)
             self.steps = int(np.asarray(state["exposure_steps"]).reshape(-1)[0])
+            if "exposure_steady" in state:   # a checkpoint from before the check: unchecked
+                seen = float(np.asarray(state["exposure_spread_seen"]).reshape(-1)[0])
+                self._checked(bool(np.asarray(state["exposure_steady"]).reshape(-1)[0]), seen)
         self.P = upload(q, np.ascontiguousarray(rows))
         self.grad = cla.zeros_like(self.P)
         self.opt = Optimizer(device, self.P, "adam", beta=beta[0], beta2=beta[1], eps=eps,
@@ -390,6 +414,49 @@ class RayExposure(_Rows):
         if self.steps % RECENTRE_EVERY == 0:
             self.recentre()
 
+    def schedule(self, progress: float) -> None:
+        """The rate at the budget fraction ``progress`` (``_Rows.schedule``), after the steady
+        check: the first call at or past ``steady_after`` measures the rows' ``gain_spread``;
+        below ``steady_spread`` the capture is taken as one of a single exposure, what the rows
+        learned as their own noise (the scene would keep it, and the test views, rendered
+        under the identity, would not match it), so they go back to the identity, their Adam
+        moments to 0, and the rates are scaled by ``steady_rate`` (as the splat model's
+        calibration does: clrf/training/calibrate.py)."""
+        if (self.steady is None and self.steady_spread > 0 and progress >= self.steady_after
+                and self.steps > 0):
+            spread = gain_spread(self.rows())
+            if spread < self.steady_spread:
+                rows = np.tile(IDENTITY.astype(np.float32), (self.n_images, 1))
+                self.P.set(np.ascontiguousarray(rows))
+                self.opt.state.fill(0.0)
+                self.opt.state2.fill(0.0)
+            self._checked(spread < self.steady_spread, spread)
+        super().schedule(progress)
+
+    def _checked(self, steady: bool, spread: float) -> None:
+        """Records the steady check's finding; a steady capture's rates scaled by steady_rate."""
+        self.steady, self.spread_seen = bool(steady), float(spread)
+        if self.steady:
+            self.lr_start *= self.steady_rate
+            self.lr = self.lr_start
+            if self.lr_final is not None:
+                self.lr_final *= self.steady_rate
+
+    def summary(self) -> dict:
+        """The steady check's finding (eval.json ``exposure_correction``), once it was made."""
+        if self.steady is None:
+            return {}
+        return {"images": self.n_images, "steady": self.steady,
+                "gain_spread": round(self.spread_seen, 5)}
+
+    def report(self, summary: dict) -> str:
+        if "steady" not in summary:
+            return ""
+        if summary["steady"]:
+            return (f"exposure: the transforms' gains spread by {summary['gain_spread']:.3f} "
+                    "(steady: one exposure), so they went back to the identity")
+        return f"exposure: the transforms' gains spread by {summary['gain_spread']:.3f}"
+
     def recentre(self):
         """Takes the rows' geometric mean transform out of them (module doc);
         ``backward_and_step`` calls it every RECENTRE_EVERY steps."""
@@ -403,10 +470,15 @@ class RayExposure(_Rows):
         return {"exposure": self.rows(), "exposure_m": download(self.opt.state),
                 "exposure_v": download(self.opt.state2),
                 "exposure_steps": np.array([self.steps], np.int64),
-                "exposure_pixels": self.pixels, "exposure_masked": self.masked}
+                "exposure_pixels": self.pixels, "exposure_masked": self.masked,
+                **({} if self.steady is None else {
+                    "exposure_steady": self.steady, "exposure_spread_seen": self.spread_seen})}
 
     def describe(self) -> str:
-        """'exposure |P - I| 0.031 over 100 images' for progress lines."""
+        """'exposure |P - I| 0.031 over 100 images' for progress lines (', steady: from the
+        identity' once the steady check found a single exposure)."""
         if not self.steps:
             return "exposure: no step yet"
-        return self._deviation(self.rows())
+        return self._deviation(self.rows()) + (
+            f" (steady, gains spread {self.spread_seen:.3f}: from the identity at "
+            f"{self.steady_rate:g} of the rate)" if self.steady else "")

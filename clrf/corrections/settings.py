@@ -55,7 +55,8 @@ def colour_conflict(section, prefix: str):
 
 def ray_correction_checks(section, prefix: str) -> list:
     """(ok, key, message) of the exposure and pose settings of a model whose batches mix rays
-    (``<prefix>.lr_exposure``, ``lr_exposure_final``, ``exposure_reg``, ``exposure_matrix``, ``lr_pose``,
+    (``<prefix>.lr_exposure``, ``lr_exposure_final``, ``exposure_reg``, ``exposure_matrix``,
+    ``exposure_steady_spread``, ``exposure_steady_rate``, ``exposure_steady_after``, ``lr_pose``,
     ``lr_pose_final``, ``pose_reg``, ``pose_opt_after``, ``pose_opt_every``, ``pose_opt_rays``): the hash grid's, the grid's and
     NeRF's configuration checks share them."""
     s, p = section, prefix
@@ -67,6 +68,9 @@ def ray_correction_checks(section, prefix: str) -> list:
         (s.exposure_reg >= 0, f"{p}.exposure_reg", "must be >= 0"),
         (s.exposure_matrix in EXPOSURE_MATRICES, f"{p}.exposure_matrix",
          f"must be one of {', '.join(EXPOSURE_MATRICES)}"),
+        (s.exposure_steady_spread >= 0, f"{p}.exposure_steady_spread", "must be >= 0 (0: never)"),
+        (0 < s.exposure_steady_rate <= 1, f"{p}.exposure_steady_rate", "must be in (0, 1]"),
+        (0 <= s.exposure_steady_after < 1, f"{p}.exposure_steady_after", "must be in [0, 1)"),
         (0 < s.lr_pose <= 0.1, f"{p}.lr_pose", "must be in (0, 0.1] (radians a step)"),
         (0 < s.lr_pose_final <= s.lr_pose, f"{p}.lr_pose_final", f"must be in (0, {p}.lr_pose]"),
         (s.pose_reg >= 0, f"{p}.pose_reg", "must be >= 0"),
@@ -127,7 +131,10 @@ def _exposure(device, s, views: Views, batches: str, state=None):
         masked = bool(state["exposure_masked"])
     return RayExposure(device, n, pixels, s.lr_exposure, s.exposure_reg, betas, state=state,
                        masked=masked, matrix=s.exposure_matrix, clip=clip_mode(s) > 0,
-                       lr_final=getattr(s, "lr_exposure_final", 0.0) or None)
+                       lr_final=getattr(s, "lr_exposure_final", 0.0) or None,
+                       steady_spread=getattr(s, "exposure_steady_spread", 0.0),
+                       steady_rate=getattr(s, "exposure_steady_rate", 0.01),
+                       steady_after=getattr(s, "exposure_steady_after", 0.2))
 
 
 def _pose(device, s, views: Views, batches: str, state=None):

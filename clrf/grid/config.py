@@ -67,6 +67,12 @@ class GridConfig:
     exposure_clip: bool = False   # the transformed colour clamped to [0, 1] in the loss, as the
     #                               camera clipped it; clipped channels pass no gradient (as
     #                               splat.exposure_clip)
+    exposure_steady_spread: float = 0.05   # as hash.exposure_steady_spread: transforms whose
+    #                               gains spread less than this at exposure_steady_after of the
+    #                               budget go back to the identity, their rates times
+    #                               exposure_steady_rate (0: never)
+    exposure_steady_rate: float = 0.01   # ... the factor of the rates then
+    exposure_steady_after: float = 0.2   # ... the budget fraction of that check
     pose_opt: bool = False        # refine each training camera's pose (a rotation and a
     #                               translation about a pivot), the rays of each batch remade from
     #                               the corrected cameras and trained by the renderer's gradient

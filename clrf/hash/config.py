@@ -94,6 +94,15 @@ class HashConfig:
     exposure_clip: bool = False     # the transformed colour clamped to [0, 1] in the loss, as
     #                                 the camera clipped it; clipped channels pass no gradient (as
     #                                 splat.exposure_clip)
+    exposure_steady_spread: float = 0.05   # at exposure_steady_after of the budget, transforms
+    #                                 whose gains spread less than this (the standard deviation
+    #                                 of their logarithms over the images, the largest channel)
+    #                                 found a capture of one exposure: they go back to the
+    #                                 identity and their rates are scaled by exposure_steady_rate
+    #                                 (bonsai's quarter, hash grid: 0.023; lego_400 with changed
+    #                                 exposures, grid: 0.17); 0: never
+    exposure_steady_rate: float = 0.01   # ... the factor of the rates then
+    exposure_steady_after: float = 0.2   # ... the budget fraction of that check
     pose_opt: bool = False          # refine each training camera's pose (a rotation and a
     #                                 translation about a pivot, as splat.pose_opt), the rays
     #                                 of each batch remade from the corrected cameras; test

@@ -54,6 +54,9 @@ class NerfConfig:
     #                                 (|A - I|^2 + |b|^2) weighted by the image's share of the batch
     exposure_matrix: str = "full"   # "full" | "diagonal" | "gain" (as hash.exposure_matrix)
     exposure_clip: bool = False     # as hash.exposure_clip
+    exposure_steady_spread: float = 0.05   # as hash.exposure_steady_spread (0: never)
+    exposure_steady_rate: float = 0.01   # as hash.exposure_steady_rate
+    exposure_steady_after: float = 0.2   # as hash.exposure_steady_after
     pose_opt: bool = False          # refine each training camera's pose (as hash.pose_opt): the
     #                                 rays of each batch remade from the corrected cameras,
     #                                 trained by both passes' dL/d(origin, direction); test

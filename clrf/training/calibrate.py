@@ -33,6 +33,7 @@ import dataclasses
 import numpy as np
 
 from .. import corrections
+from ..corrections.exposure import gain_spread   # noqa: F401 (calibrate.gain_spread)
 from ..data.io import downscale_image
 from ..outputs import checkpoint
 
@@ -56,18 +57,6 @@ def wants_calibration(cfg) -> bool:
     s = cfg.section(cfg.train.model)
     on = getattr(s, "exposure", False) or getattr(s, "bilateral_grid", False)
     return bool(on) and calibration_share(s) > 0
-
-
-def gain_spread(rows) -> float:
-    """The spread of the gains of rows P [V, 12] (A row-major, then b): the standard deviation
-    over the rows of log A_cc, the largest of the three channels; rows with a non-finite or
-    non-positive gain are left out (0.0 with fewer than two rows left)."""
-    P = np.asarray(rows, np.float64).reshape(-1, 12)
-    d = P[:, [0, 4, 8]]
-    ok = np.all(np.isfinite(d) & (d > 0), axis=1)
-    if ok.sum() < 2:
-        return 0.0
-    return float(np.log(d[ok]).std(axis=0).max())
 
 
 def steady(info: dict, section) -> bool:
