@@ -142,7 +142,8 @@ def _pose_model(device, bounded=False, **cfg):
     from test_hash_model import SMALL
     from clrf.hash.model import HashModel
     c = dataclasses.replace(SMALL, **{"pose_opt": True, "train_t_stop": 0.0,
-                                      "render_oversample": 1, **cfg})
+                                      "render_oversample": 1, "pose_opt_every": 1,
+                                      "pose_opt_rays": 0, **cfg})   # a camera step a step
     model = HashModel(device, c, 1.5, 4.5, [[-8.0] * 3, [8.0] * 3], (0.2, 0.5, 1.0),
                       bounded=bounded)
     t = np.random.default_rng(3).uniform(-1, 1, model.enc.shape).astype(np.float32)
