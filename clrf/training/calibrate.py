@@ -33,7 +33,6 @@ import dataclasses
 import numpy as np
 
 from .. import corrections
-from ..corrections.exposure import gain_spread   # noqa: F401 (calibrate.gain_spread)
 from ..data.io import downscale_image
 from ..outputs import checkpoint
 
@@ -57,6 +56,14 @@ def wants_calibration(cfg) -> bool:
     s = cfg.section(cfg.train.model)
     on = getattr(s, "exposure", False) or getattr(s, "bilateral_grid", False)
     return bool(on) and calibration_share(s) > 0
+
+
+def gain_spread(rows) -> float:
+    """clrf/corrections/exposure.py ``gain_spread``, imported when called: nothing the command
+    line imports before the device's self-check may import the float64 references, which
+    that module does (a broken install is then the self-check's installation error)."""
+    from ..corrections.exposure import gain_spread as spread
+    return spread(rows)
 
 
 def steady(info: dict, section) -> bool:
