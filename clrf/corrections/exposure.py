@@ -111,6 +111,16 @@ class _Rows:
         if self.lr_final is not None:
             self.lr = expon_lr(progress, self.lr_start, self.lr_final, 1.0)
 
+    def slow(self, factor: float) -> None:
+        """The rates (first and final) times ``factor`` (a steady capture: the splat
+        model's calibration, clrf/training/calibrate.py, and ``RayExposure``'s check)."""
+        if not factor > 0:
+            raise ValueError(f"{type(self).__name__}.slow: factor > 0, got {factor}")
+        self.lr_start *= float(factor)
+        self.lr = self.lr_start
+        if self.lr_final is not None:
+            self.lr_final *= float(factor)
+
     def rows(self) -> np.ndarray:
         """P [V, 12] on the host."""
         return download(self.P).reshape(self.n_images, ROW)
@@ -268,16 +278,6 @@ class Exposure(_Rows):
                              f"{rows.shape}")
         self.P.set(np.ascontiguousarray(rows.astype(np.float32)))
         self.hold_until = float(hold_until)
-
-    def slow(self, factor: float) -> None:
-        """The rates (first and final) times ``factor`` (a steady capture:
-        clrf/training/calibrate.py)."""
-        if not factor > 0:
-            raise ValueError(f"Exposure.slow: factor > 0, got {factor}")
-        self.lr_start *= float(factor)
-        self.lr = self.lr_start
-        if self.lr_final is not None:
-            self.lr_final *= float(factor)
 
     def recentre(self):
         """Takes the trained rows' geometric mean transform out of them (module doc)."""
@@ -437,10 +437,7 @@ class RayExposure(_Rows):
         """Records the steady check's finding; a steady capture's rates scaled by steady_rate."""
         self.steady, self.spread_seen = bool(steady), float(spread)
         if self.steady:
-            self.lr_start *= self.steady_rate
-            self.lr = self.lr_start
-            if self.lr_final is not None:
-                self.lr_final *= self.steady_rate
+            self.slow(self.steady_rate)
 
     def summary(self) -> dict:
         """The steady check's finding (eval.json ``exposure_correction``), once it was made."""

@@ -123,10 +123,10 @@ class HashConfig:
     #                                 its noisy steps that much less); 1: every step
     pose_opt_rays: int = 64         # rays an image gathers before its camera steps (its
     #                                 gradient summed over the batches meanwhile); 0: a step
-    #                                 every batch the image has rays in. With every 4 and 64
-    #                                 rays: bonsai's quarter 600 s, both corrections 25.40 dB
-    #                                 against 25.24 with 1 and 0; lego_400 with poses off by
-    #                                 1 degree, rotation error -90.0 % (-90.2 % with 1 and 0)
+    #                                 every batch the image has rays in. Bonsai's quarter,
+    #                                 600 s, both corrections: 25.31 dB with 4 and 64 against
+    #                                 25.24 with 1 and 0 (docs/hash.md); lego_400 with poses
+    #                                 off by 1 degree: rotation error -90.0 % (-90.2 %)
     pose_hold_frame: bool = True    # take the corrections' common similarity out every 100
     #                                 steps, so the scene stays in the given poses' frame
     #                                 (as splat.pose_hold_frame; clrf/corrections/pose.py)
