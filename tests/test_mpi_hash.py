@@ -48,8 +48,11 @@ def test_training_steps_keep_the_ranks_identical(tmp_path):
     assert r["losses"][-1] < r["losses"][0]
 
 
+# one periodic view: one process renders as many of train.eval_views as its evaluation time
+# share allows (at least one), ranks render them all, so with 2 a loaded machine compared one
+# view against two (10.96 against 10.99 dB on the fresh-clone CI)
 TRAIN = ["--model", "hash", "--max-seconds", "600", "--set", "train.eval_every=1e6",
-         "--set", "train.eval_views=2", "--set", "hash.perturb=false"]
+         "--set", "train.eval_views=1", "--set", "hash.perturb=false"]
 
 
 @pytest.mark.slow
@@ -66,6 +69,7 @@ def test_clrf_train_hash_over_ranks(tmp_path):
     assert cli(["train", "--out", str(single), *args]) == 0
     rd, rs = _csv(dist / "metrics.csv"), _csv(single / "metrics.csv")
     assert [r["iteration"] for r in rd] == [r["iteration"] for r in rs] == ["0", "12", "12"]
+    assert [r["eval_views"] for r in rd] == [r["eval_views"] for r in rs] == ["1", "1", "8"]
     for a, b in zip(rd, rs):
         if b["train_loss"]:
             np.testing.assert_allclose(float(a["train_loss"]), float(b["train_loss"]),
