@@ -123,14 +123,28 @@
  * (BG_PER_RAY: the MSI) is not in it. Not with BRICK (the distributed grid refuses pose
  * refinement). Twin: clrf/references/reference.py ray_grad.
  *
+ * Per-image colour transform in the loss (RAY_EXPOSURE 1 or 2, GRAD_MODE 1, not BRICK;
+ * grid.exposure, clrf/corrections/exposure.py RayExposure; without the define no line of it
+ * is compiled): ray i belongs to training image v = exp_index[i] / exp_pixels, whose row
+ * exp_rows[v] = (A row-major, b) maps the ray's whole pixel to out = A rgb + b, and the loss
+ * term is |out - target|^2 (RAY_EXPOSURE 2: |clamp(out, 0, 1) - target|^2, a channel with
+ * out outside [0, 1] passing no gradient, as cl/splat_exposure.cl exposure_rays with clip).
+ * Then g = 2 loss_scale A^T r with r = out - target (0 in such a channel), ray_out[i] the
+ * loss term, and the kernel writes what the rows' gradient (exposure_rays_grad) reads: the
+ * state exp_state [n, 8] = (rgb, 1, ...) (the whole pixel, opacity 1) and r to exp_resid
+ * [n, 3]. The same values as rendering the pixel first and handing this backward the target
+ * rgb - A^T r (what the host did before), in one march instead of two.
+ *
  * Defines read: SH_DEGREE (sh.h), T_STOP, GRAD_MODE, GRAD_SLOTS, GRAD_LOCKS, GRAD_MERGE,
- * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, GRID_POSE_GRAD, BLOCK, BLOCK_FINE,
- * COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD, PREFETCH_LINKS_AHEAD
- * (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments that a define leaves
- * unused are not in the signature: ray_out / loss_scale / beta_scale only with GRAD_MODE 1, touched with TRACK_TOUCHED, the slot
- * buffers with GRAD_SLOTS > 0, grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD;
- * with BG_PER_RAY, bg_rays takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER,
- * render_forward and render_backward end with ray_order.
+ * SAMPLE_RECORD, TRACK_TOUCHED, BG_PER_RAY, BRICK, RAY_ORDER, GRID_POSE_GRAD, RAY_EXPOSURE,
+ * BLOCK, BLOCK_FINE, COMPENSATED_SUMS, SH_PER_CORNER, CLRF_PREFETCH, PREFETCH_AHEAD,
+ * PREFETCH_LINKS_AHEAD (march.h), CLRF_HAS_FP64 (ray.h), CLRF_INLINE (common.h). Arguments
+ * that a define leaves unused are not in the signature: ray_out / loss_scale / beta_scale
+ * only with GRAD_MODE 1 (then exp_index / exp_pixels / exp_rows / exp_state / exp_resid with
+ * RAY_EXPOSURE), touched with TRACK_TOUCHED, the slot buffers with GRAD_SLOTS > 0,
+ * grad_locks with GRAD_LOCKS, slot_rec / rec_max with SAMPLE_RECORD; with BG_PER_RAY, bg_rays
+ * takes the place of bg and grad_bg follows grad_sh; with RAY_ORDER, render_forward and
+ * render_backward end with ray_order.
  */
 #include "march.h"
 
@@ -139,6 +153,12 @@
 #endif
 #ifndef GRAD_MODE
 #define GRAD_MODE 0   /* 0: ray_in holds dL/drgb; 1: ray_in holds target rgb, loss = MSE */
+#endif
+#ifndef RAY_EXPOSURE
+#define RAY_EXPOSURE 0   /* 1, 2 (clamped): the per-image colour transform in the loss */
+#endif
+#if RAY_EXPOSURE && (GRAD_MODE != 1 || BRICK)
+#error "RAY_EXPOSURE needs GRAD_MODE 1 and no BRICK"
 #endif
 #ifndef GRAD_SLOTS
 #define GRAD_SLOTS 0     /* > 0: private gradient copies per running work-item (CPU devices),
@@ -467,6 +487,11 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
 #if GRAD_MODE == 1
                               __global float *ray_out, const float loss_scale,
                               const float beta_scale,
+#if RAY_EXPOSURE
+                              __global const int *exp_index, const int exp_pixels,
+                              __global const float *exp_rows, __global float *exp_state,
+                              __global float *exp_resid,
+#endif
 #endif
                               __global float *grad_density, __global float *grad_sh,
 #if BG_PER_RAY
@@ -546,8 +571,29 @@ __kernel void render_backward(const int n_rays, __global const float *origins,
     const float Tend = exp(f.logT);
     const float3 rgb = f.rgb + Tend * BG_OF(i);
 #if GRAD_MODE == 1
+#if RAY_EXPOSURE   /* out = A rgb + b of the ray's image (see the header) */
+    __global const float *ea = exp_rows + (size_t)(exp_index[i] / exp_pixels) * 12;
+    const float3 eo = (float3)(ea[0] * rgb.x + ea[1] * rgb.y + ea[2] * rgb.z + ea[9],
+                               ea[3] * rgb.x + ea[4] * rgb.y + ea[5] * rgb.z + ea[10],
+                               ea[6] * rgb.x + ea[7] * rgb.y + ea[8] * rgb.z + ea[11]);
+    const float3 etg = load3(ray_in, i);
+#if RAY_EXPOSURE == 2   /* the loss sees clamp(out, 0, 1); a clipped channel passes nothing */
+    const float3 es = clamp(eo, 0.0f, 1.0f) - etg;
+    const float3 er = select(eo - etg, (float3)(0.0f),
+                             isless(eo, (float3)(0.0f)) | isgreater(eo, (float3)(1.0f)));
+#else
+    const float3 es = eo - etg, er = es;
+#endif
+    ray_out[i] = dot(es, es);
+    vstore3(er, i, exp_resid);
+    vstore4((float4)(rgb, 1.0f), 2 * i, exp_state);   /* (whole pixel, opacity 1) */
+    const float3 diff = (float3)(ea[0] * er.x + ea[3] * er.y + ea[6] * er.z,   /* A^T r */
+                                 ea[1] * er.x + ea[4] * er.y + ea[7] * er.z,
+                                 ea[2] * er.x + ea[5] * er.y + ea[8] * er.z);
+#else
     const float3 diff = rgb - load3(ray_in, i);
     ray_out[i] = dot(diff, diff);
+#endif
     const float3 g = 2.0f * loss_scale * diff;
     /* Beta prior (Neural Volumes) on the ray's final transmittance T:
      * beta_scale * [log(T + BETA_EPS) + log(1 - T + BETA_EPS)], pushing rays to be clear or

@@ -115,7 +115,7 @@ EVERY_IMPL_MODULES = {
     "test_splat_kernels", "test_splat_loss", "test_sort", "test_splat_exposure",
     "test_splat_pose", "test_splat_antialias", "test_splat_strategy", "test_hash_exposure",
     "test_mlp_gpu", "test_splat_targets", "test_bilateral", "test_hash_pose", "test_ray_pose",
-    "test_nerf_corrections", "test_grid_pose",
+    "test_nerf_corrections", "test_grid_pose", "test_grid_exposure",
 }
 # a slow software device (rusticl's llvmpipe measures ~1 % of PoCL's FMA figure, compiles each
 # program variant for seconds and held 9 GB on the 128^3 test) runs the small kernel-vs-reference

@@ -9,8 +9,8 @@ loss modes with touched marks, the MSI background, bricks, grid ops (TV, resampl
 gather, the ray store's strided read-back, fused loss), the optimisers, encode, sample,
 composite and the fused MLP forward and backward (CPU tiles, and the GPU tiling on a small
 network), the hash encoding's backward and spatial derivative, the hash march (windows, alive
-rays, contraction, each ray's camera gradient), the grid's camera gradient (both shapes),
-the rays of corrected cameras and their
+rays, contraction, each ray's camera gradient), the grid's camera gradient (both shapes) and
+its backward through each ray's image transform, the rays of corrected cameras and their
 per-image camera gradient sums, Adam over spans and over several buffers in one launch, the
 Gaussian splatting projection (forward, backward; anti-aliased; the camera's gradient), the
 density strategies' statistics (default) and regularisers and noise (MCMC), the distributed
@@ -98,6 +98,10 @@ CASES = [
     # the grid's camera gradient (GRID_POSE_GRAD), both backward shapes, SH degree 2
     "tests/test_grid_pose.py::test_ray_grad_matches_twin[default_path-default-2]",
     "tests/test_grid_pose.py::test_ray_grad_matches_twin[gpu_path-default-2]",
+    # the grid backward with each ray's image transform in its loss (RAY_EXPOSURE)
+    "tests/test_grid_exposure.py::"
+    "test_fused_transform_matches_the_twin[default_path-default-bg_per_ray-clip]",
+    "tests/test_grid_exposure.py::test_fused_transform_matches_the_twin[gpu_path-default-bg-plain]",
     "tests/test_hash_kernels.py::test_adam_weight_decay_and_clear_grad",
     "tests/test_hash_kernels.py::test_adam_over_many_spans_in_one_launch",
     "tests/test_hash_kernels.py::test_adam_set_steps_every_buffer_in_one_launch",

@@ -8,6 +8,8 @@ occupancy grid pruned, the batch adapted), not of a fresh model:
     python tools/profile_step.py --ckpt runs/lego400 --steps 40 --json profile.json
     python tools/profile_step.py --ckpt runs/lego400 --set hash.train_t_stop=0   # without
     python tools/profile_step.py --ckpt runs/lego400 --bounded on   # sizes kept on the device
+    python tools/profile_step.py --ckpt runs/grid_exp --exposure-two-pass   # grid.exposure's
+                                                                 # step before its one march
 
 Each clrf launch (``pyopencl.enqueue_nd_range_kernel``) is followed by ``queue.finish()``,
 which serialises what an in-order queue does anyway; on a CPU device the per-launch wait adds a few microseconds. The step total is timed
@@ -73,6 +75,10 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="hash.FIELD=VALUE",
                     help="profile with a hash model option changed (e.g. hash.train_t_stop=0 "
                          "or hash.batch_samples=262144); repeatable")
+    ap.add_argument("--exposure-two-pass", action="store_true",
+                    help="a grid model with grid.exposure: render each batch first and run "
+                         "the backward on the transformed target (the step a camera step "
+                         "takes) instead of the transform inside the backward's one march")
     a = ap.parse_args(argv)
 
     from clrf.runtime.device import Device
@@ -92,6 +98,10 @@ def main(argv=None):
     it0 = int(state.get("iteration", 0))
     if a.set:                    # the untimed steps below adapt the batch to it
         model.config = changed_config(model, a.set)
+    if a.exposure_two_pass:
+        if not hasattr(model, "exposure_in_backward"):
+            raise SystemExit(f"--exposure-two-pass: the {model.kind} model has no such step")
+        model.exposure_in_backward = False
     if a.bounded != "auto":
         if not hasattr(model, "bounded"):
             raise SystemExit(f"--bounded: the {model.kind} model has no bounded step")

@@ -56,6 +56,8 @@ that pass's gradient for the one Adam step of ``backward_and_step``.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pyopencl.array as cla
 
@@ -64,9 +66,22 @@ from ..runtime.optim import ADAM_BETAS, ADAM_EPS, Optimizer, expon_lr
 from ..runtime.programs import download, float4, launch, scratch, upload
 from .base import COLOUR, RAYS, VIEWS
 
+STATE = 8                # floats per ray of the composite state the ray kernels read
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
 LOCAL = 64               # cl/splat_exposure.cl EXPOSURE_LS (exposure_rays_grad's work-group)
 RECENTRE_EVERY = 100     # RayExposure: steps between recentrings
+
+
+class RayTransform(NamedTuple):
+    """``RayExposure.in_backward``'s record: each ray's place in the training images (int32
+    device [n]), pixels per image, the rows P [V, 12] (device), the state [n, STATE] and
+    residuals [n, 3] (device) the renderer writes, and whether the loss clamps to [0, 1]."""
+    index: cla.Array
+    pixels: int
+    rows: cla.Array
+    state: cla.Array
+    resid: cla.Array
+    clip: bool
 
 
 def gain_spread(rows) -> float:
@@ -363,6 +378,18 @@ class RayExposure(_Rows):
                 target.data, self.P.data, self._resid.data, eff.data, sq.data,
                 self._bgt.data))
         return eff, sq
+
+    def in_backward(self, index):
+        """What a renderer that applies the transform inside its own backward needs (the grid:
+        cl/grid_render.cl RAY_EXPOSURE, one march where ``forward`` needs a rendered pixel
+        first), for a batch of whole pixels (opacity 1, the background in them): a
+        ``RayTransform`` whose ``state`` [n, 8] and ``resid`` [n, 3] the renderer writes, as
+        ``forward`` would have from the same pixels; ``backward_and_step`` then reads them."""
+        n = int(index.shape[0])
+        self._resid = scratch(self.device, (n, 3))
+        self._bgt = None
+        return RayTransform(index, self.pixels, self.P, scratch(self.device, (n, STATE)),
+                            self._resid, self.clip)
 
     def behind(self, background, index):
         """[n, 3] device: each ray's background A_v^-1 (bg - b_v) (cl/splat_exposure.cl

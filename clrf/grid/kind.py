@@ -114,6 +114,11 @@ def programs(device, cfg):
                          ray_order=order)
             # grid.pose_opt: each ray's camera gradient (listed always, as the hash's)
             grid_program(g, 1, step=c.step, bg_per_ray=bg, ray_order=order, pose_grad=True)
+            # grid.exposure's one-march backward, plain and clamped (listed always), on each
+            # ray's own background (an RGBA capture's, or the MSI's)
+            for clip in (1, 2):
+                grid_program(g, 1, True, step=c.step, slots=slots, record=record,
+                             bg_per_ray=True, ray_order=order, exposure=clip)
         if bg:
             grid_program(g, step=c.step, bg_per_ray=True)              # ray_exit
         bricks._program(g, c.step)                                     # MPI ranks

@@ -19,16 +19,20 @@ training image index[i] // pixels, so training steps take ``index``):
 - ``grid.exposure`` (RayExposure): the loss compares out = A_v pixel + b_v with the target,
   where pixel = C + T_end bg is the ray's whole render (the MSI's colour included). The
   transform acts on the pixel as rendered, so the correction is given the composite state
-  (pixel, opacity 1): T = 0, nothing behind for it to add (``pixel_state``). Its ``forward``
-  returns eff = pixel - A^T r (r = out - target), and the fused backward run with GRAD_MODE 1
-  on eff and the same background gives g = 2 s (pixel - eff) = 2 s A^T r = dL/dpixel: every
-  gradient of the grid (and the MSI's) through the transform, the beta prior unchanged, with
-  no kernel of its own. ``add_background`` has nothing to add (T = 0). Costs one forward
-  render a step. A masked (RGBA) capture, whose transform must leave the composited
-  background bg alone (out = A C + (1 - T) b + T bg), renders each ray on bg'_v = A_v^-1 (bg -
-  b_v) instead (RayExposure.behind): then A_v (C + T bg'_v) + b_v is that out exactly, and the
-  same backward, on bg', gives every gradient, the background's share of the densities'
-  included, as the splat model's masked exposure does with whole views.
+  (pixel, opacity 1): T = 0, nothing behind for it to add. The fused backward, built with
+  RAY_EXPOSURE (``RayExposure.in_backward``), applies each ray's transform to the pixel it
+  has just marched and takes g = 2 s A^T r = dL/dpixel (r = out - target): every gradient of
+  the grid (and the MSI's) through the transform, the beta prior unchanged, in the one march
+  of a step without the correction; it writes the state and r that the rows' step reads. On
+  a step where the camera takes one too (grid.pose_opt), render_ray_grad needs a target
+  instead: the pixel is rendered first (``pixel_state``), the correction's ``forward``
+  returns eff = pixel - A^T r, and the backward on eff gives g = 2 s (pixel - eff), the same
+  gradient, at one more forward render. A masked (RGBA) capture, whose transform must leave
+  the composited background bg alone (out = A C + (1 - T) b + T bg), renders each ray on
+  bg'_v = A_v^-1 (bg - b_v) instead (RayExposure.behind): then A_v (C + T bg'_v) + b_v is
+  that out exactly, and the same backward, on bg', gives every gradient, the background's
+  share of the densities' included, as the splat model's masked exposure does with whole
+  views.
 """
 from __future__ import annotations
 
@@ -97,6 +101,9 @@ class GridModel:
         # the step's loss stays on the device until read (GPUs; train_step)
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.corrections = Corrections()   # per-image corrections (attach_corrections)
+        # grid.exposure's transform inside the backward's one march (train_step); False takes
+        # the two-pass step on every step (tools/profile_step.py --exposure-two-pass)
+        self.exposure_in_backward = True
         self.progress = 0.0         # the budget fraction reached (on_iteration)
         self._set_grid(grid, opt_state)
 
@@ -184,7 +191,12 @@ class GridModel:
         eff = target
         if colour is not None and colour.masked:   # each ray on A_v^-1 (bg - b_v) (module doc)
             bg = colour.behind(bg, index)
-        if colour is not None:   # the backward's target whose gradient is the transform's
+        # the transform in the backward's own loss (one march: cl/grid_render.cl
+        # RAY_EXPOSURE), but where the camera takes a step: render_ray_grad then needs the
+        # target whose gradient is the transform's, from the pixel rendered first
+        fused = colour is not None and ray_grad is None and self.exposure_in_backward
+        xf = colour.in_backward(index) if fused else None
+        if colour is not None and not fused:
             pixel = render_forward_device(self.grid, origins, dirs, c.step, bg)["rgb"]
             state = pixel_state(self.device, pixel, device_empty(q, (B, STATE), np.float32))
             eff, sq_rays = colour.forward(state, (0.0, 0.0, 0.0), target, index)
@@ -192,7 +204,9 @@ class GridModel:
             self.grid, origins, dirs, eff, c.step, bg, self.opt_density.grad, self.opt_sh.grad,
             grad_mode=1, loss_scale=scale, ray_out=self._sqerr, touched=self.touched,
             beta_scale=c.lambda_beta / B, grad_bg=None if bgm is None else bgm.grad_buffer(B),
-            ray_grad=ray_grad)
+            ray_grad=ray_grad, exposure=xf)
+        if fused:
+            state, sq_rays = xf.state, self._sqerr
         if bgm is not None:
             bgm.backward_step(it, origins, dirs, t_start, grad_bg)
         if colour is not None:
@@ -204,8 +218,8 @@ class GridModel:
         lr_d, lr_s = self.learning_rates(it)
         self.opt_density.step(self.touched, lr_d, clear_touched=False)
         self.opt_sh.step(self.touched, lr_s, clear_touched=True, columns=self.sh_columns())
-        # the loss's squared errors: the transformed pixels' with grid.exposure (_sqerr then
-        # holds |pixel - eff|^2, the backward's own)
+        # the loss's squared errors: the transformed pixels' with grid.exposure (unfused,
+        # _sqerr holds |pixel - eff|^2, the backward's own)
         loss = cla.sum(self._sqerr if colour is None else sq_rays, queue=q)
         if self.defer_loss:
             return Pending(q, loss, scale)

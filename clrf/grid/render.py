@@ -38,17 +38,20 @@ def check_step(grid, step) -> float:
 def grid_program(grid, grad_mode: int = 0, track_touched: bool = False, t_stop: float = T_STOP,
                  slots: int = 0, step: float = 0.5, record: bool = False,
                  bg_per_ray: bool = False, brick: bool = False, ray_order: bool = False,
-                 pose_grad: bool = False):
+                 pose_grad: bool = False, exposure: int = 0):
     """cl/grid_render.cl built for this grid and the device's tuning (slots: GRAD_SLOTS;
     record: the backward reads the forward's per-sample record, needs slots > 0; bg_per_ray:
     a background colour per ray, BG_PER_RAY; brick: the BRICK variant for one brick of a
     distributed grid, clrf/grid/bricks.py, built with t_stop 0; ray_order: the render kernels
     take a ray permutation, RAY_ORDER; pose_grad: also render_ray_grad, each ray's
-    dL/d(origin, direction), GRID_POSE_GRAD, for grid.pose_opt). The constant-background build
-    has no BG_PER_RAY define at all, so it is the same program as before per-ray backgrounds;
-    likewise RAY_ORDER and GRID_POSE_GRAD."""
+    dL/d(origin, direction), GRID_POSE_GRAD, for grid.pose_opt; exposure: 1, or 2 clamped,
+    the backward's loss through each ray's image transform, RAY_EXPOSURE, for grid.exposure).
+    The constant-background build has no BG_PER_RAY define at all, so it is the same program
+    as before per-ray backgrounds; likewise RAY_ORDER, GRID_POSE_GRAD and RAY_EXPOSURE."""
     t = grid.device.tuning
     extra = {"BG_PER_RAY": 1} if bg_per_ray else {}
+    if exposure:
+        extra["RAY_EXPOSURE"] = int(exposure)
     if ray_order:
         extra["RAY_ORDER"] = 1
     if pose_grad:
@@ -250,7 +253,8 @@ def ray_exit_device(grid, origins_d, dirs_d, step, out=None):
 
 def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, grad_density,
                            grad_sh, grad_mode=0, loss_scale=1.0, ray_out=None, touched=None,
-                           beta_scale=0.0, grad_bg=None, t_stop=T_STOP, ray_grad=None):
+                           beta_scale=0.0, grad_bg=None, t_stop=T_STOP, ray_grad=None,
+                           exposure=None):
     """Add the gradients of one batch into grad_density [N] / grad_sh [N, C] (device arrays).
 
     grad_mode 0: ray_in_d holds dL/drgb. grad_mode 1: ray_in_d holds target colours, the loss
@@ -264,6 +268,11 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
     ray_grad (float32 device [n, 6], overwritten, or None): each ray's dL/d(origin,
     direction) of the same loss, sample distances held (cl/grid_render.cl render_ray_grad, in
     the GRID_POSE_GRAD build, launched after the backward).
+    exposure (grad_mode 1, no ray_grad): a ``RayTransform`` (clrf/corrections/exposure.py
+    ``RayExposure.in_backward``): the loss compares each ray's pixel under its image's
+    transform, A rgb + b (clamped to [0, 1] with its clip), with the target; ray_out gets that
+    loss's terms, and its state and resid what the rows' gradient reads (cl/grid_render.cl
+    RAY_EXPOSURE).
     """
     dev = grid.device
     n = origins_d.shape[0]
@@ -277,9 +286,13 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
                                  or not ray_grad.flags.c_contiguous):
         raise ValueError(f"ray_grad: a contiguous float32 device array of shape ({n}, 6), got "
                          f"{ray_grad.dtype} {ray_grad.shape}")
+    if exposure is not None and (grad_mode != 1 or ray_grad is not None):
+        raise ValueError("exposure: the transform in the backward needs grad_mode 1 and no "
+                         "ray_grad")
     prg = grid_program(grid, grad_mode, touched is not None, t_stop=t_stop, slots=slots,
                        step=step, record=record, bg_per_ray=per_ray,
-                       ray_order=order is not None)
+                       ray_order=order is not None,
+                       exposure=0 if exposure is None else 1 + bool(exposure.clip))
     args = [np.int32(n), origins_d.data, dirs_d.data, grid.links.data, grid.density.data,
             grid.sh.data, *grid.geometry_args(), np.float32(step), _bg_arg(background, n),
             ray_in_d.data]
@@ -289,6 +302,9 @@ def render_backward_device(grid, origins_d, dirs_d, ray_in_d, step, background, 
         if ray_out is None:
             ray_out = device_empty(dev.queue, max(n, 1), np.float32)
         args += [ray_out.data, np.float32(loss_scale), np.float32(beta_scale)]
+    if exposure is not None:
+        args += [exposure.index.data, np.int32(exposure.pixels), exposure.rows.data,
+                 exposure.state.data, exposure.resid.data]
     args += [grad_density.data, grad_sh.data]
     if per_ray:
         if grad_bg is None:
