@@ -99,9 +99,9 @@ def main(argv=None):
     if a.set:                    # the untimed steps below adapt the batch to it
         model.config = changed_config(model, a.set)
     if a.exposure_two_pass:
-        if not hasattr(model, "exposure_in_backward"):
+        if not hasattr(model, "colour_in_backward"):
             raise SystemExit(f"--exposure-two-pass: the {model.kind} model has no such step")
-        model.exposure_in_backward = False
+        model.colour_in_backward = False
     if a.bounded != "auto":
         if not hasattr(model, "bounded"):
             raise SystemExit(f"--bounded: the {model.kind} model has no bounded step")

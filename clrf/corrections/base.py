@@ -112,6 +112,11 @@ class RayColourCorrection(Correction, Protocol):
         """(the target to give the renderer's backward [n, 3], each ray's squared residual
         [n]) of the rays' composite ``state`` on ``background``."""
 
+    def in_backward(self, index):
+        """Its inputs for a renderer that applies it inside its own backward, on whole
+        pixels (the grid, cl/grid_render.cl RAY_EXPOSURE): a record of what the kernel reads
+        and the state and residuals it writes in place of ``forward``'s."""
+
     def add_background(self, pk, sigma, loss_scale: float, dsigma) -> None:
         """Adds the background's share of dL/dsigma to ``dsigma`` (the backward ran on
         black); ``pk`` the rays' samples: n, m, offsets [n + 1] and segment lengths dt [m]

@@ -101,9 +101,9 @@ class GridModel:
         # the step's loss stays on the device until read (GPUs; train_step)
         self.defer_loss = bool(getattr(device.tuning, "gpu_kernels", False))
         self.corrections = Corrections()   # per-image corrections (attach_corrections)
-        # grid.exposure's transform inside the backward's one march (train_step); False takes
+        # a ray colour correction inside the backward's one march (train_step); False takes
         # the two-pass step on every step (tools/profile_step.py --exposure-two-pass)
-        self.exposure_in_backward = True
+        self.colour_in_backward = True
         self.progress = 0.0         # the budget fraction reached (on_iteration)
         self._set_grid(grid, opt_state)
 
@@ -194,7 +194,7 @@ class GridModel:
         # the transform in the backward's own loss (one march: cl/grid_render.cl
         # RAY_EXPOSURE), but where the camera takes a step: render_ray_grad then needs the
         # target whose gradient is the transform's, from the pixel rendered first
-        fused = colour is not None and ray_grad is None and self.exposure_in_backward
+        fused = colour is not None and ray_grad is None and self.colour_in_backward
         xf = colour.in_backward(index) if fused else None
         if colour is not None and not fused:
             pixel = render_forward_device(self.grid, origins, dirs, c.step, bg)["rgb"]

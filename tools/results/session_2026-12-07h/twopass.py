@@ -10,7 +10,7 @@ _init = gm.GridModel.__init__
 
 def init(self, *a, **k):
     _init(self, *a, **k)
-    self.exposure_in_backward = False
+    self.colour_in_backward = False
 
 
 gm.GridModel.__init__ = init
