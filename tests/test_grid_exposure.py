@@ -107,7 +107,8 @@ def test_one_march_is_the_two_pass_step(render_device, clip):
     RayExposure.forward's target eff = pixel - A^T r, the backward of eff without the
     transform) gives the grid, the loss terms and the rows the one-march step's values."""
     from clrf.corrections.exposure import RayExposure
-    from clrf.grid.model import STATE, pixel_state
+    from clrf.corrections import RAY_STATE as STATE
+    from clrf.grid.model import pixel_state
     from clrf.grid.render import render_backward_device, render_forward_device
     rng = np.random.default_rng(67 + clip)
     dens, sh = random_grid(rng, (6, 5, 4), 2, empty_frac=0.25)

@@ -18,7 +18,7 @@ the float64 references and the model interface, never a representation, and a mo
 list's hooks, never a correction by name (tests/test_layers.py). Importing the package imports
 no correction (settings.py says why).
 """
-from .base import (CAMERA, COLOUR, NONE, PROTOCOLS, RAYS, VIEWS, CameraCorrection,  # noqa: F401
-                   Correction, Corrections, RayCameraCorrection, RayColourCorrection,
-                   ViewColourCorrection, of)
+from .base import (CAMERA, COLOUR, NONE, PROTOCOLS, RAY_STATE, RAYS, VIEWS,  # noqa: F401
+                   CameraCorrection, Correction, Corrections, RayCameraCorrection,
+                   RayColourCorrection, ViewColourCorrection, of)
 from .settings import EXPOSURE_MATRICES, Views, build, clip_mode, from_state  # noqa: F401

@@ -28,6 +28,8 @@ from typing import Optional, Protocol, runtime_checkable
 
 CAMERA, COLOUR = "camera", "colour"       # Correction.changes
 VIEWS, RAYS = "views", "rays"             # Correction.batches (as Kind.batches)
+RAY_STATE = 8   # floats per ray of the composite state a RayColourCorrection reads (colour c,
+#                 opacity a, then unread entries: cl/splat_exposure.cl's stride)
 
 
 @runtime_checkable

@@ -64,9 +64,8 @@ import pyopencl.array as cla
 from ..references.reference_exposure import IDENTITY, MATRICES, ROW, fit_row, recentre
 from ..runtime.optim import ADAM_BETAS, ADAM_EPS, Optimizer, expon_lr
 from ..runtime.programs import download, float4, launch, scratch, upload
-from .base import COLOUR, RAYS, VIEWS
+from .base import COLOUR, RAY_STATE, RAYS, VIEWS
 
-STATE = 8                # floats per ray of the composite state the ray kernels read
 CHUNK = 256              # pixels per work-item of exposure_backward (its partial sums)
 LOCAL = 64               # cl/splat_exposure.cl EXPOSURE_LS (exposure_rays_grad's work-group)
 RECENTRE_EVERY = 100     # RayExposure: steps between recentrings
@@ -74,8 +73,9 @@ RECENTRE_EVERY = 100     # RayExposure: steps between recentrings
 
 class RayTransform(NamedTuple):
     """``RayExposure.in_backward``'s record: each ray's place in the training images (int32
-    device [n]), pixels per image, the rows P [V, 12] (device), the state [n, STATE] and
-    residuals [n, 3] (device) the renderer writes, and whether the loss clamps to [0, 1]."""
+    device [n]), pixels per image, the rows P [V, 12] (device), the state [n, RAY_STATE]
+    and residuals [n, 3] (device) the renderer writes, and whether the loss clamps to
+    [0, 1]."""
     index: cla.Array
     pixels: int
     rows: cla.Array
@@ -388,8 +388,8 @@ class RayExposure(_Rows):
         n = int(index.shape[0])
         self._resid = scratch(self.device, (n, 3))
         self._bgt = None
-        return RayTransform(index, self.pixels, self.P, scratch(self.device, (n, STATE)),
-                            self._resid, self.clip)
+        state = scratch(self.device, (n, RAY_STATE))
+        return RayTransform(index, self.pixels, self.P, state, self._resid, self.clip)
 
     def behind(self, background, index):
         """[n, 3] device: each ray's background A_v^-1 (bg - b_v) (cl/splat_exposure.cl

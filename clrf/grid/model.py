@@ -40,7 +40,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
-from ..corrections import RAYS, Corrections, Views, build, from_state
+from ..corrections import RAY_STATE, RAYS, Corrections, Views, build, from_state
 from . import ops as grid_ops
 from .config import GridConfig
 from .background import GridBackground
@@ -67,19 +67,18 @@ def initial_grid(device, cfg: GridConfig, bbox) -> SparseGrid:
                                   np.zeros((n, sh_dim(cfg.sh_degree)), np.float32), bbox)
 
 
-STATE = 8   # floats per ray of the composite state RayExposure reads (cl/splat_exposure.cl)
 
 
 def pixel_state(device, rgb, out):
-    """``out`` [n, STATE] (device): the composite state RayExposure reads of whole pixels rgb
-    [n, 3] (device), their colour and opacity 1 (T = 0: the background is in the pixel); the
+    """``out`` [n, RAY_STATE] (device): the composite state RayExposure reads of whole pixels
+    rgb [n, 3] (device), their colour and opacity 1 (T = 0: the background is in the pixel); the
     other entries, which it does not read, 1. One fill and one strided copy, no kernel."""
     n = int(rgb.shape[0])
     out.fill(np.float32(1.0))
     if n:
         cl.enqueue_copy(device.queue, out.data, rgb.data, src_origin=(0, 0, 0),
                         dst_origin=(0, 0, 0), region=(12, n, 1), src_pitches=(12, 12 * n),
-                        dst_pitches=(4 * STATE, 4 * STATE * n))
+                        dst_pitches=(4 * RAY_STATE, 4 * RAY_STATE * n))
     return out
 
 
@@ -198,7 +197,8 @@ class GridModel:
         xf = colour.in_backward(index) if fused else None
         if colour is not None and not fused:
             pixel = render_forward_device(self.grid, origins, dirs, c.step, bg)["rgb"]
-            state = pixel_state(self.device, pixel, device_empty(q, (B, STATE), np.float32))
+            state = pixel_state(self.device, pixel,
+                                device_empty(q, (B, RAY_STATE), np.float32))
             eff, sq_rays = colour.forward(state, (0.0, 0.0, 0.0), target, index)
         grad_bg = render_backward_device(
             self.grid, origins, dirs, eff, c.step, bg, self.opt_density.grad, self.opt_sh.grad,
